@@ -1,0 +1,25 @@
+"""torchsvs: smooth variable structure estimation in PyTorch.
+
+Batched, differentiable state estimators as ``nn.Module`` s: the Kalman filter and RTS smoother,
+the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable boundary layer ψ
+and memory γ. See ``torchsvs.types`` for the shape conventions.
+"""
+
+from torchsvs import metrics, models, scenarios
+from torchsvs.filters import SVSF, FiniteDifferenceVelocity, KalmanFilter
+from torchsvs.smoothers import SVSS, RTSSmoother
+from torchsvs.types import FilterResult, SmootherResult
+
+__all__ = [
+    "SVSF",
+    "SVSS",
+    "FilterResult",
+    "FiniteDifferenceVelocity",
+    "KalmanFilter",
+    "RTSSmoother",
+    "SmootherResult",
+    "metrics",
+    "models",
+    "scenarios",
+]
+__version__ = "0.1.0"

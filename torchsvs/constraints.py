@@ -1,0 +1,96 @@
+"""Constrained parameters stored unconstrained, so an optimiser can move them freely.
+
+* ψ > 0 (boundary layer): stored as ``log ψ``.
+* 0 ≤ γ < 1 (memory): stored as ``logit γ`` when learnable. A learnable γ lives in the open
+  interval (0, 1); asking for exactly 0 starts it at ``MIN_LEARNABLE_GAMMA``. With ``learn=False``
+  the value is kept exactly (0 included) as a buffer.
+* SPD matrices (Q, R): stored as a lower Cholesky factor with log-diagonal.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+MIN_LEARNABLE_GAMMA = 1e-6
+
+ArrayLike = float | Sequence[float] | Tensor
+
+
+def as_tensor(value: ArrayLike, name: str) -> Tensor:
+    """A float tensor from a number, sequence or tensor (float64 stays float64)."""
+    if isinstance(value, Tensor):
+        if not value.is_floating_point():
+            value = value.to(torch.get_default_dtype())
+        return value.detach().clone()
+    try:
+        return torch.as_tensor(value, dtype=torch.get_default_dtype())
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name}: expected a number, a sequence of numbers or a tensor") from err
+
+
+class _Constrained(nn.Module):
+    """Holds ``raw`` as a parameter (learn=True) or buffer and maps it to the constrained value."""
+
+    def __init__(self, raw: Tensor, learn: bool) -> None:
+        super().__init__()
+        if learn:
+            self.raw = nn.Parameter(raw)
+        else:
+            self.register_buffer("raw", raw)
+
+    def forward(self) -> Tensor:
+        raise NotImplementedError
+
+
+class Positive(_Constrained):
+    """A positive tensor stored as its logarithm (``value = exp(raw)``)."""
+
+    def __init__(self, value: ArrayLike, name: str, learn: bool = True) -> None:
+        v = as_tensor(value, name)
+        if not bool(torch.isfinite(v).all()) or bool((v <= 0).any()):
+            raise ValueError(f"{name}: expected finite values > 0, got {v.tolist()}")
+        super().__init__(v.log(), learn)
+
+    def forward(self) -> Tensor:
+        return self.raw.exp()
+
+
+class UnitInterval(_Constrained):
+    """A tensor in [0, 1): ``sigmoid(raw)`` when learnable, the exact value as a buffer otherwise."""
+
+    def __init__(self, value: ArrayLike, name: str, learn: bool = True) -> None:
+        v = as_tensor(value, name)
+        if not bool(torch.isfinite(v).all()) or bool((v < 0).any()) or bool((v >= 1).any()):
+            raise ValueError(f"{name}: expected values in [0, 1), got {v.tolist()}")
+        self.learn = learn
+        super().__init__(torch.logit(v.clamp_min(MIN_LEARNABLE_GAMMA)) if learn else v, learn)
+
+    def forward(self) -> Tensor:
+        return torch.sigmoid(self.raw) if self.learn else self.raw
+
+
+class SPDMatrix(_Constrained):
+    """A symmetric positive definite matrix ``L Lᵀ`` stored through its Cholesky factor ``L``.
+
+    ``raw`` holds ``L`` with its diagonal replaced by ``log diag(L)``, so every value of ``raw``
+    maps to an SPD matrix.
+    """
+
+    def __init__(self, value: ArrayLike, name: str, learn: bool = True) -> None:
+        M = as_tensor(value, name)
+        if M.ndim != 2 or M.shape[0] != M.shape[1]:
+            raise ValueError(f"{name}: expected a square matrix, got shape {tuple(M.shape)}")
+        if not bool(torch.isfinite(M).all()) or not torch.allclose(M, M.mT, rtol=1e-6, atol=0):
+            raise ValueError(f"{name}: expected a finite symmetric matrix")
+        L, info = torch.linalg.cholesky_ex(M)
+        if int(info) != 0:
+            raise ValueError(f"{name}: expected a positive definite matrix")
+        raw = L.tril(-1) + torch.diag_embed(L.diagonal().log())
+        super().__init__(raw, learn)
+
+    def forward(self) -> Tensor:
+        L = self.raw.tril(-1) + torch.diag_embed(self.raw.diagonal().exp())
+        return L @ L.mT

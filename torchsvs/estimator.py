@@ -1,0 +1,196 @@
+"""The call contract shared by every estimator: input checks, the batch axis, the result.
+
+``est(z, x0, P0, *, u=None, dt=None, psi=None, generator=None)`` checks its inputs here once,
+adds the batch axis to a single track, runs the estimator on ``[B, T, ...]`` tensors and drops
+the batch axis again from the result. Bad input raises ``ValueError``/``TypeError`` naming the
+argument, its shape and what was expected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from numbers import Real
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchsvs.models.base import LinearModel
+
+
+@dataclass
+class Inputs:
+    """Checked, batched inputs of one call (``B`` tracks, ``T`` steps)."""
+
+    z: Tensor  #: [B, T, m], NaN where missing
+    x0: Tensor  #: [B, n]
+    P0: Tensor  #: [B, n, n]
+    dt: Tensor | None  #: None (model's own), 0-d, or [B, T]
+    psi: Tensor | None  #: per-step boundary layer override [B, T, m'] (checked by the SVSF)
+    generator: torch.Generator | None
+    single: bool  #: the caller passed one track without the batch axis
+
+    @property
+    def batch(self) -> int:
+        return self.z.shape[0]
+
+    @property
+    def steps(self) -> int:
+        return self.z.shape[1]
+
+
+def _shape(x: Any) -> str:
+    return str(tuple(x.shape)) if isinstance(x, Tensor) else type(x).__name__
+
+
+def _as_float_tensor(value: Any, name: str, dtype: torch.dtype) -> Tensor:
+    if isinstance(value, Tensor):
+        if not (value.is_floating_point() or value.dtype in (torch.int32, torch.int64)):
+            raise TypeError(f"{name}: expected a real tensor, got dtype {value.dtype}")
+        return value.to(dtype)
+    try:
+        return torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name}: expected a tensor, got {type(value).__name__}") from err
+
+
+def prepare_inputs(
+    model: LinearModel,
+    z: Any,
+    x0: Any,
+    P0: Any,
+    *,
+    u: Any = None,
+    dt: Any = None,
+    psi: Any = None,
+    generator: torch.Generator | None = None,
+) -> Inputs:
+    """Checks every argument of an estimator call against ``model`` and adds the batch axis."""
+    n, m = model.state_dim, model.meas_dim
+    if not isinstance(z, Tensor):
+        raise TypeError(f"z: expected a tensor [B, T, {m}] or [T, {m}], got {type(z).__name__}")
+    if z.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"z: expected float32 or float64, got {z.dtype}")
+    if z.ndim not in (2, 3) or z.shape[-1] != m or z.shape[-2] < 1:
+        raise ValueError(f"z: expected shape [B, T, {m}] or [T, {m}] with T >= 1, got {_shape(z)}")
+    if bool(torch.isinf(z).any()):
+        raise ValueError("z: contains inf; mark a missing measurement with NaN instead")
+    dtype, single = z.dtype, z.ndim == 2
+    zb = z.unsqueeze(0) if single else z
+    B, T = zb.shape[:2]
+
+    x0 = _as_float_tensor(x0, "x0", dtype)
+    if x0.shape == (n,):
+        x0 = x0.expand(B, n)
+    elif x0.shape != (B, n) or single:
+        want = f"[{n}]" if single else f"[{B}, {n}] or [{n}]"
+        raise ValueError(f"x0: expected shape {want}, got {_shape(x0)}")
+    if not bool(torch.isfinite(x0).all()):
+        raise ValueError("x0: contains NaN or inf")
+
+    P0 = _as_float_tensor(P0, "P0", dtype)
+    if P0.shape == (n, n):
+        P0 = P0.expand(B, n, n)
+    elif P0.shape != (B, n, n) or single:
+        want = f"[{n}, {n}]" if single else f"[{B}, {n}, {n}] or [{n}, {n}]"
+        raise ValueError(f"P0: expected shape {want}, got {_shape(P0)}")
+    if not bool(torch.isfinite(P0).all()):
+        raise ValueError("P0: contains NaN or inf")
+    scale = P0.abs().amax().clamp_min(torch.finfo(dtype).tiny)
+    if bool(((P0 - P0.mT).abs() > 1e3 * torch.finfo(dtype).eps * scale).any()):
+        raise ValueError(f"P0: expected a symmetric matrix, shape {_shape(P0)}")
+    if bool((torch.linalg.cholesky_ex(P0).info > 0).any()):
+        raise ValueError(f"P0: expected a positive definite matrix, shape {_shape(P0)}")
+
+    if u is not None:
+        raise ValueError(f"u: {type(model).__name__} takes no control input; expected None")
+    dt_t = _check_dt(model, dt, B, T, single, dtype)
+    psi_t = None
+    if psi is not None:
+        psi_t = _as_float_tensor(psi, "psi", dtype)
+        if single:
+            psi_t = psi_t.unsqueeze(0)
+        if psi_t.ndim != 3 or psi_t.shape[:2] != (B, T):
+            want = "[T, m]" if single else f"[{B}, {T}, m]"
+            raise ValueError(f"psi: expected a per-step override of shape {want}, got {_shape(psi)}")
+        if not bool(torch.isfinite(psi_t).all()) or bool((psi_t <= 0).any()):
+            raise ValueError("psi: expected finite boundary layer widths > 0")
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
+    return Inputs(zb, x0, P0, dt_t, psi_t, generator, single)
+
+
+def _check_dt(
+    model: LinearModel, dt: Any, B: int, T: int, single: bool, dtype: torch.dtype
+) -> Tensor | None:
+    if dt is None:
+        return None
+    if not model.uses_dt:
+        raise ValueError(f"dt: {type(model).__name__} has fixed matrices; expected dt=None")
+    if isinstance(dt, Real) and not isinstance(dt, bool):
+        dt = torch.tensor(float(dt), dtype=dtype)
+    dt_t = _as_float_tensor(dt, "dt", dtype)
+    if single and dt_t.ndim == 1:
+        dt_t = dt_t.unsqueeze(0)
+    if dt_t.ndim != 0 and dt_t.shape != (B, T):
+        want = "a scalar or [T]" if single else f"a scalar or [{B}, {T}]"
+        raise ValueError(f"dt: expected {want}, got {_shape(dt)}")
+    if not bool(torch.isfinite(dt_t).all()) or bool((dt_t <= 0).any()):
+        raise ValueError("dt: expected finite intervals > 0")
+    return dt_t
+
+
+def drop_batch(result: Any) -> Any:
+    """Removes the leading batch axis (of size 1) from every tensor of a result NamedTuple."""
+    fields = []
+    for value in result:
+        if isinstance(value, Tensor):
+            value = value.squeeze(0)
+        elif isinstance(value, tuple):
+            value = drop_batch(value)
+        fields.append(value)
+    return type(result)(*fields)
+
+
+class Estimator(nn.Module):
+    """Base of every filter and smoother: ``forward`` checks inputs, ``run`` does the work.
+
+    Subclasses implement :meth:`run` on checked, batched :class:`Inputs`. Nothing about a run is
+    stored on the module.
+    """
+
+    model: LinearModel
+
+    def forward(
+        self,
+        z: Tensor,
+        x0: Tensor,
+        P0: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Any:
+        """Estimates the states of every track.
+
+        Args:
+            z: measurements ``[B, T, m]`` (or ``[T, m]``); NaN marks a missing component.
+            x0: prior mean one step before ``z[:, 0]``, ``[B, n]`` or ``[n]``.
+            P0: prior covariance, ``[B, n, n]`` or ``[n, n]``, symmetric positive definite.
+            u: control inputs ``[B, T, p]``; the linear models take none.
+            dt: per-step intervals, a scalar or ``[B, T]``, for models whose F and Q depend on it.
+            psi: per-step boundary layer override ``[B, T, m]`` for SVSF-based estimators.
+            generator: source of randomness for stochastic estimators.
+
+        Returns:
+            A :class:`~torchsvs.types.FilterResult` or :class:`~torchsvs.types.SmootherResult`.
+        """
+        inputs = prepare_inputs(
+            self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator
+        )
+        result = self.run(inputs)
+        return drop_batch(result) if inputs.single else result
+
+    def run(self, inputs: Inputs) -> Any:
+        raise NotImplementedError

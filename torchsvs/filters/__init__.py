@@ -1,0 +1,7 @@
+"""Filters: how we estimate x_t from z_1..z_t."""
+
+from torchsvs.filters.artificial import FiniteDifferenceVelocity
+from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
+from torchsvs.filters.svsf import SVSF
+
+__all__ = ["SVSF", "FiniteDifferenceVelocity", "GaussianFilter", "KalmanFilter"]

@@ -1,0 +1,66 @@
+"""Artificial measurements: full-state pseudo-measurements built from the measurement history.
+
+When the state has more components than the measurement (n > m), the SVSF corrects the
+unmeasured components only through an "artificial" measurement of them (Sec. 2 and Eq. (51),
+Chen et al. 2020). An artificial measurement is a callable
+``(z [B, T, m], model, dt) -> (y [B, T, n'], H_y [n', n], R_y [n', n'] or [B, T, n', n'])``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchsvs.models.base import LinearModel
+
+
+class FiniteDifferenceVelocity:
+    r"""Velocity from successive positions, Eq. (51), Chen et al. 2020.
+
+    For a model with ``position_index`` and ``velocity_index`` (e.g.
+    :class:`~torchsvs.models.ConstantVelocity`), the pseudo-measurement is the full state in state
+    order, ``y_k = [z_{1,k}, (z_{1,k} − z_{1,k−1})/T_k, z_{2,k}, (z_{2,k} − z_{2,k−1})/T_k]`` with
+    ``H_y = I``. The first step has no previous position: its velocity is missing (NaN), as is any
+    velocity next to a missing position.
+
+    Noise model (stated, as the paper leaves it open): with position noise ``R`` independent
+    between steps, ``Cov(z_k) = R``, ``Cov(v_k) = 2R/T_k²``, ``Cov(z_k, v_k) = R/T_k``. The
+    correlation between successive velocities (``−R/T²``) is ignored, as the filter assumes white
+    measurement noise.
+    """
+
+    def __call__(
+        self, z: Tensor, model: LinearModel, dt: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        pos = getattr(model, "position_index", None)
+        vel = getattr(model, "velocity_index", None)
+        if pos is None or vel is None:
+            raise TypeError(
+                f"model: FiniteDifferenceVelocity needs position_index and velocity_index, "
+                f"which {type(model).__name__} does not define"
+            )
+        B, T, m = z.shape
+        n = model.state_dim
+        if len(pos) != m or len(vel) != m or len(set(pos) | set(vel)) != n:
+            raise ValueError(
+                f"model: expected {m} positions and {m} velocities covering all {n} state components"
+            )
+        step = torch.tensor(getattr(model, "dt", 1.0), dtype=z.dtype) if dt is None else dt
+        interval = step.unsqueeze(-1) if step.ndim == 2 else step  # [B, T, 1] or 0-d
+        previous = torch.cat([torch.full_like(z[:, :1], float("nan")), z[:, :-1]], dim=1)
+        velocity = (z - previous) / interval
+        y = z.new_empty(B, T, n)
+        y[..., pos] = z
+        y[..., vel] = velocity
+
+        R = model.meas_cov().to(z.dtype)
+        inv_t = (1.0 / step)[..., None, None]  # [B, T, 1, 1] or 0-d
+        blocks = {(0, 0): R.expand(*inv_t.shape[:-2], m, m), (0, 1): R * inv_t}
+        blocks[(1, 0)] = blocks[(0, 1)]
+        blocks[(1, 1)] = 2.0 * R * inv_t.square()
+        R_y = z.new_zeros(*inv_t.shape[:-2], n, n)
+        for (a, b), block in blocks.items():
+            rows, cols = (pos, vel)[a], (pos, vel)[b]
+            R_y[..., torch.tensor(rows)[:, None], torch.tensor(cols)[None, :]] = block
+        H_y = torch.eye(n, dtype=z.dtype)
+        return y, H_y, R_y

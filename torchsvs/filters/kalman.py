@@ -1,0 +1,175 @@
+"""The predictor-corrector loop shared by the Gaussian filters, and the Kalman filter."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsvs.estimator import Estimator, Inputs
+from torchsvs.linalg import cholesky, joseph_update, mask_measurement, matvec, symmetrize
+from torchsvs.models.base import LinearModel
+from torchsvs.types import FilterResult
+
+
+class Step(NamedTuple):
+    """What one corrector step returns, for every track: ``[B, ...]`` tensors."""
+
+    mean: Tensor
+    cov: Tensor
+    innovation: Tensor
+    post_innovation: Tensor | None = None
+    innovation_cov: Tensor | None = None
+    log_likelihood: Tensor | None = None
+
+
+def _at(A: Tensor, t: int) -> Tensor:
+    """Step ``t`` of a model matrix stored as ``[r, c]`` (constant) or ``[B, T, r, c]``."""
+    return A[:, t] if A.ndim == 4 else A
+
+
+def _as_result_matrix(A: Tensor) -> Tensor:
+    """``[r, c]`` → ``[1, 1, r, c]``; ``[B, T, r, c]`` unchanged."""
+    return A if A.ndim == 4 else A[None, None]
+
+
+class GaussianFilter(Estimator):
+    """A filter that carries a Gaussian (mean, covariance) through predict-correct steps.
+
+    The prediction (Eqs. (11)-(12) and (18)-(20), Chen et al. 2020) is shared; subclasses replace
+    only the corrector (:meth:`correct`) and, if they measure something else than the model's
+    ``z`` (artificial measurements), :meth:`measurements`.
+    """
+
+    def __init__(self, model: LinearModel) -> None:
+        super().__init__()
+        if not isinstance(model, LinearModel):
+            raise TypeError(f"model: expected a torchsvs LinearModel, got {type(model).__name__}")
+        self.model = model
+
+    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor, Tensor]:
+        """The corrector's measurements ``[B, T, m]``, ``H`` and ``R`` (``[m, ·]`` or ``[B, T, m, ·]``)."""
+        dtype = inputs.z.dtype
+        return inputs.z, self.model.meas_matrix().to(dtype), self.model.meas_cov().to(dtype)
+
+    def correct(
+        self,
+        t: int,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        z: Tensor,
+        mask: Tensor | None,
+        H: Tensor,
+        R: Tensor,
+        previous: Step | None,
+        inputs: Inputs,
+    ) -> Step:
+        """Corrects the prediction with ``z [B, m]`` (zeros where ``mask`` is False).
+
+        ``mask`` is ``None`` when nothing in the whole batch is missing.
+        """
+        raise NotImplementedError
+
+    def run(self, inputs: Inputs) -> FilterResult:
+        dtype, T = inputs.z.dtype, inputs.steps
+        z, H, R = self.measurements(inputs)
+        F = self.model.transition(inputs.dt).to(dtype)
+        Q = self.model.process_noise(inputs.dt).to(dtype)
+        observed = ~torch.isnan(z)
+        any_missing = not bool(observed.all())
+        z_filled = z.nan_to_num(0.0)
+
+        x, P = inputs.x0, inputs.P0
+        steps: list[Step] = []
+        pred_means: list[Tensor] = []
+        pred_covs: list[Tensor] = []
+        previous: Step | None = None
+        for t in range(T):
+            F_t = _at(F, t)
+            x_pred = matvec(F_t, x)
+            P_pred = symmetrize(F_t @ P @ F_t.mT + _at(Q, t))
+            step = self.correct(
+                t,
+                x_pred,
+                P_pred,
+                z_filled[:, t],
+                observed[:, t] if any_missing else None,
+                _at(H, t),
+                _at(R, t),
+                previous,
+                inputs,
+            )
+            x, P, previous = step.mean, step.cov, step
+            steps.append(step)
+            pred_means.append(x_pred)
+            pred_covs.append(P_pred)
+
+        def stacked(field: str) -> Tensor | None:
+            values = [getattr(s, field) for s in steps]
+            return None if values[0] is None else torch.stack(values, dim=1)
+
+        loglik = stacked("log_likelihood")
+        return FilterResult(
+            mean=torch.stack([s.mean for s in steps], dim=1),
+            cov=torch.stack([s.cov for s in steps], dim=1),
+            pred_mean=torch.stack(pred_means, dim=1),
+            pred_cov=torch.stack(pred_covs, dim=1),
+            innovation=torch.stack([s.innovation for s in steps], dim=1),
+            mask=observed,
+            transition=_as_result_matrix(F),
+            meas_matrix=_as_result_matrix(H),
+            meas_cov=_as_result_matrix(R),
+            post_innovation=stacked("post_innovation"),
+            innovation_cov=stacked("innovation_cov"),
+            log_likelihood=None if loglik is None else loglik.sum(dim=1),
+        )
+
+
+class KalmanFilter(GaussianFilter):
+    r"""Batched, differentiable Kalman filter, Eqs. (11)-(16), Chen et al. 2020.
+
+    .. math::
+        S = H P_{k+1|k} H^T + R,\quad K = P_{k+1|k} H^T S^{-1},\quad
+        \hat x_{k+1|k+1} = \hat x_{k+1|k} + K (z_{k+1} - H \hat x_{k+1|k}),
+
+        P_{k+1|k+1} = (I - KH) P_{k+1|k} (I - KH)^T + K R K^T \quad\text{(Joseph form)}
+
+    A missing component (NaN in ``z``) drops its rows of ``H`` and ``R``; an all-NaN step is a
+    pure prediction. The result also carries ``S`` and the log-likelihood of the innovations.
+
+    Args:
+        model: a :class:`~torchsvs.models.LinearModel`.
+
+    References:
+        Kalman, "A new approach to linear filtering and prediction problems", J. Basic Eng. 82,
+        1960. doi:10.1115/1.3662552
+    """
+
+    def correct(
+        self,
+        t: int,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        z: Tensor,
+        mask: Tensor | None,
+        H: Tensor,
+        R: Tensor,
+        previous: Step | None,
+        inputs: Inputs,
+    ) -> Step:
+        if mask is not None:
+            H, R = mask_measurement(H, R, mask)
+        e = z - matvec(H, x_pred)  # zero where missing: z is filled with 0 and H's row is 0
+        PHt = P_pred @ H.mT
+        S = symmetrize(H @ PHt + R)
+        L = cholesky(S)
+        K = torch.cholesky_solve(PHt.mT, L).mT  # P Hᵀ S⁻¹, Eq. (15)
+        x = x_pred + matvec(K, e)
+        P = joseph_update(P_pred, K, H, R)
+        white = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
+        observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)
+        log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        loglik = -0.5 * (white.square().sum(-1) + log_det + observed * math.log(2 * math.pi))
+        return Step(x, P, e, innovation_cov=S, log_likelihood=loglik)

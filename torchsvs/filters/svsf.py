@@ -1,0 +1,140 @@
+"""The smooth variable structure filter (SVSF) with covariance."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from torchsvs.constraints import ArrayLike, Positive, UnitInterval
+from torchsvs.estimator import Inputs
+from torchsvs.filters.kalman import GaussianFilter, Step
+from torchsvs.linalg import joseph_update, matvec, svsf_gain_ratio
+from torchsvs.models.base import LinearModel
+
+ArtificialMeasurement = Callable[[Tensor, LinearModel, "Tensor | None"], tuple[Tensor, Tensor, Tensor]]
+
+
+class SVSF(GaussianFilter):
+    r"""Smooth variable structure filter with covariance, Eqs. (18)-(28), Chen et al. 2020.
+
+    Shares the Kalman prediction (Eqs. (18), (20)) and replaces the corrector:
+
+    .. math::
+        e_{k+1|k} = z_{k+1} - H\hat x_{k+1|k} \quad\text{(Eq. (4); Eq. (21) misprints } z_k)
+
+        K_{k+1} = H^{+}\,\mathrm{diag}\!\left(\frac{|e_{k+1|k}| + \gamma|e_{k|k}|}
+                  {\max(|e_{k+1|k}|, \psi)}\right)
+        \quad\text{(Eq. (23), since } \mathrm{sat}(e/\psi)/e = 1/\max(|e|,\psi))
+
+        \hat x_{k+1|k+1} = \hat x_{k+1|k} + K_{k+1} e_{k+1|k}, \qquad
+        P_{k+1|k+1} = (I - KH) P_{k+1|k} (I - KH)^T + K R K^T \quad\text{(Eq. (28), Joseph)}
+
+        e_{k+1|k+1} = z_{k+1} - H\hat x_{k+1|k+1} \quad\text{(Eq. (24))}
+
+    The memory ``e_{0|0}`` before the first step is zero. The gain never divides by the
+    innovation, so it and its gradients are finite at ``e = 0``.
+
+    When the state has more components than the measurement (n > m) there are two modes:
+
+    * ``artificial=None`` (the paper's Sec. 4.1, ATC scenario): ``H⁺`` is the Moore-Penrose
+      pseudo-inverse, so only the measured components are corrected (for position-only ``H``,
+      ``H⁺ = Hᵀ`` and the velocity is never corrected).
+    * ``artificial=FiniteDifferenceVelocity()`` (Sec. 4.2, complex scenario, Eq. (51)): the corrector
+      measures full-state pseudo-measurements with their own ``H`` and ``R``; ``psi`` then has
+      one width per pseudo-measurement (``[500, 600, 500, 600]`` in the paper).
+
+    Missing data: a NaN component gives no correction (its column of the gain is zero, ``H⁺`` is
+    that of the observed rows) and its memory ``e_{k|k}`` is carried from the previous step.
+
+    Args:
+        model: a :class:`~torchsvs.models.LinearModel`.
+        psi: boundary layer widths ψ > 0 ("smoothing boundary layer"), a scalar or one per
+            corrector measurement component.
+        gamma: memory (convergence rate) γ in ``[0, 1)``.
+        learn: hold ψ and γ as ``nn.Parameter`` s (stored as ``log ψ`` and ``logit γ``); ``False``
+            makes them fixed buffers.
+        artificial: optional artificial measurement callable (see
+            :mod:`torchsvs.filters.artificial`).
+
+    A per-step ``psi=`` of shape ``[B, T, m]`` passed at call time replaces ψ (for an upstream
+    network that drives the boundary layer).
+
+    References:
+        Habibi, "The smooth variable structure filter", Proc. IEEE 95(5), 2007.
+        doi:10.1109/JPROC.2007.893255 ·
+        Chen, Xu, Yan, Li, Sensors 20(6):1781, 2020. doi:10.3390/s20061781
+    """
+
+    def __init__(
+        self,
+        model: LinearModel,
+        psi: ArrayLike,
+        gamma: float | torch.Tensor = 0.1,
+        learn: bool = True,
+        artificial: ArtificialMeasurement | None = None,
+    ) -> None:
+        super().__init__(model)
+        self.boundary_layer = Positive(psi, "psi", learn=learn)
+        self.memory = UnitInterval(gamma, "gamma", learn=learn)
+        if self.boundary_layer.raw.ndim > 1:
+            raise ValueError(f"psi: expected a scalar or a vector [m], got shape {tuple(self.boundary_layer.raw.shape)}")
+        if self.memory.raw.ndim != 0:
+            raise ValueError(f"gamma: expected a scalar, got shape {tuple(self.memory.raw.shape)}")
+        if artificial is not None and not callable(artificial):
+            raise TypeError(f"artificial: expected a callable, got {type(artificial).__name__}")
+        self.artificial = artificial
+
+    @property
+    def psi(self) -> Tensor:
+        """Boundary layer widths ψ (> 0)."""
+        return self.boundary_layer()
+
+    @property
+    def gamma(self) -> Tensor:
+        """Memory γ in [0, 1)."""
+        return self.memory()
+
+    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor, Tensor]:
+        z, H, R = super().measurements(inputs)
+        if self.artificial is not None:
+            z, H, R = self.artificial(inputs.z, self.model, inputs.dt)
+            H, R = H.to(z.dtype), R.to(z.dtype)
+        m = z.shape[-1]
+        widths = self.boundary_layer.raw.numel()
+        if self.boundary_layer.raw.ndim == 1 and widths != m:
+            raise ValueError(f"psi: expected {m} boundary layer widths (one per corrector measurement), got {widths}")
+        if inputs.psi is not None and inputs.psi.shape[-1] != m:
+            raise ValueError(f"psi: expected a per-step override of shape [B, T, {m}], got {tuple(inputs.psi.shape)}")
+        return z, H, R
+
+    def correct(
+        self,
+        t: int,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        z: Tensor,
+        mask: Tensor | None,
+        H: Tensor,
+        R: Tensor,
+        previous: Step | None,
+        inputs: Inputs,
+    ) -> Step:
+        dtype = z.dtype
+        psi = inputs.psi[:, t] if inputs.psi is not None else self.psi.to(dtype)
+        e = z - matvec(H, x_pred)  # Eq. (4)
+        if mask is not None:
+            e = e * mask
+            H_plus = torch.linalg.pinv(H * mask.unsqueeze(-1).to(dtype))  # zero columns where missing
+        else:
+            H_plus = torch.linalg.pinv(H)
+        memory = previous.post_innovation if previous is not None else torch.zeros_like(e)
+        assert memory is not None
+        K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)
+        x = x_pred + matvec(K, e)  # Eq. (22)
+        P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
+        e_post = z - matvec(H, x)  # Eq. (24)
+        if mask is not None:
+            e_post = torch.where(mask, e_post, memory)
+        return Step(x, P, e, post_innovation=e_post)

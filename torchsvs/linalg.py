@@ -1,0 +1,109 @@
+"""Numerical building blocks shared by every estimator: one home for each formula.
+
+All functions broadcast over leading batch axes and use column-vector math on the last axes
+(a matrix ``A`` of shape ``[..., n, n]`` acts on a vector ``x`` of shape ``[..., n]`` as ``A @ x``).
+Covariances are never inverted explicitly: solves go through a Cholesky factor.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def symmetrize(P: Tensor) -> Tensor:
+    """``(P + Pᵀ) / 2``: removes the asymmetry that rounding adds to a covariance."""
+    return 0.5 * (P + P.mT)
+
+
+def matvec(A: Tensor, x: Tensor) -> Tensor:
+    """``A @ x`` for ``A [..., r, c]`` and ``x [..., c]``."""
+    return (A @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def cholesky(S: Tensor) -> Tensor:
+    """Lower Cholesky factor of a symmetric positive definite matrix.
+
+    Adds a small relative jitter only where the plain factorisation fails (for example a
+    float32 covariance that rounding left semi-definite), so well-conditioned inputs are
+    factored exactly and gradients stay those of ``torch.linalg.cholesky``.
+    """
+    L, info = torch.linalg.cholesky_ex(S)
+    if not bool((info > 0).any()):
+        return L
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    scale = S.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1.0)[..., None, None]
+    eps = torch.finfo(S.dtype).eps
+    for power in (1, 2, 3, 4):
+        L, info = torch.linalg.cholesky_ex(S + eye * scale * eps * 10.0**power)
+        if not bool((info > 0).any()):
+            return L
+    raise torch.linalg.LinAlgError("matrix is not positive definite, even with jitter")
+
+
+def psd_solve(S: Tensor, B: Tensor) -> Tensor:
+    """``S⁻¹ B`` for symmetric positive definite ``S [..., m, m]`` and ``B [..., m, k]``."""
+    return torch.cholesky_solve(B, cholesky(S))
+
+
+def right_psd_solve(A: Tensor, S: Tensor) -> Tensor:
+    """``A S⁻¹`` for ``A [..., k, m]`` and symmetric positive definite ``S [..., m, m]``."""
+    return psd_solve(S, A.mT).mT
+
+
+def joseph_update(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:
+    """Joseph-form covariance update ``(I − KH) P (I − KH)ᵀ + K R Kᵀ``.
+
+    Valid for any gain ``K``, optimal or not: that is why the SVSF uses it too (Eq. (28),
+    left side, Chen et al. 2020); the short form ``(I − KH) P`` holds only for the Kalman gain.
+
+    Args:
+        P: prior covariance ``[..., n, n]``.
+        K: gain ``[..., n, m]``.
+        H: measurement matrix ``[..., m, n]``.
+        R: measurement noise covariance ``[..., m, m]``.
+    """
+    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
+    A = eye - K @ H
+    return symmetrize(A @ P @ A.mT + K @ R @ K.mT)
+
+
+def svsf_gain_ratio(
+    e_prior: Tensor, e_post_prev: Tensor, psi: Tensor, gamma: Tensor
+) -> Tensor:
+    """Diagonal of the SVSF gain, ``(|e_{k+1|k}| + γ|e_{k|k}|) · sat(e_{k+1|k}/ψ) / e_{k+1|k}``.
+
+    Eq. (23), Chen et al. 2020, written without the division by the innovation: with ``sat``
+    the clamp to ``[−1, 1]`` of Eq. (6), ``sat(e/ψ)/e = 1/max(|e|, ψ)`` (the singularity at
+    ``e = 0`` is removable), so the ratio is ``(|e_{k+1|k}| + γ|e_{k|k}|) / max(|e_{k+1|k}|, ψ)``,
+    finite with finite gradients at ``e = 0``. The gain is then ``K = H⁺ diag(ratio)``.
+
+    Args:
+        e_prior: a-priori innovation ``e_{k+1|k}``, ``[..., m]``.
+        e_post_prev: previous a-posteriori innovation ``e_{k|k}`` (the memory), ``[..., m]``.
+        psi: boundary layer widths ψ, broadcastable to ``[..., m]``, positive.
+        gamma: memory (convergence rate) γ in ``[0, 1)``, broadcastable.
+    """
+    magnitude = e_prior.abs()
+    return (magnitude + gamma * e_post_prev.abs()) / torch.maximum(magnitude, psi)
+
+
+def mask_measurement(H: Tensor, R: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """Removes missing measurement components without changing shapes.
+
+    Rows of ``H`` for missing components become zero and ``R`` becomes block diagonal with the
+    observed block and an identity on the missing ones, so ``S = H P Hᵀ + R`` stays invertible,
+    a gain built from ``S⁻¹`` gets zero columns there and ``log det S`` is that of the observed
+    block: the same as dropping the rows, with a batch-friendly fixed shape.
+
+    Args:
+        H: ``[..., m, n]``; R: ``[..., m, m]``; mask: ``[..., m]`` boolean, True where observed.
+
+    Returns:
+        Masked ``H [..., m, n]`` and ``R [..., m, m]`` broadcast to the batch shape of ``mask``.
+    """
+    obs = mask.to(H.dtype)
+    H_m = H * obs.unsqueeze(-1)
+    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
+    R_m = R * both + torch.diag_embed(1.0 - obs)
+    return H_m, R_m

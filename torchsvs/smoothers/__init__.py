@@ -1,0 +1,6 @@
+"""Smoothers: estimates of x_t that also use later measurements, from a stored filter pass."""
+
+from torchsvs.smoothers.rts import RTSSmoother
+from torchsvs.smoothers.svss import SVSS
+
+__all__ = ["SVSS", "RTSSmoother"]

@@ -1,0 +1,75 @@
+"""Shape conventions and result types shared by all estimators.
+
+Batch first, one convention everywhere (column-vector math, ``F @ x``):
+
+==================  =====================  =============================================
+name                shape                  meaning
+==================  =====================  =============================================
+``z``               ``[B, T, m]``          measurements; NaN marks a missing component
+``x0``, ``P0``      ``[B, n]``, ``[B,n,n]``  prior one step before ``z[:, 0]``
+``mean``            ``[B, T, n]``          estimate after ``z[:, t]``
+``cov``             ``[B, T, n, n]``       its covariance
+``dt``              scalar or ``[B, T]``   interval ending at step ``t``
+``psi`` override    ``[B, T, m]``          per-step boundary layer of an SVSF
+==================  =====================  =============================================
+
+A single track may be passed without the batch axis (``z [T, m]``); results then drop it too.
+Model matrices stored in a result (``transition``, ``meas_matrix``, ``meas_cov``) keep size-1
+axes for what does not vary: ``[1, 1, n, n]`` for a constant ``F``, ``[B, T, n, n]`` when ``dt``
+varies per step.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from torch import Tensor
+
+
+class FilterResult(NamedTuple):
+    """What a Gaussian filter pass produced, enough for any smoother to run without re-filtering.
+
+    Attributes:
+        mean: filtered mean ``x̂_{t|t}``, ``[B, T, n]``.
+        cov: filtered covariance ``P_{t|t}``, ``[B, T, n, n]``.
+        pred_mean: predicted mean ``x̂_{t|t-1}``, ``[B, T, n]``.
+        pred_cov: predicted covariance ``P_{t|t-1}``, ``[B, T, n, n]``.
+        innovation: a-priori innovation ``e_{t|t-1} = z_t − H x̂_{t|t-1}``, ``[B, T, m]``, 0 where
+            the measurement is missing.
+        mask: ``True`` where ``z`` was observed, ``[B, T, m]``.
+        transition: ``F_t`` used to predict into step ``t``, ``[B|1, T|1, n, n]``.
+        meas_matrix: ``H`` used by the corrector, ``[B|1, T|1, m, n]``.
+        meas_cov: ``R`` used by the corrector, ``[B|1, T|1, m, m]``.
+        post_innovation: a-posteriori innovation ``e_{t|t}``, ``[B, T, m]`` (the SVSF memory;
+            carried over missing components). ``None`` for filters that do not form it.
+        innovation_cov: ``S_t = H P_{t|t-1} Hᵀ + R``, ``[B, T, m, m]``, identity rows/columns
+            where missing. ``None`` for filters that do not form it.
+        log_likelihood: ``Σ_t log N(e_t; 0, S_t)`` over observed components, ``[B]``, or ``None``.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    pred_mean: Tensor
+    pred_cov: Tensor
+    innovation: Tensor
+    mask: Tensor
+    transition: Tensor
+    meas_matrix: Tensor
+    meas_cov: Tensor
+    post_innovation: Tensor | None = None
+    innovation_cov: Tensor | None = None
+    log_likelihood: Tensor | None = None
+
+
+class SmootherResult(NamedTuple):
+    """A smoothed pass and the filter pass it was computed from.
+
+    Attributes:
+        mean: smoothed mean (``x̂_{t|t+L}`` for lag ``L``, ``x̂_{t|T}`` for a fixed interval), ``[B, T, n]``.
+        cov: its covariance, ``[B, T, n, n]``.
+        filtered: the :class:`FilterResult` of the forward pass.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    filtered: FilterResult
