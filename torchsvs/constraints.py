@@ -1,9 +1,9 @@
 """Constrained parameters stored unconstrained, so an optimiser can move them freely.
 
 * ψ > 0 (boundary layer): stored as ``log ψ``.
-* 0 ≤ γ < 1 (memory): stored as ``logit γ`` when learnable. A learnable γ lives in the open
-  interval (0, 1); asking for exactly 0 starts it at ``MIN_LEARNABLE_GAMMA``. With ``learn=False``
-  the value is kept exactly (0 included) as a buffer.
+* 0 ≤ γ < 1 (memory): stored as ``logit γ`` when learnable, so a learnable γ lives in the open
+  interval (0, 1) and a start at exactly 0 is refused; with ``learn=False`` the value is kept
+  exactly (0 included) as a buffer.
 * SPD matrices (Q, R): stored as a lower Cholesky factor with log-diagonal.
 """
 
@@ -14,19 +14,21 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-MIN_LEARNABLE_GAMMA = 1e-6
-
 ArrayLike = float | Sequence[float] | Tensor
 
 
 def as_tensor(value: ArrayLike, name: str) -> Tensor:
-    """A float tensor from a number, sequence or tensor (float64 stays float64)."""
+    """A float tensor from a number, sequence or tensor.
+
+    Python numbers become float64, so a value like γ = 0.3 is not rounded to float32 before an
+    estimator runs in float64; estimators cast parameters to the dtype of ``z`` at each call.
+    """
     if isinstance(value, Tensor):
         if not value.is_floating_point():
-            value = value.to(torch.get_default_dtype())
+            value = value.to(torch.float64)
         return value.detach().clone()
     try:
-        return torch.as_tensor(value, dtype=torch.get_default_dtype())
+        return torch.as_tensor(value, dtype=torch.float64)
     except (TypeError, ValueError) as err:
         raise TypeError(f"{name}: expected a number, a sequence of numbers or a tensor") from err
 
@@ -65,8 +67,13 @@ class UnitInterval(_Constrained):
         v = as_tensor(value, name)
         if not bool(torch.isfinite(v).all()) or bool((v < 0).any()) or bool((v >= 1).any()):
             raise ValueError(f"{name}: expected values in [0, 1), got {v.tolist()}")
+        if learn and bool((v == 0).any()):
+            raise ValueError(
+                f"{name}: a learnable value lives in (0, 1) and cannot start at exactly 0; "
+                "pass learn=False to fix it at 0, or start from a small positive value"
+            )
         self.learn = learn
-        super().__init__(torch.logit(v.clamp_min(MIN_LEARNABLE_GAMMA)) if learn else v, learn)
+        super().__init__(torch.logit(v) if learn else v, learn)
 
     def forward(self) -> Tensor:
         return torch.sigmoid(self.raw) if self.learn else self.raw
