@@ -40,6 +40,8 @@ class FilterResult(NamedTuple):
         transition: ``F_t`` used to predict into step ``t``, ``[B|1, T|1, n, n]``.
         meas_matrix: ``H`` used by the corrector, ``[B|1, T|1, m, n]``.
         meas_cov: ``R`` used by the corrector, ``[B|1, T|1, m, m]``.
+        gain: the gain the corrector applied, ``x̂_{t|t} = x̂_{t|t-1} + K_t e_t``, ``[B, T, n, m]``
+            (zero columns where missing); smoothers need it for the exact error covariance.
         post_innovation: a-posteriori innovation ``e_{t|t}``, ``[B, T, m]`` (the SVSF memory;
             carried over missing components). ``None`` for filters that do not form it.
         innovation_cov: ``S_t = H P_{t|t-1} Hᵀ + R``, ``[B, T, m, m]``, identity rows/columns
@@ -56,6 +58,7 @@ class FilterResult(NamedTuple):
     transition: Tensor
     meas_matrix: Tensor
     meas_cov: Tensor
+    gain: Tensor
     post_innovation: Tensor | None = None
     innovation_cov: Tensor | None = None
     log_likelihood: Tensor | None = None

@@ -496,3 +496,244 @@ if __name__ == "__main__":
     print(f"SVSF: unrolled RTS (lag=3) vs RTS window: mean {err_rts:.2e}")
     assert err_rts < 1e-9
     print("self-check OK")
+
+
+# ----------------------------------------------------------------------------------------------
+# 5. exact error covariance of a fixed-gain filter + linear smoother, by a dense linear map
+# ----------------------------------------------------------------------------------------------
+#
+# Everything below is brute force on purpose: the estimation errors are written as explicit
+# matrices acting on the stacked noise vector
+#
+#     xi = (x~_init, w_0, ..., w_{T-1}, v_0, ..., v_{T-1}),   dim D = n + T n + T m,
+#     Cov(xi) = blockdiag(P0, Q, ..., Q, R, ..., R)
+#
+# (errors are truth minus estimate). Nothing here is a recursion for covariances except the
+# Joseph-form P's that the smoother gains C_i, B_N are built from (as a filter would).
+
+__all__ += [
+    "kalman_gains",
+    "svsf_gains",
+    "noise_covariance",
+    "dense_smoother_covariance",
+]
+
+
+def _gains_from_result(res, gain_fn):
+    """Rebuild the full ``[T, n, m]`` gains of a reference filter run.
+
+    ``gain_fn(t, idx, res) -> K_o [n, len(idx)]``; columns of missing components are 0 and an
+    all-missing step has ``K_t = 0``.
+    """
+    observed = np.asarray(res["observed"], dtype=bool)
+    T, m = observed.shape
+    n = res["mean"].shape[1]
+    K = np.zeros((T, n, m))
+    for t in range(T):
+        idx = np.flatnonzero(observed[t])
+        if idx.size:
+            K[t][:, idx] = gain_fn(t, idx, res)
+    return K
+
+
+def kalman_gains(z, x0, P0, F, H, Q, R):
+    """Gains ``K_t [T, n, m]`` used by :func:`kalman_filter` on the same inputs.
+
+    Recomputed from the returned ``pred_cov`` exactly as the filter does (Eqs. (14)-(15) on the
+    observed rows of H / sub-block of R), so ``mean[t] - pred_mean[t] == K_t @ innovation[t]``.
+    Columns of missing components are zero; an all-NaN step has ``K_t = 0``.
+    """
+    z, x0, P0, F, H, Q, R = _check_model(z, x0, P0, F, H, Q, R)
+    res = kalman_filter(z, x0, P0, F, H, Q, R)
+
+    def gain_fn(t, idx, res):
+        H_o = H[idx, :]
+        R_oo = R[np.ix_(idx, idx)]
+        P_pred = res["pred_cov"][t]
+        S = H_o @ P_pred @ H_o.T + R_oo
+        return _right_solve(P_pred @ H_o.T, S)
+
+    return _gains_from_result(res, gain_fn)
+
+
+def svsf_gains(z, x0, P0, F, H, Q, R, psi, gamma, h_pinv=None):
+    """Gains ``K_t [T, n, m]`` used by :func:`svsf` on the same inputs.
+
+    Recomputed from the dict :func:`svsf` returns, with its conventions: the a-priori innovation
+    ``innovation[t]`` (observed components), the memory ``e_{k|k}`` = ``post_innovation[t-1]``
+    (zeros for ``t = 0``; carried values for missing components, which never enter since only
+    observed components are used), ``H^+`` = ``h_pinv`` / ``pinv(H)`` at a fully observed step
+    and ``pinv(H[observed])`` otherwise, then :func:`svsf_gain`. Columns of missing components
+    are zero; an all-NaN step has ``K_t = 0``. ``mean[t] - pred_mean[t] == K_t @ innovation[t]``.
+    """
+    z, x0, P0, F, H, Q, R = _check_model(z, x0, P0, F, H, Q, R)
+    m, n = H.shape
+    res = svsf(z, x0, P0, F, H, Q, R, psi, gamma, h_pinv=h_pinv)
+    psi = np.array(psi, dtype=np.float64).reshape(-1)
+    gamma = float(gamma)
+    H_pinv_full = np.linalg.pinv(H) if h_pinv is None else _f64(h_pinv, 2, "h_pinv")
+    innov = res["innovation"]
+    post = res["post_innovation"]
+
+    def gain_fn(t, idx, res):
+        Hp = H_pinv_full if idx.size == m else np.linalg.pinv(H[idx, :])
+        e_mem = post[t - 1, idx] if t > 0 else np.zeros(idx.size)
+        return svsf_gain(Hp, innov[t, idx], e_mem, psi[idx], gamma)
+
+    return _gains_from_result(res, gain_fn)
+
+
+def noise_covariance(P0, Q, R, T):
+    """Dense ``Cov(xi) = blockdiag(P0, Q x T, R x T)`` of ``xi = (x~_init, w_0.., v_0..)``."""
+    P0 = np.asarray(P0, dtype=np.float64)
+    Q = np.asarray(Q, dtype=np.float64)
+    R = np.asarray(R, dtype=np.float64)
+    n, m = Q.shape[0], R.shape[0]
+    D = n + T * n + T * m
+    S = np.zeros((D, D))
+    S[:n, :n] = P0
+    for t in range(T):
+        a = n + t * n
+        S[a : a + n, a : a + n] = Q
+        b = n + T * n + t * m
+        S[b : b + m, b : b + m] = R
+    return S
+
+
+def dense_smoother_covariance(F, H, Q, R, P0, gains, observed=None, lag=None, kind="svss"):
+    """EXACT error covariance of a fixed-gain filter followed by a linear (SVSS / RTS) smoother.
+
+    Brute force: every error is an explicit ``[n, D]`` (or ``[m, D]``) matrix acting on
+    ``xi = (x~_init ~ N(0, P0), w_0..w_{T-1} ~ N(0, Q), v_0..v_{T-1} ~ N(0, R))``
+    (``D = n + T n + T m``, see :func:`noise_covariance`); a covariance is ``M Cov(xi) M^T``.
+
+    Filter errors (truth minus estimate), with ``O_t = diag(observed[t])``, ``H_t = O_t H``:
+
+        x~_{t|t-1} = F x~_{t-1|t-1} + w_t          (x~_{-1|-1} = x~_init)
+        e_t        = H_t x~_{t|t-1} + O_t v_t       (innovation; 0 in missing components)
+        x~_{t|t}   = x~_{t|t-1} - K_t e_t
+
+    with the GIVEN gains ``gains [T, n, m]`` (columns of missing components are ignored: they
+    multiply zeros; they are zeroed here). Joseph-form covariances of that filter:
+
+        P_{t|t-1} = F P_{t-1|t-1} F^T + Q,
+        P_{t|t}   = (I - K_t H_t) P_{t|t-1} (I - K_t H_t)^T + K_t R_t K_t^T,  R_t = O_t R O_t.
+
+    Smoother: ``x^s_k = x_{k|k} + sum_{j=1}^{L_k} (C_k C_{k+1} ... C_{k+j-1}) G_{k+j} e_{k+j}``,
+    ``L_k = min(lag, T-1-k)`` (``lag=None``: ``T-1-k``), ``C_i = P_{i|i} F^T P_{i+1|i}^{-1}``
+    built from the JOSEPH P's above, and
+
+      * ``kind="svss"``: ``G_N = B_N = P_{N|N-1} H_o^T S_oo^{-1}`` in the observed columns (0
+        elsewhere), ``S_oo = H_o P_{N|N-1} H_o^T + R_oo`` (observed rows / sub-block);
+        ``G_N = 0`` at an all-missing step;
+      * ``kind="rts"``: ``G_N = K_N`` (the RTS recursion Eq. (17) unrolled).
+
+    So ``eps^s_k = x~_{k|k} - sum_j (prod C) G_{k+j} e_{k+j}``, linear in xi.
+
+    Returns a dict:
+      ``cov [T, n, n]``        exact Cov(eps^s_k) = M_k Cov(xi) M_k^T (not symmetrised)
+      ``filter_cov [T, n, n]`` Cov(x~_{t|t}) from the dense map
+      ``pred_cov [T, n, n]``   Cov(x~_{t|t-1}) from the dense map
+      ``P_post``, ``P_pred``   ``[T, n, n]`` from the Joseph recursion
+      ``map [T, n, D]``        the smoother error maps M_k
+      ``noise_cov [D, D]``     Cov(xi)
+    """
+    if kind not in ("svss", "rts"):
+        raise ValueError(f"unknown kind {kind!r}")
+    F = _f64(F, 2, "F")
+    H = _f64(H, 2, "H")
+    Q = _f64(Q, 2, "Q")
+    R = _f64(R, 2, "R")
+    P0 = _f64(P0, 2, "P0")
+    K = _f64(gains, 3, "gains")
+    T = K.shape[0]
+    m, n = H.shape
+    if K.shape != (T, n, m):
+        raise ValueError(f"gains must be [T, {n}, {m}], got {K.shape}")
+    if observed is None:
+        observed = np.ones((T, m), dtype=bool)
+    observed = np.asarray(observed, dtype=bool)
+    if observed.shape != (T, m):
+        raise ValueError(f"observed must be [{T}, {m}], got {observed.shape}")
+    K = K * observed[:, None, :].astype(np.float64)  # missing columns never act
+    eye = np.eye(n)
+    D = n + T * n + T * m
+
+    def w_cols(t):
+        return slice(n + t * n, n + (t + 1) * n)
+
+    def v_cols(t):
+        return slice(n + T * n + t * m, n + T * n + (t + 1) * m)
+
+    Sigma = noise_covariance(P0, Q, R, T)
+
+    # ---- dense error maps of the filter
+    A_pred = np.zeros((T, n, D))  # x~_{t|t-1}
+    A_post = np.zeros((T, n, D))  # x~_{t|t}
+    E = np.zeros((T, m, D))  # e_t
+    prev = np.zeros((n, D))
+    prev[:, :n] = eye  # x~_{-1|-1} = x~_init
+    for t in range(T):
+        O = np.diag(observed[t].astype(np.float64))
+        a = F @ prev
+        a[:, w_cols(t)] += eye
+        e = O @ H @ a
+        e[:, v_cols(t)] += O
+        A_pred[t] = a
+        E[t] = e
+        A_post[t] = a - K[t] @ e
+        prev = A_post[t]
+
+    # ---- Joseph recursion with the same gains
+    P_pred = np.zeros((T, n, n))
+    P_post = np.zeros((T, n, n))
+    P = P0.copy()
+    for t in range(T):
+        O = np.diag(observed[t].astype(np.float64))
+        Pp = F @ P @ F.T + Q
+        H_t = O @ H
+        R_t = O @ R @ O
+        I_KH = eye - K[t] @ H_t
+        P = I_KH @ Pp @ I_KH.T + K[t] @ R_t @ K[t].T
+        P_pred[t] = Pp
+        P_post[t] = P
+
+    # ---- smoother gains
+    C = [_right_solve(P_post[i] @ F.T, P_pred[i + 1]) for i in range(T - 1)]
+    G = np.zeros((T, n, m))
+    for N in range(T):
+        if kind == "rts":
+            G[N] = K[N]
+            continue
+        idx = np.flatnonzero(observed[N])
+        if idx.size == 0:
+            continue
+        H_o = H[idx, :]
+        S_oo = H_o @ P_pred[N] @ H_o.T + R[np.ix_(idx, idx)]
+        G[N][:, idx] = _right_solve(P_pred[N] @ H_o.T, S_oo)
+
+    # ---- smoother error maps
+    M = np.zeros((T, n, D))
+    for k in range(T):
+        L = (T - 1 - k) if lag is None else min(int(lag), T - 1 - k)
+        if L < 0:
+            raise ValueError("lag must be >= 0 or None")
+        Mk = A_post[k].copy()
+        prod = eye.copy()
+        for j in range(1, L + 1):
+            prod = prod @ C[k + j - 1]  # C_k C_{k+1} ... C_{k+j-1}
+            Mk = Mk - prod @ G[k + j] @ E[k + j]
+        M[k] = Mk
+
+    def covs(maps):
+        return np.stack([Mt @ Sigma @ Mt.T for Mt in maps])
+
+    return {
+        "cov": covs(M),
+        "filter_cov": covs(A_post),
+        "pred_cov": covs(A_pred),
+        "P_post": P_post,
+        "P_pred": P_pred,
+        "map": M,
+        "noise_cov": Sigma,
+    }

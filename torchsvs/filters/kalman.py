@@ -20,6 +20,7 @@ class Step(NamedTuple):
     mean: Tensor
     cov: Tensor
     innovation: Tensor
+    gain: Tensor
     post_innovation: Tensor | None = None
     innovation_cov: Tensor | None = None
     log_likelihood: Tensor | None = None
@@ -121,6 +122,7 @@ class GaussianFilter(Estimator):
             transition=_as_result_matrix(F),
             meas_matrix=_as_result_matrix(H),
             meas_cov=_as_result_matrix(R),
+            gain=torch.stack([s.gain for s in steps], dim=1),
             post_innovation=stacked("post_innovation"),
             innovation_cov=stacked("innovation_cov"),
             log_likelihood=None if loglik is None else loglik.sum(dim=1),
@@ -172,4 +174,4 @@ class KalmanFilter(GaussianFilter):
         observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)
         log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
         loglik = -0.5 * (white.square().sum(-1) + log_det + observed * math.log(2 * math.pi))
-        return Step(x, P, e, innovation_cov=S, log_likelihood=loglik)
+        return Step(x, P, e, K, innovation_cov=S, log_likelihood=loglik)

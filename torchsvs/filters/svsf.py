@@ -137,4 +137,4 @@ class SVSF(GaussianFilter):
         e_post = z - matvec(H, x)  # Eq. (24)
         if mask is not None:
             e_post = torch.where(mask, e_post, memory)
-        return Step(x, P, e, post_innovation=e_post)
+        return Step(x, P, e, K, post_innovation=e_post)

@@ -46,12 +46,14 @@ class LinearModel(nn.Module):
         generator: torch.Generator | None = None,
         process_noise: bool = True,
     ) -> tuple[Tensor, Tensor]:
-        """Simulate ``steps`` steps from ``x0 [B, n]``: truth ``[B, T, n]`` and measurements ``[B, T, m]``.
+        """Simulates ``steps`` steps from ``x0 [B, n]`` in its dtype.
 
-        Uses the model's own ``dt``. Randomness comes only from ``generator``.
+        Returns truth ``[B, T, n]`` and measurements ``[B, T, m]``, with the model's own ``dt``;
+        randomness comes only from ``generator``.
         """
-        F, Q = self.transition(), self.process_noise()
-        H, R = self.meas_matrix(), self.meas_cov()
+        dtype = x0.dtype
+        F, Q = self.transition().to(dtype), self.process_noise().to(dtype)
+        H, R = self.meas_matrix().to(dtype), self.meas_cov().to(dtype)
         x = x0
         states = []
         for _ in range(steps):

@@ -2,40 +2,67 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
 from torchsvs.estimator import Estimator, Inputs
 from torchsvs.filters.kalman import GaussianFilter
-from torchsvs.linalg import matvec, psd_solve, symmetrize
+from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import LinearModel
 from torchsvs.types import FilterResult, SmootherResult
 
 
-def _steps_after_first(A: Tensor) -> Tensor:
+def steps_after_first(A: Tensor) -> Tensor:
     """A stored model matrix at steps ``1..T-1`` (unchanged when constant, ``[1, 1, r, c]``)."""
     return A if A.shape[1] == 1 else A[:, 1:]
+
+
+class Backward(NamedTuple):
+    """Per-step quantities of the backward recursion, for ``k = 0..T-2`` (index ``k+1`` inside)."""
+
+    C: Tensor  #: smoother gain C_k = P_{k|k} F_{k+1}ᵀ P_{k+1|k}⁻¹, [B, T-1, n, n]
+    d: Tensor  #: increment Γ_{k+1} e_{k+1}, [B, T-1, n]
+    GHF: Tensor  #: Γ_{k+1} H F_{k+1}, [B, T-1, n, n]
+    GSG: Tensor  #: Γ_{k+1} S_{k+1} Γ_{k+1}ᵀ, [B, T-1, n, n]
+    GX: Tensor  #: Γ_{k+1} E[e_{k+1} x̃_{k+1|k+1}ᵀ], [B, T-1, n, n]
+    AF: Tensor  #: (I − K_{k+1} H) F_{k+1}, [B, T-1, n, n]
 
 
 class RTSSmoother(Estimator):
     r"""Rauch–Tung–Striebel smoother over any Gaussian filter, Eq. (17), Chen et al. 2020.
 
-    Both smoothers of the library share one backward recursion. With the smoother gain
-    ``C_k = P_{k|k} F_{k+1}^T P_{k+1|k}^{-1}`` and a per-step increment ``(d_{k+1}, D_{k+1})``,
+    Both smoothers of the library are one backward recursion over a stored filter pass. With the
+    smoother gain ``C_k = P_{k|k} F_{k+1}^T P_{k+1|k}^{-1}`` and an innovation gain ``Γ_{k+1}``,
 
     .. math::
-        g_k = C_k (d_{k+1} + g_{k+1}),\quad W_k = C_k (D_{k+1} + W_{k+1}) C_k^T,\quad
-        \hat x^s_k = \hat x_{k|k} + g_k,\quad P^s_k = P_{k|k} - W_k
+        \hat x^s_k = \hat x_{k|k} + g_k,\qquad g_k = C_k(\Gamma_{k+1} e_{k+1} + g_{k+1}),
 
-    with ``g = 0, W = 0`` past the end of the window. For the RTS smoother the increment is the
-    filter's own correction, ``d = x̂_{k+1|k+1} − x̂_{k+1|k}`` and ``D = P_{k+1|k} − P_{k+1|k+1}``, which
-    unrolls Eq. (17) exactly. :class:`~torchsvs.smoothers.SVSS` replaces only the increment.
+    with ``g = 0`` past the end of the window. Here ``Γ = K``, the filter's own gain, so
+    ``Γ e = x̂_{k+1|k+1} − x̂_{k+1|k}`` and the recursion is Eq. (17) unrolled;
+    :class:`~torchsvs.smoothers.SVSS` replaces only ``Γ``.
+
+    The covariance is the exact error covariance of that estimate under the model, given the
+    gains the filter applied (the assumption under which the filter's own Joseph-form ``P`` is
+    exact). Writing ``g_k = G_k x̃_{k|k} + (terms in later noise)`` and ``A = I − KH``:
+
+    .. math::
+        G_k = C_k(\Gamma H + G_{k+1} A)F,\qquad
+        Z_k = C_k\big(\Gamma S \Gamma^T + \Gamma X G_{k+1}^T + G_{k+1} X^T\Gamma^T + Z_{k+1}\big)C_k^T,
+
+        P^s_k = P_{k|k} - P_{k|k} G_k^T - G_k P_{k|k} + Z_k,\qquad
+        X = E[e_{k+1}\tilde x_{k+1|k+1}^T] = H P_{k+1|k} A^T - R K^T
+
+    (all at index ``k+1`` unless marked). For a Kalman filter this equals the textbook RTS
+    covariance ``P_{k|k} + C_k(P^s_{k+1} − P_{k+1|k})C_k^T``; for a non-optimal gain (SVSF) the
+    textbook form is not the covariance of the estimate and can lose definiteness.
 
     ``lag=None`` smooths the fixed interval (``x̂_{k|T}``, O(T), as filterpy's ``rts_smoother``).
-    ``lag=L`` gives the fixed-lag estimate ``x̂_{k|k+L}``, Eq. (17) run backward over the window
-    ``[k, k+L]`` (the windows shorten at the end of the track), in ``L`` vectorised sweeps. The
-    paper's "KS" is ``RTSSmoother(KalmanFilter(model), lag=1)``; over an
-    :class:`~torchsvs.filters.SVSF`, ``lag=1`` is its "SVSTPS" (Gadsden & Lee 2017).
+    ``lag=L`` gives the fixed-lag estimate ``x̂_{k|k+L}`` (windows shorten at the end of the track)
+    in ``L`` sweeps vectorised over time. The paper's "KS" is
+    ``RTSSmoother(KalmanFilter(model), lag=1)``; over an :class:`~torchsvs.filters.SVSF`,
+    ``lag=1`` is its "SVSTPS" (Gadsden & Lee 2017).
 
     Args:
         filter: a Gaussian filter (KF, SVSF); its result is consumed, never recomputed.
@@ -43,7 +70,9 @@ class RTSSmoother(Estimator):
 
     References:
         Rauch, Tung, Striebel, "Maximum likelihood estimates of linear dynamic systems", AIAA J.
-        3(8), 1965. doi:10.2514/3.3166
+        3(8), 1965. doi:10.2514/3.3166 ·
+        Gadsden, Lee, "Advances of the smooth variable structure filter: square-root and
+        two-pass formulations", J. Appl. Remote Sens. 11(1), 2017. doi:10.1117/1.JRS.11.015018
     """
 
     def __init__(self, filter: GaussianFilter, lag: int | None = None) -> None:
@@ -62,47 +91,78 @@ class RTSSmoother(Estimator):
     def run(self, inputs: Inputs) -> SmootherResult:
         return self.smooth(self.filter.run(inputs))
 
-    def increments(self, result: FilterResult) -> tuple[Tensor, Tensor]:
-        """``d_{k+1} [B, T-1, n]`` and ``D_{k+1} [B, T-1, n, n]`` for ``k = 0..T-2``."""
-        d = result.mean[:, 1:] - result.pred_mean[:, 1:]
-        D = result.pred_cov[:, 1:] - result.cov[:, 1:]
-        return d, D
+    def innovation_gain(self, result: FilterResult, H: Tensor, PHt: Tensor, S: Tensor) -> Tensor:
+        """``Γ_{k+1} [B, T-1, n, m]``: the filter's gain (RTS)."""
+        return result.gain[:, 1:]
 
     def smooth(self, result: FilterResult) -> SmootherResult:
         """Smooths a batched filter result (``[B, T, ...]``) without re-running the filter."""
         T = result.mean.shape[1]
         if T == 1:
             return SmootherResult(result.mean, result.cov, result)
-        d, D = self.increments(result)
-        F = _steps_after_first(result.transition)  # F_{k+1}
-        # C_k = P_{k|k} F_{k+1}ᵀ P_{k+1|k}⁻¹ = (P_{k+1|k}⁻¹ F_{k+1} P_{k|k})ᵀ, all symmetric.
-        C = psd_solve(result.pred_cov[:, 1:], F @ result.cov[:, :-1]).mT
+        b = self._backward_terms(result)
         if self.lag is None or self.lag >= T - 1:
-            g, W = self._fixed_interval(C, d, D)
+            g, G, Z = self._fixed_interval(b)
         else:
-            g, W = self._fixed_lag(C, d, D, self.lag)
+            g, G, Z = self._fixed_lag(b, self.lag)
+        P = result.cov[:, :-1]
+        PGt = P @ G.mT
         mean = torch.cat([result.mean[:, :-1] + g, result.mean[:, -1:]], dim=1)
-        cov = torch.cat([symmetrize(result.cov[:, :-1] - W), result.cov[:, -1:]], dim=1)
+        cov = torch.cat([symmetrize(P - PGt - PGt.mT + Z), result.cov[:, -1:]], dim=1)
         return SmootherResult(mean, cov, result)
 
-    @staticmethod
-    def _fixed_interval(C: Tensor, d: Tensor, D: Tensor) -> tuple[Tensor, Tensor]:
-        g, W = torch.zeros_like(d[:, 0]), torch.zeros_like(D[:, 0])
-        gs, Ws = [], []
-        for k in range(C.shape[1] - 1, -1, -1):
-            g = matvec(C[:, k], d[:, k] + g)
-            W = C[:, k] @ (D[:, k] + W) @ C[:, k].mT
-            gs.append(g)
-            Ws.append(W)
-        return torch.stack(gs[::-1], dim=1), torch.stack(Ws[::-1], dim=1)
+    def _backward_terms(self, result: FilterResult) -> Backward:
+        P_pred = result.pred_cov[:, 1:]
+        H, R = mask_measurement(
+            steps_after_first(result.meas_matrix),
+            steps_after_first(result.meas_cov),
+            result.mask[:, 1:],
+        )
+        PHt = P_pred @ H.mT
+        S = result.innovation_cov
+        S = symmetrize(H @ PHt + R) if S is None else S[:, 1:]
+        Gamma = self.innovation_gain(result, H, PHt, S)
+        K = result.gain[:, 1:]
+        F = steps_after_first(result.transition)
+        eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
+        A = eye - K @ H
+        X = PHt.mT @ A.mT - R @ K.mT  # E[e x̃_postᵀ]: the innovation's share in the posterior error
+        # C_k = P_{k|k} F_{k+1}ᵀ P_{k+1|k}⁻¹ = (P_{k+1|k}⁻¹ F_{k+1} P_{k|k})ᵀ, all symmetric.
+        C = psd_solve(P_pred, F @ result.cov[:, :-1]).mT
+        return Backward(
+            C=C,
+            d=matvec(Gamma, result.innovation[:, 1:]),
+            GHF=Gamma @ H @ F,
+            GSG=Gamma @ S @ Gamma.mT,
+            GX=Gamma @ X,
+            AF=A @ F,
+        )
 
     @staticmethod
-    def _fixed_lag(C: Tensor, d: Tensor, D: Tensor, lag: int) -> tuple[Tensor, Tensor]:
-        # After sweep j, g[:, k] holds the window [k, k+j]; g_{k+1} past the end is zero.
-        g, W = torch.zeros_like(d), torch.zeros_like(D)
+    def _step(
+        b: Backward, g: Tensor, G: Tensor, Z: Tensor, k: slice | int
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """One application of the recursion at steps ``k`` given the terms at ``k+1``."""
+        C = b.C[:, k]
+        cross = b.GX[:, k] @ G.mT
+        g_new = matvec(C, b.d[:, k] + g)
+        G_new = C @ (b.GHF[:, k] + G @ b.AF[:, k])
+        Z_new = C @ (b.GSG[:, k] + cross + cross.mT + Z) @ C.mT
+        return g_new, G_new, Z_new
+
+    def _fixed_interval(self, b: Backward) -> tuple[Tensor, Tensor, Tensor]:
+        g, G, Z = torch.zeros_like(b.d[:, 0]), torch.zeros_like(b.C[:, 0]), torch.zeros_like(b.C[:, 0])
+        out = []
+        for k in range(b.C.shape[1] - 1, -1, -1):
+            g, G, Z = self._step(b, g, G, Z, k)
+            out.append((g, G, Z))
+        return tuple(torch.stack(v[::-1], dim=1) for v in zip(*out))  # type: ignore[return-value]
+
+    def _fixed_lag(self, b: Backward, lag: int) -> tuple[Tensor, Tensor, Tensor]:
+        # After sweep j, index k holds the window [k, k+j]; the terms past the end are zero.
+        g, G, Z = torch.zeros_like(b.d), torch.zeros_like(b.C), torch.zeros_like(b.C)
+        every = slice(None)
         for _ in range(lag):
-            g_next = torch.cat([g[:, 1:], torch.zeros_like(g[:, :1])], dim=1)
-            W_next = torch.cat([W[:, 1:], torch.zeros_like(W[:, :1])], dim=1)
-            g = matvec(C, d + g_next)
-            W = C @ (D + W_next) @ C.mT
-        return g, W
+            shifted = [torch.cat([v[:, 1:], torch.zeros_like(v[:, :1])], dim=1) for v in (g, G, Z)]
+            g, G, Z = self._step(b, *shifted, every)
+        return g, G, Z
