@@ -143,6 +143,26 @@ def test_svsf_gains_psd_and_joseph(system):
     assert np.max(np.abs(ds - dr)) > 1e-6 * np.max(np.abs(dr))
 
 
+@pytest.mark.parametrize("system", SYSTEMS)
+@pytest.mark.parametrize("missing", [False, True])
+def test_svsf_gains_rts_kind_equals_rts_window(system, missing):
+    """For ANY fixed gains the RTS covariance recursion (Eq. 17 with the Joseph P's) is exact:
+    eps_k = (x~_{k|k} - A_k x~_{k+1|k}) + A_k eps_{k+1}, the two terms are uncorrelated since
+    A_k P_{k+1|k} = P_{k|k} F^T. So kind="rts" must equal rts_window over the SVSF (SVSTPS),
+    while kind="svss" is NOT P_{k|k} - sum M S M^T (that covariance assumes optimal gains)."""
+    z, x0, P0, F, H, Q, R = random_system(*system)
+    if missing:
+        z = with_missing(z)
+    sv, K, psi = svsf_setup(z, x0, P0, F, H, Q, R)
+    obs = sv["observed"]
+    for lag in (None, 0, 1, 2, 3):
+        d = ref.dense_smoother_covariance(F, H, Q, R, P0, K, obs, lag=lag, kind="rts")
+        assert_rel(d["cov"], ref.rts_window(sv, F, lag=lag)["cov"], 1e-8, f"lag={lag}")
+    d = ref.dense_smoother_covariance(F, H, Q, R, P0, K, obs, lag=2, kind="svss")
+    claimed = ref.smooth_direct(sv, F, H, R, lag=2)["cov"]
+    assert np.max(np.abs(d["cov"] - claimed)) > 1e-3 * np.max(np.abs(claimed))
+
+
 # --------------------------------------------------------------------------------------------
 # 3. Monte Carlo: simulate truth, data and the fixed-gain filter + smoother directly
 # --------------------------------------------------------------------------------------------

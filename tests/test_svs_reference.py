@@ -76,6 +76,8 @@ def test_svstps_equals_rts_windows_over_svsf(system, lag):
         r = _ref_svsf(system, z[b].numpy())
         w = ref.rts_window(r, system.F, lag=lag)
         assert_close(out.mean[b], w["mean"])
+        # Eq. (17)'s covariance is exact for any filter gain: C_k makes the parts uncorrelated.
+        assert_close(out.cov[b], w["cov"], atol=1e-8)
 
 
 @pytest.mark.parametrize("lag", LAGS)
@@ -154,3 +156,27 @@ def test_gamma_memory_matters():
     assert (a - b).abs().max() > 1e-2
     r = _ref_svsf(system, z[0].numpy(), gamma=0.0)
     assert_close(a[0], r["mean"])
+
+
+@pytest.mark.parametrize("lag", LAGS)
+@pytest.mark.parametrize("kind", ["svss", "rts"])
+def test_smoother_covariance_equals_dense_exact_covariance(system, lag, kind):
+    """The O(T) covariance recursion equals Cov(x_k − x̂ˢ_k) built as a dense linear map of all
+    noises, given the SVSF's gains, with missing components and an all-missing step."""
+    z, x0, P0 = system.tensors()
+    z = z.clone()
+    z[torch.rand(z.shape, generator=torch.Generator().manual_seed(6)) < 0.2] = float("nan")
+    z[:, 9] = float("nan")
+    svsf = _svsf(system)
+    est = ts.SVSS(svsf, lag=lag) if kind == "svss" else ts.RTSSmoother(svsf, lag=lag)
+    out = est(z, x0, P0)
+    m = system.H.shape[0]
+    for b in range(z.shape[0]):
+        zb = z[b].numpy()
+        gains = ref.svsf_gains(zb, system.x0, system.P0, system.F, system.H, system.Q, system.R, _psi(m), 0.3)
+        assert_close(out.filtered.gain[b], gains)
+        dense = ref.dense_smoother_covariance(
+            system.F, system.H, system.Q, system.R, system.P0, gains, ~np.isnan(zb), lag=lag, kind=kind
+        )
+        assert_close(out.cov[b], dense["cov"], atol=1e-8, rtol=1e-8)
+        assert bool((torch.linalg.eigvalsh(out.cov[b]) > -1e-9).all())

@@ -54,9 +54,11 @@ class RTSSmoother(Estimator):
         P^s_k = P_{k|k} - P_{k|k} G_k^T - G_k P_{k|k} + Z_k,\qquad
         X = E[e_{k+1}\tilde x_{k+1|k+1}^T] = H P_{k+1|k} A^T - R K^T
 
-    (all at index ``k+1`` unless marked). For a Kalman filter this equals the textbook RTS
-    covariance ``P_{k|k} + C_k(P^s_{k+1} − P_{k+1|k})C_k^T``; for a non-optimal gain (SVSF) the
-    textbook form is not the covariance of the estimate and can lose definiteness.
+    (all at index ``k+1`` unless marked). With ``Γ = K`` this equals the textbook RTS covariance
+    ``P_{k|k} + C_k(P^s_{k+1} − P_{k+1|k})C_k^T`` for any filter gain, optimal or not (``C_k``
+    makes the two parts of the error uncorrelated); with the SVSS's ``Γ = B`` over an SVSF the
+    textbook-style projection form is not the covariance of the estimate (see :class:`SVSS`), so
+    one recursion that is exact for every ``Γ`` serves both.
 
     ``lag=None`` smooths the fixed interval (``x̂_{k|T}``, O(T), as filterpy's ``rts_smoother``).
     ``lag=L`` gives the fixed-lag estimate ``x̂_{k|k+L}`` (windows shorten at the end of the track)
