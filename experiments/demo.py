@@ -43,7 +43,9 @@ def report(rows: list[Evaluation], num_runs: int) -> str:
     body = []
     for r in rows:
         paper = ATC_TABLE1.get(r.name, ("—", "—", None))
-        body.append([r.name, r.rmse[0].item(), paper[0], r.rmse[2].item(), paper[1], r.us_per_track_step])
+        body.append(
+            [r.name, r.rmse[0].item(), paper[0], r.rmse[2].item(), paper[1], r.us_per_track_step]
+        )
     by = {r.name: r.rmse[[0, 2]] for r in rows}
     gain_svsf = 1 - (by["SVSS"] / by["SVSF"])
     gain_ks = 1 - (by["KS"] / by["KF"])
@@ -57,7 +59,8 @@ def report(rows: list[Evaluation], num_runs: int) -> str:
             f"SVSS below SVSF by {100 * gain_svsf[0]:.0f}% (x) / {100 * gain_svsf[1]:.0f}% (y); "
             f"paper: about 22%. KS below KF by {100 * gain_ks[0]:.0f}% / {100 * gain_ks[1]:.0f}%; "
             "paper: about 7%.",
-            "Times: torchsvs per track-step in a batch (CPU); paper per single-track step (MATLAB).",
+            "Times: torchsvs per track-step in a batch (CPU); "
+            "paper per single-track step (MATLAB).",
         ]
     )
 

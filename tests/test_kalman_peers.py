@@ -87,6 +87,8 @@ def test_kalman_filter_equals_reference_with_missing_components(system):
     z[torch.rand(z.shape, generator=gen) < 0.25] = float("nan")
     out = ts.KalmanFilter(system.model()).double()(z, x0, P0)
     for b in range(z.shape[0]):
-        r = ref.kalman_filter(z[b].numpy(), system.x0, system.P0, system.F, system.H, system.Q, system.R)
+        r = ref.kalman_filter(
+            z[b].numpy(), system.x0, system.P0, system.F, system.H, system.Q, system.R
+        )
         for key in ("mean", "cov", "pred_mean", "pred_cov", "innovation"):
             assert_close(getattr(out, key)[b], r[key], msg=key)

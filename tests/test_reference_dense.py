@@ -232,7 +232,9 @@ def test_monte_carlo_matches_dense(kind):
         worst = max(worst, rel)
         # filter error too
         ef = err_f[k]
-        relf = np.linalg.norm(ef.T @ ef / Nd - d["filter_cov"][k]) / np.linalg.norm(d["filter_cov"][k])
+        relf = np.linalg.norm(ef.T @ ef / Nd - d["filter_cov"][k]) / np.linalg.norm(
+            d["filter_cov"][k]
+        )
         worst = max(worst, relf)
     assert worst < 0.05, f"worst relative Frobenius error {worst:.3f}"
 

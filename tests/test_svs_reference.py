@@ -110,7 +110,9 @@ def test_atc_svsf_never_corrects_velocity():
         sc.model.process_noise().numpy(),
         sc.model.meas_cov().numpy(),
     )
-    r = ref.svsf(sc.z[0].numpy(), sc.x0.numpy(), sc.P0.numpy(), F, H, Q, R, np.array([800.0, 800.0]), 0.1)
+    r = ref.svsf(
+        sc.z[0].numpy(), sc.x0.numpy(), sc.P0.numpy(), F, H, Q, R, np.array([800.0, 800.0]), 0.1
+    )
     for key in FILTER_KEYS:
         assert_close(getattr(out, key)[0], r[key], msg=key)
 
@@ -122,7 +124,10 @@ def test_artificial_velocity_equals_reference():
     z[0, 7, 1] = float("nan")
     dt = 1.0
     svsf = ts.SVSF(
-        sc.model, psi=[500.0, 600.0, 500.0, 600.0], gamma=0.1, artificial=ts.FiniteDifferenceVelocity()
+        sc.model,
+        psi=[500.0, 600.0, 500.0, 600.0],
+        gamma=0.1,
+        artificial=ts.FiniteDifferenceVelocity(),
     ).double()
     out = svsf(z, sc.x0, sc.P0)
     r_pos = sc.model.meas_cov()[0, 0].item()
@@ -132,7 +137,17 @@ def test_artificial_velocity_equals_reference():
     for b in range(2):
         y = ref.finite_difference_velocity(z[b].numpy(), dt)
         assert_close(torch.isnan(torch.from_numpy(y)), ~out.mask[b])
-        r = ref.svsf(y, sc.x0.numpy(), sc.P0.numpy(), F, np.eye(4), Q, R_y, np.array([500.0, 600, 500, 600]), 0.1)
+        r = ref.svsf(
+            y,
+            sc.x0.numpy(),
+            sc.P0.numpy(),
+            F,
+            np.eye(4),
+            Q,
+            R_y,
+            np.array([500.0, 600, 500, 600]),
+            0.1,
+        )
         for key in FILTER_KEYS:
             assert_close(getattr(out, key)[b], r[key], msg=key)
         d = ref.smooth_direct(r, F, np.eye(4), R_y, lag=2)
@@ -141,7 +156,9 @@ def test_artificial_velocity_equals_reference():
 
 def test_artificial_velocity_with_per_step_dt_matches_scalar_dt():
     sc = atc_batch(2, seed=5)
-    svsf = ts.SVSF(sc.model, psi=[500.0, 600.0, 500.0, 600.0], artificial=ts.FiniteDifferenceVelocity())
+    svsf = ts.SVSF(
+        sc.model, psi=[500.0, 600.0, 500.0, 600.0], artificial=ts.FiniteDifferenceVelocity()
+    )
     a = svsf(sc.z, sc.x0, sc.P0)
     b = svsf(sc.z, sc.x0, sc.P0, dt=torch.ones(sc.z.shape[:2], dtype=sc.z.dtype))
     assert_close(a.mean, b.mean)
@@ -173,10 +190,20 @@ def test_smoother_covariance_equals_dense_exact_covariance(system, lag, kind):
     m = system.H.shape[0]
     for b in range(z.shape[0]):
         zb = z[b].numpy()
-        gains = ref.svsf_gains(zb, system.x0, system.P0, system.F, system.H, system.Q, system.R, _psi(m), 0.3)
+        gains = ref.svsf_gains(
+            zb, system.x0, system.P0, system.F, system.H, system.Q, system.R, _psi(m), 0.3
+        )
         assert_close(out.filtered.gain[b], gains)
         dense = ref.dense_smoother_covariance(
-            system.F, system.H, system.Q, system.R, system.P0, gains, ~np.isnan(zb), lag=lag, kind=kind
+            system.F,
+            system.H,
+            system.Q,
+            system.R,
+            system.P0,
+            gains,
+            ~np.isnan(zb),
+            lag=lag,
+            kind=kind,
         )
         assert_close(out.cov[b], dense["cov"], atol=1e-8, rtol=1e-8)
         assert bool((torch.linalg.eigvalsh(out.cov[b]) > -1e-9).all())

@@ -61,7 +61,7 @@ class Positive(_Constrained):
 
 
 class UnitInterval(_Constrained):
-    """A tensor in [0, 1): ``sigmoid(raw)`` when learnable, the exact value as a buffer otherwise."""
+    """A tensor in [0, 1): ``sigmoid(raw)`` when learnable, else the exact value as a buffer."""
 
     def __init__(self, value: ArrayLike, name: str, learn: bool = True) -> None:
         v = as_tensor(value, name)

@@ -24,7 +24,7 @@ class Inputs:
 
     z: Tensor  #: [B, T, m], NaN where missing
     x0: Tensor  #: [B, n]
-    P0: Tensor  #: [B, n, n]
+    P0: Tensor  #: [B, n, n], or [1, n, n] when shared by every track
     dt: Tensor | None  #: None (model's own), 0-d, or [B, T]
     psi: Tensor | None  #: per-step boundary layer override [B, T, m'] (checked by the SVSF)
     generator: torch.Generator | None
@@ -90,7 +90,9 @@ def prepare_inputs(
 
     P0 = _as_float_tensor(P0, "P0", dtype)
     if P0.shape == (n, n):
-        P0 = P0.expand(B, n, n)
+        # Kept with a batch axis of 1: while nothing track-specific enters (a KF without missing
+        # data), the covariance recursion then runs once for the whole batch.
+        P0 = P0.unsqueeze(0)
     elif P0.shape != (B, n, n) or single:
         want = f"[{n}, {n}]" if single else f"[{B}, {n}, {n}] or [{n}, {n}]"
         raise ValueError(f"P0: expected shape {want}, got {_shape(P0)}")
@@ -112,7 +114,9 @@ def prepare_inputs(
             psi_t = psi_t.unsqueeze(0)
         if psi_t.ndim != 3 or psi_t.shape[:2] != (B, T):
             want = "[T, m]" if single else f"[{B}, {T}, m]"
-            raise ValueError(f"psi: expected a per-step override of shape {want}, got {_shape(psi)}")
+            raise ValueError(
+                f"psi: expected a per-step override of shape {want}, got {_shape(psi)}"
+            )
         if not bool(torch.isfinite(psi_t).all()) or bool((psi_t <= 0).any()):
             raise ValueError("psi: expected finite boundary layer widths > 0")
     if generator is not None and not isinstance(generator, torch.Generator):
@@ -186,9 +190,7 @@ class Estimator(nn.Module):
         Returns:
             A :class:`~torchsvs.types.FilterResult` or :class:`~torchsvs.types.SmootherResult`.
         """
-        inputs = prepare_inputs(
-            self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator
-        )
+        inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator)
         result = self.run(inputs)
         return drop_batch(result) if inputs.single else result
 

@@ -37,7 +37,9 @@ def evaluate(
             out = est(scenario.z, scenario.x0, scenario.P0)
         seconds = time.perf_counter() - start
         rows.append(
-            Evaluation(name, accumulative_rmse(out.mean, scenario.truth), 1e6 * seconds / (B * T), out.mean)
+            Evaluation(
+                name, accumulative_rmse(out.mean, scenario.truth), 1e6 * seconds / (B * T), out.mean
+            )
         )
     return rows
 

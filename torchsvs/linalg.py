@@ -68,9 +68,7 @@ def joseph_update(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:
     return symmetrize(A @ P @ A.mT + K @ R @ K.mT)
 
 
-def svsf_gain_ratio(
-    e_prior: Tensor, e_post_prev: Tensor, psi: Tensor, gamma: Tensor
-) -> Tensor:
+def svsf_gain_ratio(e_prior: Tensor, e_post_prev: Tensor, psi: Tensor, gamma: Tensor) -> Tensor:
     """Diagonal of the SVSF gain, ``(|e_{k+1|k}| + γ|e_{k|k}|) · sat(e_{k+1|k}/ψ) / e_{k+1|k}``.
 
     Eq. (23), Chen et al. 2020, written without the division by the innovation: with ``sat``

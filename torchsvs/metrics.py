@@ -8,7 +8,8 @@ from torch import Tensor
 def _check(estimate: Tensor, truth: Tensor) -> None:
     if estimate.shape != truth.shape:
         raise ValueError(
-            f"estimate: expected the shape of truth {tuple(truth.shape)}, got {tuple(estimate.shape)}"
+            f"estimate: expected the shape of truth {tuple(truth.shape)}, "
+            f"got {tuple(estimate.shape)}"
         )
 
 

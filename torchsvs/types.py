@@ -68,7 +68,8 @@ class SmootherResult(NamedTuple):
     """A smoothed pass and the filter pass it was computed from.
 
     Attributes:
-        mean: smoothed mean (``x̂_{t|t+L}`` for lag ``L``, ``x̂_{t|T}`` for a fixed interval), ``[B, T, n]``.
+        mean: smoothed mean, ``[B, T, n]``: ``x̂_{t|t+L}`` for lag ``L``, ``x̂_{t|T}`` for a fixed
+            interval.
         cov: its covariance, ``[B, T, n, n]``.
         filtered: the :class:`FilterResult` of the forward pass.
     """

@@ -43,7 +43,8 @@ class FiniteDifferenceVelocity:
         n = model.state_dim
         if len(pos) != m or len(vel) != m or len(set(pos) | set(vel)) != n:
             raise ValueError(
-                f"model: expected {m} positions and {m} velocities covering all {n} state components"
+                f"model: expected {m} positions and {m} velocities covering all {n} "
+                "state components"
             )
         step = torch.tensor(getattr(model, "dt", 1.0), dtype=z.dtype) if dt is None else dt
         interval = step.unsqueeze(-1) if step.ndim == 2 else step  # [B, T, 1] or 0-d

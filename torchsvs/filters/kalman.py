@@ -31,6 +31,21 @@ def _at(A: Tensor, t: int) -> Tensor:
     return A[:, t] if A.ndim == 4 else A
 
 
+def _stack_over_time(values: list[Tensor] | list[Tensor | None], batch: int) -> Tensor | None:
+    """Stacks per-step ``[B|1, ...]`` tensors into ``[B, T, ...]``.
+
+    Steps computed once for all tracks (a covariance while nothing track-specific has entered,
+    e.g. a KF with a shared ``P0`` and no missing data) keep their batch axis of 1 and the result
+    is a broadcast view over the ``B`` tracks, not ``B`` copies.
+    """
+    if values[0] is None:
+        return None
+    tensors = [v for v in values if v is not None]
+    width = max(v.shape[0] for v in tensors)
+    stacked = torch.stack([v.expand(width, *v.shape[1:]) for v in tensors], dim=1)
+    return stacked.expand(batch, *stacked.shape[1:])
+
+
 def _as_result_matrix(A: Tensor) -> Tensor:
     """``[r, c]`` → ``[1, 1, r, c]``; ``[B, T, r, c]`` unchanged."""
     return A if A.ndim == 4 else A[None, None]
@@ -51,7 +66,10 @@ class GaussianFilter(Estimator):
         self.model = model
 
     def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor, Tensor]:
-        """The corrector's measurements ``[B, T, m]``, ``H`` and ``R`` (``[m, ·]`` or ``[B, T, m, ·]``)."""
+        """The corrector's measurements ``[B, T, m]``, ``H`` and ``R``.
+
+        ``H`` and ``R`` are ``[m, ·]`` when constant or ``[B, T, m, ·]`` per step.
+        """
         dtype = inputs.z.dtype
         return inputs.z, self.model.meas_matrix().to(dtype), self.model.meas_cov().to(dtype)
 
@@ -108,21 +126,25 @@ class GaussianFilter(Estimator):
             pred_covs.append(P_pred)
 
         def stacked(field: str) -> Tensor | None:
-            values = [getattr(s, field) for s in steps]
-            return None if values[0] is None else torch.stack(values, dim=1)
+            return _stack_over_time([getattr(s, field) for s in steps], inputs.batch)
+
+        def stacked_all(values: list[Tensor]) -> Tensor:
+            out = _stack_over_time(values, inputs.batch)
+            assert out is not None
+            return out
 
         loglik = stacked("log_likelihood")
         return FilterResult(
-            mean=torch.stack([s.mean for s in steps], dim=1),
-            cov=torch.stack([s.cov for s in steps], dim=1),
-            pred_mean=torch.stack(pred_means, dim=1),
-            pred_cov=torch.stack(pred_covs, dim=1),
-            innovation=torch.stack([s.innovation for s in steps], dim=1),
+            mean=stacked_all([s.mean for s in steps]),
+            cov=stacked_all([s.cov for s in steps]),
+            pred_mean=stacked_all(pred_means),
+            pred_cov=stacked_all(pred_covs),
+            innovation=stacked_all([s.innovation for s in steps]),
             mask=observed,
             transition=_as_result_matrix(F),
             meas_matrix=_as_result_matrix(H),
             meas_cov=_as_result_matrix(R),
-            gain=torch.stack([s.gain for s in steps], dim=1),
+            gain=stacked_all([s.gain for s in steps]),
             post_innovation=stacked("post_innovation"),
             innovation_cov=stacked("innovation_cov"),
             log_likelihood=None if loglik is None else loglik.sum(dim=1),

@@ -13,7 +13,9 @@ from torchsvs.filters.kalman import GaussianFilter, Step
 from torchsvs.linalg import joseph_update, matvec, svsf_gain_ratio
 from torchsvs.models.base import LinearModel
 
-ArtificialMeasurement = Callable[[Tensor, LinearModel, "Tensor | None"], tuple[Tensor, Tensor, Tensor]]
+ArtificialMeasurement = Callable[
+    [Tensor, LinearModel, "Tensor | None"], tuple[Tensor, Tensor, Tensor]
+]
 
 
 class SVSF(GaussianFilter):
@@ -41,9 +43,9 @@ class SVSF(GaussianFilter):
     * ``artificial=None`` (the paper's Sec. 4.1, ATC scenario): ``H⁺`` is the Moore-Penrose
       pseudo-inverse, so only the measured components are corrected (for position-only ``H``,
       ``H⁺ = Hᵀ`` and the velocity is never corrected).
-    * ``artificial=FiniteDifferenceVelocity()`` (Sec. 4.2, complex scenario, Eq. (51)): the corrector
-      measures full-state pseudo-measurements with their own ``H`` and ``R``; ``psi`` then has
-      one width per pseudo-measurement (``[500, 600, 500, 600]`` in the paper).
+    * ``artificial=FiniteDifferenceVelocity()`` (Sec. 4.2, complex scenario, Eq. (51)): the
+      corrector measures full-state pseudo-measurements with their own ``H`` and ``R``; ``psi``
+      then has one width per pseudo-measurement (``[500, 600, 500, 600]`` in the paper).
 
     Missing data: a NaN component gives no correction (its column of the gain is zero, ``H⁺`` is
     that of the observed rows) and its memory ``e_{k|k}`` is carried from the previous step.
@@ -79,7 +81,10 @@ class SVSF(GaussianFilter):
         self.boundary_layer = Positive(psi, "psi", learn=learn)
         self.memory = UnitInterval(gamma, "gamma", learn=learn)
         if self.boundary_layer.raw.ndim > 1:
-            raise ValueError(f"psi: expected a scalar or a vector [m], got shape {tuple(self.boundary_layer.raw.shape)}")
+            raise ValueError(
+                "psi: expected a scalar or a vector [m], got shape "
+                f"{tuple(self.boundary_layer.raw.shape)}"
+            )
         if self.memory.raw.ndim != 0:
             raise ValueError(f"gamma: expected a scalar, got shape {tuple(self.memory.raw.shape)}")
         if artificial is not None and not callable(artificial):
@@ -104,9 +109,15 @@ class SVSF(GaussianFilter):
         m = z.shape[-1]
         widths = self.boundary_layer.raw.numel()
         if self.boundary_layer.raw.ndim == 1 and widths != m:
-            raise ValueError(f"psi: expected {m} boundary layer widths (one per corrector measurement), got {widths}")
+            raise ValueError(
+                f"psi: expected {m} boundary layer widths (one per corrector measurement), "
+                f"got {widths}"
+            )
         if inputs.psi is not None and inputs.psi.shape[-1] != m:
-            raise ValueError(f"psi: expected a per-step override of shape [B, T, {m}], got {tuple(inputs.psi.shape)}")
+            raise ValueError(
+                f"psi: expected a per-step override of shape [B, T, {m}], "
+                f"got {tuple(inputs.psi.shape)}"
+            )
         return z, H, R
 
     def correct(
@@ -126,7 +137,9 @@ class SVSF(GaussianFilter):
         e = z - matvec(H, x_pred)  # Eq. (4)
         if mask is not None:
             e = e * mask
-            H_plus = torch.linalg.pinv(H * mask.unsqueeze(-1).to(dtype))  # zero columns where missing
+            H_plus = torch.linalg.pinv(
+                H * mask.unsqueeze(-1).to(dtype)
+            )  # zero columns where missing
         else:
             H_plus = torch.linalg.pinv(H)
         memory = previous.post_innovation if previous is not None else torch.zeros_like(e)

@@ -23,6 +23,8 @@ class LinearGaussian(LinearModel):
     """
 
     uses_dt = False
+    F: Tensor
+    H: Tensor
 
     def __init__(
         self, F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, learn_noise: bool = False

@@ -12,9 +12,9 @@ from torchsvs.models.base import LinearModel
 class ConstantVelocity(LinearModel):
     r"""Nearly constant velocity ("uniform motion") model, Eqs. (43)-(48), Chen et al. 2020.
 
-    State ``[x, vx, y, vy]`` (Eq. (44); per axis position then velocity, ``ndim`` axes), position-only
-    measurements (Eq. (45)). Per axis, with interval :math:`T` and power spectral density :math:`q`
-    (``L`` in Eq. (48)):
+    State ``[x, vx, y, vy]`` (Eq. (44); per axis position then velocity, ``ndim`` axes),
+    position-only measurements (Eq. (45)). Per axis, with interval :math:`T` and power spectral
+    density :math:`q` (``L`` in Eq. (48)):
 
     .. math::
         F = \begin{bmatrix}1 & T\\ 0 & 1\end{bmatrix},\qquad
@@ -36,6 +36,7 @@ class ConstantVelocity(LinearModel):
     """
 
     uses_dt = True
+    H: Tensor
 
     def __init__(
         self,

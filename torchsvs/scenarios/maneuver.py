@@ -1,4 +1,7 @@
-"""A batched maneuvering-target generator built from motion segments (plane, state [x, vx, y, vy])."""
+"""A batched maneuvering-target generator built from motion segments.
+
+Targets move in the plane with state ``[x, vx, y, vy]``.
+"""
 
 from __future__ import annotations
 
@@ -53,7 +56,9 @@ def simulate_segments(
     for seg in segments:
         count = round(seg.duration / dt)
         if count < 1 or abs(count * dt - seg.duration) > 1e-9 * max(1.0, seg.duration):
-            raise ValueError(f"segments: duration {seg.duration} is not a positive multiple of dt={dt}")
+            raise ValueError(
+                f"segments: duration {seg.duration} is not a positive multiple of dt={dt}"
+            )
         rate = torch.as_tensor(seg.turn_rate, dtype=dtype).reshape(-1, 1)
         rate_accel = torch.as_tensor(seg.turn_accel, dtype=dtype).reshape(-1, 1)
         accel = torch.as_tensor(seg.accel, dtype=dtype).reshape(-1, 2)
@@ -63,7 +68,8 @@ def simulate_segments(
                 omega = rate + rate_accel * (elapsed + 0.5 * h)
                 cos, sin = torch.cos(omega * h), torch.sin(omega * h)
                 turned = torch.cat(
-                    [cos * vel[:, :1] - sin * vel[:, 1:], sin * vel[:, :1] + cos * vel[:, 1:]], dim=1
+                    [cos * vel[:, :1] - sin * vel[:, 1:], sin * vel[:, :1] + cos * vel[:, 1:]],
+                    dim=1,
                 )
                 new_vel = turned + accel * h
                 pos = pos + 0.5 * h * (vel + new_vel)
@@ -76,7 +82,7 @@ def simulate_segments(
 def add_measurement_noise(
     truth: Tensor, H: Tensor, R: Tensor, generator: torch.Generator | None = None
 ) -> Tensor:
-    """``z = H x + v``, ``v ~ N(0, R)``: ``[B, T, n] → [B, T, m]``, randomness from ``generator``."""
+    """``z = H x + v`` with ``v ~ N(0, R)``, ``[B, T, n] → [B, T, m]``, noise from ``generator``."""
     L = torch.linalg.cholesky(R.to(truth.dtype))
     noise = torch.randn(*truth.shape[:-1], R.shape[-1], generator=generator, dtype=truth.dtype)
     return truth @ H.to(truth.dtype).mT + noise @ L.mT

@@ -11,7 +11,6 @@ from torch import Tensor
 from torchsvs.models.motion import ConstantVelocity
 from torchsvs.scenarios.maneuver import Segment, add_measurement_noise, simulate_segments
 
-
 #: Table 1 of Chen et al. 2020: position accumulative RMSE (m) on x and y, and single-step run
 #: time (µs, MATLAB on an Intel i5-3230M) for the ATC scenario with ψ = [800, 800] m, γ = 0.1.
 ATC_TABLE1 = {

@@ -49,7 +49,8 @@ class RTSSmoother(Estimator):
 
     .. math::
         G_k = C_k(\Gamma H + G_{k+1} A)F,\qquad
-        Z_k = C_k\big(\Gamma S \Gamma^T + \Gamma X G_{k+1}^T + G_{k+1} X^T\Gamma^T + Z_{k+1}\big)C_k^T,
+        Z_k = C_k\big(\Gamma S \Gamma^T + \Gamma X G_{k+1}^T + G_{k+1} X^T\Gamma^T
+              + Z_{k+1}\big)C_k^T,
 
         P^s_k = P_{k|k} - P_{k|k} G_k^T - G_k P_{k|k} + Z_k,\qquad
         X = E[e_{k+1}\tilde x_{k+1|k+1}^T] = H P_{k+1|k} A^T - R K^T
@@ -80,14 +81,16 @@ class RTSSmoother(Estimator):
     def __init__(self, filter: GaussianFilter, lag: int | None = None) -> None:
         super().__init__()
         if not isinstance(filter, GaussianFilter):
-            raise TypeError(f"filter: expected a torchsvs Gaussian filter, got {type(filter).__name__}")
+            raise TypeError(
+                f"filter: expected a torchsvs Gaussian filter, got {type(filter).__name__}"
+            )
         if lag is not None and (isinstance(lag, bool) or not isinstance(lag, int) or lag < 1):
             raise ValueError(f"lag: expected None (fixed interval) or an integer >= 1, got {lag!r}")
         self.filter = filter
         self.lag = lag
 
-    @property  # type: ignore[override]
-    def model(self) -> LinearModel:
+    @property
+    def model(self) -> LinearModel:  # type: ignore[override]
         return self.filter.model
 
     def run(self, inputs: Inputs) -> SmootherResult:
@@ -153,18 +156,25 @@ class RTSSmoother(Estimator):
         return g_new, G_new, Z_new
 
     def _fixed_interval(self, b: Backward) -> tuple[Tensor, Tensor, Tensor]:
-        g, G, Z = torch.zeros_like(b.d[:, 0]), torch.zeros_like(b.C[:, 0]), torch.zeros_like(b.C[:, 0])
+        g, G, Z = (
+            torch.zeros_like(b.d[:, 0]),
+            torch.zeros_like(b.C[:, 0]),
+            torch.zeros_like(b.C[:, 0]),
+        )
         out = []
         for k in range(b.C.shape[1] - 1, -1, -1):
             g, G, Z = self._step(b, g, G, Z, k)
             out.append((g, G, Z))
-        return tuple(torch.stack(v[::-1], dim=1) for v in zip(*out))  # type: ignore[return-value]
+        g, G, Z = (torch.stack(v[::-1], dim=1) for v in zip(*out, strict=True))
+        return g, G, Z
 
     def _fixed_lag(self, b: Backward, lag: int) -> tuple[Tensor, Tensor, Tensor]:
         # After sweep j, index k holds the window [k, k+j]; the terms past the end are zero.
         g, G, Z = torch.zeros_like(b.d), torch.zeros_like(b.C), torch.zeros_like(b.C)
         every = slice(None)
         for _ in range(lag):
-            shifted = [torch.cat([v[:, 1:], torch.zeros_like(v[:, :1])], dim=1) for v in (g, G, Z)]
-            g, G, Z = self._step(b, *shifted, every)
+            g_next, G_next, Z_next = (
+                torch.cat([v[:, 1:], torch.zeros_like(v[:, :1])], dim=1) for v in (g, G, Z)
+            )
+            g, G, Z = self._step(b, g_next, G_next, Z_next, every)
         return g, G, Z

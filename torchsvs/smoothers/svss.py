@@ -30,10 +30,10 @@ class SVSS(RTSSmoother):
     over an SVSF with lag ≥ 2 it is indefinite at many steps (measured on a 2,000-step CV track,
     ψ = 800, lag 2: 16% of the steps).
 
-    ``lag=1`` (default) is the one-step-lag smoother ``x̂_{k|k+1}`` of the paper's tables (Eq. (A21));
-    ``lag=L`` sums ``L`` terms; ``lag=None`` is the fixed interval ``x̂_{k|T}``, which over an SVSF on
-    maneuvering data can diverge: the SVSF covariance is much larger than ``Q``, so the gains
-    ``C_i`` approach ``F⁻¹`` and distant innovations keep their full weight.
+    ``lag=1`` (default) is the one-step-lag smoother ``x̂_{k|k+1}`` of the paper's tables
+    (Eq. (A21)); ``lag=L`` sums ``L`` terms; ``lag=None`` is the fixed interval ``x̂_{k|T}``, which
+    over an SVSF on maneuvering data can diverge: the SVSF covariance is much larger than ``Q``, so
+    the gains ``C_i`` approach ``F⁻¹`` and distant innovations keep their full weight.
 
     Args:
         filter: usually an :class:`~torchsvs.filters.SVSF`; any Gaussian filter works.
