@@ -33,7 +33,8 @@ class SVSS(RTSSmoother):
     ``lag=1`` (default) is the one-step-lag smoother ``x̂_{k|k+1}`` of the paper's tables
     (Eq. (A21)); ``lag=L`` sums ``L`` terms; ``lag=None`` is the fixed interval ``x̂_{k|T}``, which
     over an SVSF on maneuvering data can diverge: the SVSF covariance is much larger than ``Q``, so
-    the gains ``C_i`` approach ``F⁻¹`` and distant innovations keep their full weight.
+    the gains ``C_i`` approach ``F⁻¹`` and distant innovations keep their full weight (ATC scenario,
+    500 runs: x RMSE 112 m at lag 1, 100 m at lag 2, 62 km over the fixed interval).
 
     Args:
         filter: usually an :class:`~torchsvs.filters.SVSF`; any Gaussian filter works.
