@@ -14,8 +14,8 @@ import time
 import torch
 
 import torchsvs as ts
+from experiments.svss_paper import TABLE1
 from torchsvs.evaluation import Evaluation, evaluate, markdown_table
-from torchsvs.scenarios.paper import ATC_TABLE1
 
 
 def atc_estimators(model: ts.models.LinearModel, psi: float = 800.0, gamma: float = 0.1) -> dict:
@@ -42,7 +42,7 @@ def report(rows: list[Evaluation], num_runs: int) -> str:
     header = ["estimator", "x RMSE (m)", "paper x", "y RMSE (m)", "paper y", "µs / track-step"]
     body = []
     for r in rows:
-        paper = ATC_TABLE1.get(r.name, ("—", "—", None))
+        paper = TABLE1.get(r.name, ("—", "—", None))
         body.append(
             [r.name, r.rmse[0].item(), paper[0], r.rmse[2].item(), paper[1], r.us_per_track_step]
         )

@@ -111,3 +111,30 @@ def test_turn_with_angular_acceleration_and_linear_acceleration():
     assert_close(
         accel[0, -1], torch.tensor([400 + 16, 108, -8, -4], dtype=torch.float64), atol=1e-9
     )
+
+
+def test_random_maneuvers_are_seeded_varied_and_physical():
+    ranges = ts.scenarios.ManeuverRanges(steps=120, speed=(80.0, 300.0), meas_std=(20.0, 60.0))
+    a = ts.scenarios.random_maneuvers(400, ranges, torch.Generator().manual_seed(5))
+    b = ts.scenarios.random_maneuvers(400, ranges, torch.Generator().manual_seed(5))
+    assert_close(a.z, b.z, atol=0, rtol=0)
+    assert a.truth.shape == (400, 120, 4) and a.z.shape == (400, 120, 2)
+    speed = a.truth[..., [1, 3]].norm(dim=-1)
+    assert speed.min() >= 80.0 - 1e-6 and speed.max() <= 300.0 + 1e-6
+    # Every kind occurs, roughly in proportion to the weights (0.4, 0.3, 0.1, 0.2) of the steps.
+    share = torch.bincount(a.kinds.flatten(), minlength=4).double() / a.kinds.numel()
+    assert_close(share, torch.tensor([0.4, 0.3, 0.1, 0.2], dtype=torch.float64), atol=0.05, rtol=0)
+    # Segments last 10-40 steps: kinds change at most every 10 steps (a change may keep the kind).
+    changes = (a.kinds[:, 1:] != a.kinds[:, :-1]).sum(1)
+    assert changes.max() <= 120 // 10
+    # Per-track noise in range and as drawn.
+    residual = a.z - a.truth[..., [0, 2]]
+    ratio = residual.std(dim=(1, 2)) / a.meas_std
+    assert a.meas_std.min() >= 20.0 and a.meas_std.max() <= 60.0
+    assert (ratio - 1).abs().max() < 0.25
+    # A constant-turn track's heading changes at its turn rate: kinds 1 steps turn, kind 0 do not.
+    heading = torch.atan2(a.truth[..., 3], a.truth[..., 1])
+    turn = torch.remainder(heading[:, 1:] - heading[:, :-1] + math.pi, 2 * math.pi) - math.pi
+    straight = (a.kinds[:, 1:] == 0) & (a.kinds[:, :-1] == 0)
+    assert turn[straight].abs().max() < 1e-9
+    assert turn[(a.kinds[:, 1:] == 1) & (a.kinds[:, :-1] == 1)].abs().min() > 0.9 * math.pi / 180

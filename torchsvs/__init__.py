@@ -6,7 +6,12 @@ and memory γ. See ``torchsvs.types`` for the shape conventions.
 """
 
 from torchsvs import metrics, models, scenarios
-from torchsvs.filters import SVSF, FiniteDifferenceVelocity, KalmanFilter
+from torchsvs.filters import (
+    SVSF,
+    FiniteDifferenceVelocity,
+    KalmanFilter,
+    RobustStudentTKalmanFilter,
+)
 from torchsvs.smoothers import SVSS, RTSSmoother
 from torchsvs.types import FilterResult, SmootherResult
 
@@ -17,6 +22,7 @@ __all__ = [
     "FiniteDifferenceVelocity",
     "KalmanFilter",
     "RTSSmoother",
+    "RobustStudentTKalmanFilter",
     "SmootherResult",
     "metrics",
     "models",

@@ -1,6 +1,7 @@
 """The ``torchsvs`` command line.
 
-    torchsvs demo [--runs 500] [--seed 0]   the ATC comparison of Chen et al. 2020, Table 1
+    torchsvs demo [--runs 500] [--seed 0]             the ATC comparison of Chen et al. 2020
+    torchsvs reproduce svss [--runs 500] [--seed 0]   Tables 1-3, A2 and Figs 4-9 of that paper
 
 The experiments are scripts of the source checkout (``experiments/``), not of the installed
 library: the command runs them from the clone that ``pip install -e .`` installed.
@@ -8,13 +9,15 @@ library: the command runs them from the clone that ``pip install -e .`` installe
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import sys
 from pathlib import Path
 from types import ModuleType
 
-COMMANDS = {"demo": ("experiments.demo", "the ATC scenario of Chen et al. 2020 beside Table 1")}
+COMMANDS = {
+    "demo": ("experiments.demo", "the ATC scenario of Chen et al. 2020 beside Table 1"),
+    "reproduce svss": ("experiments.svss_paper", "Chen et al. 2020: Tables 1-3, A2, Figs 4-9"),
+}
 
 
 def _import_experiment(module: str) -> ModuleType:
@@ -30,15 +33,16 @@ def _import_experiment(module: str) -> ModuleType:
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(prog="torchsvs", description="torchsvs experiments")
-    parser.add_argument(
-        "command",
-        choices=sorted(COMMANDS),
-        help="; ".join(f"{k}: {v[1]}" for k, v in COMMANDS.items()),
-    )
-    args, rest = parser.parse_known_args(argv)
-    _import_experiment(COMMANDS[args.command][0]).main(rest)
+    """Dispatches ``torchsvs COMMAND [options]`` to the experiment's own ``main``."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    for words in sorted(COMMANDS, key=len, reverse=True):
+        size = len(words.split())
+        if args[:size] == words.split():
+            _import_experiment(COMMANDS[words][0]).main(args[size:])
+            return
+    usage = "\n".join(f"  torchsvs {k:<16} {v[1]}" for k, v in COMMANDS.items())
+    print(f"usage: torchsvs COMMAND [options]\n\ncommands:\n{usage}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 if __name__ == "__main__":

@@ -2,6 +2,13 @@
 
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
+from torchsvs.filters.robust import RobustStudentTKalmanFilter
 from torchsvs.filters.svsf import SVSF
 
-__all__ = ["SVSF", "FiniteDifferenceVelocity", "GaussianFilter", "KalmanFilter"]
+__all__ = [
+    "SVSF",
+    "FiniteDifferenceVelocity",
+    "GaussianFilter",
+    "KalmanFilter",
+    "RobustStudentTKalmanFilter",
+]

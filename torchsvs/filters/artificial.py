@@ -27,7 +27,14 @@ class FiniteDifferenceVelocity:
     between steps, ``Cov(z_k) = R``, ``Cov(v_k) = 2R/T_k²``, ``Cov(z_k, v_k) = R/T_k``. The
     correlation between successive velocities (``−R/T²``) is ignored, as the filter assumes white
     measurement noise.
+
+    Args:
+        correlated: keep the position-velocity covariance ``R/T_k`` (default); ``False`` drops it
+            (a diagonal-block noise model, for ablations).
     """
+
+    def __init__(self, correlated: bool = True) -> None:
+        self.correlated = correlated
 
     def __call__(
         self, z: Tensor, model: LinearModel, dt: Tensor | None
@@ -56,7 +63,8 @@ class FiniteDifferenceVelocity:
 
         R = model.meas_cov().to(z.dtype)
         inv_t = (1.0 / step)[..., None, None]  # [B, T, 1, 1] or 0-d
-        blocks = {(0, 0): R.expand(*inv_t.shape[:-2], m, m), (0, 1): R * inv_t}
+        cross = R * inv_t if self.correlated else torch.zeros_like(R * inv_t)
+        blocks = {(0, 0): R.expand(*inv_t.shape[:-2], m, m), (0, 1): cross}
         blocks[(1, 0)] = blocks[(0, 1)]
         blocks[(1, 1)] = 2.0 * R * inv_t.square()
         R_y = z.new_zeros(*inv_t.shape[:-2], n, n)

@@ -1,6 +1,29 @@
 """Seeded, batched simulators of maneuvering targets and the papers' scenarios."""
 
-from torchsvs.scenarios.maneuver import Segment, add_measurement_noise, simulate_segments
-from torchsvs.scenarios.paper import Scenario, atc_scenario
+from torchsvs.scenarios.maneuver import (
+    Controls,
+    ManeuverBatch,
+    ManeuverRanges,
+    Segment,
+    add_measurement_noise,
+    random_maneuvers,
+    segments_to_controls,
+    simulate_controls,
+    simulate_segments,
+)
+from torchsvs.scenarios.paper import Scenario, atc_scenario, complex_scenario
 
-__all__ = ["Scenario", "Segment", "add_measurement_noise", "atc_scenario", "simulate_segments"]
+__all__ = [
+    "Controls",
+    "ManeuverBatch",
+    "ManeuverRanges",
+    "Scenario",
+    "Segment",
+    "add_measurement_noise",
+    "atc_scenario",
+    "complex_scenario",
+    "random_maneuvers",
+    "segments_to_controls",
+    "simulate_controls",
+    "simulate_segments",
+]
