@@ -1,20 +1,20 @@
-"""The demo's ATC comparison on fewer runs: the paper's orderings hold."""
+"""`make demo` on a tiny budget: it trains, moves ψ off the bad guess and prints the table."""
 
 from __future__ import annotations
 
-from experiments.demo import atc_table, report
+import re
+
+import pytest
+
+from experiments.demo import demo
 
 
-def test_atc_orderings_and_paper_agreement():
-    rows = atc_table(num_runs=60, seed=1, progress=False)
-    rmse = {r.name: r.rmse[[0, 2]] for r in rows}
-    for axis in range(2):
-        assert rmse["SVSS"][axis] < 0.85 * rmse["SVSF"][axis]  # ≥ 15% below the SVSF
-        assert rmse["SVSS"][axis] < rmse["SVSTPS"][axis] < rmse["SVSF"][axis]
-        assert rmse["SVSF"][axis] < rmse["KS"][axis] < rmse["KF"][axis]
-    # Within 10% of Table 1 (60 runs; 500 runs land within 2%).
-    paper = {"KF": 413, "KS": 387, "SVSF": 146, "SVSS": 113}
-    for name, x in paper.items():
-        assert abs(rmse[name][0].item() / x - 1) < 0.1, name
-    text = report(rows, 60)
-    assert "| SVSS |" in text and "paper x" in text
+@pytest.mark.filterwarnings("ignore:.*does not have many workers.*", "ignore:.*LeafSpec.*")
+def test_demo_trains_and_reports():
+    text = demo(epochs=1, batches=3, runs=20)
+    for row in ("| ATC | KF |", "| ATC | SVSS, learned ψ |", "| complex | SVSS, paper ψ |"):
+        assert row in text
+    learned = re.findall(r"(ATC|complex): ψ = \[([0-9, ]+)\]", text)
+    assert len(learned) == 2
+    for _, widths in learned:
+        assert all(int(w) > 110 for w in widths.split(","))  # moved up from the 100 m start

@@ -2,6 +2,7 @@
 
     torchsvs demo [--runs 500] [--seed 0]             the ATC comparison of Chen et al. 2020
     torchsvs reproduce svss [--runs 500] [--seed 0]   Tables 1-3, A2 and Figs 4-9 of that paper
+    torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
 
 The experiments are scripts of the source checkout (``experiments/``), not of the installed
 library: the command runs them from the clone that ``pip install -e .`` installed.
@@ -35,12 +36,18 @@ def _import_experiment(module: str) -> ModuleType:
 def main(argv: list[str] | None = None) -> None:
     """Dispatches ``torchsvs COMMAND [options]`` to the experiment's own ``main``."""
     args = list(sys.argv[1:] if argv is None else argv)
+    if args[:1] == ["fit"]:
+        from torchsvs.training.cli import main as fit
+
+        fit(args[1:])
+        return
     for words in sorted(COMMANDS, key=len, reverse=True):
         size = len(words.split())
         if args[:size] == words.split():
             _import_experiment(COMMANDS[words][0]).main(args[size:])
             return
     usage = "\n".join(f"  torchsvs {k:<16} {v[1]}" for k, v in COMMANDS.items())
+    usage += "\n  torchsvs fit --config CONFIG.yaml   train an estimator (LightningCLI)"
     print(f"usage: torchsvs COMMAND [options]\n\ncommands:\n{usage}", file=sys.stderr)
     raise SystemExit(2)
 

@@ -167,6 +167,7 @@ class ManeuverBatch(NamedTuple):
 
     truth: Tensor
     z: Tensor
+    initial: Tensor  #: [B, 4] true state at time 0, one step before z[:, 0]
     meas_std: Tensor  #: [B] position noise standard deviation of each track (m)
     kinds: Tensor  #: [B, T] segment kind per step: 0 CV, 1 CT, 2 turn + ang. accel, 3 CA
     dt: float
@@ -236,4 +237,4 @@ def random_maneuvers(
     H = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]], dtype=dtype)
     R = meas_std.square()[:, None, None] * torch.eye(2, dtype=dtype)
     z = add_measurement_noise(truth, H, R, generator)
-    return ManeuverBatch(truth, z, meas_std, kinds.gather(1, per_step), dt)
+    return ManeuverBatch(truth, z, start, meas_std, kinds.gather(1, per_step), dt)

@@ -1,0 +1,159 @@
+"""Random maneuvering tracks for training, as a Lightning data module."""
+
+from __future__ import annotations
+
+import zlib
+from typing import NamedTuple
+
+import lightning as L
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset
+
+from torchsvs.scenarios.maneuver import ManeuverRanges, random_maneuvers
+
+
+class TrackBatch(NamedTuple):
+    """One training batch: measurements, truth and the filters' prior."""
+
+    z: Tensor  #: [B, T, 2], NaN where missing
+    truth: Tensor  #: [B, T, 4]
+    x0: Tensor  #: [B, 4], drawn from N(true initial state, P0)
+    P0: Tensor  #: [4, 4]
+
+
+class ManeuverDataset(Dataset[TrackBatch]):
+    """``num_batches`` batches of ``batch_size`` random tracks; batch ``i`` is a pure function of
+    ``(seed, split, i)``, so every split is reproducible and splits never share tracks.
+
+    Hard cases on request: with probability ``outlier_prob`` a measurement component gets an
+    extra ``outlier_scale``-σ Gaussian error; with probability ``missing_prob`` it is NaN.
+    """
+
+    def __init__(
+        self,
+        num_batches: int,
+        batch_size: int,
+        ranges: ManeuverRanges,
+        prior_std: tuple[float, float],
+        seed: int,
+        split: str,
+        outlier_prob: float = 0.0,
+        outlier_scale: float = 10.0,
+        missing_prob: float = 0.0,
+        cached: bool = True,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        self.num_batches, self.batch_size, self.ranges = num_batches, batch_size, ranges
+        self.prior_std = prior_std
+        self.seed = zlib.crc32(f"{seed}/{split}".encode())
+        self.outlier_prob, self.outlier_scale = outlier_prob, outlier_scale
+        self.missing_prob, self.dtype = missing_prob, dtype
+        self._cache = [self._make(i) for i in range(num_batches)] if cached else None
+
+    def __len__(self) -> int:
+        return self.num_batches
+
+    def __getitem__(self, index: int) -> TrackBatch:
+        if not 0 <= index < self.num_batches:
+            raise IndexError(index)
+        return self._cache[index] if self._cache is not None else self._make(index)
+
+    def _make(self, index: int) -> TrackBatch:
+        gen = torch.Generator().manual_seed(self.seed + 7919 * index)
+        tracks = random_maneuvers(self.batch_size, self.ranges, gen, torch.float64)
+        z = tracks.z
+        pos_std, vel_std = self.prior_std
+        P0 = torch.diag(torch.tensor([pos_std, vel_std, pos_std, vel_std], dtype=z.dtype) ** 2)
+        x0 = tracks.initial + torch.randn(self.batch_size, 4, generator=gen, dtype=z.dtype) @ P0.sqrt()
+        if self.outlier_prob > 0:
+            hit = torch.rand(z.shape, generator=gen, dtype=z.dtype) < self.outlier_prob
+            noise = torch.randn(z.shape, generator=gen, dtype=z.dtype)
+            z = z + hit * self.outlier_scale * tracks.meas_std[:, None, None] * noise
+        if self.missing_prob > 0:
+            gone = torch.rand(z.shape, generator=gen, dtype=z.dtype) < self.missing_prob
+            z = z.masked_fill(gone, float("nan"))
+        cast = self.dtype
+        return TrackBatch(z.to(cast), tracks.truth.to(cast), x0.to(cast), P0.to(cast))
+
+
+class ManeuveringTargetDataModule(L.LightningDataModule):
+    """Seeded train/val/test splits of random maneuvering tracks (batches of whole tracks).
+
+    Args:
+        ranges: the maneuver distribution (speeds, segment kinds and lengths, turn rates,
+            accelerations, measurement noise, steps).
+        prior_std: standard deviations ``(position, velocity)`` of the filters' prior ``P0``;
+            ``x0`` is drawn from ``N(true initial state, P0)``.
+        batch_size: tracks per batch.
+        train_batches, val_batches, test_batches: batches per split (an epoch is
+            ``train_batches`` optimiser steps).
+        seed: base seed of all splits.
+        cached: generate every batch once in ``setup`` (else on the fly, still reproducible).
+        outlier_prob, outlier_scale, missing_prob: hard cases in the training split.
+        double: float64 batches (default float32).
+    """
+
+    def __init__(
+        self,
+        ranges: ManeuverRanges = ManeuverRanges(),
+        prior_std: tuple[float, float] = (100.0, 30.0),
+        batch_size: int = 64,
+        train_batches: int = 40,
+        val_batches: int = 4,
+        test_batches: int = 8,
+        seed: int = 0,
+        cached: bool = True,
+        outlier_prob: float = 0.0,
+        outlier_scale: float = 10.0,
+        missing_prob: float = 0.0,
+        double: bool = False,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.ranges, self.prior_std = ranges, tuple(prior_std)
+        self.batch_size, self.seed, self.cached = batch_size, seed, cached
+        self.sizes = {"train": train_batches, "val": val_batches, "test": test_batches}
+        self.hard = {"outlier_prob": outlier_prob, "outlier_scale": outlier_scale, "missing_prob": missing_prob}
+        self.dtype = torch.float64 if double else torch.float32
+        self.datasets: dict[str, ManeuverDataset] = {}
+
+    def _dataset(self, split: str) -> ManeuverDataset:
+        if split not in self.datasets:
+            hard = self.hard if split == "train" else {}
+            self.datasets[split] = ManeuverDataset(
+                self.sizes[split],
+                self.batch_size,
+                self.ranges,
+                self.prior_std,  # type: ignore[arg-type]
+                self.seed,
+                split,
+                cached=self.cached,
+                dtype=self.dtype,
+                **hard,
+            )
+        return self.datasets[split]
+
+    def setup(self, stage: str | None = None) -> None:
+        splits = {"fit": ["train", "val"], "validate": ["val"], "test": ["test"]}
+        for split in splits.get(stage or "fit", ["train", "val", "test"]):
+            self._dataset(split)
+
+    def _loader(self, split: str, shuffle: bool = False) -> DataLoader:
+        gen = torch.Generator().manual_seed(self.seed) if shuffle else None
+        return DataLoader(
+            self._dataset(split), batch_size=None, shuffle=shuffle, generator=gen, collate_fn=_identity
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val")
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test")
+
+
+def _identity(batch: TrackBatch) -> TrackBatch:
+    return batch
