@@ -44,7 +44,9 @@ class AdaptivePsiSVSS(nn.Module):
         self.svss = svss
         self.window = window
         m_in, m_out = svss.model.meas_dim, svss.filter.psi.numel()
-        self.net = nn.Sequential(nn.Conv1d(m_in, hidden, window), nn.Tanh(), nn.Conv1d(hidden, m_out, 1))
+        self.net = nn.Sequential(
+            nn.Conv1d(m_in, hidden, window), nn.Tanh(), nn.Conv1d(hidden, m_out, 1)
+        )
         nn.init.zeros_(self.net[2].weight)  # start at the constant base ψ
         nn.init.zeros_(self.net[2].bias)
         self.pre = ts.KalmanFilter(svss.model)
@@ -115,10 +117,22 @@ def main(argv: list[str] | None = None) -> None:
     for name, (z, x0, P0, truth) in tests.items():
         best = float("inf")
         B, T = z.shape[:2]
-        fixed = ts.SVSS(ts.SVSF(constant.model, psi=1.0, gamma=0.1, learn=False, artificial=constant.filter.artificial))
+        fixed = ts.SVSS(
+            ts.SVSF(
+                constant.model,
+                psi=1.0,
+                gamma=0.1,
+                learn=False,
+                artificial=constant.filter.artificial,
+            )
+        )
         for a in COMPLEX_GRID:
             part = [(a, b, a, b) for b in COMPLEX_GRID]
-            psi = torch.tensor(part, dtype=z.dtype).repeat_interleave(B, 0)[:, None, :].expand(-1, T, -1)
+            psi = (
+                torch.tensor(part, dtype=z.dtype)
+                .repeat_interleave(B, 0)[:, None, :]
+                .expand(-1, T, -1)
+            )
             with torch.no_grad():
                 out = fixed(z.repeat(len(part), 1, 1), x0, P0, psi=psi)
             for i in range(len(part)):
@@ -131,7 +145,16 @@ def main(argv: list[str] | None = None) -> None:
             c = position_rmse(constant(z, x0, P0).mean, truth)
             a = position_rmse(adaptive(z, x0, P0).mean, truth)
             psi_t = adaptive.psi(z, x0, P0)
-        rows.append([name, grid_best[name], c, a, f"{100 * (a / c - 1):+.1f}%", f"{psi_t[..., 0].min():.0f}-{psi_t[..., 0].max():.0f}"])
+        rows.append(
+            [
+                name,
+                grid_best[name],
+                c,
+                a,
+                f"{100 * (a / c - 1):+.1f}%",
+                f"{psi_t[..., 0].min():.0f}-{psi_t[..., 0].max():.0f}",
+            ]
+        )
     text = "\n".join(
         [
             "# Adaptive ψ: an estimator as a layer",
@@ -144,7 +167,14 @@ def main(argv: list[str] | None = None) -> None:
             f"{constant_time:.0f} s, adaptive {adaptive_time:.0f} s.",
             "",
             markdown_table(
-                ["test set", "grid-best constant ψ (γ = 0.1)", "learned constant ψ, γ", "adaptive ψ_t", "adaptive vs constant", "ψ_t range (position)"],
+                [
+                    "test set",
+                    "grid-best constant ψ (γ = 0.1)",
+                    "learned constant ψ, γ",
+                    "adaptive ψ_t",
+                    "adaptive vs constant",
+                    "ψ_t range (position)",
+                ],
                 rows,
             ),
             "",

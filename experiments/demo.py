@@ -24,20 +24,27 @@ from torchsvs.evaluation import markdown_table
 from torchsvs.metrics import accumulative_rmse
 
 PAPER_ROW = {"KF": "KF", "KS": "KS", "SVSS, paper ψ": "SVSS"}
-PAPER = {"ATC": {k: (v[0], v[1]) for k, v in TABLE1.items()}, "complex": {k: (v[0], v[2]) for k, v in TABLE3.items()}}
+PAPER = {
+    "ATC": {k: (v[0], v[1]) for k, v in TABLE1.items()},
+    "complex": {k: (v[0], v[2]) for k, v in TABLE3.items()},
+}
 
 
 def demo(epochs: int = 2, batches: int = 20, runs: int = 500, seed: int = 0) -> str:
     rows, learned = [], {}
     for family, (_, make_scenario, paper_psi) in FAMILIES.items():
-        svss, run, seconds = train(family, "SVSS", "supervised", epochs, batches, seed, progress=True)
+        svss, run, seconds = train(
+            family, "SVSS", "supervised", epochs, batches, seed, progress=True
+        )
         learned[family] = (run.psi, run.gamma, seconds)
         sc = make_scenario(runs, torch.Generator().manual_seed(seed))
         artificial = svss.filter.artificial
         estimators = {
             "KF": ts.KalmanFilter(sc.model),
             "KS": ts.RTSSmoother(ts.KalmanFilter(sc.model), lag=1),
-            "SVSS, paper ψ": ts.SVSS(ts.SVSF(sc.model, psi=paper_psi, gamma=0.1, artificial=artificial)),
+            "SVSS, paper ψ": ts.SVSS(
+                ts.SVSF(sc.model, psi=paper_psi, gamma=0.1, artificial=artificial)
+            ),
             "SVSS, learned ψ": svss,
         }
         for name, est in estimators.items():

@@ -40,7 +40,9 @@ ATC_GRID = [float(p) for p in range(100, 3001, 50)]
 COMPLEX_GRID = [float(p) for p in range(100, 1601, 100)]
 
 
-def load(family: str, epochs: int, batches: int | None = None) -> tuple[ts.SVSS, ManeuveringTargetDataModule]:
+def load(
+    family: str, epochs: int, batches: int | None = None
+) -> tuple[ts.SVSS, ManeuveringTargetDataModule]:
     """The SVSS and data module of a family's YAML config (the one `torchsvs fit` uses)."""
     args = ["--config", str(CONFIGS / FAMILIES[family][0]), "--trainer.max_epochs", str(epochs)]
     if batches is not None:
@@ -61,7 +63,9 @@ def evaluate(est: ts.SVSS, sc: Scenario) -> tuple[float, float]:
     return position_rmse(out.filtered.mean, sc.truth), position_rmse(out.mean, sc.truth)
 
 
-def grid_sweep(family: str, svss: ts.SVSS, sc: Scenario) -> dict[tuple[float, ...], tuple[float, float]]:
+def grid_sweep(
+    family: str, svss: ts.SVSS, sc: Scenario
+) -> dict[tuple[float, ...], tuple[float, float]]:
     """(SVSF, SVSS) RMSE for every ψ of the family's grid (γ = 0.1), batched via per-step ψ."""
     m = svss.filter.psi.numel()
     grid = (
@@ -70,18 +74,31 @@ def grid_sweep(family: str, svss: ts.SVSS, sc: Scenario) -> dict[tuple[float, ..
         else [(a, b, a, b) for a in COMPLEX_GRID for b in COMPLEX_GRID]
     )
     B, T = sc.z.shape[:2]
-    fixed = ts.SVSS(ts.SVSF(svss.model, psi=svss.filter.psi.detach(), gamma=0.1, learn=False, artificial=svss.filter.artificial))
+    fixed = ts.SVSS(
+        ts.SVSF(
+            svss.model,
+            psi=svss.filter.psi.detach(),
+            gamma=0.1,
+            learn=False,
+            artificial=svss.filter.artificial,
+        )
+    )
     out: dict[tuple[float, ...], tuple[float, float]] = {}
     chunk = max(1, 6000 // B)
     for start in range(0, len(grid), chunk):
         part = grid[start : start + chunk]
         z = sc.z.repeat(len(part), 1, 1)
-        psi = torch.tensor(part, dtype=z.dtype).repeat_interleave(B, 0)[:, None, :].expand(-1, T, -1)
+        psi = (
+            torch.tensor(part, dtype=z.dtype).repeat_interleave(B, 0)[:, None, :].expand(-1, T, -1)
+        )
         with torch.no_grad():
             res = fixed(z, sc.x0, sc.P0, psi=psi)
         for i, p in enumerate(part):
             rows = slice(i * B, (i + 1) * B)
-            out[p] = (position_rmse(res.filtered.mean[rows], sc.truth), position_rmse(res.mean[rows], sc.truth))
+            out[p] = (
+                position_rmse(res.filtered.mean[rows], sc.truth),
+                position_rmse(res.mean[rows], sc.truth),
+            )
     return out
 
 
@@ -100,7 +117,13 @@ class Run:
 
 
 def train(
-    family: str, estimator: str, loss: str, epochs: int, batches: int | None, seed: int, progress: bool = False
+    family: str,
+    estimator: str,
+    loss: str,
+    epochs: int,
+    batches: int | None,
+    seed: int,
+    progress: bool = False,
 ) -> tuple[ts.SVSS, Run, float]:
     """Trains from ψ = 100 m; returns the trained SVSS (its filter for SVSF runs)."""
     svss, data = load(family, epochs, batches)
@@ -123,7 +146,16 @@ def train(
     seconds = time.perf_counter() - start
     with open(Path(trainer.logger.log_dir) / "metrics.csv") as f:  # type: ignore[union-attr]
         curve = [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
-    run = Run(family, estimator, loss, svss.filter.psi.tolist(), svss.filter.gamma.item(), (0.0, 0.0), seconds, curve)
+    run = Run(
+        family,
+        estimator,
+        loss,
+        svss.filter.psi.tolist(),
+        svss.filter.gamma.item(),
+        (0.0, 0.0),
+        seconds,
+        curve,
+    )
     return svss, run, seconds
 
 
@@ -142,8 +174,17 @@ def figures(runs: list[Run], grids: dict[str, dict], out: Path) -> list[str]:
             axes[0, col].plot(steps, psi, label=f"{run.estimator}, {run.loss}")
             val = [(row["step"], row["val_rmse"]) for row in run.curve if "val_rmse" in row]
             axes[1, col].plot(*zip(*val, strict=True), "o-", label=f"{run.estimator}, {run.loss}")
-        axes[0, col].set(title=f"{family}: ψ (position) during training", xlabel="step", ylabel="ψ₀ (m)", yscale="log")
-        axes[1, col].set(title=f"{family}: validation RMSE (random maneuvers)", xlabel="step", ylabel="position RMSE (m)")
+        axes[0, col].set(
+            title=f"{family}: ψ (position) during training",
+            xlabel="step",
+            ylabel="ψ₀ (m)",
+            yscale="log",
+        )
+        axes[1, col].set(
+            title=f"{family}: validation RMSE (random maneuvers)",
+            xlabel="step",
+            ylabel="position RMSE (m)",
+        )
         axes[0, col].legend(fontsize=7)
         axes[1, col].legend(fontsize=7)
     fig.tight_layout()
@@ -156,19 +197,43 @@ def figures(runs: list[Run], grids: dict[str, dict], out: Path) -> list[str]:
     axes[0].plot([p[0] for p in atc], [v[1] for v in atc.values()], label="SVSS, grid (γ = 0.1)")
     axes[0].plot([p[0] for p in atc], [v[0] for v in atc.values()], label="SVSF, grid (γ = 0.1)")
     for run in (r for r in runs if r.family == "ATC"):
-        axes[0].plot([sum(run.psi) / len(run.psi)], [run.rmse[1] if run.estimator == "SVSS" else run.rmse[0]], "*", ms=12, label=f"learned {run.estimator}, {run.loss}")
-    axes[0].set(title="ATC: position RMSE against ψ", xlabel="ψ (m)", ylabel="RMSE (m)", ylim=(90, 300))
+        axes[0].plot(
+            [sum(run.psi) / len(run.psi)],
+            [run.rmse[1] if run.estimator == "SVSS" else run.rmse[0]],
+            "*",
+            ms=12,
+            label=f"learned {run.estimator}, {run.loss}",
+        )
+    axes[0].set(
+        title="ATC: position RMSE against ψ", xlabel="ψ (m)", ylabel="RMSE (m)", ylim=(90, 300)
+    )
     axes[0].legend(fontsize=7)
     cx = grids["complex"]
     a_values = sorted({p[0] for p in cx})
     b_values = sorted({p[1] for p in cx})
     image = torch.tensor([[cx[(a, b, a, b)][1] for a in a_values] for b in b_values])
-    shown = axes[1].imshow(image, origin="lower", extent=(a_values[0], a_values[-1], b_values[0], b_values[-1]), aspect="auto", cmap="viridis_r")
+    shown = axes[1].imshow(
+        image,
+        origin="lower",
+        extent=(a_values[0], a_values[-1], b_values[0], b_values[-1]),
+        aspect="auto",
+        cmap="viridis_r",
+    )
     fig.colorbar(shown, ax=axes[1], label="SVSS RMSE (m)")
     for run in (r for r in runs if r.family == "complex" and r.estimator == "SVSS"):
-        axes[1].plot([run.psi[0]], [run.psi[1]], "r*" if run.loss == "supervised" else "w*", ms=12, label=f"learned ({run.loss})")
+        axes[1].plot(
+            [run.psi[0]],
+            [run.psi[1]],
+            "r*" if run.loss == "supervised" else "w*",
+            ms=12,
+            label=f"learned ({run.loss})",
+        )
     axes[1].plot([500], [600], "kx", ms=10, label="paper ψ")
-    axes[1].set(title="complex: SVSS RMSE over (ψ position, ψ velocity)", xlabel="ψ position (m)", ylabel="ψ velocity (m/s)")
+    axes[1].set(
+        title="complex: SVSS RMSE over (ψ position, ψ velocity)",
+        xlabel="ψ position (m)",
+        ylabel="ψ velocity (m/s)",
+    )
     axes[1].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "learn_psi_vs_grid.png", dpi=110)
@@ -181,7 +246,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--batches", type=int, default=None, help="training batches per epoch")
-    parser.add_argument("--runs", type=int, default=500, help="Monte Carlo runs of the paper scenarios")
+    parser.add_argument(
+        "--runs", type=int, default=500, help="Monte Carlo runs of the paper scenarios"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args(argv)
@@ -190,9 +257,13 @@ def main(argv: list[str] | None = None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
 
-    scenarios = {f: FAMILIES[f][1](args.runs, torch.Generator().manual_seed(args.seed)) for f in FAMILIES}
+    scenarios = {
+        f: FAMILIES[f][1](args.runs, torch.Generator().manual_seed(args.seed)) for f in FAMILIES
+    }
     runs: list[Run] = []
-    jobs = [(f, e, loss) for f in FAMILIES for e in ("SVSS", "SVSF") for loss in ("supervised", "sure")]
+    jobs = [
+        (f, e, loss) for f in FAMILIES for e in ("SVSS", "SVSF") for loss in ("supervised", "sure")
+    ]
     for family, estimator, loss in tqdm(jobs, desc="training runs"):
         svss, run, _ = train(family, estimator, loss, args.epochs, args.batches, args.seed)
         run.rmse = evaluate(svss, scenarios[family])
@@ -203,21 +274,55 @@ def main(argv: list[str] | None = None) -> None:
         svss, _ = load(family, 1)
         grids[family] = grid_sweep(family, svss, scenarios[family])
         paper_psi = FAMILIES[family][2]
-        paper = evaluate(ts.SVSS(ts.SVSF(svss.model, psi=paper_psi, gamma=0.1, artificial=svss.filter.artificial)), scenarios[family])
+        paper = evaluate(
+            ts.SVSS(
+                ts.SVSF(svss.model, psi=paper_psi, gamma=0.1, artificial=svss.filter.artificial)
+            ),
+            scenarios[family],
+        )
         best = {k: min(grids[family].items(), key=lambda kv, k=k: kv[1][k]) for k in (0, 1)}
         with torch.no_grad():
-            kf = position_rmse(ts.KalmanFilter(svss.model)(scenarios[family].z, scenarios[family].x0, scenarios[family].P0).mean, scenarios[family].truth)
+            kf = position_rmse(
+                ts.KalmanFilter(svss.model)(
+                    scenarios[family].z, scenarios[family].x0, scenarios[family].P0
+                ).mean,
+                scenarios[family].truth,
+            )
         for k, name in ((0, "SVSF"), (1, "SVSS")):
             psi_best, rmse_best = best[k]
             rows.append([family, name, "KF (baseline)", "—", "—", kf, kf / rmse_best[k]])
-            rows.append([family, name, "paper ψ, γ = 0.1", fmt(paper_psi), 0.1, paper[k], paper[k] / rmse_best[k]])
-            rows.append([family, name, "grid-best ψ, γ = 0.1", fmt(psi_best), 0.1, rmse_best[k], 1.0])
+            rows.append(
+                [
+                    family,
+                    name,
+                    "paper ψ, γ = 0.1",
+                    fmt(paper_psi),
+                    0.1,
+                    paper[k],
+                    paper[k] / rmse_best[k],
+                ]
+            )
+            rows.append(
+                [family, name, "grid-best ψ, γ = 0.1", fmt(psi_best), 0.1, rmse_best[k], 1.0]
+            )
             for run in (r for r in runs if r.family == family and r.estimator == name):
                 ratio = run.rmse[k] / rmse_best[k]
-                rows.append([family, name, f"learned, {run.loss}", fmt(run.psi), round(run.gamma, 3), run.rmse[k], ratio])
+                rows.append(
+                    [
+                        family,
+                        name,
+                        f"learned, {run.loss}",
+                        fmt(run.psi),
+                        round(run.gamma, 3),
+                        run.rmse[k],
+                        ratio,
+                    ]
+                )
                 if name == "SVSS":
                     limit = 1.05 if run.loss == "supervised" else 1.15
-                    checks.append(f"{family} SVSS, {run.loss}: {ratio:.3f}× grid-best (target ≤ {limit}): {'met' if ratio <= limit else 'NOT met'}")
+                    checks.append(
+                        f"{family} SVSS, {run.loss}: {ratio:.3f}× grid-best (target ≤ {limit}): {'met' if ratio <= limit else 'NOT met'}"
+                    )
     pngs = figures(runs, grids, args.out)
     seconds = time.perf_counter() - start
     text = report(rows, checks, runs, args, seconds)
@@ -230,35 +335,40 @@ def fmt(psi: list[float] | tuple[float, ...]) -> str:
     return "[" + ", ".join(f"{p:.0f}" for p in psi) + "]"
 
 
-def report(rows: list, checks: list[str], runs: list[Run], args: argparse.Namespace, seconds: float) -> str:
+def report(
+    rows: list, checks: list[str], runs: list[Run], args: argparse.Namespace, seconds: float
+) -> str:
     header = ["scenario", "output", "ψ, γ from", "ψ", "γ", "position RMSE (m)", "÷ grid-best"]
     times = ", ".join(f"{r.family} {r.estimator} {r.loss} {r.seconds:.0f} s" for r in runs)
-    return "\n".join(
-        [
-            "# Learning ψ and γ (torchsvs)",
-            "",
-            f"`python -m experiments.learn_psi --epochs {args.epochs}`: {seconds:.0f} s in all. Training starts "
-            "from ψ = 100 m, γ = 0.1, on random maneuvers drawn by `torchsvs.scenarios.random_maneuvers` "
-            "with the paper's sensor and model (configs `experiments/configs/atc_svss.yaml`, "
-            "`complex_svss.yaml`), and is evaluated on the paper's scenarios "
-            f"({args.runs} runs, never seen in training). Position RMSE is over both axes. "
-            "`supervised`: MSE to truth; `sure`: Stein's unbiased estimate of the same MSE from the "
-            "known 200 m / 100 m noise, no truth. Rows `output = SVSF` train and score the filter alone.",
-            "",
-            markdown_table(header, rows),
-            "",
-            "## Targets",
-            "",
-            *[f"- {c}" for c in checks],
-            "",
-            f"Training times: {times}.",
-            "",
-            "![curves](learn_psi_curves.png)",
-            "![grid](learn_psi_vs_grid.png)",
-            "",
-            NOTES,
-        ]
-    ) + "\n"
+    return (
+        "\n".join(
+            [
+                "# Learning ψ and γ (torchsvs)",
+                "",
+                f"`python -m experiments.learn_psi --epochs {args.epochs}`: {seconds:.0f} s in all. Training starts "
+                "from ψ = 100 m, γ = 0.1, on random maneuvers drawn by `torchsvs.scenarios.random_maneuvers` "
+                "with the paper's sensor and model (configs `experiments/configs/atc_svss.yaml`, "
+                "`complex_svss.yaml`), and is evaluated on the paper's scenarios "
+                f"({args.runs} runs, never seen in training). Position RMSE is over both axes. "
+                "`supervised`: MSE to truth; `sure`: Stein's unbiased estimate of the same MSE from the "
+                "known 200 m / 100 m noise, no truth. Rows `output = SVSF` train and score the filter alone.",
+                "",
+                markdown_table(header, rows),
+                "",
+                "## Targets",
+                "",
+                *[f"- {c}" for c in checks],
+                "",
+                f"Training times: {times}.",
+                "",
+                "![curves](learn_psi_curves.png)",
+                "![grid](learn_psi_vs_grid.png)",
+                "",
+                NOTES,
+            ]
+        )
+        + "\n"
+    )
 
 
 NOTES = """## Notes

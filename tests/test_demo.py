@@ -16,5 +16,5 @@ def test_demo_trains_and_reports():
         assert row in text
     learned = re.findall(r"(ATC|complex): ψ = \[([0-9, ]+)\]", text)
     assert len(learned) == 2
-    for _, widths in learned:
-        assert all(int(w) > 110 for w in widths.split(","))  # moved up from the 100 m start
+    for _, widths in learned:  # three optimiser steps moved ψ off the 100 m start
+        assert max(abs(int(w) - 100) for w in widths.split(",")) > 10

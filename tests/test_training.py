@@ -20,7 +20,9 @@ pytestmark = pytest.mark.filterwarnings(
     "ignore:.*does not have many workers.*", "ignore:.*LeafSpec.*", "ignore:.*litlogger.*"
 )
 ROOT = Path(__file__).resolve().parents[1]
-RANGES = ManeuverRanges(steps=60, speed=(80.0, 200.0), segment_duration=(10.0, 30.0), meas_std=(50.0, 50.0))
+RANGES = ManeuverRanges(
+    steps=60, speed=(80.0, 200.0), segment_duration=(10.0, 30.0), meas_std=(50.0, 50.0)
+)
 
 
 def _data(**kw) -> ManeuveringTargetDataModule:
@@ -93,14 +95,14 @@ def test_sure_estimates_the_true_mse_without_truth():
 @pytest.mark.parametrize("loss", ["supervised", "sure"])
 def test_training_lowers_the_error(tmp_path, loss):
     data = _data()
-    module = EstimatorModule(_svss(psi=10.0), loss=loss, lr=0.2)
-    trainer = _trainer(tmp_path, epochs=3)
+    module = EstimatorModule(_svss(psi=100.0), loss=loss, lr=0.3)
+    trainer = _trainer(tmp_path, epochs=4)
     before = trainer.validate(module, data, verbose=False)[0]["val_rmse"]
     trainer.fit(module, data)
     after = trainer.validate(module, data, verbose=False)[0]["val_rmse"]
-    assert after < 0.9 * before
+    assert after < 0.85 * before, (before, after)
     svsf = module.estimator.filter
-    assert bool((svsf.psi > 10.0).all()) and 0.0 < svsf.gamma.item() < 1.0
+    assert bool((svsf.psi > 100.0).all()) and 0.0 < svsf.gamma.item() < 1.0
 
 
 def test_checkpoint_reloads_an_identical_model(tmp_path):
@@ -108,14 +110,23 @@ def test_checkpoint_reloads_an_identical_model(tmp_path):
     module = EstimatorModule(_svss(), loss="supervised", lr=0.2)
     trainer = _trainer(tmp_path, epochs=1, enable_checkpointing=True)
     trainer.fit(module, data)
-    path = trainer.checkpoint_callback.best_model_path or trainer.checkpoint_callback.last_model_path
+    path = (
+        trainer.checkpoint_callback.best_model_path or trainer.checkpoint_callback.last_model_path
+    )
     assert Path(path).is_file()
     loaded = EstimatorModule.load_from_checkpoint(path, estimator=_svss())
-    for (name, p), (_, q) in zip(module.state_dict().items(), loaded.state_dict().items(), strict=True):
+    for (name, p), (_, q) in zip(
+        module.state_dict().items(), loaded.state_dict().items(), strict=True
+    ):
         assert_close(p, q, atol=0, rtol=0, msg=name)
     batch = data.datasets["val"][0]
     with torch.no_grad():
-        assert_close(loaded(batch.z, batch.x0, batch.P0).mean, module(batch.z, batch.x0, batch.P0).mean, atol=0, rtol=0)
+        assert_close(
+            loaded(batch.z, batch.x0, batch.P0).mean,
+            module(batch.z, batch.x0, batch.P0).mean,
+            atol=0,
+            rtol=0,
+        )
     assert loaded.loss_name == "supervised" and loaded.lr == 0.2
 
 
@@ -124,7 +135,7 @@ def test_cli_configs_build(config):
     cli = cli_main(["--config", str(ROOT / "experiments" / "configs" / config)], run=False)
     est = cli.model.estimator
     assert isinstance(est, ts.SVSS) and isinstance(est.filter, ts.SVSF)
-    assert float(est.filter.psi.min()) == 100.0
+    assert_close(est.filter.psi.detach(), torch.full_like(est.filter.psi.detach(), 100.0))
     assert cli.datamodule.batch_size == 64
 
 
@@ -141,9 +152,9 @@ def _fit_psi(tmp_path: Path, devices: int) -> list[float]:
     code = f"""
 import sys, torch
 from torchsvs.training.cli import main
-cli = main(["--config", {str(ROOT / 'experiments/configs/atc_svss.yaml')!r},
-    "--trainer.max_epochs", "2", "--data.train_batches", "8", "--data.batch_size", "32",
-    "--data.val_batches", "1", "--trainer.devices", "{devices}", "--trainer.strategy", "{'ddp' if devices > 1 else 'auto'}",
+cli = main(["--config", {str(ROOT / "experiments/configs/atc_svss.yaml")!r},
+    "--trainer.max_epochs", "4", "--data.train_batches", "{8 * devices}", "--data.batch_size", "32",
+    "--data.val_batches", "1", "--trainer.devices", "{devices}", "--trainer.strategy", "{"ddp" if devices > 1 else "auto"}",
     "--trainer.enable_progress_bar", "false", "--trainer.logger", "false",
     "--trainer.callbacks", "null", "--trainer.enable_checkpointing", "false"])
 if cli.trainer.global_rank == 0:
@@ -158,6 +169,8 @@ if cli.trainer.global_rank == 0:
 
 @pytest.mark.slow
 def test_ddp_on_two_cpu_processes_learns_the_same_psi(tmp_path):
+    """Two gloo processes, each with half of twice the batches: the same number of optimiser
+    steps as one process, each averaging two batches' gradients."""
     single = _fit_psi(tmp_path, 1)
     double = _fit_psi(tmp_path, 2)
     assert all(p > 300.0 for p in double)  # moved far from the 100 m start

@@ -21,14 +21,20 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     """Builds the CLI (``args`` like ``sys.argv[1:]`` after ``fit``, e.g. ``["--config", path]``)."""
     # Lightning 2.6 on torch 2.13 warns about LeafSpec at every fit; third-party, harmless.
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
-    return LightningCLI(
-        EstimatorModule,
-        ManeuveringTargetDataModule,
-        args=(["fit", *args] if run else args) if args is not None else None,
-        run=run,
-        seed_everything_default=0,
-        save_config_kwargs={"overwrite": True},
-    )
+    with warnings.catch_warnings():
+        # Called from Python (experiments, tests) with explicit args, the caller's own sys.argv
+        # is not meant for the CLI.
+        warnings.filterwarnings(
+            "ignore", message=".*args parameter is intended to run from within Python.*"
+        )
+        return LightningCLI(
+            EstimatorModule,
+            ManeuveringTargetDataModule,
+            args=(["fit", *args] if run else args) if args is not None else None,
+            run=run,
+            seed_everything_default=0,
+            save_config_kwargs={"overwrite": True},
+        )
 
 
 if __name__ == "__main__":

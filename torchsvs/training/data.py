@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import zlib
+from dataclasses import asdict
 from typing import NamedTuple
 
 import lightning as L
@@ -65,7 +66,10 @@ class ManeuverDataset(Dataset[TrackBatch]):
         z = tracks.z
         pos_std, vel_std = self.prior_std
         P0 = torch.diag(torch.tensor([pos_std, vel_std, pos_std, vel_std], dtype=z.dtype) ** 2)
-        x0 = tracks.initial + torch.randn(self.batch_size, 4, generator=gen, dtype=z.dtype) @ P0.sqrt()
+        x0 = (
+            tracks.initial
+            + torch.randn(self.batch_size, 4, generator=gen, dtype=z.dtype) @ P0.sqrt()
+        )
         if self.outlier_prob > 0:
             hit = torch.rand(z.shape, generator=gen, dtype=z.dtype) < self.outlier_prob
             noise = torch.randn(z.shape, generator=gen, dtype=z.dtype)
@@ -110,11 +114,17 @@ class ManeuveringTargetDataModule(L.LightningDataModule):
         double: bool = False,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters()
+        # Plain values only, so checkpoints load with torch.load(weights_only=True).
+        self.save_hyperparameters(ignore=["ranges"])
+        self.hparams["ranges"] = asdict(ranges)
         self.ranges, self.prior_std = ranges, tuple(prior_std)
         self.batch_size, self.seed, self.cached = batch_size, seed, cached
         self.sizes = {"train": train_batches, "val": val_batches, "test": test_batches}
-        self.hard = {"outlier_prob": outlier_prob, "outlier_scale": outlier_scale, "missing_prob": missing_prob}
+        self.hard = {
+            "outlier_prob": outlier_prob,
+            "outlier_scale": outlier_scale,
+            "missing_prob": missing_prob,
+        }
         self.dtype = torch.float64 if double else torch.float32
         self.datasets: dict[str, ManeuverDataset] = {}
 
@@ -142,7 +152,11 @@ class ManeuveringTargetDataModule(L.LightningDataModule):
     def _loader(self, split: str, shuffle: bool = False) -> DataLoader:
         gen = torch.Generator().manual_seed(self.seed) if shuffle else None
         return DataLoader(
-            self._dataset(split), batch_size=None, shuffle=shuffle, generator=gen, collate_fn=_identity
+            self._dataset(split),
+            batch_size=None,
+            shuffle=shuffle,
+            generator=gen,
+            collate_fn=_identity,
         )
 
     def train_dataloader(self) -> DataLoader:

@@ -70,7 +70,13 @@ class EstimatorModule(L.LightningModule):
         rmse = accumulative_rmse(out.mean[..., self.components], batch.truth[..., self.components])
         size = batch.z.shape[0]
         self.log(f"{stage}_loss", loss, prog_bar=True, batch_size=size, sync_dist=stage != "train")
-        self.log(f"{stage}_rmse", rmse.square().mean().sqrt(), prog_bar=stage != "train", batch_size=size, sync_dist=stage != "train")
+        self.log(
+            f"{stage}_rmse",
+            rmse.square().mean().sqrt(),
+            prog_bar=stage != "train",
+            batch_size=size,
+            sync_dist=stage != "train",
+        )
         return loss
 
     def _loss(self, out: Any, batch: TrackBatch) -> Tensor:
