@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench reproduce lint clean
+.PHONY: demo test test-slow bench reproduce learn lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -28,6 +28,10 @@ bench: $(STAMP)
 
 reproduce: $(STAMP)
 	$(PY) -m experiments.svss_paper
+
+learn: $(STAMP)
+	$(PY) -m experiments.learn_psi
+	$(PY) -m experiments.adaptive_psi
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check torchsvs tests experiments benchmarks

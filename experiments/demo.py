@@ -18,7 +18,7 @@ import warnings
 import torch
 
 import torchsvs as ts
-from experiments.learn_psi import FAMILIES, load, train
+from experiments.learn_psi import FAMILIES, train
 from experiments.svss_paper import TABLE1, TABLE3
 from torchsvs.evaluation import markdown_table
 from torchsvs.metrics import accumulative_rmse

@@ -25,7 +25,7 @@ from lightning.pytorch.loggers import CSVLogger
 from tqdm.auto import tqdm
 
 import torchsvs as ts
-from torchsvs.evaluation import markdown_table
+from torchsvs.evaluation import markdown_table, psi_sweep
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
 from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule
 from torchsvs.training.cli import main as cli_main
@@ -73,33 +73,11 @@ def grid_sweep(
         if m == 2
         else [(a, b, a, b) for a in COMPLEX_GRID for b in COMPLEX_GRID]
     )
-    B, T = sc.z.shape[:2]
     fixed = ts.SVSS(
-        ts.SVSF(
-            svss.model,
-            psi=svss.filter.psi.detach(),
-            gamma=0.1,
-            learn=False,
-            artificial=svss.filter.artificial,
-        )
+        ts.SVSF(svss.model, psi=1.0, gamma=0.1, learn=False, artificial=svss.filter.artificial)
     )
-    out: dict[tuple[float, ...], tuple[float, float]] = {}
-    chunk = max(1, 6000 // B)
-    for start in range(0, len(grid), chunk):
-        part = grid[start : start + chunk]
-        z = sc.z.repeat(len(part), 1, 1)
-        psi = (
-            torch.tensor(part, dtype=z.dtype).repeat_interleave(B, 0)[:, None, :].expand(-1, T, -1)
-        )
-        with torch.no_grad():
-            res = fixed(z, sc.x0, sc.P0, psi=psi)
-        for i, p in enumerate(part):
-            rows = slice(i * B, (i + 1) * B)
-            out[p] = (
-                position_rmse(res.filtered.mean[rows], sc.truth),
-                position_rmse(res.mean[rows], sc.truth),
-            )
-    return out
+    scores = psi_sweep(fixed, sc.z, sc.x0, sc.P0, sc.truth, grid, position_rmse)
+    return dict(zip(grid, scores, strict=True))
 
 
 @dataclass

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 import torchsvs as ts
 from torchsvs.estimator import Estimator
-from torchsvs.evaluation import markdown_table
+from torchsvs.evaluation import markdown_table, psi_sweep
 from torchsvs.metrics import accumulative_rmse, rmse_over_time
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
 
@@ -166,16 +166,10 @@ def reproduce(runs: int = 500, seed: int = 0, progress: bool = True) -> Results:
             )
 
     def do_table2() -> None:
-        psis = list(TABLE2)
-        B, T = atc.z.shape[:2]
-        z = atc.z.repeat(len(psis), 1, 1)
-        psi = torch.tensor(psis, dtype=z.dtype).repeat_interleave(B)[:, None, None].expand(-1, T, 2)
-        with torch.no_grad():
-            out = ts.SVSS(_svsf(atc.model, ATC_PSI))(z, atc.x0, atc.P0, psi=psi)
-        for i, p in enumerate(psis):
-            rows = slice(i * B, (i + 1) * B)
-            f = accumulative_rmse(out.filtered.mean[rows], atc.truth)
-            s = accumulative_rmse(out.mean[rows], atc.truth)
+        svss = ts.SVSS(_svsf(atc.model, ATC_PSI))
+        grid = [(p, p) for p in TABLE2]
+        scores = psi_sweep(svss, atc.z, atc.x0, atc.P0, atc.truth, grid, accumulative_rmse)
+        for p, (f, s) in zip(TABLE2, scores, strict=True):
             res.table2[p] = (f[0].item(), s[0].item(), f[2].item(), s[2].item())
 
     def do_lags() -> None:

@@ -143,3 +143,17 @@ def test_ten_thousand_float32_steps_stay_finite_and_pd(name):
     assert bool(torch.isfinite(out.mean).all()) and bool(torch.isfinite(out.cov).all())
     assert bool((torch.linalg.eigvalsh(out.cov).amin(-1) > 0).all())
     assert_close(out.cov, out.cov.mT, atol=0, rtol=0)
+
+
+def test_psi_sweep_equals_one_run_per_psi():
+    from torchsvs.evaluation import psi_sweep
+    from torchsvs.metrics import accumulative_rmse
+
+    sc = atc_batch(3, seed=7)
+    svss = ts.SVSS(ts.SVSF(sc.model, psi=1.0, gamma=0.1))
+    grid = [(300.0, 300.0), (800.0, 1200.0), (2000.0, 2000.0)]
+    scores = psi_sweep(svss, sc.z, sc.x0, sc.P0, sc.truth, grid, accumulative_rmse, max_tracks=6)
+    for psi, (filtered, smoothed) in zip(grid, scores, strict=True):
+        one = ts.SVSS(ts.SVSF(sc.model, psi=list(psi), gamma=0.1))(sc.z, sc.x0, sc.P0)
+        assert_close(filtered, accumulative_rmse(one.filtered.mean, sc.truth))
+        assert_close(smoothed, accumulative_rmse(one.mean, sc.truth))

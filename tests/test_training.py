@@ -149,12 +149,13 @@ def test_bad_module_arguments():
 
 def _fit_psi(tmp_path: Path, devices: int) -> list[float]:
     out = tmp_path / f"psi_{devices}.pt"
+    strategy = "ddp" if devices > 1 else "auto"
     code = f"""
 import sys, torch
 from torchsvs.training.cli import main
 cli = main(["--config", {str(ROOT / "experiments/configs/atc_svss.yaml")!r},
     "--trainer.max_epochs", "4", "--data.train_batches", "{8 * devices}", "--data.batch_size", "32",
-    "--data.val_batches", "1", "--trainer.devices", "{devices}", "--trainer.strategy", "{"ddp" if devices > 1 else "auto"}",
+    "--data.val_batches", "1", "--trainer.devices", "{devices}", "--trainer.strategy", "{strategy}",
     "--trainer.enable_progress_bar", "false", "--trainer.logger", "false",
     "--trainer.callbacks", "null", "--trainer.enable_checkpointing", "false"])
 if cli.trainer.global_rank == 0:
@@ -176,3 +177,24 @@ def test_ddp_on_two_cpu_processes_learns_the_same_psi(tmp_path):
     assert all(p > 300.0 for p in double)  # moved far from the 100 m start
     for a, b in zip(single, double, strict=True):
         assert abs(a / b - 1) < 0.25, (single, double)
+
+
+class _FiniteGradients(L.Callback):
+    """Fails the run at the first non-finite loss or gradient."""
+
+    def on_after_backward(self, trainer, module) -> None:
+        for name, p in module.named_parameters():
+            assert p.grad is not None and bool(torch.isfinite(p.grad).all()), name
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        assert bool(torch.isfinite(outputs["loss"])), batch_idx
+
+
+@pytest.mark.parametrize("loss", ["supervised", "sure"])
+def test_full_run_on_hard_batches_stays_finite(tmp_path, loss):
+    data = _data(outlier_prob=0.03, outlier_scale=30.0, missing_prob=0.1)
+    module = EstimatorModule(_svss(psi=100.0), loss=loss, lr=0.3)
+    _trainer(tmp_path, epochs=2, callbacks=[_FiniteGradients()]).fit(module, data)
+    svsf = module.estimator.filter
+    assert bool(torch.isfinite(svsf.psi).all()) and bool((svsf.psi > 0).all())
+    assert 0.0 <= svsf.gamma.item() < 1.0

@@ -6,7 +6,7 @@
 * ``torchsvs fit --config CONFIG.yaml``: the LightningCLI.
 """
 
-from torchsvs.training.data import ManeuveringTargetDataModule, ManeuverDataset, TrackBatch
+from torchsvs.training.data import ManeuverDataset, ManeuveringTargetDataModule, TrackBatch
 from torchsvs.training.losses import (
     LOSSES,
     innovation_nll,

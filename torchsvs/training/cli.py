@@ -18,7 +18,7 @@ from torchsvs.training.module import EstimatorModule
 
 
 def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
-    """Builds the CLI (``args`` like ``sys.argv[1:]`` after ``fit``, e.g. ``["--config", path]``)."""
+    """Builds the CLI; ``args`` as after ``torchsvs fit``, e.g. ``["--config", path]``."""
     # Lightning 2.6 on torch 2.13 warns about LeafSpec at every fit; third-party, harmless.
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
     with warnings.catch_warnings():

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import asdict
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import lightning as L
 import torch
@@ -100,7 +100,7 @@ class ManeuveringTargetDataModule(L.LightningDataModule):
 
     def __init__(
         self,
-        ranges: ManeuverRanges = ManeuverRanges(),
+        ranges: ManeuverRanges | None = None,
         prior_std: tuple[float, float] = (100.0, 30.0),
         batch_size: int = 64,
         train_batches: int = 40,
@@ -116,6 +116,7 @@ class ManeuveringTargetDataModule(L.LightningDataModule):
         super().__init__()
         # Plain values only, so checkpoints load with torch.load(weights_only=True).
         self.save_hyperparameters(ignore=["ranges"])
+        ranges = ranges if ranges is not None else ManeuverRanges()
         self.hparams["ranges"] = asdict(ranges)
         self.ranges, self.prior_std = ranges, tuple(prior_std)
         self.batch_size, self.seed, self.cached = batch_size, seed, cached
@@ -169,5 +170,5 @@ class ManeuveringTargetDataModule(L.LightningDataModule):
         return self._loader("test")
 
 
-def _identity(batch: TrackBatch) -> TrackBatch:
+def _identity(batch: Any) -> Any:
     return batch

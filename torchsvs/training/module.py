@@ -11,6 +11,7 @@ from torch import Tensor, nn
 from torchsvs.estimator import Estimator
 from torchsvs.filters.svsf import SVSF
 from torchsvs.metrics import accumulative_rmse
+from torchsvs.models.base import LinearModel
 from torchsvs.training.data import TrackBatch
 from torchsvs.training.losses import (
     LOSSES,
@@ -86,7 +87,7 @@ class EstimatorModule(L.LightningModule):
             return innovation_nll(out)
         if self.loss_name == "prediction":
             return prediction_error(out)
-        model = self.estimator.model
+        model: LinearModel = self.estimator.model  # type: ignore[assignment]
         H, R = model.meas_matrix().to(batch.z.dtype), model.meas_cov().to(batch.z.dtype)
         return stein_risk(self.estimator, out, batch.z, batch.x0, batch.P0, H, R, self.probes)
 
