@@ -3,10 +3,11 @@
 For the ATC sensor and the complex-maneuver sensor of Chen et al. 2020, an SVSS starts from
 ψ = 100 m, γ = 0.1 and is trained for about half a minute each (Lightning, supervised, on random
 maneuvers; configs in ``experiments/configs/``). Then the paper's scenarios (never seen in
-training; 500 Monte Carlo runs in one batch each) are tracked by the KF, KS, the SVSS with the
-paper's hand-tuned ψ and the SVSS with the learned ψ, beside the paper's numbers.
+training; 500 Monte Carlo runs in one batch each) are tracked by the KF, KS, SVSF, SVSTPS and
+SVSS with the paper's hand-tuned ψ and by the SVSS with the learned ψ, beside the paper's numbers
+(Tables 1 and 3 of Chen et al. 2020).
 
-    python -m experiments.demo [--epochs 2] [--batches 20] [--runs 500]
+    python -m experiments.demo [--epochs 4] [--batches 20] [--runs 500]
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import time
 import warnings
+from functools import partial
 
 import torch
 
@@ -23,14 +25,20 @@ from experiments.svss_paper import TABLE1, TABLE3
 from torchsvs.evaluation import markdown_table
 from torchsvs.metrics import accumulative_rmse
 
-PAPER_ROW = {"KF": "KF", "KS": "KS", "SVSS, paper ψ": "SVSS"}
+PAPER_ROW = {
+    "KF": "KF",
+    "KS": "KS",
+    "SVSF, paper ψ": "SVSF",
+    "SVSTPS, paper ψ": "SVSTPS",
+    "SVSS, paper ψ": "SVSS",
+}
 PAPER = {
     "ATC": {k: (v[0], v[1]) for k, v in TABLE1.items()},
     "complex": {k: (v[0], v[2]) for k, v in TABLE3.items()},
 }
 
 
-def demo(epochs: int = 2, batches: int = 20, runs: int = 500, seed: int = 0) -> str:
+def demo(epochs: int = 4, batches: int = 20, runs: int = 500, seed: int = 0) -> str:
     rows, learned = [], {}
     for family, (_, make_scenario, paper_psi) in FAMILIES.items():
         svss, run, seconds = train(
@@ -39,12 +47,14 @@ def demo(epochs: int = 2, batches: int = 20, runs: int = 500, seed: int = 0) -> 
         learned[family] = (run.psi, run.gamma, seconds)
         sc = make_scenario(runs, torch.Generator().manual_seed(seed))
         artificial = svss.filter.artificial
+
+        paper_svsf = partial(ts.SVSF, sc.model, psi=paper_psi, gamma=0.1, artificial=artificial)
         estimators = {
             "KF": ts.KalmanFilter(sc.model),
             "KS": ts.RTSSmoother(ts.KalmanFilter(sc.model), lag=1),
-            "SVSS, paper ψ": ts.SVSS(
-                ts.SVSF(sc.model, psi=paper_psi, gamma=0.1, artificial=artificial)
-            ),
+            "SVSF, paper ψ": paper_svsf(),
+            "SVSTPS, paper ψ": ts.RTSSmoother(paper_svsf(), lag=1),
+            "SVSS, paper ψ": ts.SVSS(paper_svsf()),
             "SVSS, learned ψ": svss,
         }
         for name, est in estimators.items():
@@ -69,7 +79,7 @@ def demo(epochs: int = 2, batches: int = 20, runs: int = 500, seed: int = 0) -> 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--epochs", type=int, default=2)
+    parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--batches", type=int, default=20, help="training batches per epoch")
     parser.add_argument("--runs", type=int, default=500)
     parser.add_argument("--seed", type=int, default=0)

@@ -138,3 +138,22 @@ def test_random_maneuvers_are_seeded_varied_and_physical():
     straight = (a.kinds[:, 1:] == 0) & (a.kinds[:, :-1] == 0)
     assert turn[straight].abs().max() < 1e-9
     assert turn[(a.kinds[:, 1:] == 1) & (a.kinds[:, :-1] == 1)].abs().min() > 0.9 * math.pi / 180
+
+
+def test_random_scenario_has_model_and_prior():
+    ranges = ts.scenarios.ManeuverRanges(steps=30, meas_std=(100.0, 300.0))
+    sc = ts.scenarios.random_scenario(
+        2000, ranges, q=2.0, prior_std=(50.0, 5.0), generator=torch.Generator().manual_seed(1)
+    )
+    assert sc.truth.shape == (2000, 30, 4) and sc.z.shape == (2000, 30, 2)
+    assert sc.x0.shape == (2000, 4) and sc.P0.shape == (4, 4) and sc.meas_std.shape == (2000,)
+    assert_close(sc.model.meas_cov(), 200.0**2 * torch.eye(2, dtype=torch.float64))
+    assert_close(sc.model.process_noise()[1, 1], torch.tensor(2.0, dtype=torch.float64))
+    # x0 − initial truth ~ N(0, P0): initial truth is one step of the truth back along the velocity.
+    start = torch.stack(
+        [sc.truth[:, 0, 0] - sc.truth[:, 0, 1], sc.truth[:, 0, 2] - sc.truth[:, 0, 3]], -1
+    )
+    spread = (sc.x0[:, [0, 2]] - start).std(0)
+    assert ((spread - 50.0).abs() < 5.0).all()
+    out = ts.KalmanFilter(sc.model)(sc.z, sc.x0, sc.P0)
+    assert out.mean.shape == (2000, 30, 4)

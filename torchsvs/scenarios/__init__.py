@@ -11,7 +11,7 @@ from torchsvs.scenarios.maneuver import (
     simulate_controls,
     simulate_segments,
 )
-from torchsvs.scenarios.paper import Scenario, atc_scenario, complex_scenario
+from torchsvs.scenarios.paper import Scenario, atc_scenario, complex_scenario, random_scenario
 
 __all__ = [
     "Controls",
@@ -23,6 +23,7 @@ __all__ = [
     "atc_scenario",
     "complex_scenario",
     "random_maneuvers",
+    "random_scenario",
     "segments_to_controls",
     "simulate_controls",
     "simulate_segments",

@@ -1,4 +1,5 @@
-"""The tracking scenarios of Chen et al. 2020, Sec. 4, as seeded batches of Monte Carlo runs."""
+"""Scenario batches: the tracking scenarios of Chen et al. 2020 (Sec. 4) and random maneuvers,
+each with the filters' model and prior, as seeded batches of Monte Carlo runs."""
 
 from __future__ import annotations
 
@@ -9,7 +10,13 @@ import torch
 from torch import Tensor
 
 from torchsvs.models.motion import ConstantVelocity
-from torchsvs.scenarios.maneuver import Segment, add_measurement_noise, simulate_segments
+from torchsvs.scenarios.maneuver import (
+    ManeuverRanges,
+    Segment,
+    add_measurement_noise,
+    random_maneuvers,
+    simulate_segments,
+)
 
 
 class Scenario(NamedTuple):
@@ -18,9 +25,10 @@ class Scenario(NamedTuple):
     truth: Tensor  #: [B, T, 4] states at the measurement times
     z: Tensor  #: [B, T, 2] position measurements
     model: ConstantVelocity  #: the filters' model (Eqs. (43)-(48))
-    x0: Tensor  #: [4] filter prior, one step before z[:, 0]
+    x0: Tensor  #: [4] or [B, 4] filter prior, one step before z[:, 0]
     P0: Tensor  #: [4, 4]
     dt: float  #: sampling interval (s)
+    meas_std: Tensor | None = None  #: [B] per-track noise level, when it varies
 
 
 def atc_scenario(
@@ -94,3 +102,29 @@ def complex_scenario(
     z = add_measurement_noise(truth, model.meas_matrix(), model.meas_cov(), generator)
     P0 = torch.diag(torch.tensor([400.0, 100.0, 400.0, 100.0], dtype=dtype))
     return Scenario(truth.contiguous(), z, model, start.clone(), P0, dt)
+
+
+def random_scenario(
+    num_tracks: int,
+    ranges: ManeuverRanges | None = None,
+    q: float = 1.0,
+    prior_std: tuple[float, float] = (100.0, 30.0),
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> Scenario:
+    """Random maneuvering tracks (:func:`random_maneuvers`) with a model and a prior.
+
+    ``x0`` is drawn per track from ``N(true initial state, P0)`` with
+    ``P0 = diag(σ_p², σ_v², σ_p², σ_v²)`` from ``prior_std``; the model is a
+    :class:`ConstantVelocity` with power spectral density ``q`` and, when the noise level varies
+    between tracks, the middle of ``ranges.meas_std`` as its ``R`` (``meas_std`` holds each
+    track's own level).
+    """
+    ranges = ranges if ranges is not None else ManeuverRanges()
+    tracks = random_maneuvers(num_tracks, ranges, generator, dtype)
+    pos_std, vel_std = prior_std
+    P0 = torch.diag(torch.tensor([pos_std, vel_std, pos_std, vel_std], dtype=dtype) ** 2)
+    x0 = tracks.initial + torch.randn(num_tracks, 4, generator=generator, dtype=dtype) @ P0.sqrt()
+    r = (0.5 * (ranges.meas_std[0] + ranges.meas_std[1])) ** 2
+    model = ConstantVelocity(ndim=2, dt=ranges.dt, q=q, r=r).to(dtype)
+    return Scenario(tracks.truth, tracks.z, model, x0, P0, ranges.dt, tracks.meas_std)

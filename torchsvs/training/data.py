@@ -11,7 +11,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from torchsvs.scenarios.maneuver import ManeuverRanges, random_maneuvers
+from torchsvs.scenarios.maneuver import ManeuverRanges
+from torchsvs.scenarios.paper import random_scenario
 
 
 class TrackBatch(NamedTuple):
@@ -62,23 +63,18 @@ class ManeuverDataset(Dataset[TrackBatch]):
 
     def _make(self, index: int) -> TrackBatch:
         gen = torch.Generator().manual_seed(self.seed + 7919 * index)
-        tracks = random_maneuvers(self.batch_size, self.ranges, gen, torch.float64)
-        z = tracks.z
-        pos_std, vel_std = self.prior_std
-        P0 = torch.diag(torch.tensor([pos_std, vel_std, pos_std, vel_std], dtype=z.dtype) ** 2)
-        x0 = (
-            tracks.initial
-            + torch.randn(self.batch_size, 4, generator=gen, dtype=z.dtype) @ P0.sqrt()
-        )
+        sc = random_scenario(self.batch_size, self.ranges, prior_std=self.prior_std, generator=gen)
+        z, x0, P0 = sc.z, sc.x0, sc.P0
+        assert sc.meas_std is not None
         if self.outlier_prob > 0:
             hit = torch.rand(z.shape, generator=gen, dtype=z.dtype) < self.outlier_prob
             noise = torch.randn(z.shape, generator=gen, dtype=z.dtype)
-            z = z + hit * self.outlier_scale * tracks.meas_std[:, None, None] * noise
+            z = z + hit * self.outlier_scale * sc.meas_std[:, None, None] * noise
         if self.missing_prob > 0:
             gone = torch.rand(z.shape, generator=gen, dtype=z.dtype) < self.missing_prob
             z = z.masked_fill(gone, float("nan"))
         cast = self.dtype
-        return TrackBatch(z.to(cast), tracks.truth.to(cast), x0.to(cast), P0.to(cast))
+        return TrackBatch(z.to(cast), sc.truth.to(cast), x0.to(cast), P0.to(cast))
 
 
 class ManeuveringTargetDataModule(L.LightningDataModule):
