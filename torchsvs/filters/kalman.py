@@ -51,6 +51,20 @@ def _as_result_matrix(A: Tensor) -> Tensor:
     return A if A.ndim == 4 else A[None, None]
 
 
+def kalman_update(
+    x_pred: Tensor, P_pred: Tensor, e: Tensor, H: Tensor, R: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The Kalman correction, Eqs. (14)-(16): ``(x, P, K, S, chol(S))`` from innovation ``e``.
+
+    ``S = H P Hᵀ + R``, ``K = P Hᵀ S⁻¹`` through the Cholesky factor of ``S``, Joseph-form ``P``.
+    """
+    PHt = P_pred @ H.mT
+    S = symmetrize(H @ PHt + R)
+    L = cholesky(S)
+    K = torch.cholesky_solve(PHt.mT, L).mT
+    return x_pred + matvec(K, e), joseph_update(P_pred, K, H, R), K, S, L
+
+
 class GaussianFilter(Estimator):
     """A filter that carries a Gaussian (mean, covariance) through predict-correct steps.
 
@@ -186,12 +200,7 @@ class KalmanFilter(GaussianFilter):
         if mask is not None:
             H, R = mask_measurement(H, R, mask)
         e = z - matvec(H, x_pred)  # zero where missing: z is filled with 0 and H's row is 0
-        PHt = P_pred @ H.mT
-        S = symmetrize(H @ PHt + R)
-        L = cholesky(S)
-        K = torch.cholesky_solve(PHt.mT, L).mT  # P Hᵀ S⁻¹, Eq. (15)
-        x = x_pred + matvec(K, e)
-        P = joseph_update(P_pred, K, H, R)
+        x, P, K, S, L = kalman_update(x_pred, P_pred, e, H, R)
         white = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
         observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)
         log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)

@@ -6,8 +6,8 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import GaussianFilter, Step
-from torchsvs.linalg import joseph_update, mask_measurement, matvec, psd_solve, symmetrize
+from torchsvs.filters.kalman import GaussianFilter, Step, kalman_update
+from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import LinearModel
 
 
@@ -149,9 +149,5 @@ class RobustStudentTKalmanFilter(GaussianFilter):
             inv_sigma_scale = u_post - n - 1.0
             P_tilde = U / (inv_sigma_scale * E_xi[..., None, None])
             R_tilde = R / E_lambda[..., None, None]
-            PHt = P_tilde @ H.mT
-            S = symmetrize(H @ PHt + R_tilde)
-            K = psd_solve(S, PHt.mT).mT
-            x = x_pred + matvec(K, e_pred)
-            P = joseph_update(P_tilde, K, H, R_tilde)
+            x, P, K, _, _ = kalman_update(x_pred, P_tilde, e_pred, H, R_tilde)
         return Step(x, P, e_pred, K)
