@@ -15,7 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchsvs.models.base import LinearModel
+from torchsvs.models.base import StateSpaceModel
 
 
 @dataclass
@@ -55,7 +55,7 @@ def _as_float_tensor(value: Any, name: str, dtype: torch.dtype) -> Tensor:
 
 
 def prepare_inputs(
-    model: LinearModel,
+    model: StateSpaceModel,
     z: Any,
     x0: Any,
     P0: Any,
@@ -125,7 +125,7 @@ def prepare_inputs(
 
 
 def _check_dt(
-    model: LinearModel, dt: Any, B: int, T: int, single: bool, dtype: torch.dtype
+    model: StateSpaceModel, dt: Any, B: int, T: int, single: bool, dtype: torch.dtype
 ) -> Tensor | None:
     if dt is None:
         return None
@@ -163,7 +163,7 @@ class Estimator(nn.Module):
     stored on the module.
     """
 
-    model: LinearModel
+    model: StateSpaceModel
 
     def forward(
         self,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsvs.models.base import LinearModel
+from torchsvs.models.base import StateSpaceModel
 
 
 class FiniteDifferenceVelocity:
@@ -37,7 +37,7 @@ class FiniteDifferenceVelocity:
         self.correlated = correlated
 
     def __call__(
-        self, z: Tensor, model: LinearModel, dt: Tensor | None
+        self, z: Tensor, model: StateSpaceModel, dt: Tensor | None
     ) -> tuple[Tensor, Tensor, Tensor]:
         pos = getattr(model, "position_index", None)
         vel = getattr(model, "velocity_index", None)

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchsvs.estimator import Estimator, Inputs
 from torchsvs.linalg import cholesky, joseph_update, mask_measurement, matvec, symmetrize
-from torchsvs.models.base import LinearModel
+from torchsvs.models.base import LinearModel, StateSpaceModel
 from torchsvs.types import FilterResult
 
 
@@ -24,6 +24,7 @@ class Step(NamedTuple):
     post_innovation: Tensor | None = None
     innovation_cov: Tensor | None = None
     log_likelihood: Tensor | None = None
+    meas_matrix: Tensor | None = None  #: the (linearised) H used, when it varies per step
 
 
 def _at(A: Tensor, t: int) -> Tensor:
@@ -70,22 +71,45 @@ class GaussianFilter(Estimator):
 
     The prediction (Eqs. (11)-(12) and (18)-(20), Chen et al. 2020) is shared; subclasses replace
     only the corrector (:meth:`correct`) and, if they measure something else than the model's
-    ``z`` (artificial measurements), :meth:`measurements`.
+    ``z`` (artificial measurements), :meth:`measurements`; nonlinear filters replace
+    :meth:`dynamics` and :meth:`predict`.
     """
 
-    def __init__(self, model: LinearModel) -> None:
+    #: the kind of model the filter needs (nonlinear filters take any StateSpaceModel)
+    model_type: type[StateSpaceModel] = LinearModel
+
+    def __init__(self, model: StateSpaceModel) -> None:
         super().__init__()
-        if not isinstance(model, LinearModel):
-            raise TypeError(f"model: expected a torchsvs LinearModel, got {type(model).__name__}")
+        if not isinstance(model, self.model_type):
+            raise TypeError(
+                f"model: expected a torchsvs {self.model_type.__name__}, got {type(model).__name__}"
+            )
         self.model = model
 
-    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor, Tensor]:
+    def dynamics(self, inputs: Inputs) -> tuple[Tensor | None, Tensor]:
+        """``F`` and ``Q`` of the whole run, ``[n, n]`` or ``[B, T, n, n]`` (``F`` is ``None`` for
+        filters that linearise per step)."""
+        dtype, model = inputs.z.dtype, self.model
+        assert isinstance(model, LinearModel)
+        return model.transition(inputs.dt).to(dtype), model.process_noise(inputs.dt).to(dtype)
+
+    def predict(
+        self, t: int, x: Tensor, P: Tensor, F: Tensor | None, Q: Tensor, inputs: Inputs
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """``x̂_{t|t-1}``, ``P_{t|t-1}`` and the (linearised) ``F_t`` used, Eqs. (11)-(12)."""
+        assert F is not None
+        F_t = _at(F, t)
+        return matvec(F_t, x), symmetrize(F_t @ P @ F_t.mT + _at(Q, t)), F_t
+
+    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
         """The corrector's measurements ``[B, T, m]``, ``H`` and ``R``.
 
-        ``H`` and ``R`` are ``[m, ·]`` when constant or ``[B, T, m, ·]`` per step.
+        ``H`` and ``R`` are ``[m, ·]`` when constant or ``[B, T, m, ·]`` per step; ``H`` is
+        ``None`` for filters that linearise ``h`` per step (each step then reports its own).
         """
-        dtype = inputs.z.dtype
-        return inputs.z, self.model.meas_matrix().to(dtype), self.model.meas_cov().to(dtype)
+        dtype, model = inputs.z.dtype, self.model
+        assert isinstance(model, LinearModel)
+        return inputs.z, model.meas_matrix().to(dtype), model.meas_cov().to(dtype)
 
     def correct(
         self,
@@ -94,7 +118,7 @@ class GaussianFilter(Estimator):
         P_pred: Tensor,
         z: Tensor,
         mask: Tensor | None,
-        H: Tensor,
+        H: Tensor | None,
         R: Tensor,
         previous: Step | None,
         inputs: Inputs,
@@ -106,10 +130,9 @@ class GaussianFilter(Estimator):
         raise NotImplementedError
 
     def run(self, inputs: Inputs) -> FilterResult:
-        dtype, T = inputs.z.dtype, inputs.steps
+        T = inputs.steps
         z, H, R = self.measurements(inputs)
-        F = self.model.transition(inputs.dt).to(dtype)
-        Q = self.model.process_noise(inputs.dt).to(dtype)
+        F, Q = self.dynamics(inputs)
         observed = ~torch.isnan(z)
         any_missing = not bool(observed.all())
         z_filled = z.nan_to_num(0.0)
@@ -118,18 +141,19 @@ class GaussianFilter(Estimator):
         steps: list[Step] = []
         pred_means: list[Tensor] = []
         pred_covs: list[Tensor] = []
+        linearised: list[Tensor] = []
         previous: Step | None = None
         for t in range(T):
-            F_t = _at(F, t)
-            x_pred = matvec(F_t, x)
-            P_pred = symmetrize(F_t @ P @ F_t.mT + _at(Q, t))
+            x_pred, P_pred, F_t = self.predict(t, x, P, F, Q, inputs)
+            if F is None:
+                linearised.append(F_t)
             step = self.correct(
                 t,
                 x_pred,
                 P_pred,
                 z_filled[:, t],
                 observed[:, t] if any_missing else None,
-                _at(H, t),
+                None if H is None else _at(H, t),
                 _at(R, t),
                 previous,
                 inputs,
@@ -155,8 +179,12 @@ class GaussianFilter(Estimator):
             pred_cov=stacked_all(pred_covs),
             innovation=stacked_all([s.innovation for s in steps]),
             mask=observed,
-            transition=_as_result_matrix(F),
-            meas_matrix=_as_result_matrix(H),
+            transition=_as_result_matrix(F) if F is not None else stacked_all(linearised),
+            meas_matrix=(
+                stacked_all([s.meas_matrix for s in steps if s.meas_matrix is not None])
+                if H is None
+                else _as_result_matrix(H)
+            ),
             meas_cov=_as_result_matrix(R),
             gain=stacked_all([s.gain for s in steps]),
             post_innovation=stacked("post_innovation"),
@@ -192,14 +220,21 @@ class KalmanFilter(GaussianFilter):
         P_pred: Tensor,
         z: Tensor,
         mask: Tensor | None,
-        H: Tensor,
+        H: Tensor | None,
         R: Tensor,
         previous: Step | None,
         inputs: Inputs,
     ) -> Step:
+        assert H is not None
+        return self.kalman_correct(x_pred, P_pred, z - matvec(H, x_pred), mask, H, R)
+
+    def kalman_correct(
+        self, x_pred: Tensor, P_pred: Tensor, e: Tensor, mask: Tensor | None, H: Tensor, R: Tensor
+    ) -> Step:
+        """The Kalman correction with innovation ``e``; missing components are dropped."""
         if mask is not None:
             H, R = mask_measurement(H, R, mask)
-        e = z - matvec(H, x_pred)  # zero where missing: z is filled with 0 and H's row is 0
+            e = e * mask
         x, P, K, S, L = kalman_update(x_pred, P_pred, e, H, R)
         white = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
         observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)

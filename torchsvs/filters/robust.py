@@ -114,11 +114,12 @@ class RobustStudentTKalmanFilter(GaussianFilter):
         P_pred: Tensor,
         z: Tensor,
         mask: Tensor | None,
-        H: Tensor,
+        H: Tensor | None,
         R: Tensor,
         previous: Step | None,
         inputs: Inputs,
     ) -> Step:
+        assert H is not None
         n = x_pred.shape[-1]
         if mask is not None:
             H, R = mask_measurement(H, R, mask)

@@ -11,10 +11,10 @@ from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
 from torchsvs.filters.kalman import GaussianFilter, Step
 from torchsvs.linalg import joseph_update, matvec, svsf_gain_ratio
-from torchsvs.models.base import LinearModel
+from torchsvs.models.base import LinearModel, StateSpaceModel
 
 ArtificialMeasurement = Callable[
-    [Tensor, LinearModel, "Tensor | None"], tuple[Tensor, Tensor, Tensor]
+    [Tensor, StateSpaceModel, "Tensor | None"], tuple[Tensor, Tensor, Tensor]
 ]
 
 
@@ -101,7 +101,7 @@ class SVSF(GaussianFilter):
         """Memory γ in [0, 1)."""
         return self.memory()
 
-    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor, Tensor]:
+    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
         z, H, R = super().measurements(inputs)
         if self.artificial is not None:
             z, H, R = self.artificial(inputs.z, self.model, inputs.dt)
@@ -127,11 +127,12 @@ class SVSF(GaussianFilter):
         P_pred: Tensor,
         z: Tensor,
         mask: Tensor | None,
-        H: Tensor,
+        H: Tensor | None,
         R: Tensor,
         previous: Step | None,
         inputs: Inputs,
     ) -> Step:
+        assert H is not None
         dtype = z.dtype
         psi = inputs.psi[:, t] if inputs.psi is not None else self.psi.to(dtype)
         e = z - matvec(H, x_pred)  # Eq. (4)

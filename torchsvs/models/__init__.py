@@ -1,7 +1,7 @@
 """State-space models: what the system is (F, H, Q, R, dt). Models never import estimators."""
 
-from torchsvs.models.base import LinearModel
+from torchsvs.models.base import LinearModel, StateSpaceModel
 from torchsvs.models.linear import LinearGaussian
 from torchsvs.models.motion import ConstantVelocity
 
-__all__ = ["ConstantVelocity", "LinearGaussian", "LinearModel"]
+__all__ = ["ConstantVelocity", "LinearGaussian", "LinearModel", "StateSpaceModel"]

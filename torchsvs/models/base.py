@@ -1,27 +1,77 @@
-"""The interface every linear(ised) state-space model offers to the estimators.
+"""The interface every state-space model offers to the estimators.
 
-A model says what the system is: ``x_t = F_t x_{t-1} + w_t``, ``z_t = H x_t + v_t`` with
-``w_t ~ N(0, Q_t)`` and ``v_t ~ N(0, R)`` (Eq. (1), Chen et al. 2020). It never imports an
-estimator.
+A model says what the system is: ``x_t = f(x_{t-1}) + w_t``, ``z_t = h(x_t) + v_t`` with
+``w_t ~ N(0, Q_t)`` and ``v_t ~ N(0, R)`` (Eqs. (1)-(2), Gadsden et al. 2012); a linear model
+has ``f(x) = F x``, ``h(x) = H x`` (Eq. (1), Chen et al. 2020). It never imports an estimator.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
+from torch.func import jacrev, vmap
 
 
-class LinearModel(nn.Module):
-    """Base class: subclasses define :meth:`transition`, :meth:`process_noise`, ``H`` and ``R``.
+class StateSpaceModel(nn.Module):
+    """Base class of all models: ``f``, ``h``, their Jacobians, ``Q`` and ``R``.
 
-    ``dt`` is ``None`` (the model's own interval), a 0-d tensor, or a tensor ``[B, T]`` of
-    per-step intervals; matrices come back with the leading shape of ``dt``.
+    ``f`` and ``h`` act on states ``[..., n]`` (batch first). ``dt`` is ``None`` (the model's own
+    interval), a 0-d tensor, or a per-track tensor ``[B]`` at one step (``[B, T]`` when asking
+    for matrices of a whole run). Jacobians default to autograd (``torch.func.jacrev`` under
+    ``vmap``); a model may supply its own.
     """
 
     state_dim: int
     meas_dim: int
-    #: whether ``dt`` changes F and Q (motion models) or is meaningless (fixed matrices).
+    #: whether ``dt`` changes the dynamics (motion models) or is meaningless (fixed matrices).
     uses_dt: bool = False
+
+    def f(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+        """The noise-free transition ``x_{t-1} ↦ x_t``, ``[B, n] → [B, n]``."""
+        raise NotImplementedError
+
+    def h(self, x: Tensor) -> Tensor:
+        """The noise-free measurement ``x_t ↦ z_t``, ``[B, n] → [B, m]``."""
+        raise NotImplementedError
+
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+        """``∂f/∂x`` at each state, ``[B, n, n]`` (Eq. (3), Gadsden et al. 2012)."""
+        if dt is None or dt.ndim == 0:
+            return vmap(jacrev(lambda s: self.f(s.unsqueeze(0), dt).squeeze(0)))(x)
+        return vmap(jacrev(lambda s, d: self.f(s.unsqueeze(0), d).squeeze(0)))(x, dt)
+
+    def h_jacobian(self, x: Tensor) -> Tensor:
+        """``∂h/∂x`` at each state, ``[B, m, n]`` (Eq. (4), Gadsden et al. 2012)."""
+        return vmap(jacrev(lambda s: self.h(s.unsqueeze(0)).squeeze(0)))(x)
+
+    def process_noise(self, dt: Tensor | None = None) -> Tensor:
+        """``Q`` of shape ``[*dt.shape, n, n]`` (``[n, n]`` for ``dt=None``)."""
+        raise NotImplementedError
+
+    def meas_cov(self) -> Tensor:
+        """``R`` of shape ``[m, m]``."""
+        raise NotImplementedError
+
+
+class LinearModel(StateSpaceModel):
+    """Base class of linear models: subclasses define :meth:`transition`, :meth:`process_noise`,
+    ``H`` and ``R``; ``f``, ``h`` and their Jacobians follow exactly.
+
+    Matrices come back with the leading shape of ``dt`` (``[B, T, n, n]`` for per-step ``dt``).
+    """
+
+    def f(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+        F = self.transition(dt).to(x.dtype)
+        return (F @ x.unsqueeze(-1)).squeeze(-1)
+
+    def h(self, x: Tensor) -> Tensor:
+        return x @ self.meas_matrix().to(x.dtype).mT
+
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+        return self.transition(dt).to(x.dtype).expand(x.shape[0], -1, -1)
+
+    def h_jacobian(self, x: Tensor) -> Tensor:
+        return self.meas_matrix().to(x.dtype).expand(x.shape[0], -1, -1)
 
     def transition(self, dt: Tensor | None = None) -> Tensor:
         """``F`` of shape ``[*dt.shape, n, n]`` (``[n, n]`` for ``dt=None``)."""
@@ -33,10 +83,6 @@ class LinearModel(nn.Module):
 
     def meas_matrix(self) -> Tensor:
         """``H`` of shape ``[m, n]``."""
-        raise NotImplementedError
-
-    def meas_cov(self) -> Tensor:
-        """``R`` of shape ``[m, m]``."""
         raise NotImplementedError
 
     def sample(

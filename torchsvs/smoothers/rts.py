@@ -10,7 +10,7 @@ from torch import Tensor
 from torchsvs.estimator import Estimator, Inputs
 from torchsvs.filters.kalman import GaussianFilter
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
-from torchsvs.models.base import LinearModel
+from torchsvs.models.base import StateSpaceModel
 from torchsvs.types import FilterResult, SmootherResult
 
 
@@ -90,7 +90,7 @@ class RTSSmoother(Estimator):
         self.lag = lag
 
     @property
-    def model(self) -> LinearModel:  # type: ignore[override]
+    def model(self) -> StateSpaceModel:  # type: ignore[override]
         return self.filter.model
 
     def run(self, inputs: Inputs) -> SmootherResult:
