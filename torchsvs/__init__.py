@@ -1,6 +1,7 @@
 """torchsvs: smooth variable structure estimation in PyTorch.
 
 Batched, differentiable state estimators as ``nn.Module`` s: the Kalman filter and RTS smoother,
+the extended and unscented Kalman filters,
 the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable boundary layer ψ
 and memory γ. See ``torchsvs.types`` for the shape conventions.
 """
@@ -8,9 +9,11 @@ and memory γ. See ``torchsvs.types`` for the shape conventions.
 from torchsvs import metrics, models, scenarios
 from torchsvs.filters import (
     SVSF,
+    ExtendedKalmanFilter,
     FiniteDifferenceVelocity,
     KalmanFilter,
     RobustStudentTKalmanFilter,
+    UnscentedKalmanFilter,
 )
 from torchsvs.smoothers import SVSS, RTSSmoother
 from torchsvs.types import FilterResult, SmootherResult
@@ -18,6 +21,8 @@ from torchsvs.types import FilterResult, SmootherResult
 __all__ = [
     "SVSF",
     "SVSS",
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
     "FilterResult",
     "FiniteDifferenceVelocity",
     "KalmanFilter",

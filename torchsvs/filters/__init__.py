@@ -2,11 +2,14 @@
 
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
+from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
 from torchsvs.filters.svsf import SVSF
 
 __all__ = [
     "SVSF",
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
     "FiniteDifferenceVelocity",
     "GaussianFilter",
     "KalmanFilter",

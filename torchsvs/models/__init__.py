@@ -1,7 +1,14 @@
 """State-space models: what the system is (F, H, Q, R, dt). Models never import estimators."""
 
+from torchsvs.models.ballistic import BallisticReentry
 from torchsvs.models.base import LinearModel, StateSpaceModel
 from torchsvs.models.linear import LinearGaussian
 from torchsvs.models.motion import ConstantVelocity
 
-__all__ = ["ConstantVelocity", "LinearGaussian", "LinearModel", "StateSpaceModel"]
+__all__ = [
+    "BallisticReentry",
+    "ConstantVelocity",
+    "LinearGaussian",
+    "LinearModel",
+    "StateSpaceModel",
+]

@@ -1,0 +1,120 @@
+"""EKF and UKF: reductions to the KF, the ballistic model's Jacobian, filterpy's UKF as oracle."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from filterpy.kalman import MerweScaledSigmaPoints
+from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
+
+import torchsvs as ts
+from tests.conftest import assert_close
+
+
+@pytest.mark.parametrize("cls", [ts.ExtendedKalmanFilter, ts.UnscentedKalmanFilter])
+def test_linear_model_reduces_to_kalman_filter(system, cls):
+    z, x0, P0 = system.tensors()
+    z = z.clone()
+    z[0, 4, 0] = float("nan")
+    z[1, 9] = float("nan")
+    kf = ts.RTSSmoother(ts.KalmanFilter(system.model()), lag=2)(z, x0, P0)
+    est = ts.RTSSmoother(cls(system.model()), lag=2)(z, x0, P0)
+    tol = 1e-9 if cls is ts.ExtendedKalmanFilter else 1e-8
+    for field in ("mean", "cov", "pred_mean", "pred_cov", "gain", "innovation", "log_likelihood"):
+        assert_close(
+            getattr(est.filtered, field), getattr(kf.filtered, field), atol=tol, rtol=tol, msg=field
+        )
+    assert_close(
+        est.filtered.transition, kf.filtered.transition.expand_as(est.filtered.transition), atol=tol
+    )
+    assert_close(est.mean, kf.mean, atol=tol, rtol=tol)
+    assert_close(est.cov, kf.cov, atol=tol, rtol=tol)
+
+
+def _ballistic_run(T: int = 40, B: int = 2, seed: int = 0):
+    model = ts.models.BallisticReentry().double()
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.tensor([61000.0, 3048.0, 19161.0], dtype=torch.float64).expand(B, 3)
+    Q, R = model.process_noise(), model.meas_cov()
+    states = []
+    for _ in range(T):
+        x = (
+            model.f(x)
+            + torch.randn(B, 3, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(Q).mT
+        )
+        states.append(x)
+    truth = torch.stack(states, 1)
+    z = (
+        truth[..., :2]
+        + torch.randn(B, T, 2, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(R).mT
+    )
+    x0 = torch.tensor([61000.0, 3048.0, 19161.0], dtype=torch.float64)
+    P0 = torch.diag(torch.tensor([1e4, 1e3, 1e4], dtype=torch.float64))
+    return model, truth, z, x0, P0
+
+
+def test_ballistic_jacobian_equals_hand_derivation():
+    model, truth, *_ = _ballistic_run(T=5)
+    x = truth[:, -1]
+    T = model.dt
+    D = model.drag(x)
+    h, v, beta = x[:, 0], x[:, 1], x[:, 2]
+    # ∂D/∂h = −ηD, ∂D/∂v = 2D/v, ∂D/∂β = −D/β; v' = v − T(D − g).
+    expected = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)
+    expected[:, 0, 0], expected[:, 0, 1] = 1.0, -T
+    expected[:, 1, 0] = T * model.decay * D
+    expected[:, 1, 1] = 1.0 - 2.0 * T * D / v
+    expected[:, 1, 2] = T * D / beta
+    expected[:, 2, 2] = 1.0
+    assert_close(model.f_jacobian(x), expected, atol=1e-10, rtol=1e-10)
+    assert_close(model.h_jacobian(x), torch.eye(3, dtype=x.dtype)[:2].expand(x.shape[0], 2, 3))
+    assert bool((h > 0).all())
+
+
+def test_ukf_equals_filterpy_on_the_ballistic_model():
+    model, truth, z, x0, P0 = _ballistic_run()
+    out = ts.UnscentedKalmanFilter(model, alpha=0.5, beta=2.0, kappa=0.0)(z, x0, P0)
+
+    def fx(x, dt):
+        return model.f(torch.from_numpy(x)[None]).squeeze(0).numpy()
+
+    def hx(x):
+        return x[:2].copy()
+
+    points = MerweScaledSigmaPoints(
+        3, alpha=0.5, beta=2.0, kappa=0.0, sqrt_method=lambda M: np.linalg.cholesky(M).T
+    )
+    for b in range(z.shape[0]):
+        ukf = FilterpyUKF(dim_x=3, dim_z=2, dt=model.dt, hx=hx, fx=fx, points=points)
+        ukf.x, ukf.P = x0.numpy().copy(), P0.numpy().copy()
+        ukf.Q, ukf.R = model.process_noise().numpy(), model.meas_cov().numpy()
+        means, covs = [], []
+        for zt in z[b].numpy():
+            ukf.predict()
+            ukf.update(zt)
+            means.append(ukf.x.copy())
+            covs.append(ukf.P.copy())
+        assert_close(out.mean[b], np.array(means), atol=1e-6, rtol=1e-9)
+        assert_close(out.cov[b], np.array(covs), atol=1e-6, rtol=1e-7)
+
+
+def test_ekf_and_ukf_track_the_ballistic_target():
+    model, truth, z, x0, P0 = _ballistic_run(T=60, B=20, seed=3)
+    for cls in (ts.ExtendedKalmanFilter, ts.UnscentedKalmanFilter):
+        out = cls(model)(z, x0, P0)
+        altitude = ts.metrics.accumulative_rmse(out.mean, truth)[0]
+        assert altitude < 0.5 * 100.0  # well below the 100 m measurement noise
+        dt = torch.full(z.shape[:2], model.dt, dtype=z.dtype)
+        assert_close(cls(model)(z, x0, P0, dt=dt).mean, out.mean, atol=1e-8, rtol=1e-10)
+        single = cls(model)(z[3], x0, P0)
+        assert_close(single.mean, out.mean[3], atol=1e-8, rtol=1e-10)
+
+
+def test_bad_nonlinear_settings():
+    with pytest.raises(ValueError, match="^alpha: expected a number > 0"):
+        ts.UnscentedKalmanFilter(ts.models.BallisticReentry(), alpha=0.0)
+    with pytest.raises(ValueError, match="^kappa: expected n"):
+        ts.UnscentedKalmanFilter(ts.models.BallisticReentry(), alpha=0.1, kappa=-3.0)
+    with pytest.raises(TypeError, match="^model: expected a torchsvs LinearModel"):
+        ts.KalmanFilter(ts.models.BallisticReentry())
