@@ -118,3 +118,53 @@ def test_bad_nonlinear_settings():
         ts.UnscentedKalmanFilter(ts.models.BallisticReentry(), alpha=0.1, kappa=-3.0)
     with pytest.raises(TypeError, match="^model: expected a torchsvs LinearModel"):
         ts.KalmanFilter(ts.models.BallisticReentry())
+
+
+class _AsNonlinear(ts.models.StateSpaceModel):
+    """A linear model seen only through f, h and autograd Jacobians (the nonlinear code path)."""
+
+    def __init__(self, linear: ts.models.LinearModel) -> None:
+        super().__init__()
+        self.linear = linear
+        self.state_dim, self.meas_dim = linear.state_dim, linear.meas_dim
+
+    def f(self, x, dt=None):
+        return x @ self.linear.transition().to(x.dtype).mT
+
+    def h(self, x):
+        return x @ self.linear.meas_matrix().to(x.dtype).mT
+
+    def process_noise(self, dt=None):
+        return self.linear.process_noise()
+
+    def meas_cov(self):
+        return self.linear.meas_cov()
+
+
+def test_nonlinear_code_paths_reduce_to_the_linear_ones(system):
+    z, x0, P0 = system.tensors()
+    z = z.clone()
+    z[0, 5, 0] = float("nan")
+    linear, wrapped = system.model(), _AsNonlinear(system.model())
+    m = system.H.shape[0]
+    psi = torch.linspace(0.8, 2.5, m, dtype=torch.float64)
+    for make in (
+        lambda mod: ts.SVSS(ts.SVSF(mod, psi=psi, gamma=0.3), lag=2),
+        lambda mod: ts.RTSSmoother(ts.ExtendedKalmanFilter(mod), lag=None),
+    ):
+        a, b = make(linear)(z, x0, P0), make(wrapped)(z, x0, P0)
+        assert_close(b.mean, a.mean)
+        assert_close(b.cov, a.cov, atol=1e-8)
+        assert_close(
+            b.filtered.meas_matrix, a.filtered.meas_matrix.expand_as(b.filtered.meas_matrix)
+        )
+
+
+def test_svsf_tracks_the_ballistic_target_and_gradients_flow():
+    model, truth, z, x0, P0 = _ballistic_run(T=60, B=8, seed=5)
+    svsf = ts.SVSF(model, psi=[300.0, 100.0], gamma=0.1)
+    out = svsf(z, x0, P0)
+    assert ts.metrics.accumulative_rmse(out.mean, truth)[0] < 100.0
+    out.mean[..., 0].square().mean().backward()
+    assert bool(torch.isfinite(svsf.boundary_layer.raw.grad).all())
+    assert out.meas_matrix.shape == (8, 60, 2, 3)

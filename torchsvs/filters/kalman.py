@@ -47,6 +47,12 @@ def _stack_over_time(values: list[Tensor] | list[Tensor | None], batch: int) -> 
     return stacked.expand(batch, *stacked.shape[1:])
 
 
+def step_interval(inputs: Inputs, t: int) -> Tensor | None:
+    """The interval ending at step ``t``: ``None`` (model's own), 0-d, or per track ``[B]``."""
+    dt = inputs.dt
+    return dt[:, t] if dt is not None and dt.ndim == 2 else dt
+
+
 def _as_result_matrix(A: Tensor) -> Tensor:
     """``[r, c]`` → ``[1, 1, r, c]``; ``[B, T, r, c]`` unchanged."""
     return A if A.ndim == 4 else A[None, None]
@@ -87,19 +93,28 @@ class GaussianFilter(Estimator):
         self.model = model
 
     def dynamics(self, inputs: Inputs) -> tuple[Tensor | None, Tensor]:
-        """``F`` and ``Q`` of the whole run, ``[n, n]`` or ``[B, T, n, n]`` (``F`` is ``None`` for
-        filters that linearise per step)."""
+        """``F`` and ``Q`` of the whole run, ``[n, n]`` or ``[B, T, n, n]``; ``F`` is ``None`` for a
+        nonlinear model, which :meth:`predict` linearises at each estimate."""
         dtype, model = inputs.z.dtype, self.model
-        assert isinstance(model, LinearModel)
-        return model.transition(inputs.dt).to(dtype), model.process_noise(inputs.dt).to(dtype)
+        Q = model.process_noise(inputs.dt).to(dtype)
+        if isinstance(model, LinearModel):
+            return model.transition(inputs.dt).to(dtype), Q
+        return None, Q
 
     def predict(
         self, t: int, x: Tensor, P: Tensor, F: Tensor | None, Q: Tensor, inputs: Inputs
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """``x̂_{t|t-1}``, ``P_{t|t-1}`` and the (linearised) ``F_t`` used, Eqs. (11)-(12)."""
-        assert F is not None
-        F_t = _at(F, t)
-        return matvec(F_t, x), symmetrize(F_t @ P @ F_t.mT + _at(Q, t)), F_t
+        """``x̂_{t|t-1}``, ``P_{t|t-1}`` and the (linearised) ``F_t`` used: Eqs. (11)-(12) of Chen
+        et al. 2020, or for a nonlinear model ``f(x̂)`` with ``F_t = ∂f/∂x`` (Eqs. (3), (11)-(12),
+        Gadsden et al. 2012)."""
+        if F is not None:
+            F_t = _at(F, t)
+            x_pred = matvec(F_t, x)
+        else:
+            dt = step_interval(inputs, t)
+            F_t = self.model.f_jacobian(x, dt)
+            x_pred = self.model.f(x, dt)
+        return x_pred, symmetrize(F_t @ P @ F_t.mT + _at(Q, t)), F_t
 
     def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
         """The corrector's measurements ``[B, T, m]``, ``H`` and ``R``.
@@ -108,8 +123,8 @@ class GaussianFilter(Estimator):
         ``None`` for filters that linearise ``h`` per step (each step then reports its own).
         """
         dtype, model = inputs.z.dtype, self.model
-        assert isinstance(model, LinearModel)
-        return inputs.z, model.meas_matrix().to(dtype), model.meas_cov().to(dtype)
+        H = model.meas_matrix().to(dtype) if isinstance(model, LinearModel) else None
+        return inputs.z, H, model.meas_cov().to(dtype)
 
     def correct(
         self,

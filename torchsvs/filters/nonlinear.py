@@ -6,15 +6,9 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import KalmanFilter, Step, _at
+from torchsvs.filters.kalman import KalmanFilter, Step, _at, step_interval
 from torchsvs.linalg import cholesky, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
-
-
-def step_interval(inputs: Inputs, t: int) -> Tensor | None:
-    """The interval ending at step ``t``: ``None`` (model's own), 0-d, or per track ``[B]``."""
-    dt = inputs.dt
-    return dt[:, t] if dt is not None and dt.ndim == 2 else dt
 
 
 class ExtendedKalmanFilter(KalmanFilter):
@@ -37,19 +31,6 @@ class ExtendedKalmanFilter(KalmanFilter):
     """
 
     model_type = StateSpaceModel
-
-    def dynamics(self, inputs: Inputs) -> tuple[Tensor | None, Tensor]:
-        return None, self.model.process_noise(inputs.dt).to(inputs.z.dtype)
-
-    def predict(
-        self, t: int, x: Tensor, P: Tensor, F: Tensor | None, Q: Tensor, inputs: Inputs
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        dt = step_interval(inputs, t)
-        F_t = self.model.f_jacobian(x, dt)
-        return self.model.f(x, dt), symmetrize(F_t @ P @ F_t.mT + _at(Q, t)), F_t
-
-    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
-        return inputs.z, None, self.model.meas_cov().to(inputs.z.dtype)
 
     def correct(
         self,

@@ -11,7 +11,7 @@ from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
 from torchsvs.filters.kalman import GaussianFilter, Step
 from torchsvs.linalg import joseph_update, matvec, svsf_gain_ratio
-from torchsvs.models.base import LinearModel, StateSpaceModel
+from torchsvs.models.base import StateSpaceModel
 
 ArtificialMeasurement = Callable[
     [Tensor, StateSpaceModel, "Tensor | None"], tuple[Tensor, Tensor, Tensor]
@@ -47,11 +47,15 @@ class SVSF(GaussianFilter):
       corrector measures full-state pseudo-measurements with their own ``H`` and ``R``; ``psi``
       then has one width per pseudo-measurement (``[500, 600, 500, 600]`` in the paper).
 
+    Nonlinear models (Eqs. (11)-(21), Gadsden et al. 2012): the prediction is ``f(x̂)`` with the
+    Jacobian ``F`` for the covariance, the innovation is ``z − h(x̂_{k+1|k})`` and ``H⁺`` is the
+    pseudo-inverse of the Jacobian of ``h`` at ``x̂_{k+1|k}``; the corrector is the same.
+
     Missing data: a NaN component gives no correction (its column of the gain is zero, ``H⁺`` is
     that of the observed rows) and its memory ``e_{k|k}`` is carried from the previous step.
 
     Args:
-        model: a :class:`~torchsvs.models.LinearModel`.
+        model: a :class:`~torchsvs.models.StateSpaceModel` (linear or nonlinear).
         psi: boundary layer widths ψ > 0 ("smoothing boundary layer"), a scalar or one per
             corrector measurement component.
         gamma: memory (convergence rate) γ in ``[0, 1)``.
@@ -69,9 +73,11 @@ class SVSF(GaussianFilter):
         Chen, Xu, Yan, Li, Sensors 20(6):1781, 2020. doi:10.3390/s20061781
     """
 
+    model_type = StateSpaceModel
+
     def __init__(
         self,
-        model: LinearModel,
+        model: StateSpaceModel,
         psi: ArrayLike,
         gamma: float | torch.Tensor = 0.1,
         learn: bool = True,
@@ -132,15 +138,17 @@ class SVSF(GaussianFilter):
         previous: Step | None,
         inputs: Inputs,
     ) -> Step:
-        assert H is not None
         dtype = z.dtype
         psi = inputs.psi[:, t] if inputs.psi is not None else self.psi.to(dtype)
-        e = z - matvec(H, x_pred)  # Eq. (4)
+        linearised = H is None  # nonlinear h: Eqs. (13)-(21), Gadsden et al. 2012
+        if H is None:
+            H = self.model.h_jacobian(x_pred)
+            e = z - self.model.h(x_pred)  # Eq. (14)
+        else:
+            e = z - matvec(H, x_pred)  # Eq. (4)
         if mask is not None:
             e = e * mask
-            H_plus = torch.linalg.pinv(
-                H * mask.unsqueeze(-1).to(dtype)
-            )  # zero columns where missing
+            H_plus = torch.linalg.pinv(H * mask.unsqueeze(-1).to(dtype))  # zero columns if missing
         else:
             H_plus = torch.linalg.pinv(H)
         memory = previous.post_innovation if previous is not None else torch.zeros_like(e)
@@ -148,7 +156,7 @@ class SVSF(GaussianFilter):
         K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)
         x = x_pred + matvec(K, e)  # Eq. (22)
         P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
-        e_post = z - matvec(H, x)  # Eq. (24)
+        e_post = z - (self.model.h(x) if linearised else matvec(H, x))  # Eq. (24)
         if mask is not None:
             e_post = torch.where(mask, e_post, memory)
-        return Step(x, P, e, K, post_innovation=e_post)
+        return Step(x, P, e, K, post_innovation=e_post, meas_matrix=H if linearised else None)
