@@ -8,10 +8,12 @@ and memory γ. See ``torchsvs.types`` for the shape conventions.
 
 from torchsvs import metrics, models, scenarios
 from torchsvs.filters import (
+    SPVSF,
     SVSF,
     ExtendedKalmanFilter,
     FiniteDifferenceVelocity,
     KalmanFilter,
+    ParticleFilter,
     RobustStudentTKalmanFilter,
     UnscentedKalmanFilter,
 )
@@ -20,7 +22,9 @@ from torchsvs.types import FilterResult, SmootherResult
 
 __all__ = [
     "SVSF",
+    "SPVSF",
     "SVSS",
+    "ParticleFilter",
     "ExtendedKalmanFilter",
     "UnscentedKalmanFilter",
     "FilterResult",

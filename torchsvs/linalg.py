@@ -100,8 +100,10 @@ def mask_measurement(H: Tensor, R: Tensor, mask: Tensor) -> tuple[Tensor, Tensor
     Returns:
         Masked ``H [..., m, n]`` and ``R [..., m, m]`` broadcast to the batch shape of ``mask``.
     """
-    obs = mask.to(H.dtype)
-    H_m = H * obs.unsqueeze(-1)
-    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
-    R_m = R * both + torch.diag_embed(1.0 - obs)
-    return H_m, R_m
+    return H * mask.to(H.dtype).unsqueeze(-1), mask_covariance(R, mask)
+
+
+def mask_covariance(R: Tensor, mask: Tensor) -> Tensor:
+    """``R`` with an identity on the missing components (see :func:`mask_measurement`)."""
+    obs = mask.to(R.dtype)
+    return R * (obs.unsqueeze(-1) * obs.unsqueeze(-2)) + torch.diag_embed(1.0 - obs)

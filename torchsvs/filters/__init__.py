@@ -3,11 +3,15 @@
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
+from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
 from torchsvs.filters.svsf import SVSF
 
 __all__ = [
+    "SPVSF",
     "SVSF",
+    "ParticleFilter",
+    "ParticleResult",
     "ExtendedKalmanFilter",
     "UnscentedKalmanFilter",
     "FiniteDifferenceVelocity",

@@ -1,0 +1,82 @@
+"""Particle filter and SPVSF: agreement with the KF, reproducibility, gradients, bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsvs as ts
+from tests.conftest import assert_close, random_system
+from tests.test_nonlinear import _ballistic_run
+
+
+def test_many_particles_approach_the_kalman_filter():
+    system = random_system(2, 1, T=12, B=2, seed=4)
+    z, x0, P0 = system.tensors()
+    kf = ts.KalmanFilter(system.model())(z, x0, P0)
+    pf = ts.ParticleFilter(system.model(), num_particles=40000, resample_threshold=0.5)
+    out = pf(z, x0, P0, generator=torch.Generator().manual_seed(0))
+    std = kf.cov.diagonal(dim1=-2, dim2=-1).sqrt()
+    # Monte Carlo error of a weighted mean ~ std / sqrt(N_eff): N_eff ≥ 2000 gives ≤ 0.02 std.
+    assert bool((out.ess >= 2000).all())
+    assert float(((out.mean - kf.mean).abs() / std).max()) < 0.1
+    scale = std.unsqueeze(-1) * std.unsqueeze(-2)
+    assert float(((out.cov - kf.cov).abs() / scale).max()) < 0.1
+    # The marginal likelihood estimate is unbiased and concentrated for this many particles.
+    assert_close(out.log_likelihood, kf.log_likelihood, atol=0.05, rtol=0)
+
+
+@pytest.mark.parametrize("cls", ["pf", "spvsf"])
+def test_seeded_runs_reproduce_and_seeds_differ(cls):
+    model, truth, z, x0, P0 = _ballistic_run(T=30, B=3, seed=1)
+    est = (
+        ts.ParticleFilter(model, 200)
+        if cls == "pf"
+        else ts.SPVSF(model, psi=[300.0, 100.0], num_particles=200)
+    )
+    a = est(z, x0, P0, generator=torch.Generator().manual_seed(5))
+    b = est(z, x0, P0, generator=torch.Generator().manual_seed(5))
+    c = est(z, x0, P0, generator=torch.Generator().manual_seed(6))
+    assert torch.equal(a.mean, b.mean)
+    assert (a.mean - c.mean).abs().max() > 0
+    assert ts.metrics.accumulative_rmse(a.mean, truth)[0] < 100.0
+    assert a.mean.shape == (3, 30, 3) and a.cov.shape == (3, 30, 3, 3) and a.ess.shape == (3, 30)
+
+
+def test_spvsf_gradients_reach_psi_and_gamma():
+    model, truth, z, x0, P0 = _ballistic_run(T=25, B=2, seed=2)
+    spvsf = ts.SPVSF(model, psi=[300.0, 100.0], gamma=0.2, num_particles=64)
+    out = spvsf(z, x0, P0, generator=torch.Generator().manual_seed(0))
+    (out.mean - truth).square().mean().backward()
+    for p in (spvsf.svsf.boundary_layer.raw, spvsf.svsf.memory.raw):
+        assert (
+            p.grad is not None and bool(torch.isfinite(p.grad).all()) and bool((p.grad != 0).any())
+        )
+
+
+def test_missing_measurements_are_skipped():
+    model, truth, z, x0, P0 = _ballistic_run(T=20, B=2, seed=3)
+    z = z.clone()
+    z[:, 7] = float("nan")
+    z[0, 11, 1] = float("nan")
+    for est in (
+        ts.ParticleFilter(model, 300),
+        ts.SPVSF(model, psi=[300.0, 100.0], num_particles=300),
+    ):
+        out = est(z, x0, P0, generator=torch.Generator().manual_seed(0))
+        assert bool(torch.isfinite(out.mean).all()) and bool(
+            torch.isfinite(out.log_likelihood).all()
+        )
+
+
+@pytest.mark.parametrize(
+    "kwargs, pattern",
+    [
+        ({"num_particles": 1}, "^num_particles: expected an integer >= 2"),
+        ({"resample_threshold": 1.5}, r"^resample_threshold: expected a value in \[0, 1\]"),
+        ({"resampling": "residual"}, "^resampling: expected one of"),
+    ],
+)
+def test_bad_particle_settings(kwargs, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        ts.ParticleFilter(ts.models.BallisticReentry(), **kwargs)
