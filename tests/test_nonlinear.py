@@ -168,3 +168,18 @@ def test_svsf_tracks_the_ballistic_target_and_gradients_flow():
     out.mean[..., 0].square().mean().backward()
     assert bool(torch.isfinite(svsf.boundary_layer.raw.grad).all())
     assert out.meas_matrix.shape == (8, 60, 2, 3)
+
+
+def test_ballistic_scenario_and_gravity_error():
+    nominal = ts.scenarios.ballistic_scenario(4, torch.Generator().manual_seed(2))
+    faulty = ts.scenarios.ballistic_scenario(
+        4, torch.Generator().manual_seed(2), gravity_error_at=15.0
+    )
+    assert nominal.truth.shape == (4, 300, 3) and nominal.z.shape == (4, 300, 2)
+    assert_close(nominal.x0, torch.tensor([67100.0, 3352.8, 21077.1], dtype=torch.float64))
+    assert_close(nominal.P0, 10.0 * nominal.model.process_noise())
+    # Same noise draws: identical until 15 s; then g (in gravity and in the drag of Eq. (43))
+    # doubles, and the extra drag slows the object below its nominal speed.
+    assert_close(faulty.truth[:, :150], nominal.truth[:, :150], atol=0, rtol=0)
+    assert bool((faulty.truth[:, 200:, 1] < nominal.truth[:, 200:, 1] - 20.0).all())
+    assert float(nominal.truth[:, -1, 0].mean()) > 0  # still above ground after 30 s

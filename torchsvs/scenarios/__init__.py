@@ -12,6 +12,7 @@ from torchsvs.scenarios.maneuver import (
     simulate_segments,
 )
 from torchsvs.scenarios.paper import Scenario, atc_scenario, complex_scenario, random_scenario
+from torchsvs.scenarios.spvsf import ballistic_scenario
 
 __all__ = [
     "Controls",
@@ -21,6 +22,7 @@ __all__ = [
     "Segment",
     "add_measurement_noise",
     "atc_scenario",
+    "ballistic_scenario",
     "complex_scenario",
     "random_maneuvers",
     "random_scenario",
