@@ -25,6 +25,7 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.forward
+	$(PY) -m benchmarks.particles
 
 reproduce: $(STAMP)
 	$(PY) -m experiments.svss_paper

@@ -67,8 +67,13 @@ def test_ballistic_jacobian_equals_hand_derivation():
     expected[:, 1, 1] = 1.0 - 2.0 * T * D / v
     expected[:, 1, 2] = T * D / beta
     expected[:, 2, 2] = 1.0
-    assert_close(model.f_jacobian(x), expected, atol=1e-10, rtol=1e-10)
-    assert_close(model.h_jacobian(x), torch.eye(3, dtype=x.dtype)[:2].expand(x.shape[0], 2, 3))
+    assert_close(model.f_jacobian(x), expected, atol=1e-10, rtol=1e-10)  # the model's own
+    autograd = ts.models.StateSpaceModel.f_jacobian(model, x)  # the base class's autograd
+    assert_close(autograd, expected, atol=1e-10, rtol=1e-10)
+    per_track = torch.full((x.shape[0],), T, dtype=x.dtype)
+    assert_close(ts.models.StateSpaceModel.f_jacobian(model, x, per_track), expected, atol=1e-10)
+    assert_close(model.f_jacobian(x, per_track), expected, atol=1e-10)
+    assert_close(model.h_jacobian(x), ts.models.StateSpaceModel.h_jacobian(model, x))
     assert bool((h > 0).all())
 
 

@@ -77,8 +77,24 @@ class BallisticReentry(StateSpaceModel):
         speed = x[..., 1] - T * (self.drag(x) - self.gravity)
         return torch.stack([altitude, speed, x[..., 2]], dim=-1)
 
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+        """Analytic ``∂f/∂x``: with ``∂D/∂h = −ηD``, ``∂D/∂v = 2D/v``, ``∂D/∂β = −D/β``."""
+        T = self._interval(dt, x)
+        D = self.drag(x)
+        one, zero = torch.ones_like(D), torch.zeros_like(D)
+        T = T.expand_as(D)
+        rows = [
+            torch.stack([one, -T, zero], -1),
+            torch.stack([T * self.decay * D, 1.0 - 2.0 * T * D / x[..., 1], T * D / x[..., 2]], -1),
+            torch.stack([zero, zero, one], -1),
+        ]
+        return torch.stack(rows, -2)
+
     def h(self, x: Tensor) -> Tensor:
         return x[..., :2]
+
+    def h_jacobian(self, x: Tensor) -> Tensor:
+        return torch.eye(3, dtype=x.dtype)[:2].expand(x.shape[0], 2, 3)
 
     def process_noise(self, dt: Tensor | None = None) -> Tensor:
         T = torch.tensor(self.dt, dtype=torch.float64) if dt is None else dt.to(torch.float64)
