@@ -133,7 +133,7 @@ class _AsNonlinear(ts.models.StateSpaceModel):
         self.linear = linear
         self.state_dim, self.meas_dim = linear.state_dim, linear.meas_dim
 
-    def f(self, x, dt=None):
+    def f(self, x, dt=None, u=None):
         return x @ self.linear.transition().to(x.dtype).mT
 
     def h(self, x):

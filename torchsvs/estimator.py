@@ -26,6 +26,7 @@ class Inputs:
     x0: Tensor  #: [B, n]
     P0: Tensor  #: [B, n, n], or [1, n, n] when shared by every track
     dt: Tensor | None  #: None (model's own), 0-d, or [B, T]
+    u: Tensor | None  #: control inputs [B, T, p] for models that take them
     psi: Tensor | None  #: per-step boundary layer override [B, T, m'] (checked by the SVSF)
     generator: torch.Generator | None
     single: bool  #: the caller passed one track without the batch axis
@@ -104,8 +105,19 @@ def prepare_inputs(
     if bool((torch.linalg.cholesky_ex(P0).info > 0).any()):
         raise ValueError(f"P0: expected a positive definite matrix, shape {_shape(P0)}")
 
+    u_t = None
     if u is not None:
-        raise ValueError(f"u: {type(model).__name__} takes no control input; expected None")
+        p = model.input_dim
+        if p == 0:
+            raise ValueError(f"u: {type(model).__name__} takes no control input; expected None")
+        u_t = _as_float_tensor(u, "u", dtype)
+        if single:
+            u_t = u_t.unsqueeze(0)
+        if u_t.shape != (B, T, p):
+            want = f"[T, {p}]" if single else f"[{B}, {T}, {p}]"
+            raise ValueError(f"u: expected shape {want}, got {_shape(u)}")
+        if not bool(torch.isfinite(u_t).all()):
+            raise ValueError("u: contains NaN or inf")
     dt_t = _check_dt(model, dt, B, T, single, dtype)
     psi_t = None
     if psi is not None:
@@ -121,7 +133,7 @@ def prepare_inputs(
             raise ValueError("psi: expected finite boundary layer widths > 0")
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
-    return Inputs(zb, x0, P0, dt_t, psi_t, generator, single)
+    return Inputs(zb, x0, P0, dt_t, u_t, psi_t, generator, single)
 
 
 def _check_dt(

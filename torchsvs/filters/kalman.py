@@ -53,6 +53,11 @@ def step_interval(inputs: Inputs, t: int) -> Tensor | None:
     return dt[:, t] if dt is not None and dt.ndim == 2 else dt
 
 
+def step_input(inputs: Inputs, t: int) -> Tensor | None:
+    """The control input acting over step ``t``, ``[B, p]``, or ``None``."""
+    return None if inputs.u is None else inputs.u[:, t]
+
+
 def _as_result_matrix(A: Tensor) -> Tensor:
     """``[r, c]`` → ``[1, 1, r, c]``; ``[B, T, r, c]`` unchanged."""
     return A if A.ndim == 4 else A[None, None]
@@ -111,9 +116,9 @@ class GaussianFilter(Estimator):
             F_t = _at(F, t)
             x_pred = matvec(F_t, x)
         else:
-            dt = step_interval(inputs, t)
-            F_t = self.model.f_jacobian(x, dt)
-            x_pred = self.model.f(x, dt)
+            dt, u = step_interval(inputs, t), step_input(inputs, t)
+            F_t = self.model.f_jacobian(x, dt, u)
+            x_pred = self.model.f(x, dt, u)
         return x_pred, symmetrize(F_t @ P @ F_t.mT + _at(Q, t)), F_t
 
     def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import KalmanFilter, Step, _at, step_interval
+from torchsvs.filters.kalman import KalmanFilter, Step, _at, step_input, step_interval
 from torchsvs.linalg import cholesky, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
 
@@ -117,10 +117,12 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
     ) -> tuple[Tensor, Tensor, Tensor]:
         B, n = x.shape
         points = self.sigma_points(x, P)
-        dt = step_interval(inputs, t)
+        dt, u = step_interval(inputs, t), step_input(inputs, t)
         if dt is not None and dt.ndim == 1:
             dt = dt.repeat_interleave(points.shape[1])
-        image = self.model.f(points.reshape(-1, n), dt).reshape(points.shape)
+        if u is not None:
+            u = u.repeat_interleave(points.shape[1], dim=0)
+        image = self.model.f(points.reshape(-1, n), dt, u).reshape(points.shape)
         x_pred, P_f, cross = self._moments(points, image)
         F_t = psd_solve(P.expand(B, n, n), cross).mT  # Cov(x', x) P⁻¹
         return x_pred, symmetrize(P_f + _at(Q, t)), F_t

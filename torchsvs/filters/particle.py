@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Estimator, Inputs
-from torchsvs.filters.kalman import Step, _at, step_interval
+from torchsvs.filters.kalman import Step, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, mask_covariance
 from torchsvs.models.base import StateSpaceModel
@@ -120,10 +120,12 @@ class ParticleFilter(Estimator):
     ) -> tuple[Tensor, Any]:
         """Particles ``[B, N, n]`` of step ``t``: the bootstrap proposal ``p(x_t | x_{t-1})``."""
         B, N, n = particles.shape
-        dt = step_interval(inputs, t)
+        dt, u = step_interval(inputs, t), step_input(inputs, t)
         if dt is not None and dt.ndim == 1:
             dt = dt.repeat_interleave(N)
-        moved = self.model.f(particles.reshape(B * N, n), dt).reshape(B, N, n)
+        if u is not None:
+            u = u.repeat_interleave(N, dim=0)
+        moved = self.model.f(particles.reshape(B * N, n), dt, u).reshape(B, N, n)
         L = cholesky(_at(state, t))
         eps = torch.randn(B, N, n, generator=gen, dtype=particles.dtype)
         return moved + eps @ L.mT, state

@@ -71,13 +71,13 @@ class BallisticReentry(StateSpaceModel):
         rho = self.density * torch.exp(-self.decay * x[..., 0])
         return self.gravity * rho * x[..., 1].square() / (2.0 * x[..., 2])
 
-    def f(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+    def f(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
         T = self._interval(dt, x)  # 0-d, or [B] for per-track intervals
         altitude = x[..., 0] - T * x[..., 1]
         speed = x[..., 1] - T * (self.drag(x) - self.gravity)
         return torch.stack([altitude, speed, x[..., 2]], dim=-1)
 
-    def f_jacobian(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
         """Analytic ``∂f/∂x``: with ``∂D/∂h = −ηD``, ``∂D/∂v = 2D/v``, ``∂D/∂β = −D/β``."""
         T = self._interval(dt, x)
         D = self.drag(x)

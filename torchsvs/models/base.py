@@ -25,20 +25,26 @@ class StateSpaceModel(nn.Module):
     meas_dim: int
     #: whether ``dt`` changes the dynamics (motion models) or is meaningless (fixed matrices).
     uses_dt: bool = False
+    #: size ``p`` of the control input ``u`` (0: the model takes none).
+    input_dim: int = 0
 
-    def f(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
-        """The noise-free transition ``x_{t-1} ↦ x_t``, ``[B, n] → [B, n]``."""
+    def f(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
+        """The noise-free transition ``x_{t-1} ↦ x_t`` (input ``u [B, p]``), ``[B, n] → [B, n]``."""
         raise NotImplementedError
 
     def h(self, x: Tensor) -> Tensor:
         """The noise-free measurement ``x_t ↦ z_t``, ``[B, n] → [B, m]``."""
         raise NotImplementedError
 
-    def f_jacobian(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
         """``∂f/∂x`` at each state, ``[B, n, n]`` (Eq. (3), Gadsden et al. 2012)."""
-        if dt is None or dt.ndim == 0:
-            return vmap(jacrev(lambda s: self.f(s.unsqueeze(0), dt).squeeze(0)))(x)
-        return vmap(jacrev(lambda s, d: self.f(s.unsqueeze(0), d).squeeze(0)))(x, dt)
+        per_track_dt = dt is not None and dt.ndim == 1
+
+        def single(s: Tensor, d: Tensor | None, v: Tensor | None) -> Tensor:
+            return self.f(s.unsqueeze(0), d, None if v is None else v.unsqueeze(0)).squeeze(0)
+
+        in_dims = (0, 0 if per_track_dt else None, None if u is None else 0)
+        return vmap(jacrev(single), in_dims=in_dims)(x, dt, u)
 
     def h_jacobian(self, x: Tensor) -> Tensor:
         """``∂h/∂x`` at each state, ``[B, m, n]`` (Eq. (4), Gadsden et al. 2012)."""
@@ -60,14 +66,14 @@ class LinearModel(StateSpaceModel):
     Matrices come back with the leading shape of ``dt`` (``[B, T, n, n]`` for per-step ``dt``).
     """
 
-    def f(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+    def f(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
         F = self.transition(dt).to(x.dtype)
         return (F @ x.unsqueeze(-1)).squeeze(-1)
 
     def h(self, x: Tensor) -> Tensor:
         return x @ self.meas_matrix().to(x.dtype).mT
 
-    def f_jacobian(self, x: Tensor, dt: Tensor | None = None) -> Tensor:
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
         return self.transition(dt).to(x.dtype).expand(x.shape[0], -1, -1)
 
     def h_jacobian(self, x: Tensor) -> Tensor:
