@@ -188,3 +188,46 @@ def test_ballistic_scenario_and_gravity_error():
     assert_close(faulty.truth[:, :150], nominal.truth[:, :150], atol=0, rtol=0)
     assert bool((faulty.truth[:, 200:, 1] < nominal.truth[:, 200:, 1] - 20.0).all())
     assert float(nominal.truth[:, -1, 0].mean()) > 0  # still above ground after 30 s
+
+
+def test_eha_model_matches_the_transfer_function():
+    model = ts.models.ElectrohydrostaticActuator().double()
+    A, B_E, D_p, L, M, V0, beta = 3.37e-4, 1260.0, 6.69e-3, 5e-12, 20.0, 8.5e-5, 2.1e8
+    x = torch.tensor([[0.01, 0.2, 3.0, beta]], dtype=torch.float64)
+    u = torch.tensor([[0.7]], dtype=torch.float64)
+    T = model.dt
+    accel_rate = (model.f(x, None, u)[0, 2] - x[0, 2]) / T
+    # Eq. (48): s³ + (B_E/M + Lβ/V0) s² + (2βA²/(MV0)) s  ↔  numerator 2 D_p β A / (M V0).
+    expected = (
+        -(B_E / M + L * beta / V0) * 3.0
+        - 2 * beta * A**2 / (M * V0) * 0.2
+        + 2 * D_p * beta * A / (M * V0) * 0.7
+    )
+    assert_close(accel_rate, torch.tensor(expected, dtype=torch.float64), rtol=1e-12)
+    assert_close(model.f(x, None, u)[0, :2], x[0, :2] + T * x[0, 1:3])
+    assert_close(
+        ts.models.StateSpaceModel.f_jacobian(model, x, None, u)[0, 2, 3],
+        torch.tensor(
+            (-L / V0 * 3.0 - 2 * A**2 / (M * V0) * 0.2 + 2 * D_p * A / (M * V0) * 0.7) * T,
+            dtype=torch.float64,
+        ),
+        rtol=1e-10,
+    )
+
+
+def test_eha_scenario_and_inputs_reach_the_filters():
+    sc = ts.scenarios.eha_scenario(3, torch.Generator().manual_seed(0), changing=True, duration=1.2)
+    assert sc.truth.shape == (3, 1200, 4) and sc.u.shape == (3, 1200, 1)
+    modulus = sc.truth[0, :, 3]
+    assert (
+        float(modulus[498]) == 2.1e8
+        and float(modulus[500]) == 1.5e8
+        and float(modulus[1000]) == 2.7e8
+    )
+    ekf = ts.ExtendedKalmanFilter(sc.model)
+    out = ekf(sc.z[:, :400], sc.x0, sc.P0, u=sc.u[:, :400])
+    assert abs(float(out.mean[:, -1, 3].mean()) / 2.1e8 - 1) < 0.02  # the modulus is found
+    no_input = ekf(sc.z[:, :400], sc.x0, sc.P0)
+    assert (no_input.mean[:, -1, 3] - out.mean[:, -1, 3]).abs().max() > 1e6  # u matters
+    with pytest.raises(ValueError, match=r"^u: expected shape \[3, 400, 1\]"):
+        ekf(sc.z[:, :400], sc.x0, sc.P0, u=sc.u[:, :399])

@@ -2,12 +2,14 @@
 
 from torchsvs.models.ballistic import BallisticReentry
 from torchsvs.models.base import LinearModel, StateSpaceModel
+from torchsvs.models.eha import ElectrohydrostaticActuator
 from torchsvs.models.linear import LinearGaussian
 from torchsvs.models.motion import ConstantVelocity
 
 __all__ = [
     "BallisticReentry",
     "ConstantVelocity",
+    "ElectrohydrostaticActuator",
     "LinearGaussian",
     "LinearModel",
     "StateSpaceModel",

@@ -12,7 +12,7 @@ from torchsvs.scenarios.maneuver import (
     simulate_segments,
 )
 from torchsvs.scenarios.paper import Scenario, atc_scenario, complex_scenario, random_scenario
-from torchsvs.scenarios.spvsf import ballistic_scenario
+from torchsvs.scenarios.spvsf import ballistic_scenario, eha_scenario
 
 __all__ = [
     "Controls",
@@ -24,6 +24,7 @@ __all__ = [
     "atc_scenario",
     "ballistic_scenario",
     "complex_scenario",
+    "eha_scenario",
     "random_maneuvers",
     "random_scenario",
     "segments_to_controls",

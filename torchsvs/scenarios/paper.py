@@ -29,6 +29,7 @@ class Scenario(NamedTuple):
     P0: Tensor  #: [4, 4]
     dt: float  #: sampling interval (s)
     meas_std: Tensor | None = None  #: [B] per-track noise level, when it varies
+    u: Tensor | None = None  #: [B, T, p] control inputs, for models that take them
 
 
 def atc_scenario(

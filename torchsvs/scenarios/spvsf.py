@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchsvs.models.ballistic import BallisticReentry
+from torchsvs.models.eha import ElectrohydrostaticActuator
 from torchsvs.scenarios.paper import Scenario
 
 
@@ -40,3 +41,48 @@ def ballistic_scenario(
     truth = torch.stack(states, dim=1)
     z = model.h(truth) + torch.randn(num_runs, steps, 2, generator=generator, dtype=dtype) @ LR.mT
     return Scenario(truth, z, model, 1.1 * x0, 10.0 * Q, model.dt)  # type: ignore[arg-type]
+
+
+#: Sec. 5.2's changing bulk modulus: (time from which it holds, value in Pa).
+CHANGING_MODULUS = ((0.0, 2.1e8), (0.5, 1.5e8), (1.0, 2.7e8), (1.5, 2.1e8))
+
+
+def eha_scenario(
+    num_runs: int = 20,
+    generator: torch.Generator | None = None,
+    changing: bool = False,
+    duration: float = 2.0,
+    dtype: torch.dtype = torch.float64,
+) -> Scenario:
+    """The EHA experiment of Sec. 5.2: random normal input, all kinematic states measured.
+
+    The truth starts at rest with ``β_e = 2.1·10⁸`` Pa (constant, or :data:`CHANGING_MODULUS`
+    with ``changing=True``) and moves under ``u ~ N(0, 1)`` with the model's kinematic process
+    noise (the true modulus has no noise); the filters start from ``[0, 0, 0, 1.5·10⁸]`` with
+    ``P0 = 10 Q`` (Eq. (57)). ``duration`` (s) is not stated in the text; the modulus changes
+    every 0.5 s up to 1.5 s, so 2 s covers them. The inputs are returned in ``Scenario.u``.
+    """
+    model = ElectrohydrostaticActuator().to(dtype)
+    steps = round(duration / model.dt)
+    Q, R = model.process_noise().to(dtype), model.meas_cov().to(dtype)
+    kinematic = torch.linalg.cholesky(Q[:3, :3])
+    u = torch.randn(num_runs, steps, 1, generator=generator, dtype=dtype)
+    x = torch.zeros(num_runs, 4, dtype=dtype)
+    x[:, 3] = 2.1e8
+    states = []
+    for k in range(steps):
+        x = model.f(x, None, u[:, k])
+        noise = torch.randn(num_runs, 3, generator=generator, dtype=dtype) @ kinematic.mT
+        x = torch.cat([x[:, :3] + noise, x[:, 3:]], dim=1)
+        if changing:
+            t = (k + 1) * model.dt
+            x[:, 3] = [value for start, value in CHANGING_MODULUS if t >= start - 1e-12][-1]
+        states.append(x)
+    truth = torch.stack(states, dim=1)
+    z = (
+        model.h(truth)
+        + torch.randn(num_runs, steps, 3, generator=generator, dtype=dtype)
+        @ torch.linalg.cholesky(R).mT
+    )
+    x0 = torch.tensor([0.0, 0.0, 0.0, 1.5e8], dtype=dtype)
+    return Scenario(truth, z, model, x0, 10.0 * Q, model.dt, u=u)  # type: ignore[arg-type]
