@@ -80,3 +80,21 @@ def test_missing_measurements_are_skipped():
 def test_bad_particle_settings(kwargs, pattern):
     with pytest.raises(ValueError, match=pattern):
         ts.ParticleFilter(ts.models.BallisticReentry(), **kwargs)
+
+
+def test_spvsf_paper_rmse_counts_the_initial_estimate():
+    from experiments.spvsf_paper import BALLISTIC_PSI, evaluate, paper_rmse
+
+    truth = torch.zeros(2, 3, 1, dtype=torch.float64)
+    mean = torch.ones(2, 3, 1, dtype=torch.float64)
+    x0, true_x0 = torch.tensor([2.0], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64)
+    assert_close(
+        paper_rmse(mean, truth, x0, true_x0),
+        torch.tensor([((4 + 3) / 4) ** 0.5], dtype=torch.float64),
+    )
+    sc = ts.scenarios.ballistic_scenario(3, torch.Generator().manual_seed(0), duration=2.0)
+    out = evaluate(
+        sc, torch.tensor([61000.0, 3048.0, 19161.0], dtype=torch.float64), BALLISTIC_PSI, 0
+    )
+    assert set(out) == {"EKF", "UKF", "PF", "SVSF", "SPVSF"}
+    assert all(bool(torch.isfinite(v).all()) for v in out.values())

@@ -1,7 +1,8 @@
 """The ``torchsvs`` command line.
 
-    torchsvs demo [--runs 500] [--seed 0]             the ATC comparison of Chen et al. 2020
+    torchsvs demo [--epochs 4] [--runs 500]           learn ψ, γ; track Chen et al. 2020's scenarios
     torchsvs reproduce svss [--runs 500] [--seed 0]   Tables 1-3, A2 and Figs 4-9 of that paper
+    torchsvs reproduce spvsf [--runs 100]              Gadsden et al. 2012 (first pass)
     torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
 
 The experiments are scripts of the source checkout (``experiments/``), not of the installed
@@ -16,8 +17,12 @@ from pathlib import Path
 from types import ModuleType
 
 COMMANDS = {
-    "demo": ("experiments.demo", "the ATC scenario of Chen et al. 2020 beside Table 1"),
+    "demo": ("experiments.demo", "learn ψ, γ, then track the scenarios of Chen et al. 2020"),
     "reproduce svss": ("experiments.svss_paper", "Chen et al. 2020: Tables 1-3, A2, Figs 4-9"),
+    "reproduce spvsf": (
+        "experiments.spvsf_paper",
+        "Gadsden et al. 2012: Tables 1, 2, 4, 5 (first pass)",
+    ),
 }
 
 
