@@ -239,7 +239,7 @@ class SPVSF(ParticleFilter):
         P: Tensor  # [B|1, n, n]
         previous: Step | None  # the SVSF's last step (its memory e_{k|k})
         z: Tensor  # the SVSF's measurements [B, T, m'] (NaN filled with 0)
-        mask: Tensor
+        mask: Tensor | None  # None when nothing is missing
         H: Tensor | None
         R: Tensor
         F: Tensor | None
@@ -249,7 +249,8 @@ class SPVSF(ParticleFilter):
         z, H, R = self.svsf.measurements(inputs)
         F, Q = self.svsf.dynamics(inputs)
         mask = ~torch.isnan(z)
-        return self._State(inputs.x0, inputs.P0, None, z.nan_to_num(0.0), mask, H, R, F, Q)
+        observed = None if bool(mask.all()) else mask
+        return self._State(inputs.x0, inputs.P0, None, z.nan_to_num(0.0), observed, H, R, F, Q)
 
     def propose(
         self,
@@ -262,7 +263,7 @@ class SPVSF(ParticleFilter):
     ) -> tuple[Tensor, Any]:
         s: SPVSF._State = state
         x_pred, P_pred, _ = self.svsf.predict(t, s.x, s.P, s.F, s.Q, inputs)  # Eqs. (23)-(24)
-        mask_t = s.mask[:, t] if not bool(s.mask.all()) else None
+        mask_t = None if s.mask is None else s.mask[:, t]
         step = self.svsf.correct(
             t,
             x_pred,
@@ -284,7 +285,7 @@ class SPVSF(ParticleFilter):
         H = None if s.H is None else _at(s.H, t)
         fitted = self.model.h(mean) if H is None else (H @ mean.unsqueeze(-1)).squeeze(-1)
         e_post = s.z[:, t] - fitted
-        if not bool(s.mask.all()):
+        if s.mask is not None:
             assert s.previous.post_innovation is not None
             e_post = torch.where(s.mask[:, t], e_post, s.previous.post_innovation)
         return s._replace(x=mean, previous=s.previous._replace(post_innovation=e_post))
