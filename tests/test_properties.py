@@ -157,3 +157,17 @@ def test_psi_sweep_equals_one_run_per_psi():
         one = ts.SVSS(ts.SVSF(sc.model, psi=list(psi), gamma=0.1))(sc.z, sc.x0, sc.P0)
         assert_close(filtered, accumulative_rmse(one.filtered.mean, sc.truth))
         assert_close(smoothed, accumulative_rmse(one.mean, sc.truth))
+
+
+@pytest.mark.parametrize("lag", [1, 3, None])
+def test_shared_covariances_are_smoothed_once_and_equal_per_track_ones(lag):
+    system = random_system(4, 2, T=15, B=5, seed=9)
+    z, x0, P0 = system.tensors()
+    ks = ts.RTSSmoother(ts.KalmanFilter(system.model()), lag=lag)
+    shared = ks(z, x0, P0)  # P0 [n, n]: one covariance recursion for all tracks
+    per_track = ks(z, x0, P0.expand(5, 4, 4).contiguous())
+    assert shared.cov.stride(0) == 0 and per_track.cov.stride(0) != 0
+    assert_close(shared.mean, per_track.mean)
+    assert_close(shared.cov, per_track.cov)
+    svss = ts.SVSS(ts.KalmanFilter(system.model()), lag=lag)(z, x0, P0)
+    assert_close(svss.mean, shared.mean)

@@ -30,6 +30,28 @@ class Backward(NamedTuple):
     AF: Tensor  #: (I − K_{k+1} H) F_{k+1}, [B, T-1, n, n]
 
 
+def _shared_moments(result: FilterResult) -> FilterResult:
+    """The result with track-independent covariances and gains cut to one track.
+
+    A filter whose covariance recursion ran once for all tracks (shared ``P0``, nothing
+    track-specific in the gain) returns broadcast views (batch stride 0); the smoother's gain and
+    covariance recursions then run once too, and only the means use every track.
+    """
+    shared = [result.cov, result.pred_cov, result.gain]
+    if result.innovation_cov is not None:
+        shared.append(result.innovation_cov)
+    if result.mean.shape[0] == 1 or any(t.stride(0) != 0 for t in shared):
+        return result
+    S = result.innovation_cov
+    return result._replace(
+        cov=result.cov[:1],
+        pred_cov=result.pred_cov[:1],
+        gain=result.gain[:1],
+        innovation_cov=None if S is None else S[:1],
+        mask=result.mask[:1],  # nothing is missing when the covariances are shared
+    )
+
+
 class RTSSmoother(Estimator):
     r"""Rauch–Tung–Striebel smoother over any Gaussian filter, Eq. (17), Chen et al. 2020.
 
@@ -102,18 +124,19 @@ class RTSSmoother(Estimator):
 
     def smooth(self, result: FilterResult) -> SmootherResult:
         """Smooths a batched filter result (``[B, T, ...]``) without re-running the filter."""
-        T = result.mean.shape[1]
+        B, T = result.mean.shape[:2]
         if T == 1:
             return SmootherResult(result.mean, result.cov, result)
-        b = self._backward_terms(result)
+        b = self._backward_terms(_shared_moments(result))
         if self.lag is None or self.lag >= T - 1:
             g, G, Z = self._fixed_interval(b)
         else:
             g, G, Z = self._fixed_lag(b, self.lag)
-        P = result.cov[:, :-1]
+        P = result.cov[: G.shape[0], :-1]
         PGt = P @ G.mT
         mean = torch.cat([result.mean[:, :-1] + g, result.mean[:, -1:]], dim=1)
-        cov = torch.cat([symmetrize(P - PGt - PGt.mT + Z), result.cov[:, -1:]], dim=1)
+        smoothed = symmetrize(P - PGt - PGt.mT + Z)
+        cov = torch.cat([smoothed, result.cov[: G.shape[0], -1:]], dim=1).expand(B, -1, -1, -1)
         return SmootherResult(mean, cov, result)
 
     def _backward_terms(self, result: FilterResult) -> Backward:
