@@ -98,3 +98,24 @@ def test_spvsf_paper_rmse_counts_the_initial_estimate():
     )
     assert set(out) == {"EKF", "UKF", "PF", "SVSF", "SPVSF"}
     assert all(bool(torch.isfinite(v).all()) for v in out.values())
+
+
+def test_soft_resampling():
+    model, truth, z, x0, P0 = _ballistic_run(T=25, B=2, seed=4)
+
+    def run(alpha):
+        spvsf = ts.SPVSF(model, psi=[300.0, 100.0], num_particles=64, resample_threshold=1.0)
+        spvsf.soft_resampling = alpha
+        out = spvsf(z, x0, P0, generator=torch.Generator().manual_seed(0))
+        (out.mean - truth).square().mean().backward()
+        return out, spvsf.svsf.boundary_layer.raw.grad.clone()
+
+    hard, g_hard = run(None)
+    one, g_one = run(1.0)
+    assert_close(one.mean, hard.mean)  # α = 1 is ordinary resampling
+    assert_close(g_one, g_hard)
+    soft, g_soft = run(0.5)
+    assert bool(torch.isfinite(soft.mean).all()) and bool(torch.isfinite(g_soft).all())
+    assert (soft.log_weights.exp().std(-1) > 0).all()  # weights survive resampling
+    with pytest.raises(ValueError, match=r"^soft_resampling: expected None or a value in \(0, 1\]"):
+        ts.ParticleFilter(model, soft_resampling=0.0)

@@ -61,14 +61,17 @@ class ParticleFilter(Estimator):
     Gradients: particles are reparameterised (``x = f(x) + L_Q ε``), so parameters of the model
     receive gradients through them; resampling picks ancestors with a discrete draw and resets
     the weights, which stops the gradient through the weights there (the usual biased but
-    low-variance estimator). Randomness comes only from the ``generator=`` of the call (a fixed
-    default seed otherwise).
+    low-variance estimator). ``soft_resampling=α`` instead draws ancestors from the mixture
+    ``q = α w + (1 − α)/N`` and keeps the weights ``w/q`` (Karkus, Hsu, Lee 2018), so gradients
+    also flow through the weights across resampling; ``α = 1`` is ordinary resampling.
+    Randomness comes only from the ``generator=`` of the call (a fixed default seed otherwise).
 
     Args:
         model: any :class:`~torchsvs.models.StateSpaceModel`.
         num_particles: particles per track.
         resample_threshold: resample when ``N_eff < threshold · N`` (1 resamples every step).
         resampling: ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
+        soft_resampling: ``None`` (default) or the mixture weight ``α`` in ``(0, 1]``.
 
     References:
         Gordon, Salmond, Smith, "Novel approach to nonlinear/non-Gaussian Bayesian state
@@ -82,6 +85,7 @@ class ParticleFilter(Estimator):
         num_particles: int = 350,
         resample_threshold: float = 0.5,
         resampling: str = "systematic",
+        soft_resampling: float | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(model, StateSpaceModel):
@@ -104,6 +108,11 @@ class ParticleFilter(Estimator):
         self.num_particles = num_particles
         self.resample_threshold = resample_threshold
         self.resampling = resampling
+        if soft_resampling is not None and not 0.0 < soft_resampling <= 1.0:
+            raise ValueError(
+                f"soft_resampling: expected None or a value in (0, 1], got {soft_resampling!r}"
+            )
+        self.soft_resampling = soft_resampling
 
     def begin(self, inputs: Inputs, gen: torch.Generator) -> Any:
         """Per-run state of the proposal (for the bootstrap proposal: ``Q`` of the run)."""
@@ -146,6 +155,25 @@ class ParticleFilter(Estimator):
         observed = mask.sum(-1, keepdim=True).to(z.dtype)
         return -0.5 * (white.square().sum(-1) + log_det + observed * math.log(2 * math.pi))
 
+    def _resample(
+        self, particles: Tensor, log_w: Tensor, gen: torch.Generator
+    ) -> tuple[Tensor, Tensor]:
+        """Ancestors' particles and their new normalised log-weights (uniform unless soft)."""
+        N = particles.shape[1]
+        resample = SCHEMES[self.resampling]
+        alpha = self.soft_resampling
+        if alpha is None:
+            index = resample(log_w.detach(), gen)
+            kept = torch.full_like(log_w, -math.log(N))
+        else:
+            uniform = torch.full_like(log_w, math.log((1.0 - alpha) / N)) if alpha < 1 else None
+            log_q = log_w if uniform is None else torch.logaddexp(log_w + math.log(alpha), uniform)
+            index = resample(log_q.detach(), gen)
+            ratio = (log_w - log_q).gather(1, index)
+            kept = ratio - torch.logsumexp(ratio, dim=-1, keepdim=True)
+        picked = particles.gather(1, index.unsqueeze(-1).expand(-1, -1, particles.shape[-1]))
+        return picked, kept
+
     def run(self, inputs: Inputs) -> ParticleResult:
         gen = (
             inputs.generator
@@ -160,7 +188,6 @@ class ParticleFilter(Estimator):
         particles = _gaussian(inputs.x0, inputs.P0, N, gen)
         log_w = torch.full((B, N), -math.log(N), dtype=z.dtype)
         state = self.begin(inputs, gen)
-        resample = SCHEMES[self.resampling]
         means, covs, esss, loglik = [], [], [], torch.zeros(B, dtype=z.dtype)
         for t in range(T):
             particles, state = self.propose(t, particles, log_w, state, inputs, gen)
@@ -179,12 +206,9 @@ class ParticleFilter(Estimator):
             state = self.finish_step(t, mean, state, inputs)
             low = ess < self.resample_threshold * N
             if bool(low.any()):
-                index = resample(log_w.detach(), gen)
-                picked = particles.gather(
-                    1, index.unsqueeze(-1).expand(-1, -1, particles.shape[-1])
-                )
+                picked, kept = self._resample(particles, log_w, gen)
                 particles = torch.where(low[:, None, None], picked, particles)
-                log_w = torch.where(low[:, None], torch.full_like(log_w, -math.log(N)), log_w)
+                log_w = torch.where(low[:, None], kept, log_w)
         return ParticleResult(
             torch.stack(means, 1),
             torch.stack(covs, 1),
