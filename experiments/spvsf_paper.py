@@ -6,8 +6,8 @@ batch each. RMSE as the paper computes it: per run over all steps including the 
 estimate, then averaged over runs. Writes ``experiments/results/spvsf_paper.md``.
 
 This is the first pass of the reproduction (issue 5): the numbers are reported as measured,
-with the gaps to the paper; the artificial measurements (Eq 47 and its EHA analogue) and the
-figures are not in yet.
+with the gaps to the paper; the artificial measurements (Eq 47 and its EHA analogue) are not
+in yet. Figures 5-9 show the first run.
 
     python -m experiments.spvsf_paper [--runs 100] [--eha-runs 20] [--seed 0]
 """
@@ -77,7 +77,10 @@ def estimators(model: ts.models.StateSpaceModel, psi: list[float]) -> dict[str, 
     }
 
 
-def evaluate(sc: Scenario, true_x0: Tensor, psi: list[float], seed: int) -> dict[str, Tensor]:
+def evaluate(
+    sc: Scenario, true_x0: Tensor, psi: list[float], seed: int, tracks: dict | None = None
+) -> dict[str, Tensor]:
+    """RMSE per filter; the first run's estimates go into ``tracks`` for the figures."""
     out = {}
     for name, est in estimators(sc.model, psi).items():
         kwargs: dict = {"u": sc.u}
@@ -86,7 +89,39 @@ def evaluate(sc: Scenario, true_x0: Tensor, psi: list[float], seed: int) -> dict
         with torch.no_grad():
             mean = est(sc.z, sc.x0, sc.P0, **kwargs).mean
         out[name] = paper_rmse(mean, sc.truth, sc.x0, true_x0)
+        if tracks is not None:
+            tracks[name] = mean[0]
+    if tracks is not None:
+        tracks["truth"] = sc.truth[0]
     return out
+
+
+def figure(
+    tracks: dict[str, Tensor], component: int, dt: float, title: str, path: Path, zoom=None
+) -> None:
+    """One state component of the first run over time, truth and every filter."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for name, values in tracks.items():
+        t = dt * torch.arange(1, values.shape[0] + 1)
+        ax.plot(
+            t,
+            values[:, component],
+            "k-" if name == "truth" else "-",
+            lw=2 if name == "truth" else 1,
+            label=name,
+        )
+    ax.set(xlabel="time (s)", title=title)
+    if zoom is not None:
+        ax.set_ylim(*zoom)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def table(ours: dict[str, Tensor], paper: dict, labels: list[str], scale: list[float]) -> str:
@@ -137,10 +172,35 @@ def main(argv: list[str] | None = None) -> None:
             TABLE5,
         ),
     }
+    figures = {
+        "Table 1 (ballistic, nominal)": [
+            ("spvsf_fig5_altitude.png", 0, "Fig 5: altitude (m)", None)
+        ],
+        "Table 2 (ballistic, gravity doubled at 15 s)": [
+            (
+                "spvsf_fig6_altitude_gravity_error.png",
+                0,
+                "Fig 6: altitude (m), gravity error at 15 s",
+                None,
+            )
+        ],
+        "Table 4 (EHA, constant modulus)": [
+            ("spvsf_fig7_modulus.png", 3, "Fig 7: effective bulk modulus (Pa)", None),
+            ("spvsf_fig8_modulus_zoom.png", 3, "Fig 8: bulk modulus, zoomed (Pa)", (1.9e8, 2.3e8)),
+        ],
+        "Table 5 (EHA, changing modulus)": [
+            ("spvsf_fig9_modulus_changing.png", 3, "Fig 9: bulk modulus, changing (Pa)", None)
+        ],
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
     sections = []
     for title, (make, true_x0, psi, paper) in tqdm(studies.items(), desc="spvsf paper"):
         sc = make(torch.Generator().manual_seed(args.seed))
-        ours = evaluate(sc, true_x0, psi, args.seed)
+        tracks: dict[str, Tensor] = {}
+        ours = evaluate(sc, true_x0, psi, args.seed, tracks)
+        for name, component, caption, zoom in figures[title]:
+            figure(tracks, component, sc.dt, caption, args.out / name, zoom)
+            sections.append(f"![{caption}]({name})")
         if "EHA" in title:
             labels = [
                 "position (m)",
@@ -154,7 +214,14 @@ def main(argv: list[str] | None = None) -> None:
                 ["altitude (m)", "velocity (m/s)", "ballistic coefficient"],
                 [1.0, 1.0, 1.0],
             )
-        sections += [f"## {title}", "", table(ours, paper, labels, scale), ""]
+        sections[-len(figures[title]) :] = [
+            f"## {title}",
+            "",
+            table(ours, paper, labels, scale),
+            "",
+            *sections[-len(figures[title]) :],
+            "",
+        ]
     text = "\n".join(
         [
             "# Gadsden et al. 2012 (SPVSF): first reproduction pass",
@@ -170,11 +237,9 @@ def main(argv: list[str] | None = None) -> None:
             "",
             "- Issue 5 is not resolved: the artificial measurements (Eq 47 for β, the EHA analogue for the "
             "modulus) are missing, so the SVSF and SPVSF cannot estimate the unmeasured parameter; the "
-            "bootstrap PF starting from P0 = 10Q does not reach the ballistic truth 10% away; the "
-            "figures are not drawn yet.",
+            "bootstrap PF starting from P0 = 10Q does not reach the ballistic truth 10% away.",
         ]
     )
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "spvsf_paper.md").write_text(text + "\n")
     print(text)
 
