@@ -231,3 +231,20 @@ def test_eha_scenario_and_inputs_reach_the_filters():
     assert (no_input.mean[:, -1, 3] - out.mean[:, -1, 3]).abs().max() > 1e6  # u matters
     with pytest.raises(ValueError, match=r"^u: expected shape \[3, 400, 1\]"):
         ekf(sc.z[:, :400], sc.x0, sc.P0, u=sc.u[:, :399])
+
+
+def test_modulus_from_acceleration_lets_the_svsf_find_the_modulus():
+    sc = ts.scenarios.eha_scenario(4, torch.Generator().manual_seed(1), duration=0.6)
+    art = ts.filters.ModulusFromAcceleration(min_drive=0.2)
+    y, H, R = art(sc.z, sc.model, None, sc.u)
+    assert y.shape == (4, 600, 4) and H.shape == (4, 4) and R.shape == (4, 600, 4, 4)
+    assert bool(torch.isnan(y[:, 0, 3]).all())  # no previous step
+    assert 0.02 < float(torch.isnan(y[:, 1:, 3]).float().mean()) < 0.4  # weakly driven steps
+    seen = ~torch.isnan(y[..., 3])
+    error = (y[..., 3] - sc.truth[..., 3]).abs()[seen] / 2.1e8
+    assert float(error.median()) < 0.01
+    svsf = ts.SVSF(sc.model, psi=[5e-4, 5e-3, 0.5, 1e6], gamma=0.1, artificial=art)
+    out = svsf(sc.z, sc.x0, sc.P0, u=sc.u)
+    assert abs(float(out.mean[:, -100:, 3].mean().detach()) / 2.1e8 - 1) < 0.02
+    with pytest.raises(ValueError, match="^u: ModulusFromAcceleration needs the inputs"):
+        svsf(sc.z, sc.x0, sc.P0)

@@ -1,6 +1,6 @@
 """Filters: how we estimate x_t from z_1..z_t."""
 
-from torchsvs.filters.artificial import FiniteDifferenceVelocity
+from torchsvs.filters.artificial import FiniteDifferenceVelocity, ModulusFromAcceleration
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
@@ -17,5 +17,6 @@ __all__ = [
     "FiniteDifferenceVelocity",
     "GaussianFilter",
     "KalmanFilter",
+    "ModulusFromAcceleration",
     "RobustStudentTKalmanFilter",
 ]

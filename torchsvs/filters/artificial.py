@@ -3,10 +3,13 @@
 When the state has more components than the measurement (n > m), the SVSF corrects the
 unmeasured components only through an "artificial" measurement of them (Sec. 2 and Eq. (51),
 Chen et al. 2020). An artificial measurement is a callable
-``(z [B, T, m], model, dt) -> (y [B, T, n'], H_y [n', n], R_y [n', n'] or [B, T, n', n'])``.
+``(z [B, T, m], model, dt, u) -> (y [B, T, n'], H_y [n', n], R_y [n', n'] or [B, T, n', n'])``
+(``dt`` and ``u`` as passed to the estimator, ``None`` when not given).
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -37,7 +40,7 @@ class FiniteDifferenceVelocity:
         self.correlated = correlated
 
     def __call__(
-        self, z: Tensor, model: StateSpaceModel, dt: Tensor | None
+        self, z: Tensor, model: StateSpaceModel, dt: Tensor | None, u: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
         pos = getattr(model, "position_index", None)
         vel = getattr(model, "velocity_index", None)
@@ -73,3 +76,56 @@ class FiniteDifferenceVelocity:
             R_y[..., torch.tensor(rows)[:, None], torch.tensor(cols)[None, :]] = block
         H_y = torch.eye(n, dtype=z.dtype)
         return y, H_y, R_y
+
+
+class ModulusFromAcceleration:
+    r"""Artificial measurement of the EHA's bulk modulus from its measured dynamics (Sec. 5.2).
+
+    Solving Eq. (51) (with ``x₄`` in the ``φ₁`` term) for ``x₄`` over the step ending at ``k``:
+
+    .. math::
+        y_{4,k} = \frac{z_{3,k} - (1 - T\varphi_3) z_{3,k-1}}
+                       {T\,(G_E u_k - \varphi_2 z_{3,k-1} - \varphi_1 z_{2,k-1})}
+
+    so the corrector measures the full state ``[z₁, z₂, z₃, y₄]`` with ``H = I`` (the approach of
+    Eq. (47) for the ballistic coefficient). Noise model (stated): the numerator's noise has
+    variance ``(1 + (1 − Tφ₃)²) R₃₃`` and the denominator is taken as exact, so
+    ``Var(y₄) = (1 + (1 − Tφ₃)²) R₃₃ / D²``, independent of ``z``. Where the denominator is small
+    (``|D| < min_drive · T G_E``, i.e. hardly any input drove the step) and at the first step,
+    ``y₄`` is missing (NaN): the division would turn noise into huge pseudo-measurements that a
+    saturated SVSF gain would follow.
+
+    Args:
+        min_drive: the smallest effective input ``|u|`` for which ``y₄`` is formed.
+    """
+
+    def __init__(self, min_drive: float = 0.2) -> None:
+        self.min_drive = min_drive
+
+    def __call__(
+        self, z: Tensor, model: StateSpaceModel, dt: Tensor | None, u: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        for attribute in ("gain", "phi1", "phi2", "phi3"):
+            if not hasattr(model, attribute):
+                raise TypeError(
+                    f"model: ModulusFromAcceleration needs an ElectrohydrostaticActuator, "
+                    f"got {type(model).__name__}"
+                )
+        if u is None:
+            raise ValueError("u: ModulusFromAcceleration needs the inputs u [B, T, 1]")
+        m: Any = model
+        T = torch.tensor(m.dt, dtype=z.dtype) if dt is None else dt.to(z.dtype)
+        T = T.unsqueeze(-1) if T.ndim == 2 else T  # [B, T, 1] or 0-d
+        previous = torch.cat([torch.full_like(z[:, :1], float("nan")), z[:, :-1]], dim=1)
+        drive = u[..., :1].to(z.dtype)  # u[:, k] drives the step into k (as in the filters)
+        decay = 1.0 - T * m.phi3
+        numerator = z[..., 2:3] - decay * previous[..., 2:3]
+        D = T * (m.gain * drive - m.phi2 * previous[..., 2:3] - m.phi1 * previous[..., 1:2])
+        weak = D.abs() < self.min_drive * T * m.gain
+        modulus = torch.where(weak, torch.full_like(D, float("nan")), numerator / D)
+        missing = torch.isnan(modulus)  # weak drive, or the first step
+        R = model.meas_cov().to(z.dtype)
+        var = torch.where(missing, torch.ones_like(D), (1.0 + decay**2) * R[2, 2] / D.square())
+        R_y = torch.diag_embed(torch.cat([R.diagonal().expand(*z.shape[:2], 3), var], dim=-1))
+        y = torch.cat([z, modulus], dim=-1)
+        return y, torch.eye(4, dtype=z.dtype), R_y

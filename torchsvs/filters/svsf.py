@@ -14,7 +14,7 @@ from torchsvs.linalg import joseph_update, matvec, svsf_gain_ratio
 from torchsvs.models.base import StateSpaceModel
 
 ArtificialMeasurement = Callable[
-    [Tensor, StateSpaceModel, "Tensor | None"], tuple[Tensor, Tensor, Tensor]
+    [Tensor, StateSpaceModel, "Tensor | None", "Tensor | None"], tuple[Tensor, Tensor, Tensor]
 ]
 
 
@@ -110,7 +110,7 @@ class SVSF(GaussianFilter):
     def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
         z, H, R = super().measurements(inputs)
         if self.artificial is not None:
-            z, H, R = self.artificial(inputs.z, self.model, inputs.dt)
+            z, H, R = self.artificial(inputs.z, self.model, inputs.dt, inputs.u)
             H, R = H.to(z.dtype), R.to(z.dtype)
         m = z.shape[-1]
         widths = self.boundary_layer.raw.numel()
