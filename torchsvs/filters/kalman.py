@@ -27,6 +27,16 @@ class Step(NamedTuple):
     meas_matrix: Tensor | None = None  #: the (linearised) H used, when it varies per step
 
 
+class Observation(NamedTuple):
+    """What the corrector sees at step ``t``, for every track."""
+
+    t: int
+    z: Tensor  #: [B, m], 0 where missing
+    mask: Tensor | None  #: [B, m], True where observed; None when nothing in the batch is missing
+    H: Tensor | None  #: [m, n] or [B, m, n]; None for a model whose h is linearised per step
+    R: Tensor  #: [m, m] or [B, m, m]
+
+
 def _at(A: Tensor, t: int) -> Tensor:
     """Step ``t`` of a model matrix stored as ``[r, c]`` (constant) or ``[B, T, r, c]``."""
     return A[:, t] if A.ndim == 4 else A
@@ -132,21 +142,10 @@ class GaussianFilter(Estimator):
         return inputs.z, H, model.meas_cov().to(dtype)
 
     def correct(
-        self,
-        t: int,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        z: Tensor,
-        mask: Tensor | None,
-        H: Tensor | None,
-        R: Tensor,
-        previous: Step | None,
-        inputs: Inputs,
+        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
     ) -> Step:
-        """Corrects the prediction with ``z [B, m]`` (zeros where ``mask`` is False).
-
-        ``mask`` is ``None`` when nothing in the whole batch is missing.
-        """
+        """Corrects the prediction ``x_pred [B, n]``, ``P_pred`` with the observation of step
+        ``obs.t``; ``prev`` is this filter's step before (``None`` at the first)."""
         raise NotImplementedError
 
     def run(self, inputs: Inputs) -> FilterResult:
@@ -167,17 +166,14 @@ class GaussianFilter(Estimator):
             x_pred, P_pred, F_t = self.predict(t, x, P, F, Q, inputs)
             if F is None:
                 linearised.append(F_t)
-            step = self.correct(
+            obs = Observation(
                 t,
-                x_pred,
-                P_pred,
                 z_filled[:, t],
                 observed[:, t] if any_missing else None,
                 None if H is None else _at(H, t),
                 _at(R, t),
-                previous,
-                inputs,
             )
+            step = self.correct(x_pred, P_pred, obs, previous, inputs)
             x, P, previous = step.mean, step.cov, step
             steps.append(step)
             pred_means.append(x_pred)
@@ -234,19 +230,11 @@ class KalmanFilter(GaussianFilter):
     """
 
     def correct(
-        self,
-        t: int,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        z: Tensor,
-        mask: Tensor | None,
-        H: Tensor | None,
-        R: Tensor,
-        previous: Step | None,
-        inputs: Inputs,
+        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
     ) -> Step:
-        assert H is not None
-        return self.kalman_correct(x_pred, P_pred, z - matvec(H, x_pred), mask, H, R)
+        assert obs.H is not None
+        e = obs.z - matvec(obs.H, x_pred)
+        return self.kalman_correct(x_pred, P_pred, e, obs.mask, obs.H, obs.R)
 
     def kalman_correct(
         self, x_pred: Tensor, P_pred: Tensor, e: Tensor, mask: Tensor | None, H: Tensor, R: Tensor

@@ -6,7 +6,14 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import KalmanFilter, Step, _at, step_input, step_interval
+from torchsvs.filters.kalman import (
+    KalmanFilter,
+    Observation,
+    Step,
+    _at,
+    step_input,
+    step_interval,
+)
 from torchsvs.linalg import cholesky, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
 
@@ -33,19 +40,11 @@ class ExtendedKalmanFilter(KalmanFilter):
     model_type = StateSpaceModel
 
     def correct(
-        self,
-        t: int,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        z: Tensor,
-        mask: Tensor | None,
-        H: Tensor | None,
-        R: Tensor,
-        previous: Step | None,
-        inputs: Inputs,
+        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
     ) -> Step:
         H_t = self.model.h_jacobian(x_pred)
-        step = self.kalman_correct(x_pred, P_pred, z - self.model.h(x_pred), mask, H_t, R)
+        e = obs.z - self.model.h(x_pred)
+        step = self.kalman_correct(x_pred, P_pred, e, obs.mask, H_t, obs.R)
         return step._replace(meas_matrix=H_t)
 
 
@@ -128,22 +127,13 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         return x_pred, symmetrize(P_f + _at(Q, t)), F_t
 
     def correct(
-        self,
-        t: int,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        z: Tensor,
-        mask: Tensor | None,
-        H: Tensor | None,
-        R: Tensor,
-        previous: Step | None,
-        inputs: Inputs,
+        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
     ) -> Step:
         B, n = x_pred.shape
         points = self.sigma_points(x_pred, P_pred)
         image = self.model.h(points.reshape(-1, n)).reshape(B, points.shape[1], -1)
         z_pred, S_h, cross = self._moments(points, image)
         H_t = psd_solve(P_pred.expand(B, n, n), cross).mT  # P_xzᵀ P⁻¹
-        R_eff = symmetrize(S_h + R - H_t @ P_pred @ H_t.mT)
-        step = self.kalman_correct(x_pred, P_pred, z - z_pred, mask, H_t, R_eff)
+        R_eff = symmetrize(S_h + obs.R - H_t @ P_pred @ H_t.mT)
+        step = self.kalman_correct(x_pred, P_pred, obs.z - z_pred, obs.mask, H_t, R_eff)
         return step._replace(meas_matrix=H_t)

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Estimator, Inputs
-from torchsvs.filters.kalman import Step, _at, step_input, step_interval
+from torchsvs.filters.kalman import Observation, Step, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, mask_covariance
 from torchsvs.models.base import StateSpaceModel
@@ -288,17 +288,9 @@ class SPVSF(ParticleFilter):
         s: SPVSF._State = state
         x_pred, P_pred, _ = self.svsf.predict(t, s.x, s.P, s.F, s.Q, inputs)  # Eqs. (23)-(24)
         mask_t = None if s.mask is None else s.mask[:, t]
-        step = self.svsf.correct(
-            t,
-            x_pred,
-            P_pred,
-            s.z[:, t],
-            mask_t,
-            None if s.H is None else _at(s.H, t),
-            _at(s.R, t),
-            s.previous,
-            inputs,
-        )  # Eqs. (25)-(29)
+        H_t = None if s.H is None else _at(s.H, t)
+        obs = Observation(t, s.z[:, t], mask_t, H_t, _at(s.R, t))
+        step = self.svsf.correct(x_pred, P_pred, obs, s.previous, inputs)  # Eqs. (25)-(29)
         drawn = _gaussian(step.mean, step.cov, particles.shape[1], gen)  # Eq. (30)
         return drawn, s._replace(P=step.cov, previous=step)
 

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import GaussianFilter, Step, kalman_update
+from torchsvs.filters.kalman import GaussianFilter, Observation, Step, kalman_update
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import LinearModel
 
@@ -108,18 +108,10 @@ class RobustStudentTKalmanFilter(GaussianFilter):
         self.tau, self.iterations = float(tau), iterations
 
     def correct(
-        self,
-        t: int,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        z: Tensor,
-        mask: Tensor | None,
-        H: Tensor | None,
-        R: Tensor,
-        previous: Step | None,
-        inputs: Inputs,
+        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
     ) -> Step:
-        assert H is not None
+        assert obs.H is not None
+        z, mask, H, R = obs.z, obs.mask, obs.H, obs.R
         n = x_pred.shape[-1]
         if mask is not None:
             H, R = mask_measurement(H, R, mask)

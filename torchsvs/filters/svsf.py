@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import GaussianFilter, Step
+from torchsvs.filters.kalman import GaussianFilter, Observation, Step
 from torchsvs.linalg import joseph_update, matvec, svsf_gain_ratio
 from torchsvs.models.base import StateSpaceModel
 
@@ -127,19 +127,11 @@ class SVSF(GaussianFilter):
         return z, H, R
 
     def correct(
-        self,
-        t: int,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        z: Tensor,
-        mask: Tensor | None,
-        H: Tensor | None,
-        R: Tensor,
-        previous: Step | None,
-        inputs: Inputs,
+        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
     ) -> Step:
+        z, mask, H, R = obs.z, obs.mask, obs.H, obs.R
         dtype = z.dtype
-        psi = inputs.psi[:, t] if inputs.psi is not None else self.psi.to(dtype)
+        psi = inputs.psi[:, obs.t] if inputs.psi is not None else self.psi.to(dtype)
         linearised = H is None  # nonlinear h: Eqs. (13)-(21), Gadsden et al. 2012
         if H is None:
             H = self.model.h_jacobian(x_pred)
@@ -151,7 +143,7 @@ class SVSF(GaussianFilter):
             H_plus = torch.linalg.pinv(H * mask.unsqueeze(-1).to(dtype))  # zero columns if missing
         else:
             H_plus = torch.linalg.pinv(H)
-        memory = previous.post_innovation if previous is not None else torch.zeros_like(e)
+        memory = prev.post_innovation if prev is not None else torch.zeros_like(e)
         assert memory is not None
         K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)
         x = x_pred + matvec(K, e)  # Eq. (22)
