@@ -119,13 +119,7 @@ class ParticleFilter(Estimator):
         return self.model.process_noise(inputs.dt).to(inputs.z.dtype)
 
     def propose(
-        self,
-        t: int,
-        particles: Tensor,
-        log_w: Tensor,
-        state: Any,
-        inputs: Inputs,
-        gen: torch.Generator,
+        self, t: int, particles: Tensor, state: Any, inputs: Inputs, gen: torch.Generator
     ) -> tuple[Tensor, Any]:
         """Particles ``[B, N, n]`` of step ``t``: the bootstrap proposal ``p(x_t | x_{t-1})``."""
         B, N, n = particles.shape
@@ -190,7 +184,7 @@ class ParticleFilter(Estimator):
         state = self.begin(inputs, gen)
         means, covs, esss, loglik = [], [], [], torch.zeros(B, dtype=z.dtype)
         for t in range(T):
-            particles, state = self.propose(t, particles, log_w, state, inputs, gen)
+            particles, state = self.propose(t, particles, state, inputs, gen)
             log_lik = self.log_likelihood(particles, z_filled[:, t], mask[:, t])
             joint = log_w + log_lik  # Eq. (7)
             norm = torch.logsumexp(joint, dim=-1, keepdim=True)
@@ -277,13 +271,7 @@ class SPVSF(ParticleFilter):
         return self._State(inputs.x0, inputs.P0, None, z.nan_to_num(0.0), observed, H, R, F, Q)
 
     def propose(
-        self,
-        t: int,
-        particles: Tensor,
-        log_w: Tensor,
-        state: Any,
-        inputs: Inputs,
-        gen: torch.Generator,
+        self, t: int, particles: Tensor, state: Any, inputs: Inputs, gen: torch.Generator
     ) -> tuple[Tensor, Any]:
         s: SPVSF._State = state
         x_pred, P_pred, _ = self.svsf.predict(t, s.x, s.P, s.F, s.Q, inputs)  # Eqs. (23)-(24)
