@@ -41,10 +41,8 @@ PAPER = {
 def demo(epochs: int = 4, batches: int = 20, runs: int = 500, seed: int = 0) -> str:
     rows, learned = [], {}
     for family, (_, make_scenario, paper_psi) in FAMILIES.items():
-        svss, run, seconds = train(
-            family, "SVSS", "supervised", epochs, batches, seed, progress=True
-        )
-        learned[family] = (run.psi, run.gamma, seconds)
+        svss, run = train(family, "SVSS", "supervised", epochs, batches, seed, progress=True)
+        learned[family] = (run.psi, run.gamma, run.seconds)
         sc = make_scenario(runs, torch.Generator().manual_seed(seed))
         artificial = svss.filter.artificial
 

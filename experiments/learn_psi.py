@@ -102,7 +102,7 @@ def train(
     batches: int | None,
     seed: int,
     progress: bool = False,
-) -> tuple[ts.SVSS, Run, float]:
+) -> tuple[ts.SVSS, Run]:
     """Trains from ψ = 100 m; returns the trained SVSS (its filter for SVSF runs)."""
     svss, data = load(family, epochs, batches)
     target = svss if estimator == "SVSS" else svss.filter
@@ -134,7 +134,7 @@ def train(
         seconds,
         curve,
     )
-    return svss, run, seconds
+    return svss, run
 
 
 def figures(runs: list[Run], grids: dict[str, dict], out: Path) -> list[str]:
@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> None:
         (f, e, loss) for f in FAMILIES for e in ("SVSS", "SVSF") for loss in ("supervised", "sure")
     ]
     for family, estimator, loss in tqdm(jobs, desc="training runs"):
-        svss, run, _ = train(family, estimator, loss, args.epochs, args.batches, args.seed)
+        svss, run = train(family, estimator, loss, args.epochs, args.batches, args.seed)
         run.rmse = evaluate(svss, scenarios[family])
         runs.append(run)
 

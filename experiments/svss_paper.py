@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 import torchsvs as ts
 from torchsvs.estimator import Estimator
-from torchsvs.evaluation import markdown_table, psi_sweep
+from torchsvs.evaluation import evaluate, markdown_table, psi_sweep
 from torchsvs.metrics import accumulative_rmse, rmse_over_time
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
 
@@ -126,23 +126,18 @@ def reproduce(runs: int = 500, seed: int = 0, progress: bool = True) -> Results:
     """Runs every study of the paper; ``runs`` Monte Carlo runs each, seeded."""
     start = time.perf_counter()
     res = Results(runs)
-    steps: list[tuple[str, Callable[[], None]]] = []
     atc = atc_scenario(runs, torch.Generator().manual_seed(seed))
     cplx = complex_scenario(runs, torch.Generator().manual_seed(seed + 1))
 
     def do_table1() -> None:
         curves, track = {}, {"truth": atc.truth[0], "z": atc.z[0]}
-        for name, est in table1_estimators(atc.model).items():
-            mean = run(est, atc)
-            rmse = accumulative_rmse(mean, atc.truth)
-            with torch.no_grad():
-                batch_us = (
-                    1e6 * _timed(lambda e=est: e(atc.z, atc.x0, atc.P0)) / atc.z[..., 0].numel()
-                )
-            single = single_track_us_per_step(est, atc)
-            res.table1[name] = (rmse[0].item(), rmse[2].item(), single, batch_us)
-            curves[name] = rmse_over_time(mean, atc.truth)
-            track[name] = mean[0]
+        ests = table1_estimators(atc.model)
+        for row in evaluate(ests, atc, progress=False):  # one timed batch run each
+            single = single_track_us_per_step(ests[row.name], atc)
+            x, y = row.rmse[0].item(), row.rmse[2].item()
+            res.table1[row.name] = (x, y, single, row.us_per_track_step)
+            curves[row.name] = rmse_over_time(row.mean, atc.truth)
+            track[row.name] = row.mean[0]
         res.curves["atc"], res.tracks["atc"] = curves, track
 
     def do_turns() -> None:
@@ -176,21 +171,18 @@ def reproduce(runs: int = 500, seed: int = 0, progress: bool = True) -> Results:
         curves = {}
         ests: dict[str, Estimator] = {"SVSF": _svsf(atc.model, ATC_PSI)}
         ests.update({f"SVSS lag {L}": ts.SVSS(_svsf(atc.model, ATC_PSI), lag=L) for L in (1, 2, 3)})
-        for name, est in ests.items():
-            mean = run(est, atc)
-            rmse = accumulative_rmse(mean, atc.truth)
-            res.lags[name] = (rmse[0].item(), rmse[2].item(), single_track_us_per_step(est, atc))
-            curves[name] = rmse_over_time(mean, atc.truth)
+        for row in evaluate(ests, atc, progress=False):
+            single = single_track_us_per_step(ests[row.name], atc)
+            res.lags[row.name] = (row.rmse[0].item(), row.rmse[2].item(), single)
+            curves[row.name] = rmse_over_time(row.mean, atc.truth)
         res.curves["lags"] = curves
 
     def do_table3() -> None:
         curves, track = {}, {"truth": cplx.truth.mean(0)}
-        for name, est in table3_estimators(cplx.model).items():
-            mean = run(est, cplx)
-            rmse = accumulative_rmse(mean, cplx.truth)
-            res.table3[name] = tuple(rmse.tolist())  # type: ignore[assignment]
-            curves[name] = rmse_over_time(mean, cplx.truth)
-            track[name] = mean.mean(0)
+        for row in evaluate(table3_estimators(cplx.model), cplx, progress=False):
+            res.table3[row.name] = tuple(row.rmse.tolist())  # type: ignore[assignment]
+            curves[row.name] = rmse_over_time(row.mean, cplx.truth)
+            track[row.name] = row.mean.mean(0)
         res.curves["complex"], res.tracks["complex"] = curves, track
 
     def do_table3_ablation() -> None:
@@ -211,7 +203,7 @@ def reproduce(runs: int = 500, seed: int = 0, progress: bool = True) -> Results:
             label = "-".join("ccw" if d > 0 else "cw" for d in directions)
             res.table3_ablation[f"KF, turns {label}"] = tuple(kf.tolist())
 
-    steps = [
+    steps: list[tuple[str, Callable[[], None]]] = [
         ("Table 1 (ATC)", do_table1),
         ("turn directions", do_turns),
         ("Table 2 (ψ sweep)", do_table2),
@@ -223,12 +215,6 @@ def reproduce(runs: int = 500, seed: int = 0, progress: bool = True) -> Results:
         step()
     res.seconds = time.perf_counter() - start
     return res
-
-
-def _timed(fn: Callable[[], object]) -> float:
-    start = time.perf_counter()
-    fn()
-    return time.perf_counter() - start
 
 
 def figures(res: Results, out: Path) -> list[str]:
