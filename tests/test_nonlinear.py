@@ -248,3 +248,53 @@ def test_modulus_from_acceleration_lets_the_svsf_find_the_modulus():
     assert abs(float(out.mean[:, -100:, 3].mean().detach()) / 2.1e8 - 1) < 0.02
     with pytest.raises(ValueError, match="^u: ModulusFromAcceleration needs the inputs"):
         svsf(sc.z, sc.x0, sc.P0)
+
+
+def test_ballistic_coefficient_from_drag_inverts_the_model():
+    # Noise-free measurements of a noise-free truth: Eq. (47) gives β exactly where formed.
+    model = ts.models.BallisticReentry().to(torch.float64)
+    x = torch.tensor([[61000.0, 3048.0, 19161.0], [30000.0, 2500.0, 15000.0]], dtype=torch.float64)
+    states = []
+    for _ in range(200):
+        x = model.f(x)
+        states.append(x)
+    truth = torch.stack(states, 1)
+    exact = ts.filters.BallisticCoefficientFromDrag(min_snr=0.0)
+    y, H, R = exact(model.h(truth), model, None)
+    assert y.shape == (2, 200, 3) and H.shape == (3, 3) and R.shape == (2, 200, 3, 3)
+    assert bool(torch.isnan(y[:, 0, 2]).all())  # no previous step
+    assert_close(y[:, 1:, 2], truth[:, :-1, 2], rtol=1e-6, atol=0.0)
+    assert_close(y[..., :2], model.h(truth))
+    # Stated noise: variance y₃² (σ_d²/d² + …) with σ_d² = 2 R₂₂ + Q₂₂, positive where formed.
+    assert bool((R[:, 1:, 2, 2] > 0).all())
+    # With measurement noise the gate keeps only steps whose speed change clears 3 σ_d.
+    sc = ts.scenarios.ballistic_scenario(20, torch.Generator().manual_seed(0))
+    y, _, R = ts.filters.BallisticCoefficientFromDrag()(sc.z, sc.model, None)
+    formed = ~torch.isnan(y[..., 2])
+    assert 0.0 < float(formed.float().mean()) < 0.02  # Eq. (47) is mostly noise here
+    d = 0.1 * 9.81 - (sc.z[:, 1:, 1] - sc.z[:, :-1, 1])
+    sigma_d = (2 * 1e3 + 1e4 * 0.1) ** 0.5
+    assert bool((d[formed[:, 1:]] >= 3 * sigma_d).all())
+    assert bool((R[..., 2, 2][~formed] == 1.0).all())
+
+
+def test_ballistic_coefficient_from_drag_bad_input():
+    with pytest.raises(ValueError, match="^min_snr: expected a number >= 0"):
+        ts.filters.BallisticCoefficientFromDrag(min_snr=-1.0)
+    model = ts.models.ConstantVelocity(ndim=1, dt=1.0, q=1.0, r=1.0)
+    svsf = ts.SVSF(model, psi=1.0, artificial=ts.filters.BallisticCoefficientFromDrag())
+    with pytest.raises(TypeError, match="^model: BallisticCoefficientFromDrag needs a Ballistic"):
+        svsf(torch.zeros(1, 5, 1), torch.zeros(2), torch.eye(2))
+
+
+def test_eha_noise_scale_scales_the_truth_noise_only():
+    base = ts.scenarios.eha_scenario(4, torch.Generator().manual_seed(3), duration=0.3)
+    small = ts.scenarios.eha_scenario(
+        4, torch.Generator().manual_seed(3), duration=0.3, noise_scale=0.1
+    )
+    noise = (base.z - base.model.h(base.truth)).std()
+    assert_close((small.z - small.model.h(small.truth)).std(), 0.1 * noise, rtol=0.05)
+    assert_close(small.P0, base.P0)
+    assert_close(small.model.meas_cov(), base.model.meas_cov())
+    with pytest.raises(ValueError, match="^noise_scale: expected a positive number"):
+        ts.scenarios.eha_scenario(2, noise_scale=0.0)

@@ -119,3 +119,21 @@ def test_soft_resampling():
     assert (soft.log_weights.exp().std(-1) > 0).all()  # weights survive resampling
     with pytest.raises(ValueError, match=r"^soft_resampling: expected None or a value in \(0, 1\]"):
         ts.ParticleFilter(model, soft_resampling=0.0)
+
+
+def test_spvsf_paper_done_when_orderings_on_fewer_runs():
+    # Issue 5's acceptance on 20 ballistic runs (the experiment uses 100): SPVSF altitude below
+    # SVSF, UKF and EKF at the experiment's ψ, and within 10% of it with the gravity error.
+    from experiments.spvsf_paper import BALLISTIC_PSI, BALLISTIC_TRUE_X0, evaluate
+
+    true_x0 = torch.tensor(BALLISTIC_TRUE_X0, dtype=torch.float64)
+    nominal = ts.scenarios.ballistic_scenario(20, torch.Generator().manual_seed(5))
+    gravity = ts.scenarios.ballistic_scenario(
+        20, torch.Generator().manual_seed(5), gravity_error_at=15.0
+    )
+    alt = {
+        k: float(v[:, 0].mean()) for k, v in evaluate(nominal, true_x0, BALLISTIC_PSI, 5).items()
+    }
+    assert alt["SPVSF"] < min(alt["SVSF"], alt["UKF"], alt["EKF"]), alt
+    with_error = evaluate(gravity, true_x0, BALLISTIC_PSI, 5)["SPVSF"][:, 0].mean()
+    assert abs(float(with_error) / alt["SPVSF"] - 1) < 0.1

@@ -2,7 +2,7 @@
 
     torchsvs demo [--epochs 4] [--runs 500]           learn ψ, γ; track Chen et al. 2020's scenarios
     torchsvs reproduce svss [--runs 500] [--seed 0]   Tables 1-3, A2 and Figs 4-9 of that paper
-    torchsvs reproduce spvsf [--runs 100]              Gadsden et al. 2012 (first pass)
+    torchsvs reproduce spvsf [--runs 100]             Tables 1, 2, 4, 5, Figs 5-9 of Gadsden 2012
     torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
 
 The experiments are scripts of the source checkout (``experiments/``), not of the installed
@@ -21,7 +21,7 @@ COMMANDS = {
     "reproduce svss": ("experiments.svss_paper", "Chen et al. 2020: Tables 1-3, A2, Figs 4-9"),
     "reproduce spvsf": (
         "experiments.spvsf_paper",
-        "Gadsden et al. 2012: Tables 1, 2, 4, 5 (first pass)",
+        "Gadsden et al. 2012: Tables 1, 2, 4, 5, Figs 5-9",
     ),
 }
 

@@ -1,6 +1,10 @@
 """Filters: how we estimate x_t from z_1..z_t."""
 
-from torchsvs.filters.artificial import FiniteDifferenceVelocity, ModulusFromAcceleration
+from torchsvs.filters.artificial import (
+    BallisticCoefficientFromDrag,
+    FiniteDifferenceVelocity,
+    ModulusFromAcceleration,
+)
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
@@ -8,6 +12,7 @@ from torchsvs.filters.robust import RobustStudentTKalmanFilter
 from torchsvs.filters.svsf import SVSF
 
 __all__ = [
+    "BallisticCoefficientFromDrag",
     "SPVSF",
     "SVSF",
     "ParticleFilter",
