@@ -26,13 +26,40 @@ def test_many_particles_approach_the_kalman_filter():
     assert_close(out.log_likelihood, kf.log_likelihood, atol=0.05, rtol=0)
 
 
-@pytest.mark.parametrize("cls", ["pf", "spvsf"])
+@pytest.mark.parametrize("psi", [0.5, 3.0])
+def test_spvsf_particle_proposal_is_a_consistent_particle_filter(psi):
+    # With the full importance weight the SVSF-guided proposal targets the exact posterior:
+    # on a linear-Gaussian model it approaches the KF as particles grow, whatever ψ is.
+    system = random_system(2, 1, T=12, B=2, seed=4)
+    z, x0, P0 = system.tensors()
+    kf = ts.KalmanFilter(system.model())(z, x0, P0)
+    spvsf = ts.SPVSF(system.model(), psi=psi, num_particles=20000, proposal="particles")
+    with torch.no_grad():
+        out = spvsf(z, x0, P0, generator=torch.Generator().manual_seed(0))
+    std = kf.cov.diagonal(dim1=-2, dim2=-1).sqrt()
+    assert bool((out.ess >= 1000).all())  # Monte Carlo error of the mean ≤ 0.03 std
+    assert float(((out.mean - kf.mean).abs() / std).max()) < 0.1
+    assert_close(out.log_likelihood, kf.log_likelihood, atol=0.1, rtol=0)
+    # The paper's proposal (no transition-over-proposal factor) is not: it misses the KF.
+    with torch.no_grad():
+        paper = ts.SPVSF(system.model(), psi=psi, num_particles=20000)(
+            z, x0, P0, generator=torch.Generator().manual_seed(0)
+        )
+    assert float(((paper.mean - kf.mean).abs() / std).max()) > 0.5
+
+
+@pytest.mark.parametrize("cls", ["pf", "spvsf", "spvsf-particles"])
 def test_seeded_runs_reproduce_and_seeds_differ(cls):
     model, truth, z, x0, P0 = _ballistic_run(T=30, B=3, seed=1)
     est = (
         ts.ParticleFilter(model, 200)
         if cls == "pf"
-        else ts.SPVSF(model, psi=[300.0, 100.0], num_particles=200)
+        else ts.SPVSF(
+            model,
+            psi=[300.0, 100.0],
+            num_particles=200,
+            proposal="particles" if cls == "spvsf-particles" else "estimate",
+        )
     )
     a = est(z, x0, P0, generator=torch.Generator().manual_seed(5))
     b = est(z, x0, P0, generator=torch.Generator().manual_seed(5))
@@ -43,9 +70,10 @@ def test_seeded_runs_reproduce_and_seeds_differ(cls):
     assert a.mean.shape == (3, 30, 3) and a.cov.shape == (3, 30, 3, 3) and a.ess.shape == (3, 30)
 
 
-def test_spvsf_gradients_reach_psi_and_gamma():
+@pytest.mark.parametrize("proposal", ["estimate", "particles"])
+def test_spvsf_gradients_reach_psi_and_gamma(proposal):
     model, truth, z, x0, P0 = _ballistic_run(T=25, B=2, seed=2)
-    spvsf = ts.SPVSF(model, psi=[300.0, 100.0], gamma=0.2, num_particles=64)
+    spvsf = ts.SPVSF(model, psi=[300.0, 100.0], gamma=0.2, num_particles=64, proposal=proposal)
     out = spvsf(z, x0, P0, generator=torch.Generator().manual_seed(0))
     (out.mean - truth).square().mean().backward()
     for p in (spvsf.svsf.boundary_layer.raw, spvsf.svsf.memory.raw):
@@ -137,3 +165,8 @@ def test_spvsf_paper_done_when_orderings_on_fewer_runs():
     assert alt["SPVSF"] < min(alt["SVSF"], alt["UKF"], alt["EKF"]), alt
     with_error = evaluate(gravity, true_x0, BALLISTIC_PSI, 5)["SPVSF"][:, 0].mean()
     assert abs(float(with_error) / alt["SPVSF"] - 1) < 0.1
+
+
+def test_bad_spvsf_proposal():
+    with pytest.raises(ValueError, match="^proposal: expected 'estimate' or 'particles'"):
+        ts.SPVSF(ts.models.BallisticReentry(), psi=[1.0, 1.0], proposal="bootstrap")

@@ -12,7 +12,7 @@ from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Estimator, Inputs
 from torchsvs.filters.kalman import Observation, Step, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
-from torchsvs.linalg import cholesky, mask_covariance
+from torchsvs.linalg import cholesky, mask_covariance, symmetrize
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.resampling import SCHEMES
 
@@ -39,6 +39,15 @@ class ParticleResult(NamedTuple):
     log_likelihood: Tensor
     particles: Tensor
     log_weights: Tensor
+
+
+def _log_normal(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
+    """``log N(x; mean, L Lᵀ)`` up to ``−(n/2) log 2π``: ``[B, N]`` for ``x, mean [B, N, n]`` and
+    ``L [B|1, n, n]`` or ``[n, n]``."""
+    L = L if L.ndim == 3 else L.unsqueeze(0)
+    white = torch.linalg.solve_triangular(L.unsqueeze(1), (x - mean).unsqueeze(-1), upper=False)
+    log_det = L.diagonal(dim1=-2, dim2=-1).log().sum(-1, keepdim=True)  # [B|1, 1]
+    return -0.5 * white.squeeze(-1).square().sum(-1) - log_det
 
 
 def _gaussian(mean: Tensor, cov: Tensor, count: int, gen: torch.Generator) -> Tensor:
@@ -118,20 +127,26 @@ class ParticleFilter(Estimator):
         """Per-run state of the proposal (for the bootstrap proposal: ``Q`` of the run)."""
         return self.model.process_noise(inputs.dt).to(inputs.z.dtype)
 
-    def propose(
-        self, t: int, particles: Tensor, state: Any, inputs: Inputs, gen: torch.Generator
-    ) -> tuple[Tensor, Any]:
-        """Particles ``[B, N, n]`` of step ``t``: the bootstrap proposal ``p(x_t | x_{t-1})``."""
+    def move(self, t: int, particles: Tensor, inputs: Inputs) -> Tensor:
+        """``f(x_{t-1}^i)`` for every particle ``[B, N, n]`` (per-track ``dt`` and ``u``)."""
         B, N, n = particles.shape
         dt, u = step_interval(inputs, t), step_input(inputs, t)
         if dt is not None and dt.ndim == 1:
             dt = dt.repeat_interleave(N)
         if u is not None:
             u = u.repeat_interleave(N, dim=0)
-        moved = self.model.f(particles.reshape(B * N, n), dt, u).reshape(B, N, n)
+        return self.model.f(particles.reshape(B * N, n), dt, u).reshape(B, N, n)
+
+    def propose(
+        self, t: int, particles: Tensor, state: Any, inputs: Inputs, gen: torch.Generator
+    ) -> tuple[Tensor, Any, Tensor | None]:
+        """Particles ``[B, N, n]`` of step ``t``, the proposal's state, and the log importance
+        ratio ``log p(x_t | x_{t-1}) − log q(x_t | …)`` per particle (``None`` where the weights
+        are the likelihood alone, as for this bootstrap proposal ``p(x_t | x_{t-1})``)."""
+        moved = self.move(t, particles, inputs)
         L = cholesky(_at(state, t))
-        eps = torch.randn(B, N, n, generator=gen, dtype=particles.dtype)
-        return moved + eps @ L.mT, state
+        eps = torch.randn(*moved.shape, generator=gen, dtype=particles.dtype)
+        return moved + eps @ L.mT, state, None
 
     def finish_step(self, t: int, mean: Tensor, state: Any, inputs: Inputs) -> Any:
         """Hands the step's estimate back to the proposal's state."""
@@ -184,9 +199,11 @@ class ParticleFilter(Estimator):
         state = self.begin(inputs, gen)
         means, covs, esss, loglik = [], [], [], torch.zeros(B, dtype=z.dtype)
         for t in range(T):
-            particles, state = self.propose(t, particles, state, inputs, gen)
+            particles, state, log_ratio = self.propose(t, particles, state, inputs, gen)
             log_lik = self.log_likelihood(particles, z_filled[:, t], mask[:, t])
             joint = log_w + log_lik  # Eq. (7)
+            if log_ratio is not None:
+                joint = joint + log_ratio
             norm = torch.logsumexp(joint, dim=-1, keepdim=True)
             loglik = loglik + norm.squeeze(-1)
             log_w = joint - norm  # Eq. (8)
@@ -226,16 +243,32 @@ class SPVSF(ParticleFilter):
     (its predictor and corrector), so ψ and γ are its learnable parameters; particles are
     reparameterised draws, so ψ and γ receive gradients through them.
 
+    This is ``proposal="estimate"`` (default), the paper's equations as written. The particles
+    do not descend from the previous ones, so the weights never test a component the
+    measurement does not see (the EHA's bulk modulus): there the estimate is the SVSF's plus
+    the sampling noise of the particle mean.
+
+    ``proposal="particles"`` is the construction of the extended and unscented particle filters
+    the paper names as its model (van der Merwe et al. 2000) with the SVSF as the local filter:
+    each particle moves through the model, ``x̄ᵢ = f(xᵢ)``, and is corrected with the step's SVSF
+    gain ``K`` (computed once, at the estimate), ``μᵢ = x̄ᵢ + K (z − h(x̄ᵢ))``; it is drawn from
+    ``q = N(μᵢ, Σ)`` with ``Σ = (I − KH) Q (I − KH)ᵀ + K R Kᵀ`` and weighted by the full
+    importance weight ``w_prev · p(z | x) p(x | x̄ᵢ) / q(x)``. It is a consistent particle filter
+    (it approaches the Kalman filter on a linear-Gaussian model as particles grow, tested), so
+    unlike the default it honours the prior ``P0`` as stated, narrow or not.
+
     Args:
         model: any :class:`~torchsvs.models.StateSpaceModel`.
         psi, gamma, learn, artificial: as for :class:`SVSF`.
         num_particles: particles per track (350 in the paper).
         resample_threshold: resample when ``N_eff < threshold · N`` (the paper's 0.8).
         resampling: ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
+        proposal: ``"estimate"`` (the paper's Eqs. (30)-(31)) or ``"particles"`` (above).
 
     References:
         Gadsden, Habibi, Kirubarajan, "The Smooth Particle Variable Structure Filter", Trans.
-        CSME 36(2), 2012.
+        CSME 36(2), 2012 · van der Merwe, Doucet, de Freitas, Wan, "The unscented particle
+        filter", NIPS 13, 2000.
     """
 
     def __init__(
@@ -248,8 +281,12 @@ class SPVSF(ParticleFilter):
         resampling: str = "systematic",
         learn: bool = True,
         artificial: ArtificialMeasurement | None = None,
+        proposal: str = "estimate",
     ) -> None:
         super().__init__(model, num_particles, resample_threshold, resampling)
+        if proposal not in ("estimate", "particles"):
+            raise ValueError(f"proposal: expected 'estimate' or 'particles', got {proposal!r}")
+        self.proposal = proposal
         self.svsf = SVSF(model, psi=psi, gamma=gamma, learn=learn, artificial=artificial)
 
     class _State(NamedTuple):
@@ -272,15 +309,37 @@ class SPVSF(ParticleFilter):
 
     def propose(
         self, t: int, particles: Tensor, state: Any, inputs: Inputs, gen: torch.Generator
-    ) -> tuple[Tensor, Any]:
+    ) -> tuple[Tensor, Any, Tensor | None]:
         s: SPVSF._State = state
         x_pred, P_pred, _ = self.svsf.predict(t, s.x, s.P, s.F, s.Q, inputs)  # Eqs. (23)-(24)
         mask_t = None if s.mask is None else s.mask[:, t]
         H_t = None if s.H is None else _at(s.H, t)
-        obs = Observation(t, s.z[:, t], mask_t, H_t, _at(s.R, t))
+        R_t = _at(s.R, t)
+        obs = Observation(t, s.z[:, t], mask_t, H_t, R_t)
         step = self.svsf.correct(x_pred, P_pred, obs, s.previous, inputs)  # Eqs. (25)-(29)
-        drawn = _gaussian(step.mean, step.cov, particles.shape[1], gen)  # Eq. (30)
-        return drawn, s._replace(P=step.cov, previous=step)
+        state = s._replace(P=step.cov, previous=step)
+        N = particles.shape[1]
+        if self.proposal == "estimate":
+            return _gaussian(step.mean, step.cov, N, gen), state, None  # Eq. (30)
+        # Each particle corrected with the step's gain (see the class docstring).
+        moved = self.move(t, particles, inputs)
+        if H_t is None:  # a nonlinear h, linearised at the estimate by the SVSF step
+            assert step.meas_matrix is not None
+            H_t = step.meas_matrix
+            B, _, n = moved.shape
+            e = s.z[:, t].unsqueeze(1) - self.model.h(moved.reshape(B * N, n)).reshape(B, N, -1)
+        else:
+            e = s.z[:, t].unsqueeze(1) - moved @ H_t.mT
+        if mask_t is not None:
+            e = e * mask_t.unsqueeze(1)
+        K = step.gain
+        mu = moved + e @ K.mT
+        Q = _at(s.Q, t).to(moved.dtype)
+        A = torch.eye(moved.shape[-1], dtype=moved.dtype) - K @ H_t
+        L_q = cholesky(symmetrize(A @ Q @ A.mT + K @ R_t @ K.mT))
+        drawn = mu + torch.randn(*mu.shape, generator=gen, dtype=mu.dtype) @ L_q.mT
+        log_ratio = _log_normal(drawn, moved, cholesky(Q)) - _log_normal(drawn, mu, L_q)
+        return drawn, state, log_ratio
 
     def finish_step(self, t: int, mean: Tensor, state: Any, inputs: Inputs) -> Any:
         s: SPVSF._State = state
