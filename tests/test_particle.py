@@ -170,3 +170,23 @@ def test_spvsf_paper_done_when_orderings_on_fewer_runs():
 def test_bad_spvsf_proposal():
     with pytest.raises(ValueError, match="^proposal: expected 'estimate' or 'particles'"):
         ts.SPVSF(ts.models.BallisticReentry(), psi=[1.0, 1.0], proposal="bootstrap")
+
+
+@pytest.mark.parametrize("kind", ["pf", "estimate", "particles"])
+def test_gradients_reach_learnable_q_and_r_through_particles(kind):
+    # Reparameterised particles: a learnable Q, R (Cholesky factors) gets finite, nonzero
+    # gradients through the particle filters, as ψ and γ do.
+    system = random_system(2, 1, T=10, B=2, seed=6)
+    z, x0, P0 = system.tensors()
+    F, H, Q, R = (torch.from_numpy(a) for a in (system.F, system.H, system.Q, system.R))
+    model = ts.models.LinearGaussian(F, H, Q, R, learn_noise=True).double()
+    est = (
+        ts.ParticleFilter(model, num_particles=64)
+        if kind == "pf"
+        else ts.SPVSF(model, psi=2.0, num_particles=64, proposal=kind)
+    )
+    out = est(z, x0, P0, generator=torch.Generator().manual_seed(0))
+    out.mean.square().mean().backward()  # any loss of the estimate
+    for p in (model.Q.raw, model.R.raw):
+        assert p.grad is not None and bool(torch.isfinite(p.grad).all())
+        assert bool((p.grad != 0).any())

@@ -27,8 +27,9 @@ class ParticleResult(NamedTuple):
         mean: weighted particle mean, ``[B, T, n]`` (Eq. (9)).
         cov: weighted particle covariance, ``[B, T, n, n]``.
         ess: effective sample size before resampling, ``[B, T]`` (Eq. (10)).
-        log_likelihood: ``Σ_t log`` of the mean unnormalised weight, ``[B]`` (for the bootstrap
-            proposal, an unbiased estimate of the marginal likelihood).
+        log_likelihood: ``Σ_t log`` of the mean unnormalised weight, ``[B]`` (with full
+            importance weights, i.e. the bootstrap proposal or the SPVSF's
+            ``proposal="particles"``, the log of an unbiased estimate of the marginal likelihood).
         particles: the last step's particles ``[B, N, n]``.
         log_weights: their normalised log-weights ``[B, N]``.
     """
