@@ -90,6 +90,7 @@ def test_missing_measurements_are_skipped():
     for est in (
         ts.ParticleFilter(model, 300),
         ts.SPVSF(model, psi=[300.0, 100.0], num_particles=300),
+        ts.SPVSF(model, psi=[300.0, 100.0], num_particles=300, proposal="particles"),
     ):
         out = est(z, x0, P0, generator=torch.Generator().manual_seed(0))
         assert bool(torch.isfinite(out.mean).all()) and bool(
