@@ -254,7 +254,9 @@ class SPVSF(ParticleFilter):
     each particle moves through the model, ``x̄ᵢ = f(xᵢ)``, and is corrected with the step's SVSF
     gain ``K`` (computed once, at the estimate), ``μᵢ = x̄ᵢ + K (z − h(x̄ᵢ))``; it is drawn from
     ``q = N(μᵢ, Σ)`` with ``Σ = (I − KH) Q (I − KH)ᵀ + K R Kᵀ`` and weighted by the full
-    importance weight ``w_prev · p(z | x) p(x | x̄ᵢ) / q(x)``. It is a consistent particle filter
+    importance weight ``w_prev · p(z | x) p(x | x̄ᵢ) / q(x)`` (with an artificial measurement,
+    ``z``, ``h`` and ``R`` of the correction are the SVSF's full-state ones, while the likelihood
+    stays that of the real measurement). It is a consistent particle filter
     (it approaches the Kalman filter on a linear-Gaussian model as particles grow, tested), so
     unlike the default it honours the prior ``P0`` as stated, narrow or not.
 
