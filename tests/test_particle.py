@@ -129,6 +129,17 @@ def test_spvsf_paper_rmse_counts_the_initial_estimate():
     assert all(bool(torch.isfinite(v).all()) for v in out.values())
 
 
+def test_settling_time_is_the_time_the_error_stays_within_the_bound():
+    from experiments.spvsf_paper import settling_time
+
+    truth = torch.zeros(3, 5, 1, dtype=torch.float64)
+    err = torch.tensor([[9.0, 0.5, 9.0, 0.5, 0.5], [0.5] * 5, [0.5, 0.5, 0.5, 0.5, 9.0]])
+    times = settling_time(truth + err.unsqueeze(-1).double(), truth, 0.1, 1.0)
+    # run 0 leaves the bound last at step 2 (t = 0.3 s): within from step 3 (t = 0.4 s)
+    assert_close(times[:2], torch.tensor([0.4, 0.1], dtype=torch.float64))
+    assert bool(torch.isinf(times[2]))
+
+
 def test_soft_resampling():
     model, truth, z, x0, P0 = _ballistic_run(T=25, B=2, seed=4)
 
