@@ -298,3 +298,22 @@ def test_eha_noise_scale_scales_the_truth_noise_only():
     assert_close(small.model.meas_cov(), base.model.meas_cov())
     with pytest.raises(ValueError, match="^noise_scale: expected a positive number"):
         ts.scenarios.eha_scenario(2, noise_scale=0.0)
+
+
+@pytest.mark.parametrize("case", ["ballistic", "eha"])
+def test_artificial_measurements_keep_gradients_finite(case):
+    # The first step (no previous measurement), missing values and skipped steps are masked
+    # after computing on filled values, so gradients with respect to z stay finite.
+    if case == "ballistic":
+        sc = ts.scenarios.ballistic_scenario(2, torch.Generator().manual_seed(0), duration=3.0)
+        art, psi = ts.filters.BallisticCoefficientFromDrag(min_snr=0.0), [1e4, 8e3, 1e5]
+    else:
+        sc = ts.scenarios.eha_scenario(2, torch.Generator().manual_seed(0), duration=0.05)
+        art, psi = ts.filters.ModulusFromAcceleration(), [5e-4, 5e-3, 0.5, 1e6]
+    z = sc.z.clone()
+    z[0, 7, 1] = float("nan")
+    z.requires_grad_(True)
+    out = ts.SVSF(sc.model, psi=psi, artificial=art)(z, sc.x0, sc.P0, u=sc.u)
+    out.mean.sum().backward()
+    assert z.grad is not None and bool(torch.isfinite(z.grad).all())
+    assert bool((z.grad[1] != 0).any())

@@ -17,6 +17,18 @@ from torch import Tensor
 from torchsvs.models.base import StateSpaceModel
 
 
+def _with_previous(
+    z: Tensor, previous_used: list[int], now_used: list[int]
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``z`` and the step before it (``[B, T, m]`` each, NaN filled with 0) and where the
+    components used of either are unknown ``[B, T, 1]`` (the first step has no previous one).
+    Computing on filled values and masking afterwards keeps values and gradients finite."""
+    previous = torch.cat([torch.full_like(z[:, :1], float("nan")), z[:, :-1]], dim=1)
+    unknown = torch.isnan(previous[..., previous_used]).any(-1, keepdim=True)
+    unknown = unknown | torch.isnan(z[..., now_used]).any(-1, keepdim=True)
+    return z.nan_to_num(0.0), previous.nan_to_num(0.0), unknown
+
+
 class FiniteDifferenceVelocity:
     r"""Velocity from successive positions, Eq. (51), Chen et al. 2020.
 
@@ -116,16 +128,16 @@ class ModulusFromAcceleration:
         m: Any = model
         T = torch.tensor(m.dt, dtype=z.dtype) if dt is None else dt.to(z.dtype)
         T = T.unsqueeze(-1) if T.ndim == 2 else T  # [B, T, 1] or 0-d
-        previous = torch.cat([torch.full_like(z[:, :1], float("nan")), z[:, :-1]], dim=1)
+        now, previous, unknown = _with_previous(z, [1, 2], [2])
         drive = u[..., :1].to(z.dtype)  # u[:, k] drives the step into k (as in the filters)
         decay = 1.0 - T * m.phi3
-        numerator = z[..., 2:3] - decay * previous[..., 2:3]
+        numerator = now[..., 2:3] - decay * previous[..., 2:3]
         D = T * (m.gain * drive - m.phi2 * previous[..., 2:3] - m.phi1 * previous[..., 1:2])
-        weak = D.abs() < self.min_drive * T * m.gain
-        modulus = torch.where(weak, torch.full_like(D, float("nan")), numerator / D)
-        missing = torch.isnan(modulus)  # weak drive, or the first step
+        skip = unknown | (D.abs() < self.min_drive * T * m.gain)  # no previous, or weak drive
+        D = torch.where(skip, torch.ones_like(D), D)  # finite values (and gradients) where skipped
+        modulus = torch.where(skip, torch.full_like(D, float("nan")), numerator / D)
         R = model.meas_cov().to(z.dtype)
-        var = torch.where(missing, torch.ones_like(D), (1.0 + decay**2) * R[2, 2] / D.square())
+        var = torch.where(skip, torch.ones_like(D), (1.0 + decay**2) * R[2, 2] / D.square())
         R_y = torch.diag_embed(torch.cat([R.diagonal().expand(*z.shape[:2], 3), var], dim=-1))
         y = torch.cat([z, modulus], dim=-1)
         return y, torch.eye(4, dtype=z.dtype), R_y
@@ -178,17 +190,19 @@ class BallisticCoefficientFromDrag:
         m: Any = model
         T = torch.tensor(m.dt, dtype=z.dtype) if dt is None else dt.to(z.dtype)
         T = T.unsqueeze(-1) if T.ndim == 2 else T  # [B, T, 1] or 0-d
-        previous = torch.cat([torch.full_like(z[:, :1], float("nan")), z[:, :-1]], dim=1)
+        now, previous, unknown = _with_previous(z, [0, 1], [1])
         h, v = previous[..., 0:1], previous[..., 1:2]
-        d = T * m.gravity - (z[..., 1:2] - v)
+        d = T * m.gravity - (now[..., 1:2] - v)
         numerator = T * m.gravity * m.density * torch.exp(-m.decay * h) * v.square()
         R = model.meas_cov().to(z.dtype)
         Q = model.process_noise(dt).to(z.dtype)[..., 1, 1]  # 0-d, or [B, T]
         var_d = 2.0 * R[1, 1] + (Q.unsqueeze(-1) if Q.ndim == 2 else Q)
-        weak = d < self.min_snr * var_d.sqrt()  # the drag only slows: d ≤ 0 is noise
-        y3 = torch.where(weak, torch.full_like(d, float("nan")), numerator / (2.0 * d))
-        missing = torch.isnan(y3)  # weak drag, or the first step
+        # The drag only slows: d ≤ 0 is noise, so the test is one-sided.
+        skip = unknown | (d < self.min_snr * var_d.sqrt()) | (v == 0)
+        d, v = (torch.where(skip, torch.ones_like(x), x) for x in (d, v))  # finite where skipped
+        value = numerator / (2.0 * d)
         relative = var_d / d.square() + 4.0 * R[1, 1] / v.square() + m.decay**2 * R[0, 0]
-        var = torch.where(missing, torch.ones_like(d), y3.square() * relative)
+        y3 = torch.where(skip, torch.full_like(d, float("nan")), value)
+        var = torch.where(skip, torch.ones_like(d), value.square() * relative)
         R_y = torch.diag_embed(torch.cat([R.diagonal().expand(*z.shape[:2], 2), var], dim=-1))
         return torch.cat([z, y3], dim=-1), torch.eye(3, dtype=z.dtype), R_y
