@@ -29,6 +29,7 @@ bench: $(STAMP)
 
 reproduce: $(STAMP)
 	$(PY) -m experiments.svss_paper
+	$(PY) -m experiments.spvsf_paper
 
 learn: $(STAMP)
 	$(PY) -m experiments.learn_psi
