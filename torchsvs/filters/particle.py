@@ -12,7 +12,7 @@ from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Estimator, Inputs
 from torchsvs.filters.kalman import Observation, Step, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
-from torchsvs.linalg import cholesky, mask_covariance, symmetrize
+from torchsvs.linalg import cholesky, joseph_update, mask_covariance
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.resampling import SCHEMES
 
@@ -158,12 +158,9 @@ class ParticleFilter(Estimator):
         B, N, n = particles.shape
         R = mask_covariance(self.model.meas_cov().to(z.dtype), mask)  # identity where missing
         predicted = self.model.h(particles.reshape(B * N, n)).reshape(B, N, -1)
-        L = cholesky(R).unsqueeze(1)
-        residual = ((z.unsqueeze(1) - predicted) * mask.unsqueeze(1)).unsqueeze(-1)
-        white = torch.linalg.solve_triangular(L, residual, upper=False).squeeze(-1)
-        log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        observed = mask.sum(-1, keepdim=True).to(z.dtype)
-        return -0.5 * (white.square().sum(-1) + log_det + observed * math.log(2 * math.pi))
+        observed = mask.unsqueeze(1)  # missing components: zero residual, unit variance
+        log_density = _log_normal((z.unsqueeze(1) * observed), predicted * observed, cholesky(R))
+        return log_density - 0.5 * mask.sum(-1, keepdim=True).to(z.dtype) * math.log(2 * math.pi)
 
     def _resample(
         self, particles: Tensor, log_w: Tensor, gen: torch.Generator
@@ -338,8 +335,7 @@ class SPVSF(ParticleFilter):
         K = step.gain
         mu = moved + e @ K.mT
         Q = _at(s.Q, t).to(moved.dtype)
-        A = torch.eye(moved.shape[-1], dtype=moved.dtype) - K @ H_t
-        L_q = cholesky(symmetrize(A @ Q @ A.mT + K @ R_t @ K.mT))
+        L_q = cholesky(joseph_update(Q, K, H_t, R_t))  # (I − KH) Q (I − KH)ᵀ + K R Kᵀ
         drawn = mu + torch.randn(*mu.shape, generator=gen, dtype=mu.dtype) @ L_q.mT
         log_ratio = _log_normal(drawn, moved, cholesky(Q)) - _log_normal(drawn, mu, L_q)
         return drawn, state, log_ratio
