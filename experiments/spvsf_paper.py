@@ -510,9 +510,8 @@ def main(argv: list[str] | None = None) -> None:
         "which shares that ψ, is a prediction, not a fit. The ψ study shows the picture at other "
         f"ψ (table above): the SPVSF is below the SVSF in altitude in both cases for ψ = "
         f"{', '.join(str([int(v) for v in PSI_STUDY[i]]) for i in spvsf_wins) or 'none'}. At the "
-        f"other ψ, narrow ones where the SVSF gain saturates and puts every particle onto the "
-        f"measurement, the SPVSF is at most {100 * narrow_gap:.1f}% above the SVSF in altitude: "
-        "it can add nothing but its draw's noise there. The SPVSF's velocity stays at "
+        f"other ψ, narrow ones where the SVSF already follows the measurements closely, the SPVSF "
+        f"is at most {100 * narrow_gap:.1f}% above the SVSF in altitude. The SPVSF's velocity stays at "
         f"{min(spvsf_speed):.0f}-{max(spvsf_speed):.0f} m/s over the whole range while the SVSF's "
         "grows with ψ_vel.",
         f"- **SPVSF altitude {float(t1['SPVSF'][0]):.0f} against 360 (+"
@@ -584,8 +583,8 @@ def main(argv: list[str] | None = None) -> None:
         f"{mod['SPVSF']:.4f} / {mod['SVSF']:.4f} against 0.0185 / 0.0732 (changing). Our SVSF "
         "measures the modulus through `ModulusFromAcceleration` (Eq 51 solved for x₄, our "
         "construction; the paper does not say how its SVSF saw x₄), so it tracks the changes "
-        f"nearly as well as the SPVSF ({100 * (mod['SVSF'] / mod['SPVSF'] - 1):.0f}% behind it, where "
-        "the paper's SVSF is four times its SPVSF's error). Our EKF/UKF are better than the paper's (0.0068 against 0.164/0.0683): "
+        f"nearly as well as the SPVSF (changing case: {100 * (mod['SVSF'] / mod['SPVSF'] - 1):.0f}% "
+        "behind it, where the paper's SVSF has four times its SPVSF's error). Our EKF/UKF are better than the paper's (0.0068 against 0.164/0.0683): "
         'the paper says its EKF needed Q₄₄ "increased significantly" without a value; ours has '
         "the stated modulus random walk of the model.",
         "- **EHA PF**: from P0 = 10Q the modulus prior does not cover 2.1·10⁸ Pa, so the PF fails "
