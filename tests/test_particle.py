@@ -248,12 +248,12 @@ def test_eha_modulus_claims_of_the_three_spvsf_readings():
     true_x0 = torch.tensor([0.0, 0.0, 0.0, 2.1e8], dtype=torch.float64)
     rows = {name: (est, sc.P0) for name, est in estimators(sc.model, EHA_PSI).items()}
     rows |= variants(sc, EHA_PSI)
-    modulus = {}
-    for name in ("SVSF", "SPVSF", "PF", "SPVSF, Eqs 30-31 as printed", "SPVSF, particle proposal"):
+    names = ("SVSF", "SPVSF", "PF", "SPVSF, Eqs 30-31 as printed", "SPVSF, particle proposal")
+    rmse = {}
+    for name in names:
         est, P0 = rows[name]
-        rmse = run_rmse(run(est, sc, P0, 0), sc.truth, sc.x0, true_x0)[:, 3].mean()
-        modulus[name] = float(rmse / modulus["SVSF"]) if modulus else float(rmse)
-    # ratios to the SVSF's modulus RMSE
+        rmse[name] = float(run_rmse(run(est, sc, P0, 0), sc.truth, sc.x0, true_x0)[:, 3].mean())
+    modulus = {name: rmse[name] / rmse["SVSF"] for name in names}  # relative to the SVSF's
     assert abs(modulus["SPVSF, Eqs 30-31 as printed"] - 1) < 0.01, modulus
     assert modulus["SPVSF"] < 0.995 and modulus["SPVSF, particle proposal"] < 0.995, modulus
     assert modulus["PF"] > 5, modulus
