@@ -445,28 +445,30 @@ def main(argv: list[str] | None = None) -> None:
     def yes(ok: bool, what: str) -> str:
         return f"**{what}**" if ok else f"**NOT {what}**"
 
+    # The rows of each reading: "SPVSF" (the default) and the two of READINGS.
+    reading = {name: f'`"{READINGS.get(name, DEFAULT_READING)}"`' for name in ("SPVSF", *READINGS)}
     rows, met = [], {}
-    for name in ("SPVSF", *READINGS):
+    for name in reading:
         below = all(alt[name] < alt[other] for other in ("SVSF", "UKF", "EKF"))
         drift = float(t2[name][0] / t1[name][0] - 1)
         gap = modulus_gap(paired[name])
         as_good = mod[name] < mod["PF"] and gap[0] <= 0.0
         met[name] = below and abs(drift) <= 0.1 and as_good
         rows.append([
-            f'`"{READINGS.get(name, DEFAULT_READING)}"`' + (" (default)" if name == "SPVSF" else ""),
+            reading[name] + (" (default)" if name == "SPVSF" else ""),
             f"{alt[name]:.0f}: {yes(below, 'below')}",
             f"{100 * drift:+.2f}%: {yes(abs(drift) <= 0.1, 'within 10%')}",
             f"{mod[name]:.5f}, {gap[0]:+.1e} ± {gap[1]:.1e}: {yes(as_good, 'at least as good')}",
         ])  # fmt: skip
     PRINTED, GUIDED = READINGS  # the printed reading's and the particle proposal's rows
     kinematic = [  # readings below the SVSF in every EHA kinematic column, 3σ noise reading
-        f'`"{READINGS.get(name, DEFAULT_READING)}"`'
-        for name in ("SPVSF", *READINGS)
+        label
+        for name, label in reading.items()
         if all(t4s[name][i] < t4s["SVSF"][i] for i in range(3))
     ]
     faithful = [  # readings for which the paper's SPVSF-below-SVSF orderings all hold
-        f'`"{READINGS.get(name, DEFAULT_READING)}"`'
-        for name in ("SPVSF", *READINGS)
+        label
+        for name, label in reading.items()
         if all(t[name][0] < t["SVSF"][0] for t in (t1, t2))
         and all(t[name][3] < t["SVSF"][3] for t in (t4, t5))
     ]

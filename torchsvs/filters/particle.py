@@ -375,8 +375,9 @@ class SPVSF(ParticleFilter):
         if self.proposal == "particles":  # the full importance weight
             log_ratio = _log_normal(drawn, moved, cholesky(Q)) - _log_normal(drawn, mu, L_q)
             return drawn, state, self.log_likelihood(drawn, z, seen) + log_ratio
-        # Eq. (31), "adapted": p(z | x̄ᵢ) = N(z; h(x̄ᵢ), H Q Hᵀ + R), H at the prediction.
-        H = self.model.h_jacobian(x_pred).to(moved.dtype)
+        # Eq. (31), "adapted": p(z | x̄ᵢ) = N(z; h(x̄ᵢ), H Q Hᵀ + R), H at the prediction: the
+        # corrector's own, unless it corrects with an artificial measurement.
+        H = H_t if self.svsf.artificial is None else self.model.h_jacobian(x_pred).to(moved.dtype)
         S = H @ Q @ H.mT + self.model.meas_cov().to(moved.dtype)
         return drawn, state, _log_density(z, seen, self.measure(moved), S)
 
