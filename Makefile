@@ -12,6 +12,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
 	$(PY) -m pip install --quiet -e ".[dev]"
+	# The recorded ADS-B flights (about 30 MB) without traffic's own dependencies.
+	$(PY) -m pip install --quiet --no-deps traffic==2.13
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> None:
     _, z = model.sample(x0.expand(B, 4), T, generator=torch.Generator().manual_seed(0))
     z = z.float().contiguous()
     kf = ts.KalmanFilter(model)
-    svsf = ts.SVSF(model, psi=[800.0, 800.0], gamma=0.1)
+    svsf = ts.SVSF(model, psi=[800.0, 800.0], gamma=0.1, artificial=None)
 
     def run_torch(est: torch.nn.Module, prior_cov: torch.Tensor = P0) -> Callable[[], object]:
         def call() -> object:

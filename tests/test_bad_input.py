@@ -17,7 +17,7 @@ def atc():
 
 
 def _svss(model):
-    return ts.SVSS(ts.SVSF(model, psi=[800.0, 800.0], gamma=0.1))
+    return ts.SVSS(ts.SVSF(model, psi=[800.0, 800.0], gamma=0.1, artificial=None))
 
 
 def _call_cases(sc):
@@ -113,7 +113,7 @@ def test_single_track_needs_unbatched_prior(atc):
         ({"psi": 800.0, "gamma": -0.1}, r"^gamma: expected values in \[0, 1\)"),
         ({"psi": 800.0, "gamma": 0.0}, r"^gamma: a learnable value lives in \(0, 1\)"),
         ({"psi": 800.0, "gamma": [0.1, 0.2]}, "^gamma: expected a scalar"),
-        ({"psi": 800.0, "artificial": 3}, "^artificial: expected a callable"),
+        ({"psi": 800.0, "artificial": 3}, "^artificial: expected 'auto', a callable or None"),
     ],
 )
 def test_bad_svsf_settings(atc, kwargs, pattern):
@@ -122,7 +122,7 @@ def test_bad_svsf_settings(atc, kwargs, pattern):
 
 
 def test_psi_width_count_must_match_corrector(atc):
-    svsf = ts.SVSF(atc.model, psi=[1.0, 2.0, 3.0])
+    svsf = ts.SVSF(atc.model, psi=[1.0, 2.0, 3.0], artificial=None)
     with pytest.raises(ValueError, match="^psi: expected 2 boundary layer widths"):
         svsf(atc.z, atc.x0, atc.P0)
     artificial = ts.SVSF(atc.model, psi=[1.0, 2.0], artificial=ts.FiniteDifferenceVelocity())

@@ -11,13 +11,21 @@ from tests.conftest import assert_close, atc_batch, random_system
 
 
 def _estimators(model, psi, gamma=0.2):
+    """The H⁺-mode SVSF family at ``psi`` (one width per position) and, with the default
+    ``artificial="auto"`` (finite-difference velocity for a ConstantVelocity model), the same
+    widths for each position and velocity."""
+    hplus = {"psi": psi, "gamma": gamma, "artificial": None}
+    per_state = isinstance(psi, float) or not hasattr(model, "velocity_index")
+    velocity = {"psi": psi if per_state else [p for p in psi for _ in (0, 1)], "gamma": gamma}
     return {
         "KF": ts.KalmanFilter(model),
         "KS": ts.RTSSmoother(ts.KalmanFilter(model)),
-        "SVSF": ts.SVSF(model, psi=psi, gamma=gamma),
-        "SVSTPS": ts.RTSSmoother(ts.SVSF(model, psi=psi, gamma=gamma), lag=1),
-        "SVSS": ts.SVSS(ts.SVSF(model, psi=psi, gamma=gamma), lag=2),
-        "SVSS-interval": ts.SVSS(ts.SVSF(model, psi=psi, gamma=gamma), lag=None),
+        "SVSF": ts.SVSF(model, **hplus),
+        "SVSTPS": ts.RTSSmoother(ts.SVSF(model, **hplus), lag=1),
+        "SVSS": ts.SVSS(ts.SVSF(model, **hplus), lag=2),
+        "SVSS-interval": ts.SVSS(ts.SVSF(model, **hplus), lag=None),
+        "SVSF-velocity": ts.SVSF(model, **velocity),
+        "SVSS-velocity": ts.SVSS(ts.SVSF(model, **velocity), lag=2),
     }
 
 
@@ -52,7 +60,7 @@ def test_float32_agrees_with_float64(name):
 
 def test_single_track_result_drops_batch_axis():
     sc = atc_batch(1)
-    out = ts.SVSS(ts.SVSF(sc.model, psi=800.0, gamma=0.1))(sc.z[0], sc.x0, sc.P0)
+    out = ts.SVSS(ts.SVSF(sc.model, psi=800.0, gamma=0.1, artificial=None))(sc.z[0], sc.x0, sc.P0)
     T = sc.z.shape[1]
     assert out.mean.shape == (T, 4) and out.cov.shape == (T, 4, 4)
     assert out.filtered.innovation.shape == (T, 2)
@@ -95,7 +103,7 @@ def test_gradients_finite_when_innovation_is_exactly_zero():
     z = torch.randn(2, 6, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     z[:, 0] = (model.meas_matrix() @ model.transition() @ x0).detach()  # e_{1|0} = 0 exactly
     z.requires_grad_(True)
-    svss = ts.SVSS(ts.SVSF(model, psi=[2.0, 3.0], gamma=0.1), lag=2)
+    svss = ts.SVSS(ts.SVSF(model, psi=[2.0, 3.0], gamma=0.1, artificial=None), lag=2)
     out = svss(z, x0, P0)
     assert bool((out.filtered.innovation[:, 0] == 0).all())
     (out.mean.square().sum() + out.cov.sum()).backward()
@@ -107,7 +115,7 @@ def test_gradients_finite_when_innovation_is_exactly_zero():
 def test_per_step_psi_override_equals_constant_psi_and_drives_output():
     sc = atc_batch(2)
     B, T = sc.z.shape[:2]
-    svss = ts.SVSS(ts.SVSF(sc.model, psi=[800.0, 800.0], gamma=0.1))
+    svss = ts.SVSS(ts.SVSF(sc.model, psi=[800.0, 800.0], gamma=0.1, artificial=None))
     base = svss(sc.z, sc.x0, sc.P0)
     same = svss(sc.z, sc.x0, sc.P0, psi=torch.full((B, T, 2), 800.0, dtype=sc.z.dtype))
     assert_close(same.mean, base.mean)
@@ -120,11 +128,11 @@ def test_per_step_psi_override_equals_constant_psi_and_drives_output():
 
 def test_learn_false_holds_buffers():
     model = ts.models.ConstantVelocity()
-    svsf = ts.SVSF(model, psi=[3.0, 4.0], gamma=0.0, learn=False)
+    svsf = ts.SVSF(model, psi=[3.0, 4.0], gamma=0.0, learn=False, artificial=None)
     assert list(svsf.parameters()) == []
     assert float(svsf.gamma) == 0.0
     assert_close(svsf.psi, torch.tensor([3.0, 4.0]))
-    learnable = ts.SVSF(model, psi=[3.0, 4.0], gamma=0.25)
+    learnable = ts.SVSF(model, psi=[3.0, 4.0], gamma=0.25, artificial=None)
     assert {n for n, _ in learnable.named_parameters()} == {"boundary_layer.raw", "memory.raw"}
     assert_close(learnable.gamma, torch.tensor(0.25), atol=1e-12)
 
@@ -150,11 +158,13 @@ def test_psi_sweep_equals_one_run_per_psi():
     from torchsvs.metrics import accumulative_rmse
 
     sc = atc_batch(3, seed=7)
-    svss = ts.SVSS(ts.SVSF(sc.model, psi=1.0, gamma=0.1))
+    svss = ts.SVSS(ts.SVSF(sc.model, psi=1.0, gamma=0.1, artificial=None))
     grid = [(300.0, 300.0), (800.0, 1200.0), (2000.0, 2000.0)]
     scores = psi_sweep(svss, sc.z, sc.x0, sc.P0, sc.truth, grid, accumulative_rmse, max_tracks=6)
     for psi, (filtered, smoothed) in zip(grid, scores, strict=True):
-        one = ts.SVSS(ts.SVSF(sc.model, psi=list(psi), gamma=0.1))(sc.z, sc.x0, sc.P0)
+        one = ts.SVSS(ts.SVSF(sc.model, psi=list(psi), gamma=0.1, artificial=None))(
+            sc.z, sc.x0, sc.P0
+        )
         assert_close(filtered, accumulative_rmse(one.filtered.mean, sc.truth))
         assert_close(smoothed, accumulative_rmse(one.mean, sc.truth))
 

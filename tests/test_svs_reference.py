@@ -102,7 +102,7 @@ def test_svss_differs_from_svstps_over_svsf(system):
 def test_atc_svsf_never_corrects_velocity():
     """Sec. 4.1: H⁺ = Hᵀ for position-only H, so the velocity keeps its prior value."""
     sc = atc_batch(2)
-    out = ts.SVSF(sc.model, psi=[800.0, 800.0], gamma=0.1)(sc.z, sc.x0, sc.P0)
+    out = ts.SVSF(sc.model, psi=[800.0, 800.0], gamma=0.1, artificial=None)(sc.z, sc.x0, sc.P0)
     assert_close(out.mean[..., [1, 3]], sc.x0[[1, 3]].expand(2, out.mean.shape[1], 2))
     F, H, Q, R = (
         sc.model.transition().numpy(),
@@ -127,7 +127,7 @@ def test_artificial_velocity_equals_reference():
         sc.model,
         psi=[500.0, 600.0, 500.0, 600.0],
         gamma=0.1,
-        artificial=ts.FiniteDifferenceVelocity(),
+        artificial=ts.FiniteDifferenceVelocity(bridge_gaps=False),  # Eq. (51) as printed
     ).double()
     out = svsf(z, sc.x0, sc.P0)
     r_pos = sc.model.meas_cov()[0, 0].item()
@@ -152,6 +152,32 @@ def test_artificial_velocity_equals_reference():
             assert_close(getattr(out, key)[b], r[key], msg=key)
         d = ref.smooth_direct(r, F, np.eye(4), R_y, lag=2)
         assert_close(ts.SVSS(svsf, lag=2)(z, sc.x0, sc.P0).mean[b], d["mean"])
+
+
+@pytest.mark.parametrize("per_step_dt", [False, True], ids=["scalar-dt", "per-step-dt"])
+def test_gap_bridging_velocity_and_noise_equal_reference(per_step_dt):
+    """Velocities across missing positions difference against the axis' last observation."""
+    sc = atc_batch(2, seed=6)
+    z = sc.z.clone()
+    hide = torch.rand(z.shape, generator=torch.Generator().manual_seed(1)) < 0.3
+    z[hide] = float("nan")
+    z[:, 3] = float("nan")
+    R = torch.tensor([[4.0e4, 1.0e4], [1.0e4, 2.5e4]], dtype=z.dtype)
+    model = ts.models.ConstantVelocity(dt=2.0, q=0.16, r=R).double()
+    dt = torch.full(z.shape[:2], 2.0, dtype=z.dtype) if per_step_dt else None
+    y, H, R_y = ts.FiniteDifferenceVelocity()(z, model, dt)
+    assert_close(H, torch.eye(4))
+    for b in range(2):
+        assert_close(y[b], ref.finite_difference_velocity(z[b].numpy(), 2.0, bridge_gaps=True))
+        expected = ref.finite_difference_noise(z[b].numpy(), 2.0, R.numpy())
+        seen = ~torch.isnan(y[b])
+        both = (seen.unsqueeze(-1) & seen.unsqueeze(-2)).numpy()  # masked entries are free
+        assert_close(np.where(both, R_y[b].numpy(), 0.0), np.where(both, expected, 0.0))
+    bridged = ~torch.isnan(y[..., [1, 3]])
+    adjacent = ~torch.isnan(
+        ts.FiniteDifferenceVelocity(bridge_gaps=False)(z, model, dt)[0][..., [1, 3]]
+    )
+    assert bool((bridged & ~adjacent).any()) and not bool((adjacent & ~bridged).any())
 
 
 def test_artificial_velocity_with_per_step_dt_matches_scalar_dt():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import lightning as L
@@ -13,7 +14,12 @@ import torch
 import torchsvs as ts
 from tests.conftest import assert_close
 from torchsvs.scenarios import ManeuverRanges
-from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule, stein_risk
+from torchsvs.training import (
+    EstimatorModule,
+    ManeuveringTargetDataModule,
+    batch_loss,
+    stein_risk,
+)
 from torchsvs.training.cli import main as cli_main
 
 pytestmark = pytest.mark.filterwarnings(
@@ -33,7 +39,7 @@ def _data(**kw) -> ManeuveringTargetDataModule:
 
 def _svss(psi: float = 10.0) -> ts.SVSS:
     model = ts.models.ConstantVelocity(dt=1.0, q=1.0, r=50.0**2)
-    return ts.SVSS(ts.SVSF(model, psi=[psi, psi], gamma=0.1))
+    return ts.SVSS(ts.SVSF(model, psi=[psi, psi], gamma=0.1, artificial=None))
 
 
 def _trainer(tmp_path, epochs: int = 2, **kw) -> L.Trainer:
@@ -73,7 +79,7 @@ def test_losses_and_gradients_finite_on_hard_batches(loss):
     batch = batch._replace(z=batch.z.clone())
     batch.z[:, 7] = float("nan")  # an all-missing step
     module = EstimatorModule(_svss(), loss=loss)
-    value = module._loss(module(batch.z, batch.x0, batch.P0), batch)
+    value, _ = batch_loss(module.estimator, batch, loss, module.components, None, module.probes)
     assert bool(torch.isfinite(value))
     value.backward()
     grads = [p.grad for p in module.parameters()]
@@ -84,10 +90,11 @@ def test_sure_estimates_the_true_mse_without_truth():
     sc = ts.scenarios.atc_scenario(100, torch.Generator().manual_seed(4))
     H, R = sc.model.meas_matrix(), sc.model.meas_cov()
     for psi in (100.0, 1000.0, 3000.0):
-        est = ts.SVSS(ts.SVSF(sc.model, psi=psi, gamma=0.1))
+        est = ts.SVSS(ts.SVSF(sc.model, psi=psi, gamma=0.1, artificial=None))
         with torch.no_grad():
             out = est(sc.z, sc.x0, sc.P0)
-            risk = stein_risk(est, out, sc.z, sc.x0, sc.P0, H, R, torch.Generator().manual_seed(0))
+            rerun = partial(est, x0=sc.x0, P0=sc.P0)
+            risk = stein_risk(rerun, out, sc.z, H, R, torch.Generator().manual_seed(0))
         true = ((out.mean[..., [0, 2]] - sc.truth[..., [0, 2]]).square() / R.diagonal()).mean()
         assert abs(risk.item() / true.item() - 1) < 0.05
 
@@ -142,7 +149,9 @@ def test_cli_configs_build(config):
 def test_bad_module_arguments():
     with pytest.raises(ValueError, match="^loss: expected one of"):
         EstimatorModule(_svss(), loss="mae")
-    frozen = ts.SVSS(ts.SVSF(ts.models.ConstantVelocity(), psi=1.0, gamma=0.1, learn=False))
+    frozen = ts.SVSS(
+        ts.SVSF(ts.models.ConstantVelocity(), psi=1.0, gamma=0.1, learn=False, artificial=None)
+    )
     with pytest.raises(ValueError, match="^estimator: has no learnable parameter"):
         EstimatorModule(frozen)
 

@@ -4,6 +4,8 @@
     torchsvs reproduce svss [--runs 500] [--seed 0]   Tables 1-3, A2 and Figs 4-9 of that paper
     torchsvs reproduce spvsf [--runs 100]             Tables 1, 2, 4, 5, Figs 5-9 of Gadsden 2012
     torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
+    torchsvs track INPUT -o OUTPUT [--estimator svss] [--fit] ...
+                                                      estimate every track of a CSV/Parquet file
 
 The experiments are scripts of the source checkout (``experiments/``), not of the installed
 library: the command runs them from the clone that ``pip install -e .`` installed.
@@ -11,6 +13,7 @@ library: the command runs them from the clone that ``pip install -e .`` installe
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
 from pathlib import Path
@@ -38,6 +41,151 @@ def _import_experiment(module: str) -> ModuleType:
     return importlib.import_module(module)
 
 
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers separated by commas, got {text!r}"
+        ) from err
+
+
+def track_parser() -> argparse.ArgumentParser:
+    from torchsvs.tracking import ESTIMATORS
+
+    parser = argparse.ArgumentParser(
+        prog="torchsvs track",
+        description=(
+            "Estimate every track of a CSV or Parquet file (rows: track id, time, position) and "
+            "write one row per input row with the estimated position and velocity."
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="estimators:\n" + "\n".join(f"  {k:<8} {v}" for k, v in ESTIMATORS.items()),
+    )
+    parser.add_argument("input", help="a .csv or .parquet file of track rows")
+    parser.add_argument("-o", "--output", required=True, help="the .csv or .parquet to write")
+    parser.add_argument("--estimator", default="svss", choices=sorted(ESTIMATORS))
+    parser.add_argument("--id-col", default="track_id", help="track id column (default track_id)")
+    parser.add_argument("--time-col", default="time", help="time column (default time)")
+    parser.add_argument(
+        "--pos-cols", default=None, help="position columns, e.g. x,y or x,y,z (default: x, y[, z])"
+    )
+    parser.add_argument(
+        "--time-unit", type=float, default=1.0, help="seconds per unit of a numeric time (1e-3: ms)"
+    )
+    parser.add_argument(
+        "--meas-std",
+        type=_floats,
+        default=None,
+        help="measurement noise standard deviation, one value or one per axis (default: read off "
+        "the data; with --fit, learned)",
+    )
+    parser.add_argument("--q", type=float, default=None, help="process noise of the CV model")
+    parser.add_argument(
+        "--psi",
+        type=_floats,
+        default=None,
+        help="SVSF boundary layer, one width or one per corrector component in state order "
+        "(x, vx, y, vy, ...; positions only with --no-velocity); default: 5 noise std",
+    )
+    parser.add_argument("--gamma", type=float, default=0.1, help="SVSF memory (default 0.1)")
+    parser.add_argument(
+        "--lag", type=int, default=None, help="smoother lag (default: ks full, svss 2, svstps 1)"
+    )
+    parser.add_argument(
+        "--no-velocity",
+        action="store_true",
+        help="SVSF family in the paper's H⁺ mode (velocity never corrected) instead of "
+        "finite-difference velocities",
+    )
+    parser.add_argument("--particles", type=int, default=350, help="particles of pf and spvsf")
+    parser.add_argument(
+        "--fit", action="store_true", help="tune the estimator on the input itself (no truth)"
+    )
+    parser.add_argument(
+        "--fit-tracks", type=int, default=2000, help="tracks the fit uses (default 2000)"
+    )
+    parser.add_argument("--fit-steps", type=int, default=None, help="optimiser steps of the fit")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="load parameters (a --save file or a Lightning checkpoint)",
+    )
+    parser.add_argument("--save", default=None, help="save the settings and parameters used")
+    parser.add_argument("--covariance", action="store_true", help="also write the covariances")
+    reading = parser.add_mutually_exclusive_group()
+    reading.add_argument(
+        "--in-memory", action="store_true", help="read the whole file at once (any row order)"
+    )
+    reading.add_argument(
+        "--stream", action="store_true", help="stream tracks (each track's rows contiguous)"
+    )
+    parser.add_argument("--block-rows", type=int, default=1 << 20, help="rows per streamed block")
+    parser.add_argument(
+        "--double", action="store_true", help="compute in float64 (default float32)"
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    return parser
+
+
+def track(argv: list[str]) -> None:
+    """``torchsvs track``: see :func:`track_parser`."""
+    import torch
+
+    from torchsvs.datasets import Columns
+    from torchsvs.tracking import Settings, saved_settings, track_file
+
+    args = track_parser().parse_args(argv)
+    torch.set_num_threads(args.threads)
+    pos = tuple(args.pos_cols.split(",")) if args.pos_cols else None
+    columns = Columns(args.id_col, args.time_col, pos, time_unit=args.time_unit)
+    try:
+        if args.checkpoint is not None and Path(args.checkpoint).is_file():
+            try:
+                base = saved_settings(args.checkpoint)
+            except ValueError:
+                base = None
+        else:
+            base = None
+        settings = base or Settings(
+            estimator=args.estimator,
+            meas_var=None if args.meas_std is None else [s * s for s in args.meas_std],
+            q=args.q,
+            psi=args.psi,
+            gamma=args.gamma,
+            lag=args.lag,
+            velocity=not args.no_velocity,
+            particles=args.particles,
+        )
+        fit_options: dict[str, object] = {
+            "tracks": args.fit_tracks,
+            "known_noise": args.meas_std is not None,
+        }
+        if args.fit_steps is not None:
+            fit_options["steps"] = args.fit_steps
+        run = track_file(
+            args.input,
+            args.output,
+            settings,
+            columns=columns,
+            fit=args.fit,
+            fit_options=fit_options,
+            checkpoint=args.checkpoint,
+            save=args.save,
+            covariance=args.covariance,
+            whole=True if args.in_memory else False if args.stream else None,
+            block_rows=args.block_rows,
+            dtype=torch.float64 if args.double else torch.float32,
+            progress=not args.quiet,
+            log=None if args.quiet else lambda text: print(text, file=sys.stderr),
+        )
+    except (ValueError, TypeError, FileNotFoundError) as err:
+        raise SystemExit(f"torchsvs track: {err}") from err
+    if not args.quiet:
+        print(run.summary(), file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Dispatches ``torchsvs COMMAND [options]`` to the experiment's own ``main``."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -46,6 +194,9 @@ def main(argv: list[str] | None = None) -> None:
 
         fit(args[1:])
         return
+    if args[:1] == ["track"]:
+        track(args[1:])
+        return
     for words in sorted(COMMANDS, key=len, reverse=True):
         size = len(words.split())
         if args[:size] == words.split():
@@ -53,6 +204,7 @@ def main(argv: list[str] | None = None) -> None:
             return
     usage = "\n".join(f"  torchsvs {k:<16} {v[1]}" for k, v in COMMANDS.items())
     usage += "\n  torchsvs fit --config CONFIG.yaml   train an estimator (LightningCLI)"
+    usage += "\n  torchsvs track INPUT -o OUTPUT      estimate every track of a file (--help)"
     print(f"usage: torchsvs COMMAND [options]\n\ncommands:\n{usage}", file=sys.stderr)
     raise SystemExit(2)
 

@@ -159,8 +159,10 @@ def _check_dt(
 def drop_batch(result: Any) -> Any:
     """Removes the leading batch axis (of size 1) from every tensor of a result NamedTuple."""
     fields = []
-    for value in result:
-        if isinstance(value, Tensor):
+    for name, value in zip(result._fields, result, strict=True):
+        if name == "axes":
+            value = None  # the per-axis internals stay batched: not part of a single track's result
+        elif isinstance(value, Tensor):
             value = value.squeeze(0)
         elif isinstance(value, tuple):
             value = drop_batch(value)

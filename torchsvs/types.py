@@ -21,7 +21,7 @@ varies per step.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from torch import Tensor
 
@@ -47,6 +47,9 @@ class FilterResult(NamedTuple):
         innovation_cov: ``S_t = H P_{t|t-1} Hᵀ + R``, ``[B, T, m, m]``, identity rows/columns
             where missing. ``None`` for filters that do not form it.
         log_likelihood: ``Σ_t log N(e_t; 0, S_t)`` over observed components, ``[B]``, or ``None``.
+        axes: the same pass per axis (:class:`~torchsvs.kernels.axes.AxisResult`) when the
+            per-axis kernel computed it, so smoothers use it too; ``None`` otherwise (and in
+            results of a single track without the batch axis).
     """
 
     mean: Tensor
@@ -62,6 +65,7 @@ class FilterResult(NamedTuple):
     post_innovation: Tensor | None = None
     innovation_cov: Tensor | None = None
     log_likelihood: Tensor | None = None
+    axes: Any = None
 
 
 class SmootherResult(NamedTuple):

@@ -415,14 +415,15 @@ def rts_window(res, F, lag=None):
 # ----------------------------------------------------------------------------------------------
 
 
-def finite_difference_velocity(z, dt):
+def finite_difference_velocity(z, dt, bridge_gaps=False):
     """Artificial velocity measurement, Eq. (51) of Chen et al. 2020.
 
     ``z [T, 2]`` = (x, y) positions; returns ``y [T, 4]`` =
     ``[z1_k, (z1_k - z1_{k-1})/dt, z2_k, (z2_k - z2_{k-1})/dt]``.
     The velocity is NaN at k = 0 (no previous measurement) and, per axis, wherever the current
-    or the previous position of that axis is NaN (no gap-bridging). Positions are copied as-is
-    (NaN stays NaN).
+    or the previous position of that axis is NaN. With ``bridge_gaps`` the difference is taken
+    against the last earlier step at which the axis was observed, over the time between them.
+    Positions are copied as-is (NaN stays NaN).
     """
     z = _f64(z, 2, "z")
     if z.shape[1] != 2:
@@ -434,10 +435,48 @@ def finite_difference_velocity(z, dt):
     y[:, 2] = z[:, 1]
     for k in range(1, T):
         for axis, col in ((0, 1), (1, 3)):
-            cur, prev = z[k, axis], z[k - 1, axis]
-            if not (np.isnan(cur) or np.isnan(prev)):
-                y[k, col] = (cur - prev) / dt
+            cur = z[k, axis]
+            if np.isnan(cur):
+                continue
+            j = k - 1
+            if bridge_gaps:
+                while j >= 0 and np.isnan(z[j, axis]):
+                    j -= 1
+            if j >= 0 and not np.isnan(z[j, axis]):
+                y[k, col] = (cur - z[j, axis]) / ((k - j) * dt)
     return y
+
+
+def finite_difference_noise(z, dt, R, bridge_gaps=True):
+    """Per-step noise covariance ``[T, 4, 4]`` of :func:`finite_difference_velocity`'s ``y``.
+
+    With ``v_i = (z_i,k - z_i,j_i)/Δ_i`` and white position noise ``R``: ``Cov(z_i, z_j) = R_ij``,
+    ``Cov(z_i, v_j) = R_ij/Δ_j``, ``Cov(v_i, v_j) = R_ij (1 + [j_i = j_j]) / (Δ_i Δ_j)``.
+    Entries of a missing velocity are whatever a unit interval gives (they are masked).
+    """
+    z = _f64(z, 2, "z")
+    T = z.shape[0]
+    out = np.zeros((T, 4, 4))
+    pos, vel = (0, 2), (1, 3)
+    for k in range(T):
+        last, span = [], []
+        for axis in (0, 1):
+            j = k - 1
+            if bridge_gaps:
+                while j >= 0 and np.isnan(z[j, axis]):
+                    j -= 1
+            known = j >= 0 and not np.isnan(z[j, axis]) and not np.isnan(z[k, axis])
+            last.append(j if known else -1)
+            span.append((k - j) * dt if known else 1.0)
+        for a in (0, 1):
+            for b in (0, 1):
+                r = R[a, b]
+                out[k, pos[a], pos[b]] = r
+                out[k, pos[a], vel[b]] = r / span[b]
+                out[k, vel[a], pos[b]] = r / span[a]
+                same = 1.0 + float(last[a] == last[b])
+                out[k, vel[a], vel[b]] = r * same / (span[a] * span[b])
+    return out
 
 
 # ----------------------------------------------------------------------------------------------

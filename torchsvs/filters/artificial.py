@@ -34,22 +34,29 @@ class FiniteDifferenceVelocity:
 
     For a model with ``position_index`` and ``velocity_index`` (e.g.
     :class:`~torchsvs.models.ConstantVelocity`), the pseudo-measurement is the full state in state
-    order, ``y_k = [z_{1,k}, (z_{1,k} − z_{1,k−1})/T_k, z_{2,k}, (z_{2,k} − z_{2,k−1})/T_k]`` with
-    ``H_y = I``. The first step has no previous position: its velocity is missing (NaN), as is any
-    velocity next to a missing position.
+    order, ``y_k = [z_{1,k}, (z_{1,k} − z_{1,k'})/Δ_{1,k}, z_{2,k}, ...]`` with ``H_y = I``, where
+    ``k'`` is the last step before ``k`` at which that axis was observed and ``Δ`` the time
+    between them. With ``bridge_gaps=False``, ``k' = k − 1`` only (Eq. (51) as printed: a velocity
+    next to a missing position is missing). The first step has no earlier position: its velocity
+    is missing, so it keeps the prior's (``torchsvs.datasets`` starts it from two-point
+    differencing).
 
     Noise model (stated, as the paper leaves it open): with position noise ``R`` independent
-    between steps, ``Cov(z_k) = R``, ``Cov(v_k) = 2R/T_k²``, ``Cov(z_k, v_k) = R/T_k``. The
+    between steps, ``Cov(z_i, z_j) = R_ij``, ``Cov(z_i, v_j) = R_ij/Δ_j`` and
+    ``Cov(v_i, v_j) = R_ij (1 + [k'_i = k'_j])/(Δ_i Δ_j)`` (``2R/T²`` for equal steps). The
     correlation between successive velocities (``−R/T²``) is ignored, as the filter assumes white
     measurement noise.
 
     Args:
-        correlated: keep the position-velocity covariance ``R/T_k`` (default); ``False`` drops it
+        correlated: keep the position-velocity covariance ``R/Δ`` (default); ``False`` drops it
             (a diagonal-block noise model, for ablations).
+        bridge_gaps: difference against the last observed position of the axis (default), not
+            only against the step before.
     """
 
-    def __init__(self, correlated: bool = True) -> None:
+    def __init__(self, correlated: bool = True, bridge_gaps: bool = True) -> None:
         self.correlated = correlated
+        self.bridge_gaps = bridge_gaps
 
     def __call__(
         self, z: Tensor, model: StateSpaceModel, dt: Tensor | None, u: Tensor | None = None
@@ -68,24 +75,52 @@ class FiniteDifferenceVelocity:
                 f"model: expected {m} positions and {m} velocities covering all {n} "
                 "state components"
             )
+        observed = ~torch.isnan(z)
         step = torch.tensor(getattr(model, "dt", 1.0), dtype=z.dtype) if dt is None else dt
-        interval = step.unsqueeze(-1) if step.ndim == 2 else step  # [B, T, 1] or 0-d
-        previous = torch.cat([torch.full_like(z[:, :1], float("nan")), z[:, :-1]], dim=1)
-        velocity = (z - previous) / interval
+        index = torch.arange(T).view(1, T, 1).expand(B, T, m)
+        if self.bridge_gaps:
+            seen = torch.where(observed, index, torch.full_like(index, -1)).cummax(dim=1).values
+            previous = torch.cat([torch.full_like(seen[:, :1], -1), seen[:, :-1]], dim=1)
+        else:
+            before = torch.cat([torch.zeros_like(observed[:, :1]), observed[:, :-1]], dim=1)
+            previous = torch.where(before, index - 1, torch.full_like(index, -1))
+        unknown = (previous < 0) | ~observed
+        previous = previous.clamp_min(0)
+        filled = z.nan_to_num(0.0)
+        # Time since the previous observation of each axis.
+        if step.ndim == 2:
+            clock = torch.cumsum(step, dim=1).unsqueeze(-1).expand(B, T, m)
+            elapsed = clock - clock.gather(1, previous)
+        else:
+            elapsed = (index - previous).to(z.dtype) * step
+        elapsed = torch.where(unknown, torch.ones_like(elapsed), elapsed)
+        # Computed on filled values and masked after, so gradients stay finite.
+        velocity = (filled - filled.gather(1, previous)) / elapsed
+        velocity = torch.where(unknown, torch.full_like(velocity, float("nan")), velocity)
         y = z.new_empty(B, T, n)
         y[..., pos] = z
         y[..., vel] = velocity
 
         R = model.meas_cov().to(z.dtype)
-        inv_t = (1.0 / step)[..., None, None]  # [B, T, 1, 1] or 0-d
-        cross = R * inv_t if self.correlated else torch.zeros_like(R * inv_t)
-        blocks = {(0, 0): R.expand(*inv_t.shape[:-2], m, m), (0, 1): cross}
-        blocks[(1, 0)] = blocks[(0, 1)]
-        blocks[(1, 1)] = 2.0 * R * inv_t.square()
-        R_y = z.new_zeros(*inv_t.shape[:-2], n, n)
-        for (a, b), block in blocks.items():
-            rows, cols = (pos, vel)[a], (pos, vel)[b]
-            R_y[..., torch.tensor(rows)[:, None], torch.tensor(cols)[None, :]] = block
+        if not bool(unknown[:, 1:].any()) and step.ndim == 0:
+            inv = (1.0 / step).reshape(1, 1, 1).expand(1, 1, m)  # one interval everywhere
+            same = torch.ones(1, 1, m, m, dtype=torch.bool)
+        else:
+            inv = 1.0 / elapsed  # [B, T, m]
+            same = previous.unsqueeze(-1) == previous.unsqueeze(-2)  # [B, T, m, m]
+        cross = R * inv.unsqueeze(-2)  # Cov(z_i, v_j) = R_ij / Δ_j
+        if not self.correlated:
+            cross = torch.zeros_like(cross)
+        vv = R * (1.0 + same.to(z.dtype)) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
+        lead = cross.shape[:-2]
+        R_y = z.new_zeros(*lead, n, n)
+        rows, cols = torch.tensor(pos), torch.tensor(vel)
+        R_y[..., rows[:, None], rows[None, :]] = R.expand(*lead, m, m)
+        R_y[..., rows[:, None], cols[None, :]] = cross
+        R_y[..., cols[:, None], rows[None, :]] = cross.mT
+        R_y[..., cols[:, None], cols[None, :]] = vv
+        if R_y.ndim == 4 and R_y.shape[:2] == (1, 1):
+            R_y = R_y[0, 0]  # constant: [n, n]
         H_y = torch.eye(n, dtype=z.dtype)
         return y, H_y, R_y
 

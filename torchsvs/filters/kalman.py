@@ -9,8 +9,10 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Estimator, Inputs
+from torchsvs.kernels import AXIS_KERNEL, axes
 from torchsvs.linalg import cholesky, joseph_update, mask_measurement, matvec, symmetrize
 from torchsvs.models.base import LinearModel, StateSpaceModel
+from torchsvs.models.motion import ConstantVelocity
 from torchsvs.types import FilterResult
 
 
@@ -148,7 +150,17 @@ class GaussianFilter(Estimator):
         ``obs.t``; ``prev`` is this filter's step before (``None`` at the first)."""
         raise NotImplementedError
 
+    #: the corrector's rule in the per-axis kernel (:mod:`torchsvs.kernels.axes`), or None
+    axis_rule: str | None = None
+
+    def axis_settings(self, inputs: Inputs) -> tuple[Tensor, Tensor] | None:
+        """``(ψ [2, m] or [B, T, 2, m], γ)`` for the per-axis kernel's ``"svsf"`` rule."""
+        return None
+
     def run(self, inputs: Inputs) -> FilterResult:
+        fast = self._run_axes(inputs)
+        if fast is not None:
+            return fast
         T = inputs.steps
         z, H, R = self.measurements(inputs)
         F, Q = self.dynamics(inputs)
@@ -208,6 +220,120 @@ class GaussianFilter(Estimator):
             log_likelihood=None if loglik is None else loglik.sum(dim=1),
         )
 
+    def _run_axes(self, inputs: Inputs) -> FilterResult | None:
+        """The pass through the per-axis kernel when the problem decouples by axis (a
+        :class:`~torchsvs.models.ConstantVelocity` with diagonal ``R``, a prior without cross-axis
+        covariance, a position-only or a finite-difference-velocity corrector); else ``None``."""
+        model = self.model
+        if not AXIS_KERNEL["enabled"] or self.axis_rule is None:
+            return None
+        if not isinstance(model, ConstantVelocity):
+            return None
+        m, n = model.meas_dim, model.state_dim
+        dtype = inputs.z.dtype
+        R = model.meas_cov().to(dtype)
+        cross = ~torch.eye(m, dtype=torch.bool)
+        if bool((R[cross] != 0).any()) or bool((inputs.P0[:, _cross_axis(m)] != 0).any()):
+            return None
+        z, H, R_c = self.measurements(inputs)
+        assert H is not None
+        pos, vel = model.position_index, model.velocity_index
+        if H.shape == (n, n) and bool(torch.equal(H, torch.eye(n, dtype=H.dtype))):
+            R_blocks = R_c[..., torch.tensor(pos)[:, None], torch.tensor(vel)[None, :]]
+            if bool((R_c[..., _cross_axis(m)] != 0).any()) or R_blocks.shape[-1] != m:
+                return None
+
+            def entry(i: list[int], j: list[int]) -> Tensor:
+                return R_c[..., i, j]
+
+            y = axes.AxisMeasurements(
+                z[..., pos],
+                z[..., vel],
+                axes.Sym2(entry(pos, pos), entry(pos, vel), entry(vel, vel)),
+            )
+        elif H.shape == (m, n) and bool(torch.equal(H, model.meas_matrix().to(H.dtype))):
+            diagonal = R_c.diagonal(dim1=-2, dim2=-1)
+            y = axes.AxisMeasurements(
+                z,
+                torch.full_like(z, float("nan")),
+                axes.Sym2(diagonal, torch.zeros_like(diagonal), torch.ones_like(diagonal)),
+            )
+        else:
+            return None
+        P0 = inputs.P0.expand(inputs.batch, n, n)
+        prior = axes.Sym2(P0[:, pos, pos], P0[:, pos, vel], P0[:, vel, vel])
+        interval = inputs.dt if inputs.dt is not None else torch.tensor(model.dt, dtype=dtype)
+        settings = self.axis_settings(inputs)
+        psi, gamma = settings if settings is not None else (None, None)
+        result = axes.run_axes(
+            y,
+            (inputs.x0[:, pos], inputs.x0[:, vel]),
+            prior,
+            model.q().to(dtype),
+            interval.to(dtype),
+            self.axis_rule,
+            psi,
+            gamma,
+        )
+        F, _ = self.dynamics(inputs)
+        assert F is not None
+        return _assemble(result, z.shape[-1] == n, _as_result_matrix(F), H, R_c)
+
+
+def _cross_axis(m: int) -> Tensor:
+    """``[2m, 2m]`` True where a state covariance couples different axes (layout x, vx, y, ...)."""
+    axis = torch.arange(2 * m) // 2
+    return axis[:, None] != axis[None, :]
+
+
+def interleave(p: Tensor, v: Tensor) -> Tensor:
+    """``[..., m]`` positions and velocities → ``[..., 2m]`` in state order ``p1, v1, p2, ...``."""
+    return torch.stack([p, v], dim=-1).flatten(-2)
+
+
+def block_diagonal(block: axes.Mat2) -> Tensor:
+    """Per-axis 2×2 blocks ``[..., m]`` → the block-diagonal ``[..., 2m, 2m]``."""
+    m = block.a.shape[-1]
+    rows = torch.stack(
+        [torch.stack([block.a, block.b], -1), torch.stack([block.c, block.d], -1)], -2
+    )  # [..., m, 2, 2]
+    eye = torch.eye(m, dtype=rows.dtype)
+    return torch.einsum("...jab,jk->...jakb", rows, eye).reshape(*rows.shape[:-3], 2 * m, 2 * m)
+
+
+def _assemble(
+    res: axes.AxisResult, with_velocity: bool, F: Tensor, H: Tensor, R: Tensor
+) -> FilterResult:
+    """The per-axis pass in the general layout (block-diagonal covariances and gains)."""
+    seen_p, seen_v = res.observed
+
+    def measured(pair: tuple[Tensor, Tensor]) -> Tensor:
+        return interleave(*pair) if with_velocity else pair[0]
+
+    gain = block_diagonal(res.gain)
+    if not with_velocity:
+        gain = gain[..., 0::2]  # the position columns
+    innovation_cov = None
+    if res.log_likelihood is not None:  # Kalman: S = H P Hᵀ + R over the positions
+        S = res.pred_cov.a * seen_p.to(res.pred_cov.a.dtype) + res.noise.a
+        innovation_cov = torch.diag_embed(S)
+    return FilterResult(
+        mean=interleave(*res.mean),
+        cov=block_diagonal(axes.full(res.cov)),
+        pred_mean=interleave(*res.pred_mean),
+        pred_cov=block_diagonal(axes.full(res.pred_cov)),
+        innovation=measured(res.innovation),
+        mask=measured(res.observed),
+        transition=F,
+        meas_matrix=_as_result_matrix(H),
+        meas_cov=_as_result_matrix(R),
+        gain=gain,
+        post_innovation=None if res.post_innovation is None else measured(res.post_innovation),
+        innovation_cov=innovation_cov,
+        log_likelihood=None if res.log_likelihood is None else res.log_likelihood.sum(dim=1),
+        axes=res,
+    )
+
 
 class KalmanFilter(GaussianFilter):
     r"""Batched, differentiable Kalman filter, Eqs. (11)-(16), Chen et al. 2020.
@@ -228,6 +354,8 @@ class KalmanFilter(GaussianFilter):
         Kalman, "A new approach to linear filtering and prediction problems", J. Basic Eng. 82,
         1960. doi:10.1115/1.3662552
     """
+
+    axis_rule: str | None = "kalman"
 
     def correct(
         self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs

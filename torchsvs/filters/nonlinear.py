@@ -38,6 +38,7 @@ class ExtendedKalmanFilter(KalmanFilter):
     """
 
     model_type = StateSpaceModel
+    axis_rule = None  # linearises f and h itself, even where the KF's per-axis kernel would do
 
     def correct(
         self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs

@@ -313,7 +313,7 @@ class SPVSF(ParticleFilter):
         resample_threshold: float = 0.8,
         resampling: str = "systematic",
         learn: bool = True,
-        artificial: ArtificialMeasurement | None = None,
+        artificial: ArtificialMeasurement | str | None = "auto",
         proposal: str = "adapted",
     ) -> None:
         super().__init__(model, num_particles, resample_threshold, resampling)

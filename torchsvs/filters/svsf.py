@@ -9,13 +9,26 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
+from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, Observation, Step
-from torchsvs.linalg import joseph_update, matvec, svsf_gain_ratio
+from torchsvs.linalg import joseph_update, masked_pinv, matvec, svsf_gain_ratio
 from torchsvs.models.base import StateSpaceModel
 
 ArtificialMeasurement = Callable[
     [Tensor, StateSpaceModel, "Tensor | None", "Tensor | None"], tuple[Tensor, Tensor, Tensor]
 ]
+
+
+def auto_artificial(model: StateSpaceModel) -> ArtificialMeasurement | None:
+    """The artificial measurement ``artificial="auto"`` picks: finite-difference velocity for a
+    model whose measurement is its positions and whose state adds their velocities, else none."""
+    pos = getattr(model, "position_index", None)
+    vel = getattr(model, "velocity_index", None)
+    if pos is None or vel is None or model.meas_dim >= model.state_dim:
+        return None
+    if len(pos) != model.meas_dim or len(set(pos) | set(vel)) != model.state_dim:
+        return None
+    return FiniteDifferenceVelocity()
 
 
 class SVSF(GaussianFilter):
@@ -40,12 +53,16 @@ class SVSF(GaussianFilter):
 
     When the state has more components than the measurement (n > m) there are two modes:
 
-    * ``artificial=None`` (the paper's Sec. 4.1, ATC scenario): ``H⁺`` is the Moore-Penrose
-      pseudo-inverse, so only the measured components are corrected (for position-only ``H``,
-      ``H⁺ = Hᵀ`` and the velocity is never corrected).
-    * ``artificial=FiniteDifferenceVelocity()`` (Sec. 4.2, complex scenario, Eq. (51)): the
-      corrector measures full-state pseudo-measurements with their own ``H`` and ``R``; ``psi``
-      then has one width per pseudo-measurement (``[500, 600, 500, 600]`` in the paper).
+    * artificial measurements (Sec. 4.2, complex scenario, Eq. (51)): the corrector measures
+      full-state pseudo-measurements with their own ``H`` and ``R``; ``psi`` then has one width
+      per pseudo-measurement, in state order (``[500, 600, 500, 600]`` in the paper). The default
+      ``artificial="auto"`` takes :class:`~torchsvs.filters.FiniteDifferenceVelocity` for a model
+      with positions and velocities (a position-only
+      :class:`~torchsvs.models.ConstantVelocity`), so the velocity is corrected too: without it
+      the velocity of a recorded track stays at whatever the prior gave, for ever.
+    * ``artificial=None`` (the paper's Sec. 4.1, ATC scenario; also what ``"auto"`` means for
+      other models): ``H⁺`` is the Moore-Penrose pseudo-inverse, so only the measured components
+      are corrected (for position-only ``H``, ``H⁺ = Hᵀ`` and the velocity is never corrected).
 
     Nonlinear models (Eqs. (11)-(21), Gadsden et al. 2012): the prediction is ``f(x̂)`` with the
     Jacobian ``F`` for the covariance, the innovation is ``z − h(x̂_{k+1|k})`` and ``H⁺`` is the
@@ -61,8 +78,9 @@ class SVSF(GaussianFilter):
         gamma: memory (convergence rate) γ in ``[0, 1)``.
         learn: hold ψ and γ as ``nn.Parameter`` s (stored as ``log ψ`` and ``logit γ``); ``False``
             makes them fixed buffers.
-        artificial: optional artificial measurement callable (see
-            :mod:`torchsvs.filters.artificial`).
+        artificial: ``"auto"`` (default: finite-difference velocity where the model has
+            positions and velocities, else none), an artificial measurement callable (see
+            :mod:`torchsvs.filters.artificial`), or ``None`` for the ``H⁺`` mode.
 
     A per-step ``psi=`` of shape ``[B, T, m]`` passed at call time replaces ψ (for an upstream
     network that drives the boundary layer).
@@ -81,9 +99,11 @@ class SVSF(GaussianFilter):
         psi: ArrayLike,
         gamma: float | torch.Tensor = 0.1,
         learn: bool = True,
-        artificial: ArtificialMeasurement | None = None,
+        artificial: ArtificialMeasurement | str | None = "auto",
     ) -> None:
         super().__init__(model)
+        if artificial == "auto":
+            artificial = auto_artificial(model)
         self.boundary_layer = Positive(psi, "psi", learn=learn)
         self.memory = UnitInterval(gamma, "gamma", learn=learn)
         if self.boundary_layer.raw.ndim > 1:
@@ -94,7 +114,7 @@ class SVSF(GaussianFilter):
         if self.memory.raw.ndim != 0:
             raise ValueError(f"gamma: expected a scalar, got shape {tuple(self.memory.raw.shape)}")
         if artificial is not None and not callable(artificial):
-            raise TypeError(f"artificial: expected a callable, got {type(artificial).__name__}")
+            raise TypeError(f"artificial: expected 'auto', a callable or None, got {artificial!r}")
         self.artificial = artificial
 
     @property
@@ -107,6 +127,22 @@ class SVSF(GaussianFilter):
         """Memory γ in [0, 1)."""
         return self.memory()
 
+    axis_rule: str | None = "svsf"
+
+    def axis_settings(self, inputs: Inputs) -> tuple[Tensor, Tensor]:
+        """ψ as ``[2, m]`` (rows: position, velocity widths per axis) or per step
+        ``[B, T, 2, m]``, and γ, for the per-axis kernel."""
+        dtype = inputs.z.dtype
+        widths = inputs.psi if inputs.psi is not None else self.psi.to(dtype)
+        m = self.model.meas_dim
+        if widths.ndim == 0:
+            return widths.expand(2, m), self.gamma.to(dtype)
+        if self.artificial is None:  # H⁺ mode: positions only (velocity widths unused)
+            widths = torch.stack([widths, torch.ones_like(widths)], dim=-2)
+        else:  # finite-difference velocity: state order p1, v1, p2, v2, ...
+            widths = widths.unflatten(-1, (m, 2)).transpose(-1, -2)
+        return widths, self.gamma.to(dtype)
+
     def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
         z, H, R = super().measurements(inputs)
         if self.artificial is not None:
@@ -115,9 +151,16 @@ class SVSF(GaussianFilter):
         m = z.shape[-1]
         widths = self.boundary_layer.raw.numel()
         if self.boundary_layer.raw.ndim == 1 and widths != m:
+            hint = (
+                f" (the {type(self.artificial).__name__} artificial measurement: a width per "
+                "state component, in state order; artificial=None is the H⁺ mode with one "
+                "width per measured component)"
+                if self.artificial is not None
+                else ""
+            )
             raise ValueError(
-                f"psi: expected {m} boundary layer widths (one per corrector measurement), "
-                f"got {widths}"
+                f"psi: expected {m} boundary layer widths (one per corrector measurement"
+                f"{hint}), got {widths}"
             )
         if inputs.psi is not None and inputs.psi.shape[-1] != m:
             raise ValueError(
@@ -140,9 +183,7 @@ class SVSF(GaussianFilter):
             e = z - matvec(H, x_pred)  # Eq. (4)
         if mask is not None:
             e = e * mask
-            H_plus = torch.linalg.pinv(H * mask.unsqueeze(-1).to(dtype))  # zero columns if missing
-        else:
-            H_plus = torch.linalg.pinv(H)
+        H_plus = masked_pinv(H, mask)  # zero columns where missing
         memory = prev.post_innovation if prev is not None else torch.zeros_like(e)
         assert memory is not None
         K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)

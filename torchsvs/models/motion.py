@@ -29,6 +29,8 @@ class ConstantVelocity(LinearModel):
         r: measurement noise: a variance (scalar), per-axis variances ``[ndim]`` or a covariance
             ``[ndim, ndim]``.
         learn_noise: learn ``q`` (through its log) and ``R`` (through its Cholesky factor).
+        learn_q, learn_r: learn only one of them (each defaults to ``learn_noise``): tuning ``q``
+            on data whose sensor noise is known keeps ``R`` fixed.
 
     References:
         Chen, Xu, Yan, Li, "A Novel Smooth Variable Structure Smoother for Robust Estimation",
@@ -45,6 +47,8 @@ class ConstantVelocity(LinearModel):
         q: float = 0.16,
         r: ArrayLike = 1.0,
         learn_noise: bool = False,
+        learn_q: bool | None = None,
+        learn_r: bool | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(ndim, int) or ndim < 1:
@@ -54,7 +58,7 @@ class ConstantVelocity(LinearModel):
         self.ndim = ndim
         self.state_dim, self.meas_dim = 2 * ndim, ndim
         self.dt = float(dt)
-        self.q = Positive(q, "q", learn=learn_noise)
+        self.q = Positive(q, "q", learn=learn_noise if learn_q is None else learn_q)
         r_t = as_tensor(r, "r")
         if r_t.ndim == 0:
             r_t = r_t * torch.eye(ndim, dtype=r_t.dtype)
@@ -62,7 +66,7 @@ class ConstantVelocity(LinearModel):
             if r_t.shape[0] != ndim:
                 raise ValueError(f"r: expected {ndim} per-axis variances, got {tuple(r_t.shape)}")
             r_t = torch.diag(r_t)
-        self.R = SPDMatrix(r_t, "r", learn=learn_noise)
+        self.R = SPDMatrix(r_t, "r", learn=learn_noise if learn_r is None else learn_r)
         if self.R.raw.shape != (ndim, ndim):
             raise ValueError(f"r: expected shape [{ndim}, {ndim}], got {tuple(self.R.raw.shape)}")
         H = torch.zeros(ndim, 2 * ndim, dtype=r_t.dtype)

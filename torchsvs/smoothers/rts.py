@@ -8,7 +8,8 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Estimator, Inputs
-from torchsvs.filters.kalman import GaussianFilter
+from torchsvs.filters.kalman import GaussianFilter, block_diagonal, interleave
+from torchsvs.kernels import axes
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.types import FilterResult, SmootherResult
@@ -118,6 +119,9 @@ class RTSSmoother(Estimator):
     def run(self, inputs: Inputs) -> SmootherResult:
         return self.smooth(self.filter.run(inputs))
 
+    #: Γ is the projection gain ``P Hᵀ S⁻¹`` (SVSS) rather than the filter's (per-axis kernel)
+    projection_gain = False
+
     def innovation_gain(self, result: FilterResult, H: Tensor, PHt: Tensor, S: Tensor) -> Tensor:
         """``Γ_{k+1} [B, T-1, n, m]``: the filter's gain (RTS)."""
         return result.gain[:, 1:]
@@ -127,6 +131,9 @@ class RTSSmoother(Estimator):
         B, T = result.mean.shape[:2]
         if T == 1:
             return SmootherResult(result.mean, result.cov, result)
+        if result.axes is not None:  # the filter ran per axis: so does the smoother
+            (p, v), cov_axes = axes.smooth_axes(result.axes, self.projection_gain, self.lag)
+            return SmootherResult(interleave(p, v), block_diagonal(axes.full(cov_axes)), result)
         b = self._backward_terms(_shared_moments(result))
         if self.lag is None or self.lag >= T - 1:
             g, G, Z = self._fixed_interval(b)

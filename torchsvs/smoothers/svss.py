@@ -48,6 +48,8 @@ class SVSS(RTSSmoother):
     def __init__(self, filter: GaussianFilter, lag: int | None = 1) -> None:
         super().__init__(filter, lag)
 
+    projection_gain = True
+
     def innovation_gain(self, result: FilterResult, H: Tensor, PHt: Tensor, S: Tensor) -> Tensor:
         """``B_N = P_{N|N−1} Hᵀ S_N⁻¹`` (zero columns where missing)."""
         return right_psd_solve(PHt, S)

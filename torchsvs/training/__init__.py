@@ -1,12 +1,20 @@
 """Training torchsvs estimators with Lightning (the only package, with the CLI, that imports it).
 
 * :class:`ManeuveringTargetDataModule`: random maneuvering tracks, seeded splits.
+* :class:`RecordedTracksDataModule`: a fixed set of recorded tracks (no truth needed).
+* :func:`self_tune`: the fast truth-free fit behind ``torchsvs track --fit``.
 * :class:`EstimatorModule`: any torchsvs estimator as a LightningModule, with supervised and
   self-supervised losses.
 * ``torchsvs fit --config CONFIG.yaml``: the LightningCLI.
 """
 
-from torchsvs.training.data import ManeuverDataset, ManeuveringTargetDataModule, TrackBatch
+from torchsvs.training.data import (
+    ManeuverDataset,
+    ManeuveringTargetDataModule,
+    RecordedTracksDataModule,
+    TrackBatch,
+    recorded_batches,
+)
 from torchsvs.training.losses import (
     LOSSES,
     innovation_nll,
@@ -14,15 +22,21 @@ from torchsvs.training.losses import (
     stein_risk,
     supervised_mse,
 )
-from torchsvs.training.module import EstimatorModule, boundary_layer_modules
+from torchsvs.training.module import EstimatorModule, batch_loss, boundary_layer_modules
+from torchsvs.training.tuning import FitResult, self_tune
 
 __all__ = [
     "LOSSES",
     "EstimatorModule",
     "ManeuverDataset",
     "ManeuveringTargetDataModule",
+    "RecordedTracksDataModule",
+    "FitResult",
     "TrackBatch",
+    "batch_loss",
     "boundary_layer_modules",
+    "recorded_batches",
+    "self_tune",
     "innovation_nll",
     "prediction_error",
     "stein_risk",

@@ -11,17 +11,23 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
+from torchsvs.datasets.tracks import RecordedTracks
 from torchsvs.scenarios.maneuver import ManeuverRanges
 from torchsvs.scenarios.paper import random_scenario
 
 
 class TrackBatch(NamedTuple):
-    """One training batch: measurements, truth and the filters' prior."""
+    """One training batch: measurements, the filters' prior, and truth where there is any."""
 
-    z: Tensor  #: [B, T, 2], NaN where missing
-    truth: Tensor  #: [B, T, 4]
-    x0: Tensor  #: [B, 4], drawn from N(true initial state, P0)
-    P0: Tensor  #: [4, 4]
+    z: Tensor  #: [B, T, m], NaN where missing
+    truth: Tensor | None  #: [B, T, n] (simulated tracks), None for recorded ones
+    x0: Tensor  #: [B, n] (simulated: drawn from N(true initial state, P0))
+    P0: Tensor  #: [n, n] or [B, n, n]
+    dt: Tensor | None = None  #: [B, T] per-step intervals (recorded tracks)
+    scored: Tensor | None = None  #: [B, T] steps the losses count (default: all)
+    #: [m] measurement variance the priors were built from: when set, ``x0, P0`` are two-point
+    #: priors of ``z`` and are rebuilt from any perturbed ``z`` (SURE's second pass)
+    prior_var: Tensor | None = None
 
 
 class ManeuverDataset(Dataset[TrackBatch]):
@@ -168,3 +174,146 @@ class ManeuveringTargetDataModule(L.LightningDataModule):
 
 def _identity(batch: Any) -> Any:
     return batch
+
+
+def recorded_batches(
+    tracks: RecordedTracks,
+    meas_var: Tensor,
+    window: int | None = 128,
+    burn_in: int = 16,
+    batch_size: int | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> list[TrackBatch]:
+    """Recorded tracks as training batches: cut into windows (:func:`~torchsvs.datasets.tracks.
+    windows`; ``window=None`` keeps whole tracks), each moved to start near 0, with two-point
+    priors rebuilt from its own measurements (``prior_var``), in batches of ``batch_size``
+    windows (``None``: one batch)."""
+    from torchsvs.datasets import two_point_prior
+    from torchsvs.datasets.tracks import windows as cut_windows
+
+    if window is not None:
+        pieces, scored = cut_windows(tracks, window, burn_in)
+    else:
+        pieces, scored = tracks, tracks.mask
+    z = pieces.z.to(dtype)
+    observed = ~torch.isnan(z)
+    first = observed.to(torch.int64).argmax(dim=1, keepdim=True)
+    offset = z.nan_to_num(0.0).gather(1, first)  # [N, 1, m]
+    z = z - offset
+    truth = pieces.truth
+    if truth is not None:
+        truth = truth.to(dtype).clone()
+        truth[..., 0::2] -= offset
+    dt = pieces.dt.to(dtype)
+    var = meas_var.to(dtype)
+    size = batch_size or len(pieces)
+    batches = []
+    for start in range(0, len(pieces), size):
+        part = slice(start, start + size)
+        prior = two_point_prior(z[part], dt[part], var)
+        batches.append(
+            TrackBatch(
+                z=z[part],
+                truth=None if truth is None else truth[part],
+                x0=prior.x0,
+                P0=prior.P0,
+                dt=dt[part],
+                scored=scored[part],
+                prior_var=var,
+            )
+        )
+    return batches
+
+
+class RecordedTracksDataModule(L.LightningDataModule):
+    """A fixed set of recorded tracks, split by track into training and validation, cut into
+    windows (needs no truth; RMSE is logged where the tracks carry ``truth``).
+
+    Args:
+        tracks: the tracks (e.g. from :func:`~torchsvs.datasets.read_tracks`).
+        meas_std: the sensor's noise standard deviation (a number or one per axis) for the
+            priors and for SURE; ``None`` estimates it from the training tracks
+            (:func:`~torchsvs.datasets.estimate_noise`).
+        val_fraction: share of the tracks held out for validation (at least one when there
+            are two or more).
+        window, burn_in: window length and overlap (see :func:`recorded_batches`).
+        batch_size: windows per batch.
+        seed: of the split and of the shuffling.
+        double: float64 batches (default float32).
+    """
+
+    def __init__(
+        self,
+        tracks: RecordedTracks,
+        meas_std: float | list[float] | None = None,
+        val_fraction: float = 0.25,
+        window: int = 128,
+        burn_in: int = 16,
+        batch_size: int = 64,
+        seed: int = 0,
+        double: bool = False,
+    ) -> None:
+        super().__init__()
+        if not 0.0 <= val_fraction < 1.0:
+            raise ValueError(f"val_fraction: expected a value in [0, 1), got {val_fraction!r}")
+        self.tracks, self.window, self.burn_in = tracks, window, burn_in
+        self.batch_size, self.seed = batch_size, seed
+        self.dtype = torch.float64 if double else torch.float32
+        count = len(tracks)
+        order = torch.randperm(count, generator=torch.Generator().manual_seed(seed))
+        held = min(count - 1, max(1 if count >= 2 else 0, round(val_fraction * count)))
+        self.val_index, self.train_index = order[:held].sort().values, order[held:].sort().values
+        train = tracks.subset(self.train_index)
+        if meas_std is None:
+            from torchsvs.datasets import estimate_noise
+
+            self.meas_var = estimate_noise(train.z.double(), train.dt.double()).meas_var.double()
+        else:
+            std = torch.as_tensor(meas_std, dtype=torch.float64).reshape(-1)
+            self.meas_var = std.expand(tracks.z.shape[-1]).square()
+        self.batches: dict[str, list[TrackBatch]] = {}
+
+    @property
+    def meas_cov(self) -> Tensor:
+        """The measurement covariance the batches assume, ``[m, m]`` (for SURE)."""
+        return torch.diag(self.meas_var)
+
+    def setup(self, stage: str | None = None) -> None:
+        for split, index in (("train", self.train_index), ("val", self.val_index)):
+            if split not in self.batches and len(index):
+                self.batches[split] = recorded_batches(
+                    self.tracks.subset(index),
+                    self.meas_var,
+                    self.window,
+                    self.burn_in,
+                    self.batch_size,
+                    self.dtype,
+                )
+
+    def train_dataloader(self) -> DataLoader:
+        gen = torch.Generator().manual_seed(self.seed)
+        return DataLoader(
+            _Batches(self.batches["train"]),
+            batch_size=None,
+            shuffle=True,
+            generator=gen,
+            collate_fn=_identity,
+        )
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader(
+            _Batches(self.batches.get("val", [])), batch_size=None, collate_fn=_identity
+        )
+
+
+class _Batches(Dataset[TrackBatch]):
+    """Ready-made batches as a dataset (each item one batch)."""
+
+    def __init__(self, batches: list[TrackBatch]) -> None:
+        self.items = batches
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, index: int) -> TrackBatch:
+        return self.items[index]

@@ -22,34 +22,54 @@ def _filtered(result: Result) -> FilterResult:
     return result.filtered if isinstance(result, SmootherResult) else result
 
 
-def supervised_mse(result: Result, truth: Tensor, components: Sequence[int] = (0, 2)) -> Tensor:
+def _scored_mask(mask: Tensor, scored: Tensor | None) -> Tensor:
+    """The observed components ``[B, T, m]`` of the steps a loss counts."""
+    return mask if scored is None else mask & scored.unsqueeze(-1)
+
+
+def supervised_mse(
+    result: Result, truth: Tensor, components: Sequence[int] = (0, 2), scored: Tensor | None = None
+) -> Tensor:
     """Mean squared error of the estimate (smoothed, for a smoother) to the truth on
-    ``components`` (default: the positions of ``[x, vx, y, vy]``)."""
+    ``components`` (default: the positions of ``[x, vx, y, vy]``), over the ``scored [B, T]``
+    steps (default: all)."""
     index = list(components)
-    return (result.mean[..., index] - truth[..., index]).square().mean()
+    error = (result.mean[..., index] - truth[..., index]).square()
+    if scored is None:
+        return error.mean()
+    weight = scored.unsqueeze(-1).to(error.dtype)
+    return (error * weight).sum() / (weight.sum() * len(index)).clamp_min(1.0)
 
 
-def innovation_nll(result: Result) -> Tensor:
+def innovation_nll(result: Result, scored: Tensor | None = None) -> Tensor:
     """Negative log-likelihood of the filter's a-priori innovations, ``e_t ~ N(0, S_t)`` with
-    ``S_t = H P_{t|t-1} Hᵀ + R``, per observed component (needs no truth)."""
+    ``S_t = H P_{t|t-1} Hᵀ + R``, per observed component of the ``scored`` steps (needs no
+    truth). Uses the ``S`` the filter recorded where it did (KF)."""
     res = _filtered(result)
-    H, R = mask_measurement(res.meas_matrix, res.meas_cov, res.mask)
-    S = symmetrize(H @ res.pred_cov @ H.mT + R)
+    S = res.innovation_cov
+    if S is None:
+        H, R = mask_measurement(res.meas_matrix, res.meas_cov, res.mask)
+        S = symmetrize(H @ res.pred_cov @ H.mT + R)
     L = cholesky(S)
     white = torch.linalg.solve_triangular(L, res.innovation.unsqueeze(-1), upper=False)
     log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     observed = res.mask.sum(-1).to(S.dtype)
     nll = 0.5 * (white.square().sum((-2, -1)) + log_det + observed * math.log(2 * math.pi))
+    if scored is not None:
+        weight = scored.to(S.dtype)
+        return (nll * weight).sum() / (observed * weight).sum().clamp_min(1.0)
     return nll.sum() / observed.sum().clamp_min(1.0)
 
 
-def prediction_error(result: Result) -> Tensor:
-    """Next-measurement prediction error: mean of ``e_{t|t-1}² / R_ii`` over observed components,
-    the one-step-ahead error of predicting ``z_t`` from ``z_1..z_{t-1}`` (needs no truth)."""
+def prediction_error(result: Result, scored: Tensor | None = None) -> Tensor:
+    """Next-measurement prediction error: mean of ``e_{t|t-1}² / R_ii`` over observed components
+    of the ``scored`` steps, the one-step-ahead error of predicting ``z_t`` from
+    ``z_1..z_{t-1}`` (needs no truth)."""
     res = _filtered(result)
     variance = res.meas_cov.diagonal(dim1=-2, dim2=-1)
     normalised = res.innovation.square() / variance
-    return (normalised * res.mask).sum() / res.mask.sum().clamp_min(1)
+    mask = _scored_mask(res.mask, scored)
+    return (normalised * mask).sum() / mask.sum().clamp_min(1)
 
 
 #: Loss names of :class:`~torchsvs.training.EstimatorModule`: "supervised" needs truth; "sure",
@@ -58,23 +78,22 @@ LOSSES = ("supervised", "sure", "nll", "prediction")
 
 
 def stein_risk(
-    estimator: Callable[..., Result],
+    rerun: Callable[[Tensor], Result],
     result: Result,
     z: Tensor,
-    x0: Tensor,
-    P0: Tensor,
     H: Tensor,
     R: Tensor,
     generator: torch.Generator | None = None,
     step: float = 0.3,
+    scored: Tensor | None = None,
 ) -> Tensor:
-    """Monte Carlo SURE: an unbiased estimate of the measured-component MSE without truth.
+    r"""Monte Carlo SURE: an unbiased estimate of the measured-component MSE without truth.
 
     For measurements ``z = Hx + v`` with known Gaussian noise ``v ~ N(0, R)`` (diagonal ``R``) and
     an estimate ``f(z) = H x̂(z)``, Stein's unbiased risk estimate per component is
 
     .. math::
-        \\frac{(z_i - f_i)^2}{R_{ii}} - 1 + 2\\,\\frac{\\partial f_i}{\\partial z_i},
+        \frac{(z_i - f_i)^2}{R_{ii}} - 1 + 2\,\frac{\partial f_i}{\partial z_i},
 
     whose mean equals ``E[(f_i − (Hx)_i)² / R_ii]``. The divergence is estimated with one
     Rademacher probe ``ε`` and a finite difference (Ramani, Blu, Unser 2008):
@@ -86,22 +105,31 @@ def stein_risk(
     as :func:`supervised_mse` on the measured components, so it can tune ψ for smoothing accuracy
     (where the one-step prediction error rewards following the measurements).
 
+    ``R`` must be the sensor's noise, known or estimated beforehand, never a parameter being
+    fitted: the risk is measured in its units, and a learnable ``R`` would let the fit shrink the
+    risk by inflating it.
+
     Args:
-        estimator: the estimator, called once more on the perturbed measurements.
-        result: its result on ``z``.
-        z, x0, P0: its inputs.
+        rerun: the estimate as a function of the measurements, ``z ↦ result`` (everything else
+            that depends on ``z``, such as priors from the first measurements, recomputed).
+        result: ``rerun(z)``.
+        z: the measurements ``[B, T, m]``.
         H, R: measurement matrix and (diagonal) noise covariance of ``z``.
         generator: source of the probe.
         step: finite-difference step in units of σ.
+        scored: ``[B, T]`` True at the steps the risk averages over (default: all).
 
     Returns the mean risk per observed component (in units of ``R``).
     """
+    R = R.detach()
     std = R.diagonal(dim1=-2, dim2=-1).sqrt()
     observed = ~torch.isnan(z)
+    if scored is not None:
+        observed = observed & scored.unsqueeze(-1)
     count = observed.sum().clamp_min(1)
     f = result.mean @ H.mT
     residual = ((z.nan_to_num(0.0) - f) / std).square() * observed
     probe = (torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1) * observed
-    f_shift = estimator(z + step * std * probe, x0, P0).mean @ H.mT
+    f_shift = rerun(z + step * std * probe).mean @ H.mT
     divergence = (probe * (f_shift - f) / (step * std)).sum()
     return (residual.sum() + 2.0 * divergence) / count - 1.0

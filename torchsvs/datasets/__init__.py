@@ -1,0 +1,45 @@
+"""Recorded tracks: track files and ADS-B samples into padded batches, estimates back out.
+
+Knows no estimator. ``read_tracks`` gives a :class:`RecordedTracks` batch (``z [B, T, m]`` with
+NaN where missing or padded, per-step ``dt [B, T]``, lengths, priors ``x0, P0`` from the first
+measurements, ids and times) and a :class:`RowReport` saying what happened to every row;
+``write_estimates`` writes one output row per input row.
+"""
+
+from torchsvs.datasets.files import (
+    EstimateWriter,
+    TrackBlock,
+    estimate_table,
+    meas_variance,
+    read_tracks,
+    state_names,
+    track_blocks,
+    with_prior,
+    write_estimates,
+)
+from torchsvs.datasets.priors import NoiseEstimate, Prior, estimate_noise, two_point_prior
+from torchsvs.datasets.rows import NOTES, SET_ASIDE, Columns, RowReport
+from torchsvs.datasets.tracks import RecordedTracks, TrackSteps, group_rows
+
+__all__ = [
+    "NOTES",
+    "SET_ASIDE",
+    "Columns",
+    "EstimateWriter",
+    "NoiseEstimate",
+    "Prior",
+    "RecordedTracks",
+    "RowReport",
+    "TrackBlock",
+    "TrackSteps",
+    "estimate_noise",
+    "estimate_table",
+    "group_rows",
+    "meas_variance",
+    "read_tracks",
+    "state_names",
+    "track_blocks",
+    "two_point_prior",
+    "with_prior",
+    "write_estimates",
+]

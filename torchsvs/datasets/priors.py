@@ -1,0 +1,230 @@
+"""What the measurements say before any estimator runs: priors and noise levels.
+
+* :func:`two_point_prior`: the estimators' prior ``x0, P0`` from each track's first two observed
+  positions (two-point differencing).
+* :func:`estimate_noise`: the measurement noise variance per axis and a nearly-constant-velocity
+  process noise ``q`` from the spread of the positions around straight lines (method of moments).
+
+Both work on padded batches ``z [B, T, m]`` with per-step intervals ``dt [B, T]`` and return the
+layout of :class:`~torchsvs.models.ConstantVelocity` (position, velocity per axis).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+#: Default factor on the two-point covariance (see :func:`two_point_prior`).
+PRIOR_INFLATION = 4.0
+
+
+class Prior(NamedTuple):
+    """A prior one step before ``z[:, 0]`` and what it could not see."""
+
+    x0: Tensor  #: [B, 2m] mean, (position, velocity) per axis
+    P0: Tensor  #: [B, 2m, 2m] covariance
+    single_point: Tensor  #: [B, m] bool: the axis is observed once (velocity prior 0, wide)
+    never_observed: Tensor  #: [B, m] bool: the axis is never observed
+
+
+def _first_two(observed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Indices of the first and second observed step per ``[B, m]`` and whether they exist."""
+    T = observed.shape[1]
+    index = torch.arange(T).view(1, T, 1).expand_as(observed)
+    big = torch.full_like(index, T)
+    first = torch.where(observed, index, big).amin(dim=1)  # [B, m]
+    later = observed & (index > first.unsqueeze(1))
+    second = torch.where(later, index, big).amin(dim=1)
+    return first.clamp_max(T - 1), second.clamp_max(T - 1), first < T, second < T
+
+
+def two_point_prior(
+    z: Tensor,
+    dt: Tensor,
+    meas_var: Tensor | float,
+    inflation: float = PRIOR_INFLATION,
+    speed_std: float | None = None,
+) -> Prior:
+    r"""The prior from each track's first two observed positions (two-point differencing).
+
+    Per axis, with the first two observed positions :math:`z_a, z_b` at times
+    :math:`t_a < t_b` and :math:`\Delta = t_b - t_a`, the velocity is
+    :math:`v = (z_b - z_a)/\Delta` and the position at the prior's time :math:`t_p` (one step,
+    ``dt[:, 0]``, before the first step) is :math:`p = z_a + v (t_p - t_a) = (1 - c) z_a + c z_b`,
+    :math:`c = (t_p - t_a)/\Delta`. With measurement variance :math:`r`, their covariance is
+
+    .. math::
+        \mathrm{Var}\,p = r\,((1-c)^2 + c^2),\quad \mathrm{Cov}(p, v) = r\,(2c - 1)/\Delta,
+        \quad \mathrm{Var}\,v = 2r/\Delta^2
+
+    (Bar-Shalom, Li, Kirubarajan 2001, Sec. 5.5.3, moved to :math:`t_p`). The estimator then
+    reads :math:`z_a, z_b` again, so the covariance is multiplied by ``inflation`` (default 4):
+    the prior then holds a quarter of their information and counting it twice barely matters,
+    while the mean starts the filter where the data are. Axes are independent (the diagonal of
+    ``meas_var``).
+
+    Fix-ups, flagged in the result: an axis observed once gets velocity 0 with standard deviation
+    ``speed_std`` (default: the largest two-point speed among the batch's tracks, or ten
+    measurement standard deviations per median interval if there is none); an axis never
+    observed gets mean 0 and unit variance (its estimates are not meaningful; writers mark them
+    NaN).
+
+    Args:
+        z: measurements ``[B, T, m]``, NaN where missing.
+        dt: intervals ``[B, T]`` (``dt[:, 0]`` from the prior to the first step).
+        meas_var: measurement noise variance per axis, a number or ``[m]``.
+        inflation: factor on the two-point covariance, ≥ 1.
+        speed_std: velocity standard deviation of an axis observed once.
+
+    Returns:
+        :class:`Prior` with ``x0 [B, 2m]`` and ``P0 [B, 2m, 2m]`` in the dtype of ``z``.
+
+    References:
+        Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to Tracking and Navigation",
+        Wiley, 2001. doi:10.1002/0471221279
+    """
+    if z.ndim != 3 or dt.shape != z.shape[:2]:
+        raise ValueError(
+            f"z, dt: expected [B, T, m] and [B, T], got {tuple(z.shape)}, {tuple(dt.shape)}"
+        )
+    if not inflation >= 1.0:
+        raise ValueError(f"inflation: expected a factor >= 1, got {inflation!r}")
+    B, T, m = z.shape
+    dtype = z.dtype
+    r = torch.as_tensor(meas_var, dtype=dtype).expand(m)
+    if not bool((r > 0).all()) or not bool(torch.isfinite(r).all()):
+        raise ValueError(f"meas_var: expected finite variances > 0, got {r.tolist()}")
+    observed = ~torch.isnan(z)
+    # Step times relative to the prior's time t_p = 0.
+    t = torch.cumsum(dt.to(torch.float64), dim=1).unsqueeze(-1).expand(B, T, m)
+    first, second, has_first, has_second = _first_two(observed)
+
+    def at(x: Tensor, index: Tensor) -> Tensor:
+        return x.gather(1, index.unsqueeze(1)).squeeze(1)  # [B, m]
+
+    t_a, t_b = at(t, first), at(t, second)
+    z_filled = z.nan_to_num(0.0)
+    z_a, z_b = at(z_filled, first), at(z_filled, second)
+
+    both = has_first & has_second
+    delta = torch.where(both, t_b - t_a, torch.ones_like(t_a)).to(dtype)
+    v = torch.where(both, (z_b - z_a) / delta, torch.zeros_like(z_a))
+    c = torch.where(both, -t_a.to(dtype) / delta, torch.zeros_like(delta))
+    pos = torch.where(both, (1 - c) * z_a + c * z_b, z_a)
+
+    if speed_std is None:
+        speeds = v.abs()[both]
+        median_dt = dt.median(dim=1).values.to(dtype)
+        fallback = (10.0 * r.sqrt().unsqueeze(0) / median_dt.unsqueeze(1)).amax()
+        speed_std = float(speeds.max()) if speeds.numel() else float(fallback)
+        speed_std = max(speed_std, 1e-12)
+    var_p = torch.where(both, r * ((1 - c) ** 2 + c**2), r.expand(B, m))
+    cov_pv = torch.where(both, r * (2 * c - 1) / delta, torch.zeros_like(delta))
+    var_v = torch.where(both, 2 * r / delta**2, torch.full_like(delta, speed_std**2))
+    # Mean 0, unit variance where the axis is never seen; at a single point the position is the
+    # point itself (t_p is before it, but its velocity is unknown: var_v covers the offset).
+    single = has_first & ~has_second
+    t_a_d = t_a.to(dtype)
+    var_p = torch.where(single, r + var_v * t_a_d**2, var_p)
+    cov_pv = torch.where(single, -var_v * t_a_d, cov_pv)
+    pos = torch.where(has_first, pos, torch.zeros_like(pos))
+    var_p = torch.where(has_first, var_p, torch.ones_like(var_p))
+    var_v = torch.where(has_first, var_v, torch.ones_like(var_v))
+
+    x0 = torch.stack([pos, v], dim=-1).reshape(B, 2 * m)
+    blocks = torch.stack(
+        [torch.stack([var_p, cov_pv], -1), torch.stack([cov_pv, var_v], -1)], -2
+    )  # [B, m, 2, 2]
+    P0 = torch.zeros(B, 2 * m, 2 * m, dtype=dtype)
+    for j in range(m):
+        P0[:, 2 * j : 2 * j + 2, 2 * j : 2 * j + 2] = blocks[:, j]
+    P0 = P0 * torch.where(has_first, inflation, 1.0).repeat_interleave(2, dim=1).unsqueeze(-1)
+    P0 = 0.5 * (P0 + P0.mT)
+    return Prior(x0, P0, single, ~has_first)
+
+
+class NoiseEstimate(NamedTuple):
+    """Noise levels read off the data (:func:`estimate_noise`)."""
+
+    meas_var: Tensor  #: [m] measurement noise variance per axis
+    q: float  #: power spectral density of a nearly-constant-velocity model (units²/s³)
+    triplets: int  #: how many triplets of positions it used
+
+
+def estimate_noise(z: Tensor, dt: Tensor, scales: tuple[int, ...] = (1, 2)) -> NoiseEstimate:
+    r"""Measurement noise and process noise of a nearly constant velocity model, from the data.
+
+    For three observed positions at :math:`t_0 < t_1 < t_2` (:math:`h_1 = t_1 - t_0`,
+    :math:`h_2 = t_2 - t_1`, :math:`H = h_1 + h_2`), the residual of the middle one from the
+    straight line through the outer two, :math:`\rho = z_1 - (h_2 z_0 + h_1 z_2)/H`, is zero for
+    constant velocity. Under the model of :class:`~torchsvs.models.ConstantVelocity` (white
+    acceleration of spectral density :math:`q`) plus white measurement noise of variance
+    :math:`r`,
+
+    .. math::
+        E\rho^2 = r\,\big(1 + (h_2/H)^2 + (h_1/H)^2\big) + q\,\frac{h_1^2 h_2^2}{3H}
+
+    (the second term is :math:`q\int k(s)^2 ds` for the residual's kernel on the integrated
+    Wiener process). Triplets ``s`` steps apart for each of ``scales`` give a linear regression
+    of :math:`\rho^2` on the two terms; its least-squares solution (per axis for :math:`r`,
+    shared :math:`q`) is returned, refitted twice without the residuals beyond five standard
+    deviations of the fit (outliers, sharp maneuvers). Maneuvers are not white noise, so
+    :math:`q` is a starting point for tuning, not an answer; :math:`r` is reliable wherever the
+    noise dominates the motion between samples.
+
+    Args:
+        z: measurements ``[B, T, m]``, NaN where missing.
+        dt: intervals ``[B, T]``.
+        scales: step spacings of the triplets.
+    """
+    B, T, m = z.shape
+    t = torch.cumsum(dt.to(torch.float64), dim=1)
+    zz = z.to(torch.float64)
+    rows_a, rows_c, targets, axis_of = [], [], [], []
+    for s in scales:
+        if T <= 2 * s:
+            continue
+        z0, z1, z2 = zz[:, : T - 2 * s], zz[:, s : T - s], zz[:, 2 * s :]
+        t0, t1, t2 = t[:, : T - 2 * s], t[:, s : T - s], t[:, 2 * s :]
+        h1, h2 = (t1 - t0).unsqueeze(-1), (t2 - t1).unsqueeze(-1)
+        H = h1 + h2
+        rho = z1 - (h2 * z0 + h1 * z2) / H
+        a = 1 + (h2 / H) ** 2 + (h1 / H) ** 2
+        c = h1**2 * h2**2 / (3 * H)
+        ok = torch.isfinite(rho)
+        rows_a.append(a.expand_as(rho)[ok])
+        rows_c.append(c.expand_as(rho)[ok])
+        targets.append(rho[ok].square())
+        axis_of.append(torch.arange(m).expand_as(rho)[ok])
+    if not targets or sum(x.numel() for x in targets) < 3 * m:
+        raise ValueError(
+            "z: too few triplets of observed positions to estimate the noise; "
+            "give the measurement noise (meas_std) and q explicitly"
+        )
+    a, c, y, axis = (torch.cat(v) for v in (rows_a, rows_c, targets, axis_of))
+    # Unknowns: r_1..r_m, q. Design: a on its axis's column, c on the last.
+    X = torch.zeros(y.numel(), m + 1, dtype=torch.float64)
+    X[torch.arange(y.numel()), axis] = a
+    X[:, m] = c
+    scale = X.abs().amax(dim=0).clamp_min(1e-300)
+    keep = torch.ones_like(y, dtype=torch.bool)
+    for _ in range(3):
+        # Least squares, then without the residuals beyond 5σ of the fit (outliers, sharp
+        # maneuvers; a Gaussian loses 6e-7 of its mass there), twice.
+        fit = torch.linalg.lstsq(X[keep] / scale, y[keep].unsqueeze(-1)).solution.squeeze(-1)
+        solution = fit / scale
+        variance = (X @ solution).clamp_min(torch.finfo(torch.float64).tiny)
+        keep = y <= 25.0 * variance
+    r, q = solution[:m], float(solution[m])
+    if q <= 0 or not (r > 0).all():
+        # Noise alone explains the spread (or the motion alone): fall back to the shortest
+        # scale for r and a small q.
+        short = c <= torch.quantile(c, 0.5)
+        r = torch.stack(
+            [(y[short & (axis == j)] / a[short & (axis == j)]).mean() for j in range(m)]
+        )
+        h = dt.median().double()
+        q = max(q, float(1e-3 * r.mean() / h**3))
+    return NoiseEstimate(r.to(z.dtype), q, int(y.numel()))

@@ -1,0 +1,424 @@
+"""Tracking recorded files: estimators by name, their settings from the data, and the loop
+behind ``torchsvs track``.
+
+Every estimator runs on a nearly-constant-velocity model (:class:`~torchsvs.models.
+ConstantVelocity`) of the file's axes. What the model needs and the user did not give comes from
+the data: the measurement noise and ``q`` from :func:`~torchsvs.datasets.estimate_noise`, the
+priors from two-point differencing, and the SVSF's boundary layer from the rule of thumb
+:func:`rule_of_thumb_psi`. ``--fit`` then tunes them on the file itself
+(:func:`torchsvs.training.tuning.self_tune`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from torchsvs.datasets import (
+    Columns,
+    EstimateWriter,
+    RecordedTracks,
+    RowReport,
+    estimate_noise,
+    estimate_table,
+    track_blocks,
+    with_prior,
+)
+from torchsvs.datasets.files import scatter_steps
+from torchsvs.estimator import Estimator
+from torchsvs.filters import (
+    SPVSF,
+    SVSF,
+    ExtendedKalmanFilter,
+    KalmanFilter,
+    ParticleFilter,
+    RobustStudentTKalmanFilter,
+    UnscentedKalmanFilter,
+)
+from torchsvs.models import ConstantVelocity
+from torchsvs.smoothers import SVSS, RTSSmoother
+
+#: Estimator names of ``torchsvs track --estimator`` and what they are.
+ESTIMATORS = {
+    "kf": "Kalman filter",
+    "ks": "Kalman smoother (RTS; fixed interval unless --lag)",
+    "svsf": "smooth variable structure filter",
+    "svss": "smooth variable structure smoother (fixed lag)",
+    "svstps": "two-pass smoother: RTS over the SVSF (fixed lag)",
+    "ekf": "extended Kalman filter (the KF on this linear model)",
+    "ukf": "unscented Kalman filter (the KF on this linear model)",
+    "rstkf": "robust Student's t Kalman filter",
+    "pf": "SIR particle filter",
+    "spvsf": "smooth particle variable structure filter",
+}
+#: Lag of each smoother when none is given (``None``: fixed interval).
+DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 2, "svstps": 1}
+#: Boundary layer of the rule of thumb, in noise standard deviations of each component.
+PSI_IN_SIGMAS = 5.0
+
+
+@dataclass
+class Settings:
+    """What an estimator of :data:`ESTIMATORS` is built from (per-axis lists for an ``m``-axis
+    file; the SVSF's ``psi`` has one width per corrector component, in state order)."""
+
+    estimator: str = "svss"
+    meas_var: list[float] | None = None  #: measurement noise variance per axis
+    q: float | None = None  #: process noise spectral density of the CV model
+    psi: list[float] | None = None  #: SVSF boundary layer; None: :func:`rule_of_thumb_psi`
+    gamma: float = 0.1  #: SVSF memory
+    lag: int | None = None  #: smoother lag; None: :data:`DEFAULT_LAG`
+    velocity: bool = True  #: SVSF corrects velocity (finite differences); False: the H⁺ mode
+    particles: int = 350  #: particles of the PF and SPVSF
+    interval: float = 1.0  #: typical sampling interval of the data (s), for the rule of thumb
+
+    def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(
+                f"estimator: expected one of {sorted(ESTIMATORS)}, got {self.estimator!r}"
+            )
+        if self.lag is not None and (
+            isinstance(self.lag, bool) or not isinstance(self.lag, int) or self.lag < 1
+        ):
+            raise ValueError(f"lag: expected an integer >= 1, got {self.lag!r}")
+        if not 0.0 <= self.gamma < 1.0:
+            raise ValueError(f"gamma: expected a value in [0, 1), got {self.gamma!r}")
+        if self.q is not None and not self.q > 0:
+            raise ValueError(f"q: expected a number > 0, got {self.q!r}")
+        if self.psi is not None and not all(p > 0 for p in self.psi):
+            raise ValueError(f"psi: expected widths > 0, got {self.psi!r}")
+
+    @property
+    def smoother_lag(self) -> int | None:
+        return self.lag if self.lag is not None else DEFAULT_LAG.get(self.estimator)
+
+
+def rule_of_thumb_psi(
+    meas_var: Sequence[float], interval: float, velocity: bool = True
+) -> list[float]:
+    """ψ of :data:`PSI_IN_SIGMAS` noise standard deviations per corrector component.
+
+    Chen et al. 2020 use ψ = 800 m for 200 m noise (Sec. 4.1) and 500 m / 600 m/s for 100 m
+    noise with finite-difference velocities (Sec. 4.2, whose noise is √2·100 m/s at T = 1 s):
+    four to five standard deviations. A velocity from two positions ``interval`` apart has
+    standard deviation ``√(2 r)/interval``.
+    """
+    widths = []
+    for r in meas_var:
+        widths.append(PSI_IN_SIGMAS * float(r) ** 0.5)
+        if velocity:
+            widths.append(PSI_IN_SIGMAS * (2.0 * float(r)) ** 0.5 / interval)
+    return widths
+
+
+def make_model(
+    settings: Settings, learn_q: bool = False, learn_r: bool = False
+) -> ConstantVelocity:
+    """The nearly-constant-velocity model of the settings (``meas_var`` and ``q`` must be set)."""
+    if settings.meas_var is None or settings.q is None:
+        raise ValueError("settings: meas_var and q must be known before the model is built")
+    return ConstantVelocity(
+        ndim=len(settings.meas_var),
+        dt=settings.interval,
+        q=settings.q,
+        r=list(settings.meas_var),
+        learn_q=learn_q,
+        learn_r=learn_r,
+    )
+
+
+def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
+    """The estimator ``settings.estimator`` on ``model``."""
+    name = settings.estimator
+    if name in ("kf", "ks"):
+        kf = KalmanFilter(model)
+        return kf if name == "kf" else RTSSmoother(kf, lag=settings.smoother_lag)
+    if name == "ekf":
+        return ExtendedKalmanFilter(model)
+    if name == "ukf":
+        return UnscentedKalmanFilter(model)
+    if name == "rstkf":
+        return RobustStudentTKalmanFilter(model)
+    if name == "pf":
+        return ParticleFilter(model, num_particles=settings.particles)
+    assert settings.meas_var is not None
+    psi = settings.psi or rule_of_thumb_psi(settings.meas_var, settings.interval, settings.velocity)
+    artificial = "auto" if settings.velocity else None
+    if name == "spvsf":
+        return SPVSF(
+            model,
+            psi=psi,
+            gamma=settings.gamma,
+            num_particles=settings.particles,
+            artificial=artificial,
+        )
+    svsf = SVSF(model, psi=psi, gamma=settings.gamma, artificial=artificial)
+    if name == "svsf":
+        return svsf
+    if name == "svss":
+        return SVSS(svsf, lag=settings.smoother_lag)
+    return RTSSmoother(svsf, lag=settings.smoother_lag)
+
+
+def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
+    """Fills what the settings leave open from the data: noise levels and the typical interval."""
+    interval = float(tracks.dt[tracks.mask].median()) if len(tracks) else 1.0
+    meas_var, q = settings.meas_var, settings.q
+    if meas_var is None or q is None:
+        try:
+            noise = estimate_noise(tracks.z, tracks.dt)
+        except ValueError as err:
+            if meas_var is None:
+                raise ValueError(
+                    "meas_std: too few observed positions to read the measurement noise off the "
+                    "data; give it (--meas-std) and the process noise (--q)"
+                ) from err
+            # Too little data to say: process noise worth the measurement noise over one step.
+            noise = None
+        meas_var = meas_var if meas_var is not None else noise.meas_var.double().tolist()  # type: ignore[union-attr]
+        if q is None:
+            q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
+    m = tracks.z.shape[-1]
+    if len(meas_var) == 1 and m > 1:
+        meas_var = list(meas_var) * m
+    if len(meas_var) != m:
+        raise ValueError(f"meas_std: expected one value or one per axis ({m}), got {len(meas_var)}")
+    psi = settings.psi
+    if psi is None and settings.estimator in ("svsf", "svss", "svstps", "spvsf"):
+        psi = rule_of_thumb_psi(meas_var, interval, settings.velocity)
+    return replace(
+        settings, meas_var=[float(v) for v in meas_var], q=float(q), interval=interval, psi=psi
+    )
+
+
+def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:
+    """The tracks moved so each starts near 0 (float32 keeps its resolution on large
+    coordinates), and the offsets ``[B, m]`` to add back."""
+    observed = ~torch.isnan(tracks.z)
+    first = observed.to(torch.int64).argmax(dim=1, keepdim=True)  # [B, 1, m]
+    offset = tracks.z.nan_to_num(0.0).gather(1, first).squeeze(1)
+    return replace(tracks, z=tracks.z - offset.unsqueeze(1)), offset
+
+
+def run_estimator(
+    estimator: nn.Module, tracks: RecordedTracks, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor]:
+    """Mean ``[B, T, 2m]`` and covariance of an estimator on tracks with priors (no gradients)."""
+    assert tracks.x0 is not None and tracks.P0 is not None
+    kwargs: dict[str, Any] = {"dt": tracks.dt}
+    if isinstance(estimator, ParticleFilter):
+        kwargs["generator"] = (
+            generator if generator is not None else torch.Generator().manual_seed(0)
+        )
+    with torch.no_grad():
+        out = estimator(tracks.z, tracks.x0, tracks.P0, **kwargs)
+    return out.mean, out.cov
+
+
+@dataclass
+class TrackRun:
+    """What ``torchsvs track`` did."""
+
+    report: RowReport = field(default_factory=RowReport)
+    settings: Settings | None = None
+    seconds: float = 0.0
+    estimate_seconds: float = 0.0
+    fit: Any = None  #: the fit's summary (:class:`~torchsvs.training.tuning.FitResult`)
+
+    def summary(self) -> str:
+        lines = [self.report.summary()]
+        if self.settings is not None:
+            shown = {k: v for k, v in asdict(self.settings).items() if v is not None}
+            lines.append("settings: " + ", ".join(f"{k}={_short(v)}" for k, v in shown.items()))
+        if self.fit is not None:
+            lines.append(self.fit.summary())
+        steps = self.report.placed
+        lines.append(
+            f"{self.seconds:.1f} s in all, {self.estimate_seconds:.1f} s estimating "
+            f"({1e6 * self.estimate_seconds / max(steps, 1):.2f} µs per row placed)"
+        )
+        return "\n".join(lines)
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_short(v) for v in value) + "]"
+    return str(value)
+
+
+def track_file(
+    source: str | Path,
+    target: str | Path,
+    settings: Settings,
+    *,
+    columns: Columns | None = None,
+    fit: bool = False,
+    fit_options: dict[str, Any] | None = None,
+    checkpoint: str | Path | None = None,
+    save: str | Path | None = None,
+    covariance: bool = False,
+    whole: bool | None = None,
+    block_rows: int = 1 << 20,
+    max_cells: int = 1 << 21,
+    dtype: torch.dtype = torch.float32,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> TrackRun:
+    """Estimates every track of a file and writes one output row per input row.
+
+    The file is read in blocks of complete tracks (``whole=None``: the whole file at once when
+    it is under 256 MB, else streamed; streaming needs each track's rows contiguous). Settings
+    the user left open are read off the first block (:func:`complete_settings`); with ``fit``
+    the estimator is tuned on the first block's tracks (up to ``fit_options["tracks"]``) without
+    truth before anything is written. Each block is estimated in groups of tracks of similar
+    length of at most ``max_cells`` padded steps, so memory stays bounded.
+
+    Args:
+        source, target: input and output files (``.csv`` or ``.parquet`` each).
+        settings: the estimator and whatever of its settings are known.
+        columns: the input's column names.
+        fit: tune the estimator on the data first (:func:`~torchsvs.training.tuning.self_tune`).
+        fit_options: keyword arguments of the fit.
+        checkpoint: load the estimator's parameters from this file (``--save`` output or a
+            Lightning checkpoint of :class:`~torchsvs.training.EstimatorModule`).
+        save: save the settings and the (fitted) parameters here.
+        covariance: also write the covariance of every estimate.
+        whole: read the whole file at once (True), stream it (False) or decide by size (None).
+        block_rows: rows per block when streaming.
+        max_cells: padded steps per estimator call.
+        dtype: of the computation (positions are centred per track, so float32 keeps its
+            resolution on large coordinates).
+        progress: show a progress bar (tqdm, on stderr).
+        log: where to print what was read off the data (default: nowhere).
+    """
+    from tqdm.auto import tqdm
+
+    start = time.perf_counter()
+    say = log or (lambda _: None)
+    if whole is None:
+        whole = Path(source).stat().st_size < 256 << 20
+    run = TrackRun()
+    estimator: nn.Module | None = None
+    generator = torch.Generator().manual_seed(0)
+    bar: Any = None
+    with EstimateWriter(target) as writer:
+        for block in track_blocks(source, columns, block_rows=block_rows, whole=whole):
+            steps = block.steps
+            if estimator is None:
+                sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
+                settings = complete_settings(settings, sample)
+                say(_settings_note(settings))
+                estimator, settings, run.fit = _prepare(
+                    settings, sample, fit, fit_options, checkpoint, save, say
+                )
+                estimator = estimator.to(dtype)
+                run.settings = settings
+                bar = tqdm(desc="tracks", unit=" tracks", disable=not progress, leave=False)
+            assert run.settings is not None and run.settings.meas_var is not None
+            meas_var = torch.tensor(run.settings.meas_var, dtype=dtype)
+            n = 2 * len(run.settings.meas_var)
+            S = len(steps.time)
+            flat = (np.full((S, n), np.nan), np.full((S, n, n), np.nan) if covariance else None)
+            never = np.zeros((steps.num_tracks, n // 2), dtype=bool)
+            tick = time.perf_counter()
+            for group in steps.batches(max_cells):
+                tracks, offset = centred(steps.pad(group, torch.float64))  # offsets exact
+                tracks = with_prior(tracks.to(dtype), meas_var.sqrt())
+                mean, cov = run_estimator(estimator, tracks, generator)
+                mean = mean.double()
+                mean[..., 0::2] += offset.unsqueeze(1)
+                scatter_steps(steps, tracks, mean, cov if covariance else None, into=flat)
+                assert tracks.never_observed is not None
+                never[group] = tracks.never_observed.numpy()
+                bar.update(len(group))
+            run.estimate_seconds += time.perf_counter() - tick
+            run.report.add(steps.report)
+            run.report.notes["tracks_axis_never_observed"] += int(never.any(axis=1).sum())
+            writer.write(estimate_table(block, flat[0], flat[1], never))
+    if bar is not None:
+        bar.close()
+    run.report.notes = +run.report.notes
+    run.seconds = time.perf_counter() - start
+    return run
+
+
+def _sample_tracks(steps: Any, fit_options: dict[str, Any] | None) -> np.ndarray:
+    """The tracks the settings are read off (and a fit runs on): up to ``tracks`` of the first
+    block, spread evenly over it."""
+    limit = int((fit_options or {}).get("tracks", 2000))
+    count = steps.num_tracks
+    if count <= limit:
+        return np.arange(count)
+    return np.unique(np.linspace(0, count - 1, limit).round().astype(np.int64))
+
+
+def _settings_note(settings: Settings) -> str:
+    assert settings.meas_var is not None
+    std = ", ".join(f"{v**0.5:.4g}" for v in settings.meas_var)
+    return (
+        f"model: measurement noise std [{std}], q = {settings.q:.4g}, "
+        f"typical interval {settings.interval:.4g} s"
+    )
+
+
+def _prepare(
+    settings: Settings,
+    sample: RecordedTracks,
+    fit: bool,
+    fit_options: dict[str, Any] | None,
+    checkpoint: str | Path | None,
+    save: str | Path | None,
+    say: Callable[[str], None],
+) -> tuple[nn.Module, Settings, Any]:
+    """Builds the estimator; loads a checkpoint, fits, saves, as asked."""
+    summary = None
+    if fit:
+        from torchsvs.training.tuning import self_tune
+
+        options = dict(fit_options or {})
+        options.pop("tracks", None)
+        summary = self_tune(settings, sample, **options)
+        settings = summary.settings
+        say(summary.summary())
+    estimator = make_estimator(settings, make_model(settings))
+    if checkpoint is not None:
+        load_parameters(estimator, checkpoint)
+    if save is not None:
+        torch.save({"settings": asdict(settings), "state_dict": estimator.state_dict()}, save)
+    return estimator, settings, summary
+
+
+def load_parameters(estimator: nn.Module, path: str | Path) -> None:
+    """Loads an estimator's parameters from a ``--save`` file or a Lightning checkpoint of
+    :class:`~torchsvs.training.EstimatorModule` (keys ``estimator.*``)."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or "state_dict" not in state:
+        raise ValueError(f"checkpoint: {str(path)!r} holds no state_dict")
+    weights = state["state_dict"]
+    prefix = "estimator."
+    if any(k.startswith(prefix) for k in weights):
+        weights = {k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)}
+    try:
+        estimator.load_state_dict(weights)
+    except RuntimeError as err:
+        raise ValueError(
+            f"checkpoint: {str(path)!r} does not fit the estimator built from these settings "
+            f"({type(estimator).__name__}): {err}"
+        ) from err
+
+
+def saved_settings(path: str | Path) -> Settings:
+    """The settings stored by ``--save``."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or "settings" not in state:
+        raise ValueError(f"checkpoint: {str(path)!r} holds no torchsvs settings (a --save file)")
+    return Settings(**state["settings"])

@@ -1,0 +1,216 @@
+"""Self-tuning on the user's own tracks, without truth (``torchsvs track --fit``).
+
+Two stages, each a short Adam run on windows of the tracks (:func:`~torchsvs.training.data.
+recorded_batches`) with the losses of :mod:`torchsvs.training.losses`:
+
+1. **The sensor's noise, when it is not given**: a Kalman filter on the same nearly-constant
+   velocity model learns ``q`` and ``R`` by maximum likelihood (innovation NLL). ``R`` is then
+   taken as known.
+2. **The estimator's own parameters** (``q``; the SVSF's ψ and γ) by Stein's unbiased risk
+   estimate of the position MSE with that ``R`` (:func:`~torchsvs.training.losses.stein_risk`):
+   the loss that targets the error users care about, while the NLL only scores one-step
+   predictions.
+
+Parameters are moved in log space (ψ, q) and logit space (γ), so Adam's steps are relative.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchsvs.datasets import RecordedTracks
+from torchsvs.filters import SVSF
+from torchsvs.training.data import TrackBatch, recorded_batches
+from torchsvs.training.module import batch_loss
+
+#: Estimators whose parameters ``self_tune`` fits (particle filters' losses are random).
+TUNABLE = ("kf", "ks", "ekf", "ukf", "rstkf", "svsf", "svss", "svstps")
+
+
+@dataclass
+class FitResult:
+    """What a fit learned and what it cost."""
+
+    settings: Any  #: :class:`~torchsvs.tracking.Settings` with the learned values
+    seconds: float = 0.0
+    stages: list[str] = field(default_factory=list)  #: one line per stage
+    curve: list[float] = field(default_factory=list)  #: the last stage's loss per step
+
+    def summary(self) -> str:
+        return "fit: " + "; ".join(self.stages) + f" ({self.seconds:.1f} s)"
+
+
+def _minimise(
+    module: nn.Module,
+    batches: list[TrackBatch],
+    loss: str,
+    steps: int,
+    lr: float,
+    meas_cov: Tensor | None = None,
+    seed: int = 0,
+    optimizer: str = "lbfgs",
+) -> list[float]:
+    """Minimises a loss over the module's learnable parameters; returns the loss per evaluation.
+
+    ``"lbfgs"``: L-BFGS with a strong-Wolfe line search on a deterministic objective (the SURE
+    probes are drawn from the same seed at every evaluation), at most ``steps`` evaluations:
+    a handful of parameters in log space converge in a few dozen. ``"adam"``: ``steps`` Adam
+    steps with a cosine-decayed rate ``lr`` and fresh probes each step.
+    """
+    params = [p for p in module.parameters() if p.requires_grad]
+    curve: list[float] = []
+    total_windows = sum(len(b.z) for b in batches)
+
+    def evaluate(probes: torch.Generator) -> Tensor:
+        total = torch.zeros((), dtype=torch.float64)
+        for batch in batches:
+            value, _ = batch_loss(module, batch, loss, meas_cov=meas_cov, generator=probes)
+            weighted = value * (len(batch.z) / total_windows)
+            weighted.backward()
+            total = total + weighted.detach()
+        curve.append(float(total))
+        return total
+
+    if optimizer == "lbfgs":
+        lbfgs = torch.optim.LBFGS(
+            params, lr=1.0, max_iter=steps, max_eval=steps, line_search_fn="strong_wolfe"
+        )
+
+        def closure() -> Tensor:
+            lbfgs.zero_grad()
+            return evaluate(torch.Generator().manual_seed(seed))
+
+        lbfgs.step(closure)
+        return curve
+    if optimizer != "adam":
+        raise ValueError(f"optimizer: expected 'lbfgs' or 'adam', got {optimizer!r}")
+    adam = torch.optim.Adam(params, lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(adam, T_max=steps, eta_min=lr / 20)
+    probes = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        adam.zero_grad()
+        evaluate(probes)
+        adam.step()
+        schedule.step()
+    return curve
+
+
+def self_tune(
+    settings: Any,
+    tracks: RecordedTracks,
+    known_noise: bool = True,
+    steps: int = 60,
+    noise_steps: int = 60,
+    lr: float = 0.1,
+    window: int = 128,
+    burn_in: int = 16,
+    max_windows: int = 256,
+    seed: int = 0,
+    optimizer: str = "lbfgs",
+) -> FitResult:
+    """Tunes an estimator of :mod:`torchsvs.tracking` on recorded tracks, without truth.
+
+    Args:
+        settings: complete :class:`~torchsvs.tracking.Settings` (noise levels filled in).
+        tracks: the tracks to tune on (float64 is used inside).
+        known_noise: the settings' measurement noise is the sensor's (SURE uses it as is);
+            ``False`` learns it first (stage 1).
+        steps, noise_steps: loss evaluations (L-BFGS) or steps (Adam) of stage 2 and stage 1.
+        lr: Adam's learning rate (relative steps in log ψ, log q, logit γ, log R).
+        optimizer: ``"lbfgs"`` (default) or ``"adam"`` (see :func:`_minimise`).
+        window, burn_in: windows the tracks are cut into (:func:`recorded_batches`).
+        max_windows: at most this many windows, spread evenly over all of them.
+        seed: of the window sample and the SURE probes.
+
+    Returns:
+        A :class:`FitResult` whose ``settings`` hold the learned values.
+    """
+    from torchsvs.tracking import make_estimator, make_model, rule_of_thumb_psi
+
+    if settings.estimator not in TUNABLE:
+        raise ValueError(
+            f"estimator: --fit tunes {', '.join(TUNABLE)}; {settings.estimator!r} has a random "
+            "loss (particles), so pass its settings instead"
+        )
+    start = time.perf_counter()
+    result = FitResult(settings)
+    tracks = tracks.to(torch.float64)
+
+    def batches_for(meas_var: list[float]) -> list[TrackBatch]:
+        all_windows = recorded_batches(
+            tracks, torch.tensor(meas_var, dtype=torch.float64), window, burn_in, None
+        )[0]
+        count = len(all_windows.z)
+        if count <= max_windows:
+            return [all_windows]
+        pick = torch.linspace(0, count - 1, max_windows).round().long().unique()
+        return [TrackBatch(*(_rows(field, pick) for field in all_windows))]
+
+    if not known_noise:
+        kf_settings = replace(settings, estimator="kf")
+        model = make_model(kf_settings, learn_q=True, learn_r=True).double()
+        kf = make_estimator(kf_settings, model)
+        curve = _minimise(
+            kf, batches_for(settings.meas_var), "nll", noise_steps, lr, seed=seed, optimizer=optimizer
+        )
+        meas_var = model.meas_cov().detach().diagonal().tolist()
+        q = float(model.q().detach())
+        settings = replace(settings, meas_var=meas_var, q=q)
+        std = ", ".join(f"{v**0.5:.4g}" for v in meas_var)
+        result.stages.append(
+            f"noise by innovation NLL: measurement std [{std}], q = {q:.4g} "
+            f"(NLL {curve[0]:.4f} → {curve[-1]:.4f})"
+        )
+
+    model = make_model(settings, learn_q=True, learn_r=False).double()
+    if settings.psi is None and settings.estimator in ("svsf", "svss", "svstps"):
+        assert settings.meas_var is not None
+        settings = replace(
+            settings, psi=rule_of_thumb_psi(settings.meas_var, settings.interval, settings.velocity)
+        )
+    estimator = make_estimator(settings, model).double()
+    if settings.gamma == 0.0:
+        for svsf in _svsfs(estimator):
+            svsf.memory.raw.requires_grad_(False)  # a fixed γ = 0 stays fixed
+    assert settings.meas_var is not None
+    meas_cov = torch.diag(torch.tensor(settings.meas_var, dtype=torch.float64))
+    batches = batches_for(settings.meas_var)
+    curve = _minimise(
+        estimator, batches, "sure", steps, lr, meas_cov=meas_cov, seed=seed, optimizer=optimizer
+    )
+    learned: dict[str, Any] = {"q": float(model.q().detach())}
+    for svsf in _svsfs(estimator):
+        learned["psi"] = [float(p) for p in svsf.psi.detach().reshape(-1)]
+        learned["gamma"] = float(svsf.gamma.detach())
+    settings = replace(settings, **learned)
+    shown = ", ".join(f"{k} = {_fmt(v)}" for k, v in learned.items())
+    result.stages.append(
+        f"{settings.estimator} by SURE: {shown} (risk {curve[0]:.4f} → {curve[-1]:.4f} of R)"
+    )
+    result.settings = settings
+    result.curve = curve
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def _svsfs(module: nn.Module) -> list[SVSF]:
+    return [m for m in module.modules() if isinstance(m, SVSF)]
+
+
+def _rows(value: Any, pick: Tensor) -> Any:
+    """Rows ``pick`` of a batch field (tensors over windows), other fields unchanged."""
+    if isinstance(value, Tensor) and value.ndim >= 2:
+        return value[pick]
+    return value
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, list):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return f"{value:.4g}" if isinstance(value, float) and math.isfinite(value) else str(value)
