@@ -29,6 +29,9 @@ from torchsvs.datasets import RecordedTracks
 from torchsvs.datasets.adsb import sample_files
 from torchsvs.datasets.flights import flight_steps
 
+#: Reported quantities carried per step (as recorded: ft, kt, deg, ft/min).
+REPORTED = ("altitude_ft", "groundspeed_kt", "track_deg", "vertical_rate_fpm")
+
 
 def flight_files(sets: str = "calibration") -> list[Path]:
     """Sample files of the named folders (comma-separated, e.g. ``"calibration,surveys"``) or
@@ -65,7 +68,8 @@ def load_flights(
     the position is recorded; flights shorter than ``min_steps`` are left out. ``truth`` is
     ``[B, T, 4]`` in the state layout ``(x, vx, y, vy)``: positions, and the reported velocity
     where it is consistent with the motion (NaN elsewhere); ``extra["vx_motion"]``,
-    ``extra["vy_motion"]`` hold the position-derived velocity.
+    ``extra["vy_motion"]`` hold the position-derived velocity, and the :data:`REPORTED`
+    quantities are there as recorded.
     """
     steps, _ = flight_steps(flight_files(sets))
     picked: list[int] = []
@@ -82,10 +86,13 @@ def load_flights(
     pos = np.full((B, T, 2), np.nan)
     vel = np.full((B, T, 2), np.nan)
     time = np.full((B, T), np.nan)
+    reported = {k: np.full((B, T), np.nan) for k in REPORTED}
     for b, index in enumerate(step_index):
         pos[b, : len(index)] = steps.position[index]
         vel[b, : len(index)] = np.stack([steps.extra["ve"][index], steps.extra["vn"][index]], -1)
         time[b, : len(index)] = steps.time[index]
+        for k in REPORTED:
+            reported[k][b, : len(index)] = steps.extra[k][index]
     dt = np.diff(time, axis=1)
     first = np.nanmedian(dt, axis=1)
     dt = np.concatenate([first[:, None], dt], axis=1)
@@ -103,7 +110,11 @@ def load_flights(
         time=t(time),
         lengths=lengths,
         ids=[steps.ids[k] for k in picked],
-        extra={"vx_motion": t(motion[..., 0]), "vy_motion": t(motion[..., 1])},
+        extra={
+            "vx_motion": t(motion[..., 0]),
+            "vy_motion": t(motion[..., 1]),
+            **{k: t(v) for k, v in reported.items()},
+        },
         truth=truth,
     )
 
@@ -116,7 +127,9 @@ def _motion_velocity(pos: np.ndarray, time: np.ndarray) -> np.ndarray:
     v[:, 0] = (pos[:, 1] - pos[:, 0]) / (time[:, 1] - time[:, 0])[:, None]
     last = np.isfinite(time).sum(axis=1) - 1
     rows = np.arange(len(pos))
-    v[rows, last] = (pos[rows, last] - pos[rows, last - 1]) / (time[rows, last] - time[rows, last - 1])[:, None]
+    v[rows, last] = (pos[rows, last] - pos[rows, last - 1]) / (
+        time[rows, last] - time[rows, last - 1]
+    )[:, None]
     return v
 
 
@@ -149,7 +162,9 @@ def score(mean: Tensor, flights: RecordedTracks) -> dict[str, float]:
     by_motion = (mean[..., [1, 3]] - motion)[real]
     return {
         "position": float(pos.square().mean().sqrt()),
-        "velocity": float(reported[usable].square().mean().sqrt()) if usable.any() else float("nan"),
+        "velocity": float(reported[usable].square().mean().sqrt())
+        if usable.any()
+        else float("nan"),
         "velocity_motion": float(by_motion.square().mean().sqrt()),
         "velocity_coverage": float(usable.double().mean()),
     }

@@ -117,3 +117,41 @@ def test_kernel_steps_aside_when_axes_are_coupled():
     assert ts.KalmanFilter(model)(z, x0, coupled, dt=dt).axes is None
     assert ts.ExtendedKalmanFilter(model)(z, x0, P0, dt=dt).axes is None
     assert ts.KalmanFilter(model)(z, x0, P0, dt=dt).axes is not None
+
+
+def test_associative_scan_is_a_prefix_product():
+    from torchsvs.kernels.scan import associative_scan
+
+    gen = torch.Generator().manual_seed(0)
+    for steps in (1, 2, 7, 64, 129):
+        x = torch.randn(3, steps, 2, generator=gen, dtype=torch.float64)
+        (total,) = associative_scan(lambda a, b: (a[0] + b[0],), (x,))
+        assert_close(total, x.cumsum(dim=1))
+        # A non-commutative one: products of 2x2 matrices, later ones on the left.
+        M = torch.randn(2, steps, 2, 2, generator=gen, dtype=torch.float64)
+        (prod,) = associative_scan(lambda a, b: (b[0] @ a[0],), (M,))
+        expected, running = [], torch.eye(2, dtype=torch.float64).expand(2, 2, 2)
+        for k in range(steps):
+            running = M[:, k] @ running
+            expected.append(running)
+        assert_close(prod, torch.stack(expected, 1), atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["KF", "KS"])
+def test_time_scan_on_few_long_tracks_equals_general_path(name):
+    """Two tracks of 300 steps take the associative scan over time."""
+    from torchsvs.kernels.axes import prefer_scan
+
+    z, dt, x0, P0 = _problem(seed=4, B=2, T=300)
+    assert prefer_scan(2 * 2, 300)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    est = _estimators(model)[name].double()
+    fast = est(z, x0, P0, dt=dt)
+    with general_path():
+        slow = est(z, x0, P0, dt=dt)
+    assert_close(fast.mean, slow.mean, atol=1e-8)
+    assert_close(fast.cov, slow.cov, atol=1e-8)
+    for key in FIELDS:
+        a, b = getattr(_filtered(fast), key), getattr(_filtered(slow), key)
+        if a is not None:
+            assert_close(a.double(), b.double(), atol=1e-8, msg=key)

@@ -59,7 +59,7 @@ ESTIMATORS = {
     "spvsf": "smooth particle variable structure filter",
 }
 #: Lag of each smoother when none is given (``None``: fixed interval).
-DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 2, "svstps": 1}
+DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
 #: Boundary layer of the rule of thumb, in noise standard deviations of each component.
 PSI_IN_SIGMAS = 5.0
 
@@ -69,10 +69,13 @@ class Settings:
     """What an estimator of :data:`ESTIMATORS` is built from (per-axis lists for an ``m``-axis
     file; the SVSF's ``psi`` has one width per corrector component, in state order)."""
 
-    estimator: str = "svss"
+    estimator: str = "ks"
     meas_var: list[float] | None = None  #: measurement noise variance per axis
     q: float | None = None  #: process noise spectral density of the CV model
-    psi: list[float] | None = None  #: SVSF boundary layer; None: :func:`rule_of_thumb_psi`
+    #: SVSF boundary layer, one width per corrector component (x, vx, y, vy, ...; with
+    #: finite-difference velocities two values are the position and velocity widths of every
+    #: axis); None: :func:`rule_of_thumb_psi`
+    psi: list[float] | None = None
     gamma: float = 0.1  #: SVSF memory
     lag: int | None = None  #: smoother lag; None: :data:`DEFAULT_LAG`
     velocity: bool = True  #: SVSF corrects velocity (finite differences); False: the H⁺ mode
@@ -150,6 +153,8 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
         return ParticleFilter(model, num_particles=settings.particles)
     assert settings.meas_var is not None
     psi = settings.psi or rule_of_thumb_psi(settings.meas_var, settings.interval, settings.velocity)
+    if settings.velocity and len(psi) == 2:
+        psi = list(psi) * len(settings.meas_var)  # (position, velocity) widths for every axis
     artificial = "auto" if settings.velocity else None
     if name == "spvsf":
         return SPVSF(
@@ -268,7 +273,7 @@ def track_file(
     covariance: bool = False,
     whole: bool | None = None,
     block_rows: int = 1 << 20,
-    max_cells: int = 1 << 21,
+    max_cells: int = 1 << 19,
     dtype: torch.dtype = torch.float32,
     progress: bool = True,
     log: Callable[[str], None] | None = None,

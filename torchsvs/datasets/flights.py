@@ -57,8 +57,9 @@ def flight_steps(
             parked or repeated, not the flight's).
 
     Returns:
-        The steps (extra columns ``ve, vn[, vu]`` in m/s and ``lat0, lon0`` per step, the frame
-        of its track) and a report counting files, tracks and every row.
+        The steps (extra columns ``ve, vn[, vu]`` in m/s, ``lat0, lon0`` per step, the frame
+        of its track, and the reported ``altitude_ft, groundspeed_kt, track_deg,
+        vertical_rate_fpm``) and a report counting files, tracks and every row.
     """
     import pandas as pd
 
@@ -85,13 +86,12 @@ def flight_steps(
     table = pd.concat(frames, ignore_index=True)
     parsed, ground = _local_frames(table, dims)
     if airborne:
-        notes["on_ground"] += int(ground.sum())
         parsed.track_code[ground] = -1
     steps = group_rows(parsed)
     # Rows on the ground were given no track on purpose: count them under their own reason.
     aside = steps.report.set_aside
     aside["on_ground"] = int(ground.sum()) if airborne else 0
-    aside["no_track_id"] -= aside["on_ground"]
+    aside["no_track_id"] -= aside["on_ground"]  # they were given no track id above
     steps.report.set_aside = +aside
     steps.report.notes.update(notes)
     steps.report.check()
@@ -144,7 +144,17 @@ def _local_frames(table: Any, dims: int) -> tuple[ParsedRows, np.ndarray]:
             local, np.nan_to_num(lat), np.nan_to_num(lon), np.nan_to_num(lat0), np.nan_to_num(lon0)
         )
     velocity[~(has_position & np.isfinite(speed) & np.isfinite(heading))] = np.nan
-    extra = {"ve": velocity[:, 0], "vn": velocity[:, 1], "lat0": lat0, "lon0": lon0}
+    extra = {
+        "ve": velocity[:, 0],
+        "vn": velocity[:, 1],
+        "lat0": lat0,
+        "lon0": lon0,
+        # as reported, for tools that take them (ft, kt, deg, ft/min)
+        "altitude_ft": df["altitude"].to_numpy(dtype=np.float64),
+        "groundspeed_kt": df["groundspeed"].to_numpy(dtype=np.float64),
+        "track_deg": df["track"].to_numpy(dtype=np.float64),
+        "vertical_rate_fpm": df["vertical_rate"].to_numpy(dtype=np.float64),
+    }
     if dims == 3:
         extra["vu"] = climb
     parsed = ParsedRows(

@@ -32,6 +32,7 @@ SET_ASIDE = {
     "no_track_id": "the track id is empty",
     "no_time": "the time is empty, not a number and not a date",
     "track_without_position": "its track has no observed position at all (nothing to start from)",
+    "on_ground": "ADS-B: the aircraft reports being on the ground (taxiing or parked, not flying)",
 }
 
 #: Fix-ups applied to placed rows, and other things worth counting.

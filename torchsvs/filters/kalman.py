@@ -275,8 +275,7 @@ class GaussianFilter(Estimator):
             psi,
             gamma,
         )
-        F, _ = self.dynamics(inputs)
-        assert F is not None
+        F = model.transition(inputs.dt).to(dtype)  # Q is not part of a result
         return _assemble(result, z.shape[-1] == n, _as_result_matrix(F), H, R_c)
 
 
@@ -293,12 +292,12 @@ def interleave(p: Tensor, v: Tensor) -> Tensor:
 
 def block_diagonal(block: axes.Mat2) -> Tensor:
     """Per-axis 2×2 blocks ``[..., m]`` → the block-diagonal ``[..., 2m, 2m]``."""
-    m = block.a.shape[-1]
-    rows = torch.stack(
-        [torch.stack([block.a, block.b], -1), torch.stack([block.c, block.d], -1)], -2
-    )  # [..., m, 2, 2]
-    eye = torch.eye(m, dtype=rows.dtype)
-    return torch.einsum("...jab,jk->...jakb", rows, eye).reshape(*rows.shape[:-3], 2 * m, 2 * m)
+    *lead, m = block.a.shape
+    out = block.a.new_zeros(*lead, m, 2, m, 2)
+    diagonal = out.diagonal(dim1=-4, dim2=-2)  # a view [..., 2, 2, m] of the axes' own blocks
+    for (row, col), part in zip(((0, 0), (0, 1), (1, 0), (1, 1)), block, strict=True):
+        diagonal[..., row, col, :] = part
+    return out.reshape(*lead, 2 * m, 2 * m)
 
 
 def _assemble(
@@ -330,7 +329,7 @@ def _assemble(
         gain=gain,
         post_innovation=None if res.post_innovation is None else measured(res.post_innovation),
         innovation_cov=innovation_cov,
-        log_likelihood=None if res.log_likelihood is None else res.log_likelihood.sum(dim=1),
+        log_likelihood=res.log_likelihood,
         axes=res,
     )
 

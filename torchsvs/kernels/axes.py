@@ -18,6 +18,7 @@ A 2×2 block is a tuple of ``[..., m]`` tensors: :class:`Sym2` ``(a, b, c)`` for
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -110,7 +111,7 @@ class AxisResult(NamedTuple):
     noise: Sym2  #: R per axis as used (identity on missing components, as mask_covariance)
     interval: Tensor  #: T of each step, [B, T, 1] or 0-d
     post_innovation: tuple[Tensor, Tensor] | None = None
-    log_likelihood: Tensor | None = None  #: [B, T] summed over axes
+    log_likelihood: Tensor | None = None  #: [B] summed over axes and steps
 
 
 def _masked_noise(R: Sym2, seen_p: Tensor, seen_v: Tensor) -> Sym2:
@@ -130,6 +131,76 @@ def joseph(P: Sym2, K: Mat2, R: Sym2) -> Sym2:
     A = Mat2(1 - K.a, -K.b, -K.c, 1 - K.d)
     X, Y = sandwich(A, full(P)), sandwich(K, full(R))
     return Sym2(X.a + Y.a, X.b + Y.b, X.c + Y.c)
+
+
+def _forward_step(
+    rule: str, gamma: Tensor, state: tuple[Tensor, ...], given: tuple[Tensor, ...]
+) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
+    """One predict-correct step of every axis (see :func:`run_axes`); pure, so that a chunk of
+    steps can be compiled."""
+    p, v, a, b, c, memory_p, memory_v = state
+    T, Qa, Qb, Qc, fp, fv, yp, yv, rp, rpv, rvv, wp, wv = given
+    # Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
+    p_pred, v_pred = p + T * v, v
+    bT = b + T * c
+    a1 = a + T * (b + bT) + Qa
+    b1 = bT + Qb
+    c1 = c + Qc
+    ep = (yp - p_pred) * fp
+    if rule == "kalman":
+        S = a1 * fp + rp  # 1 where missing (the masked identity)
+        kp, kv_p = a1 * fp / S, b1 * fp / S  # K = [kp, kv_p]ᵀ for H = [1, 0]
+        one_k = 1 - kp
+        a2 = one_k * one_k * a1 + kp * kp * rp  # Joseph form
+        b2 = one_k * (b1 - kv_p * a1) + kp * kv_p * rp
+        c2 = c1 - 2 * kv_p * b1 + kv_p * kv_p * (a1 + rp)
+        p, v = p_pred + kp * ep, v_pred + kv_p * ep
+        zero = torch.zeros_like(kp)
+        ev, gain = zero, (kp, zero, kv_p, zero)
+    else:
+        ev = (yv - v_pred) * fv
+        kp = svsf_gain_ratio(ep, memory_p, wp, gamma) * fp
+        kv = svsf_gain_ratio(ev, memory_v, wv, gamma) * fv
+        # Joseph form with a diagonal gain, H = I: (I − K) P (I − K)ᵀ + K R Kᵀ.
+        one_p, one_v = 1 - kp, 1 - kv
+        a2 = one_p * one_p * a1 + kp * kp * rp
+        b2 = one_p * one_v * b1 + kp * kv * rpv
+        c2 = one_v * one_v * c1 + kv * kv * rvv
+        p, v = p_pred + kp * ep, v_pred + kv * ev
+        # Eq. (24): the a-posteriori innovation, carried where missing.
+        memory_p = torch.where(fp > 0, yp - p, memory_p)
+        memory_v = torch.where(fv > 0, yv - v, memory_v)
+        zero = torch.zeros_like(kp)
+        gain = (kp, zero, zero, kv)
+    state = (p, v, a2, b2, c2, memory_p, memory_v)
+    # The predicted velocity is the previous one: left out, and rebuilt after the loop.
+    return state, (p, v, a2, b2, c2, p_pred, a1, b1, c1, ep, ev, *gain, memory_p, memory_v)
+
+
+def _forward_chunk(
+    rule: str, gamma: Tensor, state: tuple[Tensor, ...], given: tuple[Tensor, ...], steps: int
+) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
+    """``steps`` steps in order. ``given`` holds time-major ``[T, B, m|1]`` tensors (each step a
+    contiguous block, which elementwise kernels need to run fast) or 0-d constants; outputs
+    come back stacked ``[B, T, m]``."""
+    outputs = []
+    for k in range(steps):
+        now = tuple(x if x.ndim <= 1 else x[k] for x in given)
+        state, out = _forward_step(rule, gamma, state, now)
+        outputs.append(out)
+    return state, tuple(_time_major_stack(column) for column in zip(*outputs, strict=True))
+
+
+def _time_major_stack(items: Sequence[Tensor]) -> Tensor:
+    """Per-step ``[B, m]`` tensors → ``[B, T, m]`` (stacked contiguously in time first: far
+    cheaper than interleaving the copies)."""
+    return torch.stack(list(items), dim=0).transpose(0, 1).contiguous()
+
+
+def _time_major(x: Tensor) -> Tensor:
+    """A ``[B, T, m]`` per-step quantity as ``[T, B, m]`` contiguous; a constant (0-d, or one
+    value per axis ``[m]``) as it is."""
+    return x if x.ndim <= 1 else x.transpose(0, 1).contiguous()
 
 
 def run_axes(
@@ -158,90 +229,77 @@ def run_axes(
     B, steps, m = y.position.shape
     dtype = y.position.dtype
     seen_p, seen_v = ~torch.isnan(y.position), ~torch.isnan(y.velocity)
-    # Everything that does not depend on the estimates, for all steps at once.
-    fp_all, fv_all = seen_p.to(dtype), seen_v.to(dtype)
-    yp_all, yv_all = y.position.nan_to_num(0.0), y.velocity.nan_to_num(0.0)
     R_all = _masked_noise(y.noise, seen_p, seen_v)
     T_all = interval.unsqueeze(-1) if interval.ndim == 2 else interval
     Q_all = process_noise(q, T_all)
-    width_p = width_v = memory_rate = torch.zeros(())
     if rule == "svsf":
         assert psi is not None and gamma is not None
-        width_p, width_v, memory_rate = psi[..., 0, :], psi[..., 1, :], gamma
-    p, v = x0
-    a, b, c = P0
-    memory_p = memory_v = torch.zeros(B, m, dtype=dtype)
-    out: dict[str, list] = {k: [] for k in ("x", "P", "xp", "Pp", "e", "K", "ep", "ll")}
-    log_2pi = math.log(2 * math.pi)
-    for k in range(steps):
-        T = _at(T_all, k)
-        # Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
-        p_pred, v_pred = p + T * v, v
-        bT = b + T * c
-        a1 = a + T * (b + bT) + _at(Q_all.a, k)
-        b1 = bT + _at(Q_all.b, k)
-        c1 = c + _at(Q_all.c, k)
-        fp, yp = fp_all[:, k], yp_all[:, k]
-        rp = _at(R_all.a, k)
-        ep = (yp - p_pred) * fp
-        if rule == "kalman":
-            S = a1 * fp + rp  # 1 where missing (the masked identity)
-            k1, k2 = a1 * fp / S, b1 * fp / S
-            # Joseph form with K = [k1, k2]ᵀ, H = [1, 0].
-            one_k1 = 1 - k1
-            a2 = one_k1 * one_k1 * a1 + k1 * k1 * rp
-            b2 = one_k1 * (b1 - k2 * a1) + k1 * k2 * rp
-            c2 = c1 - 2 * k2 * b1 + k2 * k2 * (a1 + rp)
-            p, v = p_pred + k1 * ep, v_pred + k2 * ep
-            out["ll"].append((-0.5 * (ep * ep / S + S.log() + fp * log_2pi)).sum(-1))
-            zero = torch.zeros_like(k1)
-            K = Mat2(k1, zero, k2, zero)
-            ev = zero
-        else:
-            fv, yv = fv_all[:, k], yv_all[:, k]
-            ev = (yv - v_pred) * fv
-            wp = width_p[:, k] if width_p.ndim == 3 else width_p
-            wv = width_v[:, k] if width_v.ndim == 3 else width_v
-            kp = svsf_gain_ratio(ep, memory_p, wp, memory_rate) * fp
-            kv = svsf_gain_ratio(ev, memory_v, wv, memory_rate) * fv
-            # Joseph form with a diagonal gain, H = I: (I − K) P (I − K)ᵀ + K R Kᵀ.
-            one_p, one_v = 1 - kp, 1 - kv
-            a2 = one_p * one_p * a1 + kp * kp * rp
-            b2 = one_p * one_v * b1 + kp * kv * _at(R_all.b, k)
-            c2 = one_v * one_v * c1 + kv * kv * _at(R_all.c, k)
-            p, v = p_pred + kp * ep, v_pred + kv * ev
-            # Eq. (24): the a-posteriori innovation, carried where missing.
-            memory_p = torch.where(seen_p[:, k], yp - p, memory_p)
-            memory_v = torch.where(seen_v[:, k], yv - v, memory_v)
-            out["ep"].append((memory_p, memory_v))
-            zero = torch.zeros_like(kp)
-            K = Mat2(kp, zero, zero, kv)
-        a, b, c = a2, b2, c2
-        out["xp"].append((p_pred, v_pred))
-        out["x"].append((p, v))
-        out["P"].append((a, b, c))
-        out["Pp"].append((a1, b1, c1))
-        out["e"].append((ep, ev))
-        out["K"].append(K)
+        width_p, width_v = psi[..., 0, :], psi[..., 1, :]
+    else:
+        width_p = width_v = torch.ones((), dtype=dtype)
+        gamma = torch.zeros((), dtype=dtype)
 
-    def stacked(items: list[tuple[Tensor, ...]]) -> list[Tensor]:
-        return [torch.stack(parts, dim=1) for parts in zip(*items, strict=True)]
+    def per_step(x: Tensor) -> Tensor:
+        """``[B, T, m]`` view of a per-step, per-track or constant quantity."""
+        x = x if x.ndim == 3 else x.reshape((1, 1, -1) if x.ndim == 1 else (1, 1, 1))
+        return x.expand(B, steps, m)
 
-    def full_time(x: Tensor) -> Tensor:
-        return x.expand(B, steps, m) if x.ndim < 3 else x
+    # Everything that does not depend on the estimates, for all steps at once, time-major.
+    given = tuple(
+        _time_major(x if x.ndim in (0, 1, 3) else per_step(x))
+        for x in (
+            T_all,
+            Q_all.a,
+            Q_all.b,
+            Q_all.c,
+            seen_p.to(dtype),
+            seen_v.to(dtype),
+            y.position.nan_to_num(0.0),
+            y.velocity.nan_to_num(0.0),
+            *R_all,
+            width_p,
+            width_v,
+        )
+    )
+    zero = torch.zeros(B, m, dtype=dtype)
+    state = (x0[0], x0[1], P0.a, P0.b, P0.c, zero, zero)
+    if rule == "kalman" and prefer_scan(B * m, steps):
+        # The filtered states by an associative scan over time, then every step's prediction,
+        # gain and update from its predecessor at once (the same step function, vectorised).
+        from torchsvs.kernels.scan import filter_scan
 
+        fp = seen_p.to(dtype)
+        (pf, vf), Pf = filter_scan(
+            y.position.nan_to_num(0.0) * fp, fp, per_step(R_all.a), x0, P0, Q_all, T_all
+        )
+        before = tuple(
+            torch.cat([first.unsqueeze(1), x[:, :-1]], dim=1)
+            for first, x in zip(state[:5], (pf, vf, *Pf), strict=True)
+        )
+        previous = (*before, zero.unsqueeze(1), zero.unsqueeze(1))
+        every = tuple(x if x.ndim <= 1 else x.transpose(0, 1) for x in given)  # [B, T, ...]
+        out = _forward_step(rule, gamma, previous, every)[1]
+    else:
+        out = _forward_chunk(rule, gamma, state, given, steps)[1]
+    (p, v, a, b, c, pp, a1, b1, c1, ep, ev, ka, kb, kc, kd, mp, mv) = out
+    vp = torch.cat([x0[1].unsqueeze(1), v[:, :-1]], dim=1)
+    loglik = None
+    if rule == "kalman":  # log N(e; 0, S) over the observed positions, Eq. (16)'s S
+        fp = seen_p.to(dtype)
+        S = a1 * fp + per_step(R_all.a)
+        loglik = (-0.5 * (ep * ep / S + S.log() + fp * math.log(2 * math.pi))).sum((-2, -1))
     return AxisResult(
-        mean=_pair(out["x"]),
-        cov=Sym2(*stacked(out["P"])),
-        pred_mean=_pair(out["xp"]),
-        pred_cov=Sym2(*stacked(out["Pp"])),
-        innovation=_pair(out["e"]),
-        gain=Mat2(*stacked(out["K"])),
+        mean=(p, v),
+        cov=Sym2(a, b, c),
+        pred_mean=(pp, vp),
+        pred_cov=Sym2(a1, b1, c1),
+        innovation=(ep, ev),
+        gain=Mat2(ka, kb, kc, kd),
         observed=(seen_p, seen_v),
-        noise=Sym2(*(full_time(x) for x in R_all)),
+        noise=Sym2(*(per_step(x) for x in R_all)),
         interval=T_all,
-        post_innovation=_pair(out["ep"]) if out["ep"] else None,
-        log_likelihood=torch.stack(out["ll"], dim=1) if out["ll"] else None,
+        post_innovation=(mp, mv) if rule == "svsf" else None,
+        log_likelihood=loglik,
     )
 
 
@@ -316,33 +374,42 @@ def _recurse(
     return g_new, G_new, Z_new
 
 
+def prefer_scan(tracks: int, steps: int) -> bool:
+    """Whether an associative scan over time beats the step-by-step loop: for few, long tracks
+    (its ``O(log T)`` rounds do several times the arithmetic of the loop, which pays only
+    where the loop's cost is the per-step overhead of small operations)."""
+    return steps >= 64 and tracks * 16 <= steps * 4 + 4096
+
+
 def _rts_interval(res: AxisResult) -> tuple[tuple[Tensor, Tensor], Sym2]:
     """The fixed-interval RTS recursion, Eq. (17), Chen et al. 2020:
     ``x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k})``, ``Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ``.
     With the filter's own gain as ``Γ`` this equals the general recursion of
     :class:`~torchsvs.smoothers.RTSSmoother` for any gain, in a third of the operations."""
     steps = res.mean[0].shape[1]
-    interval = res.interval.expand_as(res.mean[0]) if res.interval.ndim else res.interval
-    p_s, v_s = res.mean[0][:, -1], res.mean[1][:, -1]
-    P_s = Sym2(*(x[:, -1] for x in res.cov))
+    mean, pred = tuple(map(_time_major, res.mean)), tuple(map(_time_major, res.pred_mean))
+    cov, pred_cov = Sym2(*map(_time_major, res.cov)), Sym2(*map(_time_major, res.pred_cov))
+    interval = _time_major(res.interval)
+    p_s, v_s = mean[0][-1], mean[1][-1]
+    P_s = Sym2(*(x[-1] for x in cov))
     means, covs = [(p_s, v_s)], [P_s]
     for k in range(steps - 2, -1, -1):
-        T = interval[:, k + 1] if interval.ndim else interval
-        P = Sym2(*(x[:, k] for x in res.cov))
-        Pp = Sym2(*(x[:, k + 1] for x in res.pred_cov))
+        T = interval if interval.ndim == 0 else interval[k + 1]
+        P = Sym2(*(x[k] for x in cov))
+        Pp = Sym2(*(x[k + 1] for x in pred_cov))
         # C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]].
         PFt = Mat2(P.a + T * P.b, P.b, P.b + T * P.c, P.c)
         C = mm(PFt, full(inverse(Pp)))
-        dp, dv = p_s - res.pred_mean[0][:, k + 1], v_s - res.pred_mean[1][:, k + 1]
-        gp, gv = mv(C, (dp, dv))
-        p_s, v_s = res.mean[0][:, k] + gp, res.mean[1][:, k] + gv
+        gp, gv = mv(C, (p_s - pred[0][k + 1], v_s - pred[1][k + 1]))
+        p_s, v_s = mean[0][k] + gp, mean[1][k] + gv
         D = sandwich(C, Mat2(P_s.a - Pp.a, P_s.b - Pp.b, P_s.b - Pp.b, P_s.c - Pp.c))
         P_s = Sym2(P.a + D.a, P.b + D.b, P.c + D.c)
         means.append((p_s, v_s))
         covs.append(P_s)
     means.reverse()
     covs.reverse()
-    return _pair(means), Sym2(*(torch.stack(parts, dim=1) for parts in zip(*covs, strict=True)))
+    smoothed = (_time_major_stack([m[0] for m in means]), _time_major_stack([m[1] for m in means]))
+    return smoothed, Sym2(*(_time_major_stack(parts) for parts in zip(*covs, strict=True)))
 
 
 def smooth_axes(
@@ -354,6 +421,10 @@ def smooth_axes(
     if steps == 1:
         return res.mean, res.cov
     if not projection and (lag is None or lag >= steps - 1):
+        if prefer_scan(res.mean[0].shape[0] * res.mean[0].shape[2], steps):
+            from torchsvs.kernels.scan import smoother_scan
+
+            return smoother_scan(res.mean, res.cov, res.pred_mean, res.pred_cov, res.interval)
         return _rts_interval(res)
     b = backward_terms(res, projection)
     zeros = torch.zeros_like(b.d[0])

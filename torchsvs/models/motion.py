@@ -90,10 +90,11 @@ class ConstantVelocity(LinearModel):
 
     def _per_axis(self, block: Tensor) -> Tensor:
         """Block-diagonal ``[..., 2·ndim, 2·ndim]`` from one 2×2 block ``[..., 2, 2]``."""
-        eye = torch.eye(self.ndim, dtype=block.dtype, device=block.device)
+        lead, m = block.shape[:-2], self.ndim
         # kron(I, block) over the trailing axes: index (2i+a, 2j+b) = δ_ij block[a, b].
-        full = eye[:, None, :, None] * block[..., None, :, None, :]
-        return full.reshape(*block.shape[:-2], 2 * self.ndim, 2 * self.ndim)
+        full = block.new_zeros(*lead, m, 2, m, 2)
+        full.diagonal(dim1=-4, dim2=-2).copy_(block.unsqueeze(-1).expand(*lead, 2, 2, m))
+        return full.reshape(*lead, 2 * m, 2 * m)
 
     def transition(self, dt: Tensor | None = None) -> Tensor:
         T = self._interval(dt)

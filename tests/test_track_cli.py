@@ -1,0 +1,248 @@
+"""``torchsvs track``: every input row out with its id and time, in order; streaming equals
+reading whole; checkpoints; clear errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pcsv
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from tests.conftest import assert_close
+from torchsvs.cli import main
+
+TEXT = pcsv.ConvertOptions(column_types={"id": pa.string(), "t": pa.string()})
+
+
+def _simulated_csv(path, tracks: int = 12, steps: int = 60, sigma: float = 30.0, seed: int = 0):
+    """CV tracks with irregular times (1-3 s), 5% missing values, some duplicated rows, string
+    ids, rows of each track shuffled; returns the truth positions by (id, time)."""
+    gen = np.random.default_rng(seed)
+    rows, truth = [], {}
+    for k in range(tracks):
+        ident = f"flight-{k:02d}"
+        t = np.cumsum(gen.uniform(1.0, 3.0, steps))
+        v = gen.normal(0, 40, 2)
+        pos = gen.normal(0, 1e3, 2) + t[:, None] * v + np.cumsum(gen.normal(0, 2, (steps, 2)), 0)
+        for i in gen.permutation(steps):
+            x, y = pos[i] + gen.normal(0, sigma, 2)
+            xs = "" if gen.random() < 0.05 else f"{x:.3f}"
+            rows.append(f"{ident},{t[i]:.3f},{xs},{y:.3f}")
+            truth[(ident, f"{t[i]:.3f}")] = pos[i]
+            if gen.random() < 0.03:  # the same time again
+                rows.append(f"{ident},{t[i]:.3f},{x + 1:.3f},{y - 1:.3f}")
+    path.write_text("id,t,x,y\n" + "\n".join(rows) + "\n")
+    return truth
+
+
+def _run(*args: str) -> None:
+    main(["track", *args, "--quiet"])
+
+
+def test_every_row_comes_back_with_its_id_and_time(tmp_path):
+    source, target = tmp_path / "in.csv", tmp_path / "out.csv"
+    truth = _simulated_csv(source)
+    _run(str(source), "-o", str(target), "--id-col", "id", "--time-col", "t", "--meas-std", "30")
+    inp, out = (
+        pcsv.read_csv(source, convert_options=TEXT),
+        pcsv.read_csv(target, convert_options=TEXT),
+    )
+    assert out.num_rows == inp.num_rows
+    assert out.column("id").to_pylist() == inp.column("id").to_pylist()
+    assert out.column("t").to_pylist() == inp.column("t").to_pylist()
+    assert out.column_names == ["id", "t", "x", "vx", "y", "vy"]
+    est = np.stack([out.column("x").to_numpy(), out.column("y").to_numpy()], 1)
+    assert np.isfinite(est).all()
+    true = np.stack(
+        [
+            truth[(i, t)]
+            for i, t in zip(inp.column("id").to_pylist(), inp.column("t").to_pylist(), strict=True)
+        ]
+    )
+    raw = np.stack([inp.column("x").to_numpy(), inp.column("y").to_numpy()], 1).astype(float)
+    raw_error = np.sqrt(np.nanmean((raw - true) ** 2))
+    assert np.sqrt(np.mean((est - true) ** 2)) < 0.8 * raw_error
+
+
+@pytest.mark.parametrize("estimator", ["kf", "ks", "svsf", "svss", "svstps", "ukf", "rstkf"])
+def test_each_estimator_runs_from_the_command_line(tmp_path, estimator):
+    source, target = tmp_path / "in.csv", tmp_path / "out.parquet"
+    _simulated_csv(source, tracks=3, steps=20)
+    _run(
+        str(source),
+        "-o",
+        str(target),
+        "--id-col",
+        "id",
+        "--time-col",
+        "t",
+        "--estimator",
+        estimator,
+    )
+    out = pq.read_table(target)
+    assert out.num_rows == pcsv.read_csv(source).num_rows
+    assert np.isfinite(out.column("vx").to_numpy()).all()
+
+
+def test_streaming_equals_reading_whole(tmp_path):
+    source = tmp_path / "in.csv"
+    _simulated_csv(source, tracks=8, steps=30)
+    # Streaming needs each track's rows together: sort the file by id (keeping row order within).
+    table = pcsv.read_csv(source, convert_options=TEXT)
+    order = np.argsort(np.array(table.column("id").to_pylist()), kind="stable")
+    pcsv.write_csv(table.take(pa.array(order)), source)
+    whole, streamed = tmp_path / "whole.csv", tmp_path / "streamed.csv"
+    # Settings left open are read off the first block, so give them all.
+    common = ["--id-col", "id", "--time-col", "t", "--meas-std", "30", "--q", "4", "--double"]
+    common += ["--psi", "80,20,80,20"]
+    _run(str(source), "-o", str(whole), "--in-memory", *common)
+    _run(str(source), "-o", str(streamed), "--stream", "--block-rows", "50", *common)
+    a, b = pcsv.read_csv(whole), pcsv.read_csv(streamed)
+    assert a.column_names == b.column_names and a.num_rows == b.num_rows
+    for name in ("x", "vx", "y", "vy"):
+        assert_close(b.column(name).to_numpy(), a.column(name).to_numpy(), atol=1e-9)
+
+
+def test_covariances_on_request(tmp_path):
+    source, target = tmp_path / "in.csv", tmp_path / "out.csv"
+    _simulated_csv(source, tracks=2, steps=15)
+    _run(
+        str(source),
+        "-o",
+        str(target),
+        "--id-col",
+        "id",
+        "--time-col",
+        "t",
+        "--covariance",
+        "--estimator",
+        "ks",
+    )
+    out = pcsv.read_csv(target)
+    assert "cov_x_x" in out.column_names and "cov_vy_vy" in out.column_names
+    assert (out.column("cov_x_x").to_numpy() > 0).all()
+    assert (out.column("cov_x_y").to_numpy() == 0).all()  # the axes are independent
+
+
+def test_save_then_checkpoint_reproduces_the_output(tmp_path):
+    source = tmp_path / "in.csv"
+    _simulated_csv(source, tracks=4, steps=25)
+    first, again, saved = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "svss.pt"
+    common = ["--id-col", "id", "--time-col", "t", "--estimator", "svss"]
+    _run(
+        str(source),
+        "-o",
+        str(first),
+        "--meas-std",
+        "30",
+        "--psi",
+        "80,20",
+        "--save",
+        str(saved),
+        *common,
+    )
+    _run(str(source), "-o", str(again), "--checkpoint", str(saved), *common)
+    assert_close(
+        pcsv.read_csv(again).column("x").to_numpy(), pcsv.read_csv(first).column("x").to_numpy()
+    )
+
+
+def test_fit_tunes_on_the_file_itself(tmp_path):
+    source, target = tmp_path / "in.csv", tmp_path / "out.csv"
+    truth = _simulated_csv(source, tracks=10, steps=80)
+    common = ["--id-col", "id", "--time-col", "t", "--meas-std", "30", "--estimator", "ks"]
+    _run(str(source), "-o", str(target), "--q", "1000", *common)  # far too agile
+    _run(
+        str(source),
+        "-o",
+        str(tmp_path / "fit.csv"),
+        "--q",
+        "1000",
+        "--fit",
+        "--fit-steps",
+        "8",
+        *common,
+    )
+    inp = pcsv.read_csv(source, convert_options=TEXT)
+    keys = zip(inp.column("id").to_pylist(), inp.column("t").to_pylist(), strict=True)
+    true = np.stack([truth[k] for k in keys])
+
+    def error(path) -> float:
+        out = pcsv.read_csv(path)
+        est = np.stack([out.column("x").to_numpy(), out.column("y").to_numpy()], 1)
+        return float(np.sqrt(np.mean((est - true) ** 2)))
+
+    assert error(tmp_path / "fit.csv") < 0.9 * error(target)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--estimator", "nope"], "invalid choice"),
+        (["--lag", "0"], "lag: expected an integer >= 1"),
+        (["--meas-std", "1,2,3"], "meas_std: expected one value or one per axis"),
+        (["--estimator", "svss", "--psi", "1,2,3"], "psi: expected 4 boundary layer widths"),
+        (["--id-col", "missing"], r"columns: \['missing'\] not in the file"),
+    ],
+)
+def test_bad_arguments_name_what_is_wrong(tmp_path, capsys, args, message):
+    source = tmp_path / "in.csv"
+    _simulated_csv(source, tracks=2, steps=10)
+    with pytest.raises(SystemExit) as exit_info:
+        main(
+            [
+                "track",
+                str(source),
+                "-o",
+                str(tmp_path / "o.csv"),
+                "--time-col",
+                "t",
+                *(args if "--id-col" in args else ["--id-col", "id", *args]),
+                "--quiet",
+            ]
+        )
+    text = str(exit_info.value.code) + capsys.readouterr().err
+    assert exit_info.value.code != 0
+    import re
+
+    assert re.search(message, text), text
+
+
+def test_lightning_checkpoint_loads_into_the_command_line_estimator(tmp_path):
+    from torchsvs.tracking import Settings, load_parameters, make_estimator, make_model
+    from torchsvs.training import EstimatorModule
+
+    settings = Settings(estimator="svss", meas_var=[900.0, 900.0], q=4.0, psi=[80.0, 20.0] * 2)
+    trained = make_estimator(settings, make_model(settings))
+    with torch.no_grad():
+        trained.filter.boundary_layer.raw.add_(0.3)
+    module = EstimatorModule(trained, loss="supervised")
+    path = tmp_path / "module.ckpt"
+    torch.save({"state_dict": module.state_dict()}, path)
+    fresh = make_estimator(settings, make_model(settings))
+    load_parameters(fresh, path)
+    assert_close(fresh.filter.psi, trained.filter.psi)
+    wrong = make_estimator(
+        Settings(estimator="ks", meas_var=[900.0, 900.0], q=4.0), make_model(settings)
+    )
+    with pytest.raises(ValueError, match="^checkpoint: .* does not fit the estimator"):
+        load_parameters(wrong, path)
+
+
+def test_geodetic_free_estimates_keep_large_coordinates_exact(tmp_path):
+    """Positions far from the origin (projected coordinates in the millions) are estimated in
+    float32 without losing resolution: each track is moved to start near 0 first."""
+    source, target = tmp_path / "in.csv", tmp_path / "out.csv"
+    t = np.arange(50.0)
+    x = 5.3e6 + 100.0 * t
+    rows = "\n".join(f"a,{ti},{xi:.3f},{-2.1e6:.3f}" for ti, xi in zip(t, x, strict=True))
+    source.write_text("track_id,time,x,y\n" + rows + "\n")
+    _run(str(source), "-o", str(target), "--meas-std", "1", "--q", "0.01", "--estimator", "ks")
+    out = pcsv.read_csv(target)
+    assert np.abs(out.column("x").to_numpy() - x).max() < 0.05
+    assert np.abs(out.column("vx").to_numpy() - 100.0).max() < 0.05
+    assert not math.isnan(out.column("y").to_numpy()[0])

@@ -1,0 +1,164 @@
+"""Truth-free learning on recorded tracks: windows, the self-tuning fit, the Lightning path."""
+
+from __future__ import annotations
+
+import math
+
+import lightning as L
+import pytest
+import torch
+
+import torchsvs as ts
+from tests.conftest import assert_close
+from torchsvs.datasets import RecordedTracks, with_prior
+from torchsvs.datasets.tracks import windows
+from torchsvs.tracking import Settings, centred, complete_settings, make_estimator, make_model
+from torchsvs.training import EstimatorModule, RecordedTracksDataModule, self_tune
+
+pytestmark = pytest.mark.filterwarnings(
+    "ignore:.*does not have many workers.*", "ignore:.*LeafSpec.*", "ignore:.*litlogger.*"
+)
+
+
+def _cv_tracks(B=24, T=160, q=4.0, r=400.0, seed=0, missing=0.05) -> RecordedTracks:
+    """Tracks of the CV model itself (so the best q is the true one) at irregular 1-3 s."""
+    gen = torch.Generator().manual_seed(seed)
+    dt = 1.0 + 2.0 * torch.rand(B, T, generator=gen, dtype=torch.float64)
+    model = ts.models.ConstantVelocity(q=q, r=r).double()
+    F, Q = model.transition(dt), model.process_noise(dt)
+    x = torch.zeros(B, 4, dtype=torch.float64)
+    x[:, [1, 3]] = 30.0 * torch.randn(B, 2, generator=gen, dtype=torch.float64)
+    states = []
+    for t in range(T):
+        w = torch.linalg.cholesky(Q[:, t]) @ torch.randn(
+            B, 4, 1, generator=gen, dtype=torch.float64
+        )
+        x = (F[:, t] @ x.unsqueeze(-1) + w).squeeze(-1)
+        states.append(x)
+    truth = torch.stack(states, 1)
+    z = truth[..., [0, 2]] + math.sqrt(r) * torch.randn(B, T, 2, generator=gen, dtype=torch.float64)
+    z[torch.rand(B, T, 2, generator=gen) < missing] = float("nan")
+    return RecordedTracks(
+        z=z,
+        dt=dt,
+        time=torch.cumsum(dt, 1),
+        lengths=torch.full((B,), T),
+        ids=[str(b) for b in range(B)],
+        truth=truth,
+    )
+
+
+def _position_rmse(settings: Settings, tracks: RecordedTracks) -> float:
+    est = make_estimator(settings, make_model(settings)).double()
+    moved, offset = centred(tracks)
+    moved = with_prior(moved, torch.tensor(settings.meas_var).sqrt())
+    with torch.no_grad():
+        mean = est(moved.z, moved.x0, moved.P0, dt=moved.dt).mean.clone()
+    mean[..., 0::2] += offset.unsqueeze(1)
+    assert tracks.truth is not None
+    return float((mean[..., [0, 2]] - tracks.truth[..., [0, 2]]).square().mean().sqrt())
+
+
+def test_windows_score_every_real_step_once():
+    tracks = _cv_tracks(B=3, T=50)
+    tracks.lengths = torch.tensor([50, 31, 7])
+    tracks.z[1, 31:] = float("nan")
+    tracks.z[2, 7:] = float("nan")
+    cut, scored = windows(tracks, length=16, burn_in=4)
+    counts = torch.zeros(3, 50, dtype=torch.int64)
+    for w, ident in enumerate(cut.ids):
+        b, start = (int(v) for v in ident.split("@"))
+        steps = torch.arange(start, start + 16)[scored[w]]
+        counts[b, steps] += 1
+        inside = torch.arange(start, start + 16) < tracks.lengths[b]
+        assert_close(
+            cut.z[w][inside], tracks.z[b, start : start + 16][inside[: min(16, 50 - start)]]
+        )
+    assert bool((counts[tracks.mask] == 1).all()) and int(counts[~tracks.mask].sum()) == 0
+
+
+def test_fit_finds_the_true_q_without_truth():
+    tracks = _cv_tracks(q=4.0, r=400.0)
+    start = complete_settings(Settings(estimator="ks", meas_var=[400.0, 400.0], q=100.0), tracks)
+    fit = self_tune(start, tracks, known_noise=True)
+    assert 2.0 < fit.settings.q < 8.0
+    assert fit.curve[-1] < fit.curve[0]
+
+
+def test_fit_learns_the_noise_when_it_is_not_given():
+    tracks = _cv_tracks(q=4.0, r=400.0, B=32)
+    start = complete_settings(Settings(estimator="ks", meas_var=[50.0, 50.0], q=1.0), tracks)
+    fit = self_tune(start, tracks, known_noise=False)
+    assert fit.settings.meas_var == pytest.approx([400.0, 400.0], rel=0.15)
+    assert "innovation NLL" in fit.summary()
+
+
+def test_fit_of_an_svss_lowers_its_true_error():
+    tracks = _cv_tracks(q=20.0, r=900.0, B=16, T=120, seed=3)
+    start = complete_settings(
+        Settings(estimator="svss", meas_var=[900.0, 900.0], psi=[3000.0, 1000.0] * 2, lag=2), tracks
+    )
+    fit = self_tune(start, tracks, known_noise=True, steps=10)
+    assert _position_rmse(fit.settings, tracks) < 0.9 * _position_rmse(start, tracks)
+    assert len(fit.settings.psi) == 4 and fit.settings.psi[0] == fit.settings.psi[2]  # tied axes
+
+
+def test_particle_filters_are_not_fitted():
+    tracks = _cv_tracks(B=2, T=20)
+    start = complete_settings(Settings(estimator="pf", meas_var=[400.0, 400.0]), tracks)
+    with pytest.raises(ValueError, match="^estimator: --fit tunes"):
+        self_tune(start, tracks)
+
+
+def test_lightning_fits_recorded_tracks_without_truth(tmp_path):
+    tracks = _cv_tracks(q=4.0, r=400.0, B=16, T=96)
+    truthless = RecordedTracks(
+        z=tracks.z, dt=tracks.dt, time=tracks.time, lengths=tracks.lengths, ids=tracks.ids
+    )
+    data = RecordedTracksDataModule(
+        truthless, meas_std=20.0, window=48, burn_in=8, batch_size=32, double=True
+    )
+    data.setup("fit")
+    assert all(b.truth is None for b in data.batches["train"])
+    model = ts.models.ConstantVelocity(q=200.0, r=400.0, learn_q=True).double()
+    module = EstimatorModule(
+        ts.RTSSmoother(ts.KalmanFilter(model), lag=2), loss="sure", lr=0.3, meas_cov=data.meas_cov
+    )
+    trainer = L.Trainer(
+        max_epochs=12,
+        accelerator="cpu",
+        devices=1,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        enable_checkpointing=False,
+        default_root_dir=tmp_path,
+    )
+    trainer.fit(module, data)
+    assert float(model.q().detach()) < 100.0  # from 200 toward the true 4
+    assert "val_rmse" not in trainer.callback_metrics  # no truth, no RMSE
+
+
+def test_sure_refuses_a_learnable_measurement_noise():
+    model = ts.models.ConstantVelocity(q=1.0, r=4.0, learn_noise=True)
+    with pytest.raises(ValueError, match="^meas_cov: loss 'sure' needs the sensor's known"):
+        EstimatorModule(ts.KalmanFilter(model), loss="sure")
+    EstimatorModule(ts.KalmanFilter(model), loss="sure", meas_cov=torch.eye(2) * 4.0)  # given: fine
+    q_only = ts.models.ConstantVelocity(q=1.0, r=4.0, learn_q=True)
+    assert [n for n, p in q_only.named_parameters()] == ["q.raw"]
+
+
+def test_supervised_loss_on_recorded_tracks_needs_truth():
+    tracks = _cv_tracks(B=4, T=40)
+    truthless = RecordedTracks(
+        z=tracks.z, dt=tracks.dt, time=tracks.time, lengths=tracks.lengths, ids=tracks.ids
+    )
+    data = RecordedTracksDataModule(
+        truthless, meas_std=20.0, window=20, burn_in=4, val_fraction=0.25
+    )
+    data.setup("fit")
+    module = EstimatorModule(
+        ts.KalmanFilter(ts.models.ConstantVelocity(q=1.0, r=400.0, learn_q=True)), loss="supervised"
+    )
+    with pytest.raises(ValueError, match="^loss: 'supervised' needs truth"):
+        module.training_step(data.batches["train"][0], 0)
