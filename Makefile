@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench reproduce learn lint clean
+.PHONY: demo test test-slow bench bench-million reproduce real learn lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -28,6 +28,12 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m benchmarks.forward
 	$(PY) -m benchmarks.particles
+
+bench-million: $(STAMP)
+	$(PY) -m benchmarks.million_tracks
+
+real: $(STAMP)
+	$(PY) -m experiments.real_flights
 
 reproduce: $(STAMP)
 	$(PY) -m experiments.svss_paper

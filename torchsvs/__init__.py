@@ -6,7 +6,7 @@ the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable 
 and memory γ. See ``torchsvs.types`` for the shape conventions.
 """
 
-from torchsvs import metrics, models, scenarios
+from torchsvs import datasets, metrics, models, scenarios
 from torchsvs.filters import (
     SPVSF,
     SVSF,
@@ -33,6 +33,7 @@ __all__ = [
     "RTSSmoother",
     "RobustStudentTKalmanFilter",
     "SmootherResult",
+    "datasets",
     "metrics",
     "models",
     "scenarios",

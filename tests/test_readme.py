@@ -1,0 +1,37 @@
+"""The README's first examples run as written (on a small track file made here)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _usage_blocks() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    usage = text[text.index("## Usage") :]
+    return re.findall(r"```python\n(.*?)```", usage, flags=re.S)
+
+
+def test_recorded_track_examples_run(tmp_path, monkeypatch):
+    gen = np.random.default_rng(0)
+    rows = ["track_id,time,x,y"]
+    for k in range(4):
+        t = np.cumsum(gen.uniform(3.0, 7.0, 80))
+        v = gen.normal(0, 100, 2)
+        for ti in t:
+            x, y = v * ti + gen.normal(0, 100, 2)
+            rows.append(f"aircraft {k},{ti:.1f},{x:.1f},{y:.1f}")
+    (tmp_path / "tracks.csv").write_text("\n".join(rows) + "\n")
+    monkeypatch.chdir(tmp_path)
+    first, second = _usage_blocks()[:2]
+    namespace: dict = {}
+    exec(first, namespace)  # noqa: S102 - the README's own code
+    exec(second, namespace)  # noqa: S102
+    written = (tmp_path / "estimates.csv").read_text().splitlines()
+    assert len(written) == len(rows)
+    assert written[0].replace('"', "").startswith("track_id,time,x,vx,y,vy")
+    assert "svss by SURE" in namespace["fit"].summary()
