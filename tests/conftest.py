@@ -67,3 +67,23 @@ def system(request) -> System:
 
 def atc_batch(num_runs: int = 4, seed: int = 0, dtype=torch.float64) -> ts.scenarios.Scenario:
     return ts.scenarios.atc_scenario(num_runs, torch.Generator().manual_seed(seed), dtype=dtype)
+
+
+def simulate_cv(
+    dt: torch.Tensor, q: float, r: float, generator: torch.Generator, speed: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tracks of the nearly-constant-velocity model itself (2 axes) at per-step intervals
+    ``dt [B, T]``: truth ``[B, T, 4]`` and measurements ``[B, T, 2]`` (float64)."""
+    B, T = dt.shape
+    model = ts.models.ConstantVelocity(q=q, r=r).double()
+    F, Q = model.transition(dt), model.process_noise(dt)
+    x = torch.zeros(B, 4, dtype=torch.float64)
+    x[:, [1, 3]] = speed * torch.randn(B, 2, generator=generator, dtype=torch.float64)
+    states = []
+    for t in range(T):
+        w = torch.randn(B, 4, 1, generator=generator, dtype=torch.float64)
+        x = (F[:, t] @ x.unsqueeze(-1) + torch.linalg.cholesky(Q[:, t]) @ w).squeeze(-1)
+        states.append(x)
+    truth = torch.stack(states, 1)
+    noise = r**0.5 * torch.randn(B, T, 2, generator=generator, dtype=torch.float64)
+    return truth, truth[..., [0, 2]] + noise

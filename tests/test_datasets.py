@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import torchsvs as ts
-from tests.conftest import assert_close
+from tests.conftest import assert_close, simulate_cv
 from torchsvs.datasets import (
     Columns,
     estimate_noise,
@@ -54,6 +54,7 @@ def test_every_row_has_one_fate(dirty):
     assert report.notes["out_of_order"] == 1
     assert report.notes["non_numeric_value"] == 2  # "abc" and "inf"
     assert report.notes["partial_position"] == 2
+    assert report.notes["tracks_single_point_axis"] == 1  # c: one position, velocity 0 (wide)
     assert tracks.ids == ["a", "b7", "c"]
     assert tracks.lengths.tolist() == [6, 2, 1]
 
@@ -198,19 +199,7 @@ def test_noise_estimate_recovers_r_and_q_of_simulated_tracks():
     gen = torch.Generator().manual_seed(1)
     B, T, q, r = 40, 400, 2.0, 25.0
     dt = 1.0 + 4.0 * torch.rand(B, T, generator=gen, dtype=torch.float64)  # irregular, 1-5 s
-    model = ts.models.ConstantVelocity(ndim=2, q=q, r=r).double()
-    Q = model.process_noise(dt)  # [B, T, 4, 4]
-    F = model.transition(dt)
-    x = torch.zeros(B, 4, dtype=torch.float64)
-    states = []
-    for t in range(T):
-        noise = torch.linalg.cholesky(Q[:, t]) @ torch.randn(
-            B, 4, 1, generator=gen, dtype=torch.float64
-        )
-        x = (F[:, t] @ x.unsqueeze(-1) + noise).squeeze(-1)
-        states.append(x)
-    truth = torch.stack(states, 1)[..., [0, 2]]
-    z = truth + math.sqrt(r) * torch.randn(B, T, 2, generator=gen, dtype=torch.float64)
+    _, z = simulate_cv(dt, q, r, gen)
     z[torch.rand(B, T, 2, generator=gen) < 0.1] = float("nan")
     est = estimate_noise(z, dt)
     assert_close(est.meas_var, torch.full((2,), r), rtol=0.08)

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import math
-
 import lightning as L
 import pytest
 import torch
 
 import torchsvs as ts
-from tests.conftest import assert_close
+from tests.conftest import assert_close, simulate_cv
 from torchsvs.datasets import RecordedTracks, with_prior
 from torchsvs.datasets.tracks import windows
 from torchsvs.tracking import Settings, centred, complete_settings, make_estimator, make_model
@@ -24,19 +22,7 @@ def _cv_tracks(B=24, T=160, q=4.0, r=400.0, seed=0, missing=0.05) -> RecordedTra
     """Tracks of the CV model itself (so the best q is the true one) at irregular 1-3 s."""
     gen = torch.Generator().manual_seed(seed)
     dt = 1.0 + 2.0 * torch.rand(B, T, generator=gen, dtype=torch.float64)
-    model = ts.models.ConstantVelocity(q=q, r=r).double()
-    F, Q = model.transition(dt), model.process_noise(dt)
-    x = torch.zeros(B, 4, dtype=torch.float64)
-    x[:, [1, 3]] = 30.0 * torch.randn(B, 2, generator=gen, dtype=torch.float64)
-    states = []
-    for t in range(T):
-        w = torch.linalg.cholesky(Q[:, t]) @ torch.randn(
-            B, 4, 1, generator=gen, dtype=torch.float64
-        )
-        x = (F[:, t] @ x.unsqueeze(-1) + w).squeeze(-1)
-        states.append(x)
-    truth = torch.stack(states, 1)
-    z = truth[..., [0, 2]] + math.sqrt(r) * torch.randn(B, T, 2, generator=gen, dtype=torch.float64)
+    truth, z = simulate_cv(dt, q, r, gen, speed=30.0)
     z[torch.rand(B, T, 2, generator=gen) < missing] = float("nan")
     return RecordedTracks(
         z=z,

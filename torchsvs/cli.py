@@ -130,7 +130,7 @@ def track_parser() -> argparse.ArgumentParser:
     reading.add_argument(
         "--stream", action="store_true", help="stream tracks (each track's rows contiguous)"
     )
-    parser.add_argument("--block-rows", type=int, default=1 << 20, help="rows per streamed block")
+    parser.add_argument("--block-rows", type=int, default=1 << 18, help="rows per streamed block")
     parser.add_argument(
         "--double", action="store_true", help="compute in float64 (default float32)"
     )

@@ -31,7 +31,7 @@ from torchsvs.datasets import (
     track_blocks,
     with_prior,
 )
-from torchsvs.datasets.files import scatter_steps
+from torchsvs.datasets.files import scatter_steps, short_track_notes
 from torchsvs.estimator import Estimator
 from torchsvs.filters import (
     SPVSF,
@@ -272,7 +272,7 @@ def track_file(
     save: str | Path | None = None,
     covariance: bool = False,
     whole: bool | None = None,
-    block_rows: int = 1 << 20,
+    block_rows: int = 1 << 18,
     max_cells: int = 1 << 19,
     dtype: torch.dtype = torch.float32,
     progress: bool = True,
@@ -344,10 +344,10 @@ def track_file(
                 scatter_steps(steps, tracks, mean, cov if covariance else None, into=flat)
                 assert tracks.never_observed is not None
                 never[group] = tracks.never_observed.numpy()
+                run.report.notes.update(short_track_notes(tracks))
                 bar.update(len(group))
             run.estimate_seconds += time.perf_counter() - tick
             run.report.add(steps.report)
-            run.report.notes["tracks_axis_never_observed"] += int(never.any(axis=1).sum())
             writer.write(estimate_table(block, flat[0], flat[1], never))
     if bar is not None:
         bar.close()

@@ -132,7 +132,19 @@ def read_tracks(
     everything = np.arange(block.steps.num_tracks)
     tracks = with_prior(block.steps.pad(everything, dtype), meas_std)
     tracks.source = TrackSource(block, everything)
-    return tracks, block.steps.report
+    report = block.steps.report
+    report.notes.update(short_track_notes(tracks))
+    report.notes = +report.notes
+    return tracks, report
+
+
+def short_track_notes(tracks: RecordedTracks) -> dict[str, int]:
+    """How many tracks observe an axis only once, or never (the prior's fix-ups)."""
+    seen = (~torch.isnan(tracks.z)).sum(dim=1)  # [B, m] observations per axis
+    return {
+        "tracks_single_point_axis": int((seen == 1).any(dim=-1).sum()),
+        "tracks_axis_never_observed": int((seen == 0).any(dim=-1).sum()),
+    }
 
 
 def meas_variance(tracks: RecordedTracks, meas_std: float | Sequence[float] | None) -> Tensor:

@@ -80,6 +80,21 @@ def inverse(S: Sym2) -> Sym2:
     return Sym2(S.c / det, -S.b / det, S.a / det)
 
 
+def interleave(p: Tensor, v: Tensor) -> Tensor:
+    """``[..., m]`` positions and velocities → ``[..., 2m]`` in state order ``p1, v1, p2, ...``."""
+    return torch.stack([p, v], dim=-1).flatten(-2)
+
+
+def block_diagonal(block: Mat2) -> Tensor:
+    """Per-axis 2×2 blocks ``[..., m]`` → the block-diagonal ``[..., 2m, 2m]``."""
+    *lead, m = block.a.shape
+    out = block.a.new_zeros(*lead, m, 2, m, 2)
+    diagonal = out.diagonal(dim1=-4, dim2=-2)  # a view [..., 2, 2, m] of the axes' own blocks
+    for (row, col), part in zip(((0, 0), (0, 1), (1, 0), (1, 1)), block, strict=True):
+        diagonal[..., row, col, :] = part
+    return out.reshape(*lead, 2 * m, 2 * m)
+
+
 def transition(T: Tensor) -> Mat2:
     one, zero = torch.ones_like(T), torch.zeros_like(T)
     return Mat2(one, T, zero, one)

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Estimator, Inputs
-from torchsvs.filters.kalman import GaussianFilter, block_diagonal, interleave
+from torchsvs.filters.kalman import GaussianFilter
 from torchsvs.kernels import axes
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
@@ -133,7 +133,8 @@ class RTSSmoother(Estimator):
             return SmootherResult(result.mean, result.cov, result)
         if result.axes is not None:  # the filter ran per axis: so does the smoother
             (p, v), cov_axes = axes.smooth_axes(result.axes, self.projection_gain, self.lag)
-            return SmootherResult(interleave(p, v), block_diagonal(axes.full(cov_axes)), result)
+            cov = axes.block_diagonal(axes.full(cov_axes))
+            return SmootherResult(axes.interleave(p, v), cov, result)
         b = self._backward_terms(_shared_moments(result))
         if self.lag is None or self.lag >= T - 1:
             g, G, Z = self._fixed_interval(b)
