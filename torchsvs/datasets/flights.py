@@ -93,10 +93,29 @@ def flight_steps(
     aside["on_ground"] = int(ground.sum()) if airborne else 0
     aside["no_track_id"] -= aside["on_ground"]  # they were given no track id above
     steps.report.set_aside = +aside
+    notes["implausible_jump"] = _jumps(steps)
     steps.report.notes.update(notes)
+    steps.report.notes = +steps.report.notes
     steps.report.check()
     report.rows = steps.report
     return steps, report
+
+
+#: Horizontal speed (m/s, about 1170 kt) above which a move between two reports is implausible.
+MAX_SPEED = 600.0
+
+
+def _jumps(steps: TrackSteps) -> int:
+    """Steps whose position lies further from the track's previous position than
+    :data:`MAX_SPEED` allows (spoofing, time-stamp jumps): counted, left to the estimators."""
+    position, time = steps.position[:, :2], steps.time
+    seen = np.isfinite(position).all(axis=1)
+    track = np.repeat(np.arange(steps.num_tracks), steps.length)
+    index = np.flatnonzero(seen)
+    same = track[index][1:] == track[index][:-1]
+    distance = np.linalg.norm(np.diff(position[index], axis=0), axis=1)
+    elapsed = np.diff(time[index])
+    return int((same & (distance > MAX_SPEED * np.maximum(elapsed, 1e-9))).sum())
 
 
 def _short_name(path: Path) -> str:

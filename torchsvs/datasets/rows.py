@@ -44,6 +44,8 @@ NOTES = {
     "mean of the observed values)",
     "repeated_position": "position identical to the previous report (not a new measurement: "
     "ADS-B repeats the last position between position messages), read as missing",
+    "implausible_jump": "ADS-B: a position further from the previous one than 600 m/s allows "
+    "(spoofing, a time-stamp jump); kept, the estimators see a maneuver",
     "tracks_single_point_axis": "tracks (not rows) observing an axis once: its velocity prior "
     "is 0 with a wide variance (torchsvs.datasets.priors)",
     "tracks_axis_never_observed": "tracks (not rows) never observing an axis: their estimates "

@@ -1,7 +1,8 @@
 """Self-tuning on the user's own tracks, without truth (``torchsvs track --fit``).
 
-Two stages, each a short Adam run on windows of the tracks (:func:`~torchsvs.training.data.
-recorded_batches`) with the losses of :mod:`torchsvs.training.losses`:
+Two stages, each a short L-BFGS run on (at most 64) windows of 128 steps cut from the tracks
+(:func:`~torchsvs.training.data.recorded_batches`), with the losses of
+:mod:`torchsvs.training.losses`:
 
 1. **The sensor's noise, when it is not given**: a Kalman filter on the same nearly-constant
    velocity model learns ``q`` and ``R`` by maximum likelihood (innovation NLL). ``R`` is then
@@ -11,7 +12,11 @@ recorded_batches`) with the losses of :mod:`torchsvs.training.losses`:
    the loss that targets the error users care about, while the NLL only scores one-step
    predictions.
 
-Parameters are moved in log space (ψ, q) and logit space (γ), so Adam's steps are relative.
+Parameters are moved in log space (ψ, q, R) and logit space (γ). The SURE surface of an SVSS
+has more than one valley, so stage 2 first compares a few starting points (:data:`START_Q`,
+:data:`START_PSI`) by their risk and descends from the best; ψ is shared by the axes.
+Measured on recorded flights (``experiments/results/real_flights.md``): seconds per fit, within
+1% of the best grid value on held-out flights.
 """
 
 from __future__ import annotations
