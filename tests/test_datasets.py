@@ -95,6 +95,9 @@ def test_output_has_every_row_with_its_id_and_time(dirty, tmp_path):
     assert np.isfinite(x[placed]).all() and np.isnan(np.delete(x, placed)).all()
     # The two rows at a = 1 share one step and so one estimate.
     assert x[2] == x[3]
+    # A row set aside keeps its id and time, with empty estimates.
+    no_id = target.read_text().splitlines()[11].split(",")
+    assert no_id[:2] == ["", '"6"'] and set(no_id[2:]) == {""}
 
 
 def test_bad_files_get_clear_errors(tmp_path):
@@ -232,3 +235,31 @@ def test_velocities_rotate_into_the_frame():
     assert v[0] < -1.0 and v[1] > 99.0
     same = geodesy.rotate_enu(np.array([3.0, 4.0, 0.0]), 45.0, 7.0, 45.0, 7.0)
     assert_close(same, [3.0, 4.0, 0.0], atol=1e-12)
+
+
+def test_parquet_with_typed_columns_reads_like_csv(tmp_path):
+    """Parquet keeps its types: integer ids, timestamp times, float positions."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    start = np.datetime64("2024-05-01T12:00:00", "ns")
+    table = pa.table(
+        {
+            "id": pa.array([7, 7, 7, 9, 9], type=pa.int64()),
+            "when": pa.array([start + np.timedelta64(s, "s") for s in (0, 4, 2, 0, 5)]),
+            "x": [0.0, 40.0, 20.0, 5.0, None],
+            "y": [0.0, 8.0, 4.0, 5.0, 10.0],
+        }
+    )
+    path = tmp_path / "t.parquet"
+    pq.write_table(table, path)
+    tracks, report = read_tracks(path, Columns(track_id="id", time="when"), meas_std=1.0)
+    assert tracks.ids == ["7", "9"] and report.notes["out_of_order"] == 1
+    assert_close(
+        tracks.z[0], torch.tensor([[0.0, 0.0], [20.0, 4.0], [40.0, 8.0]], dtype=torch.float64)
+    )
+    assert_close(tracks.dt[1, 1:2], torch.tensor([5.0], dtype=torch.float64))
+    write_estimates(tracks, tracks.z.new_zeros(2, 3, 4), tmp_path / "o.parquet")
+    out = pq.read_table(tmp_path / "o.parquet")
+    assert out.column("id").to_pylist() == [7, 7, 7, 9, 9]  # as stored, not as text
+    assert out.column("when").type == table.column("when").type

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -172,9 +172,8 @@ def with_prior(
     meas_std: float | Sequence[float] | Tensor | None = None,
     inflation: float | None = None,
 ) -> RecordedTracks:
-    """The tracks with ``x0, P0`` from two-point differencing (:func:`two_point_prior`)."""
-    from dataclasses import replace
-
+    """The tracks with ``x0, P0`` from two-point differencing (:func:`two_point_prior`);
+    ``meas_std`` as for :func:`read_tracks`, or a tensor of standard deviations per axis."""
     var = meas_std.square() if isinstance(meas_std, Tensor) else meas_variance(tracks, meas_std)
     kwargs = {} if inflation is None else {"inflation": inflation}
     prior = two_point_prior(tracks.z, tracks.dt, var, **kwargs)
@@ -222,7 +221,10 @@ def estimate_table(
     index = np.where(placed, row_step, 0)
 
     def per_row(values: np.ndarray) -> Any:
-        return pa.array(np.where(placed, values[index], np.nan), type=pa.float64())
+        # NaN (not estimated) becomes an empty field
+        return pa.array(
+            np.where(placed, values[index], np.nan), type=pa.float64(), from_pandas=True
+        )
 
     out = {
         cols.track_id: block.table.column(cols.track_id),
