@@ -8,7 +8,7 @@ import torch
 
 import torchsvs as ts
 from tests.conftest import assert_close
-from torchsvs.kernels import general_path
+from torchsvs.kernels import eager_loops, fused, general_path
 
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov", "innovation", "mask", "gain")
 FIELDS += ("post_innovation", "innovation_cov", "log_likelihood", "meas_cov", "transition")
@@ -139,14 +139,16 @@ def test_associative_scan_is_a_prefix_product():
 
 @pytest.mark.parametrize("name", ["KF", "KS"])
 def test_time_scan_on_few_long_tracks_equals_general_path(name):
-    """Two tracks of 300 steps take the associative scan over time."""
+    """Two tracks of 300 steps take the associative scan over time (where the compiled loops
+    are not used)."""
     from torchsvs.kernels.axes import prefer_scan
 
     z, dt, x0, P0 = _problem(seed=4, B=2, T=300)
     assert prefer_scan(2 * 2, 300)
     model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
     est = _estimators(model)[name].double()
-    fast = est(z, x0, P0, dt=dt)
+    with eager_loops():
+        fast = est(z, x0, P0, dt=dt)
     with general_path():
         slow = est(z, x0, P0, dt=dt)
     assert_close(fast.mean, slow.mean, atol=1e-8)
@@ -155,3 +157,118 @@ def test_time_scan_on_few_long_tracks_equals_general_path(name):
         a, b = getattr(_filtered(fast), key), getattr(_filtered(slow), key)
         if a is not None:
             assert_close(a.double(), b.double(), atol=1e-8, msg=key)
+
+
+needs_compiler = pytest.mark.skipif(
+    fused._compiler() is None, reason="no C++ compiler: the compiled loops cannot be built"
+)
+
+
+@pytest.fixture
+def spy(monkeypatch):
+    """Counts the compiled loops' calls."""
+    calls = {"forward": 0, "backward": 0}
+    for name in calls:
+        original = getattr(fused, name if name == "forward" else "backward")
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] += 1
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(fused, name, counted)
+    rts = fused.rts_interval
+
+    def counted_rts(*args, **kwargs):
+        calls["backward"] += 1
+        return rts(*args, **kwargs)
+
+    monkeypatch.setattr(fused, "rts_interval", counted_rts)
+    return calls
+
+
+@needs_compiler
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("name", NAMES)
+def test_compiled_loops_equal_tensor_loops(name, dtype, spy):
+    """Without gradients the per-axis kernel runs its compiled loops: the same numbers as the
+    tensor loops (which the tests above hold to the general path), every field."""
+    assert fused.library() is not None, fused.failure()
+    z, dt, x0, P0 = (x.to(dtype) for x in _problem(seed=5, B=4, T=40))
+    model = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0])
+    est = _estimators(model)[name].to(dtype)
+    with torch.no_grad():
+        compiled = est(z, x0, P0, dt=dt)
+        assert spy["forward"] == 1
+        assert spy["backward"] == (1 if isinstance(est, ts.RTSSmoother) else 0)
+        with eager_loops():
+            eager = est(z, x0, P0, dt=dt)
+    assert spy["forward"] == 1
+    tol = {"atol": 1e-9, "rtol": 1e-9} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 1e-4}
+    assert_close(compiled.mean, eager.mean, **tol)
+    assert_close(compiled.cov, eager.cov, **tol)
+    for key in FIELDS:
+        a, b = getattr(_filtered(compiled), key), getattr(_filtered(eager), key)
+        assert (a is None) == (b is None), key
+        if a is not None:
+            assert a.dtype in (dtype, torch.bool), key
+            assert_close(a, b, msg=key, **tol)
+
+
+@needs_compiler
+def test_compiled_loops_take_per_step_psi_and_lags_beyond_the_track(spy):
+    z, dt, x0, P0 = _problem(seed=6, B=3, T=12)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    psi = torch.rand(3, 12, 4, dtype=torch.float64) * 4 + 0.5
+    for lag in (1, 11, 50):
+        svss = ts.SVSS(ts.SVSF(model, psi=[3.0, 2.0, 4.0, 1.5], gamma=0.2), lag=lag).double()
+        with torch.no_grad():
+            compiled = svss(z, x0, P0, dt=dt, psi=psi)
+            with general_path():
+                general = svss(z, x0, P0, dt=dt, psi=psi)
+        assert_close(compiled.mean, general.mean, atol=1e-9)
+        assert_close(compiled.cov, general.cov, atol=1e-9)
+    assert spy["forward"] == 3 and spy["backward"] == 3
+
+
+@needs_compiler
+def test_gradients_take_the_tensor_loops(spy):
+    z, dt, x0, P0 = _problem(seed=7, T=10)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    svss = ts.SVSS(ts.SVSF(model, psi=[3.0, 2.0, 4.0, 1.5], gamma=0.2), lag=2).double()
+    out = svss(z, x0, P0, dt=dt)
+    out.mean.sum().backward()
+    assert spy["forward"] == 0 and spy["backward"] == 0
+    assert svss.filter.boundary_layer.raw.grad is not None
+    # Inputs that ask for no gradient may still take the compiled loops with grad mode on.
+    ts.KalmanFilter(model).double()(z, x0, P0, dt=dt)
+    assert spy["forward"] == 1
+
+
+def test_without_a_compiler_the_tensor_loops_run(monkeypatch, spy):
+    z, dt, x0, P0 = _problem(seed=8)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    ks = ts.RTSSmoother(ts.KalmanFilter(model)).double()
+    with torch.no_grad():
+        expected = ks(z, x0, P0, dt=dt)
+    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
+    monkeypatch.setattr(fused, "_compiler", lambda: None)
+    with torch.no_grad(), pytest.warns(RuntimeWarning, match="no C.. compiler"):
+        fallback = ks(z, x0, P0, dt=dt)
+    assert "compiler" in (fused.failure() or "")
+    assert_close(fallback.mean, expected.mean, atol=1e-9)
+    assert spy["forward"] == 1  # only the first run
+    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
+    monkeypatch.setenv("TORCHSVS_FUSED", "0")
+    with torch.no_grad():
+        ks(z, x0, P0, dt=dt)
+    assert spy["forward"] == 1
+
+
+@needs_compiler
+def test_the_library_builds_into_the_cache(tmp_path, monkeypatch):
+    """A fresh cache gets a freshly built library that loads and runs."""
+    monkeypatch.setenv("TORCHSVS_CACHE", str(tmp_path))
+    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
+    assert fused.library() is not None, fused.failure()
+    assert len(list(tmp_path.glob("fused-*.so"))) == 1
+    assert fused.BUILD["seconds"] > 0

@@ -61,20 +61,54 @@ class FiniteDifferenceVelocity:
     def __call__(
         self, z: Tensor, model: StateSpaceModel, dt: Tensor | None, u: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
-        pos = getattr(model, "position_index", None)
-        vel = getattr(model, "velocity_index", None)
-        if pos is None or vel is None:
-            raise TypeError(
-                f"model: FiniteDifferenceVelocity needs position_index and velocity_index, "
-                f"which {type(model).__name__} does not define"
-            )
+        pos, vel = _positions_and_velocities(model, z.shape[-1])
+        m, n = len(pos), model.state_dim
+        velocity, inv, previous = self._differences(z, model, dt)
+        if previous is None:
+            same = torch.ones(1, 1, m, m, dtype=torch.bool)
+        else:  # whether axes i, j difference against the same earlier step
+            same = previous.unsqueeze(-1) == previous.unsqueeze(-2)
+        R = model.meas_cov().to(z.dtype)
+        cross = R * inv.unsqueeze(-2)  # Cov(z_i, v_j) = R_ij / Δ_j
+        if not self.correlated:
+            cross = torch.zeros_like(cross)
+        vv = R * (1.0 + same.to(z.dtype)) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
+        # Built in (positions, velocities) order, then permuted to state order at once.
+        order = torch.tensor(pos + vel).argsort()  # state component -> its place in (p, v)
+        y = torch.cat([z, velocity], dim=-1).index_select(-1, order)
+        lead = cross.shape[:-2]
+        top = torch.cat([R.expand(*lead, m, m), cross], dim=-1)
+        R_y = torch.cat([top, torch.cat([cross.mT, vv], dim=-1)], dim=-2)
+        R_y = R_y.index_select(-1, order).index_select(-2, order)
+        if R_y.ndim == 4 and R_y.shape[:2] == (1, 1):
+            R_y = R_y[0, 0]  # constant: [n, n]
+        H_y = torch.eye(n, dtype=z.dtype)
+        return y, H_y, R_y
+
+    def per_axis(
+        self, z: Tensor, model: StateSpaceModel, dt: Tensor | None
+    ) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor]] | None:
+        """The same measurement axis by axis, for a model whose ``R`` is diagonal (else
+        ``None``): the velocities ``[B, T, m]`` (the positions are ``z``) and the noise
+        ``(Var z_i, Cov(z_i, v_i), Var v_i)``, ``[m]`` or ``[B, T, m]`` each, the diagonal
+        blocks of ``R_y`` (without assembling it)."""
+        _positions_and_velocities(model, z.shape[-1])
+        R = model.meas_cov().to(z.dtype)
+        if bool((R != torch.diag_embed(R.diagonal())).any()):
+            return None
+        velocity, inv, _ = self._differences(z, model, dt)
+        r = R.diagonal()
+        inv = inv.squeeze(1).squeeze(0) if inv.shape[:2] == (1, 1) else inv
+        cross = r * inv if self.correlated else torch.zeros_like(r * inv)
+        return velocity, (r, cross, r * 2.0 * inv * inv)  # the diagonal of __call__'s vv
+
+    def _differences(
+        self, z: Tensor, model: StateSpaceModel, dt: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Velocities ``[B, T, m]`` (NaN where unknown), ``1/Δ`` ``[B, T, m]`` and the step each
+        velocity differences against ``[B, T, m]`` (``1/Δ`` ``[1, 1, m]`` and ``None`` when every
+        step has one interval)."""
         B, T, m = z.shape
-        n = model.state_dim
-        if len(pos) != m or len(vel) != m or len(set(pos) | set(vel)) != n:
-            raise ValueError(
-                f"model: expected {m} positions and {m} velocities covering all {n} "
-                "state components"
-            )
         observed = ~torch.isnan(z)
         step = torch.tensor(getattr(model, "dt", 1.0), dtype=z.dtype) if dt is None else dt
         index = torch.arange(T).view(1, T, 1).expand(B, T, m)
@@ -97,32 +131,25 @@ class FiniteDifferenceVelocity:
         # Computed on filled values and masked after, so gradients stay finite.
         velocity = (filled - filled.gather(1, previous)) / elapsed
         velocity = torch.where(unknown, torch.full_like(velocity, float("nan")), velocity)
-        y = z.new_empty(B, T, n)
-        y[..., pos] = z
-        y[..., vel] = velocity
+        if not bool(unknown[:, 1:].any()) and step.ndim == 0:  # one interval everywhere
+            return velocity, (1.0 / step).reshape(1, 1, 1).expand(1, 1, m), None
+        return velocity, 1.0 / elapsed, previous
 
-        R = model.meas_cov().to(z.dtype)
-        if not bool(unknown[:, 1:].any()) and step.ndim == 0:
-            inv = (1.0 / step).reshape(1, 1, 1).expand(1, 1, m)  # one interval everywhere
-            same = torch.ones(1, 1, m, m, dtype=torch.bool)
-        else:
-            inv = 1.0 / elapsed  # [B, T, m]
-            same = previous.unsqueeze(-1) == previous.unsqueeze(-2)  # [B, T, m, m]
-        cross = R * inv.unsqueeze(-2)  # Cov(z_i, v_j) = R_ij / Δ_j
-        if not self.correlated:
-            cross = torch.zeros_like(cross)
-        vv = R * (1.0 + same.to(z.dtype)) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
-        lead = cross.shape[:-2]
-        R_y = z.new_zeros(*lead, n, n)
-        rows, cols = torch.tensor(pos), torch.tensor(vel)
-        R_y[..., rows[:, None], rows[None, :]] = R.expand(*lead, m, m)
-        R_y[..., rows[:, None], cols[None, :]] = cross
-        R_y[..., cols[:, None], rows[None, :]] = cross.mT
-        R_y[..., cols[:, None], cols[None, :]] = vv
-        if R_y.ndim == 4 and R_y.shape[:2] == (1, 1):
-            R_y = R_y[0, 0]  # constant: [n, n]
-        H_y = torch.eye(n, dtype=z.dtype)
-        return y, H_y, R_y
+
+def _positions_and_velocities(model: StateSpaceModel, m: int) -> tuple[list[int], list[int]]:
+    pos = getattr(model, "position_index", None)
+    vel = getattr(model, "velocity_index", None)
+    if pos is None or vel is None:
+        raise TypeError(
+            f"model: FiniteDifferenceVelocity needs position_index and velocity_index, "
+            f"which {type(model).__name__} does not define"
+        )
+    n = model.state_dim
+    if len(pos) != m or len(vel) != m or len(set(pos) | set(vel)) != n:
+        raise ValueError(
+            f"model: expected {m} positions and {m} velocities covering all {n} state components"
+        )
+    return list(pos), list(vel)
 
 
 class ModulusFromAcceleration:

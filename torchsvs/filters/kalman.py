@@ -235,30 +235,16 @@ class GaussianFilter(Estimator):
         cross = ~torch.eye(m, dtype=torch.bool)
         if bool((R[cross] != 0).any()) or bool((inputs.P0[:, _cross_axis(m)] != 0).any()):
             return None
-        z, H, R_c = self.measurements(inputs)
-        assert H is not None
         pos, vel = model.position_index, model.velocity_index
-        if H.shape == (n, n) and bool(torch.equal(H, torch.eye(n, dtype=H.dtype))):
-            if bool((R_c[..., _cross_axis(m)] != 0).any()):
-                return None
-
-            def entry(i: list[int], j: list[int]) -> Tensor:
-                return R_c[..., i, j]
-
-            y = axes.AxisMeasurements(
-                z[..., pos],
-                z[..., vel],
-                axes.Sym2(entry(pos, pos), entry(pos, vel), entry(vel, vel)),
-            )
-        elif H.shape == (m, n) and bool(torch.equal(H, model.meas_matrix().to(H.dtype))):
-            diagonal = R_c.diagonal(dim1=-2, dim2=-1)
-            y = axes.AxisMeasurements(
-                z,
-                torch.full_like(z, float("nan")),
-                axes.Sym2(diagonal, torch.zeros_like(diagonal), torch.ones_like(diagonal)),
-            )
+        direct = self.axis_measurements(inputs)
+        if direct is not None:
+            y, with_velocity = direct, True
+            H, R_c = torch.eye(n, dtype=dtype), None
         else:
-            return None
+            measured = self._axis_split(inputs, pos, vel)
+            if measured is None:
+                return None
+            y, with_velocity, H, R_c = measured
         P0 = inputs.P0.expand(inputs.batch, n, n)
         prior = axes.Sym2(P0[:, pos, pos], P0[:, pos, vel], P0[:, vel, vel])
         interval = inputs.dt if inputs.dt is not None else torch.tensor(model.dt, dtype=dtype)
@@ -275,7 +261,43 @@ class GaussianFilter(Estimator):
             gamma,
         )
         F = model.transition(inputs.dt).to(dtype)  # Q is not part of a result
-        return _assemble(result, z.shape[-1] == n, _as_result_matrix(F), H, R_c)
+        if R_c is None:  # measured per axis: R (unmasked) from its diagonal blocks
+            R_c = axes.block_diagonal(axes.full(axes.Sym2(*torch.broadcast_tensors(*y.noise))))
+        return _assemble(result, with_velocity, _as_result_matrix(F), H, R_c)
+
+    def axis_measurements(self, inputs: Inputs) -> axes.AxisMeasurements | None:
+        """The corrector's full-state measurements built axis by axis, where a filter can
+        (the SVSF's finite-difference velocities); ``None``: split :meth:`measurements`."""
+        return None
+
+    def _axis_split(
+        self, inputs: Inputs, pos: list[int], vel: list[int]
+    ) -> tuple[axes.AxisMeasurements, bool, Tensor, Tensor] | None:
+        """:meth:`measurements` split by axis: positions only, or the full state with ``H = I``
+        (and whether velocities are measured, ``H``, ``R``); ``None`` if they couple axes."""
+        z, H, R_c = self.measurements(inputs)
+        model = self.model
+        assert H is not None and isinstance(model, ConstantVelocity)
+        m, n = len(pos), model.state_dim
+        if H.shape == (n, n) and bool(torch.equal(H, torch.eye(n, dtype=H.dtype))):
+            if bool((R_c[..., _cross_axis(m)] != 0).any()):
+                return None
+
+            def entry(i: list[int], j: list[int]) -> Tensor:
+                return R_c[..., i, j]
+
+            noise = axes.Sym2(entry(pos, pos), entry(pos, vel), entry(vel, vel))
+            return axes.AxisMeasurements(z[..., pos], z[..., vel], noise), True, H, R_c
+        if H.shape == (m, n) and bool(torch.equal(H, model.meas_matrix().to(H.dtype))):
+            diagonal = R_c.diagonal(dim1=-2, dim2=-1)
+            noise = axes.Sym2(diagonal, torch.zeros_like(diagonal), torch.ones_like(diagonal))
+            return (
+                axes.AxisMeasurements(z, torch.full_like(z, float("nan")), noise),
+                False,
+                H,
+                R_c,
+            )
+        return None
 
 
 def _cross_axis(m: int) -> Tensor:

@@ -11,6 +11,7 @@ from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, Observation, Step
+from torchsvs.kernels.axes import AxisMeasurements, Sym2
 from torchsvs.linalg import joseph_update, masked_pinv, matvec, svsf_gain_ratio
 from torchsvs.models.base import StateSpaceModel
 
@@ -148,7 +149,23 @@ class SVSF(GaussianFilter):
         if self.artificial is not None:
             z, H, R = self.artificial(inputs.z, self.model, inputs.dt, inputs.u)
             H, R = H.to(z.dtype), R.to(z.dtype)
-        m = z.shape[-1]
+        self._check_widths(z.shape[-1], inputs)
+        return z, H, R
+
+    def axis_measurements(self, inputs: Inputs) -> AxisMeasurements | None:
+        """Finite-difference velocities axis by axis (``R_y`` never assembled)."""
+        if not isinstance(self.artificial, FiniteDifferenceVelocity):
+            return None
+        parts = self.artificial.per_axis(inputs.z, self.model, inputs.dt)
+        if parts is None:
+            return None
+        self._check_widths(self.model.state_dim, inputs)
+        velocity, noise = parts
+        dtype = inputs.z.dtype
+        return AxisMeasurements(inputs.z, velocity, Sym2(*(x.to(dtype) for x in noise)))
+
+    def _check_widths(self, m: int, inputs: Inputs) -> None:
+        """ψ has one width per corrector measurement (``m`` of them)."""
         widths = self.boundary_layer.raw.numel()
         if self.boundary_layer.raw.ndim == 1 and widths != m:
             hint = (
@@ -167,7 +184,6 @@ class SVSF(GaussianFilter):
                 f"psi: expected a per-step override of shape [B, T, {m}], "
                 f"got {tuple(inputs.psi.shape)}"
             )
-        return z, H, R
 
     def correct(
         self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs

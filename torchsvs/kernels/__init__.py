@@ -1,21 +1,38 @@
 """Structure-exploiting kernels the estimators pick by themselves (exact: tested against the
-general path). :func:`general_path` turns them off, for comparisons and benchmarks."""
+general path). :func:`general_path` turns them off, for comparisons and benchmarks;
+:func:`eager_loops` keeps the per-axis kernel but runs its time loops as tensor operations
+instead of the compiled ones (:mod:`torchsvs.kernels.fused`)."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-#: Whether estimators may use the per-axis kernel (:mod:`torchsvs.kernels.axes`).
-AXIS_KERNEL = {"enabled": True}
+#: Whether estimators may use the per-axis kernel (:mod:`torchsvs.kernels.axes`), and its
+#: compiled loops where no gradient is needed.
+AXIS_KERNEL = {"enabled": True, "fused": True}
+
+
+@contextmanager
+def _setting(key: str, value: bool) -> Iterator[None]:
+    before = AXIS_KERNEL[key]
+    AXIS_KERNEL[key] = value
+    try:
+        yield
+    finally:
+        AXIS_KERNEL[key] = before
 
 
 @contextmanager
 def general_path() -> Iterator[None]:
     """Within this block every estimator runs its general (dense-matrix) code."""
-    before = AXIS_KERNEL["enabled"]
-    AXIS_KERNEL["enabled"] = False
-    try:
+    with _setting("enabled", False):
         yield
-    finally:
-        AXIS_KERNEL["enabled"] = before
+
+
+@contextmanager
+def eager_loops() -> Iterator[None]:
+    """Within this block the per-axis kernel runs its time loops as tensor operations (the
+    differentiable path), never the compiled ones."""
+    with _setting("fused", False):
+        yield

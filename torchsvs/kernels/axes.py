@@ -7,7 +7,9 @@ Kalman filter, the SVSF (``H⁺`` mode or finite-difference velocities) and the 
 recursion then act on 2×2 blocks, written here element by element on ``[B, (T,) m]`` tensors:
 a few dozen elementwise operations per step instead of batched 4×4 (or 6×6) matrix products,
 which on a CPU cost far more per element than the arithmetic. Results are exactly the general
-path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves.
+path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves. Where no
+gradient is asked for, the time loops below run compiled (:mod:`torchsvs.kernels.fused`, the
+same formulas in C++); these tensor loops are the differentiable path.
 
 Every axis has a two-component corrector measurement :math:`y = (y_p, y_v)` with ``H = I``;
 position-only correctors (Kalman filter, the SVSF's ``H⁺`` mode) have :math:`y_v` always missing.
@@ -24,6 +26,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchsvs.kernels import fused
 from torchsvs.linalg import svsf_gain_ratio
 
 
@@ -259,9 +262,9 @@ def run_axes(
         x = x if x.ndim == 3 else x.reshape((1, 1, -1) if x.ndim == 1 else (1, 1, 1))
         return x.expand(B, steps, m)
 
-    # Everything that does not depend on the estimates, for all steps at once, time-major.
+    # Everything that does not depend on the estimates, for all steps at once.
     given = tuple(
-        _time_major(x if x.ndim in (0, 1, 3) else per_step(x))
+        x if x.ndim in (0, 1, 3) else per_step(x)
         for x in (
             T_all,
             Q_all.a,
@@ -278,7 +281,9 @@ def run_axes(
     )
     zero = torch.zeros(B, m, dtype=dtype)
     state = (x0[0], x0[1], P0.a, P0.b, P0.c, zero, zero)
-    if rule == "kalman" and prefer_scan(B * m, steps):
+    if fused.usable(*given, *state, gamma):
+        out = fused.forward(rule, float(gamma), given, state[:5], (B, steps, m))
+    elif rule == "kalman" and prefer_scan(B * m, steps):
         # The filtered states by an associative scan over time, then every step's prediction,
         # gain and update from its predecessor at once (the same step function, vectorised).
         from torchsvs.kernels.scan import filter_scan
@@ -292,10 +297,9 @@ def run_axes(
             for first, x in zip(state[:5], (pf, vf, *Pf), strict=True)
         )
         previous = (*before, zero.unsqueeze(1), zero.unsqueeze(1))
-        every = tuple(x if x.ndim <= 1 else x.transpose(0, 1) for x in given)  # [B, T, ...]
-        out = _forward_step(rule, gamma, previous, every)[1]
-    else:
-        out = _forward_chunk(rule, gamma, state, given, steps)[1]
+        out = _forward_step(rule, gamma, previous, given)[1]
+    else:  # time-major: each step's slice is a contiguous block
+        out = _forward_chunk(rule, gamma, state, tuple(map(_time_major, given)), steps)[1]
     (p, v, a, b, c, pp, a1, b1, c1, ep, ev, ka, kb, kc, kd, mp, mv) = out
     vp = torch.cat([x0[1].unsqueeze(1), v[:, :-1]], dim=1)
     loglik = None
@@ -435,7 +439,12 @@ def smooth_axes(
     steps = res.mean[0].shape[1]
     if steps == 1:
         return res.mean, res.cov
+    B, _, m = res.mean[0].shape
     if not projection and (lag is None or lag >= steps - 1):
+        moments = (*res.mean, *res.cov, *res.pred_mean, *res.pred_cov, res.interval)
+        if fused.usable(*moments):
+            smoothed = fused.rts_interval(moments, (B, steps, m))
+            return (smoothed[0], smoothed[1]), Sym2(*smoothed[2:])
         if prefer_scan(res.mean[0].shape[0] * res.mean[0].shape[2], steps):
             from torchsvs.kernels.scan import smoother_scan
 
@@ -443,8 +452,12 @@ def smooth_axes(
         return _rts_interval(res)
     b = backward_terms(res, projection)
     zeros = torch.zeros_like(b.d[0])
-    if lag is None or lag >= steps - 1:
-        g: tuple[Tensor, Tensor] = (zeros[:, 0], zeros[:, 0])
+    terms = [x for field in b for x in field]
+    if fused.usable(*terms):
+        ran = fused.backward(terms, (B, steps - 1, m), lag)
+        g, G, Z = (ran[0], ran[1]), Mat2(*ran[2:6]), Mat2(*ran[6:10])
+    elif lag is None or lag >= steps - 1:
+        g = (zeros[:, 0], zeros[:, 0])
         G = Mat2(*(zeros[:, 0],) * 4)
         Z = G
         out = []
