@@ -643,7 +643,7 @@ def fit_section(
 def speed_section(
     fits: dict[str, Any], traffic: tuple[torch.Tensor, float, int], test: RecordedTracks
 ) -> list[str]:
-    """Per-scan cost of the learned estimators in float32 and float64 (best of three calls, all
+    """Per-scan cost of the learned estimators in float32 and float64 (best of five calls, all
     held-out flights at once), beside traffic's in the same run."""
     _, seconds, points = traffic
     scans = float(test.lengths.sum())
@@ -666,7 +666,7 @@ def speed_section(
         moved, _ = centred(tracks)
         moved = with_prior(moved.to(dtype), torch.tensor(settings.meas_var, dtype=dtype).sqrt())
         best = math.inf
-        for _ in range(3):
+        for _ in range(5):
             start = time.perf_counter()
             run_estimator(est, moved)
             best = min(best, time.perf_counter() - start)
@@ -701,7 +701,7 @@ def speed_section(
     )
     return [
         "Speed on the held-out flights, the same run: the learned estimators on all 12 flights "
-        f"at once (best of 3 calls, one thread) against traffic flight by flight ({points} "
+        f"at once (best of 5 calls, one thread) against traffic flight by flight ({points} "
         f"one-second points for {int(scans)} scans: {per_point:.0f} µs per scan).",
         "",
         markdown_table(

@@ -450,13 +450,23 @@ def smooth_axes(
 
             return smoother_scan(res.mean, res.cov, res.pred_mean, res.pred_cov, res.interval)
         return _rts_interval(res)
+    dtype = res.mean[0].dtype
+    filtered = (
+        *res.cov,
+        *res.pred_cov,
+        *res.gain,
+        *res.noise,
+        *(seen.to(dtype) for seen in res.observed),
+        res.interval,
+        *res.innovation,
+        *res.mean,
+    )
+    if fused.usable(*filtered):
+        ran = fused.backward(filtered, (B, steps, m), lag, projection)
+        return (ran[0], ran[1]), Sym2(*ran[2:])
     b = backward_terms(res, projection)
     zeros = torch.zeros_like(b.d[0])
-    terms = [x for field in b for x in field]
-    if fused.usable(*terms):
-        ran = fused.backward(terms, (B, steps - 1, m), lag)
-        g, G, Z = (ran[0], ran[1]), Mat2(*ran[2:6]), Mat2(*ran[6:10])
-    elif lag is None or lag >= steps - 1:
+    if lag is None or lag >= steps - 1:
         g = (zeros[:, 0], zeros[:, 0])
         G = Mat2(*(zeros[:, 0],) * 4)
         Z = G
@@ -482,6 +492,14 @@ def smooth_axes(
                 Mat2(*(shift(x) for x in Z)),
                 slice(None),
             )
+    return _smoothed(res, g, G, Z)
+
+
+def _smoothed(
+    res: AxisResult, g: tuple[Tensor, Tensor], G: Mat2, Z: Mat2
+) -> tuple[tuple[Tensor, Tensor], Sym2]:
+    """``x̂ˢ_k = x̂_k + g_k``, ``Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k`` (the last step as
+    filtered)."""
     P = full(Sym2(*(x[:, :-1] for x in res.cov)))
     PGt = mm(P, t(G))
     cov = add(P, _neg(PGt), _neg(t(PGt)), Z)

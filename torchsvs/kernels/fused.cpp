@@ -173,11 +173,6 @@ void rts_interval(int64_t B, int64_t T, int64_t m, const void* const* in,
     }
 }
 
-// axes._recurse from the end: g_k = C (d + g), G_k = C (ΓHF + G AF),
-// Z_k = C (ΓSΓᵀ + X + Xᵀ + Z) Cᵀ with X = ΓX Gᵀ, each term at index k+1 (AxisBackward),
-// started from zero at the end (fixed interval) or, with a lag L, at step k+L for each k (the
-// fixed-lag form: L applications from zero). Inputs (22, [B, T-1, m]): C(4), d(2), GHF(4),
-// GSG(4), GX(4), AF(4). Outputs (10, [B, T-1, m]): g(2), G(4), Z(4).
 template <typename R>
 struct M2 {
     R a, b, c, d;
@@ -199,6 +194,43 @@ inline M2<R> plus(const M2<R>& X, const M2<R>& Y) {
     return {X.a + Y.a, X.b + Y.b, X.c + Y.c, X.d + Y.d};
 }
 
+template <typename R>
+inline M2<R> neg(const M2<R>& X) {
+    return {-X.a, -X.b, -X.c, -X.d};
+}
+
+// axes.full(axes.inverse(S)) of a symmetric block given as (a, b, -, d).
+template <typename R>
+inline M2<R> inverse(R a, R b, R d) {
+    R det = a * d - b * b;
+    return {d / det, -b / det, -b / det, a / det};
+}
+
+// axes.backward_terms at one step: C, d, ΓHF, ΓSΓᵀ, ΓX, AF (22 values, in that order) of the
+// backward recursion at index k+1, from the filter's moments (P at k; the rest at k+1).
+// Γ = K (RTS) or, with `projection`, P Hᵀ S⁻¹ (SVSS, Eq. (42)).
+template <typename R>
+inline void terms_at(R* w, bool projection, R a, R b, R c, R a1, R b1, R c1, const M2<R>& K,
+                     R rp, R rpv, R rvv, R fp, R fv, R dt, R ep, R ev) {
+    M2<R> Pp{a1, b1, b1, c1}, P{a, b, b, c}, R_{rp, rpv, rpv, rvv};
+    M2<R> H{fp, 0, 0, fv}, F{1, dt, 0, 1};
+    M2<R> PHt = mul(Pp, H);
+    M2<R> S = plus(mul(H, PHt), R_);
+    M2<R> Gamma = projection ? mul(PHt, inverse(S.a, S.b, S.d)) : K;
+    M2<R> A{1 - K.a, -K.b, -K.c, 1 - K.d};
+    M2<R> X = plus(mul(tr(PHt), tr(A)), neg(mul(R_, tr(K))));
+    M2<R> C = tr(mul(inverse(Pp.a, Pp.b, Pp.d), mul(F, P)));
+    M2<R> GHF = mul(mul(Gamma, H), F), GSG = mul(mul(Gamma, S), tr(Gamma));
+    M2<R> GX = mul(Gamma, X), AF = mul(A, F);
+    R d0 = Gamma.a * ep + Gamma.b * ev, d1 = Gamma.c * ep + Gamma.d * ev;
+    const M2<R>* blocks[5] = {&C, &GHF, &GSG, &GX, &AF};
+    int n = 0;
+    for (int i = 0; i < 5; ++i) {
+        w[n++] = blocks[i]->a, w[n++] = blocks[i]->b, w[n++] = blocks[i]->c;
+        w[n++] = blocks[i]->d;
+        if (i == 0) w[n++] = d0, w[n++] = d1;
+    }
+}
 
 template <typename R>
 struct Backward {
@@ -206,7 +238,8 @@ struct Backward {
     M2<R> G, Z;
 };
 
-// One application at a step whose 22 terms are `w` (C, d, ΓHF, ΓSΓᵀ, ΓX, AF in order).
+// axes._recurse at a step whose 22 terms are `w` (C, d, ΓHF, ΓSΓᵀ, ΓX, AF in order):
+// g_k = C (d + g), G_k = C (ΓHF + G AF), Z_k = C (ΓSΓᵀ + X + Xᵀ + Z) Cᵀ with X = ΓX Gᵀ.
 template <typename R>
 inline Backward<R> recurse(const R* w, const Backward<R>& s) {
     M2<R> C{w[0], w[1], w[2], w[3]}, GHF{w[6], w[7], w[8], w[9]};
@@ -223,37 +256,59 @@ inline Backward<R> recurse(const R* w, const Backward<R>& s) {
     return out;
 }
 
+// axes.smooth_axes: the backward recursion from zero at the end (fixed interval) or, with a
+// lag L < T-1, L applications from zero at step k+L for each k (the fixed-lag form), then
+// axes._smoothed: x̂ˢ_k = x̂_k + g_k, Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k (symmetrised; the
+// last step as filtered).
+// Inputs (20, [B, T, m]): the filter's cov a, b, c; pred_cov a, b, c; gain a, b, c, d;
+// noise (masked) pp, pv, vv; observed p, v (0/1); T; innovation p, v; mean p, v.
+// Outputs (5, [B, T, m]): smoothed p, v, a, b, c.
 template <typename R>
-void backward(int64_t B, int64_t T, int64_t m, int64_t lag, const void* const* in,
+void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, const void* const* in,
               const int64_t* in_strides, void* const* out) {
-    View<R> v[22];
-    for (int i = 0; i < 22; ++i) v[i] = view<R>(in, in_strides, i);
-    R* o[10];
-    for (int i = 0; i < 10; ++i) o[i] = static_cast<R*>(out[i]);
+    View<R> v[20];
+    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
+    R* o[5];
+    for (int i = 0; i < 5; ++i) o[i] = static_cast<R*>(out[i]);
     const Backward<R> zero{0, 0, {0, 0, 0, 0}, {0, 0, 0, 0}};
-    // One chain's terms gathered step by step (contiguous for the sweeps) and its results.
-    std::vector<R> terms(22 * T);
-    std::vector<Backward<R>> result(T + 1, zero);  // result[T]: zero beyond the end
+    const int64_t n = T - 1;  // steps with a successor
+    // One chain's terms, step by step (contiguous for the sweeps), and its results.
+    std::vector<R> terms(22 * (n > 0 ? n : 1));
+    std::vector<Backward<R>> result(n + 1, zero);  // result[n]: zero beyond the end
     for (int64_t bi = 0; bi < B; ++bi) {
         for (int64_t j = 0; j < m; ++j) {
-            for (int64_t k = 0; k < T; ++k)
-                for (int i = 0; i < 22; ++i) terms[22 * k + i] = v[i].at(bi, k, j);
-            if (lag >= T) {
-                for (int64_t k = T - 1; k >= 0; --k)
+            auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
+            for (int64_t k = 0; k < n; ++k) {
+                int64_t t = k + 1;
+                M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
+                terms_at(&terms[22 * k], projection != 0, at(0, k), at(1, k), at(2, k), at(3, t),
+                         at(4, t), at(5, t), K, at(10, t), at(11, t), at(12, t), at(13, t),
+                         at(14, t), at(15, t), at(16, t), at(17, t));
+            }
+            if (lag >= n) {
+                for (int64_t k = n - 1; k >= 0; --k)
                     result[k] = recurse(&terms[22 * k], result[k + 1]);
             } else {
-                // Fixed lag: `lag` sweeps, each applying one step to the previous sweep's
-                // value at k+1 (read before it is overwritten, going forward).
-                for (int64_t k = 0; k < T; ++k) result[k] = zero;
+                // `lag` sweeps, each applying one step to the previous sweep's value at k+1
+                // (read before it is overwritten, going forward).
+                for (int64_t k = 0; k < n; ++k) result[k] = zero;
                 for (int64_t sweep = 0; sweep < lag; ++sweep)
-                    for (int64_t k = 0; k < T; ++k)
+                    for (int64_t k = 0; k < n; ++k)
                         result[k] = recurse(&terms[22 * k], result[k + 1]);
             }
-            for (int64_t k = 0; k < T; ++k) {
-                const Backward<R>& s = result[k];
-                R now[10] = {s.g0, s.g1, s.G.a, s.G.b, s.G.c, s.G.d, s.Z.a, s.Z.b, s.Z.c, s.Z.d};
+            for (int64_t k = 0; k <= n; ++k) {
+                R a = at(0, k), b = at(1, k), c = at(2, k);
+                R now[5] = {at(18, k), at(19, k), a, b, c};
+                if (k < n) {  // axes._smoothed
+                    const Backward<R>& s = result[k];
+                    M2<R> P{a, b, b, c};
+                    M2<R> PGt = mul(P, tr(s.G));
+                    M2<R> cov = plus(plus(plus(P, neg(PGt)), neg(tr(PGt))), s.Z);
+                    now[0] += s.g0, now[1] += s.g1;
+                    now[2] = cov.a, now[3] = 0.5 * (cov.b + cov.c), now[4] = cov.d;
+                }
                 int64_t idx = (bi * T + k) * m + j;
-                for (int i = 0; i < 10; ++i) o[i][idx] = now[i];
+                for (int i = 0; i < 5; ++i) o[i][idx] = now[i];
             }
         }
     }
@@ -283,14 +338,14 @@ void rts_interval_f64(int64_t B, int64_t T, int64_t m, const void* const* in, co
     rts_interval<double>(B, T, m, in, s, out);
 }
 
-void backward_f32(int64_t B, int64_t T, int64_t m, int64_t lag, const void* const* in,
-                  const int64_t* s, void* const* out) {
-    backward<float>(B, T, m, lag, in, s, out);
+void backward_f32(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
+                  const void* const* in, const int64_t* s, void* const* out) {
+    backward<float>(B, T, m, lag, projection, in, s, out);
 }
 
-void backward_f64(int64_t B, int64_t T, int64_t m, int64_t lag, const void* const* in,
-                  const int64_t* s, void* const* out) {
-    backward<double>(B, T, m, lag, in, s, out);
+void backward_f64(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
+                  const void* const* in, const int64_t* s, void* const* out) {
+    backward<double>(B, T, m, lag, projection, in, s, out);
 }
 
 }  // extern "C"

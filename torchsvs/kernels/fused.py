@@ -113,7 +113,7 @@ def library() -> ctypes.CDLL | None:
         forward.argtypes += [pointers, strides, pointers]
         getattr(lib, f"rts_interval_{suffix}").argtypes = [*size, pointers, strides, pointers]
         backward = getattr(lib, f"backward_{suffix}")
-        backward.argtypes = [*size, ctypes.c_int64, pointers, strides, pointers]
+        backward.argtypes = [*size, ctypes.c_int64, ctypes.c_int, pointers, strides, pointers]
     _state["library"] = lib
     return lib
 
@@ -193,7 +193,11 @@ def forward(
 
 
 def _call(
-    name: str, count: int, given: Sequence[Tensor], shape: tuple[int, int, int], *extra: int
+    name: str,
+    count: int,
+    given: Sequence[Tensor],
+    shape: tuple[int, int, int],
+    *extra: int,
 ) -> tuple[Tensor, ...]:
     lib = library()
     assert lib is not None
@@ -213,10 +217,14 @@ def rts_interval(given: Sequence[Tensor], shape: tuple[int, int, int]) -> tuple[
 
 
 def backward(
-    given: Sequence[Tensor], shape: tuple[int, int, int], lag: int | None
+    given: Sequence[Tensor], shape: tuple[int, int, int], lag: int | None, projection: bool
 ) -> tuple[Tensor, ...]:
-    """:func:`torchsvs.kernels.axes._recurse` over all steps, from the end (``lag`` None) or
-    ``lag`` times from zero at each step (the fixed-lag form): ``given`` the 22 components of
-    ``C, d, ΓHF, ΓSΓᵀ, ΓX, AF`` (``[B, T-1, m]``); returns ``g`` (2), ``G`` (4), ``Z`` (4)."""
-    steps = shape[1]
-    return _call("backward", 10, given, shape, steps if lag is None else min(lag, steps))
+    """:func:`torchsvs.kernels.axes.smooth_axes` after a filter pass: the backward recursion
+    with its terms (:func:`~torchsvs.kernels.axes.backward_terms`) and the smoothed moments.
+    ``given``: the filter's covariance (3), predicted covariance (3), gain (4), masked noise
+    (3), observed masks (2, as 0/1), ``T``, innovation (2) and mean (2),
+    ``[B, T, m]``-broadcastable; the recursion runs from the end (``lag`` None) or ``lag``
+    times from zero at each step. Returns the smoothed ``p, v, a, b, c``, ``[B, T, m]`` each."""
+    steps = shape[1] - 1
+    limit = steps if lag is None else min(lag, steps)
+    return _call("backward", 5, given, shape, limit, int(projection))
