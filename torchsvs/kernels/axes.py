@@ -394,9 +394,10 @@ def _recurse(
 
 
 def prefer_scan(tracks: int, steps: int) -> bool:
-    """Whether an associative scan over time beats the step-by-step loop: for few, long tracks
-    (its ``O(log T)`` rounds do several times the arithmetic of the loop, which pays only
-    where the loop's cost is the per-step overhead of small operations)."""
+    """Whether an associative scan over time beats the step-by-step tensor loop: for few, long
+    tracks (its ``O(log T)`` rounds do several times the arithmetic of the loop, which pays only
+    where the loop's cost is the per-step overhead of small operations). The compiled loops
+    beat both; this choice is for the differentiable path."""
     return steps >= 64 and tracks * 16 <= steps * 4 + 4096
 
 
