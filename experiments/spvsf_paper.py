@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 
 import torchsvs as ts
 from torchsvs.evaluation import markdown_table
+from torchsvs.filters.particle import Proposal
 from torchsvs.scenarios import Scenario, ballistic_scenario, eha_scenario
 
 BALLISTIC_TRUE_X0 = (61000.0, 3048.0, 19161.0)
@@ -67,8 +68,14 @@ EQ47_PSI = [1e4, 8e3, 1e5]  # ψ₃ wide: the artificial β is mostly noise (see
 EHA_PSI = [5e-4, 5e-3, 0.5, 1e6]  # ψ = 5 V_max (Sec 5.2); 1e6 Pa for the modulus: our choice
 EHA_NOISE_AT_3_SIGMA = 1.0 / (3.0 * 5.0**0.5)  # truth noise with V_max, W_max at 3σ
 # The SPVSF's other readings of Eqs. (30)-(31) (rows "SPVSF" use the default, "adapted").
-READINGS = {"SPVSF, Eqs 30-31 as printed": "estimate", "SPVSF, particle proposal": "particles"}
-DEFAULT_READING = inspect.signature(ts.SPVSF).parameters["proposal"].default
+READINGS: dict[str, Proposal] = {
+    "SPVSF, Eqs 30-31 as printed": "estimate",
+    "SPVSF, particle proposal": "particles",
+}
+DEFAULT_READING: Proposal = inspect.signature(ts.SPVSF).parameters["proposal"].default
+
+#: Where `python -m` writes the report: the tracked results of the checkout.
+RESULTS = Path(__file__).parent / "results"
 
 
 def run_rmse(mean: Tensor, truth: Tensor, x0: Tensor, true_x0: Tensor) -> Tensor:
@@ -83,7 +90,9 @@ def paper_rmse(mean: Tensor, truth: Tensor, x0: Tensor, true_x0: Tensor) -> Tens
     return run_rmse(mean, truth, x0, true_x0).mean(0)
 
 
-def estimators(model: ts.models.StateSpaceModel, psi: list[float]) -> dict[str, torch.nn.Module]:
+def estimators(
+    model: ts.models.StateSpaceModel, psi: list[float], proposal: Proposal = DEFAULT_READING
+) -> dict[str, torch.nn.Module]:
     # The EHA's SVSF measures the modulus through the artificial measurement of its dynamics.
     eha = isinstance(model, ts.models.ElectrohydrostaticActuator)
     artificial = ts.filters.ModulusFromAcceleration() if eha else None
@@ -99,6 +108,7 @@ def estimators(model: ts.models.StateSpaceModel, psi: list[float]) -> dict[str, 
             num_particles=350,
             resample_threshold=0.8,
             artificial=artificial,
+            proposal=proposal,
         ),
     }
 
@@ -110,10 +120,7 @@ def variants(sc: Scenario, psi: list[float]) -> dict[str, tuple[torch.nn.Module,
     and SPVSF with Eq. (47)."""
     rows: dict[str, tuple[torch.nn.Module, Tensor]] = {}
     for name, proposal in READINGS.items():
-        spvsf = estimators(sc.model, psi)["SPVSF"]
-        assert isinstance(spvsf, ts.SPVSF)
-        spvsf.proposal = proposal
-        rows[name] = (spvsf, sc.P0)
+        rows[name] = (estimators(sc.model, psi, proposal)["SPVSF"], sc.P0)
     pf = ts.ParticleFilter(sc.model, num_particles=350, resample_threshold=0.8)
     if not isinstance(sc.model, ts.models.BallisticReentry):
         wide = sc.P0 + torch.diag(torch.tensor([0.0, 0.0, 0.0, 0.6e8**2], dtype=sc.P0.dtype))
@@ -317,12 +324,18 @@ def table(ours: dict[str, Tensor], paper: dict, labels: list[str], scale: list[f
     return markdown_table(["filter", *labels], rows)
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=100)
-    parser.add_argument("--eha-runs", type=int, default=20)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RESULTS) -> None:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--runs", type=int, default=100, help="Monte Carlo runs per scenario (default 100)"
+    )
+    parser.add_argument(
+        "--eha-runs", type=int, default=20, help="Monte Carlo runs of the EHA (default 20)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument(
+        "--out", type=Path, default=out, help=f"where the report and figures go (default {out})"
+    )
     args = parser.parse_args(argv)
     start = time.perf_counter()
     true_b = torch.tensor(BALLISTIC_TRUE_X0, dtype=torch.float64)

@@ -98,7 +98,7 @@ def test_bad_call_arguments(atc, case):
 
 
 def test_single_track_needs_unbatched_prior(atc):
-    with pytest.raises(ValueError, match=r"^x0: expected shape \[4\]"):
+    with pytest.raises(ValueError, match=r"^x0: expected shape \[n\] = \[4\]"):
         ts.KalmanFilter(atc.model)(atc.z[0], atc.x0.expand(2, 4), atc.P0)
 
 
@@ -207,3 +207,90 @@ def test_bad_metrics_and_segments():
         ts.metrics.accumulative_rmse(torch.zeros(2, 3, 4), torch.zeros(2, 3, 2))
     with pytest.raises(ValueError, match="^segments: duration 2.5 is not a positive multiple"):
         ts.scenarios.simulate_segments(torch.zeros(4), [ts.scenarios.Segment(2.5)], dt=1.0)
+
+
+def test_shape_messages_say_which_axis_is_which(atc):
+    """With B = n = 4 a bare "[4, 4] or [4]" would not say which is the batch."""
+    z = atc.z[:1].expand(4, -1, -1)
+    with pytest.raises(
+        ValueError, match=r"^x0: expected shape \[B, n\] = \[4, 4\] or \[n\] = \[4\]"
+    ):
+        ts.KalmanFilter(atc.model)(z, torch.zeros(3, 4, dtype=z.dtype), atc.P0)
+    with pytest.raises(ValueError, match=r"^P0: expected shape \[B, n, n\] = \[4, 4, 4\] or"):
+        ts.KalmanFilter(atc.model)(z, torch.zeros(4, dtype=z.dtype), atc.P0.expand(3, 4, 4))
+
+
+@pytest.mark.parametrize("name", ["KF", "SVSF", "SVSS", "PF", "SPVSF"])
+def test_no_tracks_is_a_clear_error(atc, name):
+    model = atc.model
+    est = {
+        "KF": ts.KalmanFilter(model),
+        "SVSF": ts.SVSF(model, psi=[800.0, 800.0]),
+        "SVSS": _svss(model),
+        "PF": ts.ParticleFilter(model, num_particles=10),
+        "SPVSF": ts.SPVSF(model, psi=[800.0, 800.0], num_particles=10),
+    }[name].to(atc.z.dtype)
+    with pytest.raises(
+        ValueError, match=r"^z: expected at least one track, got shape \(0, 490, 2\)"
+    ):
+        est(atc.z[:0], atc.x0[:0], atc.P0)
+
+
+@pytest.mark.parametrize("name", ["KF", "KS", "EKF", "UKF", "RSTKF", "PF", "SPVSF"])
+def test_psi_is_refused_where_there_is_no_boundary_layer(atc, name):
+    model = atc.model
+    est = {
+        "KF": ts.KalmanFilter(model),
+        "KS": ts.RTSSmoother(ts.KalmanFilter(model)),
+        "EKF": ts.ExtendedKalmanFilter(model),
+        "UKF": ts.UnscentedKalmanFilter(model),
+        "RSTKF": ts.RobustStudentTKalmanFilter(model),
+        "PF": ts.ParticleFilter(model, num_particles=10),
+        "SPVSF": ts.SPVSF(model, psi=[800.0, 800.0], num_particles=10),
+    }[name].to(atc.z.dtype)
+    psi = torch.full(atc.z.shape, 500.0, dtype=atc.z.dtype)
+    with pytest.raises(ValueError, match=f"^psi: {type(est).__name__} has no boundary layer"):
+        est(atc.z, atc.x0, atc.P0, psi=psi)
+
+
+def test_psi_reaches_the_svsf_and_its_smoothers(atc):
+    psi = torch.full(atc.z.shape, 500.0, dtype=atc.z.dtype)
+    for est in (
+        ts.SVSF(atc.model, psi=[800.0, 800.0], artificial=None),
+        _svss(atc.model),
+        ts.RTSSmoother(ts.SVSF(atc.model, psi=[800.0, 800.0], artificial=None), lag=1),
+    ):
+        est = est.to(atc.z.dtype)
+        assert not torch.equal(
+            est(atc.z, atc.x0, atc.P0, psi=psi).mean, est(atc.z, atc.x0, atc.P0).mean
+        )
+
+
+def test_innovation_losses_on_a_particle_filter_name_the_problem(atc):
+    from torchsvs.training.data import TrackBatch
+    from torchsvs.training.losses import innovation_nll, prediction_error
+    from torchsvs.training.module import batch_loss
+
+    pf = ts.ParticleFilter(atc.model, num_particles=10).to(atc.z.dtype)
+    batch = TrackBatch(z=atc.z, x0=atc.x0, P0=atc.P0, truth=atc.truth)
+    for loss in ("nll", "prediction"):
+        with pytest.raises(ValueError, match=f"^loss: '{loss}' .*ParticleFilter does not form"):
+            batch_loss(pf, batch, loss)
+    result = pf(atc.z, atc.x0, atc.P0, generator=torch.Generator().manual_seed(0))
+    for function in (innovation_nll, prediction_error):
+        with pytest.raises(TypeError, match="^result: the .* loss needs .*got a ParticleResult"):
+            function(result)
+    value, _ = batch_loss(pf, batch, "supervised")
+    assert torch.isfinite(value)
+
+
+def test_spvsf_strategies_are_constructor_arguments():
+    model = ts.models.ConstantVelocity()
+    spvsf = ts.SPVSF(model, psi=50.0, proposal="particles", soft_resampling=0.5)
+    assert spvsf.proposal == "particles" and spvsf.soft_resampling == 0.5
+    with pytest.raises(ValueError, match=r"^proposal: expected one of"):
+        ts.SPVSF(model, psi=50.0, proposal="estimated")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^soft_resampling: expected None or a value in \(0, 1\]"):
+        ts.SPVSF(model, psi=50.0, soft_resampling=2.0)
+    with pytest.raises(ValueError, match=r"^resampling: expected one of"):
+        ts.SPVSF(model, psi=50.0, resampling="residual")  # type: ignore[arg-type]

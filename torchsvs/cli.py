@@ -3,6 +3,7 @@
     torchsvs demo [--epochs 4] [--runs 500]           learn ψ, γ; track Chen et al. 2020's scenarios
     torchsvs reproduce svss [--runs 500] [--seed 0]   Tables 1-3, A2 and Figs 4-9 of that paper
     torchsvs reproduce spvsf [--runs 100]             Tables 1, 2, 4, 5, Figs 5-9 of Gadsden 2012
+                                                      (reports in ./torchsvs-results/ or --out)
     torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
     torchsvs track INPUT -o OUTPUT [--estimator svss] [--fit] ...
                                                       estimate every track of a CSV/Parquet file
@@ -196,9 +197,31 @@ def track(argv: list[str]) -> None:
         print(run.summary(), file=sys.stderr)
 
 
+#: Where ``torchsvs reproduce`` writes its reports unless ``--out`` says otherwise (the
+#: checkout's tracked ``experiments/results/`` is for ``make reproduce``).
+REPRODUCE_OUT = Path("torchsvs-results")
+
+
+def usage() -> str:
+    lines = [f"  torchsvs {k:<16} {v[1]}" for k, v in COMMANDS.items()]
+    lines.append("  torchsvs fit --config CONFIG.yaml   train an estimator (LightningCLI)")
+    lines.append("  torchsvs track INPUT -o OUTPUT      estimate every track of a file")
+    return (
+        "usage: torchsvs COMMAND [options]\n\ncommands:\n"
+        + "\n".join(lines)
+        + "\n\n`torchsvs COMMAND --help` lists a command's options."
+    )
+
+
 def main(argv: list[str] | None = None) -> None:
     """Dispatches ``torchsvs COMMAND [options]`` to the experiment's own ``main``."""
     args = list(sys.argv[1:] if argv is None else argv)
+    if not args:
+        print(usage(), file=sys.stderr)
+        raise SystemExit(2)
+    if args[:1] in (["-h"], ["--help"], ["help"]):
+        print(usage())  # asked for: standard output, success
+        return
     if args[:1] == ["fit"]:
         from torchsvs.training.cli import main as fit
 
@@ -210,12 +233,14 @@ def main(argv: list[str] | None = None) -> None:
     for words in sorted(COMMANDS, key=len, reverse=True):
         size = len(words.split())
         if args[:size] == words.split():
-            _import_experiment(COMMANDS[words][0]).main(args[size:])
+            run = _import_experiment(COMMANDS[words][0]).main
+            if words.startswith("reproduce"):
+                out = REPRODUCE_OUT / words.split()[1]
+                run(args[size:], prog=f"torchsvs {words}", out=out)
+            else:
+                run(args[size:], prog=f"torchsvs {words}")
             return
-    usage = "\n".join(f"  torchsvs {k:<16} {v[1]}" for k, v in COMMANDS.items())
-    usage += "\n  torchsvs fit --config CONFIG.yaml   train an estimator (LightningCLI)"
-    usage += "\n  torchsvs track INPUT -o OUTPUT      estimate every track of a file (--help)"
-    print(f"usage: torchsvs COMMAND [options]\n\ncommands:\n{usage}", file=sys.stderr)
+    print(f"torchsvs: unknown command {' '.join(args[:2])!r}\n\n{usage()}", file=sys.stderr)
     raise SystemExit(2)
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from numbers import Real
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -79,12 +79,14 @@ def prepare_inputs(
     dtype, single = z.dtype, z.ndim == 2
     zb = z.unsqueeze(0) if single else z
     B, T = zb.shape[:2]
+    if B == 0:
+        raise ValueError(f"z: expected at least one track, got shape {_shape(z)}")
 
     x0 = _as_float_tensor(x0, "x0", dtype)
     if x0.shape == (n,):
         x0 = x0.expand(B, n)
     elif x0.shape != (B, n) or single:
-        want = f"[{n}]" if single else f"[{B}, {n}] or [{n}]"
+        want = f"[n] = [{n}]" if single else f"[B, n] = [{B}, {n}] or [n] = [{n}]"
         raise ValueError(f"x0: expected shape {want}, got {_shape(x0)}")
     if not bool(torch.isfinite(x0).all()):
         raise ValueError("x0: contains NaN or inf")
@@ -95,7 +97,8 @@ def prepare_inputs(
         # data), the covariance recursion then runs once for the whole batch.
         P0 = P0.unsqueeze(0)
     elif P0.shape != (B, n, n) or single:
-        want = f"[{n}, {n}]" if single else f"[{B}, {n}, {n}] or [{n}, {n}]"
+        shared = f"[n, n] = [{n}, {n}]"
+        want = shared if single else f"[B, n, n] = [{B}, {n}, {n}] or {shared}"
         raise ValueError(f"P0: expected shape {want}, got {_shape(P0)}")
     if not bool(torch.isfinite(P0).all()):
         raise ValueError("P0: contains NaN or inf")
@@ -170,11 +173,15 @@ def drop_batch(result: Any) -> Any:
     return type(result)(*fields)
 
 
-class Estimator(nn.Module):
+#: What an estimator returns: a FilterResult, SmootherResult or ParticleResult.
+Result = TypeVar("Result")
+
+
+class Estimator(nn.Module, Generic[Result]):
     """Base of every filter and smoother: ``forward`` checks inputs, ``run`` does the work.
 
-    Subclasses implement :meth:`run` on checked, batched :class:`Inputs`. Nothing about a run is
-    stored on the module.
+    Subclasses implement :meth:`run` on checked, batched :class:`Inputs`, returning their
+    ``Result`` type. Nothing about a run is stored on the module.
     """
 
     model: StateSpaceModel
@@ -189,7 +196,7 @@ class Estimator(nn.Module):
         dt: float | Tensor | None = None,
         psi: Tensor | None = None,
         generator: torch.Generator | None = None,
-    ) -> Any:
+    ) -> Result:
         """Estimates the states of every track.
 
         Args:
@@ -202,11 +209,25 @@ class Estimator(nn.Module):
             generator: source of randomness for stochastic estimators.
 
         Returns:
-            A :class:`~torchsvs.types.FilterResult` or :class:`~torchsvs.types.SmootherResult`.
+            A :class:`~torchsvs.types.FilterResult`, :class:`~torchsvs.types.SmootherResult` or
+            :class:`~torchsvs.filters.particle.ParticleResult`.
+
+        The computation runs in ``z``'s dtype (float32 or float64): the other inputs and the
+        module's parameters are cast to it, so a float64 module given float32 ``z`` computes in
+        float32 (pass float64 ``z`` for float64 results). Gradients still reach the parameters.
         """
+        if psi is not None and not self.takes_psi():
+            raise ValueError(
+                f"psi: {type(self).__name__} has no boundary layer to override; a per-step psi "
+                "applies to the SVSF and the smoothers over it"
+            )
         inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator)
         result = self.run(inputs)
         return drop_batch(result) if inputs.single else result
 
-    def run(self, inputs: Inputs) -> Any:
+    def run(self, inputs: Inputs) -> Result:
         raise NotImplementedError
+
+    def takes_psi(self) -> bool:
+        """Whether a per-step boundary layer override ``psi`` applies to this estimator."""
+        return False

@@ -7,6 +7,9 @@ is ``N·w_i``. No global random state is touched.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Literal
+
 import torch
 from torch import Tensor
 
@@ -41,4 +44,10 @@ def systematic(log_weights: Tensor, generator: torch.Generator | None = None) ->
     return _from_positions(log_weights, positions)
 
 
-SCHEMES = {"multinomial": multinomial, "stratified": stratified, "systematic": systematic}
+#: A resampling scheme's name.
+Scheme = Literal["multinomial", "stratified", "systematic"]
+SCHEMES: dict[Scheme, Callable[[Tensor, torch.Generator | None], Tensor]] = {
+    "multinomial": multinomial,
+    "stratified": stratified,
+    "systematic": systematic,
+}

@@ -89,7 +89,7 @@ def kalman_update(
     return x_pred + matvec(K, e), joseph_update(P_pred, K, H, R), K, S, L
 
 
-class GaussianFilter(Estimator):
+class GaussianFilter(Estimator[FilterResult]):
     """A filter that carries a Gaussian (mean, covariance) through predict-correct steps.
 
     The prediction (Eqs. (11)-(12) and (18)-(20), Chen et al. 2020) is shared; subclasses replace

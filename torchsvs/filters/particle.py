@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple, get_args
 
 import torch
 from torch import Tensor
@@ -14,13 +14,15 @@ from torchsvs.filters.kalman import Observation, Step, _at, step_input, step_int
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, joseph_update, mask_covariance
 from torchsvs.models.base import StateSpaceModel
-from torchsvs.resampling import SCHEMES
+from torchsvs.resampling import SCHEMES, Scheme
 
 #: Seed used when no generator is passed, so runs stay reproducible without global state.
 DEFAULT_SEED = 20120601
 
 #: The SPVSF's readings of Eqs. (30)-(31) (see :class:`SPVSF`).
-PROPOSALS = ("adapted", "estimate", "particles")
+#: The SPVSF's readings of Eqs. (30)-(31) (see :class:`SPVSF`).
+Proposal = Literal["adapted", "estimate", "particles"]
+PROPOSALS: tuple[Proposal, ...] = get_args(Proposal)
 
 
 class ParticleResult(NamedTuple):
@@ -72,7 +74,7 @@ def _gaussian(mean: Tensor, cov: Tensor, count: int, gen: torch.Generator) -> Te
     return mean.unsqueeze(1) + eps @ L.mT
 
 
-class ParticleFilter(Estimator):
+class ParticleFilter(Estimator[ParticleResult]):
     r"""Sampling importance resampling (SIR) particle filter, Eqs. (5)-(10), Gadsden et al. 2012.
 
     Particles ``[B, N, n]`` start from ``N(x0, P0)``, move through the model with process noise
@@ -108,7 +110,7 @@ class ParticleFilter(Estimator):
         model: StateSpaceModel,
         num_particles: int = 350,
         resample_threshold: float = 0.5,
-        resampling: str = "systematic",
+        resampling: Scheme = "systematic",
         soft_resampling: float | None = None,
     ) -> None:
         super().__init__()
@@ -296,6 +298,7 @@ class SPVSF(ParticleFilter):
         resample_threshold: resample when ``N_eff < threshold · N`` (the paper's 0.8).
         resampling: ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
         proposal: ``"adapted"``, ``"estimate"`` or ``"particles"`` (above).
+        soft_resampling: as for :class:`ParticleFilter`.
 
     References:
         Gadsden, Habibi, Kirubarajan, "The Smooth Particle Variable Structure Filter", Trans.
@@ -311,12 +314,13 @@ class SPVSF(ParticleFilter):
         gamma: float | Tensor = 0.1,
         num_particles: int = 350,
         resample_threshold: float = 0.8,
-        resampling: str = "systematic",
+        resampling: Scheme = "systematic",
         learn: bool = True,
         artificial: ArtificialMeasurement | str | None = "auto",
-        proposal: str = "adapted",
+        proposal: Proposal = "adapted",
+        soft_resampling: float | None = None,
     ) -> None:
-        super().__init__(model, num_particles, resample_threshold, resampling)
+        super().__init__(model, num_particles, resample_threshold, resampling, soft_resampling)
         if proposal not in PROPOSALS:
             raise ValueError(f"proposal: expected one of {PROPOSALS}, got {proposal!r}")
         self.proposal = proposal

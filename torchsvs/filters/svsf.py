@@ -130,6 +130,9 @@ class SVSF(GaussianFilter):
 
     axis_rule: str | None = "svsf"
 
+    def takes_psi(self) -> bool:
+        return True
+
     def axis_settings(self, inputs: Inputs) -> tuple[Tensor, Tensor]:
         """ψ as ``[2, m]`` (rows: position, velocity widths per axis) or per step
         ``[B, T, 2, m]``, and γ, for the per-axis kernel."""

@@ -9,6 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchsvs.models.base import StateSpaceModel
 from torchsvs.models.motion import ConstantVelocity
 from torchsvs.scenarios.maneuver import (
     ManeuverRanges,
@@ -24,7 +25,7 @@ class Scenario(NamedTuple):
 
     truth: Tensor  #: [B, T, 4] states at the measurement times
     z: Tensor  #: [B, T, 2] position measurements
-    model: ConstantVelocity  #: the filters' model (Eqs. (43)-(48))
+    model: StateSpaceModel  #: the filters' model (Chen et al.: ConstantVelocity, Eqs. (43)-(48))
     x0: Tensor  #: [4] or [B, 4] filter prior, one step before z[:, 0]
     P0: Tensor  #: [4, 4]
     dt: float  #: sampling interval (s)

@@ -45,7 +45,7 @@ def ballistic_scenario(
         states.append(x)
     truth = torch.stack(states, dim=1)
     z = model.h(truth) + torch.randn(num_runs, steps, 2, generator=generator, dtype=dtype) @ LR.mT
-    return Scenario(truth, z, model, 1.1 * x0, 10.0 * Q, model.dt)  # type: ignore[arg-type]
+    return Scenario(truth, z, model, 1.1 * x0, 10.0 * Q, model.dt)
 
 
 #: Sec. 5.2's changing bulk modulus: (time from which it holds, value in Pa).
@@ -99,4 +99,4 @@ def eha_scenario(
         @ (noise_scale * torch.linalg.cholesky(R)).mT
     )
     x0 = torch.tensor([0.0, 0.0, 0.0, 1.5e8], dtype=dtype)
-    return Scenario(truth, z, model, x0, 10.0 * Q, model.dt, u=u)  # type: ignore[arg-type]
+    return Scenario(truth, z, model, x0, 10.0 * Q, model.dt, u=u)

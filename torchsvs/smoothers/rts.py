@@ -53,7 +53,7 @@ def _shared_moments(result: FilterResult) -> FilterResult:
     )
 
 
-class RTSSmoother(Estimator):
+class RTSSmoother(Estimator[SmootherResult]):
     r"""Rauch–Tung–Striebel smoother over any Gaussian filter, Eq. (17), Chen et al. 2020.
 
     Both smoothers of the library are one backward recursion over a stored filter pass. With the
@@ -118,6 +118,9 @@ class RTSSmoother(Estimator):
 
     def run(self, inputs: Inputs) -> SmootherResult:
         return self.smooth(self.filter.run(inputs))
+
+    def takes_psi(self) -> bool:
+        return self.filter.takes_psi()
 
     #: Γ is the projection gain ``P Hᵀ S⁻¹`` (SVSS) rather than the filter's (per-axis kernel)
     projection_gain = False

@@ -18,8 +18,16 @@ from torchsvs.types import FilterResult, SmootherResult
 Result = FilterResult | SmootherResult
 
 
-def _filtered(result: Result) -> FilterResult:
-    return result.filtered if isinstance(result, SmootherResult) else result
+def _filtered(result: Result, loss: str) -> FilterResult:
+    """The filter pass whose innovations ``loss`` scores."""
+    res = result.filtered if isinstance(result, SmootherResult) else result
+    if not isinstance(res, FilterResult):
+        raise TypeError(
+            f"result: the {loss} loss needs a Gaussian filter's innovations and their "
+            f"covariance, got a {type(res).__name__} (particle filters: use the supervised or "
+            "SURE loss)"
+        )
+    return res
 
 
 def _scored_mask(mask: Tensor, scored: Tensor | None) -> Tensor:
@@ -45,7 +53,7 @@ def innovation_nll(result: Result, scored: Tensor | None = None) -> Tensor:
     """Negative log-likelihood of the filter's a-priori innovations, ``e_t ~ N(0, S_t)`` with
     ``S_t = H P_{t|t-1} Hᵀ + R``, per observed component of the ``scored`` steps (needs no
     truth). Uses the ``S`` the filter recorded where it did (KF)."""
-    res = _filtered(result)
+    res = _filtered(result, "innovation NLL")
     S = res.innovation_cov
     if S is None:
         H, R = mask_measurement(res.meas_matrix, res.meas_cov, res.mask)
@@ -65,7 +73,7 @@ def prediction_error(result: Result, scored: Tensor | None = None) -> Tensor:
     """Next-measurement prediction error: mean of ``e_{t|t-1}² / R_ii`` over observed components
     of the ``scored`` steps, the one-step-ahead error of predicting ``z_t`` from
     ``z_1..z_{t-1}`` (needs no truth)."""
-    res = _filtered(result)
+    res = _filtered(result, "prediction-error")
     variance = res.meas_cov.diagonal(dim1=-2, dim2=-1)
     normalised = res.innovation.square() / variance
     mask = _scored_mask(res.mask, scored)

@@ -20,6 +20,7 @@ from torchsvs.training.losses import (
     stein_risk,
     supervised_mse,
 )
+from torchsvs.types import FilterResult, SmootherResult
 
 
 def boundary_layer_modules(module: nn.Module) -> list[SVSF]:
@@ -68,6 +69,11 @@ def batch_loss(
         return estimator(z, x0, P0, **kwargs)
 
     out = run(batch.z)
+    if loss in ("nll", "prediction") and not isinstance(out, (FilterResult, SmootherResult)):
+        raise ValueError(
+            f"loss: {loss!r} scores a Gaussian filter's innovations, which "
+            f"{type(estimator).__name__} does not form; use 'supervised' or 'sure'"
+        )
     if loss == "supervised":
         if batch.truth is None:
             raise ValueError(

@@ -1,0 +1,63 @@
+"""The ``torchsvs`` command line: help, unknown commands, subcommand usage, where reports go."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from torchsvs import cli
+
+
+def test_help_goes_to_standard_output_and_succeeds(capsys):
+    for flag in ("--help", "-h", "help"):
+        cli.main([flag])
+        out, err = capsys.readouterr()
+        assert out.startswith("usage: torchsvs COMMAND") and err == ""
+        for command in ("demo", "reproduce svss", "reproduce spvsf", "fit", "track"):
+            assert f"torchsvs {command}" in out
+
+
+def test_no_command_and_unknown_commands_fail_on_standard_error(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([])
+    assert exit_info.value.code == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("usage:")
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["reproduc"])
+    assert exit_info.value.code == 2
+    assert "unknown command 'reproduc'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["demo", "reproduce svss", "reproduce spvsf"])
+def test_subcommand_usage_names_the_subcommand_and_explains_options(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([*command.split(), "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: torchsvs {command} ")
+    assert "--seed SEED" in out and "random seed" in out
+    assert "--runs RUNS" in out and "Monte Carlo runs" in out
+
+
+def test_reproduce_writes_outside_the_checkout_by_default(monkeypatch, tmp_path):
+    """Without --out the report goes to ./torchsvs-results/<paper>, never into the tracked
+    experiments/results/ of the checkout."""
+    seen = {}
+
+    class Experiment:
+        @staticmethod
+        def main(argv, prog=None, out=None):
+            seen.update(argv=argv, prog=prog, out=out)
+
+    monkeypatch.setattr(cli, "_import_experiment", lambda module: Experiment)
+    cli.main(["reproduce", "svss", "--runs", "3"])
+    assert seen == {
+        "argv": ["--runs", "3"],
+        "prog": "torchsvs reproduce svss",
+        "out": Path("torchsvs-results") / "svss",
+    }
+    from experiments import svss_paper
+
+    assert svss_paper.RESULTS == Path(svss_paper.__file__).parent / "results"  # python -m
