@@ -28,6 +28,7 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m benchmarks.forward
 	$(PY) -m benchmarks.particles
+	$(PY) -m benchmarks.threads
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks

@@ -294,3 +294,26 @@ def test_spvsf_strategies_are_constructor_arguments():
         ts.SPVSF(model, psi=50.0, soft_resampling=2.0)
     with pytest.raises(ValueError, match=r"^resampling: expected one of"):
         ts.SPVSF(model, psi=50.0, resampling="residual")  # type: ignore[arg-type]
+
+
+def test_small_problems_run_on_one_thread_and_restore_the_setting(atc, monkeypatch):
+    """A second intra-op thread slows the step loop of small problems (see
+    torchsvs.estimator.SMALL_PROBLEM): the call runs on one and leaves the caller's setting."""
+    from torchsvs import estimator
+
+    seen = []
+    kf = ts.KalmanFilter(atc.model).to(atc.z.dtype)
+    run = kf.run
+    monkeypatch.setattr(
+        kf, "run", lambda inputs: seen.append(torch.get_num_threads()) or run(inputs)
+    )
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        kf(atc.z, atc.x0, atc.P0)
+        assert seen == [1] and torch.get_num_threads() == 2
+        monkeypatch.setattr(estimator, "SMALL_PROBLEM", 1)  # now every problem is large
+        kf(atc.z, atc.x0, atc.P0)
+        assert seen == [1, 2] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -8,6 +8,8 @@ argument, its shape and what was expected.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from numbers import Real
 from typing import Any, Generic, TypeVar
@@ -159,6 +161,28 @@ def _check_dt(
     return dt_t
 
 
+#: Problems whose per-step covariances hold fewer elements (``B·n²``) run on one intra-op
+#: thread: the step loop is a long chain of small operations, and a second thread costs more
+#: in synchronisation than it brings (measured by ``benchmarks/threads.py``, ``make bench``).
+SMALL_PROBLEM = 1 << 12
+
+
+@contextmanager
+def threads_for(batch: int, n: int) -> Iterator[None]:
+    """Runs the block on one intra-op thread when ``B·n² <`` :data:`SMALL_PROBLEM` (and with
+    the caller's setting otherwise); the setting is restored afterwards. It is process-wide
+    while the block runs."""
+    before = torch.get_num_threads()
+    if before == 1 or batch * n * n >= SMALL_PROBLEM:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def drop_batch(result: Any) -> Any:
     """Removes the leading batch axis (of size 1) from every tensor of a result NamedTuple."""
     fields = []
@@ -222,7 +246,8 @@ class Estimator(nn.Module, Generic[Result]):
                 "applies to the SVSF and the smoothers over it"
             )
         inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator)
-        result = self.run(inputs)
+        with threads_for(inputs.batch, self.model.state_dim):
+            result = self.run(inputs)
         return drop_batch(result) if inputs.single else result
 
     def run(self, inputs: Inputs) -> Result:

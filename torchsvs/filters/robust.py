@@ -65,9 +65,9 @@ class RobustStudentTKalmanFilter(GaussianFilter):
     ``scale_shapes="derived"`` (default) uses the shapes above: ``n`` for the state scale ``ξ``,
     ``m`` for the measurement scale ``λ``. ``"swapped"`` exchanges the two (``(m + ω)`` for ``ξ``,
     ``(n + ν)`` for ``λ``), as a public Julia implementation of this filter does: it is the variant
-    that reproduces Chen et al.'s Table 1 RSTKF (151/151 m against 145/144 m), while the derived
-    shapes take the turns' large innovations for measurement outliers (1091/1099 m on 200 ATC
-    runs; with Gaussian measurements, ``ν → ∞``, 110/107 m).
+    that reproduces Chen et al.'s Table 1 RSTKF, while the derived shapes take the turns' large
+    innovations for measurement outliers and lose the target (both rows, measured, in
+    ``experiments/results/svss_paper.md``).
 
     As ``ω, ν, τ → ∞``, ``E[ξ] = E[λ] = 1`` and ``E[Σ⁻¹] = P_{k|k-1}^{-1}``: the Kalman filter.
     A missing component drops its rows of ``H`` and ``R`` and its count from ``m``.

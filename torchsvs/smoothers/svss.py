@@ -27,14 +27,13 @@ class SVSS(RTSSmoother):
     Covariance: the exact error covariance of this estimate given the SVSF's gains (see
     :class:`RTSSmoother`). The paper's projection covariance ``P_{k|N−1} − M S_N Mᵀ`` is not used:
     Eq. (38) replaces ``I − KH`` by ``P_{k+1|k+1}P_{k+1|k}⁻¹``, true only for the Kalman gain, and
-    over an SVSF with lag ≥ 2 it is indefinite at many steps (measured on a 2,000-step CV track,
-    ψ = 800, lag 2: 16% of the steps).
+    over an SVSF with lag ≥ 2 it is indefinite at many steps.
 
     ``lag=1`` (default) is the one-step-lag smoother ``x̂_{k|k+1}`` of the paper's tables
     (Eq. (A21)); ``lag=L`` sums ``L`` terms; ``lag=None`` is the fixed interval ``x̂_{k|T}``, which
     over an SVSF on maneuvering data can diverge: the SVSF covariance is much larger than ``Q``, so
-    the gains ``C_i`` approach ``F⁻¹`` and distant innovations keep their full weight (ATC scenario,
-    500 runs: x RMSE 112 m at lag 1, 100 m at lag 2, 62 km over the fixed interval).
+    the gains ``C_i`` approach ``F⁻¹`` and distant innovations keep their full weight (the lag
+    study of ``experiments/results/svss_paper.md`` measures lags 1-3).
 
     Args:
         filter: usually an :class:`~torchsvs.filters.SVSF`; any Gaussian filter works.

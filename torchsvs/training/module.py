@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 from typing import Any
 
 import lightning as L
 import torch
 from torch import Tensor, nn
 
-from torchsvs.estimator import Estimator
+from torchsvs.estimator import Estimator, threads_for
 from torchsvs.filters.svsf import SVSF
 from torchsvs.metrics import accumulative_rmse
 from torchsvs.models.base import LinearModel
@@ -159,6 +160,25 @@ class EstimatorModule(L.LightningModule):
                 sync_dist=stage != "train",
             )
         return loss
+
+    def on_train_batch_start(self, batch: TrackBatch, batch_idx: int) -> None:
+        # The forward pass scopes its own threads; this covers the backward pass and the
+        # optimiser too (see torchsvs.estimator.threads_for).
+        self._threads: AbstractContextManager[None] | None = threads_for(
+            batch.z.shape[0], batch.x0.shape[-1]
+        )
+        self._threads.__enter__()
+
+    def on_train_batch_end(self, outputs: Any, batch: TrackBatch, batch_idx: int) -> None:
+        self._restore_threads()
+
+    def on_exception(self, exception: BaseException) -> None:
+        self._restore_threads()
+
+    def _restore_threads(self) -> None:
+        threads, self._threads = getattr(self, "_threads", None), None
+        if threads is not None:
+            threads.__exit__(None, None, None)
 
     def training_step(self, batch: TrackBatch, batch_idx: int) -> Tensor:
         loss = self._step(batch, "train")

@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsvs.datasets import RecordedTracks
+from torchsvs.estimator import threads_for
 from torchsvs.filters import SVSF
 from torchsvs.training.data import TrackBatch, recorded_batches
 from torchsvs.training.module import batch_loss
@@ -69,6 +70,22 @@ def _minimise(
     a handful of parameters in log space converge in a few dozen. ``"adam"``: ``steps`` Adam
     steps with a cosine-decayed rate ``lr`` and fresh probes each step.
     """
+    largest = max(len(b.z) for b in batches)
+    n = batches[0].x0.shape[-1]
+    with threads_for(largest, n):  # forward and backward passes alike
+        return _minimise_on(module, batches, loss, steps, lr, meas_cov, seed, optimizer)
+
+
+def _minimise_on(
+    module: nn.Module,
+    batches: list[TrackBatch],
+    loss: str,
+    steps: int,
+    lr: float,
+    meas_cov: Tensor | None,
+    seed: int,
+    optimizer: str,
+) -> list[float]:
     params = [p for p in module.parameters() if p.requires_grad]
     curve: list[float] = []
     total_windows = sum(len(b.z) for b in batches)
