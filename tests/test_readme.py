@@ -35,3 +35,11 @@ def test_recorded_track_examples_run(tmp_path, monkeypatch):
     assert len(written) == len(rows)
     assert written[0].replace('"', "").startswith("track_id,time,x,vx,y,vy")
     assert "svss by SURE" in namespace["fit"].summary()
+
+
+def test_online_example_runs():
+    block = next(b for b in _usage_blocks() if "svsf.step(" in b)
+    namespace: dict = {}
+    exec("import torch\nimport torchsvs as ts\n" + block, namespace)  # noqa: S102
+    state = namespace["state"]
+    assert state.steps == 70 and state.single and state.mean.shape == (1, 4)

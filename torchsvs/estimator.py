@@ -69,7 +69,7 @@ def prepare_inputs(
     generator: torch.Generator | None = None,
 ) -> Inputs:
     """Checks every argument of an estimator call against ``model`` and adds the batch axis."""
-    n, m = model.state_dim, model.meas_dim
+    m = model.meas_dim
     if not isinstance(z, Tensor):
         raise TypeError(f"z: expected a tensor [B, T, {m}] or [T, {m}], got {type(z).__name__}")
     if z.dtype not in (torch.float32, torch.float64):
@@ -84,31 +84,7 @@ def prepare_inputs(
     if B == 0:
         raise ValueError(f"z: expected at least one track, got shape {_shape(z)}")
 
-    x0 = _as_float_tensor(x0, "x0", dtype)
-    if x0.shape == (n,):
-        x0 = x0.expand(B, n)
-    elif x0.shape != (B, n) or single:
-        want = f"[n] = [{n}]" if single else f"[B, n] = [{B}, {n}] or [n] = [{n}]"
-        raise ValueError(f"x0: expected shape {want}, got {_shape(x0)}")
-    if not bool(torch.isfinite(x0).all()):
-        raise ValueError("x0: contains NaN or inf")
-
-    P0 = _as_float_tensor(P0, "P0", dtype)
-    if P0.shape == (n, n):
-        # Kept with a batch axis of 1: while nothing track-specific enters (a KF without missing
-        # data), the covariance recursion then runs once for the whole batch.
-        P0 = P0.unsqueeze(0)
-    elif P0.shape != (B, n, n) or single:
-        shared = f"[n, n] = [{n}, {n}]"
-        want = shared if single else f"[B, n, n] = [{B}, {n}, {n}] or {shared}"
-        raise ValueError(f"P0: expected shape {want}, got {_shape(P0)}")
-    if not bool(torch.isfinite(P0).all()):
-        raise ValueError("P0: contains NaN or inf")
-    scale = P0.abs().amax().clamp_min(torch.finfo(dtype).tiny)
-    if bool(((P0 - P0.mT).abs() > 1e3 * torch.finfo(dtype).eps * scale).any()):
-        raise ValueError(f"P0: expected a symmetric matrix, shape {_shape(P0)}")
-    if bool((torch.linalg.cholesky_ex(P0).info > 0).any()):
-        raise ValueError(f"P0: expected a positive definite matrix, shape {_shape(P0)}")
+    x0, P0 = _check_prior(model, x0, P0, B, single, dtype)
 
     u_t = None
     if u is not None:
@@ -139,6 +115,60 @@ def prepare_inputs(
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
     return Inputs(zb, x0, P0, dt_t, u_t, psi_t, generator, single)
+
+
+def _check_prior(
+    model: StateSpaceModel, x0: Any, P0: Any, B: int, single: bool, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """``x0 [B, n]`` and ``P0 [B|1, n, n]``, checked."""
+    n = model.state_dim
+    x0 = _as_float_tensor(x0, "x0", dtype)
+    if x0.shape == (n,):
+        x0 = x0.expand(B, n)
+    elif x0.shape != (B, n) or single:
+        want = f"[n] = [{n}]" if single else f"[B, n] = [{B}, {n}] or [n] = [{n}]"
+        raise ValueError(f"x0: expected shape {want}, got {_shape(x0)}")
+    if not bool(torch.isfinite(x0).all()):
+        raise ValueError("x0: contains NaN or inf")
+
+    P0 = _as_float_tensor(P0, "P0", dtype)
+    if P0.shape == (n, n):
+        # Kept with a batch axis of 1: while nothing track-specific enters (a KF without missing
+        # data), the covariance recursion then runs once for the whole batch.
+        P0 = P0.unsqueeze(0)
+    elif P0.shape != (B, n, n) or single:
+        shared = f"[n, n] = [{n}, {n}]"
+        want = shared if single else f"[B, n, n] = [{B}, {n}, {n}] or {shared}"
+        raise ValueError(f"P0: expected shape {want}, got {_shape(P0)}")
+    if not bool(torch.isfinite(P0).all()):
+        raise ValueError("P0: contains NaN or inf")
+    scale = P0.abs().amax().clamp_min(torch.finfo(dtype).tiny)
+    if bool(((P0 - P0.mT).abs() > 1e3 * torch.finfo(dtype).eps * scale).any()):
+        raise ValueError(f"P0: expected a symmetric matrix, shape {_shape(P0)}")
+    if bool((torch.linalg.cholesky_ex(P0).info > 0).any()):
+        raise ValueError(f"P0: expected a positive definite matrix, shape {_shape(P0)}")
+
+    return x0, P0
+
+
+def prepare_prior(model: StateSpaceModel, x0: Any, P0: Any) -> tuple[Tensor, Tensor, bool]:
+    """A prior on its own (``est.init``): ``x0 [B, n]`` or one track's ``[n]``, in ``x0``'s
+    dtype (float32 or float64); returns it batched and whether it was one track."""
+    if not isinstance(x0, Tensor):
+        raise TypeError(f"x0: expected a tensor [B, n] or [n], got {type(x0).__name__}")
+    if x0.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"x0: expected float32 or float64, got {x0.dtype}")
+    n = model.state_dim
+    if x0.ndim not in (1, 2) or x0.shape[-1] != n:
+        raise ValueError(f"x0: expected shape [B, n] or [n] = [{n}], got {_shape(x0)}")
+    single = x0.ndim == 1
+    B = 1 if single else x0.shape[0]
+    if B == 0:
+        raise ValueError(f"x0: expected at least one track, got shape {_shape(x0)}")
+    x0b, P0b = _check_prior(model, x0, P0, B, single, x0.dtype)
+    if single:
+        x0b, P0b = x0b.reshape(1, n), P0b.reshape(1, n, n)
+    return x0b, P0b, single
 
 
 def _check_dt(
@@ -181,6 +211,19 @@ def threads_for(batch: int, n: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def at_step(result: Any, t: int, time_axis: int = 1) -> Any:
+    """Step ``t`` of every per-step tensor of a result NamedTuple (the run's totals, such as the
+    log-likelihood, as they are; internals dropped)."""
+    fields = []
+    for name, value in zip(result._fields, result, strict=True):
+        if name == "axes":
+            value = None
+        elif isinstance(value, Tensor) and name != "log_likelihood":
+            value = value.select(time_axis, min(t, value.shape[time_axis] - 1))
+        fields.append(value)
+    return type(result)(*fields)
 
 
 def drop_batch(result: Any) -> Any:
@@ -240,11 +283,7 @@ class Estimator(nn.Module, Generic[Result]):
         module's parameters are cast to it, so a float64 module given float32 ``z`` computes in
         float32 (pass float64 ``z`` for float64 results). Gradients still reach the parameters.
         """
-        if psi is not None and not self.takes_psi():
-            raise ValueError(
-                f"psi: {type(self).__name__} has no boundary layer to override; a per-step psi "
-                "applies to the SVSF and the smoothers over it"
-            )
+        self.check_psi(psi)
         inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator)
         with threads_for(inputs.batch, self.model.state_dim):
             result = self.run(inputs)
@@ -256,3 +295,11 @@ class Estimator(nn.Module, Generic[Result]):
     def takes_psi(self) -> bool:
         """Whether a per-step boundary layer override ``psi`` applies to this estimator."""
         return False
+
+    def check_psi(self, psi: Any) -> None:
+        """Refuses a ``psi`` this estimator would ignore."""
+        if psi is not None and not self.takes_psi():
+            raise ValueError(
+                f"psi: {type(self).__name__} has no boundary layer to override; a per-step psi "
+                "applies to the SVSF and the smoothers over it"
+            )

@@ -68,6 +68,33 @@ class FilterResult(NamedTuple):
     axes: Any = None
 
 
+class FilterState(NamedTuple):
+    """Everything a Gaussian filter's next step needs (``est.init``, ``est.step``, ``est.scan``):
+    a carry, never stored on the module.
+
+    Attributes:
+        mean: the filtered mean after the last step (or the prior), ``[B, n]``.
+        cov: its covariance, ``[B|1, n, n]``.
+        post_innovation: the corrector's last a-posteriori innovation (the SVSF's memory
+            ``e_{k|k}``), ``[B, m']``; ``None`` before the first step and for filters that do
+            not carry one.
+        log_likelihood: running ``Σ log N(e_t; 0, S_t)`` since ``init``, ``[B]``, for filters
+            that form it (else ``None``).
+        history: what the corrector's measurement needs of earlier steps (an artificial
+            measurement's raw rows), or ``None``.
+        steps: steps taken since ``init``.
+        single: ``init`` was given one track without the batch axis (results drop it too).
+    """
+
+    mean: Tensor
+    cov: Tensor
+    post_innovation: Tensor | None = None
+    log_likelihood: Tensor | None = None
+    history: Any = None
+    steps: int = 0
+    single: bool = False
+
+
 class SmootherResult(NamedTuple):
     """A smoothed pass and the filter pass it was computed from.
 

@@ -3,17 +3,25 @@
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchsvs.estimator import Estimator, Inputs
+from torchsvs.estimator import (
+    Estimator,
+    Inputs,
+    at_step,
+    drop_batch,
+    prepare_inputs,
+    prepare_prior,
+    threads_for,
+)
 from torchsvs.kernels import AXIS_KERNEL, axes
 from torchsvs.linalg import cholesky, joseph_update, mask_measurement, matvec, symmetrize
 from torchsvs.models.base import LinearModel, StateSpaceModel
 from torchsvs.models.motion import ConstantVelocity
-from torchsvs.types import FilterResult
+from torchsvs.types import FilterResult, FilterState
 
 
 class Step(NamedTuple):
@@ -133,8 +141,11 @@ class GaussianFilter(Estimator[FilterResult]):
             x_pred = self.model.f(x, dt, u)
         return x_pred, symmetrize(F_t @ P @ F_t.mT + _at(Q, t)), F_t
 
-    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
-        """The corrector's measurements ``[B, T, m]``, ``H`` and ``R``.
+    def measurements(
+        self, inputs: Inputs, history: Any = None
+    ) -> tuple[Tensor, Tensor | None, Tensor]:
+        """The corrector's measurements ``[B, T, m]``, ``H`` and ``R`` (``history``: see
+        :meth:`carried_history`).
 
         ``H`` and ``R`` are ``[m, ·]`` when constant or ``[B, T, m, ·]`` per step; ``H`` is
         ``None`` for filters that linearise ``h`` per step (each step then reports its own).
@@ -144,10 +155,16 @@ class GaussianFilter(Estimator[FilterResult]):
         return inputs.z, H, model.meas_cov().to(dtype)
 
     def correct(
-        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
     ) -> Step:
         """Corrects the prediction ``x_pred [B, n]``, ``P_pred`` with the observation of step
-        ``obs.t``; ``prev`` is this filter's step before (``None`` at the first)."""
+        ``obs.t``; ``carried`` is the a-posteriori innovation of the step before, for correctors
+        that carry one (the SVSF's memory; ``None`` before the first step)."""
         raise NotImplementedError
 
     #: the corrector's rule in the per-axis kernel (:mod:`torchsvs.kernels.axes`), or None
@@ -157,12 +174,102 @@ class GaussianFilter(Estimator[FilterResult]):
         """``(ψ [2, m] or [B, T, 2, m], γ)`` for the per-axis kernel's ``"svsf"`` rule."""
         return None
 
+    # --- The step protocol: init, step, scan; forward is init and one scan. ---
+
+    def init(self, x0: Any, P0: Any) -> FilterState:
+        """The state before the first step: the prior ``x0 [B, n]``, ``P0 [B, n, n]`` or
+        ``[n, n]`` (or one track: ``[n]``, ``[n, n]``), checked as :meth:`forward` checks it."""
+        x0, P0, single = prepare_prior(self.model, x0, P0)
+        return FilterState(x0, P0, single=single)
+
+    def scan(
+        self,
+        state: FilterState,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+    ) -> tuple[FilterState, FilterResult]:
+        """Filters the steps ``z [B, T, m]`` (``[T, m]`` for a state of one track) from ``state``:
+        the state after the last of them and their result, as :meth:`forward` gives it
+        (``forward`` is ``init`` and one ``scan``; a recording run in chunks, the state carried
+        between them, gives the same numbers). ``u``, ``dt``, ``psi`` as for :meth:`forward`."""
+        if not isinstance(state, FilterState):
+            raise TypeError(f"state: expected a FilterState (est.init), got {type(state).__name__}")
+        # A prior of one track before its first step is shared by a batch, as forward shares it.
+        shared = state.single and state.steps == 0 and isinstance(z, Tensor) and z.ndim == 3
+        x0 = state.mean[0] if state.single else state.mean
+        P0 = state.cov[0] if state.single or state.cov.shape[0] == 1 else state.cov
+        self.check_psi(psi)
+        inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, psi=psi)
+        if shared:
+            state = FilterState(inputs.x0, inputs.P0)
+        elif inputs.single != state.single:
+            want = "[T, m] (one track)" if state.single else "[B, T, m]"
+            raise ValueError(f"z: expected shape {want} for this state, got {tuple(z.shape)}")
+        with threads_for(inputs.batch, self.model.state_dim):
+            state, result = self._scan(state, inputs)
+        return state, drop_batch(result) if inputs.single else result
+
+    def step(
+        self,
+        state: FilterState,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+    ) -> tuple[FilterState, FilterResult]:
+        """One predict-correct cycle for ``z [B, m]`` (``[m]`` for one track; NaN: missing):
+        the new state and the step's result (:class:`FilterResult` fields without the time
+        axis; ``state.mean``, ``state.cov`` are the filtered moments). ``dt`` a scalar or
+        ``[B]``, ``u [B, p]``, ``psi [B, m']``."""
+        if not isinstance(z, Tensor):
+            raise TypeError(f"z: expected a tensor [B, m] or [m], got {type(z).__name__}")
+
+        def one_step(x: Any) -> Any:
+            return x.unsqueeze(-2) if isinstance(x, Tensor) and x.ndim >= 1 else x
+
+        if isinstance(dt, Tensor) and dt.ndim == 1 and not state.single:
+            dt = dt.unsqueeze(-1)
+        state, result = self.scan(state, one_step(z), u=one_step(u), dt=dt, psi=one_step(psi))
+        return state, at_step(result, 0, time_axis=0 if state.single else 1)
+
     def run(self, inputs: Inputs) -> FilterResult:
-        fast = self._run_axes(inputs)
-        if fast is not None:
-            return fast
+        return self._scan(FilterState(inputs.x0, inputs.P0), inputs)[1]
+
+    def _scan(self, state: FilterState, inputs: Inputs) -> tuple[FilterState, FilterResult]:
+        fresh = state.steps == 0 and state.post_innovation is None and state.history is None
+        result = self._run_axes(inputs) if fresh else None
+        if result is None:
+            result = self._loop(inputs, state.post_innovation, state.history)
+        loglik = result.log_likelihood
+        if loglik is not None and state.log_likelihood is not None:
+            loglik = state.log_likelihood + loglik
+        after = FilterState(
+            mean=result.mean[:, -1],
+            cov=result.cov[:, -1],
+            post_innovation=None
+            if result.post_innovation is None
+            else result.post_innovation[:, -1],
+            log_likelihood=loglik,
+            history=self.carried_history(state.history, inputs),
+            steps=state.steps + inputs.steps,
+            single=state.single,
+        )
+        return after, result
+
+    def carried_history(self, history: Any, inputs: Inputs) -> Any:
+        """What the next :meth:`scan` needs of these steps to form its measurements (``None``:
+        nothing; the SVSF's artificial measurements keep raw rows)."""
+        return None
+
+    def _loop(self, inputs: Inputs, carried: Tensor | None, history: Any) -> FilterResult:
+        """The predict-correct loop over the steps of ``inputs`` from its prior, the corrector
+        carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``."""
         T = inputs.steps
-        z, H, R = self.measurements(inputs)
+        z, H, R = self.measurements(inputs, history)
         F, Q = self.dynamics(inputs)
         observed = ~torch.isnan(z)
         any_missing = not bool(observed.all())
@@ -173,7 +280,6 @@ class GaussianFilter(Estimator[FilterResult]):
         pred_means: list[Tensor] = []
         pred_covs: list[Tensor] = []
         linearised: list[Tensor] = []
-        previous: Step | None = None
         for t in range(T):
             x_pred, P_pred, F_t = self.predict(t, x, P, F, Q, inputs)
             if F is None:
@@ -185,8 +291,8 @@ class GaussianFilter(Estimator[FilterResult]):
                 None if H is None else _at(H, t),
                 _at(R, t),
             )
-            step = self.correct(x_pred, P_pred, obs, previous, inputs)
-            x, P, previous = step.mean, step.cov, step
+            step = self.correct(x_pred, P_pred, obs, carried, inputs)
+            x, P, carried = step.mean, step.cov, step.post_innovation
             steps.append(step)
             pred_means.append(x_pred)
             pred_covs.append(P_pred)
@@ -363,7 +469,12 @@ class KalmanFilter(GaussianFilter):
     axis_rule: str | None = "kalman"
 
     def correct(
-        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
     ) -> Step:
         assert obs.H is not None
         e = obs.z - matvec(obs.H, x_pred)

@@ -41,7 +41,12 @@ class ExtendedKalmanFilter(KalmanFilter):
     axis_rule = None  # linearises f and h itself, even where the KF's per-axis kernel would do
 
     def correct(
-        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
     ) -> Step:
         H_t = self.model.h_jacobian(x_pred)
         e = obs.z - self.model.h(x_pred)
@@ -128,7 +133,12 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         return x_pred, symmetrize(P_f + _at(Q, t)), F_t
 
     def correct(
-        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
     ) -> Step:
         B, n = x_pred.shape
         points = self.sigma_points(x_pred, P_pred)

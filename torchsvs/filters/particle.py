@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Estimator, Inputs
-from torchsvs.filters.kalman import Observation, Step, _at, step_input, step_interval
+from torchsvs.filters.kalman import Observation, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, joseph_update, mask_covariance
 from torchsvs.models.base import StateSpaceModel
@@ -329,7 +329,7 @@ class SPVSF(ParticleFilter):
     class _State(NamedTuple):
         x: Tensor  # [B, n] the estimate the next SVSF step starts from
         P: Tensor  # [B|1, n, n]
-        previous: Step | None  # the SVSF's last step (its memory e_{k|k})
+        post_innovation: Tensor | None  # the SVSF's memory e_{k|k} (None before the first step)
         z: Tensor  # the SVSF's measurements [B, T, m'] (NaN filled with 0)
         mask: Tensor | None  # None when nothing is missing
         H: Tensor | None
@@ -353,8 +353,8 @@ class SPVSF(ParticleFilter):
         H_t = None if s.H is None else _at(s.H, t)
         R_t = _at(s.R, t)
         obs = Observation(t, s.z[:, t], mask_t, H_t, R_t)
-        step = self.svsf.correct(x_pred, P_pred, obs, s.previous, inputs)  # Eqs. (25)-(29)
-        state = s._replace(P=step.cov, previous=step)
+        step = self.svsf.correct(x_pred, P_pred, obs, s.post_innovation, inputs)  # (25)-(29)
+        state = s._replace(P=step.cov, post_innovation=step.post_innovation)
         N = particles.shape[1]
         if self.proposal == "estimate":
             return _gaussian(step.mean, step.cov, N, gen), state, None  # Eq. (30)
@@ -387,12 +387,11 @@ class SPVSF(ParticleFilter):
 
     def finish_step(self, t: int, mean: Tensor, state: Any, inputs: Inputs) -> Any:
         s: SPVSF._State = state
-        assert s.previous is not None
+        assert s.post_innovation is not None
         # Eqs. (33)-(35): the particle mean is the estimate and its innovation the SVSF memory.
         H = None if s.H is None else _at(s.H, t)
         fitted = self.model.h(mean) if H is None else (H @ mean.unsqueeze(-1)).squeeze(-1)
         e_post = s.z[:, t] - fitted
         if s.mask is not None:
-            assert s.previous.post_innovation is not None
-            e_post = torch.where(s.mask[:, t], e_post, s.previous.post_innovation)
-        return s._replace(x=mean, previous=s.previous._replace(post_innovation=e_post))
+            e_post = torch.where(s.mask[:, t], e_post, s.post_innovation)
+        return s._replace(x=mean, post_innovation=e_post)

@@ -108,7 +108,12 @@ class RobustStudentTKalmanFilter(GaussianFilter):
         self.tau, self.iterations = float(tau), iterations
 
     def correct(
-        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
     ) -> Step:
         assert obs.H is not None
         z, mask, H, R = obs.z, obs.mask, obs.H, obs.R

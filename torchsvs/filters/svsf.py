@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -147,13 +148,35 @@ class SVSF(GaussianFilter):
             widths = widths.unflatten(-1, (m, 2)).transpose(-1, -2)
         return widths, self.gamma.to(dtype)
 
-    def measurements(self, inputs: Inputs) -> tuple[Tensor, Tensor | None, Tensor]:
+    def measurements(
+        self, inputs: Inputs, history: Any = None
+    ) -> tuple[Tensor, Tensor | None, Tensor]:
         z, H, R = super().measurements(inputs)
         if self.artificial is not None:
-            z, H, R = self.artificial(inputs.z, self.model, inputs.dt, inputs.u)
+            # Formed over the rows kept from earlier steps and these (see carried_history).
+            window = _window(history, inputs)
+            z, H, R = self.artificial(window.z, self.model, window.dt, window.u)
             H, R = H.to(z.dtype), R.to(z.dtype)
+            kept = window.z.shape[1] - inputs.steps
+            z = z[:, kept:]
+            R = R[:, kept:] if R.ndim == 4 else R
         self._check_widths(z.shape[-1], inputs)
         return z, H, R
+
+    def carried_history(self, history: Any, inputs: Inputs) -> Any:
+        """The raw rows an artificial measurement may still look back to: from the earliest
+        step at which some track last observed some component (finite differences bridge
+        gaps back to it), and at least the last row (a step's previous row)."""
+        if self.artificial is None:
+            return None
+        window = _window(history, inputs)
+        T = window.z.shape[1]
+        seen = ~torch.isnan(window.z)
+        index = torch.arange(T).view(1, T, 1).expand_as(seen)
+        last = torch.where(seen, index, torch.full_like(index, -1)).amax(dim=1)  # [B, m]
+        observed = last[last >= 0]
+        start = min(T - 1, int(observed.min())) if observed.numel() else T - 1
+        return _window_rows(window, start)
 
     def axis_measurements(self, inputs: Inputs) -> AxisMeasurements | None:
         """Finite-difference velocities axis by axis (``R_y`` never assembled)."""
@@ -189,7 +212,12 @@ class SVSF(GaussianFilter):
             )
 
     def correct(
-        self, x_pred: Tensor, P_pred: Tensor, obs: Observation, prev: Step | None, inputs: Inputs
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
     ) -> Step:
         z, mask, H, R = obs.z, obs.mask, obs.H, obs.R
         dtype = z.dtype
@@ -203,8 +231,7 @@ class SVSF(GaussianFilter):
         if mask is not None:
             e = e * mask
         H_plus = masked_pinv(H, mask)  # zero columns where missing
-        memory = prev.post_innovation if prev is not None else torch.zeros_like(e)
-        assert memory is not None
+        memory = carried if carried is not None else torch.zeros_like(e)
         K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)
         x = x_pred + matvec(K, e)  # Eq. (22)
         P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
@@ -212,3 +239,46 @@ class SVSF(GaussianFilter):
         if mask is not None:
             e_post = torch.where(mask, e_post, memory)
         return Step(x, P, e, K, post_innovation=e_post, meas_matrix=H if linearised else None)
+
+
+class _Rows(NamedTuple):
+    """Raw measurement rows with their intervals and inputs (``dt``: None, 0-d or ``[B, k]``)."""
+
+    z: Tensor
+    dt: Tensor | None
+    u: Tensor | None
+
+
+def _window(history: _Rows | None, inputs: Inputs) -> _Rows:
+    """The kept rows of earlier steps followed by this call's."""
+    if history is None:
+        return _Rows(inputs.z, inputs.dt, inputs.u)
+    B, kept = history.z.shape[:2]
+    dt: Tensor | None
+    if history.dt is None and inputs.dt is None:
+        dt = None
+    elif (
+        history.dt is not None
+        and inputs.dt is not None
+        and history.dt.ndim == 0
+        and inputs.dt.ndim == 0
+        and bool(history.dt == inputs.dt)
+    ):
+        dt = inputs.dt  # one interval throughout: kept as a scalar, as a whole run has it
+    else:
+        raise_mixed = history.dt is None or inputs.dt is None
+        if raise_mixed:
+            raise ValueError(
+                "dt: pass it at every step or at none (the earlier steps of this state "
+                f"{'had' if history.dt is not None else 'had no'} dt)"
+            )
+        assert history.dt is not None and inputs.dt is not None
+        dt = torch.cat([history.dt.expand(B, kept), inputs.dt.expand(B, inputs.steps)], dim=1)
+    u = None if history.u is None or inputs.u is None else torch.cat([history.u, inputs.u], 1)
+    return _Rows(torch.cat([history.z, inputs.z], dim=1), dt, u)
+
+
+def _window_rows(window: _Rows, start: int) -> _Rows:
+    dt = window.dt if window.dt is None or window.dt.ndim == 0 else window.dt[:, start:]
+    u = None if window.u is None else window.u[:, start:]
+    return _Rows(window.z[:, start:], dt, u)
