@@ -189,3 +189,60 @@ def test_bad_steps_name_the_argument():
     with pytest.raises(ValueError, match="^dt: pass it at every step or at none"):
         svsf.step(state, z[:, 1])
     assert isinstance(state, FilterState)
+
+
+def _smoothers():
+    model = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0])
+    fd = [3.0, 2.0, 4.0, 1.5]
+    return {
+        "KS lag 3": ts.RTSSmoother(ts.KalmanFilter(model), lag=3),
+        "SVSS lag 1": ts.SVSS(ts.SVSF(model, psi=[3.0, 4.0], gamma=0.2, artificial=None), lag=1),
+        "SVSS lag 4": ts.SVSS(ts.SVSF(model, psi=fd, gamma=0.2), lag=4),
+        "SVSTPS lag 2": ts.RTSSmoother(ts.SVSF(model, psi=fd, gamma=0.2), lag=2),
+    }
+
+
+@pytest.mark.parametrize("name", list(_smoothers()))
+def test_online_fixed_lag_smoothing_equals_the_offline_one(name):
+    z, dt, x0, P0, psi = _problem(seed=6, T=30)
+    est = _smoothers()[name].double()
+    use_psi = "lag 1" not in name and est.takes_psi()
+    lag = est.lag
+    with torch.no_grad():
+        offline = est(z, x0, P0, dt=dt, **({"psi": psi} if use_psi else {}))
+        state = est.init(x0, P0)
+        means, covs = [], []
+        for t in range(z.shape[1]):
+            kwargs = {"psi": psi[:, t]} if use_psi else {}
+            state, out = est.step(state, z[:, t], dt=dt[:, t], **kwargs)
+            if t < lag:
+                assert out is None
+            else:
+                means.append(out.mean)  # x̂_{t-L|t}
+                covs.append(out.cov.expand(3, 4, 4))
+        rest = est.flush(state)
+    assert rest.mean.shape[1] == lag
+    mean = torch.cat([torch.stack(means, 1), rest.mean], 1)
+    cov = torch.cat([torch.stack(covs, 1), rest.cov.expand(3, lag, 4, 4)], 1)
+    assert_close(mean, offline.mean, atol=1e-10, rtol=1e-10)
+    assert_close(cov, offline.cov, atol=1e-10, rtol=1e-10)
+
+
+def test_online_smoothing_of_one_track_and_its_limits():
+    z, _, x0, P0, _ = _problem(seed=7, B=1, T=12)
+    ks = _smoothers()["KS lag 3"].double()
+    with torch.no_grad():
+        offline = ks(z[0], x0[0], P0[0])
+        state, emitted = ks.init(x0[0], P0[0]), []
+        for t in range(12):
+            state, out = ks.step(state, z[0, t])
+            if out is not None:
+                assert out.mean.shape == (4,)
+                emitted.append(out.mean)
+        rest = ks.flush(state)
+    assert_close(torch.cat([torch.stack(emitted), rest.mean]), offline.mean, atol=1e-10)
+    interval = ts.RTSSmoother(ts.KalmanFilter(ts.models.ConstantVelocity()))
+    with pytest.raises(ValueError, match="^lag: online smoothing needs a fixed lag"):
+        interval.init(x0[0].float(), P0[0].float())
+    with pytest.raises(TypeError, match="^state: expected a LagState"):
+        ks.step(ks.filter.init(x0[0], P0[0]), z[0, 0])

@@ -15,10 +15,11 @@ from torchsvs.filters import (
     KalmanFilter,
     ParticleFilter,
     RobustStudentTKalmanFilter,
+    SlidingInnovationFilter,
     UnscentedKalmanFilter,
 )
 from torchsvs.smoothers import SVSS, RTSSmoother
-from torchsvs.types import FilterResult, SmootherResult
+from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 __all__ = [
     "SVSF",
@@ -28,10 +29,12 @@ __all__ = [
     "ExtendedKalmanFilter",
     "UnscentedKalmanFilter",
     "FilterResult",
+    "FilterState",
     "FiniteDifferenceVelocity",
     "KalmanFilter",
     "RTSSmoother",
     "RobustStudentTKalmanFilter",
+    "SlidingInnovationFilter",
     "SmootherResult",
     "datasets",
     "metrics",

@@ -9,6 +9,7 @@ from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
+from torchsvs.filters.sif import SlidingInnovationFilter
 from torchsvs.filters.svsf import SVSF
 
 __all__ = [
@@ -24,4 +25,5 @@ __all__ = [
     "KalmanFilter",
     "ModulusFromAcceleration",
     "RobustStudentTKalmanFilter",
+    "SlidingInnovationFilter",
 ]

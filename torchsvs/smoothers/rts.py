@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchsvs.estimator import Estimator, Inputs
+from torchsvs.estimator import Estimator, Inputs, at_step, drop_batch
 from torchsvs.filters.kalman import GaussianFilter
 from torchsvs.kernels import axes
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
-from torchsvs.types import FilterResult, SmootherResult
+from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 
 def steps_after_first(A: Tensor) -> Tensor:
@@ -51,6 +51,27 @@ def _shared_moments(result: FilterResult) -> FilterResult:
         innovation_cov=None if S is None else S[:1],
         mask=result.mask[:1],  # nothing is missing when the covariances are shared
     )
+
+
+class _Row(NamedTuple):
+    """One step's inputs, as given to :meth:`RTSSmoother.step`."""
+
+    z: Tensor
+    u: Tensor | None
+    dt: Any
+    psi: Tensor | None
+
+
+class LagState(NamedTuple):
+    """An online fixed-lag smoother's carry: the filter's state before the window and the
+    window's inputs (at most ``L + 1`` steps)."""
+
+    start: FilterState
+    rows: tuple[_Row, ...]
+
+
+def _after_first(x: Tensor, axis: int) -> Tensor:
+    return x.narrow(axis, 1, x.shape[axis] - 1)
 
 
 class RTSSmoother(Estimator[SmootherResult]):
@@ -118,6 +139,92 @@ class RTSSmoother(Estimator[SmootherResult]):
 
     def run(self, inputs: Inputs) -> SmootherResult:
         return self.smooth(self.filter.run(inputs))
+
+    # --- Online fixed-lag smoothing: the filter steps, and x̂_{t-L|t} as measurements arrive. ---
+
+    def init(self, x0: Any, P0: Any) -> LagState:
+        """The state of an online fixed-lag run (:meth:`step`) before its first measurement."""
+        self._online_lag()
+        return LagState(self.filter.init(x0, P0), ())
+
+    def step(
+        self,
+        state: LagState,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+    ) -> tuple[LagState, SmootherResult | None]:
+        """Takes the measurement of step ``t`` (as :meth:`GaussianFilter.step` does) and
+        returns the fixed-lag estimate ``x̂_{t-L|t}`` of step ``t − L`` (``None`` during the
+        first ``L`` steps): the offline fixed-lag result, step by step. The state keeps the last
+        ``L + 1`` steps' inputs and the filter's state before them; each step filters and
+        smooths that window (``L + 2`` filter steps per step). :meth:`flush` ends the run."""
+        lag = self._online_lag()
+        if not isinstance(state, LagState):
+            raise TypeError(f"state: expected a LagState (est.init), got {type(state).__name__}")
+        rows = (*state.rows, _Row(z, u, dt, psi))
+        start = state.start
+        if len(rows) > lag + 1:  # the oldest step leaves the window: the filter takes it
+            first = rows[0]
+            start, _ = self.filter.step(start, first.z, u=first.u, dt=first.dt, psi=first.psi)
+            rows = rows[1:]
+        after = LagState(start, rows)
+        if len(rows) < lag + 1:
+            return after, None
+        return after, at_step(self._smooth_rows(start, rows), 0, 0 if start.single else 1)
+
+    def flush(self, state: LagState) -> SmootherResult | None:
+        """The last steps of an online run, smoothed with what came after them (as the offline
+        fixed-lag result ends a track): ``[B, k, ...]`` for the ``k`` steps not yet returned."""
+        lag = self._online_lag()
+        if not state.rows:
+            return None
+        smoothed = self._smooth_rows(state.start, state.rows)
+        if len(state.rows) < lag + 1:
+            return smoothed
+        axis = 0 if state.start.single else 1
+        mean, cov = (_after_first(x, axis) for x in (smoothed.mean, smoothed.cov))
+        return SmootherResult(mean, cov, smoothed.filtered)
+
+    def _online_lag(self) -> int:
+        if self.lag is None:
+            raise ValueError(
+                "lag: online smoothing needs a fixed lag (the fixed interval waits for the end "
+                "of the track: run the whole track instead)"
+            )
+        return self.lag
+
+    def _smooth_rows(self, start: FilterState, rows: tuple[_Row, ...]) -> SmootherResult:
+        """The window's filter pass from ``start``, smoothed (batched internally)."""
+        single = start.single
+        batch = (lambda x: x.unsqueeze(0)) if single else (lambda x: x)
+
+        def stacked(values: list[Any]) -> Tensor | None:
+            if values[0] is None:
+                return None
+            steps_axis = -2 if values[0].ndim >= 2 else 0  # [B, ·] per step, or one track's [·]
+            return batch(torch.stack(values, dim=steps_axis))
+
+        z = stacked([r.z for r in rows])
+        u = stacked([r.u for r in rows])
+        psi = stacked([r.psi for r in rows])
+        steps = [r.dt for r in rows]
+        dt: Any
+        if steps[0] is None:
+            dt = None
+        elif all(not isinstance(v, Tensor) or v.ndim == 0 for v in steps) and all(
+            float(v) == float(steps[0]) for v in steps
+        ):
+            dt = steps[0]  # one interval throughout, as a whole run with a scalar dt has it
+        else:
+            B = start.mean.shape[0]
+            dt = torch.stack([torch.as_tensor(v).expand(B) for v in steps], dim=1)
+        assert z is not None
+        _, result = self.filter.scan(start._replace(single=False), z, u=u, dt=dt, psi=psi)
+        smoothed = self.smooth(result)
+        return drop_batch(smoothed) if single else smoothed
 
     def takes_psi(self) -> bool:
         return self.filter.takes_psi()
