@@ -69,7 +69,7 @@ def test_adapted_weight_is_the_predictive_likelihood():
     gen = torch.Generator().manual_seed(0)
     inputs = Inputs(z, x0, P0.unsqueeze(0), None, None, None, gen, False)
     particles = x0.unsqueeze(1) + torch.randn(2, 6, 3, generator=gen, dtype=z.dtype)
-    state = spvsf.begin(inputs, gen)
+    state = spvsf.begin(inputs, spvsf.initial_carry(x0, P0.unsqueeze(0)), None)
     _, _, log_w = spvsf.propose(0, particles, state, inputs, gen)
     F, H, Q, R = system.F, system.H, system.Q, system.R
     S = H @ Q @ H.T + R

@@ -246,3 +246,44 @@ def test_online_smoothing_of_one_track_and_its_limits():
         interval.init(x0[0].float(), P0[0].float())
     with pytest.raises(TypeError, match="^state: expected a LagState"):
         ks.step(ks.filter.init(x0[0], P0[0]), z[0, 0])
+
+
+def _particle_filters():
+    model = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0])
+    fd = [3.0, 2.0, 4.0, 1.5]
+    return {
+        "PF": ts.ParticleFilter(model, num_particles=64, resample_threshold=0.8),
+        "SPVSF adapted": ts.SPVSF(model, psi=fd, num_particles=32),
+        "SPVSF estimate": ts.SPVSF(
+            model, psi=[3.0, 4.0], artificial=None, num_particles=32, proposal="estimate"
+        ),
+        "SPVSF particles": ts.SPVSF(
+            model, psi=fd, num_particles=32, proposal="particles", soft_resampling=0.5
+        ),
+    }
+
+
+@pytest.mark.parametrize("name", list(_particle_filters()))
+def test_particle_filters_in_chunks_equal_the_whole_run(name):
+    """With one generator passed through ``init`` and every chunk, the draws are the whole
+    run's: the results agree (exactly, up to the finite-difference velocities' clock over a
+    window, ~1e-13)."""
+    z, dt, x0, P0, _ = _problem(seed=8, T=30)
+    est = _particle_filters()[name].double()
+    with torch.no_grad():
+        whole = est(z, x0, P0, dt=dt, generator=torch.Generator().manual_seed(3))
+        for size in (1, 7):
+            gen = torch.Generator().manual_seed(3)
+            state = est.init(x0, P0, generator=gen)
+            parts = []
+            for start in range(0, 30, size):
+                window = slice(start, start + size)
+                if size == 1:
+                    state, out = est.step(state, z[:, start], dt=dt[:, start], generator=gen)
+                    parts.append(out.mean.unsqueeze(1))
+                else:
+                    state, result = est.scan(state, z[:, window], dt=dt[:, window], generator=gen)
+                    parts.append(result.mean)
+            assert_close(torch.cat(parts, 1), whole.mean, **TOL)
+            assert_close(state.particles, whole.particles, **TOL)
+            assert_close(state.log_likelihood, whole.log_likelihood, **TOL)

@@ -213,6 +213,10 @@ def threads_for(batch: int, n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+#: Result fields without a time axis: the run's totals and its final particles.
+RUN_FIELDS = ("log_likelihood", "particles", "log_weights")
+
+
 def at_step(result: Any, t: int, time_axis: int = 1) -> Any:
     """Step ``t`` of every per-step tensor of a result NamedTuple (the run's totals, such as the
     log-likelihood, as they are; internals dropped)."""
@@ -220,7 +224,7 @@ def at_step(result: Any, t: int, time_axis: int = 1) -> Any:
     for name, value in zip(result._fields, result, strict=True):
         if name == "axes":
             value = None
-        elif isinstance(value, Tensor) and name != "log_likelihood":
+        elif isinstance(value, Tensor) and name not in RUN_FIELDS:
             value = value.select(time_axis, min(t, value.shape[time_axis] - 1))
         fields.append(value)
     return type(result)(*fields)

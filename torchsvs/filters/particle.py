@@ -9,7 +9,15 @@ import torch
 from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
-from torchsvs.estimator import Estimator, Inputs
+from torchsvs.estimator import (
+    Estimator,
+    Inputs,
+    at_step,
+    drop_batch,
+    prepare_inputs,
+    prepare_prior,
+    threads_for,
+)
 from torchsvs.filters.kalman import Observation, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, joseph_update, mask_covariance
@@ -19,7 +27,6 @@ from torchsvs.resampling import SCHEMES, Scheme
 #: Seed used when no generator is passed, so runs stay reproducible without global state.
 DEFAULT_SEED = 20120601
 
-#: The SPVSF's readings of Eqs. (30)-(31) (see :class:`SPVSF`).
 #: The SPVSF's readings of Eqs. (30)-(31) (see :class:`SPVSF`).
 Proposal = Literal["adapted", "estimate", "particles"]
 PROPOSALS: tuple[Proposal, ...] = get_args(Proposal)
@@ -46,6 +53,28 @@ class ParticleResult(NamedTuple):
     log_likelihood: Tensor
     particles: Tensor
     log_weights: Tensor
+
+
+class ParticleState(NamedTuple):
+    """Everything a particle filter's next step needs (``est.init``, ``est.step``,
+    ``est.scan``): a carry, never stored on the module.
+
+    Attributes:
+        particles: ``[B, N, n]``; log_weights: their normalised log-weights ``[B, N]``.
+        log_likelihood: running sum since ``init``, ``[B]``.
+        carry: what the proposal carries between steps (the SPVSF: its SVSF's estimate,
+            covariance and memory), or ``None``.
+        history: raw rows an artificial measurement still needs (the SPVSF), or ``None``.
+        steps: steps taken since ``init``; single: ``init`` was given one track.
+    """
+
+    particles: Tensor
+    log_weights: Tensor
+    log_likelihood: Tensor
+    carry: Any = None
+    history: Any = None
+    steps: int = 0
+    single: bool = False
 
 
 def _log_normal(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
@@ -140,9 +169,18 @@ class ParticleFilter(Estimator[ParticleResult]):
             )
         self.soft_resampling = soft_resampling
 
-    def begin(self, inputs: Inputs, gen: torch.Generator) -> Any:
-        """Per-run state of the proposal (for the bootstrap proposal: ``Q`` of the run)."""
+    def begin(self, inputs: Inputs, carry: Any, history: Any) -> Any:
+        """The proposal's state for the steps of ``inputs`` (for the bootstrap proposal: their
+        ``Q``), from what it carried out of the steps before (``carry``, ``history``)."""
         return self.model.process_noise(inputs.dt).to(inputs.z.dtype)
+
+    def initial_carry(self, x0: Tensor, P0: Tensor) -> Any:
+        """What the proposal carries into the first step (the bootstrap proposal: nothing)."""
+        return None
+
+    def end(self, state: Any, inputs: Inputs, history: Any) -> tuple[Any, Any]:
+        """What the proposal carries out of the steps of ``inputs``, and the raw rows kept."""
+        return None, None
 
     def move(self, t: int, particles: Tensor, inputs: Inputs) -> Tensor:
         """``f(x_{t-1}^i)`` for every particle ``[B, N, n]`` (per-track ``dt`` and ``u``)."""
@@ -197,21 +235,93 @@ class ParticleFilter(Estimator[ParticleResult]):
         picked = particles.gather(1, index.unsqueeze(-1).expand(-1, -1, particles.shape[-1]))
         return picked, kept
 
-    def run(self, inputs: Inputs) -> ParticleResult:
-        gen = (
-            inputs.generator
-            if inputs.generator is not None
-            else torch.Generator().manual_seed(DEFAULT_SEED)
+    # --- The step protocol: init, step, scan; forward is init and one scan. ---
+
+    def init(self, x0: Any, P0: Any, *, generator: torch.Generator | None = None) -> ParticleState:
+        """Particles drawn from the prior ``N(x0, P0)`` (``x0 [B, n]`` or one track's ``[n]``)
+        with ``generator`` (default: a fixed seed). Pass the same generator to every
+        :meth:`step` or :meth:`scan` of the run: it then equals :meth:`forward` with it."""
+        x0, P0, single = prepare_prior(self.model, x0, P0)
+        return self._fresh(x0, P0, _generator(generator), single)
+
+    def scan(
+        self,
+        state: ParticleState,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple[ParticleState, ParticleResult]:
+        """Filters the steps ``z [B, T, m]`` (``[T, m]`` for one track) from ``state``: the
+        state after them and their result (``ParticleResult.log_likelihood``: these steps')."""
+        if not isinstance(state, ParticleState):
+            raise TypeError(
+                f"state: expected a ParticleState (est.init), got {type(state).__name__}"
+            )
+        self.check_psi(psi)
+        n = self.model.state_dim
+        x0 = state.particles[:, 0]
+        prior = (x0[0], torch.eye(n, dtype=x0.dtype)) if state.single else (x0, torch.eye(n))
+        inputs = prepare_inputs(self.model, z, *prior, u=u, dt=dt, psi=psi, generator=generator)
+        if inputs.single != state.single:
+            want = "[T, m] (one track)" if state.single else "[B, T, m]"
+            raise ValueError(f"z: expected shape {want} for this state, got {tuple(z.shape)}")
+        with threads_for(inputs.batch, n):
+            state, result = self._scan(state, inputs, _generator(generator))
+        return state, drop_batch(result) if inputs.single else result
+
+    def step(
+        self,
+        state: ParticleState,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple[ParticleState, ParticleResult]:
+        """One step for ``z [B, m]`` (``[m]`` for one track): the new state and the step's
+        result (fields without the time axis)."""
+        if not isinstance(z, Tensor):
+            raise TypeError(f"z: expected a tensor [B, m] or [m], got {type(z).__name__}")
+
+        def one_step(x: Any) -> Any:
+            return x.unsqueeze(-2) if isinstance(x, Tensor) and x.ndim >= 1 else x
+
+        if isinstance(dt, Tensor) and dt.ndim == 1 and not state.single:
+            dt = dt.unsqueeze(-1)
+        state, result = self.scan(
+            state, one_step(z), u=one_step(u), dt=dt, psi=one_step(psi), generator=generator
         )
+        return state, at_step(result, 0, time_axis=0 if state.single else 1)
+
+    def run(self, inputs: Inputs) -> ParticleResult:
+        gen = _generator(inputs.generator)
+        return self._scan(self._fresh(inputs.x0, inputs.P0, gen, False), inputs, gen)[1]
+
+    def _fresh(self, x0: Tensor, P0: Tensor, gen: torch.Generator, single: bool) -> ParticleState:
+        N = self.num_particles
+        particles = _gaussian(x0, P0, N, gen)
+        log_w = torch.full((x0.shape[0], N), -math.log(N), dtype=x0.dtype)
+        zero = torch.zeros(x0.shape[0], dtype=x0.dtype)
+        return ParticleState(particles, log_w, zero, self.initial_carry(x0, P0), single=single)
+
+    def _scan(
+        self, start: ParticleState, inputs: Inputs, gen: torch.Generator
+    ) -> tuple[ParticleState, ParticleResult]:
         z = inputs.z
         mask = ~torch.isnan(z)
         z_filled = z.nan_to_num(0.0)
         B, T = inputs.batch, inputs.steps
         N = self.num_particles
-        particles = _gaussian(inputs.x0, inputs.P0, N, gen)
-        log_w = torch.full((B, N), -math.log(N), dtype=z.dtype)
-        state = self.begin(inputs, gen)
-        means, covs, esss, loglik = [], [], [], torch.zeros(B, dtype=z.dtype)
+        particles, log_w = start.particles, start.log_weights
+        state = self.begin(inputs, start.carry, start.history)
+        means: list[Tensor] = []
+        covs: list[Tensor] = []
+        esss: list[Tensor] = []
+        loglik = torch.zeros(B, dtype=z.dtype)
         for t in range(T):
             particles, state, log_increment = self.propose(t, particles, state, inputs, gen)
             if log_increment is None:
@@ -233,7 +343,17 @@ class ParticleFilter(Estimator[ParticleResult]):
                 picked, kept = self._resample(particles, log_w, gen)
                 particles = torch.where(low[:, None, None], picked, particles)
                 log_w = torch.where(low[:, None], kept, log_w)
-        return ParticleResult(
+        carry, history = self.end(state, inputs, start.history)
+        after = ParticleState(
+            particles,
+            log_w,
+            start.log_likelihood + loglik,
+            carry,
+            history,
+            start.steps + T,
+            start.single,
+        )
+        result = ParticleResult(
             torch.stack(means, 1),
             torch.stack(covs, 1),
             torch.stack(esss, 1),
@@ -241,6 +361,7 @@ class ParticleFilter(Estimator[ParticleResult]):
             particles,
             log_w,
         )
+        return after, result
 
 
 class SPVSF(ParticleFilter):
@@ -337,12 +458,23 @@ class SPVSF(ParticleFilter):
         F: Tensor | None
         Q: Tensor
 
-    def begin(self, inputs: Inputs, gen: torch.Generator) -> Any:
-        z, H, R = self.svsf.measurements(inputs)
+    def begin(self, inputs: Inputs, carry: Any, history: Any) -> Any:
+        z, H, R = self.svsf.measurements(inputs, history)
         F, Q = self.svsf.dynamics(inputs)
         mask = ~torch.isnan(z)
         observed = None if bool(mask.all()) else mask
-        return self._State(inputs.x0, inputs.P0, None, z.nan_to_num(0.0), observed, H, R, F, Q)
+        x, P, memory = carry
+        return self._State(x, P, memory, z.nan_to_num(0.0), observed, H, R, F, Q)
+
+    def initial_carry(self, x0: Tensor, P0: Tensor) -> Any:
+        return x0, P0, None  # the SVSF starts from the prior, without memory
+
+    def end(self, state: Any, inputs: Inputs, history: Any) -> tuple[Any, Any]:
+        s: SPVSF._State = state
+        return (s.x, s.P, s.post_innovation), self.svsf.carried_history(history, inputs)
+
+    def takes_psi(self) -> bool:
+        return False  # ψ is its SVSF's parameter; a per-step override is not wired through
 
     def propose(
         self, t: int, particles: Tensor, state: Any, inputs: Inputs, gen: torch.Generator
@@ -395,3 +527,11 @@ class SPVSF(ParticleFilter):
         if s.mask is not None:
             e_post = torch.where(s.mask[:, t], e_post, s.post_innovation)
         return s._replace(x=mean, post_innovation=e_post)
+
+
+def _generator(generator: torch.Generator | None) -> torch.Generator:
+    if generator is None:
+        return torch.Generator().manual_seed(DEFAULT_SEED)
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
+    return generator
