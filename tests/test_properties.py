@@ -181,3 +181,25 @@ def test_shared_covariances_are_smoothed_once_and_equal_per_track_ones(lag):
     assert_close(shared.cov, per_track.cov)
     svss = ts.SVSS(ts.KalmanFilter(system.model()), lag=lag)(z, x0, P0)
     assert_close(svss.mean, shared.mean)
+
+
+def test_the_gaussian_log_density_is_torchs_multivariate_normal():
+    """The library's one Gaussian log-density (KF log-likelihood, NLL loss, particle weights)
+    against torch.distributions, with a batch, and with missing components left out."""
+    from torchsvs.linalg import gaussian_log_density
+
+    gen = torch.Generator().manual_seed(0)
+    A = torch.randn(5, 3, 3, generator=gen, dtype=torch.float64)
+    S = A @ A.mT + 0.5 * torch.eye(3, dtype=torch.float64)
+    r = torch.randn(5, 3, generator=gen, dtype=torch.float64)
+    expected = torch.distributions.MultivariateNormal(torch.zeros(3, dtype=r.dtype), S).log_prob(r)
+    assert_close(gaussian_log_density(r, torch.linalg.cholesky(S), 3.0), expected, atol=1e-12)
+    # A missing third component: zero residual, unit variance, not counted.
+    masked = S.clone()
+    masked[:, 2, :] = masked[:, :, 2] = 0.0
+    masked[:, 2, 2] = 1.0
+    r2 = r.clone()
+    r2[:, 2] = 0.0
+    two = torch.distributions.MultivariateNormal(torch.zeros(2, dtype=r.dtype), S[:, :2, :2])
+    got = gaussian_log_density(r2, torch.linalg.cholesky(masked), 2.0)
+    assert_close(got, two.log_prob(r[:, :2]), atol=1e-12)

@@ -7,6 +7,8 @@ Covariances are never inverted explicitly: solves go through a Cholesky factor.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -66,6 +68,21 @@ def joseph_update(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:
     eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     A = eye - K @ H
     return symmetrize(A @ P @ A.mT + K @ R @ K.mT)
+
+
+def gaussian_log_density(residual: Tensor, L: Tensor, count: Tensor | float) -> Tensor:
+    """``log N(r; 0, L Lᵀ) = −½ (|L⁻¹ r|² + log det(L Lᵀ) + count · log 2π)``: the library's one
+    Gaussian log-density (the KF's log-likelihood, the innovation NLL, particle weights).
+
+    Args:
+        residual: ``r [..., m]``; missing components zero (with a unit row/column in ``L``).
+        L: lower Cholesky factor ``[..., m, m]``, broadcastable against ``residual``.
+        count: components that count toward the normalising constant (observed ones; ``0``
+            leaves the constant out).
+    """
+    white = torch.linalg.solve_triangular(L, residual.unsqueeze(-1), upper=False).squeeze(-1)
+    log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    return -0.5 * (white.square().sum(-1) + log_det + count * math.log(2 * math.pi))
 
 
 def svsf_gain_ratio(e_prior: Tensor, e_post_prev: Tensor, psi: Tensor, gamma: Tensor) -> Tensor:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple
 
 import torch
@@ -18,7 +17,14 @@ from torchsvs.estimator import (
     threads_for,
 )
 from torchsvs.kernels import AXIS_KERNEL, axes
-from torchsvs.linalg import cholesky, joseph_update, mask_measurement, matvec, symmetrize
+from torchsvs.linalg import (
+    cholesky,
+    gaussian_log_density,
+    joseph_update,
+    mask_measurement,
+    matvec,
+    symmetrize,
+)
 from torchsvs.models.base import LinearModel, StateSpaceModel
 from torchsvs.models.motion import ConstantVelocity
 from torchsvs.types import FilterResult, FilterState
@@ -488,8 +494,6 @@ class KalmanFilter(GaussianFilter):
             H, R = mask_measurement(H, R, mask)
             e = e * mask
         x, P, K, S, L = kalman_update(x_pred, P_pred, e, H, R)
-        white = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
         observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)
-        log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        loglik = -0.5 * (white.square().sum(-1) + log_det + observed * math.log(2 * math.pi))
+        loglik = gaussian_log_density(e, L, observed)
         return Step(x, P, e, K, innovation_cov=S, log_likelihood=loglik)

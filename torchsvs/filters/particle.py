@@ -20,7 +20,7 @@ from torchsvs.estimator import (
 )
 from torchsvs.filters.kalman import Observation, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
-from torchsvs.linalg import cholesky, joseph_update, mask_covariance
+from torchsvs.linalg import cholesky, gaussian_log_density, joseph_update, mask_covariance
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.resampling import SCHEMES, Scheme
 
@@ -81,19 +81,18 @@ def _log_normal(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
     """``log N(x; mean, L Lᵀ)`` up to ``−(n/2) log 2π``: ``[B, N]`` for ``x, mean [B, N, n]`` and
     ``L [B|1, n, n]`` or ``[n, n]``."""
     L = L if L.ndim == 3 else L.unsqueeze(0)
-    white = torch.linalg.solve_triangular(L.unsqueeze(1), (x - mean).unsqueeze(-1), upper=False)
-    log_det = L.diagonal(dim1=-2, dim2=-1).log().sum(-1, keepdim=True)  # [B|1, 1]
-    return -0.5 * white.squeeze(-1).square().sum(-1) - log_det
+    return gaussian_log_density(x - mean, L.unsqueeze(1), 0.0)
 
 
 def _log_density(z: Tensor, mask: Tensor, predicted: Tensor, cov: Tensor) -> Tensor:
     """``log N(z; predicted_i, cov)`` over the observed components of ``z [B, m]`` (NaN filled,
     ``mask [B, m]``), per particle ``[B, N]`` for ``predicted [B, N, m]``, ``cov [B|1, m, m]``
     or ``[m, m]``."""
-    cov = mask_covariance(cov, mask)  # identity where missing
+    L = cholesky(mask_covariance(cov, mask))  # identity where missing
+    L = L if L.ndim == 3 else L.unsqueeze(0)
     observed = mask.unsqueeze(1)  # missing components: zero residual, unit variance
-    log_density = _log_normal(z.unsqueeze(1) * observed, predicted * observed, cholesky(cov))
-    return log_density - 0.5 * mask.sum(-1, keepdim=True).to(z.dtype) * math.log(2 * math.pi)
+    residual = (z.unsqueeze(1) - predicted) * observed
+    return gaussian_log_density(residual, L.unsqueeze(1), mask.sum(-1, keepdim=True).to(z.dtype))
 
 
 def _gaussian(mean: Tensor, cov: Tensor, count: int, gen: torch.Generator) -> Tensor:

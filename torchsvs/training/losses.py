@@ -6,13 +6,12 @@ All take the estimator's result (:class:`~torchsvs.types.FilterResult` or
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from torchsvs.linalg import cholesky, mask_measurement, symmetrize
+from torchsvs.linalg import cholesky, gaussian_log_density, mask_measurement, symmetrize
 from torchsvs.types import FilterResult, SmootherResult
 
 Result = FilterResult | SmootherResult
@@ -58,11 +57,8 @@ def innovation_nll(result: Result, scored: Tensor | None = None) -> Tensor:
     if S is None:
         H, R = mask_measurement(res.meas_matrix, res.meas_cov, res.mask)
         S = symmetrize(H @ res.pred_cov @ H.mT + R)
-    L = cholesky(S)
-    white = torch.linalg.solve_triangular(L, res.innovation.unsqueeze(-1), upper=False)
-    log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     observed = res.mask.sum(-1).to(S.dtype)
-    nll = 0.5 * (white.square().sum((-2, -1)) + log_det + observed * math.log(2 * math.pi))
+    nll = -gaussian_log_density(res.innovation, cholesky(S), observed)
     if scored is not None:
         weight = scored.to(S.dtype)
         return (nll * weight).sum() / (observed * weight).sum().clamp_min(1.0)
