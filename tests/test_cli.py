@@ -61,3 +61,15 @@ def test_reproduce_writes_outside_the_checkout_by_default(monkeypatch, tmp_path)
     from experiments import svss_paper
 
     assert svss_paper.RESULTS == Path(svss_paper.__file__).parent / "results"  # python -m
+
+
+def test_an_installed_package_without_the_checkout_says_what_is_needed(monkeypatch, tmp_path):
+    """A non-editable install has no experiments/: the experiment commands say so (checked by
+    hand with `pip install --target`; `track`, `fit` and `--help` work there)."""
+    package = tmp_path / "site-packages" / "torchsvs"
+    package.mkdir(parents=True)
+    monkeypatch.setattr(cli, "__file__", str(package / "cli.py"))
+    with pytest.raises(
+        SystemExit, match=r"experiments are part of the source checkout.*pip install -e"
+    ):
+        cli.main(["reproduce", "svss"])

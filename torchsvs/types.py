@@ -45,7 +45,8 @@ class FilterResult(NamedTuple):
         post_innovation: a-posteriori innovation ``e_{t|t}``, ``[B, T, m]`` (the SVSF memory;
             carried over missing components). ``None`` for filters that do not form it.
         innovation_cov: ``S_t = H P_{t|t-1} Hᵀ + R``, ``[B, T, m, m]``, identity rows/columns
-            where missing. ``None`` for filters that do not form it.
+            where missing; every Gaussian filter records it (the RSTKF its nominal ``S``, before
+            the variational reweighting), so losses and smoothers never rebuild it.
         log_likelihood: ``Σ_t log N(e_t; 0, S_t)`` over observed components, ``[B]``, or ``None``.
         axes: the same pass per axis (:class:`~torchsvs.kernels.axes.AxisResult`) when the
             per-axis kernel computed it, so smoothers use it too; ``None`` otherwise (and in

@@ -97,10 +97,16 @@ def kalman_update(
     ``S = H P Hᵀ + R``, ``K = P Hᵀ S⁻¹`` through the Cholesky factor of ``S``, Joseph-form ``P``.
     """
     PHt = P_pred @ H.mT
-    S = symmetrize(H @ PHt + R)
+    S = innovation_covariance(H, PHt, R)
     L = cholesky(S)
     K = torch.cholesky_solve(PHt.mT, L).mT
     return x_pred + matvec(K, e), joseph_update(P_pred, K, H, R), K, S, L
+
+
+def innovation_covariance(H: Tensor, PHt: Tensor, R: Tensor) -> Tensor:
+    """``S = H P Hᵀ + R`` (with ``PHt = P Hᵀ``), symmetrised: the covariance of the a-priori
+    innovation that every Gaussian filter records (the NLL loss and the smoothers read it)."""
+    return symmetrize(H @ PHt + R)
 
 
 class GaussianFilter(Estimator[FilterResult]):
@@ -430,10 +436,18 @@ def _assemble(
     gain = axes.block_diagonal(res.gain)
     if not with_velocity:
         gain = gain[..., 0::2]  # the position columns
-    innovation_cov = None
-    if res.log_likelihood is not None:  # Kalman: S = H P Hᵀ + R over the positions
-        S = res.pred_cov.a * seen_p.to(res.pred_cov.a.dtype) + res.noise.a
-        innovation_cov = torch.diag_embed(S)
+    # S = H P Hᵀ + R per axis, identity rows and columns where missing (masked noise).
+    dtype = res.pred_cov.a.dtype
+    fp, fv = seen_p.to(dtype), seen_v.to(dtype)
+    if with_velocity:
+        S_axes = axes.Sym2(
+            res.pred_cov.a * fp + res.noise.a,
+            res.pred_cov.b * fp * fv + res.noise.b,
+            res.pred_cov.c * fv + res.noise.c,
+        )
+        innovation_cov = axes.block_diagonal(axes.full(S_axes))
+    else:  # over the positions
+        innovation_cov = torch.diag_embed(res.pred_cov.a * fp + res.noise.a)
     return FilterResult(
         mean=axes.interleave(*res.mean),
         cov=axes.block_diagonal(axes.full(res.cov)),

@@ -6,7 +6,13 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import GaussianFilter, Observation, Step, kalman_update
+from torchsvs.filters.kalman import (
+    GaussianFilter,
+    Observation,
+    Step,
+    innovation_covariance,
+    kalman_update,
+)
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import LinearModel
 
@@ -148,4 +154,5 @@ class RobustStudentTKalmanFilter(GaussianFilter):
             P_tilde = U / (inv_sigma_scale * E_xi[..., None, None])
             R_tilde = R / E_lambda[..., None, None]
             x, P, K, _, _ = kalman_update(x_pred, P_tilde, e_pred, H, R_tilde)
-        return Step(x, P, e_pred, K)
+        S = innovation_covariance(H, P_pred @ H.mT, R)  # the nominal one, before reweighting
+        return Step(x, P, e_pred, K, innovation_cov=S)

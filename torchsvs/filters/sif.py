@@ -7,8 +7,8 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike, Positive
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import GaussianFilter, Observation, Step
-from torchsvs.linalg import joseph_update, masked_pinv, matvec, svsf_gain_ratio
+from torchsvs.filters.kalman import GaussianFilter, Observation, Step, innovation_covariance
+from torchsvs.linalg import joseph_update, mask_measurement, masked_pinv, matvec, svsf_gain_ratio
 from torchsvs.models.base import LinearModel
 
 
@@ -69,4 +69,7 @@ class SlidingInnovationFilter(GaussianFilter):
         delta = self.delta.to(e.dtype)
         saturation = svsf_gain_ratio(e, torch.zeros_like(e), delta, torch.zeros((), dtype=e.dtype))
         K = masked_pinv(obs.H, obs.mask) * saturation.unsqueeze(-2)
-        return Step(x_pred + matvec(K, e), joseph_update(P_pred, K, obs.H, obs.R), e, K)
+        P = joseph_update(P_pred, K, obs.H, obs.R)
+        H, R = (obs.H, obs.R) if obs.mask is None else mask_measurement(obs.H, obs.R, obs.mask)
+        S = innovation_covariance(H, P_pred @ H.mT, R)
+        return Step(x_pred + matvec(K, e), P, e, K, innovation_cov=S)

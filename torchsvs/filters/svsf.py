@@ -11,9 +11,9 @@ from torch import Tensor
 from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
-from torchsvs.filters.kalman import GaussianFilter, Observation, Step
+from torchsvs.filters.kalman import GaussianFilter, Observation, Step, innovation_covariance
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
-from torchsvs.linalg import joseph_update, masked_pinv, matvec, svsf_gain_ratio
+from torchsvs.linalg import joseph_update, mask_measurement, masked_pinv, matvec, svsf_gain_ratio
 from torchsvs.models.base import StateSpaceModel
 
 ArtificialMeasurement = Callable[
@@ -235,10 +235,20 @@ class SVSF(GaussianFilter):
         K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)
         x = x_pred + matvec(K, e)  # Eq. (22)
         P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
+        H_m, R_m = (H, R) if mask is None else mask_measurement(H, R, mask)
+        S = innovation_covariance(H_m, P_pred @ H_m.mT, R_m)
         e_post = z - (self.model.h(x) if linearised else matvec(H, x))  # Eq. (24)
         if mask is not None:
             e_post = torch.where(mask, e_post, memory)
-        return Step(x, P, e, K, post_innovation=e_post, meas_matrix=H if linearised else None)
+        return Step(
+            x,
+            P,
+            e,
+            K,
+            post_innovation=e_post,
+            innovation_cov=S,
+            meas_matrix=H if linearised else None,
+        )
 
 
 class _Rows(NamedTuple):

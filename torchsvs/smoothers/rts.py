@@ -265,8 +265,8 @@ class RTSSmoother(Estimator[SmootherResult]):
             result.mask[:, 1:],
         )
         PHt = P_pred @ H.mT
-        S = result.innovation_cov
-        S = symmetrize(H @ PHt + R) if S is None else S[:, 1:]
+        assert result.innovation_cov is not None, "every Gaussian filter records S"
+        S = result.innovation_cov[:, 1:]
         Gamma = self.innovation_gain(result, H, PHt, S)
         K = result.gain[:, 1:]
         F = steps_after_first(result.transition)

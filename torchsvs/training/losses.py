@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchsvs.linalg import cholesky, gaussian_log_density, mask_measurement, symmetrize
+from torchsvs.linalg import cholesky, gaussian_log_density
 from torchsvs.types import FilterResult, SmootherResult
 
 Result = FilterResult | SmootherResult
@@ -51,12 +51,10 @@ def supervised_mse(
 def innovation_nll(result: Result, scored: Tensor | None = None) -> Tensor:
     """Negative log-likelihood of the filter's a-priori innovations, ``e_t ~ N(0, S_t)`` with
     ``S_t = H P_{t|t-1} Hᵀ + R``, per observed component of the ``scored`` steps (needs no
-    truth). Uses the ``S`` the filter recorded where it did (KF)."""
+    truth), with the ``S`` the filter recorded."""
     res = _filtered(result, "innovation NLL")
     S = res.innovation_cov
-    if S is None:
-        H, R = mask_measurement(res.meas_matrix, res.meas_cov, res.mask)
-        S = symmetrize(H @ res.pred_cov @ H.mT + R)
+    assert S is not None, "every Gaussian filter records S"
     observed = res.mask.sum(-1).to(S.dtype)
     nll = -gaussian_log_density(res.innovation, cholesky(S), observed)
     if scored is not None:
