@@ -166,23 +166,20 @@ needs_compiler = pytest.mark.skipif(
 
 @pytest.fixture
 def spy(monkeypatch):
-    """Counts the compiled loops' calls."""
+    """Counts the compiled loops' calls: the forward pass, and the smoother passes together."""
     calls = {"forward": 0, "backward": 0}
-    for name in calls:
-        original = getattr(fused, name if name == "forward" else "backward")
+    for function, counter in (
+        ("forward", "forward"),
+        ("backward", "backward"),
+        ("rts_interval", "backward"),
+    ):
+        original = getattr(fused, function)
 
-        def counted(*args, _name=name, _original=original, **kwargs):
-            calls[_name] += 1
+        def counted(*args, _original=original, _counter=counter, **kwargs):
+            calls[_counter] += 1
             return _original(*args, **kwargs)
 
-        monkeypatch.setattr(fused, name, counted)
-    rts = fused.rts_interval
-
-    def counted_rts(*args, **kwargs):
-        calls["backward"] += 1
-        return rts(*args, **kwargs)
-
-    monkeypatch.setattr(fused, "rts_interval", counted_rts)
+        monkeypatch.setattr(fused, function, counted)
     return calls
 
 

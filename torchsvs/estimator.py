@@ -67,8 +67,13 @@ def prepare_inputs(
     dt: Any = None,
     psi: Any = None,
     generator: torch.Generator | None = None,
+    state_prior: bool = False,
 ) -> Inputs:
-    """Checks every argument of an estimator call against ``model`` and adds the batch axis."""
+    """Checks every argument of an estimator call against ``model`` and adds the batch axis.
+
+    ``state_prior``: ``x0 [b, n]``, ``P0 [b, n, n]`` are an estimator's own state (``b`` the
+    state's tracks, or 1 for a prior shared by the batch), checked when it was made: only their
+    batch is checked against ``z``'s."""
     m = model.meas_dim
     if not isinstance(z, Tensor):
         raise TypeError(f"z: expected a tensor [B, T, {m}] or [T, {m}], got {type(z).__name__}")
@@ -84,7 +89,14 @@ def prepare_inputs(
     if B == 0:
         raise ValueError(f"z: expected at least one track, got shape {_shape(z)}")
 
-    x0, P0 = _check_prior(model, x0, P0, B, single, dtype)
+    if state_prior:
+        if x0.shape[0] not in (1, B):
+            raise ValueError(
+                f"z: expected {x0.shape[0]} tracks, as the state has, got shape {_shape(z)}"
+            )
+        x0, P0 = x0.to(dtype).expand(B, -1), P0.to(dtype)
+    else:
+        x0, P0 = _check_prior(model, x0, P0, B, single, dtype)
 
     u_t = None
     if u is not None:
@@ -307,3 +319,87 @@ class Estimator(nn.Module, Generic[Result]):
                 f"psi: {type(self).__name__} has no boundary layer to override; a per-step psi "
                 "applies to the SVSF and the smoothers over it"
             )
+
+
+class SteppedEstimator(Estimator[Result]):
+    """An estimator that also runs one step or one chunk of steps at a time from a state it
+    returns (``init``, ``step``, ``scan``; nothing kept on the module): the filters. ``forward``
+    is ``init`` and one ``scan``. Subclasses give :meth:`init`, :meth:`_scan` and
+    :meth:`state_prior`."""
+
+    #: the carry type of :meth:`init`, :meth:`step` and :meth:`scan`
+    state_type: type[Any] = tuple
+
+    def scan(
+        self,
+        state: Any,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple[Any, Result]:
+        """Runs the steps ``z [B, T, m]`` (``[T, m]`` for a state of one track) from ``state``:
+        the state after the last of them and their result, as :meth:`forward` gives it (a
+        recording run in chunks, the state carried between them, gives the same numbers).
+        ``u``, ``dt``, ``psi``, ``generator`` as for :meth:`forward` (a stochastic estimator
+        equals its whole run when one generator is passed to ``init`` and every call)."""
+        if not isinstance(state, self.state_type):
+            raise TypeError(
+                f"state: expected a {self.state_type.__name__} (est.init), "
+                f"got {type(state).__name__}"
+            )
+        self.check_psi(psi)
+        x0, P0 = self.state_prior(state)
+        inputs = prepare_inputs(
+            self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator, state_prior=True
+        )
+        if state.single and not inputs.single and state.steps == 0:
+            state = self.share(state, inputs)
+        elif inputs.single != state.single:
+            want = "[T, m] (one track)" if state.single else "[B, T, m]"
+            raise ValueError(f"z: expected shape {want} for this state, got {tuple(z.shape)}")
+        with threads_for(inputs.batch, self.model.state_dim):
+            state, result = self._scan(state, inputs)
+        return state, drop_batch(result) if inputs.single else result
+
+    def step(
+        self,
+        state: Any,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple[Any, Result]:
+        """One step for ``z [B, m]`` (``[m]`` for one track; NaN: missing): the new state and the
+        step's result (the result's fields without the time axis). ``dt`` a scalar or ``[B]``,
+        ``u [B, p]``, ``psi [B, m']``."""
+        if not isinstance(z, Tensor):
+            raise TypeError(f"z: expected a tensor [B, m] or [m], got {type(z).__name__}")
+
+        def one_step(x: Any) -> Any:
+            return x.unsqueeze(-2) if isinstance(x, Tensor) and x.ndim >= 1 else x
+
+        if isinstance(dt, Tensor) and dt.ndim == 1 and z.ndim == 2:
+            dt = dt.unsqueeze(-1)
+        state, result = self.scan(
+            state, one_step(z), u=one_step(u), dt=dt, psi=one_step(psi), generator=generator
+        )
+        return state, at_step(result, 0, time_axis=0 if state.single else 1)
+
+    def state_prior(self, state: Any) -> tuple[Tensor, Tensor]:
+        """``x0 [b, n]``, ``P0 [b, n, n]`` standing for ``state`` in the :class:`Inputs` of a
+        :meth:`scan` (their batch is what the call checks)."""
+        raise NotImplementedError
+
+    def share(self, state: Any, inputs: Inputs) -> Any:
+        """The state of one track before its first step, shared by the batch of ``inputs``."""
+        raise ValueError(
+            f"z: expected shape [T, m] (one track) for this state, got {tuple(inputs.z.shape)}"
+        )
+
+    def _scan(self, state: Any, inputs: Inputs) -> tuple[Any, Result]:
+        raise NotImplementedError

@@ -7,15 +7,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsvs.estimator import (
-    Estimator,
-    Inputs,
-    at_step,
-    drop_batch,
-    prepare_inputs,
-    prepare_prior,
-    threads_for,
-)
+from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
 from torchsvs.kernels import AXIS_KERNEL, axes
 from torchsvs.linalg import (
     cholesky,
@@ -109,7 +101,7 @@ def innovation_covariance(H: Tensor, PHt: Tensor, R: Tensor) -> Tensor:
     return symmetrize(H @ PHt + R)
 
 
-class GaussianFilter(Estimator[FilterResult]):
+class GaussianFilter(SteppedEstimator[FilterResult]):
     """A filter that carries a Gaussian (mean, covariance) through predict-correct steps.
 
     The prediction (Eqs. (11)-(12) and (18)-(20), Chen et al. 2020) is shared; subclasses replace
@@ -194,66 +186,20 @@ class GaussianFilter(Estimator[FilterResult]):
         x0, P0, single = prepare_prior(self.model, x0, P0)
         return FilterState(x0, P0, single=single)
 
-    def scan(
-        self,
-        state: FilterState,
-        z: Tensor,
-        *,
-        u: Tensor | None = None,
-        dt: float | Tensor | None = None,
-        psi: Tensor | None = None,
-    ) -> tuple[FilterState, FilterResult]:
-        """Filters the steps ``z [B, T, m]`` (``[T, m]`` for a state of one track) from ``state``:
-        the state after the last of them and their result, as :meth:`forward` gives it
-        (``forward`` is ``init`` and one ``scan``; a recording run in chunks, the state carried
-        between them, gives the same numbers). ``u``, ``dt``, ``psi`` as for :meth:`forward`."""
-        if not isinstance(state, FilterState):
-            raise TypeError(f"state: expected a FilterState (est.init), got {type(state).__name__}")
-        # A prior of one track before its first step is shared by a batch, as forward shares it.
-        shared = state.single and state.steps == 0 and isinstance(z, Tensor) and z.ndim == 3
-        x0 = state.mean[0] if state.single else state.mean
-        P0 = state.cov[0] if state.single or state.cov.shape[0] == 1 else state.cov
-        self.check_psi(psi)
-        inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, psi=psi)
-        if shared:
-            state = FilterState(inputs.x0, inputs.P0)
-        elif inputs.single != state.single:
-            want = "[T, m] (one track)" if state.single else "[B, T, m]"
-            raise ValueError(f"z: expected shape {want} for this state, got {tuple(z.shape)}")
-        with threads_for(inputs.batch, self.model.state_dim):
-            state, result = self._scan(state, inputs)
-        return state, drop_batch(result) if inputs.single else result
+    state_type = FilterState
 
-    def step(
-        self,
-        state: FilterState,
-        z: Tensor,
-        *,
-        u: Tensor | None = None,
-        dt: float | Tensor | None = None,
-        psi: Tensor | None = None,
-    ) -> tuple[FilterState, FilterResult]:
-        """One predict-correct cycle for ``z [B, m]`` (``[m]`` for one track; NaN: missing):
-        the new state and the step's result (:class:`FilterResult` fields without the time
-        axis; ``state.mean``, ``state.cov`` are the filtered moments). ``dt`` a scalar or
-        ``[B]``, ``u [B, p]``, ``psi [B, m']``."""
-        if not isinstance(z, Tensor):
-            raise TypeError(f"z: expected a tensor [B, m] or [m], got {type(z).__name__}")
+    def state_prior(self, state: FilterState) -> tuple[Tensor, Tensor]:
+        return state.mean, state.cov
 
-        def one_step(x: Any) -> Any:
-            return x.unsqueeze(-2) if isinstance(x, Tensor) and x.ndim >= 1 else x
-
-        if isinstance(dt, Tensor) and dt.ndim == 1 and not state.single:
-            dt = dt.unsqueeze(-1)
-        state, result = self.scan(state, one_step(z), u=one_step(u), dt=dt, psi=one_step(psi))
-        return state, at_step(result, 0, time_axis=0 if state.single else 1)
+    def share(self, state: FilterState, inputs: Inputs) -> FilterState:
+        return FilterState(inputs.x0, inputs.P0)  # as forward shares a prior of one track
 
     def run(self, inputs: Inputs) -> FilterResult:
         return self._scan(FilterState(inputs.x0, inputs.P0), inputs)[1]
 
     def _scan(self, state: FilterState, inputs: Inputs) -> tuple[FilterState, FilterResult]:
-        fresh = state.steps == 0 and state.post_innovation is None and state.history is None
-        result = self._run_axes(inputs) if fresh else None
+        # The per-axis kernel starts from a prior (no memory, no earlier rows).
+        result = self._run_axes(inputs) if state.steps == 0 else None
         if result is None:
             result = self._loop(inputs, state.post_innovation, state.history)
         loglik = result.log_likelihood

@@ -3,21 +3,14 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any, Literal, NamedTuple, get_args
 
 import torch
 from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
-from torchsvs.estimator import (
-    Estimator,
-    Inputs,
-    at_step,
-    drop_batch,
-    prepare_inputs,
-    prepare_prior,
-    threads_for,
-)
+from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
 from torchsvs.filters.kalman import Observation, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, gaussian_log_density, joseph_update, mask_covariance
@@ -102,7 +95,7 @@ def _gaussian(mean: Tensor, cov: Tensor, count: int, gen: torch.Generator) -> Te
     return mean.unsqueeze(1) + eps @ L.mT
 
 
-class ParticleFilter(Estimator[ParticleResult]):
+class ParticleFilter(SteppedEstimator[ParticleResult]):
     r"""Sampling importance resampling (SIR) particle filter, Eqs. (5)-(10), Gadsden et al. 2012.
 
     Particles ``[B, N, n]`` start from ``N(x0, P0)``, move through the model with process noise
@@ -243,62 +236,18 @@ class ParticleFilter(Estimator[ParticleResult]):
         x0, P0, single = prepare_prior(self.model, x0, P0)
         return self._fresh(x0, P0, _generator(generator), single)
 
-    def scan(
-        self,
-        state: ParticleState,
-        z: Tensor,
-        *,
-        u: Tensor | None = None,
-        dt: float | Tensor | None = None,
-        psi: Tensor | None = None,
-        generator: torch.Generator | None = None,
-    ) -> tuple[ParticleState, ParticleResult]:
-        """Filters the steps ``z [B, T, m]`` (``[T, m]`` for one track) from ``state``: the
-        state after them and their result (``ParticleResult.log_likelihood``: these steps')."""
-        if not isinstance(state, ParticleState):
-            raise TypeError(
-                f"state: expected a ParticleState (est.init), got {type(state).__name__}"
-            )
-        self.check_psi(psi)
+    state_type = ParticleState
+
+    def state_prior(self, state: ParticleState) -> tuple[Tensor, Tensor]:
+        # The steps start from the particles; only the batch of this "prior" is used.
         n = self.model.state_dim
-        x0 = state.particles[:, 0]
-        prior = (x0[0], torch.eye(n, dtype=x0.dtype)) if state.single else (x0, torch.eye(n))
-        inputs = prepare_inputs(self.model, z, *prior, u=u, dt=dt, psi=psi, generator=generator)
-        if inputs.single != state.single:
-            want = "[T, m] (one track)" if state.single else "[B, T, m]"
-            raise ValueError(f"z: expected shape {want} for this state, got {tuple(z.shape)}")
-        with threads_for(inputs.batch, n):
-            state, result = self._scan(state, inputs, _generator(generator))
-        return state, drop_batch(result) if inputs.single else result
-
-    def step(
-        self,
-        state: ParticleState,
-        z: Tensor,
-        *,
-        u: Tensor | None = None,
-        dt: float | Tensor | None = None,
-        psi: Tensor | None = None,
-        generator: torch.Generator | None = None,
-    ) -> tuple[ParticleState, ParticleResult]:
-        """One step for ``z [B, m]`` (``[m]`` for one track): the new state and the step's
-        result (fields without the time axis)."""
-        if not isinstance(z, Tensor):
-            raise TypeError(f"z: expected a tensor [B, m] or [m], got {type(z).__name__}")
-
-        def one_step(x: Any) -> Any:
-            return x.unsqueeze(-2) if isinstance(x, Tensor) and x.ndim >= 1 else x
-
-        if isinstance(dt, Tensor) and dt.ndim == 1 and not state.single:
-            dt = dt.unsqueeze(-1)
-        state, result = self.scan(
-            state, one_step(z), u=one_step(u), dt=dt, psi=one_step(psi), generator=generator
-        )
-        return state, at_step(result, 0, time_axis=0 if state.single else 1)
+        return state.particles[:, 0], torch.eye(n, dtype=state.particles.dtype).unsqueeze(0)
 
     def run(self, inputs: Inputs) -> ParticleResult:
-        gen = _generator(inputs.generator)
-        return self._scan(self._fresh(inputs.x0, inputs.P0, gen, False), inputs, gen)[1]
+        gen = _generator(inputs.generator)  # one generator for the prior draw and the steps
+        return self._scan(
+            self._fresh(inputs.x0, inputs.P0, gen, False), replace(inputs, generator=gen)
+        )[1]
 
     def _fresh(self, x0: Tensor, P0: Tensor, gen: torch.Generator, single: bool) -> ParticleState:
         N = self.num_particles
@@ -307,9 +256,8 @@ class ParticleFilter(Estimator[ParticleResult]):
         zero = torch.zeros(x0.shape[0], dtype=x0.dtype)
         return ParticleState(particles, log_w, zero, self.initial_carry(x0, P0), single=single)
 
-    def _scan(
-        self, start: ParticleState, inputs: Inputs, gen: torch.Generator
-    ) -> tuple[ParticleState, ParticleResult]:
+    def _scan(self, start: ParticleState, inputs: Inputs) -> tuple[ParticleState, ParticleResult]:
+        gen = _generator(inputs.generator)
         z = inputs.z
         mask = ~torch.isnan(z)
         z_filled = z.nan_to_num(0.0)

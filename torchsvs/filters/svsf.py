@@ -267,22 +267,14 @@ def _window(history: _Rows | None, inputs: Inputs) -> _Rows:
     dt: Tensor | None
     if history.dt is None and inputs.dt is None:
         dt = None
-    elif (
-        history.dt is not None
-        and inputs.dt is not None
-        and history.dt.ndim == 0
-        and inputs.dt.ndim == 0
-        and bool(history.dt == inputs.dt)
-    ):
+    elif history.dt is None or inputs.dt is None:
+        raise ValueError(
+            "dt: pass it at every step or at none (the earlier steps of this state "
+            f"{'had' if history.dt is not None else 'had no'} dt)"
+        )
+    elif history.dt.ndim == 0 and inputs.dt.ndim == 0 and bool(history.dt == inputs.dt):
         dt = inputs.dt  # one interval throughout: kept as a scalar, as a whole run has it
     else:
-        raise_mixed = history.dt is None or inputs.dt is None
-        if raise_mixed:
-            raise ValueError(
-                "dt: pass it at every step or at none (the earlier steps of this state "
-                f"{'had' if history.dt is not None else 'had no'} dt)"
-            )
-        assert history.dt is not None and inputs.dt is not None
         dt = torch.cat([history.dt.expand(B, kept), inputs.dt.expand(B, inputs.steps)], dim=1)
     u = None if history.u is None or inputs.u is None else torch.cat([history.u, inputs.u], 1)
     return _Rows(torch.cat([history.z, inputs.z], dim=1), dt, u)

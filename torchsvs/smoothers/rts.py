@@ -53,25 +53,26 @@ def _shared_moments(result: FilterResult) -> FilterResult:
     )
 
 
-class _Row(NamedTuple):
-    """One step's inputs, as given to :meth:`RTSSmoother.step`."""
-
-    z: Tensor
-    u: Tensor | None
-    dt: Any
-    psi: Tensor | None
-
-
 class LagState(NamedTuple):
-    """An online fixed-lag smoother's carry: the filter's state before the window and the
-    window's inputs (at most ``L + 1`` steps)."""
+    """An online fixed-lag smoother's carry: the filter's state and its results of the last
+    ``L + 1`` steps (each ``[B, 1, ...]``), which the smoothing of the window reuses."""
 
-    start: FilterState
-    rows: tuple[_Row, ...]
+    filter: FilterState
+    window: tuple[FilterResult, ...]
 
 
-def _after_first(x: Tensor, axis: int) -> Tensor:
-    return x.narrow(axis, 1, x.shape[axis] - 1)
+def _over_time(results: tuple[FilterResult, ...]) -> FilterResult:
+    """Step results ``[B|1, 1, ...]`` joined along time (log-likelihoods summed)."""
+    fields: list[Any] = []
+    for name, parts in zip(FilterResult._fields, zip(*results, strict=True), strict=True):
+        if name == "axes" or parts[0] is None:
+            fields.append(None)
+        elif name == "log_likelihood":
+            fields.append(sum(parts[1:], parts[0]))
+        else:
+            batch = max(x.shape[0] for x in parts)
+            fields.append(torch.cat([x.expand(batch, *x.shape[1:]) for x in parts], dim=1))
+    return FilterResult(*fields)
 
 
 class RTSSmoother(Estimator[SmootherResult]):
@@ -158,35 +159,42 @@ class RTSSmoother(Estimator[SmootherResult]):
     ) -> tuple[LagState, SmootherResult | None]:
         """Takes the measurement of step ``t`` (as :meth:`GaussianFilter.step` does) and
         returns the fixed-lag estimate ``x̂_{t-L|t}`` of step ``t − L`` (``None`` during the
-        first ``L`` steps): the offline fixed-lag result, step by step. The state keeps the last
-        ``L + 1`` steps' inputs and the filter's state before them; each step filters and
-        smooths that window (``L + 2`` filter steps per step). :meth:`flush` ends the run."""
+        first ``L`` steps): the offline fixed-lag result, step by step. The state keeps the
+        filter's results of the last ``L + 1`` steps; each step filters once and smooths that
+        window. :meth:`flush` ends the run."""
         lag = self._online_lag()
         if not isinstance(state, LagState):
             raise TypeError(f"state: expected a LagState (est.init), got {type(state).__name__}")
-        rows = (*state.rows, _Row(z, u, dt, psi))
-        start = state.start
-        if len(rows) > lag + 1:  # the oldest step leaves the window: the filter takes it
-            first = rows[0]
-            start, _ = self.filter.step(start, first.z, u=first.u, dt=first.dt, psi=first.psi)
-            rows = rows[1:]
-        after = LagState(start, rows)
-        if len(rows) < lag + 1:
-            return after, None
-        return after, at_step(self._smooth_rows(start, rows), 0, 0 if start.single else 1)
+        single = state.filter.single
+
+        def one_step(x: Any) -> Any:  # [B, ·] (or one track's [·]) as one step of a batch
+            if not isinstance(x, Tensor) or x.ndim == 0:
+                return x
+            return x.reshape(1, 1, -1) if single else x.unsqueeze(1)
+
+        if isinstance(dt, Tensor) and dt.ndim == 1:
+            dt = dt.unsqueeze(1)
+        batched = state.filter._replace(single=False)
+        after, result = self.filter.scan(
+            batched, one_step(z), u=one_step(u), dt=dt, psi=one_step(psi)
+        )
+        window = (*state.window, result)[-(lag + 1) :]
+        new = LagState(after._replace(single=single), window)
+        if len(window) < lag + 1:
+            return new, None
+        smoothed = self.smooth(_over_time(window))
+        return new, at_step(drop_batch(smoothed) if single else smoothed, 0, 0 if single else 1)
 
     def flush(self, state: LagState) -> SmootherResult | None:
         """The last steps of an online run, smoothed with what came after them (as the offline
         fixed-lag result ends a track): ``[B, k, ...]`` for the ``k`` steps not yet returned."""
         lag = self._online_lag()
-        if not state.rows:
+        if not state.window:
             return None
-        smoothed = self._smooth_rows(state.start, state.rows)
-        if len(state.rows) < lag + 1:
-            return smoothed
-        axis = 0 if state.start.single else 1
-        mean, cov = (_after_first(x, axis) for x in (smoothed.mean, smoothed.cov))
-        return SmootherResult(mean, cov, smoothed.filtered)
+        smoothed = self.smooth(_over_time(state.window))
+        if len(state.window) == lag + 1:  # its first step was returned already
+            smoothed = SmootherResult(smoothed.mean[:, 1:], smoothed.cov[:, 1:], smoothed.filtered)
+        return drop_batch(smoothed) if state.filter.single else smoothed
 
     def _online_lag(self) -> int:
         if self.lag is None:
@@ -195,36 +203,6 @@ class RTSSmoother(Estimator[SmootherResult]):
                 "of the track: run the whole track instead)"
             )
         return self.lag
-
-    def _smooth_rows(self, start: FilterState, rows: tuple[_Row, ...]) -> SmootherResult:
-        """The window's filter pass from ``start``, smoothed (batched internally)."""
-        single = start.single
-        batch = (lambda x: x.unsqueeze(0)) if single else (lambda x: x)
-
-        def stacked(values: list[Any]) -> Tensor | None:
-            if values[0] is None:
-                return None
-            steps_axis = -2 if values[0].ndim >= 2 else 0  # [B, ·] per step, or one track's [·]
-            return batch(torch.stack(values, dim=steps_axis))
-
-        z = stacked([r.z for r in rows])
-        u = stacked([r.u for r in rows])
-        psi = stacked([r.psi for r in rows])
-        steps = [r.dt for r in rows]
-        dt: Any
-        if steps[0] is None:
-            dt = None
-        elif all(not isinstance(v, Tensor) or v.ndim == 0 for v in steps) and all(
-            float(v) == float(steps[0]) for v in steps
-        ):
-            dt = steps[0]  # one interval throughout, as a whole run with a scalar dt has it
-        else:
-            B = start.mean.shape[0]
-            dt = torch.stack([torch.as_tensor(v).expand(B) for v in steps], dim=1)
-        assert z is not None
-        _, result = self.filter.scan(start._replace(single=False), z, u=u, dt=dt, psi=psi)
-        smoothed = self.smooth(result)
-        return drop_batch(smoothed) if single else smoothed
 
     def takes_psi(self) -> bool:
         return self.filter.takes_psi()

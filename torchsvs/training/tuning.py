@@ -70,22 +70,6 @@ def _minimise(
     a handful of parameters in log space converge in a few dozen. ``"adam"``: ``steps`` Adam
     steps with a cosine-decayed rate ``lr`` and fresh probes each step.
     """
-    largest = max(len(b.z) for b in batches)
-    n = batches[0].x0.shape[-1]
-    with threads_for(largest, n):  # forward and backward passes alike
-        return _minimise_on(module, batches, loss, steps, lr, meas_cov, seed, optimizer)
-
-
-def _minimise_on(
-    module: nn.Module,
-    batches: list[TrackBatch],
-    loss: str,
-    steps: int,
-    lr: float,
-    meas_cov: Tensor | None,
-    seed: int,
-    optimizer: str,
-) -> list[float]:
     params = [p for p in module.parameters() if p.requires_grad]
     curve: list[float] = []
     total_windows = sum(len(b.z) for b in batches)
@@ -93,9 +77,10 @@ def _minimise_on(
     def evaluate(probes: torch.Generator) -> Tensor:
         total = torch.zeros((), dtype=torch.float64)
         for batch in batches:
-            value, _ = batch_loss(module, batch, loss, meas_cov=meas_cov, generator=probes)
-            weighted = value * (len(batch.z) / total_windows)
-            weighted.backward()
+            with threads_for(*batch.x0.shape):  # the backward pass too, not only forward
+                value, _ = batch_loss(module, batch, loss, meas_cov=meas_cov, generator=probes)
+                weighted = value * (len(batch.z) / total_windows)
+                weighted.backward()
             total = total + weighted.detach()
         curve.append(float(total))
         return total
