@@ -45,6 +45,29 @@ class Observation(NamedTuple):
     R: Tensor  #: [m, m] or [B, m, m]
 
 
+class Prepared(NamedTuple):
+    """A run's steps as the corrector sees them (:meth:`GaussianFilter.prepare`): measurements,
+    their mask and the model matrices of every step, formed once."""
+
+    z: Tensor  #: [B, T, m], 0 where missing
+    observed: Tensor  #: [B, T, m], True where observed
+    any_missing: bool
+    H: Tensor | None  #: [m, n] or [B, T, m, n]; None for an h linearised per step
+    R: Tensor  #: [m, m] or [B, T, m, m]
+    F: Tensor | None  #: [n, n] or [B, T, n, n]; None for an f linearised per step
+    Q: Tensor  #: [n, n] or [B, T, n, n]
+
+    def observation(self, t: int) -> Observation:
+        """What the corrector sees at step ``t``."""
+        return Observation(
+            t,
+            self.z[:, t],
+            self.observed[:, t] if self.any_missing else None,
+            None if self.H is None else _at(self.H, t),
+            _at(self.R, t),
+        )
+
+
 def _at(A: Tensor, t: int) -> Tensor:
     """Step ``t`` of a model matrix stored as ``[r, c]`` (constant) or ``[B, T, r, c]``."""
     return A[:, t] if A.ndim == 4 else A
@@ -223,33 +246,42 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         nothing; the SVSF's artificial measurements keep raw rows)."""
         return None
 
-    def _loop(self, inputs: Inputs, carried: Tensor | None, history: Any) -> FilterResult:
-        """The predict-correct loop over the steps of ``inputs`` from its prior, the corrector
-        carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``."""
-        T = inputs.steps
+    def prepare(self, inputs: Inputs, history: Any = None) -> Prepared:
+        """The measurements (:meth:`measurements`), their mask and the model matrices
+        (:meth:`dynamics`) of the steps of ``inputs``, formed once for :meth:`filter_step`."""
         z, H, R = self.measurements(inputs, history)
         F, Q = self.dynamics(inputs)
         observed = ~torch.isnan(z)
-        any_missing = not bool(observed.all())
-        z_filled = z.nan_to_num(0.0)
+        return Prepared(z.nan_to_num(0.0), observed, not bool(observed.all()), H, R, F, Q)
 
-        x, P = inputs.x0, inputs.P0
+    def filter_step(
+        self,
+        t: int,
+        x: Tensor,
+        P: Tensor,
+        carried: Tensor | None,
+        prep: Prepared,
+        inputs: Inputs,
+    ) -> tuple[Tensor, Tensor, Tensor, Step]:
+        """One predict-correct cycle from ``x``, ``P`` at step ``t`` of a prepared run: the
+        prediction ``x̂_{t|t-1}``, ``P_{t|t-1}``, the ``F_t`` used and the corrector's step."""
+        x_pred, P_pred, F_t = self.predict(t, x, P, prep.F, prep.Q, inputs)
+        step = self.correct(x_pred, P_pred, prep.observation(t), carried, inputs)
+        return x_pred, P_pred, F_t, step
+
+    def _loop(self, inputs: Inputs, carried: Tensor | None, history: Any) -> FilterResult:
+        """The predict-correct loop over the steps of ``inputs`` from its prior, the corrector
+        carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``."""
+        prep = self.prepare(inputs, history)
         steps: list[Step] = []
         pred_means: list[Tensor] = []
         pred_covs: list[Tensor] = []
         linearised: list[Tensor] = []
-        for t in range(T):
-            x_pred, P_pred, F_t = self.predict(t, x, P, F, Q, inputs)
-            if F is None:
+        x, P = inputs.x0, inputs.P0
+        for t in range(inputs.steps):
+            x_pred, P_pred, F_t, step = self.filter_step(t, x, P, carried, prep, inputs)
+            if prep.F is None:
                 linearised.append(F_t)
-            obs = Observation(
-                t,
-                z_filled[:, t],
-                observed[:, t] if any_missing else None,
-                None if H is None else _at(H, t),
-                _at(R, t),
-            )
-            step = self.correct(x_pred, P_pred, obs, carried, inputs)
             x, P, carried = step.mean, step.cov, step.post_innovation
             steps.append(step)
             pred_means.append(x_pred)
@@ -270,14 +302,14 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             pred_mean=stacked_all(pred_means),
             pred_cov=stacked_all(pred_covs),
             innovation=stacked_all([s.innovation for s in steps]),
-            mask=observed,
-            transition=_as_result_matrix(F) if F is not None else stacked_all(linearised),
+            mask=prep.observed,
+            transition=_as_result_matrix(prep.F) if prep.F is not None else stacked_all(linearised),
             meas_matrix=(
                 stacked_all([s.meas_matrix for s in steps if s.meas_matrix is not None])
-                if H is None
-                else _as_result_matrix(H)
+                if prep.H is None
+                else _as_result_matrix(prep.H)
             ),
-            meas_cov=_as_result_matrix(R),
+            meas_cov=_as_result_matrix(prep.R),
             gain=stacked_all([s.gain for s in steps]),
             post_innovation=stacked("post_innovation"),
             innovation_cov=stacked("innovation_cov"),

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
-from torchsvs.filters.kalman import Observation, _at, step_input, step_interval
+from torchsvs.filters.kalman import Observation, Prepared, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, gaussian_log_density, joseph_update, mask_covariance
 from torchsvs.models.base import StateSpaceModel
@@ -398,20 +398,12 @@ class SPVSF(ParticleFilter):
         x: Tensor  # [B, n] the estimate the next SVSF step starts from
         P: Tensor  # [B|1, n, n]
         post_innovation: Tensor | None  # the SVSF's memory e_{k|k} (None before the first step)
-        z: Tensor  # the SVSF's measurements [B, T, m'] (NaN filled with 0)
-        mask: Tensor | None  # None when nothing is missing
-        H: Tensor | None
-        R: Tensor
-        F: Tensor | None
-        Q: Tensor
+        prep: Prepared  # the SVSF's run: its measurements, mask and model matrices
+        obs: Observation | None  # the SVSF's observation of the step under way
 
     def begin(self, inputs: Inputs, carry: Any, history: Any) -> Any:
-        z, H, R = self.svsf.measurements(inputs, history)
-        F, Q = self.svsf.dynamics(inputs)
-        mask = ~torch.isnan(z)
-        observed = None if bool(mask.all()) else mask
         x, P, memory = carry
-        return self._State(x, P, memory, z.nan_to_num(0.0), observed, H, R, F, Q)
+        return self._State(x, P, memory, self.svsf.prepare(inputs, history), None)
 
     def initial_carry(self, x0: Tensor, P0: Tensor) -> Any:
         return x0, P0, None  # the SVSF starts from the prior, without memory
@@ -427,30 +419,28 @@ class SPVSF(ParticleFilter):
         self, t: int, particles: Tensor, state: Any, inputs: Inputs, gen: torch.Generator
     ) -> tuple[Tensor, Any, Tensor | None]:
         s: SPVSF._State = state
-        x_pred, P_pred, _ = self.svsf.predict(t, s.x, s.P, s.F, s.Q, inputs)  # Eqs. (23)-(24)
-        mask_t = None if s.mask is None else s.mask[:, t]
-        H_t = None if s.H is None else _at(s.H, t)
-        R_t = _at(s.R, t)
-        obs = Observation(t, s.z[:, t], mask_t, H_t, R_t)
-        step = self.svsf.correct(x_pred, P_pred, obs, s.post_innovation, inputs)  # (25)-(29)
-        state = s._replace(P=step.cov, post_innovation=step.post_innovation)
+        # Eqs. (23)-(29): the SVSF's own step from the previous estimate.
+        x_pred, _, _, step = self.svsf.filter_step(t, s.x, s.P, s.post_innovation, s.prep, inputs)
+        obs = s.prep.observation(t)
+        state = s._replace(P=step.cov, post_innovation=step.post_innovation, obs=obs)
         N = particles.shape[1]
         if self.proposal == "estimate":
             return _gaussian(step.mean, step.cov, N, gen), state, None  # Eq. (30)
         # Eq. (30) per particle: moved, corrected with the step's gain, drawn (class docstring).
         moved = self.move(t, particles, inputs)
+        H_t = obs.H
         if H_t is None:  # a nonlinear h, linearised at the estimate by the SVSF step
             assert step.meas_matrix is not None
             H_t = step.meas_matrix
-            e = s.z[:, t].unsqueeze(1) - self.measure(moved)
+            e = obs.z.unsqueeze(1) - self.measure(moved)
         else:
-            e = s.z[:, t].unsqueeze(1) - moved @ H_t.mT
-        if mask_t is not None:
-            e = e * mask_t.unsqueeze(1)
+            e = obs.z.unsqueeze(1) - moved @ H_t.mT
+        if obs.mask is not None:
+            e = e * obs.mask.unsqueeze(1)
         K = step.gain
         mu = moved + e @ K.mT
-        Q = _at(s.Q, t).to(moved.dtype)
-        L_q = cholesky(joseph_update(Q, K, H_t, R_t))  # (I − KH) Q (I − KH)ᵀ + K R Kᵀ
+        Q = _at(s.prep.Q, t).to(moved.dtype)
+        L_q = cholesky(joseph_update(Q, K, H_t, obs.R))  # (I − KH) Q (I − KH)ᵀ + K R Kᵀ
         drawn = mu + torch.randn(*mu.shape, generator=gen, dtype=mu.dtype) @ L_q.mT
         # The weights use the real measurement (not an artificial one).
         z = inputs.z[:, t]
@@ -466,14 +456,11 @@ class SPVSF(ParticleFilter):
 
     def finish_step(self, t: int, mean: Tensor, state: Any, inputs: Inputs) -> Any:
         s: SPVSF._State = state
-        assert s.post_innovation is not None
+        assert s.post_innovation is not None and s.obs is not None
         # Eqs. (33)-(35): the particle mean is the estimate and its innovation the SVSF memory.
-        H = None if s.H is None else _at(s.H, t)
-        fitted = self.model.h(mean) if H is None else (H @ mean.unsqueeze(-1)).squeeze(-1)
-        e_post = s.z[:, t] - fitted
-        if s.mask is not None:
-            e_post = torch.where(s.mask[:, t], e_post, s.post_innovation)
-        return s._replace(x=mean, post_innovation=e_post)
+        return s._replace(
+            x=mean, post_innovation=self.svsf.memory_after(mean, s.obs, s.post_innovation)
+        )
 
 
 def _generator(generator: torch.Generator | None) -> torch.Generator:

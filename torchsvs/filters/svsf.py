@@ -237,18 +237,23 @@ class SVSF(GaussianFilter):
         P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
         H_m, R_m = (H, R) if mask is None else mask_measurement(H, R, mask)
         S = innovation_covariance(H_m, P_pred @ H_m.mT, R_m)
-        e_post = z - (self.model.h(x) if linearised else matvec(H, x))  # Eq. (24)
-        if mask is not None:
-            e_post = torch.where(mask, e_post, memory)
         return Step(
             x,
             P,
             e,
             K,
-            post_innovation=e_post,
+            post_innovation=self.memory_after(x, obs, memory),
             innovation_cov=S,
             meas_matrix=H if linearised else None,
         )
+
+    def memory_after(self, x: Tensor, obs: Observation, memory: Tensor) -> Tensor:
+        """The memory the next step carries: the a-posteriori innovation ``e_{k+1|k+1} = z −
+        h(x̂_{k+1|k+1})`` of the estimate ``x`` (Eq. (24)), and the previous ``memory`` for a
+        missing component."""
+        fitted = self.model.h(x) if obs.H is None else matvec(obs.H, x)
+        e_post = obs.z - fitted
+        return e_post if obs.mask is None else torch.where(obs.mask, e_post, memory)
 
 
 class _Rows(NamedTuple):
