@@ -41,21 +41,34 @@ class Observation(NamedTuple):
     t: int
     z: Tensor  #: [B, m], 0 where missing
     mask: Tensor | None  #: [B, m], True where observed; None when nothing in the batch is missing
-    H: Tensor | None  #: [m, n] or [B, m, n]; None for a model whose h is linearised per step
+    H: Tensor | None  #: [m, n] or [B, m, n]: the run's H; None: the model's linearised per step
     R: Tensor  #: [m, m] or [B, m, m]
+    model: StateSpaceModel
+
+    def linearize(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """``h(x)`` and ``H`` at ``x [B, n]``: the run's ``H`` or the model's linearisation."""
+        if self.H is None:
+            return self.model.linearize_h(x)
+        return matvec(self.H, x), self.H
+
+    def fitted(self, x: Tensor) -> Tensor:
+        """``h(x)`` of the corrector's measurement."""
+        return self.model.h(x) if self.H is None else matvec(self.H, x)
 
 
 class Prepared(NamedTuple):
-    """A run's steps as the corrector sees them (:meth:`GaussianFilter.prepare`): measurements,
-    their mask and the model matrices of every step, formed once."""
+    """A run's steps as the filter sees them (:meth:`GaussianFilter.prepare`): measurements,
+    their mask and the model matrices of every step, formed once; a model whose ``f`` or ``h``
+    depends on the state has no run matrix and is linearised per step (``model.linearize``)."""
 
     z: Tensor  #: [B, T, m], 0 where missing
     observed: Tensor  #: [B, T, m], True where observed
     any_missing: bool
-    H: Tensor | None  #: [m, n] or [B, T, m, n]; None for an h linearised per step
+    H: Tensor | None  #: [m, n] or [B, T, m, n]; None: linearised per step
     R: Tensor  #: [m, m] or [B, T, m, m]
-    F: Tensor | None  #: [n, n] or [B, T, n, n]; None for an f linearised per step
+    F: Tensor | None  #: [n, n] or [B, T, n, n]; None: linearised per step
     Q: Tensor  #: [n, n] or [B, T, n, n]
+    model: StateSpaceModel
 
     def observation(self, t: int) -> Observation:
         """What the corrector sees at step ``t``."""
@@ -65,7 +78,16 @@ class Prepared(NamedTuple):
             self.observed[:, t] if self.any_missing else None,
             None if self.H is None else _at(self.H, t),
             _at(self.R, t),
+            self.model,
         )
+
+    def transition(self, t: int, x: Tensor, inputs: Inputs) -> tuple[Tensor, Tensor]:
+        """``f(x)`` and ``F_t`` at step ``t`` from ``x [B, n]``: the run's ``F`` or the
+        model's linearisation at ``x``."""
+        if self.F is None:
+            return self.model.linearize(x, step_interval(inputs, t), step_input(inputs, t))
+        F_t = _at(self.F, t)
+        return matvec(F_t, x), F_t
 
 
 def _at(A: Tensor, t: int) -> Tensor:
@@ -154,19 +176,13 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         return None, Q
 
     def predict(
-        self, t: int, x: Tensor, P: Tensor, F: Tensor | None, Q: Tensor, inputs: Inputs
+        self, t: int, x: Tensor, P: Tensor, prep: Prepared, inputs: Inputs
     ) -> tuple[Tensor, Tensor, Tensor]:
         """``x̂_{t|t-1}``, ``P_{t|t-1}`` and the (linearised) ``F_t`` used: Eqs. (11)-(12) of Chen
         et al. 2020, or for a nonlinear model ``f(x̂)`` with ``F_t = ∂f/∂x`` (Eqs. (3), (11)-(12),
         Gadsden et al. 2012)."""
-        if F is not None:
-            F_t = _at(F, t)
-            x_pred = matvec(F_t, x)
-        else:
-            dt, u = step_interval(inputs, t), step_input(inputs, t)
-            F_t = self.model.f_jacobian(x, dt, u)
-            x_pred = self.model.f(x, dt, u)
-        return x_pred, symmetrize(F_t @ P @ F_t.mT + _at(Q, t)), F_t
+        x_pred, F_t = prep.transition(t, x, inputs)
+        return x_pred, symmetrize(F_t @ P @ F_t.mT + _at(prep.Q, t)), F_t
 
     def measurements(
         self, inputs: Inputs, history: Any = None
@@ -252,7 +268,9 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         z, H, R = self.measurements(inputs, history)
         F, Q = self.dynamics(inputs)
         observed = ~torch.isnan(z)
-        return Prepared(z.nan_to_num(0.0), observed, not bool(observed.all()), H, R, F, Q)
+        return Prepared(
+            z.nan_to_num(0.0), observed, not bool(observed.all()), H, R, F, Q, self.model
+        )
 
     def filter_step(
         self,
@@ -265,7 +283,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     ) -> tuple[Tensor, Tensor, Tensor, Step]:
         """One predict-correct cycle from ``x``, ``P`` at step ``t`` of a prepared run: the
         prediction ``x̂_{t|t-1}``, ``P_{t|t-1}``, the ``F_t`` used and the corrector's step."""
-        x_pred, P_pred, F_t = self.predict(t, x, P, prep.F, prep.Q, inputs)
+        x_pred, P_pred, F_t = self.predict(t, x, P, prep, inputs)
         step = self.correct(x_pred, P_pred, prep.observation(t), carried, inputs)
         return x_pred, P_pred, F_t, step
 
@@ -474,9 +492,9 @@ class KalmanFilter(GaussianFilter):
         carried: Tensor | None,
         inputs: Inputs,
     ) -> Step:
-        assert obs.H is not None
-        e = obs.z - matvec(obs.H, x_pred)
-        return self.kalman_correct(x_pred, P_pred, e, obs.mask, obs.H, obs.R)
+        fitted, H = obs.linearize(x_pred)  # Eq. (4) of Gadsden et al. 2012 for a nonlinear h
+        step = self.kalman_correct(x_pred, P_pred, obs.z - fitted, obs.mask, H, obs.R)
+        return step if obs.H is not None else step._replace(meas_matrix=H)
 
     def kalman_correct(
         self, x_pred: Tensor, P_pred: Tensor, e: Tensor, mask: Tensor | None, H: Tensor, R: Tensor

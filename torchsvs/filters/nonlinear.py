@@ -9,6 +9,7 @@ from torchsvs.estimator import Inputs
 from torchsvs.filters.kalman import (
     KalmanFilter,
     Observation,
+    Prepared,
     Step,
     _at,
     step_input,
@@ -38,20 +39,7 @@ class ExtendedKalmanFilter(KalmanFilter):
     """
 
     model_type = StateSpaceModel
-    axis_rule = None  # linearises f and h itself, even where the KF's per-axis kernel would do
-
-    def correct(
-        self,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        obs: Observation,
-        carried: Tensor | None,
-        inputs: Inputs,
-    ) -> Step:
-        H_t = self.model.h_jacobian(x_pred)
-        e = obs.z - self.model.h(x_pred)
-        step = self.kalman_correct(x_pred, P_pred, e, obs.mask, H_t, obs.R)
-        return step._replace(meas_matrix=H_t)
+    axis_rule = None  # for models that need linearising; on a CV model the KF has the kernel
 
 
 class UnscentedKalmanFilter(ExtendedKalmanFilter):
@@ -118,7 +106,7 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         return mean, cov, cross
 
     def predict(
-        self, t: int, x: Tensor, P: Tensor, F: Tensor | None, Q: Tensor, inputs: Inputs
+        self, t: int, x: Tensor, P: Tensor, prep: Prepared, inputs: Inputs
     ) -> tuple[Tensor, Tensor, Tensor]:
         B, n = x.shape
         points = self.sigma_points(x, P)
@@ -130,7 +118,7 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         image = self.model.f(points.reshape(-1, n), dt, u).reshape(points.shape)
         x_pred, P_f, cross = self._moments(points, image)
         F_t = psd_solve(P.expand(B, n, n), cross).mT  # Cov(x', x) P⁻¹
-        return x_pred, symmetrize(P_f + _at(Q, t)), F_t
+        return x_pred, symmetrize(P_f + _at(prep.Q, t)), F_t
 
     def correct(
         self,

@@ -219,15 +219,11 @@ class SVSF(GaussianFilter):
         carried: Tensor | None,
         inputs: Inputs,
     ) -> Step:
-        z, mask, H, R = obs.z, obs.mask, obs.H, obs.R
+        z, mask, R = obs.z, obs.mask, obs.R
         dtype = z.dtype
         psi = inputs.psi[:, obs.t] if inputs.psi is not None else self.psi.to(dtype)
-        linearised = H is None  # nonlinear h: Eqs. (13)-(21), Gadsden et al. 2012
-        if H is None:
-            H = self.model.h_jacobian(x_pred)
-            e = z - self.model.h(x_pred)  # Eq. (14)
-        else:
-            e = z - matvec(H, x_pred)  # Eq. (4)
+        fitted, H = obs.linearize(x_pred)  # nonlinear h: Eqs. (13)-(21), Gadsden et al. 2012
+        e = z - fitted  # Eq. (4); Eq. (14) of Gadsden et al. 2012
         if mask is not None:
             e = e * mask
         H_plus = masked_pinv(H, mask)  # zero columns where missing
@@ -244,15 +240,14 @@ class SVSF(GaussianFilter):
             K,
             post_innovation=self.memory_after(x, obs, memory),
             innovation_cov=S,
-            meas_matrix=H if linearised else None,
+            meas_matrix=H if obs.H is None else None,
         )
 
     def memory_after(self, x: Tensor, obs: Observation, memory: Tensor) -> Tensor:
         """The memory the next step carries: the a-posteriori innovation ``e_{k+1|k+1} = z −
         h(x̂_{k+1|k+1})`` of the estimate ``x`` (Eq. (24)), and the previous ``memory`` for a
         missing component."""
-        fitted = self.model.h(x) if obs.H is None else matvec(obs.H, x)
-        e_post = obs.z - fitted
+        e_post = obs.z - obs.fitted(x)
         return e_post if obs.mask is None else torch.where(obs.mask, e_post, memory)
 
 

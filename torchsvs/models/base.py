@@ -50,6 +50,18 @@ class StateSpaceModel(nn.Module):
         """``∂h/∂x`` at each state, ``[B, m, n]`` (Eq. (4), Gadsden et al. 2012)."""
         return vmap(jacrev(lambda s: self.h(s.unsqueeze(0)).squeeze(0)))(x)
 
+    def linearize(
+        self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """``f(x)`` and ``F = ∂f/∂x`` at each state ``x [B, n]``: what a filter's prediction
+        needs of the model (Eq. (3), Gadsden et al. 2012; for a linear model ``F x`` and ``F``)."""
+        return self.f(x, dt, u), self.f_jacobian(x, dt, u)
+
+    def linearize_h(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """``h(x)`` and ``H = ∂h/∂x`` at each state ``x [B, n]`` (Eq. (4), Gadsden et al. 2012;
+        for a linear model ``H x`` and ``H``)."""
+        return self.h(x), self.h_jacobian(x)
+
     def process_noise(self, dt: Tensor | None = None) -> Tensor:
         """``Q`` of shape ``[*dt.shape, n, n]`` (``[n, n]`` for ``dt=None``)."""
         raise NotImplementedError
