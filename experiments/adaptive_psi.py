@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> None:
             "# Adaptive ψ: an estimator as a layer",
             "",
             f"`python -m experiments.adaptive_psi --epochs {args.epochs}`. Both models are trained "
-            "(supervised, SVSS lag 1, complex-scenario sensor, config `experiments/configs/complex_svss.yaml`) "
+            "(supervised, SVSS lag 1, complex-scenario sensor, shipped config `complex_svss`) "
             "on the same random maneuvers from ψ = 100 m; the adaptive one adds a causal "
             f"network (innovations of a KF pre-pass over {adaptive.window} steps → log ψ_t scale; "
             f"{sum(p.numel() for p in adaptive.net.parameters())} weights). Training times: constant "

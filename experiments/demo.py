@@ -5,8 +5,8 @@ thumb and self-tuned without truth on half of the flights, scored on the other h
 
 For the ATC sensor and the complex-maneuver sensor of Chen et al. 2020, an SVSS starts from
 ψ = 100 m, γ = 0.1 and is trained for about half a minute each (Lightning, supervised, on random
-maneuvers; configs in ``experiments/configs/``). Then the paper's scenarios (never seen in
-training; 500 Monte Carlo runs in one batch each) are tracked by the KF, KS, SVSF, SVSTPS and
+maneuvers; configs shipped in ``torchsvs/training/configs/``). Then the paper's scenarios (never
+seen in training; 500 Monte Carlo runs in one batch each) are tracked by the KF, KS, SVSF, SVSTPS and
 SVSS with the paper's hand-tuned ψ and by the SVSS with the learned ψ, beside the paper's numbers
 (Tables 1 and 3 of Chen et al. 2020).
 

@@ -27,14 +27,13 @@ from tqdm.auto import tqdm
 import torchsvs as ts
 from torchsvs.evaluation import markdown_table, psi_sweep
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
-from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule
+from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule, config_path
 from torchsvs.training.cli import main as cli_main
 
-CONFIGS = Path(__file__).parent / "configs"
 FAMILIES = {
-    # name: (config of `torchsvs fit`, paper scenario, paper ψ)
-    "ATC": ("atc_svss.yaml", atc_scenario, [800.0, 800.0]),
-    "complex": ("complex_svss.yaml", complex_scenario, [500.0, 600.0, 500.0, 600.0]),
+    # name: (shipped config of `torchsvs fit --config`, paper scenario, paper ψ)
+    "ATC": ("atc_svss", atc_scenario, [800.0, 800.0]),
+    "complex": ("complex_svss", complex_scenario, [500.0, 600.0, 500.0, 600.0]),
 }
 ATC_GRID = [float(p) for p in range(100, 3001, 50)]
 COMPLEX_GRID = [float(p) for p in range(100, 1601, 100)]
@@ -44,7 +43,7 @@ def load(
     family: str, epochs: int, batches: int | None = None
 ) -> tuple[ts.SVSS, ManeuveringTargetDataModule]:
     """The SVSS and data module of a family's YAML config (the one `torchsvs fit` uses)."""
-    args = ["--config", str(CONFIGS / FAMILIES[family][0]), "--trainer.max_epochs", str(epochs)]
+    args = ["--config", str(config_path(FAMILIES[family][0])), "--trainer.max_epochs", str(epochs)]
     if batches is not None:
         args += ["--data.train_batches", str(batches)]
     cli = cli_main(args, run=False)
@@ -325,8 +324,8 @@ def report(
                 "",
                 f"`python -m experiments.learn_psi --epochs {args.epochs}`: {seconds:.0f} s in all. Training starts "
                 "from ψ = 100 m, γ = 0.1, on random maneuvers drawn by `torchsvs.scenarios.random_maneuvers` "
-                "with the paper's sensor and model (configs `experiments/configs/atc_svss.yaml`, "
-                "`complex_svss.yaml`), and is evaluated on the paper's scenarios "
+                "with the paper's sensor and model (shipped configs `atc_svss`, "
+                "`complex_svss` of `torchsvs fit --config`), and is evaluated on the paper's scenarios "
                 f"({args.runs} runs, never seen in training). Position RMSE is over both axes. "
                 "`supervised`: MSE to truth; `sure`: Stein's unbiased estimate of the same MSE from the "
                 "known 200 m / 100 m noise, no truth. Rows `output = SVSF` train and score the filter alone.",

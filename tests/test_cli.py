@@ -73,3 +73,31 @@ def test_an_installed_package_without_the_checkout_says_what_is_needed(monkeypat
         SystemExit, match=r"experiments are part of the source checkout.*pip install -e"
     ):
         cli.main(["reproduce", "svss"])
+
+
+def test_a_built_wheel_ships_the_fit_configs(tmp_path):
+    """A non-editable install has the configs of `torchsvs fit --config NAME` (package data).
+    The wheel is built from a copy of the package so the checkout gets no build/ or egg-info."""
+    import shutil
+    import subprocess
+    import sys
+    import zipfile
+
+    from torchsvs.training import shipped_configs
+
+    pytest.importorskip("setuptools", minversion="77")  # pyproject's build-system, no isolation
+    root = Path(__file__).resolve().parents[1]
+    src = tmp_path / "src"
+    shutil.copytree(
+        root / "torchsvs", src / "torchsvs", ignore=shutil.ignore_patterns("__pycache__")
+    )
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(root / name, src / name)
+    command = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation"]
+    command += ["--no-index", "--quiet", "-w", str(tmp_path / "dist"), str(src)]
+    subprocess.run(command, check=True, timeout=120)
+    (wheel,) = (tmp_path / "dist").glob("torchsvs-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert shipped_configs() == ["atc_svss", "complex_svss"]
+    for config in shipped_configs():
+        assert f"torchsvs/training/configs/{config}.yaml" in names

@@ -18,6 +18,8 @@ from torchsvs.training import (
     EstimatorModule,
     ManeuveringTargetDataModule,
     batch_loss,
+    config_path,
+    shipped_configs,
     stein_risk,
 )
 from torchsvs.training.cli import main as cli_main
@@ -25,7 +27,6 @@ from torchsvs.training.cli import main as cli_main
 pytestmark = pytest.mark.filterwarnings(
     "ignore:.*does not have many workers.*", "ignore:.*LeafSpec.*", "ignore:.*litlogger.*"
 )
-ROOT = Path(__file__).resolve().parents[1]
 RANGES = ManeuverRanges(
     steps=60, speed=(80.0, 200.0), segment_duration=(10.0, 30.0), meas_std=(50.0, 50.0)
 )
@@ -137,13 +138,50 @@ def test_checkpoint_reloads_an_identical_model(tmp_path):
     assert loaded.loss_name == "supervised" and loaded.lr == 0.2
 
 
-@pytest.mark.parametrize("config", ["atc_svss.yaml", "complex_svss.yaml"])
+@pytest.mark.parametrize("config", ["atc_svss", "complex_svss.yaml"])
 def test_cli_configs_build(config):
-    cli = cli_main(["--config", str(ROOT / "experiments" / "configs" / config)], run=False)
+    """The shipped configs, by name (with or without .yaml), from the installed package."""
+    cli = cli_main(["--config", config], run=False)
+    (read,) = cli.config.config
+    assert Path(read.absolute) == config_path(config)
+    assert config_path(config).parent == Path(ts.training.__file__).parent / "configs"
     est = cli.model.estimator
     assert isinstance(est, ts.SVSS) and isinstance(est.filter, ts.SVSF)
     assert_close(est.filter.psi.detach(), torch.full_like(est.filter.psi.detach(), 100.0))
     assert cli.datamodule.batch_size == 64
+
+
+def test_shipped_config_names_resolve_and_unknown_names_fail_clearly(capsys):
+    assert shipped_configs() == ["atc_svss", "complex_svss"]
+    for name in shipped_configs():
+        assert config_path(name) == config_path(f"{name}.yaml") and config_path(name).is_file()
+    with pytest.raises(ValueError, match="'atc_svs'; shipped configs: atc_svss, complex_svss$"):
+        config_path("atc_svs")
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["--config", "atc_svs"], run=False)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "--config: 'atc_svs' is neither a file nor a shipped config" in err
+    assert "shipped configs: atc_svss, complex_svss" in err
+
+
+def test_a_config_file_is_read_as_a_path_before_a_shipped_name(monkeypatch, tmp_path):
+    text = config_path("atc_svss").read_text().replace("batch_size: 64", "batch_size: 7")
+    (tmp_path / "atc_svss.yaml").write_text(text)
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["--config", "atc_svss.yaml"], run=False).datamodule.batch_size == 7
+    assert cli_main(["--config", "atc_svss"], run=False).datamodule.batch_size == 64
+
+
+def test_fit_help_names_the_shipped_configs(capsys):
+    from torchsvs import cli
+
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["fit", "--help"])
+    assert exit_info.value.code == 0
+    assert "shipped with torchsvs: atc_svss, complex_svss" in " ".join(
+        capsys.readouterr().out.split()
+    )
 
 
 def test_bad_module_arguments():
@@ -162,7 +200,7 @@ def _fit_psi(tmp_path: Path, devices: int) -> list[float]:
     code = f"""
 import sys, torch
 from torchsvs.training.cli import main
-cli = main(["--config", {str(ROOT / "experiments/configs/atc_svss.yaml")!r},
+cli = main(["--config", "atc_svss",
     "--trainer.max_epochs", "4", "--data.train_batches", "{8 * devices}", "--data.batch_size", "32",
     "--data.val_batches", "1", "--trainer.devices", "{devices}", "--trainer.strategy", "{strategy}",
     "--trainer.enable_progress_bar", "false", "--trainer.logger", "false",

@@ -5,9 +5,12 @@
 * :func:`self_tune`: the fast truth-free fit behind ``torchsvs track --fit``.
 * :class:`EstimatorModule`: any torchsvs estimator as a LightningModule, with supervised and
   self-supervised losses.
-* ``torchsvs fit --config CONFIG.yaml``: the LightningCLI.
+* ``torchsvs fit --config CONFIG.yaml``: the LightningCLI; ``--config`` also takes the name of a
+  config shipped with the package (:func:`shipped_configs`: ``atc_svss``, ``complex_svss``;
+  :func:`config_path` gives its file).
 """
 
+from torchsvs.training.configs import config_path, shipped_configs
 from torchsvs.training.data import (
     ManeuverDataset,
     ManeuveringTargetDataModule,
@@ -35,8 +38,10 @@ __all__ = [
     "TrackBatch",
     "batch_loss",
     "boundary_layer_modules",
+    "config_path",
     "recorded_batches",
     "self_tune",
+    "shipped_configs",
     "innovation_nll",
     "prediction_error",
     "stein_risk",
