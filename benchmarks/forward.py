@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> None:
     model = ts.models.ConstantVelocity(dt=1.0, q=0.16, r=200.0**2)
     x0 = torch.tensor([-25000.0, 120.0, -10000.0, 0.0])
     P0 = torch.diag(torch.tensor([1e4, 1e3, 1e4, 1e3]))
-    _, z = model.sample(x0.expand(B, 4), T, generator=torch.Generator().manual_seed(0))
+    _, z = model.simulate(x0.expand(B, 4), T, generator=torch.Generator().manual_seed(0))
     z = z.float().contiguous()
     kf = ts.KalmanFilter(model)
     svsf = ts.SVSF(model, psi=[800.0, 800.0], gamma=0.1, artificial=None)

@@ -63,11 +63,57 @@ def test_learnable_noise_round_trips_and_gets_gradients():
 def test_sample_is_reproducible_with_a_generator():
     model = ts.models.ConstantVelocity(q=1.0, r=1.0)
     x0 = torch.zeros(3, 4, dtype=torch.float64)
-    a = model.sample(x0, 10, generator=torch.Generator().manual_seed(3))
-    b = model.sample(x0, 10, generator=torch.Generator().manual_seed(3))
+    a = model.simulate(x0, 10, generator=torch.Generator().manual_seed(3))
+    b = model.simulate(x0, 10, generator=torch.Generator().manual_seed(3))
     assert_close(a[0], b[0], atol=0, rtol=0)
     assert_close(a[1], b[1], atol=0, rtol=0)
     assert a[0].shape == (3, 10, 4) and a[1].shape == (3, 10, 2)
+
+
+def test_simulate_is_eqs_1_2_drawn_step_by_step():
+    """propagate/observe against a loop written from Eqs. (1)-(2) with the same draws: a
+    nonlinear model, per-step dt, control inputs, and a process noise without a component."""
+    model = ts.models.ElectrohydrostaticActuator()
+    B, T = 3, 6
+    gen = torch.Generator().manual_seed(1)
+    u = torch.randn(B, T, 1, generator=gen, dtype=torch.float64)
+    dt = 0.001 * (1 + torch.rand(B, T, generator=gen, dtype=torch.float64))
+    x0 = torch.tensor([0.0, 0.0, 0.0, 2.1e8], dtype=torch.float64).expand(B, 4)
+    Q = model.process_noise().clone()
+    Q[3, :] = Q[:, 3] = 0.0
+    truth = model.propagate(x0, T, torch.Generator().manual_seed(2), dt=dt, u=u, cov=Q)
+    z = model.observe(truth, torch.Generator().manual_seed(3), noise_scale=0.5)
+    draws = torch.Generator().manual_seed(2)
+    L = torch.linalg.cholesky(Q[:3, :3])
+    x, expected = x0, []
+    for t in range(T):
+        eps = torch.randn(B, 3, generator=draws, dtype=torch.float64)
+        x = model.f(x, dt[:, t], u[:, t]) + torch.cat([eps @ L.mT, torch.zeros(B, 1)], -1)
+        expected.append(x)
+    assert_close(truth, torch.stack(expected, 1), atol=0, rtol=0)
+    assert bool((truth[..., 3] == 2.1e8).all())  # the noiseless component was never drawn
+    eps = torch.randn(B, T, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    L_R = torch.linalg.cholesky(model.meas_cov())
+    assert_close(z, model.h(truth) + 0.5 * eps @ L_R.mT, atol=1e-12, rtol=0)
+
+
+def test_simulated_noise_has_the_model_covariances():
+    """Sample covariances of the simulated noises match Q and R: with N = 40,000 draws an
+    entry's standard error is at most sqrt(2/N) ≈ 0.7% of the diagonal scale, bounded at 5%
+    (7σ; the four Q entries and three R entries fail together with probability < 1e-10)."""
+    model = ts.models.ConstantVelocity(ndim=1, dt=0.5, q=2.0, r=3.0)
+    N = 40_000
+    x0 = torch.zeros(N, 2, dtype=torch.float64)
+    truth, z = model.simulate(x0, 1, generator=torch.Generator().manual_seed(0))
+    w = truth[:, 0]  # one step from zero: the process noise itself
+    Q = model.process_noise()
+    scale = Q.diagonal().sqrt()
+    cov = w.T @ w / N
+    assert float(((cov - Q) / (scale[:, None] * scale[None, :])).abs().max()) < 0.05
+    v = z[:, 0] - model.h(truth[:, 0])
+    assert abs(float(v.square().mean()) / 3.0 - 1) < 0.05
+    still = model.simulate(x0[:2], 4, torch.Generator().manual_seed(0), process_noise=False)[0]
+    assert bool((still == 0).all())
 
 
 def test_atc_truth_follows_the_described_maneuvers():

@@ -142,7 +142,7 @@ def test_ten_thousand_float32_steps_stay_finite_and_pd(name):
     model = ts.models.ConstantVelocity(dt=1.0, q=0.16, r=200.0**2)
     gen = torch.Generator().manual_seed(0)
     x0 = torch.tensor([0.0, 10.0, 0.0, -5.0])
-    truth, z = model.sample(x0.expand(2, 4), 10_000, generator=gen)
+    truth, z = model.simulate(x0.expand(2, 4), 10_000, generator=gen)
     z = z.float()
     est = _estimators(model, [800.0, 800.0], gamma=0.1)[name]
     with torch.no_grad():

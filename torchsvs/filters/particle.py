@@ -14,7 +14,7 @@ from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
 from torchsvs.filters.kalman import Observation, Prepared, _at, step_input, step_interval
 from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
 from torchsvs.linalg import cholesky, gaussian_log_density, joseph_update, mask_covariance
-from torchsvs.models.base import StateSpaceModel
+from torchsvs.models.base import StateSpaceModel, gaussian_noise
 from torchsvs.resampling import SCHEMES, Scheme
 
 #: Seed used when no generator is passed, so runs stay reproducible without global state.
@@ -90,9 +90,7 @@ def _log_density(z: Tensor, mask: Tensor, predicted: Tensor, cov: Tensor) -> Ten
 
 def _gaussian(mean: Tensor, cov: Tensor, count: int, gen: torch.Generator) -> Tensor:
     """``count`` reparameterised draws per track from ``N(mean [B, n], cov [B|1, n, n])``."""
-    L = cholesky(cov)
-    eps = torch.randn(mean.shape[0], count, mean.shape[-1], generator=gen, dtype=mean.dtype)
-    return mean.unsqueeze(1) + eps @ L.mT
+    return mean.unsqueeze(1) + gaussian_noise(cov, (mean.shape[0], count), gen)
 
 
 class ParticleFilter(SteppedEstimator[ParticleResult]):

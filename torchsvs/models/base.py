@@ -70,6 +70,69 @@ class StateSpaceModel(nn.Module):
         """``R`` of shape ``[m, m]``."""
         raise NotImplementedError
 
+    # --- Simulation: the one place Gaussian trajectories are drawn. ---
+
+    def propagate(
+        self,
+        x0: Tensor,
+        steps: int,
+        generator: torch.Generator | None = None,
+        *,
+        dt: Tensor | None = None,
+        u: Tensor | None = None,
+        cov: Tensor | None = None,
+        noise_scale: float = 1.0,
+    ) -> Tensor:
+        """States ``x_t = f(x_{t-1}, dt_t, u_t) + w_t``, ``w_t ~ N(0, noise_scale² Q_t)`` (Eq. (1),
+        Gadsden et al. 2012) from ``x0 [B, n]`` over ``steps`` steps: ``[B, T, n]`` in ``x0``'s
+        dtype, randomness only from ``generator``.
+
+        ``dt``: ``None``, 0-d or per step ``[B, T]``; ``u``: ``[B, T, p]``; ``cov``: the truth's
+        process noise if it is not the model's ``Q`` (components of zero variance are not drawn;
+        ``noise_scale=0`` draws nothing).
+        """
+        x = x0
+        states = []
+        for t in range(steps):
+            dt_t = dt[:, t] if dt is not None and dt.ndim == 2 else dt
+            x = self.f(x, dt_t, None if u is None else u[:, t])
+            if noise_scale != 0.0:
+                Q = self.process_noise(dt_t) if cov is None else cov
+                x = x + gaussian_noise(Q.to(x.dtype), x.shape[:-1], generator, noise_scale)
+            states.append(x)
+        return torch.stack(states, dim=1)
+
+    def observe(
+        self,
+        truth: Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        cov: Tensor | None = None,
+        noise_scale: float = 1.0,
+    ) -> Tensor:
+        """Measurements ``z_t = h(x_t) + v_t``, ``v_t ~ N(0, noise_scale² R)`` (Eq. (2)) of
+        ``truth [B, T, n]``: ``[B, T, m]``. ``cov``: the sensor's noise if it is not the model's
+        ``R``, ``[m, m]`` or per track ``[B, m, m]``."""
+        R = (self.meas_cov() if cov is None else cov).to(truth.dtype)
+        noise = gaussian_noise(R, truth.shape[:-1], generator, noise_scale)
+        return self.h(truth) + noise
+
+    def simulate(
+        self,
+        x0: Tensor,
+        steps: int,
+        generator: torch.Generator | None = None,
+        *,
+        dt: Tensor | None = None,
+        u: Tensor | None = None,
+        process_noise: bool = True,
+    ) -> tuple[Tensor, Tensor]:
+        """Truth ``[B, T, n]`` (:meth:`propagate`) and its measurements ``[B, T, m]``
+        (:meth:`observe`) from ``x0 [B, n]``, with the model's own ``Q`` and ``R``."""
+        noise_scale = 1.0 if process_noise else 0.0
+        truth = self.propagate(x0, steps, generator, dt=dt, u=u, noise_scale=noise_scale)
+        return truth, self.observe(truth, generator)
+
 
 class LinearModel(StateSpaceModel):
     """Base class of linear models: subclasses define :meth:`transition`, :meth:`process_noise`,
@@ -103,38 +166,31 @@ class LinearModel(StateSpaceModel):
         """``H`` of shape ``[m, n]``."""
         raise NotImplementedError
 
-    def sample(
-        self,
-        x0: Tensor,
-        steps: int,
-        generator: torch.Generator | None = None,
-        process_noise: bool = True,
-    ) -> tuple[Tensor, Tensor]:
-        """Simulates ``steps`` steps from ``x0 [B, n]`` in its dtype.
 
-        Returns truth ``[B, T, n]`` and measurements ``[B, T, m]``, with the model's own ``dt``;
-        randomness comes only from ``generator``.
-        """
-        dtype = x0.dtype
-        F, Q = self.transition().to(dtype), self.process_noise().to(dtype)
-        H, R = self.meas_matrix().to(dtype), self.meas_cov().to(dtype)
-        x = x0
-        states = []
-        for _ in range(steps):
-            x = x @ F.mT
-            if process_noise:
-                x = x + _gaussian(Q, x.shape[:-1], generator)
-            states.append(x)
-        truth = torch.stack(states, dim=1)
-        z = truth @ H.mT + _gaussian(R, truth.shape[:-1], generator)
-        return truth, z
-
-
-def _gaussian(cov: Tensor, batch_shape: torch.Size, generator: torch.Generator | None) -> Tensor:
-    """Samples ``N(0, cov)`` of shape ``[*batch_shape, d]`` (``cov`` may be singular)."""
-    eigval, eigvec = torch.linalg.eigh(cov)
-    root = eigvec * eigval.clamp_min(0).sqrt().unsqueeze(-2)
-    eps = torch.randn(
-        *batch_shape, cov.shape[-1], generator=generator, dtype=cov.dtype, device=cov.device
-    )
-    return eps @ root.mT
+def gaussian_noise(
+    cov: Tensor,
+    batch_shape: torch.Size | tuple[int, ...],
+    generator: torch.Generator | None = None,
+    scale: float = 1.0,
+) -> Tensor:
+    """Draws of ``N(0, scale² cov)`` of shape ``[*batch_shape, d]``: ``ε Lᵀ`` with ``L`` the
+    Cholesky factor of ``cov``, ``[d, d]`` or one per leading index ``[*batch_shape[:-1], d, d]``
+    (e.g. a covariance per track for ``batch_shape = (B, T)``). Components of zero variance in a
+    ``[d, d]`` ``cov`` are not drawn (a parameter without process noise), so ``cov`` may be
+    singular there."""
+    d = cov.shape[-1]
+    if cov.ndim == 2:
+        active = cov.diagonal() > 0
+        if not bool(active.all()):
+            L = scale * torch.linalg.cholesky(cov[active][:, active])
+            eps = torch.randn(
+                *batch_shape, L.shape[-1], generator=generator, dtype=cov.dtype, device=cov.device
+            )
+            noise = torch.zeros(*batch_shape, d, dtype=cov.dtype, device=cov.device)
+            noise[..., active] = eps @ L.mT
+            return noise
+    L = torch.linalg.cholesky(cov)
+    if scale != 1.0:
+        L = scale * L
+    eps = torch.randn(*batch_shape, d, generator=generator, dtype=cov.dtype, device=cov.device)
+    return eps @ L.mT

@@ -17,6 +17,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchsvs.models.base import gaussian_noise
+
 
 @dataclass(frozen=True)
 class Segment:
@@ -134,11 +136,8 @@ def add_measurement_noise(
 
     ``R`` is ``[m, m]`` or per track ``[B, m, m]``.
     """
-    L = torch.linalg.cholesky(R.to(truth.dtype))
-    noise = torch.randn(*truth.shape[:-1], R.shape[-1], generator=generator, dtype=truth.dtype)
-    if L.ndim == 3:
-        L = L.unsqueeze(1)
-    return truth @ H.to(truth.dtype).mT + (L @ noise.unsqueeze(-1)).squeeze(-1)
+    noise = gaussian_noise(R.to(truth.dtype), truth.shape[:-1], generator)
+    return truth @ H.to(truth.dtype).mT + noise
 
 
 @dataclass(frozen=True)

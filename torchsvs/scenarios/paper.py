@@ -9,12 +9,11 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsvs.models.base import StateSpaceModel
+from torchsvs.models.base import StateSpaceModel, gaussian_noise
 from torchsvs.models.motion import ConstantVelocity
 from torchsvs.scenarios.maneuver import (
     ManeuverRanges,
     Segment,
-    add_measurement_noise,
     random_maneuvers,
     simulate_segments,
 )
@@ -64,7 +63,7 @@ def atc_scenario(
     start = torch.tensor([-25000.0, 120.0, -10000.0, 0.0], dtype=dtype)
     truth = simulate_segments(start, segments, dt).expand(num_runs, -1, -1)
     model = ConstantVelocity(ndim=2, dt=dt, q=0.16, r=200.0**2).to(dtype)
-    z = add_measurement_noise(truth, model.meas_matrix(), model.meas_cov(), generator)
+    z = model.observe(truth, generator)
     x0 = torch.tensor([-25000.0, 80.0, -10000.0, -10.0], dtype=dtype)
     P0 = torch.diag(torch.tensor([10000.0, 1000.0, 10000.0, 1000.0], dtype=dtype))
     return Scenario(truth.contiguous(), z, model, x0, P0, dt)
@@ -101,7 +100,7 @@ def complex_scenario(
     start = torch.tensor([-25000.0, 300.0, -10000.0, 250.0], dtype=dtype)
     truth = simulate_segments(start, segments, dt).expand(num_runs, -1, -1)
     model = ConstantVelocity(ndim=2, dt=dt, q=15.0, r=100.0**2).to(dtype)
-    z = add_measurement_noise(truth, model.meas_matrix(), model.meas_cov(), generator)
+    z = model.observe(truth, generator)
     P0 = torch.diag(torch.tensor([400.0, 100.0, 400.0, 100.0], dtype=dtype))
     return Scenario(truth.contiguous(), z, model, start.clone(), P0, dt)
 
@@ -126,7 +125,7 @@ def random_scenario(
     tracks = random_maneuvers(num_tracks, ranges, generator, dtype)
     pos_std, vel_std = prior_std
     P0 = torch.diag(torch.tensor([pos_std, vel_std, pos_std, vel_std], dtype=dtype) ** 2)
-    x0 = tracks.initial + torch.randn(num_tracks, 4, generator=generator, dtype=dtype) @ P0.sqrt()
+    x0 = tracks.initial + gaussian_noise(P0, (num_tracks,), generator)
     r = (0.5 * (ranges.meas_std[0] + ranges.meas_std[1])) ** 2
     model = ConstantVelocity(ndim=2, dt=ranges.dt, q=q, r=r).to(dtype)
     return Scenario(tracks.truth, tracks.z, model, x0, P0, ranges.dt, tracks.meas_std)

@@ -32,19 +32,21 @@ def ballistic_scenario(
     """
     model = BallisticReentry().to(dtype)
     steps = round(duration / model.dt)
-    Q, R = model.process_noise().to(dtype), model.meas_cov().to(dtype)
-    LQ, LR = torch.linalg.cholesky(Q), torch.linalg.cholesky(R)
-    true_model = BallisticReentry(gravity=2.0 * model.gravity).to(dtype)
+    Q = model.process_noise().to(dtype)
     x0 = torch.tensor([61000.0, 3048.0, 19161.0], dtype=dtype)
-    x = x0.expand(num_runs, 3)
-    states = []
-    for k in range(steps):
-        late = gravity_error_at is not None and (k + 1) * model.dt > gravity_error_at + 1e-9
-        x = (true_model if late else model).f(x)
-        x = x + torch.randn(num_runs, 3, generator=generator, dtype=dtype) @ LQ.mT
-        states.append(x)
-    truth = torch.stack(states, dim=1)
-    z = model.h(truth) + torch.randn(num_runs, steps, 2, generator=generator, dtype=dtype) @ LR.mT
+    # Steps after gravity_error_at move with the wrong-gravity truth (same Q).
+    late = [
+        gravity_error_at is not None and (k + 1) * model.dt > gravity_error_at + 1e-9
+        for k in range(steps)
+    ]
+    nominal = late.index(True) if True in late else steps
+    truth = model.propagate(x0.expand(num_runs, 3), nominal, generator)
+    if nominal < steps:
+        true_model = BallisticReentry(gravity=2.0 * model.gravity).to(dtype)
+        start = truth[:, -1] if nominal else x0.expand(num_runs, 3)
+        rest = true_model.propagate(start, steps - nominal, generator, cov=Q)
+        truth = torch.cat([truth, rest], dim=1)
+    z = model.observe(truth, generator)
     return Scenario(truth, z, model, 1.1 * x0, 10.0 * Q, model.dt)
 
 
@@ -78,25 +80,32 @@ def eha_scenario(
         raise ValueError(f"noise_scale: expected a positive number, got {noise_scale!r}")
     model = ElectrohydrostaticActuator().to(dtype)
     steps = round(duration / model.dt)
-    Q, R = model.process_noise().to(dtype), model.meas_cov().to(dtype)
-    kinematic = noise_scale * torch.linalg.cholesky(Q[:3, :3])
+    Q = model.process_noise().to(dtype).clone()
+    Q[3, :] = Q[:, 3] = 0.0  # the true modulus has no process noise
     u = torch.randn(num_runs, steps, 1, generator=generator, dtype=dtype)
+    schedule = CHANGING_MODULUS if changing else CHANGING_MODULUS[:1]
+    # The modulus of each step's truth; a step's dynamics use the previous step's.
+    modulus = [
+        [value for start, value in schedule if (k + 1) * model.dt >= start - 1e-12][-1]
+        for k in range(steps)
+    ]
+    used = [schedule[0][1], *modulus[:-1]]
     x = torch.zeros(num_runs, 4, dtype=dtype)
-    x[:, 3] = 2.1e8
-    states = []
-    for k in range(steps):
-        x = model.f(x, None, u[:, k])
-        noise = torch.randn(num_runs, 3, generator=generator, dtype=dtype) @ kinematic.mT
-        x = torch.cat([x[:, :3] + noise, x[:, 3:]], dim=1)
-        if changing:
-            t = (k + 1) * model.dt
-            x[:, 3] = [value for start, value in CHANGING_MODULUS if t >= start - 1e-12][-1]
-        states.append(x)
-    truth = torch.stack(states, dim=1)
-    z = (
-        model.h(truth)
-        + torch.randn(num_runs, steps, 3, generator=generator, dtype=dtype)
-        @ (noise_scale * torch.linalg.cholesky(R)).mT
-    )
+    x[:, 3] = schedule[0][1]
+    parts = []
+    k = 0
+    while k < steps:  # runs of steps whose dynamics share one modulus
+        end = k + 1
+        while end < steps and used[end] == used[k]:
+            end += 1
+        part = model.propagate(
+            x, end - k, generator, u=u[:, k:end], cov=Q, noise_scale=noise_scale
+        ).clone()
+        part[:, :, 3] = torch.tensor(modulus[k:end], dtype=dtype)
+        parts.append(part)
+        x = part[:, -1]
+        k = end
+    truth = torch.cat(parts, dim=1)
+    z = model.observe(truth, generator, noise_scale=noise_scale)
     x0 = torch.tensor([0.0, 0.0, 0.0, 1.5e8], dtype=dtype)
     return Scenario(truth, z, model, x0, 10.0 * Q, model.dt, u=u)
