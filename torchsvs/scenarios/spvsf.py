@@ -80,8 +80,9 @@ def eha_scenario(
         raise ValueError(f"noise_scale: expected a positive number, got {noise_scale!r}")
     model = ElectrohydrostaticActuator().to(dtype)
     steps = round(duration / model.dt)
-    Q = model.process_noise().to(dtype).clone()
-    Q[3, :] = Q[:, 3] = 0.0  # the true modulus has no process noise
+    Q = model.process_noise().to(dtype)
+    kinematic = Q.clone()
+    kinematic[3, :] = kinematic[:, 3] = 0.0  # the true modulus has no process noise
     u = torch.randn(num_runs, steps, 1, generator=generator, dtype=dtype)
     schedule = CHANGING_MODULUS if changing else CHANGING_MODULUS[:1]
     # The modulus of each step's truth; a step's dynamics use the previous step's.
@@ -99,7 +100,7 @@ def eha_scenario(
         while end < steps and used[end] == used[k]:
             end += 1
         part = model.propagate(
-            x, end - k, generator, u=u[:, k:end], cov=Q, noise_scale=noise_scale
+            x, end - k, generator, u=u[:, k:end], cov=kinematic, noise_scale=noise_scale
         ).clone()
         part[:, :, 3] = torch.tensor(modulus[k:end], dtype=dtype)
         parts.append(part)
