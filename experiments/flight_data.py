@@ -28,6 +28,7 @@ from torch import Tensor
 from torchsvs.datasets import RecordedTracks
 from torchsvs.datasets.adsb import sample_files
 from torchsvs.datasets.flights import flight_steps
+from torchsvs.metrics import pooled_rmse
 
 #: Reported quantities carried per step (as recorded: ft, kt, deg, ft/min).
 REPORTED = ("altitude_ft", "groundspeed_kt", "track_deg", "vertical_rate_fpm")
@@ -155,16 +156,14 @@ def score(mean: Tensor, flights: RecordedTracks) -> dict[str, float]:
     real = flights.mask
     truth = flights.truth
     assert truth is not None
-    pos = (mean[..., [0, 2]] - truth[..., [0, 2]])[real]
-    reported = (mean[..., [1, 3]] - truth[..., [1, 3]])[real]
-    usable = torch.isfinite(reported)
+    reported = truth[..., [1, 3]]
+    usable = torch.isfinite(reported) & real.unsqueeze(-1)
     motion = torch.stack([flights.extra["vx_motion"], flights.extra["vy_motion"]], -1)
-    by_motion = (mean[..., [1, 3]] - motion)[real]
     return {
-        "position": float(pos.square().mean().sqrt()),
-        "velocity": float(reported[usable].square().mean().sqrt())
+        "position": float(pooled_rmse(mean[..., [0, 2]], truth[..., [0, 2]], real)),
+        "velocity": float(pooled_rmse(mean[..., [1, 3]], reported, usable))
         if usable.any()
         else float("nan"),
-        "velocity_motion": float(by_motion.square().mean().sqrt()),
-        "velocity_coverage": float(usable.double().mean()),
+        "velocity_motion": float(pooled_rmse(mean[..., [1, 3]], motion, real)),
+        "velocity_coverage": float(usable.sum() / (2 * real.sum())),
     }

@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 import torchsvs as ts
 from torchsvs.evaluation import markdown_table, psi_sweep
+from torchsvs.metrics import pooled_rmse
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
 from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule, config_path
 from torchsvs.training.cli import main as cli_main
@@ -51,8 +52,8 @@ def load(
 
 
 def position_rmse(mean: torch.Tensor, truth: torch.Tensor) -> float:
-    """Accumulative position RMSE over both axes, ``sqrt(mean over runs, steps, x and y)``."""
-    return (mean[..., [0, 2]] - truth[..., [0, 2]]).square().mean().sqrt().item()
+    """Accumulative position RMSE over both axes (x at 0, y at 2 of the CV state)."""
+    return float(pooled_rmse(mean[..., [0, 2]], truth[..., [0, 2]]))
 
 
 def evaluate(est: ts.SVSS, sc: Scenario) -> tuple[float, float]:

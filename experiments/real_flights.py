@@ -44,6 +44,7 @@ from torchsvs.datasets import RecordedTracks, with_prior
 from torchsvs.datasets.flights import flight_steps
 from torchsvs.evaluation import markdown_table
 from torchsvs.kernels import eager_loops, fused
+from torchsvs.metrics import pooled_rmse
 from torchsvs.tracking import (
     Settings,
     centred,
@@ -746,7 +747,7 @@ def noise_table(flights: RecordedTracks, seeds: int, quick: bool) -> list[str]:
             data = noisy(flights, sigma, seed=seed)
             train, test = split(data)
             scores["measurements"].append(
-                float((test.z - test.truth[..., [0, 2]])[test.mask].square().mean().sqrt())  # type: ignore[index]
+                float(pooled_rmse(test.z, test.truth[..., [0, 2]], test.mask))  # type: ignore[index]
             )
             ks = self_tune(rule_of_thumb("ks", train, sigma), train).settings
             svss = self_tune(rule_of_thumb("svss", train, sigma, lag=lag), train).settings

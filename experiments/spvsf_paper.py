@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 import torchsvs as ts
 from torchsvs.evaluation import markdown_table
 from torchsvs.filters.particle import Proposal
+from torchsvs.metrics import paper_rmse, run_rmse
 from torchsvs.scenarios import Scenario, ballistic_scenario, eha_scenario
 
 BALLISTIC_TRUE_X0 = (61000.0, 3048.0, 19161.0)
@@ -76,18 +77,6 @@ DEFAULT_READING: Proposal = inspect.signature(ts.SPVSF).parameters["proposal"].d
 
 #: Where `python -m` writes the report: the tracked results of the checkout.
 RESULTS = Path(__file__).parent / "results"
-
-
-def run_rmse(mean: Tensor, truth: Tensor, x0: Tensor, true_x0: Tensor) -> Tensor:
-    """RMSE of each run over all steps including the initial estimate, ``[B, n]``."""
-    B = truth.shape[0]
-    err = torch.cat([(x0 - true_x0).expand(B, 1, -1), mean - truth], dim=1)
-    return err.square().mean(1).sqrt()
-
-
-def paper_rmse(mean: Tensor, truth: Tensor, x0: Tensor, true_x0: Tensor) -> Tensor:
-    """The paper's RMSE: per run (:func:`run_rmse`), averaged over runs, ``[n]``."""
-    return run_rmse(mean, truth, x0, true_x0).mean(0)
 
 
 def estimators(
@@ -171,7 +160,7 @@ def evaluate(
     std = float(sc.model.meas_cov()[0, 0]) ** 0.5
     for name, (est, P0) in runs.items():
         mean = run(est, sc, P0, seed)
-        out[name] = run_rmse(mean, sc.truth, sc.x0, true_x0)
+        out[name] = run_rmse(mean, sc.truth, initial=(sc.x0, true_x0))
         if settling is not None:
             settling[name] = torch.stack(
                 [settling_time(mean, sc.truth, sc.dt, k * std) for k in (3.0, 10.0)], -1
@@ -201,7 +190,7 @@ def psi_study(
                     continue
                 est = estimators(sc.model, psi)[name]
                 mean = run(est, sc, sc.P0, seed)
-                results[label, name, i] = paper_rmse(mean, sc.truth, sc.x0, true_x0)
+                results[label, name, i] = paper_rmse(mean, sc.truth, initial=(sc.x0, true_x0))
     rows = []
     for i, psi in enumerate(PSI_STUDY):
         cells = [f"[{psi[0]:.0f}, {psi[1]:.0f}]"]
@@ -491,7 +480,7 @@ def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RES
     assert isinstance(many, ts.SPVSF)
     many.num_particles = 3500
     mean = run(many, changing, changing.P0, args.seed)
-    many_gap = modulus_gap(run_rmse(mean, changing.truth, changing.x0, true_e))
+    many_gap = modulus_gap(run_rmse(mean, changing.truth, initial=(changing.x0, true_e)))
     checks = [
         "## Done-when checks (issue 5)",
         "",

@@ -4,47 +4,99 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import NamedTuple, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import torch
 from torch import Tensor
 
 from torchsvs.estimator import Estimator
 from torchsvs.metrics import accumulative_rmse
-from torchsvs.scenarios.paper import Scenario
 
 Score = TypeVar("Score")
 
 
 class Evaluation(NamedTuple):
-    """One estimator on one scenario."""
+    """One estimator on one batch of tracks."""
 
     name: str
-    rmse: Tensor  #: accumulative RMSE per state component, [n]
+    rmse: Tensor  #: accumulative RMSE per scored state component, [k]
     us_per_track_step: float  #: wall time per track and step, microseconds
     mean: Tensor  #: the estimates, [B, T, n]
+    result: Any  #: everything the estimator returned
 
 
 def evaluate(
-    estimators: Mapping[str, Estimator], scenario: Scenario, progress: bool = True
+    estimators: Mapping[str, Estimator],
+    data: Any,
+    *,
+    truth: Tensor | None = None,
+    components: Sequence[int] | None = None,
+    mask: Tensor | None = None,
+    seed: int = 0,
+    progress: bool = True,
 ) -> list[Evaluation]:
-    """Runs each estimator once on the whole batch (no gradients) and scores it against truth."""
+    """Runs each estimator once on the whole batch (no gradients, timed after a warm-up on two
+    tracks) and scores it against truth (:func:`~torchsvs.metrics.accumulative_rmse`).
+
+    Args:
+        estimators: name → estimator (any torchsvs filter or smoother).
+        data: a :class:`~torchsvs.scenarios.Scenario`, a training
+            :class:`~torchsvs.training.TrackBatch`, :class:`~torchsvs.datasets.RecordedTracks`
+            with a prior, or anything with ``z``, ``x0``, ``P0`` (per track or shared) and
+            optionally ``dt`` (a per-step tensor; a float is the model's own interval), ``u``,
+            ``truth`` and the steps to score (``scored`` or ``mask``, ``[B, T]``).
+        truth, mask: replace ``data``'s.
+        components: the state components ``truth`` holds, in its order (default: all).
+        seed: every estimator gets ``torch.Generator().manual_seed(seed)`` (particle filters
+            draw from it), so a rerun reproduces.
+    """
     from tqdm.auto import tqdm
 
-    rows = []
-    B, T = scenario.z.shape[:2]
-    for name, est in tqdm(estimators.items(), desc="estimators", disable=not progress, leave=False):
-        with torch.no_grad():  # warm-up on two tracks, so one-off costs stay out of the timing
-            est(scenario.z[:2], scenario.x0, scenario.P0)
-        start = time.perf_counter()
-        with torch.no_grad():
-            out = est(scenario.z, scenario.x0, scenario.P0)
-        seconds = time.perf_counter() - start
-        rows.append(
-            Evaluation(
-                name, accumulative_rmse(out.mean, scenario.truth), 1e6 * seconds / (B * T), out.mean
-            )
+    z, x0, P0 = data.z, getattr(data, "x0", None), getattr(data, "P0", None)
+    if x0 is None or P0 is None:
+        raise ValueError(
+            "data: expected a prior (x0, P0); recorded tracks get one from "
+            "torchsvs.datasets.with_prior"
         )
+    truth = truth if truth is not None else getattr(data, "truth", None)
+    if truth is None:
+        raise ValueError("truth: data has none; pass truth= to score the estimates")
+    if mask is None:
+        mask = getattr(data, "scored", None)
+    if mask is None:
+        mask = getattr(data, "mask", None)
+    dt = getattr(data, "dt", None)
+    options: dict[str, Any] = {
+        "dt": dt if isinstance(dt, Tensor) else None,
+        "u": getattr(data, "u", None),
+    }
+    B, T = z.shape[:2]
+    index = list(components) if components is not None else None
+
+    def batch_of(value: Any, rows: slice) -> Any:
+        return value[rows] if isinstance(value, Tensor) and value.ndim >= 2 else value
+
+    def run(est: Estimator, rows: slice) -> Any:
+        kwargs = {k: batch_of(v, rows) for k, v in options.items() if v is not None}
+        prior = (x0[rows] if x0.ndim == 2 else x0, P0[rows] if P0.ndim == 3 else P0)
+        generator = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            return est(z[rows], *prior, generator=generator, **kwargs)
+
+    rows = []
+    for name, est in tqdm(estimators.items(), desc="estimators", disable=not progress, leave=False):
+        run(est, slice(0, 2))  # one-off costs (kernel builds, caches) stay out of the timing
+        start = time.perf_counter()
+        out = run(est, slice(None))
+        seconds = time.perf_counter() - start
+        mean = out.mean if index is None else out.mean[..., index]
+        if mean.shape != truth.shape:
+            raise ValueError(
+                f"truth: expected the estimates' shape {tuple(mean.shape)} (components= names "
+                f"the state components truth holds), got {tuple(truth.shape)}"
+            )
+        rmse = accumulative_rmse(mean, truth, mask)
+        rows.append(Evaluation(name, rmse, 1e6 * seconds / (B * T), out.mean, out))
     return rows
 
 

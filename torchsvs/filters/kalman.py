@@ -237,8 +237,10 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         return self._scan(FilterState(inputs.x0, inputs.P0), inputs)[1]
 
     def _scan(self, state: FilterState, inputs: Inputs) -> tuple[FilterState, FilterResult]:
-        # The per-axis kernel starts from a prior (no memory, no earlier rows).
-        result = self._run_axes(inputs) if state.steps == 0 else None
+        # The per-axis kernel starts from a prior: any state without a corrector's memory or
+        # earlier rows is one (a KF's chunks all run there; an SVSF's first chunk).
+        fresh = state.steps == 0 or (state.post_innovation is None and state.history is None)
+        result = self._run_axes(inputs) if fresh else None
         if result is None:
             result = self._loop(inputs, state.post_innovation, state.history)
         loglik = result.log_likelihood

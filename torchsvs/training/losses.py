@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.linalg import cholesky, gaussian_log_density
+from torchsvs.metrics import mean_squared_error
 from torchsvs.types import FilterResult, SmootherResult
 
 Result = FilterResult | SmootherResult
@@ -41,11 +42,7 @@ def supervised_mse(
     ``components`` (default: the positions of ``[x, vx, y, vy]``), over the ``scored [B, T]``
     steps (default: all)."""
     index = list(components)
-    error = (result.mean[..., index] - truth[..., index]).square()
-    if scored is None:
-        return error.mean()
-    weight = scored.unsqueeze(-1).to(error.dtype)
-    return (error * weight).sum() / (weight.sum() * len(index)).clamp_min(1.0)
+    return mean_squared_error(result.mean[..., index], truth[..., index], scored)
 
 
 def innovation_nll(result: Result, scored: Tensor | None = None) -> Tensor:

@@ -11,7 +11,7 @@ from torch import Tensor, nn
 
 from torchsvs.estimator import Estimator, threads_for
 from torchsvs.filters.svsf import SVSF
-from torchsvs.metrics import accumulative_rmse
+from torchsvs.metrics import pooled_rmse
 from torchsvs.models.base import LinearModel
 from torchsvs.training.data import TrackBatch
 from torchsvs.training.losses import (
@@ -151,10 +151,9 @@ class EstimatorModule(L.LightningModule):
         if batch.truth is not None:
             index = self.components
             truth = batch.truth[..., index]
-            rmse = accumulative_rmse(out.mean[..., index], truth)
             self.log(
                 f"{stage}_rmse",
-                rmse.square().mean().sqrt(),
+                pooled_rmse(out.mean[..., index], truth, batch.scored),
                 prog_bar=stage != "train",
                 batch_size=size,
                 sync_dist=stage != "train",
