@@ -531,7 +531,7 @@ def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RES
         "done-when table compares them). Eqs 30-31 as printed draw fresh particles around the "
         "SVSF estimate and weight each by the likelihood of its draw: not a consistent particle "
         "filter (on a linear-Gaussian model it misses the KF by over 0.5σ on average with "
-        "20,000 particles, tested), but blind to the narrow stated prior, so it converges in the "
+        "2000 particles over 100 runs, tested), but blind to the narrow stated prior, so it converges in the "
         f"ballistic case ({alt[PRINTED]:.0f} m); its weights never see the modulus, which stays "
         f"the SVSF's ({mod[PRINTED]:.5f} against {mod['SVSF']:.5f}). The construction the paper "
         'names ("similar to the EPF and UPF") moves each particle, corrects it with the SVSF '
