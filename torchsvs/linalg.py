@@ -138,5 +138,6 @@ def mask_measurement(H: Tensor, R: Tensor, mask: Tensor) -> tuple[Tensor, Tensor
 
 def mask_covariance(R: Tensor, mask: Tensor) -> Tensor:
     """``R`` with an identity on the missing components (see :func:`mask_measurement`)."""
-    obs = mask.to(R.dtype)
-    return R * (obs.unsqueeze(-1) * obs.unsqueeze(-2)) + torch.diag_embed(1.0 - obs)
+    both = mask.unsqueeze(-1) & mask.unsqueeze(-2)
+    eye = torch.eye(mask.shape[-1], dtype=R.dtype, device=R.device)
+    return torch.where(both, R, eye)

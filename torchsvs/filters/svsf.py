@@ -13,7 +13,7 @@ from torchsvs.estimator import Inputs
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, Observation, Step, innovation_covariance
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
-from torchsvs.linalg import joseph_update, mask_measurement, masked_pinv, matvec, svsf_gain_ratio
+from torchsvs.linalg import joseph_update, mask_covariance, masked_pinv, matvec, svsf_gain_ratio
 from torchsvs.models.base import StateSpaceModel
 
 ArtificialMeasurement = Callable[
@@ -231,8 +231,9 @@ class SVSF(GaussianFilter):
         K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)
         x = x_pred + matvec(K, e)  # Eq. (22)
         P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
-        H_m, R_m = (H, R) if mask is None else mask_measurement(H, R, mask)
-        S = innovation_covariance(H_m, P_pred @ H_m.mT, R_m)
+        S = innovation_covariance(H, P_pred @ H.mT, R)
+        if mask is not None:  # H P Hᵀ + R of the observed components (see mask_measurement)
+            S = mask_covariance(S, mask)
         return Step(
             x,
             P,
