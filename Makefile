@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.forward
 	$(PY) -m benchmarks.particles
 	$(PY) -m benchmarks.threads
+	$(PY) -m benchmarks.step_overhead
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks

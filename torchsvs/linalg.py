@@ -103,19 +103,26 @@ def svsf_gain_ratio(e_prior: Tensor, e_post_prev: Tensor, psi: Tensor, gamma: Te
     return (magnitude + gamma * e_post_prev.abs()) / torch.maximum(magnitude, psi)
 
 
-def masked_pinv(H: Tensor, mask: Tensor | None = None) -> Tensor:
+def has_orthonormal_rows(H: Tensor) -> bool:
+    """Whether ``H [m, n]`` has ``H Hᵀ = I`` exactly (a selection of state components, or the
+    identity of a full-state artificial measurement)."""
+    eye = torch.eye(H.shape[0], dtype=H.dtype, device=H.device)
+    return bool(torch.equal(H @ H.mT, eye))
+
+
+def masked_pinv(H: Tensor, mask: Tensor | None = None, orthonormal: bool | None = None) -> Tensor:
     """Moore-Penrose pseudo-inverse ``(D H)⁺`` of ``H [..., m, n]`` with the rows of missing
     components zeroed (``D = diag(mask)``, ``mask [..., m]`` True where observed, ``None``: all).
 
-    When ``H`` has orthonormal rows (``H Hᵀ = I``: a selection of state components, or the
-    identity of a full-state artificial measurement), ``(D H)⁺ = Hᵀ D`` exactly, without an SVD
-    per track and step.
+    When ``H`` has orthonormal rows (:func:`has_orthonormal_rows`; ``orthonormal`` says so when
+    the caller knows, else a constant ``[m, n]`` is checked), ``(D H)⁺ = Hᵀ D`` exactly, without
+    an SVD per track and step.
     """
     masked = H if mask is None else H * mask.to(H.dtype).unsqueeze(-1)
-    if H.ndim == 2:
-        eye = torch.eye(H.shape[0], dtype=H.dtype, device=H.device)
-        if bool(torch.equal(H @ H.mT, eye)):
-            return masked.mT
+    if orthonormal is None and H.ndim == 2:
+        orthonormal = has_orthonormal_rows(H)
+    if orthonormal:
+        return masked.mT
     return torch.linalg.pinv(masked)
 
 

@@ -44,6 +44,9 @@ class Observation(NamedTuple):
     H: Tensor | None  #: [m, n] or [B, m, n]: the run's H; None: the model's linearised per step
     R: Tensor  #: [m, m] or [B, m, m]
     model: StateSpaceModel
+    settings: Any = (
+        None  #: the corrector's constants of the run (:meth:`GaussianFilter.run_settings`)
+    )
 
     def linearize(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """``h(x)`` and ``H`` at ``x [B, n]``: the run's ``H`` or the model's linearisation."""
@@ -69,6 +72,9 @@ class Prepared(NamedTuple):
     F: Tensor | None  #: [n, n] or [B, T, n, n]; None: linearised per step
     Q: Tensor  #: [n, n] or [B, T, n, n]
     model: StateSpaceModel
+    settings: Any = (
+        None  #: the corrector's constants of the run (:meth:`GaussianFilter.run_settings`)
+    )
 
     def observation(self, t: int) -> Observation:
         """What the corrector sees at step ``t``."""
@@ -79,6 +85,7 @@ class Prepared(NamedTuple):
             None if self.H is None else _at(self.H, t),
             _at(self.R, t),
             self.model,
+            self.settings,
         )
 
     def transition(self, t: int, x: Tensor, inputs: Inputs) -> tuple[Tensor, Tensor]:
@@ -270,9 +277,15 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         z, H, R = self.measurements(inputs, history)
         F, Q = self.dynamics(inputs)
         observed = ~torch.isnan(z)
+        settings = self.run_settings(inputs, H)
         return Prepared(
-            z.nan_to_num(0.0), observed, not bool(observed.all()), H, R, F, Q, self.model
+            z.nan_to_num(0.0), observed, not bool(observed.all()), H, R, F, Q, self.model, settings
         )
+
+    def run_settings(self, inputs: Inputs, H: Tensor | None) -> Any:
+        """What the corrector computes once per run rather than at every step (its parameters
+        in the run's dtype, facts about ``H``), handed to :meth:`correct` as ``obs.settings``."""
+        return None
 
     def filter_step(
         self,

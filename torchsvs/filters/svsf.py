@@ -13,7 +13,14 @@ from torchsvs.estimator import Inputs
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, Observation, Step, innovation_covariance
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
-from torchsvs.linalg import joseph_update, mask_covariance, masked_pinv, matvec, svsf_gain_ratio
+from torchsvs.linalg import (
+    has_orthonormal_rows,
+    joseph_update,
+    mask_covariance,
+    masked_pinv,
+    matvec,
+    svsf_gain_ratio,
+)
 from torchsvs.models.base import StateSpaceModel
 
 ArtificialMeasurement = Callable[
@@ -220,15 +227,17 @@ class SVSF(GaussianFilter):
         inputs: Inputs,
     ) -> Step:
         z, mask, R = obs.z, obs.mask, obs.R
-        dtype = z.dtype
-        psi = inputs.psi[:, obs.t] if inputs.psi is not None else self.psi.to(dtype)
+        gains: _Gains = (
+            obs.settings if obs.settings is not None else self.run_settings(inputs, obs.H)
+        )
+        psi = inputs.psi[:, obs.t] if inputs.psi is not None else gains.psi
         fitted, H = obs.linearize(x_pred)  # nonlinear h: Eqs. (13)-(21), Gadsden et al. 2012
         e = z - fitted  # Eq. (4); Eq. (14) of Gadsden et al. 2012
         if mask is not None:
             e = e * mask
-        H_plus = masked_pinv(H, mask)  # zero columns where missing
+        H_plus = masked_pinv(H, mask, gains.orthonormal)  # zero columns where missing
         memory = carried if carried is not None else torch.zeros_like(e)
-        K = H_plus * svsf_gain_ratio(e, memory, psi, self.gamma.to(dtype)).unsqueeze(-2)
+        K = H_plus * svsf_gain_ratio(e, memory, psi, gains.gamma).unsqueeze(-2)
         x = x_pred + matvec(K, e)  # Eq. (22)
         P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
         S = innovation_covariance(H, P_pred @ H.mT, R)
@@ -244,12 +253,25 @@ class SVSF(GaussianFilter):
             meas_matrix=H if obs.H is None else None,
         )
 
+    def run_settings(self, inputs: Inputs, H: Tensor | None) -> _Gains:
+        dtype = inputs.z.dtype
+        orthonormal = None if H is None or H.ndim != 2 else has_orthonormal_rows(H)
+        return _Gains(self.psi.to(dtype), self.gamma.to(dtype), orthonormal)
+
     def memory_after(self, x: Tensor, obs: Observation, memory: Tensor) -> Tensor:
         """The memory the next step carries: the a-posteriori innovation ``e_{k+1|k+1} = z −
         h(x̂_{k+1|k+1})`` of the estimate ``x`` (Eq. (24)), and the previous ``memory`` for a
         missing component."""
         e_post = obs.z - obs.fitted(x)
         return e_post if obs.mask is None else torch.where(obs.mask, e_post, memory)
+
+
+class _Gains(NamedTuple):
+    """The SVSF corrector's constants of a run."""
+
+    psi: Tensor  #: ψ in the run's dtype (a per-step override replaces it)
+    gamma: Tensor  #: γ in the run's dtype
+    orthonormal: bool | None  #: whether the run's H has orthonormal rows (None: H varies)
 
 
 class _Rows(NamedTuple):
