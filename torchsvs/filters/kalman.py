@@ -44,9 +44,7 @@ class Observation(NamedTuple):
     H: Tensor | None  #: [m, n] or [B, m, n]: the run's H; None: the model's linearised per step
     R: Tensor  #: [m, m] or [B, m, m]
     model: StateSpaceModel
-    settings: Any = (
-        None  #: the corrector's constants of the run (:meth:`GaussianFilter.run_settings`)
-    )
+    settings: Any = None  #: the corrector's constants of the run (``run_settings``)
 
     def linearize(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """``h(x)`` and ``H`` at ``x [B, n]``: the run's ``H`` or the model's linearisation."""
@@ -72,9 +70,7 @@ class Prepared(NamedTuple):
     F: Tensor | None  #: [n, n] or [B, T, n, n]; None: linearised per step
     Q: Tensor  #: [n, n] or [B, T, n, n]
     model: StateSpaceModel
-    settings: Any = (
-        None  #: the corrector's constants of the run (:meth:`GaussianFilter.run_settings`)
-    )
+    settings: Any = None  #: the corrector's constants of the run (``run_settings``)
 
     def observation(self, t: int) -> Observation:
         """What the corrector sees at step ``t``."""
