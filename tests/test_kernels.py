@@ -269,3 +269,121 @@ def test_the_library_builds_into_the_cache(tmp_path, monkeypatch):
     assert fused.library() is not None, fused.failure()
     assert len(list(tmp_path.glob("fused-*.so"))) == 1
     assert fused.BUILD["seconds"] > 0
+
+
+def _dense_problem(seed: int, B: int = 3, T: int = 30):
+    """A dense 3-state, 2-measurement linear-Gaussian model (H not a selection) and measurements
+    with gaps; a CV model of two axes for the SVSF's H⁺ mode (H a selection)."""
+    gen = torch.Generator().manual_seed(seed)
+    A = torch.randn(3, 3, generator=gen, dtype=torch.float64)
+    F = torch.linalg.matrix_exp(0.1 * (A - A.T)) * 0.98
+    H = torch.randn(2, 3, generator=gen, dtype=torch.float64)
+    Q = torch.eye(3, dtype=torch.float64) * 0.3 + 0.1
+    R = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=torch.float64)
+    dense = ts.models.LinearGaussian(F, H, Q, R)
+    z = torch.randn(B, T, 2, generator=gen, dtype=torch.float64) * 2
+    z[torch.rand(B, T, 2, generator=gen) < 0.2] = float("nan")
+    z[:, 4] = float("nan")
+    return dense, z
+
+
+def _online(est, x0, P0, z, psi=None):
+    """Step by step: the states and the step results."""
+    state, outs, states = est.init(x0, P0), [], []
+    for t in range(z.shape[-2]):
+        kwargs = {} if psi is None else {"psi": psi[..., t, :]}
+        state, out = est.step(state, z[..., t, :], **kwargs)
+        states.append(state)
+        outs.append(out)
+    return states, outs
+
+
+@needs_compiler
+@pytest.mark.parametrize("case", ["KF dense", "EKF dense", "KF CV", "SVSF CV", "SVSF CV psi"])
+@pytest.mark.parametrize("single", [False, True], ids=["batch", "one track"])
+def test_compiled_online_steps_equal_the_tensor_steps(case, single, monkeypatch):
+    """An online step of a linear model without gradients runs compiled (fused.dense_step):
+    every field of every step and state equals the tensor path's to 1e-10 in float64, with
+    missing components, a step without measurements, per-step ψ and one-track states."""
+    dense, z = _dense_problem(seed=11)
+    cv = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0]).double()
+    psi = None
+    if case.startswith("SVSF"):
+        model = cv
+        est = ts.SVSF(cv, psi=[3.0, 2.0], gamma=0.2, artificial=None, learn=False).double()
+        if case.endswith("psi"):
+            psi = torch.rand(3, 30, 2, dtype=torch.float64) * 4 + 0.5
+    else:
+        model = dense if "dense" in case else cv
+        est = (ts.ExtendedKalmanFilter if case.startswith("EKF") else ts.KalmanFilter)(model)
+    n = model.state_dim
+    x0 = torch.linspace(-1, 1, n, dtype=torch.float64).expand(3, n)
+    P0 = torch.eye(n, dtype=torch.float64) * 5
+    if single:
+        x0, z = x0[0], z[0]
+        psi = None if psi is None else psi[0]
+    calls = {"dense": 0}
+    original = fused.dense_step
+
+    def counted(*args, **kwargs):
+        calls["dense"] += 1
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(fused, "dense_step", counted)
+    with torch.no_grad():
+        states, outs = _online(est, x0, P0, z, psi)
+        assert calls["dense"] == z.shape[-2]
+        with eager_loops():
+            ref_states, ref_outs = _online(est, x0, P0, z, psi)
+        assert calls["dense"] == z.shape[-2]
+    for t, (out, ref) in enumerate(zip(outs, ref_outs, strict=True)):
+        for key in out._fields:
+            a, b = getattr(out, key), getattr(ref, key)
+            assert (a is None) == (b is None), (t, key)
+            if a is not None:
+                assert a.shape == b.shape, (t, key, a.shape, b.shape)
+                assert_close(a.to(b.dtype), b, atol=1e-10, rtol=1e-10, msg=f"{t} {key}")
+    for state, ref in zip(states, ref_states, strict=True):
+        for key in ("mean", "cov", "post_innovation", "log_likelihood"):
+            a, b = getattr(state, key), getattr(ref, key)
+            assert (a is None) == (b is None), key
+            if a is not None:
+                assert_close(a, b.expand_as(a), atol=1e-10, rtol=1e-10, msg=key)
+        assert (state.steps, state.single) == (ref.steps, ref.single)
+
+
+@needs_compiler
+def test_online_steps_step_aside_where_the_compiled_step_cannot_run(monkeypatch):
+    """Gradients, an artificial measurement, a nonlinear model, a non-selection H for the
+    SVSF, a per-step dt and bad input take the tensor path (and its error messages)."""
+    calls = {"dense": 0}
+    original = fused.dense_step
+
+    def counted(*args, **kwargs):
+        calls["dense"] += 1
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(fused, "dense_step", counted)
+    dense, z = _dense_problem(seed=12, B=2, T=5)
+    cv = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    x4, P4 = torch.zeros(2, 4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
+    learnable = ts.SVSF(cv, psi=[3.0, 2.0], artificial=None).double()
+    state, out = learnable.step(learnable.init(x4, P4), z[:, 0])
+    assert out.mean.requires_grad  # ψ learnable, grad mode on: the differentiable path
+    with torch.no_grad():
+        artificial = ts.SVSF(cv, psi=[3.0, 2.0, 3.0, 2.0]).double()
+        artificial.step(artificial.init(x4, P4), z[:, 0])
+        x3, P3 = torch.zeros(2, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)
+        skewed = ts.SVSF(dense, psi=[3.0, 2.0], artificial=None).double()
+        skewed.step(skewed.init(x3, P3), z[:, 0])
+        kf = ts.KalmanFilter(cv)
+        kf.step(kf.init(x4, P4), z[:, 0], dt=torch.tensor(2.0, dtype=torch.float64))
+        assert calls["dense"] == 0
+        bad = z[:, 0].clone()
+        bad[0, 0] = float("inf")
+        with pytest.raises(ValueError, match="z: contains inf"):
+            kf.step(kf.init(x4, P4), bad)
+        with pytest.raises(ValueError, match="psi: KalmanFilter has no boundary layer"):
+            kf.step(kf.init(x4, P4), z[:, 0], psi=torch.ones(2, 2, dtype=torch.float64))
+        kf.step(kf.init(x4, P4), z[:, 0])
+    assert calls["dense"] == 2  # the inf step tried it first, then the plain step ran it

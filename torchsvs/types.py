@@ -85,6 +85,9 @@ class FilterState(NamedTuple):
             measurement's raw rows), or ``None``.
         steps: steps taken since ``init``.
         single: ``init`` was given one track without the batch axis (results drop it too).
+        constants: what compiled online steps computed once for the run (the model's matrices
+            and the corrector's settings), or ``None``; like a whole-sequence run, a run of
+            steps uses the model as it was at its first compiled step.
     """
 
     mean: Tensor
@@ -94,6 +97,7 @@ class FilterState(NamedTuple):
     history: Any = None
     steps: int = 0
     single: bool = False
+    constants: Any = None
 
 
 class SmootherResult(NamedTuple):

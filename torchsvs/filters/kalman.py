@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
-from torchsvs.kernels import AXIS_KERNEL, axes
+from torchsvs.kernels import AXIS_KERNEL, axes, fused
 from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
@@ -55,6 +55,14 @@ class Observation(NamedTuple):
     def fitted(self, x: Tensor) -> Tensor:
         """``h(x)`` of the corrector's measurement."""
         return self.model.h(x) if self.H is None else matvec(self.H, x)
+
+
+class DenseConstants(NamedTuple):
+    """What a run of compiled online steps computes once (``FilterState.constants``)."""
+
+    matrices: fused.DenseMatrices  #: F, Q, H, R, contiguous, in the run's dtype
+    gamma: float  #: the SVSF's γ (0 for the KF)
+    widths: Tensor  #: the SVSF's ψ, [m] (zeros for the KF)
 
 
 class Prepared(NamedTuple):
@@ -259,6 +267,125 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             history=self.carried_history(state.history, inputs),
             steps=state.steps + inputs.steps,
             single=state.single,
+        )
+        return after, result
+
+    #: the corrector's rule in the compiled dense step (:func:`torchsvs.kernels.fused.dense_step`)
+    #: for linear models, or None
+    dense_rule: str | None = None
+
+    def step(
+        self,
+        state: Any,
+        z: Tensor,
+        *,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple[Any, FilterResult]:
+        # An online step on a linear model without gradients runs compiled (the same numbers
+        # up to rounding); anything else, and every error message, takes the general path.
+        fast = None if u is not None or dt is not None else self._dense_step(state, z, psi)
+        if fast is not None:
+            return fast
+        return super().step(state, z, u=u, dt=dt, psi=psi, generator=generator)
+
+    def _dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
+        """``(γ, ψ [m])`` of a compiled step's corrector, or ``None`` where it cannot run."""
+        return 0.0, H.new_zeros(H.shape[0])
+
+    def _dense_constants(self, dtype: torch.dtype) -> DenseConstants | None:
+        model = self.model
+        assert isinstance(model, LinearModel)
+        matrices = [
+            A.to(dtype).contiguous()
+            for A in (model.transition(), model.process_noise(), model.meas_matrix())
+        ]
+        matrices.append(model.meas_cov().to(dtype).contiguous())
+        if not fused.usable(*matrices):
+            return None
+        settings = self._dense_settings(dtype, matrices[2])
+        if settings is None:
+            return None
+        gamma, widths = settings
+        return DenseConstants(fused.DenseMatrices(matrices), gamma, widths.contiguous())
+
+    def _dense_step(
+        self, state: Any, z: Any, psi: Tensor | None
+    ) -> tuple[FilterState, FilterResult] | None:
+        rule, model = self.dense_rule, self.model
+        if rule is None or not isinstance(model, LinearModel) or not isinstance(z, Tensor):
+            return None
+        if not isinstance(state, FilterState) or state.history is not None:
+            return None
+        n, m = model.state_dim, model.meas_dim
+        x, single = state.mean, state.single
+        if z.ndim != (1 if single else 2) or z.shape[-1] != m or z.dtype != x.dtype:
+            return None
+        B = 1 if single else z.shape[0]
+        if x.shape[0] != B or B == 0 or n > fused.DENSE_MAX or m > fused.DENSE_MAX:
+            return None
+        if (psi is not None and rule != "svsf") or not fused.usable(z, x, state.cov):
+            return None  # (usable: CPU float32/64, no gradient asked for, compiler available)
+        dtype = x.dtype
+        constants = state.constants
+        if not isinstance(constants, DenseConstants) or constants.widths.dtype != dtype:
+            constants = self._dense_constants(dtype)
+            if constants is None:
+                return None
+        widths = constants.widths
+        if psi is not None:
+            if psi.shape != ((m,) if single else (B, m)) and psi.shape != (m,):
+                return None
+            widths = psi.to(dtype).contiguous()
+        memory = state.post_innovation
+        if rule == "svsf" and memory is None:
+            memory = x.new_zeros(B, m)
+        out = fused.dense_step(
+            rule,
+            constants.gamma,
+            x.contiguous(),
+            state.cov.contiguous()
+            if state.cov.shape[0] == B
+            else state.cov.expand(B, n, n).contiguous(),
+            z.contiguous(),
+            x if memory is None else memory.contiguous(),
+            widths,
+            constants.matrices,
+            single,
+        )
+        if out is None:
+            return None  # inf in z, or S not positive definite: the general path says or copes
+        mean, cov, x_pred, P_pred, e, K, S, loglik, e_post, seen = out
+        kalman = rule == "kalman"
+        F, _, H, R = constants.matrices.tensors
+        result = FilterResult(
+            mean=mean,
+            cov=cov,
+            pred_mean=x_pred,
+            pred_cov=P_pred,
+            innovation=e,
+            mask=seen,
+            transition=F if single else F.unsqueeze(0),
+            meas_matrix=H if single else H.unsqueeze(0),
+            meas_cov=R if single else R.unsqueeze(0),
+            gain=K,
+            post_innovation=None if kalman else e_post,
+            innovation_cov=S,
+            log_likelihood=loglik if kalman else None,
+        )
+        memory_after, total = (None, loglik) if kalman else (e_post, None)
+        if single:  # the state keeps the batch axis; the step's result drops it
+            mean, cov = mean.unsqueeze(0), cov.unsqueeze(0)
+            if kalman:
+                total = loglik.unsqueeze(0)
+            else:
+                memory_after = e_post.unsqueeze(0)
+        if total is not None and state.log_likelihood is not None:
+            total = state.log_likelihood + total
+        after = FilterState(
+            mean, cov, memory_after, total, None, state.steps + 1, single, constants
         )
         return after, result
 
@@ -494,6 +621,7 @@ class KalmanFilter(GaussianFilter):
     """
 
     axis_rule: str | None = "kalman"
+    dense_rule: str | None = "kalman"
 
     def correct(
         self,

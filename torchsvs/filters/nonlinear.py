@@ -71,6 +71,8 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         2000. doi:10.1109/ASSPCC.2000.882463
     """
 
+    dense_rule = None  # sigma points, not the Kalman correction of F and H
+
     def __init__(
         self, model: StateSpaceModel, alpha: float = 0.5, beta: float = 2.0, kappa: float = 0.0
     ) -> None:

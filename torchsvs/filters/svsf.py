@@ -12,6 +12,7 @@ from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import GaussianFilter, Observation, Step, innovation_covariance
+from torchsvs.kernels import fused
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
 from torchsvs.linalg import (
     has_orthonormal_rows,
@@ -252,6 +253,17 @@ class SVSF(GaussianFilter):
             innovation_cov=S,
             meas_matrix=H if obs.H is None else None,
         )
+
+    @property
+    def dense_rule(self) -> str | None:  # type: ignore[override]
+        return "svsf" if self.artificial is None else None
+
+    def _dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
+        psi, gamma = self.psi, self.gamma
+        if not has_orthonormal_rows(H) or not fused.usable(psi.to(dtype), gamma.to(dtype)):
+            return None
+        widths = psi.to(dtype)
+        return float(gamma), widths.expand(H.shape[0]) if widths.ndim == 0 else widths
 
     def run_settings(self, inputs: Inputs, H: Tensor | None) -> _Gains:
         dtype = inputs.z.dtype

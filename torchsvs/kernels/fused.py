@@ -114,6 +114,11 @@ def library() -> ctypes.CDLL | None:
         getattr(lib, f"rts_interval_{suffix}").argtypes = [*size, pointers, strides, pointers]
         backward = getattr(lib, f"backward_{suffix}")
         backward.argtypes = [*size, ctypes.c_int64, ctypes.c_int, pointers, strides, pointers]
+        dense = getattr(lib, f"dense_step_{suffix}")
+        vp = ctypes.c_void_p
+        dense.argtypes = [*size, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp, vp]
+        dense.argtypes += [ctypes.c_int64, pointers, pointers, vp]
+        dense.restype = ctypes.c_int
     _state["library"] = lib
     return lib
 
@@ -228,3 +233,64 @@ def backward(
     steps = shape[1] - 1
     limit = steps if lag is None else min(lag, steps)
     return _call("backward", 5, given, shape, limit, int(projection))
+
+
+#: Largest state or measurement size of :func:`dense_step` (``kMax`` in fused.cpp).
+DENSE_MAX = 16
+
+
+class DenseMatrices:
+    """``F, Q, H, R`` of a run of compiled online steps (contiguous, one dtype) and their
+    pointers, built once."""
+
+    def __init__(self, matrices: Sequence[Tensor]) -> None:
+        self.tensors = list(matrices)
+        self.pointers = _pointers(self.tensors)
+
+
+def dense_step(
+    rule: str,
+    gamma: float,
+    x: Tensor,
+    P: Tensor,
+    z: Tensor,
+    memory: Tensor,
+    psi: Tensor,
+    matrices: DenseMatrices,
+    single: bool = False,
+) -> tuple[Tensor, ...] | None:
+    """One predict-correct step of a dense linear-Gaussian filter for ``B`` tracks (an online
+    ``step`` call): ``x [B, n]``, ``P [B, n, n]``, ``z [B, m]`` (NaN: missing), the SVSF's
+    ``memory [B, m]`` and ``psi`` (``[B, m]`` or ``[m]``); all contiguous, one dtype.
+    ``rule`` ``"kalman"`` or ``"svsf"`` (``H`` with orthonormal rows). Returns ``x, P, x_pred,
+    P_pred, e, K, S, log_likelihood, e_post, observed`` (without the batch axis when
+    ``single``), or ``None`` when ``z`` holds an infinity or a Cholesky factor failed."""
+    lib = library()
+    assert lib is not None
+    B, n = x.shape
+    m = z.shape[-1]
+    lead = () if single else (B,)
+    dtype = x.dtype
+    out = [
+        torch.empty(lead + shape, dtype=dtype)
+        for shape in ((n,), (n, n), (n,), (n, n), (m,), (n, m), (m, m), (), (m,))
+    ]
+    observed = torch.empty(*lead, m, dtype=torch.bool)
+    call = lib.dense_step_f32 if x.dtype == torch.float32 else lib.dense_step_f64
+    failed = call(
+        B,
+        n,
+        m,
+        0 if rule == "kalman" else 1,
+        float(gamma),
+        x.data_ptr(),
+        P.data_ptr(),
+        z.data_ptr(),
+        memory.data_ptr(),
+        psi.data_ptr(),
+        0 if psi.ndim == 1 and B > 1 else m,
+        matrices.pointers,
+        _pointers(out),
+        observed.data_ptr(),
+    )
+    return None if failed else (*out, observed)
