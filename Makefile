@@ -30,6 +30,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.particles
 	$(PY) -m benchmarks.threads
 	$(PY) -m benchmarks.step_overhead
+	$(PY) -m benchmarks.one_track
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks
