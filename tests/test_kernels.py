@@ -302,7 +302,7 @@ def _online(est, x0, P0, z, psi=None):
 @pytest.mark.parametrize("case", ["KF dense", "EKF dense", "KF CV", "SVSF CV", "SVSF CV psi"])
 @pytest.mark.parametrize("single", [False, True], ids=["batch", "one track"])
 def test_compiled_online_steps_equal_the_tensor_steps(case, single, monkeypatch):
-    """An online step of a linear model without gradients runs compiled (fused.dense_step):
+    """An online step of a linear model without gradients runs compiled (fused.dense_run):
     every field of every step and state equals the tensor path's to 1e-10 in float64, with
     missing components, a step without measurements, per-step ψ and one-track states."""
     dense, z = _dense_problem(seed=11)
@@ -323,13 +323,13 @@ def test_compiled_online_steps_equal_the_tensor_steps(case, single, monkeypatch)
         x0, z = x0[0], z[0]
         psi = None if psi is None else psi[0]
     calls = {"dense": 0}
-    original = fused.dense_step
+    original = fused.dense_run
 
     def counted(*args, **kwargs):
         calls["dense"] += 1
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(fused, "dense_step", counted)
+    monkeypatch.setattr(fused, "dense_run", counted)
     with torch.no_grad():
         states, outs = _online(est, x0, P0, z, psi)
         assert calls["dense"] == z.shape[-2]
@@ -357,13 +357,13 @@ def test_online_steps_step_aside_where_the_compiled_step_cannot_run(monkeypatch)
     """Gradients, an artificial measurement, a nonlinear model, a non-selection H for the
     SVSF, a per-step dt and bad input take the tensor path (and its error messages)."""
     calls = {"dense": 0}
-    original = fused.dense_step
+    original = fused.dense_run
 
     def counted(*args, **kwargs):
         calls["dense"] += 1
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(fused, "dense_step", counted)
+    monkeypatch.setattr(fused, "dense_run", counted)
     dense, z = _dense_problem(seed=12, B=2, T=5)
     cv = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
     x4, P4 = torch.zeros(2, 4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
@@ -387,3 +387,65 @@ def test_online_steps_step_aside_where_the_compiled_step_cannot_run(monkeypatch)
             kf.step(kf.init(x4, P4), z[:, 0], psi=torch.ones(2, 2, dtype=torch.float64))
         kf.step(kf.init(x4, P4), z[:, 0])
     assert calls["dense"] == 2  # the inf step tried it first, then the plain step ran it
+
+
+@needs_compiler
+@pytest.mark.parametrize("case", ["KF", "EKF", "KS", "SVSF", "SVSF psi", "SVSS"])
+def test_compiled_dense_runs_equal_the_general_path(case, monkeypatch):
+    """A whole run of a dense linear model without gradients is compiled
+    (:func:`fused.dense_run`): every field equals the general path's to 1e-10 in float64, with
+    missing components, chunks carrying the state, per-step ψ, and smoothers over it."""
+    dense, z = _dense_problem(seed=13, B=3, T=40)
+    selection = ts.models.LinearGaussian(
+        dense.transition(),
+        torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64),
+        dense.process_noise(),
+        torch.diag(torch.tensor([2.0, 1.0], dtype=torch.float64)),
+    )
+    psi = torch.rand(3, 40, 2, dtype=torch.float64) * 4 + 0.5 if case.endswith("psi") else None
+    svsf = ts.SVSF(selection, psi=[3.0, 2.0], gamma=0.2, artificial=None, learn=False)
+    est = {
+        "KF": ts.KalmanFilter(dense),
+        "EKF": ts.ExtendedKalmanFilter(dense),
+        "KS": ts.RTSSmoother(ts.KalmanFilter(dense)),
+        "SVSF": svsf,
+        "SVSF psi": svsf,
+        "SVSS": ts.SVSS(svsf, lag=3),
+    }[case]
+    x0 = torch.tensor([[0.5, -0.2, 1.0]], dtype=torch.float64).expand(3, 3)
+    P0 = torch.eye(3, dtype=torch.float64) * 4
+    kwargs = {} if psi is None else {"psi": psi}
+    calls = {"dense": 0}
+    original = fused.dense_run
+
+    def counted(*args, **kw):
+        calls["dense"] += 1
+        return original(*args, **kw)
+
+    monkeypatch.setattr(fused, "dense_run", counted)
+    with torch.no_grad():
+        compiled = est(z, x0, P0, **kwargs)
+        assert calls["dense"] == 1
+        with eager_loops():
+            general = est(z, x0, P0, **kwargs)
+        assert calls["dense"] == 1
+    for key in compiled._fields:
+        a, b = getattr(compiled, key), getattr(general, key)
+        if isinstance(a, tuple):  # a smoother's filter pass
+            for inner in a._fields:
+                x, y = getattr(a, inner), getattr(b, inner)
+                assert (x is None) == (y is None), inner
+                if isinstance(x, torch.Tensor):
+                    assert_close(x.to(y.dtype), y.expand_as(x), atol=1e-10, rtol=1e-10, msg=inner)
+            continue
+        assert (a is None) == (b is None), key
+        if isinstance(a, torch.Tensor):
+            assert_close(a.to(b.dtype), b.expand_as(a), atol=1e-10, rtol=1e-10, msg=key)
+    if isinstance(est, ts.filters.GaussianFilter):
+        with torch.no_grad():  # chunks of 7 carry the state (the SVSF's memory) compiled too
+            state, parts = est.init(x0, P0), []
+            for start in range(0, 40, 7):
+                chunk = {} if psi is None else {"psi": psi[:, start : start + 7]}
+                state, part = est.scan(state, z[:, start : start + 7], **chunk)
+                parts.append(part.mean)
+        assert_close(torch.cat(parts, 1), compiled.mean, atol=1e-12, rtol=0)

@@ -253,6 +253,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         fresh = state.steps == 0 or (state.post_innovation is None and state.history is None)
         result = self._run_axes(inputs) if fresh else None
         if result is None:
+            result = self._dense_scan(state, inputs)
+        if result is None:
             result = self._loop(inputs, state.post_innovation, state.history)
         loglik = result.log_likelihood
         if loglik is not None and state.log_likelihood is not None:
@@ -270,7 +272,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         )
         return after, result
 
-    #: the corrector's rule in the compiled dense step (:func:`torchsvs.kernels.fused.dense_step`)
+    #: the corrector's rule in the compiled dense steps (:func:`torchsvs.kernels.fused.dense_run`)
     #: for linear models, or None
     dense_rule: str | None = None
 
@@ -311,6 +313,67 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         gamma, widths = settings
         return DenseConstants(fused.DenseMatrices(matrices), gamma, widths.contiguous())
 
+    def _dense_scan(self, state: FilterState, inputs: Inputs) -> FilterResult | None:
+        """The steps of ``inputs`` compiled (:func:`~torchsvs.kernels.fused.dense_run`) for a
+        linear model with its own interval, without gradients; else ``None``."""
+        model, rule = self.model, self.dense_rule
+        if rule is None or not isinstance(model, LinearModel) or state.history is not None:
+            return None
+        if inputs.dt is not None or inputs.u is not None:
+            return None
+        n, m = model.state_dim, model.meas_dim
+        if n > fused.DENSE_MAX or m > fused.DENSE_MAX:
+            return None
+        if not fused.usable(inputs.z, inputs.x0, inputs.P0):
+            return None
+        B, T = inputs.batch, inputs.steps
+        if rule == "kalman" and B > 1 and inputs.P0.shape[0] == 1:
+            # A shared prior without missing data: the general path runs one covariance
+            # recursion for the whole batch (a broadcast view), less work and memory.
+            if not bool(torch.isnan(inputs.z).any()):
+                return None
+        dtype = inputs.z.dtype
+        constants = self._dense_constants(dtype)
+        if constants is None:
+            return None
+        widths = constants.widths if inputs.psi is None else inputs.psi.contiguous()
+        if widths.dtype != dtype or (inputs.psi is not None and rule != "svsf"):
+            return None
+        memory = state.post_innovation
+        if rule == "svsf" and memory is None:
+            memory = inputs.z.new_zeros(B, m)
+        out = fused.dense_run(
+            rule,
+            constants.gamma,
+            inputs.x0.expand(B, n).contiguous(),
+            inputs.P0.expand(B, n, n).contiguous(),
+            inputs.z.contiguous(),
+            inputs.x0 if memory is None else memory.expand(B, m).contiguous(),
+            widths,
+            constants.matrices,
+            (B, T),
+        )
+        if out is None:
+            return None
+        mean, cov, x_pred, P_pred, e, K, S, loglik, e_post, seen = out
+        kalman = rule == "kalman"
+        F, _, H, R = constants.matrices.tensors
+        return FilterResult(
+            mean=mean,
+            cov=cov,
+            pred_mean=x_pred,
+            pred_cov=P_pred,
+            innovation=e,
+            mask=seen,
+            transition=_as_result_matrix(F),
+            meas_matrix=_as_result_matrix(H),
+            meas_cov=_as_result_matrix(R),
+            gain=K,
+            post_innovation=None if kalman else e_post,
+            innovation_cov=S,
+            log_likelihood=loglik.sum(1) if kalman else None,
+        )
+
     def _dense_step(
         self, state: Any, z: Any, psi: Tensor | None
     ) -> tuple[FilterState, FilterResult] | None:
@@ -342,7 +405,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         memory = state.post_innovation
         if rule == "svsf" and memory is None:
             memory = x.new_zeros(B, m)
-        out = fused.dense_step(
+        out = fused.dense_run(
             rule,
             constants.gamma,
             x.contiguous(),
@@ -353,7 +416,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             x if memory is None else memory.contiguous(),
             widths,
             constants.matrices,
-            single,
+            () if single else (B,),
         )
         if out is None:
             return None  # inf in z, or S not positive definite: the general path says or copes

@@ -314,21 +314,172 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, cons
     }
 }
 
-// One predict-correct step of a dense linear-Gaussian filter (an online `step` call), per
-// track: GaussianFilter.predict, then KalmanFilter.correct (rule 0) or SVSF.correct with an H
-// of orthonormal rows, whose H⁺ is Hᵀ (rule 1). n, m ≤ kMax. Contiguous arrays:
-// x [B, n], P [B, n, n], z [B, m] (NaN: missing), memory [B, m] and psi [B, m] (SVSF; psi may
-// be [m] for every track: psi_stride 0), consts F [n, n], Q [n, n], H [m, n], R [m, m].
-// out (9 arrays): x [B, n], P [B, n, n], x_pred [B, n], P_pred [B, n, n], e [B, m],
-//      K [B, n, m], S [B, m, m], loglik [B], e_post [B, m]; observed [B, m] (bool).
-// Returns 0; 1 when a Cholesky factor failed (the caller then takes the tensor path, whose
-// factorisation adds jitter); 2 when z holds an infinity (the tensor path reports it).
+// One predict-correct step of a dense linear-Gaussian filter for one track:
+// GaussianFilter.predict, then KalmanFilter.correct (rule 0) or SVSF.correct with an H of
+// orthonormal rows, whose H⁺ is Hᵀ (rule 1). n, m ≤ kMax; every array contiguous.
+// Given x [n], P [n, n], z [m] (NaN: missing), the SVSF's memory and psi [m], and
+// F [n, n], Q [n, n], H [m, n], R [m, m]; writes x, P, x_pred, P_pred, e [m], K [n, m],
+// S [m, m], *loglik, e_post [m], observed [m]. Returns 0, or 1 when a Cholesky factor failed
+// (the caller then takes the tensor path, whose factorisation adds jitter).
 constexpr int64_t kMax = 16;
 
 template <typename R>
-int dense_step(int64_t B, int64_t n, int64_t m, int rule, R gamma, const R* X, const R* P,
-               const R* Z, const R* M, const R* W, int64_t psi_stride, const void* const* consts,
-               void* const* outs, bool* so) {
+int dense_track(int64_t n, int64_t m, int rule, R gamma, const R* x, const R* Pb, const R* z,
+                const R* mem, const R* psi, const R* F, const R* Q, const R* H, const R* Rm,
+                R* xb, R* Pb1, R* x1, R* P1, R* e, R* K, R* S, R* ll, R* epost, bool* so) {
+    const R log2pi = static_cast<R>(1.8378770664093453);
+    R FP[kMax * kMax], A[kMax * kMax], AP[kMax * kMax], Hm[kMax * kMax], Rmk[kMax * kMax];
+    R PHt[kMax * kMax], L[kMax * kMax], KR[kMax * kMax];
+    bool seen[kMax];
+    // Prediction: x̂ = F x, P = sym(F P Fᵀ + Q) (Eqs. (11)-(12)).
+    for (int64_t i = 0; i < n; ++i) {
+        R acc = 0;
+        for (int64_t k = 0; k < n; ++k) acc += F[i * n + k] * x[k];
+        x1[i] = acc;
+        for (int64_t j = 0; j < n; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < n; ++k) a += F[i * n + k] * Pb[k * n + j];
+            FP[i * n + j] = a;
+        }
+    }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < n; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < n; ++k) a += FP[i * n + k] * F[j * n + k];
+            A[i * n + j] = a + Q[i * n + j];
+        }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < n; ++j) P1[i * n + j] = R(0.5) * (A[i * n + j] + A[j * n + i]);
+    // Innovation over the observed components; masked H and R (mask_measurement).
+    int observed = 0;
+    for (int64_t i = 0; i < m; ++i) {
+        seen[i] = !std::isnan(z[i]);
+        so[i] = seen[i];
+        observed += seen[i];
+        R acc = 0;
+        for (int64_t k = 0; k < n; ++k) acc += H[i * n + k] * x1[k];
+        e[i] = seen[i] ? z[i] - acc : R(0);
+        for (int64_t k = 0; k < n; ++k) Hm[i * n + k] = seen[i] ? H[i * n + k] : R(0);
+    }
+    for (int64_t i = 0; i < m; ++i)
+        for (int64_t j = 0; j < m; ++j)
+            Rmk[i * m + j] = (seen[i] && seen[j]) ? Rm[i * m + j] : (i == j ? R(1) : R(0));
+    // S = sym(H P Hᵀ + R) of the observed components, identity elsewhere.
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < m; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < n; ++k) a += P1[i * n + k] * Hm[j * n + k];
+            PHt[i * m + j] = a;
+        }
+    for (int64_t i = 0; i < m; ++i)
+        for (int64_t j = 0; j < m; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < n; ++k) a += Hm[i * n + k] * PHt[k * m + j];
+            A[i * m + j] = a + Rmk[i * m + j];
+        }
+    for (int64_t i = 0; i < m; ++i)
+        for (int64_t j = 0; j < m; ++j) S[i * m + j] = R(0.5) * (A[i * m + j] + A[j * m + i]);
+    if (rule == 0) {
+        // Kalman gain K = P Hᵀ S⁻¹ through L = chol(S) (kalman_update).
+        for (int64_t i = 0; i < m; ++i)
+            for (int64_t j = 0; j <= i; ++j) {
+                R a = S[i * m + j];
+                for (int64_t k = 0; k < j; ++k) a -= L[i * m + k] * L[j * m + k];
+                if (i == j) {
+                    if (!(a > 0)) return 1;
+                    L[i * m + i] = std::sqrt(a);
+                } else {
+                    L[i * m + j] = a / L[j * m + j];
+                }
+            }
+        for (int64_t r = 0; r < n; ++r) {  // row r of K: solve S kᵀ = (P Hᵀ)[r]ᵀ
+            R y[kMax];
+            for (int64_t i = 0; i < m; ++i) {
+                R a = PHt[r * m + i];
+                for (int64_t k = 0; k < i; ++k) a -= L[i * m + k] * y[k];
+                y[i] = a / L[i * m + i];
+            }
+            for (int64_t i = m - 1; i >= 0; --i) {
+                R a = y[i];
+                for (int64_t k = i + 1; k < m; ++k) a -= L[k * m + i] * K[r * m + k];
+                K[r * m + i] = a / L[i * m + i];
+            }
+        }
+        // log N(e; 0, S) over the observed components (gaussian_log_density).
+        R white = 0, logdet = 0, y[kMax];
+        for (int64_t i = 0; i < m; ++i) {
+            R a = e[i];
+            for (int64_t k = 0; k < i; ++k) a -= L[i * m + k] * y[k];
+            y[i] = a / L[i * m + i];
+            white += y[i] * y[i];
+            logdet += std::log(L[i * m + i]);
+        }
+        *ll = R(-0.5) * (white + R(2) * logdet + R(observed) * log2pi);
+    } else {
+        // SVSF gain K = Hᵀ D diag((|e| + γ|e_post|) / max(|e|, ψ)) (Eq. (23)).
+        for (int64_t j = 0; j < m; ++j) {
+            R ratio = gain_ratio(e[j], mem[j], psi[j], gamma);
+            for (int64_t r = 0; r < n; ++r) K[r * m + j] = Hm[j * n + r] * ratio;
+        }
+    }
+    // x = x̂ + K e; P = sym((I − K H) P (I − K H)ᵀ + K R Kᵀ) (Joseph form).
+    for (int64_t i = 0; i < n; ++i) {
+        R acc = 0;
+        for (int64_t k = 0; k < m; ++k) acc += K[i * m + k] * e[k];
+        xb[i] = x1[i] + acc;
+    }
+    // The KF's Joseph form uses the masked H and R, the SVSF's the full ones (equal: K has
+    // zero columns where missing).
+    const R* Hj = rule == 0 ? Hm : H;
+    const R* Rj = rule == 0 ? Rmk : Rm;
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < n; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < m; ++k) a += K[i * m + k] * Hj[k * n + j];
+            A[i * n + j] = (i == j ? R(1) : R(0)) - a;
+        }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < n; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < n; ++k) a += A[i * n + k] * P1[k * n + j];
+            AP[i * n + j] = a;
+        }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < m; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < m; ++k) a += K[i * m + k] * Rj[k * m + j];
+            KR[i * m + j] = a;
+        }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < n; ++j) {
+            R a = 0;
+            for (int64_t k = 0; k < n; ++k) a += AP[i * n + k] * A[j * n + k];
+            for (int64_t k = 0; k < m; ++k) a += KR[i * m + k] * K[j * m + k];
+            FP[i * n + j] = a;
+        }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < n; ++j) Pb1[i * n + j] = R(0.5) * (FP[i * n + j] + FP[j * n + i]);
+    if (rule == 1) {  // the memory: e_post = z − H x̂ (Eq. (24)), carried where missing
+        for (int64_t i = 0; i < m; ++i) {
+            R acc = 0;
+            for (int64_t k = 0; k < n; ++k) acc += H[i * n + k] * xb[k];
+            epost[i] = seen[i] ? z[i] - acc : mem[i];
+        }
+    }
+    return 0;
+}
+
+// dense_track over T steps of B tracks (T = 1: an online `step` call; T > 1: a whole run of a
+// dense model, offline). in: x0 [B, n], P0 [B, n, n], z [B, T, m], memory0 [B, m] (SVSF),
+// psi [B, T, m] or [m] (psi_track, psi_step: element strides). consts: F, Q, H, R.
+// outs (10): x, P, x_pred, P_pred [B, T, ...], e [B, T, m], K [B, T, n, m], S [B, T, m, m],
+// loglik [B, T], e_post [B, T, m], observed [B, T, m] (bool).
+// Returns 0; 1 when a Cholesky factor failed; 2 when z holds an infinity (the caller's tensor
+// path reports it).
+template <typename R>
+int dense_run(int64_t B, int64_t T, int64_t n, int64_t m, int rule, R gamma, const R* X,
+              const R* P, const R* Z, const R* M, const R* W, int64_t psi_track,
+              int64_t psi_step, const void* const* consts, void* const* outs) {
     const R* F = static_cast<const R*>(consts[0]);
     const R* Q = static_cast<const R*>(consts[1]);
     const R* H = static_cast<const R*>(consts[2]);
@@ -342,161 +493,23 @@ int dense_step(int64_t B, int64_t n, int64_t m, int rule, R gamma, const R* X, c
     R* So = static_cast<R*>(outs[6]);
     R* ll = static_cast<R*>(outs[7]);
     R* ep = static_cast<R*>(outs[8]);
-    for (int64_t i = 0; i < B * m; ++i)
-        if (std::isinf(Z[i])) return 2;  // the caller's general path reports it
-    const R log2pi = static_cast<R>(1.8378770664093453);
-    R FP[kMax * kMax], A[kMax * kMax], AP[kMax * kMax], Hm[kMax * kMax], Rmk[kMax * kMax];
-    R PHt[kMax * kMax], L[kMax * kMax], KR[kMax * kMax];
-    bool seen[kMax];
+    bool* so = static_cast<bool*>(outs[9]);
+    for (int64_t i = 0; i < B * T * m; ++i)
+        if (std::isinf(Z[i])) return 2;
     for (int64_t b = 0; b < B; ++b) {
         const R* x = X + b * n;
         const R* Pb = P + b * n * n;
-        const R* z = Z + b * m;
-        R* x1 = xp + b * n;
-        R* P1 = Pp + b * n * n;
-        // Prediction: x̂ = F x, P = sym(F P Fᵀ + Q) (Eqs. (11)-(12)).
-        for (int64_t i = 0; i < n; ++i) {
-            R acc = 0;
-            for (int64_t k = 0; k < n; ++k) acc += F[i * n + k] * x[k];
-            x1[i] = acc;
-            for (int64_t j = 0; j < n; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < n; ++k) a += F[i * n + k] * Pb[k * n + j];
-                FP[i * n + j] = a;
-            }
-        }
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < n; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < n; ++k) a += FP[i * n + k] * F[j * n + k];
-                A[i * n + j] = a + Q[i * n + j];
-            }
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < n; ++j) P1[i * n + j] = R(0.5) * (A[i * n + j] + A[j * n + i]);
-        // Innovation over the observed components; masked H and R (mask_measurement).
-        R* e = eo + b * m;
-        int observed = 0;
-        for (int64_t i = 0; i < m; ++i) {
-            seen[i] = !std::isnan(z[i]);
-            so[b * m + i] = seen[i];
-            observed += seen[i];
-            R acc = 0;
-            for (int64_t k = 0; k < n; ++k) acc += H[i * n + k] * x1[k];
-            e[i] = seen[i] ? z[i] - acc : R(0);
-            for (int64_t k = 0; k < n; ++k) Hm[i * n + k] = seen[i] ? H[i * n + k] : R(0);
-        }
-        for (int64_t i = 0; i < m; ++i)
-            for (int64_t j = 0; j < m; ++j)
-                Rmk[i * m + j] = (seen[i] && seen[j]) ? Rm[i * m + j] : (i == j ? R(1) : R(0));
-        // S = sym(H P Hᵀ + R) of the observed components, identity elsewhere.
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < m; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < n; ++k) a += P1[i * n + k] * Hm[j * n + k];
-                PHt[i * m + j] = a;
-            }
-        R* S = So + b * m * m;
-        for (int64_t i = 0; i < m; ++i)
-            for (int64_t j = 0; j < m; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < n; ++k) a += Hm[i * n + k] * PHt[k * m + j];
-                A[i * m + j] = a + Rmk[i * m + j];
-            }
-        for (int64_t i = 0; i < m; ++i)
-            for (int64_t j = 0; j < m; ++j) S[i * m + j] = R(0.5) * (A[i * m + j] + A[j * m + i]);
-        R* K = Ko + b * n * m;
         const R* mem = M + b * m;
-        R* epost = ep + b * m;
-        if (rule == 0) {
-            // Kalman gain K = P Hᵀ S⁻¹ through L = chol(S) (kalman_update).
-            for (int64_t i = 0; i < m; ++i)
-                for (int64_t j = 0; j <= i; ++j) {
-                    R a = S[i * m + j];
-                    for (int64_t k = 0; k < j; ++k) a -= L[i * m + k] * L[j * m + k];
-                    if (i == j) {
-                        if (!(a > 0)) return 1;
-                        L[i * m + i] = std::sqrt(a);
-                    } else {
-                        L[i * m + j] = a / L[j * m + j];
-                    }
-                }
-            for (int64_t r = 0; r < n; ++r) {  // row r of K: solve S kᵀ = (P Hᵀ)[r]ᵀ
-                R y[kMax];
-                for (int64_t i = 0; i < m; ++i) {
-                    R a = PHt[r * m + i];
-                    for (int64_t k = 0; k < i; ++k) a -= L[i * m + k] * y[k];
-                    y[i] = a / L[i * m + i];
-                }
-                for (int64_t i = m - 1; i >= 0; --i) {
-                    R a = y[i];
-                    for (int64_t k = i + 1; k < m; ++k) a -= L[k * m + i] * K[r * m + k];
-                    K[r * m + i] = a / L[i * m + i];
-                }
-            }
-            // log N(e; 0, S) over the observed components (gaussian_log_density).
-            R white = 0, logdet = 0, y[kMax];
-            for (int64_t i = 0; i < m; ++i) {
-                R a = e[i];
-                for (int64_t k = 0; k < i; ++k) a -= L[i * m + k] * y[k];
-                y[i] = a / L[i * m + i];
-                white += y[i] * y[i];
-                logdet += std::log(L[i * m + i]);
-            }
-            ll[b] = R(-0.5) * (white + R(2) * logdet + R(observed) * log2pi);
-        } else {
-            // SVSF gain K = Hᵀ D diag((|e| + γ|e_post|) / max(|e|, ψ)) (Eq. (23)).
-            const R* psi = W + b * psi_stride;
-            for (int64_t j = 0; j < m; ++j) {
-                R ratio = gain_ratio(e[j], mem[j], psi[j], gamma);
-                for (int64_t r = 0; r < n; ++r) K[r * m + j] = Hm[j * n + r] * ratio;
-            }
-        }
-        // x = x̂ + K e; P = sym((I − K H) P (I − K H)ᵀ + K R Kᵀ) (Joseph form).
-        R* xb = xo + b * n;
-        for (int64_t i = 0; i < n; ++i) {
-            R acc = 0;
-            for (int64_t k = 0; k < m; ++k) acc += K[i * m + k] * e[k];
-            xb[i] = x1[i] + acc;
-        }
-        // The KF's Joseph form uses the masked H and R, the SVSF's the full ones (equal: K has
-        // zero columns where missing).
-        const R* Hj = rule == 0 ? Hm : H;
-        const R* Rj = rule == 0 ? Rmk : Rm;
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < n; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < m; ++k) a += K[i * m + k] * Hj[k * n + j];
-                A[i * n + j] = (i == j ? R(1) : R(0)) - a;
-            }
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < n; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < n; ++k) a += A[i * n + k] * P1[k * n + j];
-                AP[i * n + j] = a;
-            }
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < m; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < m; ++k) a += K[i * m + k] * Rj[k * m + j];
-                KR[i * m + j] = a;
-            }
-        R* Pb1 = Po + b * n * n;
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < n; ++j) {
-                R a = 0;
-                for (int64_t k = 0; k < n; ++k) a += AP[i * n + k] * A[j * n + k];
-                for (int64_t k = 0; k < m; ++k) a += KR[i * m + k] * K[j * m + k];
-                FP[i * n + j] = a;
-            }
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t j = 0; j < n; ++j)
-                Pb1[i * n + j] = R(0.5) * (FP[i * n + j] + FP[j * n + i]);
-        if (rule == 1) {  // the memory: e_post = z − H x̂ (Eq. (24)), carried where missing
-            for (int64_t i = 0; i < m; ++i) {
-                R acc = 0;
-                for (int64_t k = 0; k < n; ++k) acc += H[i * n + k] * xb[k];
-                epost[i] = seen[i] ? z[i] - acc : mem[i];
-            }
+        for (int64_t t = 0; t < T; ++t) {
+            int64_t k = b * T + t;
+            int failed = dense_track<R>(
+                n, m, rule, gamma, x, Pb, Z + k * m, mem, W + b * psi_track + t * psi_step, F, Q,
+                H, Rm, xo + k * n, Po + k * n * n, xp + k * n, Pp + k * n * n, eo + k * m,
+                Ko + k * n * m, So + k * m * m, ll + k, ep + k * m, so + k * m);
+            if (failed) return failed;
+            x = xo + k * n;
+            Pb = Po + k * n * n;
+            if (rule == 1) mem = ep + k * m;
         }
     }
     return 0;
@@ -536,26 +549,26 @@ void backward_f64(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
     backward<double>(B, T, m, lag, projection, in, s, out);
 }
 
-int dense_step_f32(int64_t B, int64_t n, int64_t m, int rule, double gamma, const void* x,
-                   const void* P, const void* z, const void* memory, const void* psi,
-                   int64_t psi_stride, const void* const* consts, void* const* outs,
-                   void* observed) {
+int dense_run_f32(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
+                  const void* x, const void* P, const void* z, const void* memory, const void* psi,
+                  int64_t psi_track, int64_t psi_step, const void* const* consts,
+                  void* const* outs) {
     using R = float;
-    return dense_step<R>(B, n, m, rule, static_cast<R>(gamma), static_cast<const R*>(x),
-                         static_cast<const R*>(P), static_cast<const R*>(z),
-                         static_cast<const R*>(memory), static_cast<const R*>(psi), psi_stride,
-                         consts, outs, static_cast<bool*>(observed));
+    return dense_run<R>(B, T, n, m, rule, static_cast<R>(gamma), static_cast<const R*>(x),
+                        static_cast<const R*>(P), static_cast<const R*>(z),
+                        static_cast<const R*>(memory), static_cast<const R*>(psi), psi_track,
+                        psi_step, consts, outs);
 }
 
-int dense_step_f64(int64_t B, int64_t n, int64_t m, int rule, double gamma, const void* x,
-                   const void* P, const void* z, const void* memory, const void* psi,
-                   int64_t psi_stride, const void* const* consts, void* const* outs,
-                   void* observed) {
+int dense_run_f64(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
+                  const void* x, const void* P, const void* z, const void* memory, const void* psi,
+                  int64_t psi_track, int64_t psi_step, const void* const* consts,
+                  void* const* outs) {
     using R = double;
-    return dense_step<R>(B, n, m, rule, gamma, static_cast<const R*>(x),
-                         static_cast<const R*>(P), static_cast<const R*>(z),
-                         static_cast<const R*>(memory), static_cast<const R*>(psi), psi_stride,
-                         consts, outs, static_cast<bool*>(observed));
+    return dense_run<R>(B, T, n, m, rule, gamma, static_cast<const R*>(x),
+                        static_cast<const R*>(P), static_cast<const R*>(z),
+                        static_cast<const R*>(memory), static_cast<const R*>(psi), psi_track,
+                        psi_step, consts, outs);
 }
 
 }  // extern "C"

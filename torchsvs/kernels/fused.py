@@ -1,5 +1,10 @@
-"""The per-axis kernel's time loops compiled: ``fused.cpp``, built with the system's C++
-compiler on first use and loaded with :mod:`ctypes`.
+"""The per-axis kernel's time loops, and the dense linear filters' steps, compiled:
+``fused.cpp``, built with the system's C++ compiler on first use and loaded with :mod:`ctypes`.
+
+:func:`dense_run` is the predict-correct step of a dense linear model (KF, or the SVSF's H⁺
+mode with a selection ``H``) per track, over one step (an online ``step`` call: a Python-level
+step costs dozens of tensor operations) or a whole run of a model the per-axis kernel does not
+cover.
 
 A step of the per-axis recursions (:mod:`torchsvs.kernels.axes`) is a few dozen flops per
 track and axis; as tensor operations it costs a few dozen dispatches of about a microsecond
@@ -114,10 +119,10 @@ def library() -> ctypes.CDLL | None:
         getattr(lib, f"rts_interval_{suffix}").argtypes = [*size, pointers, strides, pointers]
         backward = getattr(lib, f"backward_{suffix}")
         backward.argtypes = [*size, ctypes.c_int64, ctypes.c_int, pointers, strides, pointers]
-        dense = getattr(lib, f"dense_step_{suffix}")
+        dense = getattr(lib, f"dense_run_{suffix}")
         vp = ctypes.c_void_p
-        dense.argtypes = [*size, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp, vp]
-        dense.argtypes += [ctypes.c_int64, pointers, pointers, vp]
+        dense.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
+        dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, pointers]
         dense.restype = ctypes.c_int
     _state["library"] = lib
     return lib
@@ -248,7 +253,7 @@ class DenseMatrices:
         self.pointers = _pointers(self.tensors)
 
 
-def dense_step(
+def dense_run(
     rule: str,
     gamma: float,
     x: Tensor,
@@ -257,28 +262,30 @@ def dense_step(
     memory: Tensor,
     psi: Tensor,
     matrices: DenseMatrices,
-    single: bool = False,
+    lead: tuple[int, ...],
 ) -> tuple[Tensor, ...] | None:
-    """One predict-correct step of a dense linear-Gaussian filter for ``B`` tracks (an online
-    ``step`` call): ``x [B, n]``, ``P [B, n, n]``, ``z [B, m]`` (NaN: missing), the SVSF's
-    ``memory [B, m]`` and ``psi`` (``[B, m]`` or ``[m]``); all contiguous, one dtype.
-    ``rule`` ``"kalman"`` or ``"svsf"`` (``H`` with orthonormal rows). Returns ``x, P, x_pred,
-    P_pred, e, K, S, log_likelihood, e_post, observed`` (without the batch axis when
-    ``single``), or ``None`` when ``z`` holds an infinity or a Cholesky factor failed."""
+    """Predict-correct steps of a dense linear-Gaussian filter, compiled: ``B`` tracks from
+    ``x [B, n]``, ``P [B, n, n]`` over ``z [B, T, m]`` (NaN: missing), the SVSF's ``memory
+    [B, m]`` and ``psi`` (``[B, T, m]`` or ``[m]``); all contiguous, one dtype. ``rule``
+    ``"kalman"`` or ``"svsf"`` (``H`` with orthonormal rows). ``lead``: the outputs' leading
+    shape (``(B, T)``; ``(B,)`` or ``()`` for one step). Returns ``x, P, x_pred, P_pred, e, K,
+    S, log_likelihood, e_post, observed``, or ``None`` when ``z`` holds an infinity or a
+    Cholesky factor failed."""
     lib = library()
     assert lib is not None
     B, n = x.shape
-    m = z.shape[-1]
-    lead = () if single else (B,)
+    T, m = z.shape[-2:] if z.ndim == 3 else (1, z.shape[-1])
     dtype = x.dtype
     out = [
         torch.empty(lead + shape, dtype=dtype)
         for shape in ((n,), (n, n), (n,), (n, n), (m,), (n, m), (m, m), (), (m,))
     ]
-    observed = torch.empty(*lead, m, dtype=torch.bool)
-    call = lib.dense_step_f32 if x.dtype == torch.float32 else lib.dense_step_f64
+    out.append(torch.empty(*lead, m, dtype=torch.bool))
+    per_track = psi.ndim > 1
+    call = lib.dense_run_f32 if dtype == torch.float32 else lib.dense_run_f64
     failed = call(
         B,
+        T,
         n,
         m,
         0 if rule == "kalman" else 1,
@@ -288,9 +295,9 @@ def dense_step(
         z.data_ptr(),
         memory.data_ptr(),
         psi.data_ptr(),
-        0 if psi.ndim == 1 and B > 1 else m,
+        T * m if per_track else 0,
+        m if per_track and T > 1 else 0,
         matrices.pointers,
         _pointers(out),
-        observed.data_ptr(),
     )
-    return None if failed else (*out, observed)
+    return None if failed else tuple(out)
