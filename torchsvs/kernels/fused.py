@@ -38,6 +38,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from torchsvs.kernels import AXIS_KERNEL
+
 SOURCE = Path(__file__).with_name("fused.cpp")
 FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC")
 #: Seconds the last build took (0 when the cached library was loaded), for reports.
@@ -138,15 +140,16 @@ def usable(*tensors: Tensor) -> bool:
     """Whether the compiled loops can replace the tensor loops for these inputs: CPU, one
     floating dtype (float32/float64), no gradient asked for, the library available."""
     dtype = tensors[0].dtype
-    if dtype not in (torch.float32, torch.float64):
+    if dtype not in _FLOATS or not AXIS_KERNEL["fused"]:
         return False
-    if any(x.device.type != "cpu" or x.dtype != dtype for x in tensors):
-        return False
-    if torch.is_grad_enabled() and any(x.requires_grad for x in tensors):
-        return False
-    from torchsvs.kernels import AXIS_KERNEL
+    grad = torch.is_grad_enabled()
+    for x in tensors:  # a plain loop: an online step calls this at every step
+        if x.dtype != dtype or x.is_cuda or x.device.type != "cpu" or (grad and x.requires_grad):
+            return False
+    return library() is not None
 
-    return AXIS_KERNEL["fused"] and library() is not None
+
+_FLOATS = (torch.float32, torch.float64)
 
 
 class _Arrays:
