@@ -449,3 +449,31 @@ def test_compiled_dense_runs_equal_the_general_path(case, monkeypatch):
                 state, part = est.scan(state, z[:, start : start + 7], **chunk)
                 parts.append(part.mean)
         assert_close(torch.cat(parts, 1), compiled.mean, atol=1e-12, rtol=0)
+
+
+@needs_compiler
+def test_compiled_online_steps_follow_a_changed_model():
+    """The matrices a run of compiled steps keeps are rebuilt when the model changes between
+    steps (an in-place update of its noise, a new interval): the same as the tensor path."""
+    cv = ts.models.ConstantVelocity(dt=1.0, q=0.5, r=[4.0, 2.0]).double()
+    kf = ts.KalmanFilter(cv)
+    x0, P0 = torch.zeros(2, 4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
+    z = torch.randn(2, 3, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def three_steps() -> torch.Tensor:
+        state = kf.init(x0, P0)
+        state, _ = kf.step(state, z[:, 0])
+        assert state.constants is not None or not fused.usable(z)
+        cv.q.raw.mul_(4.0)  # in place, as an optimiser step would
+        state, _ = kf.step(state, z[:, 1])
+        cv.dt = 2.0
+        state, out = kf.step(state, z[:, 2])
+        cv.q.raw.div_(4.0)
+        cv.dt = 1.0
+        return out.cov
+
+    with torch.no_grad():
+        compiled = three_steps()
+        with eager_loops():
+            tensors = three_steps()
+    assert_close(compiled, tensors, atol=1e-10, rtol=1e-10)

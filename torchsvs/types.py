@@ -86,8 +86,8 @@ class FilterState(NamedTuple):
         steps: steps taken since ``init``.
         single: ``init`` was given one track without the batch axis (results drop it too).
         constants: what compiled online steps computed once for the run (the model's matrices
-            and the corrector's settings), or ``None``; like a whole-sequence run, a run of
-            steps uses the model as it was at its first compiled step.
+            and the corrector's settings, rebuilt when a parameter, buffer or setting of the
+            filter or its model changes), or ``None``.
     """
 
     mean: Tensor

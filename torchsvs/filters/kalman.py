@@ -63,6 +63,15 @@ class DenseConstants(NamedTuple):
     matrices: fused.DenseMatrices  #: F, Q, H, R, contiguous, in the run's dtype
     gamma: float  #: the SVSF's γ (0 for the KF)
     widths: Tensor  #: the SVSF's ψ, [m] (zeros for the KF)
+    tensors: list[Tensor]  #: the filter's and model's parameters and buffers they came from
+    fingerprint: tuple[Any, ...]  #: their versions and storage, and the model's plain settings
+
+
+def _fingerprint(tensors: list[Tensor], model: StateSpaceModel) -> tuple[Any, ...]:
+    """Changes when a parameter or buffer is updated in place or given new data, or a plain
+    setting of the model (its ``dt``) changes: the constants are then rebuilt."""
+    settings = tuple(v for v in vars(model).values() if isinstance(v, (bool, int, float, str)))
+    return (*((t._version, t.data_ptr()) for t in tensors), *settings)
 
 
 class Prepared(NamedTuple):
@@ -311,7 +320,14 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if settings is None:
             return None
         gamma, widths = settings
-        return DenseConstants(fused.DenseMatrices(matrices), gamma, widths.contiguous())
+        tensors = [*self.parameters(), *self.buffers()]
+        return DenseConstants(
+            fused.DenseMatrices(matrices),
+            gamma,
+            widths.contiguous(),
+            tensors,
+            _fingerprint(tensors, model),
+        )
 
     def _dense_scan(self, state: FilterState, inputs: Inputs) -> FilterResult | None:
         """The steps of ``inputs`` compiled (:func:`~torchsvs.kernels.fused.dense_run`) for a
@@ -393,7 +409,11 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return None  # (usable: CPU float32/64, no gradient asked for, compiler available)
         dtype = x.dtype
         constants = state.constants
-        if not isinstance(constants, DenseConstants) or constants.widths.dtype != dtype:
+        if (
+            not isinstance(constants, DenseConstants)
+            or constants.widths.dtype != dtype
+            or constants.fingerprint != _fingerprint(constants.tensors, model)
+        ):
             constants = self._dense_constants(dtype)
             if constants is None:
                 return None
