@@ -121,6 +121,12 @@ def test_evaluate_on_truth_of_some_components_and_padded_tracks():
     positions = sc.truth[..., [0, 2]]
     row = evaluate({"KF": kf}, sc, truth=positions, components=[0, 2], progress=False)[0]
     assert_close(row.rmse, ts.metrics.accumulative_rmse(row.mean, sc.truth)[[0, 2]])
+    holed = positions.clone()
+    holed[0, :10, 1] = float("nan")  # truth missing there: not scored
+    row = evaluate({"KF": kf}, sc, truth=holed, components=[0, 2], progress=False)[0]
+    expected = ts.metrics.accumulative_rmse(row.mean[..., [0, 2]], holed, torch.isfinite(holed))
+    assert bool(torch.isfinite(row.rmse).all())
+    assert_close(row.rmse, expected, atol=0, rtol=0)
     with pytest.raises(ValueError, match=r"truth: expected the estimates' shape .*components="):
         evaluate({"KF": kf}, sc, truth=positions, progress=False)
     with pytest.raises(ValueError, match=r"data: expected a prior"):

@@ -45,7 +45,7 @@ def evaluate(
             with a prior, or anything with ``z``, ``x0``, ``P0`` (per track or shared) and
             optionally ``dt`` (a per-step tensor; a float is the model's own interval), ``u``,
             ``truth`` and the steps to score (``scored`` or ``mask``, ``[B, T]``).
-        truth, mask: replace ``data``'s.
+        truth, mask: replace ``data``'s (missing truth, NaN, is never scored).
         components: the state components ``truth`` holds, in its order (default: all).
         seed: every estimator gets ``torch.Generator().manual_seed(seed)`` (particle filters
             draw from it), so a rerun reproduces.
@@ -72,6 +72,10 @@ def evaluate(
     }
     B, T = z.shape[:2]
     index = list(components) if components is not None else None
+    # Truth that is missing (NaN: padding, an unreported velocity) is not scored.
+    scored = torch.isfinite(truth)
+    if mask is not None:
+        scored = scored & (mask.unsqueeze(-1) if mask.shape == truth.shape[:-1] else mask)
 
     def batch_of(value: Any, rows: slice) -> Any:
         return value[rows] if isinstance(value, Tensor) and value.ndim >= 2 else value
@@ -95,7 +99,7 @@ def evaluate(
                 f"truth: expected the estimates' shape {tuple(mean.shape)} (components= names "
                 f"the state components truth holds), got {tuple(truth.shape)}"
             )
-        rmse = accumulative_rmse(mean, truth, mask)
+        rmse = accumulative_rmse(mean, truth, scored)
         rows.append(Evaluation(name, rmse, 1e6 * seconds / (B * T), out.mean, out))
     return rows
 
