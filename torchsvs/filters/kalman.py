@@ -64,14 +64,19 @@ class DenseConstants(NamedTuple):
     gamma: float  #: the SVSF's γ (0 for the KF)
     widths: Tensor  #: the SVSF's ψ, [m] (zeros for the KF)
     tensors: list[Tensor]  #: the filter's and model's parameters and buffers they came from
-    fingerprint: tuple[Any, ...]  #: their versions and storage, and the model's plain settings
+    settings: list[str]  #: the model's plain settings (its ``dt``) they came from
+    fingerprint: tuple[Any, ...]  #: :func:`_fingerprint` when they were built
 
 
-def _fingerprint(tensors: list[Tensor], model: StateSpaceModel) -> tuple[Any, ...]:
+def _plain_settings(model: StateSpaceModel) -> list[str]:
+    return [k for k, v in vars(model).items() if isinstance(v, (bool, int, float, str))]
+
+
+def _fingerprint(tensors: list[Tensor], model: StateSpaceModel, settings: list[str]) -> tuple:
     """Changes when a parameter or buffer is updated in place or given new data, or a plain
     setting of the model (its ``dt``) changes: the constants are then rebuilt."""
-    settings = tuple(v for v in vars(model).values() if isinstance(v, (bool, int, float, str)))
-    return (*((t._version, t.data_ptr()) for t in tensors), *settings)
+    values = model.__dict__
+    return (*[(t._version, t.data_ptr()) for t in tensors], *[values[k] for k in settings])
 
 
 class Prepared(NamedTuple):
@@ -321,12 +326,14 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return None
         gamma, widths = settings
         tensors = [*self.parameters(), *self.buffers()]
+        plain = _plain_settings(model)
         return DenseConstants(
             fused.DenseMatrices(matrices),
             gamma,
             widths.contiguous(),
             tensors,
-            _fingerprint(tensors, model),
+            plain,
+            _fingerprint(tensors, model, plain),
         )
 
     def _dense_scan(self, state: FilterState, inputs: Inputs) -> FilterResult | None:
@@ -412,7 +419,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if (
             not isinstance(constants, DenseConstants)
             or constants.widths.dtype != dtype
-            or constants.fingerprint != _fingerprint(constants.tensors, model)
+            or constants.fingerprint != _fingerprint(constants.tensors, model, constants.settings)
         ):
             constants = self._dense_constants(dtype)
             if constants is None:

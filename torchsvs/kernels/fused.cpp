@@ -551,8 +551,10 @@ void backward_f64(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
 
 int dense_run_f32(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
                   const void* x, const void* P, const void* z, const void* memory, const void* psi,
-                  int64_t psi_track, int64_t psi_step, const void* const* consts,
-                  void* const* outs) {
+                  int64_t psi_track, int64_t psi_step, const void* const* consts, void* o0,
+                  void* o1, void* o2, void* o3, void* o4, void* o5, void* o6, void* o7, void* o8,
+                  void* o9) {
+    void* const outs[10] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9};
     using R = float;
     return dense_run<R>(B, T, n, m, rule, static_cast<R>(gamma), static_cast<const R*>(x),
                         static_cast<const R*>(P), static_cast<const R*>(z),
@@ -562,8 +564,10 @@ int dense_run_f32(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double g
 
 int dense_run_f64(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
                   const void* x, const void* P, const void* z, const void* memory, const void* psi,
-                  int64_t psi_track, int64_t psi_step, const void* const* consts,
-                  void* const* outs) {
+                  int64_t psi_track, int64_t psi_step, const void* const* consts, void* o0,
+                  void* o1, void* o2, void* o3, void* o4, void* o5, void* o6, void* o7, void* o8,
+                  void* o9) {
+    void* const outs[10] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9};
     using R = double;
     return dense_run<R>(B, T, n, m, rule, gamma, static_cast<const R*>(x),
                         static_cast<const R*>(P), static_cast<const R*>(z),

@@ -124,7 +124,7 @@ def library() -> ctypes.CDLL | None:
         dense = getattr(lib, f"dense_run_{suffix}")
         vp = ctypes.c_void_p
         dense.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
-        dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, pointers]
+        dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, *(vp,) * 10]
         dense.restype = ctypes.c_int
     _state["library"] = lib
     return lib
@@ -274,8 +274,8 @@ def dense_run(
     shape (``(B, T)``; ``(B,)`` or ``()`` for one step). Returns ``x, P, x_pred, P_pred, e, K,
     S, log_likelihood, e_post, observed``, or ``None`` when ``z`` holds an infinity or a
     Cholesky factor failed."""
-    lib = library()
-    assert lib is not None
+    lib = _state["library"]  # loaded: usable() said so
+    assert isinstance(lib, ctypes.CDLL)
     B, n = x.shape
     T, m = z.shape[-2:] if z.ndim == 3 else (1, z.shape[-1])
     dtype = x.dtype
@@ -301,6 +301,6 @@ def dense_run(
         T * m if per_track else 0,
         m if per_track and T > 1 else 0,
         matrices.pointers,
-        _pointers(out),
+        *[o.data_ptr() for o in out],
     )
     return None if failed else tuple(out)
