@@ -18,7 +18,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 
 import torchsvs as ts
@@ -41,25 +40,92 @@ def _best(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, flo
     return best
 
 
-def _filterpy(model: ts.models.LinearModel, x0: np.ndarray, P0: np.ndarray):  # noqa: ANN202
-    from filterpy.kalman import KalmanFilter
+class _Track:
+    """One simulated track of ``model`` (prior 0, 100·I) and filterpy's filter of the same
+    model and prior."""
 
-    F, H = model.transition().double().numpy(), model.meas_matrix().double().numpy()
-    Q, R = model.process_noise().double().numpy(), model.meas_cov().double().numpy()
+    def __init__(self, model: ts.models.LinearModel, steps: int, seed: int) -> None:
+        from filterpy.kalman import KalmanFilter
 
-    def make() -> KalmanFilter:
-        f = KalmanFilter(dim_x=F.shape[0], dim_z=H.shape[0])
-        f.x, f.P, f.F, f.H, f.Q, f.R = x0.copy(), P0.copy(), F, H, Q, R
+        n = model.state_dim
+        self.x0 = torch.zeros(n, dtype=torch.float64)
+        self.P0 = torch.eye(n, dtype=torch.float64) * 100.0
+        _, z = model.simulate(self.x0.unsqueeze(0), steps, torch.Generator().manual_seed(seed))
+        self.z, self.zn = z[0], z[0].numpy()
+        self.F, H = model.transition().double().numpy(), model.meas_matrix().double().numpy()
+        self.Q, R = model.process_noise().double().numpy(), model.meas_cov().double().numpy()
+        self.filterpy = KalmanFilter(dim_x=n, dim_z=H.shape[0])
+        self.filterpy.F, self.filterpy.H, self.filterpy.Q, self.filterpy.R = self.F, H, self.Q, R
+
+    def restart_filterpy(self):  # noqa: ANN201
+        f = self.filterpy
+        f.x, f.P = self.x0.numpy().copy(), self.P0.numpy().copy()
         return f
 
-    return make, F, Q
+
+def _online(label: str, est: torch.nn.Module, track: _Track, repeats: int) -> list[object]:
+    """One ``est.step`` call at a time (compiled, and with the compiled step turned off)
+    beside filterpy's ``predict`` + ``update``."""
+    steps = len(track.zn)
+
+    def torchsvs_steps() -> None:
+        state = est.init(track.x0, track.P0)
+        with torch.no_grad():
+            for t in range(steps):
+                state, _ = est.step(state, track.z[t])
+
+    def tensor_path() -> None:
+        with eager_loops():
+            torchsvs_steps()
+
+    def filterpy_steps() -> None:
+        f = track.restart_filterpy()
+        for t in range(steps):
+            f.predict()
+            f.update(track.zn[t])
+
+    best = _best({"fp": filterpy_steps, "ts": torchsvs_steps, "tensor": tensor_path}, repeats)
+    us = {k: 1e6 * v / steps for k, v in best.items()}
+    return [
+        f"online step, {label}",
+        f"{us['fp']:.1f} µs",
+        f"{us['ts']:.1f} µs (tensor path {us['tensor']:.0f} µs)",
+        f"{us['fp'] / us['ts']:.2f}×",
+    ]
+
+
+def _offline(
+    label: str, est: torch.nn.Module, track: _Track, smooth: bool, repeats: int
+) -> list[object]:
+    """``forward`` on the whole track beside filterpy's ``batch_filter`` (and
+    ``rts_smoother``)."""
+    from filterpy.kalman import rts_smoother
+
+    T = len(track.zn)
+
+    def torchsvs_run() -> None:
+        with torch.no_grad():
+            est(track.z, track.x0, track.P0)
+
+    def filterpy_run() -> None:
+        mu, cov, _, _ = track.restart_filterpy().batch_filter(track.zn)
+        if smooth:
+            rts_smoother(mu, cov, [track.F] * T, [track.Q] * T)
+
+    best = _best({"fp": filterpy_run, "ts": torchsvs_run}, repeats)
+    us = {k: 1e6 * v / T for k, v in best.items()}
+    return [
+        f"one track T = {T:,}, {label}",
+        f"{us['fp']:.1f} µs/step",
+        f"{us['ts']:.2f} µs/step",
+        f"{us['fp'] / us['ts']:.1f}×",
+    ]
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
-    from filterpy.kalman import rts_smoother
 
     torch.set_num_threads(1)  # what a small problem gets by default (threads_for) anyway
     cv = ts.models.ConstantVelocity(dt=1.0, q=0.16, r=200.0**2).double()
@@ -70,95 +136,35 @@ def main(argv: list[str] | None = None) -> None:
         0.1 * torch.eye(3, dtype=torch.float64),
         torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=torch.float64),
     )
-    rows: list[list[object]] = []
-
-    # Online: one step call at a time.
-    steps = 2000
-    for label, model, est in (
-        ("KF, CV", cv, ts.KalmanFilter(cv)),
-        ("SVSF H⁺ mode, CV", cv, ts.SVSF(cv, psi=[800.0, 800.0], artificial=None, learn=False)),
-        ("KF, dense 3-state", dense, ts.KalmanFilter(dense)),
-    ):
-        n = model.state_dim
-        x0 = torch.zeros(n, dtype=torch.float64)
-        P0 = torch.eye(n, dtype=torch.float64) * 100.0
-        _, z = model.simulate(x0.unsqueeze(0), steps, torch.Generator().manual_seed(0))
-        z = z[0]
-        zn = z.numpy()
-        make, _, _ = _filterpy(model, x0.numpy(), P0.numpy())
-
-        def online(est: torch.nn.Module = est, x0: torch.Tensor = x0, P0=P0, z=z) -> None:  # noqa: ANN001
-            state = est.init(x0, P0)
-            with torch.no_grad():
-                for t in range(steps):
-                    state, _ = est.step(state, z[t])
-
-        def tensor_path(online: Callable[[], None] = online) -> None:
-            with eager_loops():
-                online()
-
-        def filterpy(make=make, zn=zn) -> None:  # noqa: ANN001
-            f = make()
-            for t in range(steps):
-                f.predict()
-                f.update(zn[t])
-
-        best = _best(
-            {"fp": filterpy, "ts": online, "tensor": tensor_path}, max(1, args.repeats // 2)
-        )
-        us = {k: 1e6 * v / steps for k, v in best.items()}
-        rows.append(
-            [
-                f"online step, {label}",
-                f"{us['fp']:.1f} µs",
-                f"{us['ts']:.1f} µs (tensor path {us['tensor']:.0f} µs)",
-                f"{us['fp'] / us['ts']:.2f}×",
-            ]
-        )
-
-    # Offline: one track through forward.
-    for T in (1000, 100_000):
-        repeats = args.repeats if T <= 1000 else 1
-        for label, model, est, smooth in (
-            ("KF, CV", cv, ts.KalmanFilter(cv), False),
-            ("KF + RTS, CV", cv, ts.RTSSmoother(ts.KalmanFilter(cv)), True),
-            (
-                "SVSF (finite-difference velocity), CV",
-                cv,
-                ts.SVSF(cv, psi=[800.0, 600.0] * 2),
-                False,
-            ),
-            ("KF, dense 3-state", dense, ts.KalmanFilter(dense), False),
-        ):
-            if T > 1000 and label.startswith(("SVSF", "KF, dense")):
-                continue
-            n = model.state_dim
-            x0 = torch.zeros(n, dtype=torch.float64)
-            P0 = torch.eye(n, dtype=torch.float64) * 100.0
-            _, z = model.simulate(x0.unsqueeze(0), T, torch.Generator().manual_seed(1))
-            z = z[0]
-            zn = z.numpy()
-            make, F, Q = _filterpy(model, x0.numpy(), P0.numpy())
-
-            def offline(est: torch.nn.Module = est, z=z, x0=x0, P0=P0) -> None:  # noqa: ANN001
-                with torch.no_grad():
-                    est(z, x0, P0)
-
-            def filterpy(make=make, zn=zn, smooth=smooth, F=F, Q=Q) -> None:  # noqa: ANN001
-                mu, cov, _, _ = make().batch_filter(zn)
-                if smooth:
-                    rts_smoother(mu, cov, [F] * len(zn), [Q] * len(zn))
-
-            best = _best({"fp": filterpy, "ts": offline}, repeats)
-            us = {k: 1e6 * v / T for k, v in best.items()}
-            rows.append(
-                [
-                    f"one track T = {T:,}, {label}",
-                    f"{us['fp']:.1f} µs/step",
-                    f"{us['ts']:.2f} µs/step",
-                    f"{us['fp'] / us['ts']:.1f}×",
-                ]
-            )
+    svsf = ts.SVSF(cv, psi=[800.0, 800.0], artificial=None, learn=False)
+    online_repeats = max(1, args.repeats // 2)
+    rows = [
+        _online("KF, CV", ts.KalmanFilter(cv), _Track(cv, 2000, 0), online_repeats),
+        _online("SVSF H⁺ mode, CV", svsf, _Track(cv, 2000, 0), online_repeats),
+        _online(
+            "KF, dense 3-state", ts.KalmanFilter(dense), _Track(dense, 2000, 0), online_repeats
+        ),
+    ]
+    short = _Track(cv, 1000, 1)
+    rows += [
+        _offline("KF, CV", ts.KalmanFilter(cv), short, False, args.repeats),
+        _offline("KF + RTS, CV", ts.RTSSmoother(ts.KalmanFilter(cv)), short, True, args.repeats),
+        _offline(
+            "SVSF (finite-difference velocity), CV",
+            ts.SVSF(cv, psi=[800.0, 600.0] * 2),
+            short,
+            False,
+            args.repeats,
+        ),
+        _offline(
+            "KF, dense 3-state", ts.KalmanFilter(dense), _Track(dense, 1000, 1), False, args.repeats
+        ),
+    ]
+    long = _Track(cv, 100_000, 1)
+    rows += [
+        _offline("KF, CV", ts.KalmanFilter(cv), long, False, 1),
+        _offline("KF + RTS, CV", ts.RTSSmoother(ts.KalmanFilter(cv)), long, True, 1),
+    ]
 
     table = markdown_table(["case", "filterpy", "torchsvs", "filterpy ÷ torchsvs"], rows)
     text = (

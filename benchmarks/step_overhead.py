@@ -4,8 +4,9 @@ Every filter's ``forward`` is ``init``, a loop of ``step`` and one stack since t
 (issue 12). This benchmark extracts the last commit before it (:data:`BASELINE`) from git into
 a temporary directory, imports it beside the current package and times the same forward
 passes with both, alternating call by call (so a busy machine slows both alike), best of
-``--rounds``. Cases run on the general (dense-matrix) path, where the step loop is; the
-per-axis kernel row runs as the estimators choose. Writes ``benchmarks/step_overhead.md``.
+``--rounds``. Cases run on the general (dense-matrix) path as tensor operations, where the
+step loop is (no per-axis kernel, no compiled loops); the per-axis kernel row runs as the
+estimators choose. Writes ``benchmarks/step_overhead.md``.
 
     python -m benchmarks.step_overhead [--rounds 15]
 """
@@ -32,7 +33,8 @@ BASELINE = "7da37d2"
 
 def _cases(ts: ModuleType) -> dict[str, Callable[[], object]]:
     """name → a zero-argument forward pass, built with the torchsvs package ``ts``."""
-    general_path = importlib.import_module(ts.__name__ + ".kernels").general_path
+    kernels = importlib.import_module(ts.__name__ + ".kernels")
+    general_path, eager_loops = kernels.general_path, kernels.eager_loops
     gen = torch.Generator().manual_seed(0)
     cv = ts.models.ConstantVelocity(dt=1.0, q=0.16, r=200.0**2)
     x0 = torch.tensor([-25000.0, 120.0, -10000.0, 0.0], dtype=torch.float64)
@@ -49,7 +51,7 @@ def _cases(ts: ModuleType) -> dict[str, Callable[[], object]]:
 
     def general(est: torch.nn.Module, *args: object, **kwargs: object) -> Callable[[], object]:
         def call() -> object:
-            with torch.no_grad(), general_path():
+            with torch.no_grad(), general_path(), eager_loops():
                 return est(*args, **kwargs)
 
         return call

@@ -20,7 +20,7 @@ import torchsvs as ts
 from benchmarks.forward import best_of
 from torchsvs import estimator
 from torchsvs.evaluation import markdown_table
-from torchsvs.kernels import general_path
+from torchsvs.kernels import eager_loops, general_path
 
 RESULTS = Path(__file__).with_name("threads.md")
 
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> None:
     cases = [(f"SVSF forward, B = {B}, T = 100", svsf_forward, B) for B in (64, 256, 1024, 4000)]
     cases.append(("SVSS forward+backward, B = 64, T = 300", svss_training_step, 64))
     rows = []
-    with general_path():
+    with general_path(), eager_loops():  # the tensor step loop, whose threads matter
         for label, case, B in cases:
             default = case(B)
             small = estimator.SMALL_PROBLEM

@@ -28,7 +28,7 @@ from torch import Tensor
 from torchsvs.datasets import RecordedTracks
 from torchsvs.datasets.adsb import sample_files
 from torchsvs.datasets.flights import flight_steps
-from torchsvs.metrics import pooled_rmse
+from torchsvs.metrics import entries, pooled_rmse
 
 #: Reported quantities carried per step (as recorded: ft, kt, deg, ft/min).
 REPORTED = ("altitude_ft", "groundspeed_kt", "track_deg", "vertical_rate_fpm")
@@ -157,7 +157,7 @@ def score(mean: Tensor, flights: RecordedTracks) -> dict[str, float]:
     truth = flights.truth
     assert truth is not None
     reported = truth[..., [1, 3]]
-    usable = torch.isfinite(reported) & real.unsqueeze(-1)
+    usable = entries(reported, real, known=True)
     motion = torch.stack([flights.extra["vx_motion"], flights.extra["vy_motion"]], -1)
     return {
         "position": float(pooled_rmse(mean[..., [0, 2]], truth[..., [0, 2]], real)),

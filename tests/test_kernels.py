@@ -166,12 +166,14 @@ needs_compiler = pytest.mark.skipif(
 
 @pytest.fixture
 def spy(monkeypatch):
-    """Counts the compiled loops' calls: the forward pass, and the smoother passes together."""
-    calls = {"forward": 0, "backward": 0}
+    """Counts the compiled loops' calls: the forward pass, the smoother passes together, and
+    the dense linear steps."""
+    calls = {"forward": 0, "backward": 0, "dense": 0}
     for function, counter in (
         ("forward", "forward"),
         ("backward", "backward"),
         ("rts_interval", "backward"),
+        ("dense_run", "dense"),
     ):
         original = getattr(fused, function)
 
@@ -301,7 +303,7 @@ def _online(est, x0, P0, z, psi=None):
 @needs_compiler
 @pytest.mark.parametrize("case", ["KF dense", "EKF dense", "KF CV", "SVSF CV", "SVSF CV psi"])
 @pytest.mark.parametrize("single", [False, True], ids=["batch", "one track"])
-def test_compiled_online_steps_equal_the_tensor_steps(case, single, monkeypatch):
+def test_compiled_online_steps_equal_the_tensor_steps(case, single, spy):
     """An online step of a linear model without gradients runs compiled (fused.dense_run):
     every field of every step and state equals the tensor path's to 1e-10 in float64, with
     missing components, a step without measurements, per-step ψ and one-track states."""
@@ -322,20 +324,12 @@ def test_compiled_online_steps_equal_the_tensor_steps(case, single, monkeypatch)
     if single:
         x0, z = x0[0], z[0]
         psi = None if psi is None else psi[0]
-    calls = {"dense": 0}
-    original = fused.dense_run
-
-    def counted(*args, **kwargs):
-        calls["dense"] += 1
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(fused, "dense_run", counted)
     with torch.no_grad():
         states, outs = _online(est, x0, P0, z, psi)
-        assert calls["dense"] == z.shape[-2]
+        assert spy["dense"] == z.shape[-2]
         with eager_loops():
             ref_states, ref_outs = _online(est, x0, P0, z, psi)
-        assert calls["dense"] == z.shape[-2]
+        assert spy["dense"] == z.shape[-2]
     for t, (out, ref) in enumerate(zip(outs, ref_outs, strict=True)):
         for key in out._fields:
             a, b = getattr(out, key), getattr(ref, key)
@@ -353,17 +347,9 @@ def test_compiled_online_steps_equal_the_tensor_steps(case, single, monkeypatch)
 
 
 @needs_compiler
-def test_online_steps_step_aside_where_the_compiled_step_cannot_run(monkeypatch):
+def test_online_steps_step_aside_where_the_compiled_step_cannot_run(spy):
     """Gradients, an artificial measurement, a nonlinear model, a non-selection H for the
     SVSF, a per-step dt and bad input take the tensor path (and its error messages)."""
-    calls = {"dense": 0}
-    original = fused.dense_run
-
-    def counted(*args, **kwargs):
-        calls["dense"] += 1
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(fused, "dense_run", counted)
     dense, z = _dense_problem(seed=12, B=2, T=5)
     cv = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
     x4, P4 = torch.zeros(2, 4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
@@ -378,7 +364,7 @@ def test_online_steps_step_aside_where_the_compiled_step_cannot_run(monkeypatch)
         skewed.step(skewed.init(x3, P3), z[:, 0])
         kf = ts.KalmanFilter(cv)
         kf.step(kf.init(x4, P4), z[:, 0], dt=torch.tensor(2.0, dtype=torch.float64))
-        assert calls["dense"] == 0
+        assert spy["dense"] == 0
         bad = z[:, 0].clone()
         bad[0, 0] = float("inf")
         with pytest.raises(ValueError, match="z: contains inf"):
@@ -386,12 +372,12 @@ def test_online_steps_step_aside_where_the_compiled_step_cannot_run(monkeypatch)
         with pytest.raises(ValueError, match="psi: KalmanFilter has no boundary layer"):
             kf.step(kf.init(x4, P4), z[:, 0], psi=torch.ones(2, 2, dtype=torch.float64))
         kf.step(kf.init(x4, P4), z[:, 0])
-    assert calls["dense"] == 2  # the inf step tried it first, then the plain step ran it
+    assert spy["dense"] == 2  # the inf step tried it first, then the plain step ran it
 
 
 @needs_compiler
 @pytest.mark.parametrize("case", ["KF", "EKF", "KS", "SVSF", "SVSF psi", "SVSS"])
-def test_compiled_dense_runs_equal_the_general_path(case, monkeypatch):
+def test_compiled_dense_runs_equal_the_general_path(case, spy):
     """A whole run of a dense linear model without gradients is compiled
     (:func:`fused.dense_run`): every field equals the general path's to 1e-10 in float64, with
     missing components, chunks carrying the state, per-step ψ, and smoothers over it."""
@@ -415,20 +401,12 @@ def test_compiled_dense_runs_equal_the_general_path(case, monkeypatch):
     x0 = torch.tensor([[0.5, -0.2, 1.0]], dtype=torch.float64).expand(3, 3)
     P0 = torch.eye(3, dtype=torch.float64) * 4
     kwargs = {} if psi is None else {"psi": psi}
-    calls = {"dense": 0}
-    original = fused.dense_run
-
-    def counted(*args, **kw):
-        calls["dense"] += 1
-        return original(*args, **kw)
-
-    monkeypatch.setattr(fused, "dense_run", counted)
     with torch.no_grad():
         compiled = est(z, x0, P0, **kwargs)
-        assert calls["dense"] == 1
+        assert spy["dense"] == 1
         with eager_loops():
             general = est(z, x0, P0, **kwargs)
-        assert calls["dense"] == 1
+        assert spy["dense"] == 1
     for key in compiled._fields:
         a, b = getattr(compiled, key), getattr(general, key)
         if isinstance(a, tuple):  # a smoother's filter pass

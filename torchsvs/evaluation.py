@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Estimator
-from torchsvs.metrics import accumulative_rmse
+from torchsvs.metrics import accumulative_rmse, entries
 
 Score = TypeVar("Score")
 
@@ -73,9 +73,7 @@ def evaluate(
     B, T = z.shape[:2]
     index = list(components) if components is not None else None
     # Truth that is missing (NaN: padding, an unreported velocity) is not scored.
-    scored = torch.isfinite(truth)
-    if mask is not None:
-        scored = scored & (mask.unsqueeze(-1) if mask.shape == truth.shape[:-1] else mask)
+    scored = entries(truth, mask, known=True)
 
     def batch_of(value: Any, rows: slice) -> Any:
         return value[rows] if isinstance(value, Tensor) and value.ndim >= 2 else value

@@ -21,21 +21,32 @@ def _squared_error(estimate: Tensor, truth: Tensor, mask: Tensor | None) -> tupl
         )
     if mask is None:
         return (estimate - truth).square(), torch.ones_like(truth)
-    if mask.shape == truth.shape[:-1]:
-        mask = mask.unsqueeze(-1)
-    if (
-        mask.dtype != torch.bool
-        or mask.shape[:-1] != truth.shape[:-1]
-        or (mask.shape[-1] not in (1, truth.shape[-1]))
-    ):
-        raise ValueError(
-            f"mask: expected a bool tensor of shape {tuple(truth.shape[:-1])} (steps) or "
-            f"{tuple(truth.shape)} (entries), got {mask.dtype} {tuple(mask.shape)}"
-        )
-    weight = mask.expand_as(truth).to(truth.dtype)
+    mask = entries(truth, mask)
+    weight = mask.to(truth.dtype)
     # Entries not counted may hold NaN (padding, missing truth): zero them, not multiply.
     error = torch.where(mask, estimate - truth, torch.zeros_like(truth)).square()
     return error, weight
+
+
+def entries(truth: Tensor, mask: Tensor | None = None, known: bool = False) -> Tensor:
+    """The counted entries ``[B, T, n]`` of ``mask`` (``[B, T]`` steps or ``[B, T, n]``
+    entries; ``None``: all); ``known`` also leaves out missing truth (NaN)."""
+    if mask is None:
+        counted = torch.ones_like(truth, dtype=torch.bool)
+    else:
+        if mask.shape == truth.shape[:-1]:
+            mask = mask.unsqueeze(-1)
+        if (
+            mask.dtype != torch.bool
+            or mask.shape[:-1] != truth.shape[:-1]
+            or (mask.shape[-1] not in (1, truth.shape[-1]))
+        ):
+            raise ValueError(
+                f"mask: expected a bool tensor of shape {tuple(truth.shape[:-1])} (steps) or "
+                f"{tuple(truth.shape)} (entries), got {mask.dtype} {tuple(mask.shape)}"
+            )
+        counted = mask.expand_as(truth)
+    return counted & torch.isfinite(truth) if known else counted
 
 
 def _rms(error: Tensor, weight: Tensor, dim: int | tuple[int, ...]) -> Tensor:

@@ -290,23 +290,6 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     #: for linear models, or None
     dense_rule: str | None = None
 
-    def step(
-        self,
-        state: Any,
-        z: Tensor,
-        *,
-        u: Tensor | None = None,
-        dt: float | Tensor | None = None,
-        psi: Tensor | None = None,
-        generator: torch.Generator | None = None,
-    ) -> tuple[Any, FilterResult]:
-        # An online step on a linear model without gradients runs compiled (the same numbers
-        # up to rounding); anything else, and every error message, takes the general path.
-        fast = None if u is not None or dt is not None else self._dense_step(state, z, psi)
-        if fast is not None:
-            return fast
-        return super().step(state, z, u=u, dt=dt, psi=psi, generator=generator)
-
     def _dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
         """``(γ, ψ [m])`` of a compiled step's corrector, or ``None`` where it cannot run."""
         return 0.0, H.new_zeros(H.shape[0])
@@ -336,51 +319,67 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             _fingerprint(tensors, model, plain),
         )
 
-    def _dense_scan(self, state: FilterState, inputs: Inputs) -> FilterResult | None:
-        """The steps of ``inputs`` compiled (:func:`~torchsvs.kernels.fused.dense_run`) for a
-        linear model with its own interval, without gradients; else ``None``."""
-        model, rule = self.model, self.dense_rule
-        if rule is None or not isinstance(model, LinearModel) or state.history is not None:
-            return None
-        if inputs.dt is not None or inputs.u is not None:
-            return None
-        n, m = model.state_dim, model.meas_dim
-        if n > fused.DENSE_MAX or m > fused.DENSE_MAX:
-            return None
-        if not fused.usable(inputs.z, inputs.x0, inputs.P0):
-            return None
-        B, T = inputs.batch, inputs.steps
-        if rule == "kalman" and B > 1 and inputs.P0.shape[0] == 1:
-            # A shared prior without missing data: the general path runs one covariance
-            # recursion for the whole batch (a broadcast view), less work and memory.
-            if not bool(torch.isnan(inputs.z).any()):
-                return None
-        dtype = inputs.z.dtype
-        constants = self._dense_constants(dtype)
-        if constants is None:
-            return None
-        widths = constants.widths if inputs.psi is None else inputs.psi.contiguous()
-        if widths.dtype != dtype or (inputs.psi is not None and rule != "svsf"):
-            return None
-        memory = state.post_innovation
+    def _dense_ready(self, history: Any) -> bool:
+        """Whether the compiled dense steps can stand for this filter's (a linear model of at
+        most ``fused.DENSE_MAX`` states and measurements, a corrector with a compiled rule, no
+        artificial measurement's rows to carry)."""
+        model = self.model
+        return (
+            self.dense_rule is not None
+            and isinstance(model, LinearModel)
+            and history is None
+            and model.state_dim <= fused.DENSE_MAX
+            and model.meas_dim <= fused.DENSE_MAX
+        )
+
+    def _valid_constants(self, constants: Any, dtype: torch.dtype) -> DenseConstants | None:
+        """``constants`` while they still describe the filter and its model, else new ones."""
+        if (
+            isinstance(constants, DenseConstants)
+            and constants.widths.dtype == dtype
+            and constants.fingerprint
+            == _fingerprint(constants.tensors, self.model, constants.settings)
+        ):
+            return constants
+        return self._dense_constants(dtype)
+
+    def _dense_call(
+        self,
+        constants: DenseConstants,
+        x: Tensor,
+        P: Tensor,
+        z: Tensor,
+        memory: Tensor | None,
+        psi: Tensor | None,
+        lead: tuple[int, ...],
+    ) -> FilterResult | None:
+        """:func:`~torchsvs.kernels.fused.dense_run` from ``x [B, n]``, ``P [B|1, n, n]`` over
+        ``z`` (``[B, T, m]``, or one step ``[B, m]``/``[m]``), as a result with the leading
+        shape ``lead`` (its log-likelihood per step); ``None`` where it could not run (an
+        infinity in ``z``, ``S`` not positive definite)."""
+        rule = self.dense_rule
+        assert rule is not None
+        B, n = x.shape
+        m = z.shape[-1]
+        widths = constants.widths if psi is None else psi.to(x.dtype).contiguous()
         if rule == "svsf" and memory is None:
-            memory = inputs.z.new_zeros(B, m)
+            memory = x.new_zeros(B, m)
         out = fused.dense_run(
             rule,
             constants.gamma,
-            inputs.x0.expand(B, n).contiguous(),
-            inputs.P0.expand(B, n, n).contiguous(),
-            inputs.z.contiguous(),
-            inputs.x0 if memory is None else memory.expand(B, m).contiguous(),
+            x.contiguous(),
+            (P if P.shape[0] == B else P.expand(B, n, n)).contiguous(),
+            z.contiguous(),
+            x if memory is None else memory.expand(B, m).contiguous(),
             widths,
             constants.matrices,
-            (B, T),
+            lead,
         )
         if out is None:
             return None
         mean, cov, x_pred, P_pred, e, K, S, loglik, e_post, seen = out
         kalman = rule == "kalman"
-        F, _, H, R = constants.matrices.tensors
+        F, _, H, R = (A.view((1,) * len(lead) + A.shape) for A in constants.matrices.tensors)
         return FilterResult(
             mean=mean,
             cov=cov,
@@ -388,95 +387,79 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             pred_cov=P_pred,
             innovation=e,
             mask=seen,
-            transition=_as_result_matrix(F),
-            meas_matrix=_as_result_matrix(H),
-            meas_cov=_as_result_matrix(R),
-            gain=K,
-            post_innovation=None if kalman else e_post,
-            innovation_cov=S,
-            log_likelihood=loglik.sum(1) if kalman else None,
-        )
-
-    def _dense_step(
-        self, state: Any, z: Any, psi: Tensor | None
-    ) -> tuple[FilterState, FilterResult] | None:
-        rule, model = self.dense_rule, self.model
-        if rule is None or not isinstance(model, LinearModel) or not isinstance(z, Tensor):
-            return None
-        if not isinstance(state, FilterState) or state.history is not None:
-            return None
-        n, m = model.state_dim, model.meas_dim
-        x, single = state.mean, state.single
-        if z.ndim != (1 if single else 2) or z.shape[-1] != m or z.dtype != x.dtype:
-            return None
-        B = 1 if single else z.shape[0]
-        if x.shape[0] != B or B == 0 or n > fused.DENSE_MAX or m > fused.DENSE_MAX:
-            return None
-        if (psi is not None and rule != "svsf") or not fused.usable(z, x, state.cov):
-            return None  # (usable: CPU float32/64, no gradient asked for, compiler available)
-        dtype = x.dtype
-        constants = state.constants
-        if (
-            not isinstance(constants, DenseConstants)
-            or constants.widths.dtype != dtype
-            or constants.fingerprint != _fingerprint(constants.tensors, model, constants.settings)
-        ):
-            constants = self._dense_constants(dtype)
-            if constants is None:
-                return None
-        widths = constants.widths
-        if psi is not None:
-            if psi.shape != ((m,) if single else (B, m)) and psi.shape != (m,):
-                return None
-            widths = psi.to(dtype).contiguous()
-        memory = state.post_innovation
-        if rule == "svsf" and memory is None:
-            memory = x.new_zeros(B, m)
-        out = fused.dense_run(
-            rule,
-            constants.gamma,
-            x.contiguous(),
-            state.cov.contiguous()
-            if state.cov.shape[0] == B
-            else state.cov.expand(B, n, n).contiguous(),
-            z.contiguous(),
-            x if memory is None else memory.contiguous(),
-            widths,
-            constants.matrices,
-            () if single else (B,),
-        )
-        if out is None:
-            return None  # inf in z, or S not positive definite: the general path says or copes
-        mean, cov, x_pred, P_pred, e, K, S, loglik, e_post, seen = out
-        kalman = rule == "kalman"
-        F, _, H, R = constants.matrices.tensors
-        result = FilterResult(
-            mean=mean,
-            cov=cov,
-            pred_mean=x_pred,
-            pred_cov=P_pred,
-            innovation=e,
-            mask=seen,
-            transition=F if single else F.unsqueeze(0),
-            meas_matrix=H if single else H.unsqueeze(0),
-            meas_cov=R if single else R.unsqueeze(0),
+            transition=F,
+            meas_matrix=H,
+            meas_cov=R,
             gain=K,
             post_innovation=None if kalman else e_post,
             innovation_cov=S,
             log_likelihood=loglik if kalman else None,
         )
-        memory_after, total = (None, loglik) if kalman else (e_post, None)
+
+    def _dense_scan(self, state: FilterState, inputs: Inputs) -> FilterResult | None:
+        """The steps of ``inputs`` compiled for a linear model with its own interval, without
+        gradients; else ``None``."""
+        if not self._dense_ready(state.history) or inputs.dt is not None or inputs.u is not None:
+            return None
+        if inputs.psi is not None and self.dense_rule != "svsf":
+            return None
+        if not fused.usable(inputs.z, inputs.x0, inputs.P0):
+            return None
+        B, T = inputs.batch, inputs.steps
+        if self.dense_rule == "kalman" and B > 1 and inputs.P0.shape[0] == 1:
+            # A shared prior without missing data: the general path runs one covariance
+            # recursion for the whole batch (a broadcast view), less work and memory.
+            if not bool(torch.isnan(inputs.z).any()):
+                return None
+        constants = self._valid_constants(state.constants, inputs.z.dtype)
+        if constants is None:
+            return None
+        x0 = inputs.x0.expand(B, self.model.state_dim)
+        result = self._dense_call(
+            constants, x0, inputs.P0, inputs.z, state.post_innovation, inputs.psi, (B, T)
+        )
+        if result is None or result.log_likelihood is None:
+            return result
+        return result._replace(log_likelihood=result.log_likelihood.sum(1))
+
+    def step_shortcut(
+        self, state: Any, z: Tensor, psi: Tensor | None
+    ) -> tuple[FilterState, FilterResult] | None:
+        # An online step on a linear model without gradients runs compiled (the same numbers
+        # up to rounding); anything else takes the one-step scan.
+        if not isinstance(state, FilterState) or not self._dense_ready(state.history):
+            return None
+        m = self.model.meas_dim
+        x, single = state.mean, state.single
+        if z.ndim != (1 if single else 2) or z.shape[-1] != m or z.dtype != x.dtype:
+            return None
+        B = 1 if single else z.shape[0]
+        if x.shape[0] != B or B == 0:
+            return None
+        if psi is not None and (self.dense_rule != "svsf" or psi.shape not in ((m,), (B, m))):
+            return None
+        if not fused.usable(z, x, state.cov):
+            return None  # (usable: CPU float32/64, no gradient asked for, compiler available)
+        constants = self._valid_constants(state.constants, x.dtype)
+        if constants is None:
+            return None
+        lead = () if single else (B,)
+        result = self._dense_call(constants, x, state.cov, z, state.post_innovation, psi, lead)
+        if result is None:
+            return None  # inf in z, or S not positive definite: the scan says or copes
+        mean, cov, memory, total = (
+            result.mean,
+            result.cov,
+            result.post_innovation,
+            result.log_likelihood,
+        )
         if single:  # the state keeps the batch axis; the step's result drops it
             mean, cov = mean.unsqueeze(0), cov.unsqueeze(0)
-            if kalman:
-                total = loglik.unsqueeze(0)
-            else:
-                memory_after = e_post.unsqueeze(0)
+            memory = None if memory is None else memory.unsqueeze(0)
+            total = None if total is None else total.unsqueeze(0)
         if total is not None and state.log_likelihood is not None:
             total = state.log_likelihood + total
-        after = FilterState(
-            mean, cov, memory_after, total, None, state.steps + 1, single, constants
-        )
+        after = FilterState(mean, cov, memory, total, None, state.steps + 1, single, constants)
         return after, result
 
     def carried_history(self, history: Any, inputs: Inputs) -> Any:
@@ -490,12 +473,12 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         z, H, R = self.measurements(inputs, history)
         F, Q = self.dynamics(inputs)
         observed = ~torch.isnan(z)
-        settings = self.run_settings(inputs, H)
+        settings = self.run_settings(z.dtype, H)
         return Prepared(
             z.nan_to_num(0.0), observed, not bool(observed.all()), H, R, F, Q, self.model, settings
         )
 
-    def run_settings(self, inputs: Inputs, H: Tensor | None) -> Any:
+    def run_settings(self, dtype: torch.dtype, H: Tensor | None) -> Any:
         """What the corrector computes once per run rather than at every step (its parameters
         in the run's dtype, facts about ``H``), handed to :meth:`correct` as ``obs.settings``."""
         return None

@@ -228,9 +228,7 @@ class SVSF(GaussianFilter):
         inputs: Inputs,
     ) -> Step:
         z, mask, R = obs.z, obs.mask, obs.R
-        gains: _Gains = (
-            obs.settings if obs.settings is not None else self.run_settings(inputs, obs.H)
-        )
+        gains: _Gains = obs.settings  # run_settings, formed once by prepare
         psi = inputs.psi[:, obs.t] if inputs.psi is not None else gains.psi
         fitted, H = obs.linearize(x_pred)  # nonlinear h: Eqs. (13)-(21), Gadsden et al. 2012
         e = z - fitted  # Eq. (4); Eq. (14) of Gadsden et al. 2012
@@ -259,14 +257,13 @@ class SVSF(GaussianFilter):
         return "svsf" if self.artificial is None else None
 
     def _dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
-        psi, gamma = self.psi, self.gamma
-        if not has_orthonormal_rows(H) or not fused.usable(psi.to(dtype), gamma.to(dtype)):
+        gains = self.run_settings(dtype, H)
+        if not gains.orthonormal or not fused.usable(gains.psi, gains.gamma):
             return None
-        widths = psi.to(dtype)
-        return float(gamma), widths.expand(H.shape[0]) if widths.ndim == 0 else widths
+        widths = gains.psi
+        return float(gains.gamma), widths.expand(H.shape[0]) if widths.ndim == 0 else widths
 
-    def run_settings(self, inputs: Inputs, H: Tensor | None) -> _Gains:
-        dtype = inputs.z.dtype
+    def run_settings(self, dtype: torch.dtype, H: Tensor | None) -> _Gains:
         orthonormal = None if H is None or H.ndim != 2 else has_orthonormal_rows(H)
         return _Gains(self.psi.to(dtype), self.gamma.to(dtype), orthonormal)
 

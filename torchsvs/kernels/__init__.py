@@ -25,7 +25,8 @@ def _setting(key: str, value: bool) -> Iterator[None]:
 
 @contextmanager
 def general_path() -> Iterator[None]:
-    """Within this block every estimator runs its general (dense-matrix) code."""
+    """Within this block every estimator runs its general (dense-matrix) code: no per-axis
+    kernel. Linear models' dense steps still run compiled unless :func:`eager_loops` too."""
     with _setting("enabled", False):
         yield
 

@@ -323,6 +323,34 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, cons
 // (the caller then takes the tensor path, whose factorisation adds jitter).
 constexpr int64_t kMax = 16;
 
+// C = A B (r × k times k × c), or A Bᵀ with B stored c × k; row-major, summed in k order.
+template <typename R>
+inline void product(const R* A, const R* B, R* C, int64_t r, int64_t k, int64_t c, bool bt) {
+    for (int64_t i = 0; i < r; ++i)
+        for (int64_t j = 0; j < c; ++j) {
+            R a = 0;
+            for (int64_t l = 0; l < k; ++l) a += A[i * k + l] * (bt ? B[j * k + l] : B[l * c + j]);
+            C[i * c + j] = a;
+        }
+}
+
+// out = (A + Aᵀ) / 2 for an n × n A (symmetrize in linalg.py).
+template <typename R>
+inline void symmetrized(const R* A, R* out, int64_t n) {
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < n; ++j) out[i * n + j] = R(0.5) * (A[i * n + j] + A[j * n + i]);
+}
+
+// y = L⁻¹ b for a lower-triangular m × m L.
+template <typename R>
+inline void forward_solve(const R* L, const R* b, R* y, int64_t m) {
+    for (int64_t i = 0; i < m; ++i) {
+        R a = b[i];
+        for (int64_t k = 0; k < i; ++k) a -= L[i * m + k] * y[k];
+        y[i] = a / L[i * m + i];
+    }
+}
+
 template <typename R>
 int dense_track(int64_t n, int64_t m, int rule, R gamma, const R* x, const R* Pb, const R* z,
                 const R* mem, const R* psi, const R* F, const R* Q, const R* H, const R* Rm,
@@ -332,24 +360,11 @@ int dense_track(int64_t n, int64_t m, int rule, R gamma, const R* x, const R* Pb
     R PHt[kMax * kMax], L[kMax * kMax], KR[kMax * kMax];
     bool seen[kMax];
     // Prediction: x̂ = F x, P = sym(F P Fᵀ + Q) (Eqs. (11)-(12)).
-    for (int64_t i = 0; i < n; ++i) {
-        R acc = 0;
-        for (int64_t k = 0; k < n; ++k) acc += F[i * n + k] * x[k];
-        x1[i] = acc;
-        for (int64_t j = 0; j < n; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < n; ++k) a += F[i * n + k] * Pb[k * n + j];
-            FP[i * n + j] = a;
-        }
-    }
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < n; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < n; ++k) a += FP[i * n + k] * F[j * n + k];
-            A[i * n + j] = a + Q[i * n + j];
-        }
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < n; ++j) P1[i * n + j] = R(0.5) * (A[i * n + j] + A[j * n + i]);
+    product(F, x, x1, n, n, 1, false);
+    product(F, Pb, FP, n, n, n, false);
+    product(FP, F, A, n, n, n, true);
+    for (int64_t i = 0; i < n * n; ++i) A[i] += Q[i];
+    symmetrized(A, P1, n);
     // Innovation over the observed components; masked H and R (mask_measurement).
     int observed = 0;
     for (int64_t i = 0; i < m; ++i) {
@@ -365,20 +380,10 @@ int dense_track(int64_t n, int64_t m, int rule, R gamma, const R* x, const R* Pb
         for (int64_t j = 0; j < m; ++j)
             Rmk[i * m + j] = (seen[i] && seen[j]) ? Rm[i * m + j] : (i == j ? R(1) : R(0));
     // S = sym(H P Hᵀ + R) of the observed components, identity elsewhere.
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < m; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < n; ++k) a += P1[i * n + k] * Hm[j * n + k];
-            PHt[i * m + j] = a;
-        }
-    for (int64_t i = 0; i < m; ++i)
-        for (int64_t j = 0; j < m; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < n; ++k) a += Hm[i * n + k] * PHt[k * m + j];
-            A[i * m + j] = a + Rmk[i * m + j];
-        }
-    for (int64_t i = 0; i < m; ++i)
-        for (int64_t j = 0; j < m; ++j) S[i * m + j] = R(0.5) * (A[i * m + j] + A[j * m + i]);
+    product(P1, Hm, PHt, n, n, m, true);
+    product(Hm, PHt, A, m, n, m, false);
+    for (int64_t i = 0; i < m * m; ++i) A[i] += Rmk[i];
+    symmetrized(A, S, m);
     if (rule == 0) {
         // Kalman gain K = P Hᵀ S⁻¹ through L = chol(S) (kalman_update).
         for (int64_t i = 0; i < m; ++i)
@@ -394,11 +399,7 @@ int dense_track(int64_t n, int64_t m, int rule, R gamma, const R* x, const R* Pb
             }
         for (int64_t r = 0; r < n; ++r) {  // row r of K: solve S kᵀ = (P Hᵀ)[r]ᵀ
             R y[kMax];
-            for (int64_t i = 0; i < m; ++i) {
-                R a = PHt[r * m + i];
-                for (int64_t k = 0; k < i; ++k) a -= L[i * m + k] * y[k];
-                y[i] = a / L[i * m + i];
-            }
+            forward_solve(L, PHt + r * m, y, m);
             for (int64_t i = m - 1; i >= 0; --i) {
                 R a = y[i];
                 for (int64_t k = i + 1; k < m; ++k) a -= L[k * m + i] * K[r * m + k];
@@ -407,10 +408,8 @@ int dense_track(int64_t n, int64_t m, int rule, R gamma, const R* x, const R* Pb
         }
         // log N(e; 0, S) over the observed components (gaussian_log_density).
         R white = 0, logdet = 0, y[kMax];
+        forward_solve(L, e, y, m);
         for (int64_t i = 0; i < m; ++i) {
-            R a = e[i];
-            for (int64_t k = 0; k < i; ++k) a -= L[i * m + k] * y[k];
-            y[i] = a / L[i * m + i];
             white += y[i] * y[i];
             logdet += std::log(L[i * m + i]);
         }
@@ -422,49 +421,23 @@ int dense_track(int64_t n, int64_t m, int rule, R gamma, const R* x, const R* Pb
             for (int64_t r = 0; r < n; ++r) K[r * m + j] = Hm[j * n + r] * ratio;
         }
     }
-    // x = x̂ + K e; P = sym((I − K H) P (I − K H)ᵀ + K R Kᵀ) (Joseph form).
-    for (int64_t i = 0; i < n; ++i) {
-        R acc = 0;
-        for (int64_t k = 0; k < m; ++k) acc += K[i * m + k] * e[k];
-        xb[i] = x1[i] + acc;
-    }
-    // The KF's Joseph form uses the masked H and R, the SVSF's the full ones (equal: K has
-    // zero columns where missing).
-    const R* Hj = rule == 0 ? Hm : H;
-    const R* Rj = rule == 0 ? Rmk : Rm;
+    // x = x̂ + K e; P = sym((I − K H) P (I − K H)ᵀ + K R Kᵀ) (Joseph form). The KF's Joseph
+    // form uses the masked H and R, the SVSF's the full ones (equal: K has zero columns where
+    // missing).
+    product(K, e, xb, n, m, 1, false);
+    for (int64_t i = 0; i < n; ++i) xb[i] += x1[i];
+    product(K, rule == 0 ? Hm : H, A, n, m, n, false);
     for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < n; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < m; ++k) a += K[i * m + k] * Hj[k * n + j];
-            A[i * n + j] = (i == j ? R(1) : R(0)) - a;
-        }
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < n; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < n; ++k) a += A[i * n + k] * P1[k * n + j];
-            AP[i * n + j] = a;
-        }
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < m; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < m; ++k) a += K[i * m + k] * Rj[k * m + j];
-            KR[i * m + j] = a;
-        }
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < n; ++j) {
-            R a = 0;
-            for (int64_t k = 0; k < n; ++k) a += AP[i * n + k] * A[j * n + k];
-            for (int64_t k = 0; k < m; ++k) a += KR[i * m + k] * K[j * m + k];
-            FP[i * n + j] = a;
-        }
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < n; ++j) Pb1[i * n + j] = R(0.5) * (FP[i * n + j] + FP[j * n + i]);
+        for (int64_t j = 0; j < n; ++j) A[i * n + j] = (i == j ? R(1) : R(0)) - A[i * n + j];
+    product(A, P1, AP, n, n, n, false);
+    product(AP, A, FP, n, n, n, true);
+    product(K, rule == 0 ? Rmk : Rm, KR, n, m, m, false);
+    product(KR, K, PHt, n, m, n, true);  // PHt is free again: K R Kᵀ
+    for (int64_t i = 0; i < n * n; ++i) FP[i] += PHt[i];
+    symmetrized(FP, Pb1, n);
     if (rule == 1) {  // the memory: e_post = z − H x̂ (Eq. (24)), carried where missing
-        for (int64_t i = 0; i < m; ++i) {
-            R acc = 0;
-            for (int64_t k = 0; k < n; ++k) acc += H[i * n + k] * xb[k];
-            epost[i] = seen[i] ? z[i] - acc : mem[i];
-        }
+        product(H, xb, epost, m, n, 1, false);
+        for (int64_t i = 0; i < m; ++i) epost[i] = seen[i] ? z[i] - epost[i] : mem[i];
     }
     return 0;
 }
@@ -515,6 +488,18 @@ int dense_run(int64_t B, int64_t T, int64_t n, int64_t m, int rule, R gamma, con
     return 0;
 }
 
+// The C entry points' casts, once for both dtypes.
+template <typename R>
+int dense_entry(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma, const void* x,
+                const void* P, const void* z, const void* memory, const void* psi,
+                int64_t psi_track, int64_t psi_step, const void* const* consts,
+                void* const* outs) {
+    return dense_run<R>(B, T, n, m, rule, static_cast<R>(gamma), static_cast<const R*>(x),
+                        static_cast<const R*>(P), static_cast<const R*>(z),
+                        static_cast<const R*>(memory), static_cast<const R*>(psi), psi_track,
+                        psi_step, consts, outs);
+}
+
 }  // namespace
 
 extern "C" {
@@ -555,11 +540,8 @@ int dense_run_f32(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double g
                   void* o1, void* o2, void* o3, void* o4, void* o5, void* o6, void* o7, void* o8,
                   void* o9) {
     void* const outs[10] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9};
-    using R = float;
-    return dense_run<R>(B, T, n, m, rule, static_cast<R>(gamma), static_cast<const R*>(x),
-                        static_cast<const R*>(P), static_cast<const R*>(z),
-                        static_cast<const R*>(memory), static_cast<const R*>(psi), psi_track,
-                        psi_step, consts, outs);
+    return dense_entry<float>(B, T, n, m, rule, gamma, x, P, z, memory, psi, psi_track, psi_step,
+                              consts, outs);
 }
 
 int dense_run_f64(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
@@ -568,11 +550,8 @@ int dense_run_f64(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double g
                   void* o1, void* o2, void* o3, void* o4, void* o5, void* o6, void* o7, void* o8,
                   void* o9) {
     void* const outs[10] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9};
-    using R = double;
-    return dense_run<R>(B, T, n, m, rule, gamma, static_cast<const R*>(x),
-                        static_cast<const R*>(P), static_cast<const R*>(z),
-                        static_cast<const R*>(memory), static_cast<const R*>(psi), psi_track,
-                        psi_step, consts, outs);
+    return dense_entry<double>(B, T, n, m, rule, gamma, x, P, z, memory, psi, psi_track,
+                               psi_step, consts, outs);
 }
 
 }  // extern "C"

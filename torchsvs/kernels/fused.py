@@ -144,7 +144,7 @@ def usable(*tensors: Tensor) -> bool:
         return False
     grad = torch.is_grad_enabled()
     for x in tensors:  # a plain loop: an online step calls this at every step
-        if x.dtype != dtype or x.is_cuda or x.device.type != "cpu" or (grad and x.requires_grad):
+        if x.dtype != dtype or x.device.type != "cpu" or (grad and x.requires_grad):
             return False
     return library() is not None
 

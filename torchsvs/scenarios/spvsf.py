@@ -34,12 +34,11 @@ def ballistic_scenario(
     steps = round(duration / model.dt)
     Q = model.process_noise().to(dtype)
     x0 = torch.tensor([61000.0, 3048.0, 19161.0], dtype=dtype)
-    # Steps after gravity_error_at move with the wrong-gravity truth (same Q).
-    late = [
-        gravity_error_at is not None and (k + 1) * model.dt > gravity_error_at + 1e-9
-        for k in range(steps)
-    ]
-    nominal = late.index(True) if True in late else steps
+    # Steps ending after gravity_error_at move with the wrong-gravity truth (same Q).
+    nominal = steps
+    if gravity_error_at is not None:
+        late = (k for k in range(steps) if (k + 1) * model.dt > gravity_error_at + 1e-9)
+        nominal = next(late, steps)
     truth = model.propagate(x0.expand(num_runs, 3), nominal, generator)
     if nominal < steps:
         true_model = BallisticReentry(gravity=2.0 * model.gravity).to(dtype)
