@@ -379,7 +379,9 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return None
         mean, cov, x_pred, P_pred, e, K, S, loglik, e_post, seen = out
         kalman = rule == "kalman"
-        F, _, H, R = (A.view((1,) * len(lead) + A.shape) for A in constants.matrices.tensors)
+        F, _, H, R = constants.matrices.tensors
+        if lead:  # the run's matrices, broadcast over the leading axes
+            F, H, R = (A.view((1,) * len(lead) + A.shape) for A in (F, H, R))
         return FilterResult(
             mean=mean,
             cov=cov,
