@@ -202,7 +202,7 @@ def test_compiled_loops_equal_tensor_loops(name, dtype, spy):
         with eager_loops():
             eager = est(z, x0, P0, dt=dt)
     assert spy["forward"] == 1
-    tol = {"atol": 1e-9, "rtol": 1e-9} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 1e-4}
+    tol = {"atol": 1e-10, "rtol": 1e-10} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 1e-4}
     assert_close(compiled.mean, eager.mean, **tol)
     assert_close(compiled.cov, eager.cov, **tol)
     for key in FIELDS:
@@ -211,6 +211,56 @@ def test_compiled_loops_equal_tensor_loops(name, dtype, spy):
         if a is not None:
             assert a.dtype in (dtype, torch.bool), key
             assert_close(a, b, msg=key, **tol)
+
+
+@needs_compiler
+@pytest.mark.parametrize("ndim", [1, 3, 4])
+def test_compiled_loops_for_any_axis_count_on_threads(ndim, spy, monkeypatch):
+    """The compiled loops unroll 1-3 axes and take any other count at run time, and split
+    large batches over threads (here 2): every case equals the tensor loops to 1e-10."""
+    B, T = 1100, 100  # ≥ 100k track-steps and B·n² ≥ 4096: the loops run on threads
+    gen = torch.Generator().manual_seed(ndim)
+    z = torch.randn(B, T, ndim, generator=gen, dtype=torch.float64) * 3
+    z = z + torch.arange(T, dtype=torch.float64)[None, :, None]
+    z[torch.rand(B, T, ndim, generator=gen) < 0.1] = float("nan")
+    dt = torch.rand(B, T, generator=gen, dtype=torch.float64) + 0.5
+    x0 = torch.randn(B, 2 * ndim, generator=gen, dtype=torch.float64)
+    P0 = torch.eye(2 * ndim, dtype=torch.float64) * 4
+    model = ts.models.ConstantVelocity(ndim=ndim, q=0.5, r=[2.0 + i for i in range(ndim)])
+    model = model.double()
+    fd = [3.0, 2.0] * ndim
+    estimators = {
+        "KF": ts.KalmanFilter(model),
+        "KS": ts.RTSSmoother(ts.KalmanFilter(model)),
+        "SVSF H+": ts.SVSF(model, psi=[3.0] * ndim, gamma=0.2, artificial=None),
+        "SVSS lag 2": ts.SVSS(ts.SVSF(model, psi=fd, gamma=0.2), lag=2),
+    }
+    counts = []
+    threads = fused.threads
+
+    def counted(*args):
+        counts.append(threads(*args))
+        return counts[-1]
+
+    monkeypatch.setattr(fused, "threads", counted)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for name, est in estimators.items():
+            with torch.no_grad():
+                compiled = est(z, x0, P0, dt=dt)
+                with eager_loops():
+                    eager = est(z, x0, P0, dt=dt)
+            assert_close(compiled.mean, eager.mean, atol=1e-10, rtol=1e-10, msg=name)
+            assert_close(compiled.cov, eager.cov, atol=1e-10, rtol=1e-10, msg=name)
+            for key in FIELDS:
+                a, b = getattr(_filtered(compiled), key), getattr(_filtered(eager), key)
+                if a is not None:
+                    assert_close(a, b, atol=1e-10, rtol=1e-10, msg=f"{name} {key}")
+    finally:
+        torch.set_num_threads(before)
+    assert spy["forward"] == 4 and spy["backward"] == 2
+    assert counts == [2] * 6
 
 
 @needs_compiler

@@ -233,3 +233,19 @@ def test_smoother_covariance_equals_dense_exact_covariance(system, lag, kind):
         )
         assert_close(out.cov[b], dense["cov"], atol=1e-8, rtol=1e-8)
         assert bool((torch.linalg.eigvalsh(out.cov[b]) > -1e-9).all())
+
+
+@pytest.mark.parametrize("bridge_gaps", [True, False])
+def test_finite_differences_without_gaps_equal_reference(bridge_gaps):
+    """Gap-free measurements on one interval take the one-pass adjacent differences; they
+    equal the NumPy reference exactly as the gap path does."""
+    sc = atc_batch(3, seed=8)
+    art = ts.FiniteDifferenceVelocity(bridge_gaps=bridge_gaps)
+    velocity, (r, cross, vv) = art.per_axis(sc.z, sc.model, None)
+    dt = float(sc.model.dt)
+    for b in range(3):
+        expected = ref.finite_difference_velocity(sc.z[b].numpy(), dt, bridge_gaps=bridge_gaps)
+        assert_close(velocity[b], torch.from_numpy(expected[:, 1::2]), atol=0, rtol=0)
+    assert torch.isnan(velocity[:, 0]).all() and not torch.isnan(velocity[:, 1:]).any()
+    r_pos = sc.model.meas_cov().diagonal()
+    assert_close(vv, 2 * r_pos / dt**2)

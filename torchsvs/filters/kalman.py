@@ -577,7 +577,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         interval = inputs.dt if inputs.dt is not None else torch.tensor(model.dt, dtype=dtype)
         settings = self.axis_settings(inputs)
         psi, gamma = settings if settings is not None else (None, None)
-        result = axes.run_axes(
+        per_axis, out = axes.run_axes(
             y,
             (inputs.x0[:, pos], inputs.x0[:, vel]),
             prior,
@@ -586,11 +586,27 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             self.axis_rule,
             psi,
             gamma,
+            with_velocity,
         )
         F = model.transition(inputs.dt).to(dtype)  # Q is not part of a result
         if R_c is None:  # measured per axis: R (unmasked) from its diagonal blocks
             R_c = axes.block_diagonal(axes.full(axes.Sym2(*torch.broadcast_tensors(*y.noise))))
-        return _assemble(result, with_velocity, _as_result_matrix(F), H, R_c)
+        return FilterResult(
+            mean=out.mean,
+            cov=out.cov,
+            pred_mean=out.pred_mean,
+            pred_cov=out.pred_cov,
+            innovation=out.innovation,
+            mask=out.mask,
+            transition=_as_result_matrix(F),
+            meas_matrix=_as_result_matrix(H),
+            meas_cov=_as_result_matrix(R_c),
+            gain=out.gain,
+            post_innovation=out.post_innovation,
+            innovation_cov=out.innovation_cov,
+            log_likelihood=out.log_likelihood,
+            axes=per_axis,
+        )
 
     def axis_measurements(self, inputs: Inputs) -> axes.AxisMeasurements | None:
         """The corrector's full-state measurements built axis by axis, where a filter can
@@ -619,7 +635,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             diagonal = R_c.diagonal(dim1=-2, dim2=-1)
             noise = axes.Sym2(diagonal, torch.zeros_like(diagonal), torch.ones_like(diagonal))
             return (
-                axes.AxisMeasurements(z, torch.full_like(z, float("nan")), noise),
+                axes.AxisMeasurements(z, z.new_tensor(float("nan")).expand_as(z), noise),
                 False,
                 H,
                 R_c,
@@ -631,48 +647,6 @@ def _cross_axis(m: int) -> Tensor:
     """``[2m, 2m]`` True where a state covariance couples different axes (layout x, vx, y, ...)."""
     axis = torch.arange(2 * m) // 2
     return axis[:, None] != axis[None, :]
-
-
-def _assemble(
-    res: axes.AxisResult, with_velocity: bool, F: Tensor, H: Tensor, R: Tensor
-) -> FilterResult:
-    """The per-axis pass in the general layout (block-diagonal covariances and gains)."""
-    seen_p, seen_v = res.observed
-
-    def measured(pair: tuple[Tensor, Tensor]) -> Tensor:
-        return axes.interleave(*pair) if with_velocity else pair[0]
-
-    gain = axes.block_diagonal(res.gain)
-    if not with_velocity:
-        gain = gain[..., 0::2]  # the position columns
-    # S = H P Hᵀ + R per axis, identity rows and columns where missing (masked noise).
-    dtype = res.pred_cov.a.dtype
-    fp, fv = seen_p.to(dtype), seen_v.to(dtype)
-    if with_velocity:
-        S_axes = axes.Sym2(
-            res.pred_cov.a * fp + res.noise.a,
-            res.pred_cov.b * fp * fv + res.noise.b,
-            res.pred_cov.c * fv + res.noise.c,
-        )
-        innovation_cov = axes.block_diagonal(axes.full(S_axes))
-    else:  # over the positions
-        innovation_cov = torch.diag_embed(res.pred_cov.a * fp + res.noise.a)
-    return FilterResult(
-        mean=axes.interleave(*res.mean),
-        cov=axes.block_diagonal(axes.full(res.cov)),
-        pred_mean=axes.interleave(*res.pred_mean),
-        pred_cov=axes.block_diagonal(axes.full(res.pred_cov)),
-        innovation=measured(res.innovation),
-        mask=measured(res.observed),
-        transition=F,
-        meas_matrix=_as_result_matrix(H),
-        meas_cov=_as_result_matrix(R),
-        gain=gain,
-        post_innovation=None if res.post_innovation is None else measured(res.post_innovation),
-        innovation_cov=innovation_cov,
-        log_likelihood=res.log_likelihood,
-        axes=res,
-    )
 
 
 class KalmanFilter(GaussianFilter):

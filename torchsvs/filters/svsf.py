@@ -179,6 +179,8 @@ class SVSF(GaussianFilter):
             return None
         window = _window(history, inputs)
         T = window.z.shape[1]
+        if not bool(torch.isnan(window.z[:, -1]).any()):  # every component seen last step
+            return _window_rows(window, T - 1)
         seen = ~torch.isnan(window.z)
         index = torch.arange(T).view(1, T, 1).expand_as(seen)
         last = torch.where(seen, index, torch.full_like(index, -1)).amax(dim=1)  # [B, m]

@@ -126,10 +126,26 @@ class AxisResult(NamedTuple):
     innovation: tuple[Tensor, Tensor]  #: a-priori, 0 where missing
     gain: Mat2  #: per axis, columns (position, velocity measurement)
     observed: tuple[Tensor, Tensor]  #: masks of (y_p, y_v)
-    noise: Sym2  #: R per axis as used (identity on missing components, as mask_covariance)
+    noise: Sym2  #: R per axis, unmasked (users mask it by ``observed``: _masked_noise)
     interval: Tensor  #: T of each step, [B, T, 1] or 0-d
     post_innovation: tuple[Tensor, Tensor] | None = None
     log_likelihood: Tensor | None = None  #: [B] summed over axes and steps
+
+
+class Interleaved(NamedTuple):
+    """A filter pass in the general layout (state ``p1, v1, p2, v2, ...``; block-diagonal
+    covariances and gains): the fields of a :class:`~torchsvs.types.FilterResult`."""
+
+    mean: Tensor  #: [B, T, 2m]
+    cov: Tensor  #: [B, T, 2m, 2m]
+    pred_mean: Tensor
+    pred_cov: Tensor
+    innovation: Tensor  #: [B, T, m_z]: m_z = 2m with velocity measurements, else m
+    gain: Tensor  #: [B, T, 2m, m_z]
+    innovation_cov: Tensor  #: [B, T, m_z, m_z]
+    post_innovation: Tensor | None
+    log_likelihood: Tensor | None
+    mask: Tensor  #: [B, T, m_z]
 
 
 def _masked_noise(R: Sym2, seen_p: Tensor, seen_v: Tensor) -> Sym2:
@@ -230,8 +246,9 @@ def run_axes(
     rule: str,
     psi: Tensor | None = None,
     gamma: Tensor | None = None,
-) -> AxisResult:
-    """The forward pass of every axis.
+    velocity: bool = False,
+) -> tuple[AxisResult, Interleaved]:
+    """The forward pass of every axis, per axis and in the general layout.
 
     Args:
         y: the corrector's measurements per axis.
@@ -243,11 +260,10 @@ def run_axes(
             with ``H⁺ = I``; the ``H⁺`` mode has no velocity measurements).
         psi: boundary layer ``[2, m]`` (rows: position, velocity widths) or per step
             ``[B, T, 2, m]``; gamma: memory (0-d). For ``"svsf"``.
+        velocity: the corrector measures velocities (``H = I``), else positions only.
     """
     B, steps, m = y.position.shape
     dtype = y.position.dtype
-    seen_p, seen_v = ~torch.isnan(y.position), ~torch.isnan(y.velocity)
-    R_all = _masked_noise(y.noise, seen_p, seen_v)
     T_all = interval.unsqueeze(-1) if interval.ndim == 2 else interval
     Q_all = process_noise(q, T_all)
     if rule == "svsf":
@@ -262,28 +278,35 @@ def run_axes(
         x = x if x.ndim == 3 else x.reshape((1, 1, -1) if x.ndim == 1 else (1, 1, 1))
         return x.expand(B, steps, m)
 
-    # Everything that does not depend on the estimates, for all steps at once.
-    given = tuple(
-        x if x.ndim in (0, 1, 3) else per_step(x)
-        for x in (
-            T_all,
-            Q_all.a,
-            Q_all.b,
-            Q_all.c,
-            seen_p.to(dtype),
-            seen_v.to(dtype),
-            y.position.nan_to_num(0.0),
-            y.velocity.nan_to_num(0.0),
-            *R_all,
-            width_p,
-            width_v,
+    def given(*quantities: Tensor) -> tuple[Tensor, ...]:
+        """Everything that does not depend on the estimates, for all steps at once."""
+        return tuple(x if x.ndim in (0, 1, 3) else per_step(x) for x in quantities)
+
+    noise = Sym2(*(per_step(x) for x in y.noise))
+    prior = (x0[0], x0[1], P0.a, P0.b, P0.c)
+    raw = given(T_all, *Q_all, y.position, y.velocity, *y.noise, width_p, width_v)
+    if fused.usable(*raw, *prior, gamma):
+        mean, cov, pm, pc, e, K, S, post, loglik, mask = fused.forward(
+            rule, float(gamma), raw, prior, (B, steps, m), velocity
         )
+        out = Interleaved(mean, cov, pm, pc, e, K, S, post, loglik, mask)
+        return per_axis(out, noise, T_all, velocity), out
+    seen_p, seen_v = ~torch.isnan(y.position), ~torch.isnan(y.velocity)
+    R_all = _masked_noise(y.noise, seen_p, seen_v)
+    inputs = given(
+        T_all,
+        *Q_all,
+        seen_p.to(dtype),
+        seen_v.to(dtype),
+        y.position.nan_to_num(0.0),
+        y.velocity.nan_to_num(0.0),
+        *R_all,
+        width_p,
+        width_v,
     )
     zero = torch.zeros(B, m, dtype=dtype)
-    state = (x0[0], x0[1], P0.a, P0.b, P0.c, zero, zero)
-    if fused.usable(*given, *state, gamma):
-        out = fused.forward(rule, float(gamma), given, state[:5], (B, steps, m))
-    elif rule == "kalman" and prefer_scan(B * m, steps):
+    state = (*prior, zero, zero)
+    if rule == "kalman" and prefer_scan(B * m, steps):
         # The filtered states by an associative scan over time, then every step's prediction,
         # gain and update from its predecessor at once (the same step function, vectorised).
         from torchsvs.kernels.scan import filter_scan
@@ -297,17 +320,17 @@ def run_axes(
             for first, x in zip(state[:5], (pf, vf, *Pf), strict=True)
         )
         previous = (*before, zero.unsqueeze(1), zero.unsqueeze(1))
-        out = _forward_step(rule, gamma, previous, given)[1]
+        stepped = _forward_step(rule, gamma, previous, inputs)[1]
     else:  # time-major: each step's slice is a contiguous block
-        out = _forward_chunk(rule, gamma, state, tuple(map(_time_major, given)), steps)[1]
-    (p, v, a, b, c, pp, a1, b1, c1, ep, ev, ka, kb, kc, kd, mp, mv) = out
+        stepped = _forward_chunk(rule, gamma, state, tuple(map(_time_major, inputs)), steps)[1]
+    (p, v, a, b, c, pp, a1, b1, c1, ep, ev, ka, kb, kc, kd, mp, mv) = stepped
     vp = torch.cat([x0[1].unsqueeze(1), v[:, :-1]], dim=1)
     loglik = None
     if rule == "kalman":  # log N(e; 0, S) over the observed positions, Eq. (16)'s S
         fp = seen_p.to(dtype)
         S = a1 * fp + per_step(R_all.a)
         loglik = (-0.5 * (ep * ep / S + S.log() + fp * math.log(2 * math.pi))).sum((-2, -1))
-    return AxisResult(
+    res = AxisResult(
         mean=(p, v),
         cov=Sym2(a, b, c),
         pred_mean=(pp, vp),
@@ -315,10 +338,86 @@ def run_axes(
         innovation=(ep, ev),
         gain=Mat2(ka, kb, kc, kd),
         observed=(seen_p, seen_v),
-        noise=Sym2(*(per_step(x) for x in R_all)),
+        noise=noise,
         interval=T_all,
         post_innovation=(mp, mv) if rule == "svsf" else None,
         log_likelihood=loglik,
+    )
+    return res, interleaved(res, velocity)
+
+
+def interleaved(res: AxisResult, velocity: bool) -> Interleaved:
+    """A pass per axis in the general layout (block-diagonal covariances and gains)."""
+    seen_p, seen_v = res.observed
+
+    def measured(pair: tuple[Tensor, Tensor]) -> Tensor:
+        return interleave(*pair) if velocity else pair[0]
+
+    gain = block_diagonal(res.gain)
+    if not velocity:
+        gain = gain[..., 0::2]  # the position columns
+    # S = H P Hᵀ + R per axis, identity rows and columns where missing (masked noise).
+    dtype = res.pred_cov.a.dtype
+    fp, fv = seen_p.to(dtype), seen_v.to(dtype)
+    R = _masked_noise(res.noise, seen_p, seen_v)
+    if velocity:
+        S = Sym2(
+            res.pred_cov.a * fp + R.a, res.pred_cov.b * fp * fv + R.b, res.pred_cov.c * fv + R.c
+        )
+        innovation_cov = block_diagonal(full(S))
+    else:  # over the positions
+        innovation_cov = torch.diag_embed(res.pred_cov.a * fp + R.a)
+    return Interleaved(
+        mean=interleave(*res.mean),
+        cov=block_diagonal(full(res.cov)),
+        pred_mean=interleave(*res.pred_mean),
+        pred_cov=block_diagonal(full(res.pred_cov)),
+        innovation=measured(res.innovation),
+        gain=gain,
+        innovation_cov=innovation_cov,
+        post_innovation=None if res.post_innovation is None else measured(res.post_innovation),
+        log_likelihood=res.log_likelihood,
+        mask=measured(res.observed),
+    )
+
+
+def per_axis(out: Interleaved, noise: Sym2, interval: Tensor, velocity: bool) -> AxisResult:
+    """The pass per axis as views of its general layout (no copies): the inverse of
+    :func:`interleaved`."""
+
+    def pair(x: Tensor) -> tuple[Tensor, Tensor]:  # [..., 2m] → (positions, velocities)
+        return x[..., 0::2], x[..., 1::2]
+
+    def sym(P: Tensor) -> Sym2:  # the axes' diagonal blocks
+        diagonal = P.diagonal(dim1=-2, dim2=-1)
+        return Sym2(diagonal[..., 0::2], P.diagonal(1, -2, -1)[..., 0::2], diagonal[..., 1::2])
+
+    absent = out.innovation.new_zeros(()).expand(out.mean[..., 0::2].shape)
+    if velocity:
+        K = out.gain
+        gain = Mat2(*sym(K)[:2], K.diagonal(-1, -2, -1)[..., 0::2], sym(K).c)
+        innovation, observed = pair(out.innovation), pair(out.mask)
+        post = None if out.post_innovation is None else pair(out.post_innovation)
+    else:  # position columns: K[2j, j], K[2j + 1, j]
+        K = out.gain
+        rows_p = K[..., 0::2, :].diagonal(dim1=-2, dim2=-1)
+        rows_v = K[..., 1::2, :].diagonal(dim1=-2, dim2=-1)
+        gain = Mat2(rows_p, absent, rows_v, absent)
+        innovation = (out.innovation, absent)
+        observed = (out.mask, torch.zeros((), dtype=torch.bool).expand(out.mask.shape))
+        post = None if out.post_innovation is None else (out.post_innovation, absent)
+    return AxisResult(
+        mean=pair(out.mean),
+        cov=sym(out.cov),
+        pred_mean=pair(out.pred_mean),
+        pred_cov=sym(out.pred_cov),
+        innovation=innovation,
+        gain=gain,
+        observed=observed,
+        noise=noise,
+        interval=interval,
+        post_innovation=post,
+        log_likelihood=out.log_likelihood,
     )
 
 
@@ -349,8 +448,9 @@ def backward_terms(res: AxisResult, projection: bool) -> AxisBackward:
     Pp = full(Sym2(*(x[:, 1:] for x in res.pred_cov)))
     P = full(Sym2(*(x[:, :-1] for x in res.cov)))
     K = Mat2(*(x[:, 1:] for x in res.gain))
-    R = full(Sym2(*(x[:, 1:] for x in res.noise)))
-    fp, fv = (o[:, 1:].to(Pp.a.dtype) for o in res.observed)
+    seen = tuple(o[:, 1:] for o in res.observed)
+    R = full(_masked_noise(Sym2(*(x[:, 1:] for x in res.noise)), *seen))
+    fp, fv = (o.to(Pp.a.dtype) for o in seen)
     zero = torch.zeros_like(fp)
     H = Mat2(fp, zero, zero, fv)
     F = transition(_later(res.interval).expand_as(fp))
@@ -432,27 +532,28 @@ def _rts_interval(res: AxisResult) -> tuple[tuple[Tensor, Tensor], Sym2]:
     return smoothed, Sym2(*(_time_major_stack(parts) for parts in zip(*covs, strict=True)))
 
 
-def smooth_axes(
-    res: AxisResult, projection: bool, lag: int | None
-) -> tuple[tuple[Tensor, Tensor], Sym2]:
-    """Smoothed mean ``(p, v)`` and covariance per axis, ``[B, T, m]`` each (see
-    :meth:`~torchsvs.smoothers.RTSSmoother.smooth`)."""
-    steps = res.mean[0].shape[1]
-    if steps == 1:
-        return res.mean, res.cov
-    B, _, m = res.mean[0].shape
-    if not projection and (lag is None or lag >= steps - 1):
+def smooth_axes(res: AxisResult, projection: bool, lag: int | None) -> tuple[Tensor, Tensor]:
+    """Smoothed mean ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]`` in the general layout (see
+    :meth:`~torchsvs.smoothers.RTSSmoother.smooth`): compiled where no gradient is asked for,
+    else as tensor operations."""
+    B, steps, m = res.mean[0].shape
+    fixed_interval = not projection and (lag is None or lag >= steps - 1)
+    if steps > 1 and fixed_interval:
         moments = (*res.mean, *res.cov, *res.pred_mean, *res.pred_cov, res.interval)
         if fused.usable(*moments):
-            smoothed = fused.rts_interval(moments, (B, steps, m))
-            return (smoothed[0], smoothed[1]), Sym2(*smoothed[2:])
-        if prefer_scan(res.mean[0].shape[0] * res.mean[0].shape[2], steps):
-            from torchsvs.kernels.scan import smoother_scan
+            return fused.rts_interval(moments, (B, steps, m))
+    elif steps > 1:
+        filtered = _backward_inputs(res)
+        if fused.usable(*filtered):
+            return fused.backward(filtered, (B, steps, m), lag, projection)
+    (p, v), cov = _smooth_tensors(res, projection, lag, fixed_interval)
+    return interleave(p, v), block_diagonal(full(cov))
 
-            return smoother_scan(res.mean, res.cov, res.pred_mean, res.pred_cov, res.interval)
-        return _rts_interval(res)
+
+def _backward_inputs(res: AxisResult) -> tuple[Tensor, ...]:
+    """The compiled backward recursion's 20 inputs (see :func:`fused.backward`)."""
     dtype = res.mean[0].dtype
-    filtered = (
+    return (
         *res.cov,
         *res.pred_cov,
         *res.gain,
@@ -462,9 +563,21 @@ def smooth_axes(
         *res.innovation,
         *res.mean,
     )
-    if fused.usable(*filtered):
-        ran = fused.backward(filtered, (B, steps, m), lag, projection)
-        return (ran[0], ran[1]), Sym2(*ran[2:])
+
+
+def _smooth_tensors(
+    res: AxisResult, projection: bool, lag: int | None, fixed_interval: bool
+) -> tuple[tuple[Tensor, Tensor], Sym2]:
+    """:func:`smooth_axes` as tensor operations (differentiable), per axis."""
+    steps = res.mean[0].shape[1]
+    if steps == 1:
+        return res.mean, res.cov
+    if fixed_interval:
+        if prefer_scan(res.mean[0].shape[0] * res.mean[0].shape[2], steps):
+            from torchsvs.kernels.scan import smoother_scan
+
+            return smoother_scan(res.mean, res.cov, res.pred_mean, res.pred_cov, res.interval)
+        return _rts_interval(res)
     b = backward_terms(res, projection)
     zeros = torch.zeros_like(b.d[0])
     if lag is None or lag >= steps - 1:

@@ -1,19 +1,27 @@
 // The sequential time loops of the per-axis kernel (torchsvs/kernels/axes.py) as compiled C++.
 //
-// Each (track, axis) pair is an independent chain of two-state steps; its state stays in
-// registers and every step costs a few dozen flops instead of a few dozen tensor operations.
-// The formulas are those of axes.py, transcribed line by line (the Python functions named in
-// the comments are their home and the differentiable path); tests hold both to 1e-9.
+// Each (track, axis) pair is an independent lane of two-state steps; blocks of lanes step
+// together (a loop the compiler vectorises) and every step costs a few dozen flops instead of
+// a few dozen tensor operations. The formulas are those of axes.py, transcribed line by line
+// (the Python functions named in the comments are their home and the differentiable path);
+// tests hold both to 1e-10 in float64.
 //
-// Every array argument is a pointer and three element strides (track, step, axis) into a
-// [B, T, m] view, so broadcast inputs (stride 0) need no copies. Outputs are contiguous.
-// Built and loaded by torchsvs/kernels/fused.py (g++ -O3, ctypes).
+// Every array input is a pointer and three element strides (track, step, axis) into a
+// [B, T, m] view, so broadcast inputs (stride 0) need no copies. Outputs are contiguous, in
+// the general layout (state p1, v1, p2, v2, ...; block-diagonal covariances and gains): what
+// a FilterResult holds, written once, with no assembly pass after. Large batches run on
+// threads, split by tracks. Built and loaded by torchsvs/kernels/fused.py (g++ -O3, ctypes).
 
 #include <cmath>
 #include <cstdint>
+#include <algorithm>
+#include <thread>
 #include <vector>
 
 namespace {
+
+// Largest state or measurement size of the dense steps, and axis count of the per-axis loops.
+constexpr int64_t kMax = 16;
 
 template <typename R>
 struct View {
@@ -35,142 +43,337 @@ inline R gain_ratio(R e, R memory, R width, R gamma) {
     return (magnitude + gamma * std::fabs(memory)) / (magnitude > width ? magnitude : width);
 }
 
-// axes._forward_step over all steps. rule 0: Kalman (position-only), 1: SVSF.
-// Inputs (13): T, Qa, Qb, Qc, fp, fv, yp, yv, rp, rpv, rvv, wp, wv.
-// Prior (5, [B, m] views as [B, 1, m]): p, v, a, b, c.
-// Outputs (17, [B, T, m]): p, v, a, b, c, p_pred, a1, b1, c1, ep, ev, ka, kb, kc, kd, mp, mv.
+// Runs body(first, last) over track ranges on `threads` threads (the calling one included).
+template <typename Body>
+void over_tracks(int64_t B, int threads, const Body& body) {
+    if (threads > B) threads = static_cast<int>(B);
+    if (threads <= 1) {
+        body(int64_t(0), B);
+        return;
+    }
+    std::vector<std::thread> pool;
+    int64_t per = (B + threads - 1) / threads;
+    for (int i = 1; i < threads; ++i) {
+        int64_t first = i * per, last = std::min(B, first + per);
+        if (first < last) pool.emplace_back([&body, first, last] { body(first, last); });
+    }
+    body(int64_t(0), std::min(B, per));
+    for (auto& worker : pool) worker.join();
+}
+
+// The outputs in the general layout (state p1, v1, p2, v2, ...; FilterResult's fields), each
+// contiguous [B, T, ...]; a track-step's record of every output is written in one go, so the
+// block-diagonal zeros cost no extra pass. `post` (SVSF) and `loglik` [B] (KF) may be null.
 template <typename R>
-void forward(int64_t B, int64_t T, int64_t m, int rule, R gamma, const void* const* in,
-             const int64_t* in_strides, const void* const* prior, const int64_t* prior_strides,
-             void* const* out) {
-    View<R> Ts = view<R>(in, in_strides, 0), Qa = view<R>(in, in_strides, 1),
-            Qb = view<R>(in, in_strides, 2), Qc = view<R>(in, in_strides, 3),
-            Fp = view<R>(in, in_strides, 4), Fv = view<R>(in, in_strides, 5),
-            Yp = view<R>(in, in_strides, 6), Yv = view<R>(in, in_strides, 7),
-            Rp = view<R>(in, in_strides, 8), Rpv = view<R>(in, in_strides, 9),
-            Rvv = view<R>(in, in_strides, 10), Wp = view<R>(in, in_strides, 11),
-            Wv = view<R>(in, in_strides, 12);
-    R* o[17];
-    for (int i = 0; i < 17; ++i) o[i] = static_cast<R*>(out[i]);
-    // Steps outermost and the independent (track, axis) chains inside: the processor overlaps
-    // the chains' dependent arithmetic (each step waits on the one before, within a chain).
-    const int64_t chains = B * m;
-    std::vector<R> state(7 * chains);
-    R *P = state.data(), *V = P + chains, *A = V + chains, *Bc = A + chains, *Cc = Bc + chains,
-      *MP = Cc + chains, *MV = MP + chains;
-    for (int64_t bi = 0; bi < B; ++bi) {
-        for (int64_t j = 0; j < m; ++j) {
-            int64_t i = bi * m + j;
-            P[i] = view<R>(prior, prior_strides, 0).at(bi, 0, j);
-            V[i] = view<R>(prior, prior_strides, 1).at(bi, 0, j);
-            A[i] = view<R>(prior, prior_strides, 2).at(bi, 0, j);
-            Bc[i] = view<R>(prior, prior_strides, 3).at(bi, 0, j);
-            Cc[i] = view<R>(prior, prior_strides, 4).at(bi, 0, j);
-            MP[i] = MV[i] = 0;
+struct Layout {
+    R *mean, *cov, *pred_mean, *pred_cov, *innovation, *gain, *S, *post, *loglik;
+    uint8_t* mask;
+};
+
+// Writes an axis's two rows (2j, 2j + 1) of a block-diagonal n × n record: [[a, b], [c, d]]
+// on the diagonal, zeros elsewhere.
+template <typename R>
+inline void block_rows(R* record, int64_t n, int64_t j, R a, R b, R c, R d) {
+    R* row0 = record + 2 * j * n;
+    R* row1 = row0 + n;
+    for (int64_t k = 0; k < n; ++k) row0[k] = row1[k] = 0;
+    row0[2 * j] = a, row0[2 * j + 1] = b, row1[2 * j] = c, row1[2 * j + 1] = d;
+}
+
+// The per-step inputs of a lane (one track's axis) in axes._forward_step's order.
+enum Given { kT, kQa, kQb, kQc, kYp, kYv, kRp, kRpv, kRvv, kWp, kWv, kGiven };
+// A lane's results of a step: its state after the step, then what the step records.
+enum Result {
+    kP, kV, kA, kB, kC, kMemP, kMemV,  // the state carried to the next step
+    kPp, kVp, kA1, kB1, kC1, kEp, kEv, kKa, kKc, kKd, kSp, kSpv, kSv, kSeenP, kSeenV, kLl,
+    kResults
+};
+constexpr int64_t kLanes = 64;  // lanes (track axes) stepped together
+
+// axes._forward_step for `lanes` independent lanes at once. Every lane runs the same branch-free
+// arithmetic, so the compiler vectorises the loop across lanes and the processor overlaps the
+// lanes' dependent chains. g: the step's inputs, r: the state before (r[kP..kMemV]) and the
+// results after; r[kLl] is the step's log-likelihood without log S (Likelihood adds it).
+template <typename R, int Rule>
+inline void step_lanes(int64_t lanes, R gamma, const R (*g)[kLanes], R (*r)[kLanes]) {
+    for (int64_t l = 0; l < lanes; ++l) {
+        R p = r[kP][l], v = r[kV][l], a = r[kA][l], b = r[kB][l], c = r[kC][l];
+        R dt = g[kT][l], yp = g[kYp][l], yv = g[kYv][l];
+        bool seen_p = yp == yp, seen_v = Rule == 1 && yv == yv;  // NaN: missing
+        R fp = seen_p ? R(1) : R(0), fv = seen_v ? R(1) : R(0);
+        // R masked: an identity on missing components (axes._masked_noise).
+        R rp = seen_p ? g[kRp][l] : R(1);
+        // Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
+        R p_pred = p + dt * v, v_pred = v;
+        R bT = b + dt * c;
+        R a1 = a + dt * (b + bT) + g[kQa][l];
+        R b1 = bT + g[kQb][l];
+        R c1 = c + g[kQc][l];
+        R ep = seen_p ? yp - p_pred : R(0);
+        R Sp = a1 * fp + rp;
+        if (Rule == 0) {
+            R kp = a1 * fp / Sp, kv_p = b1 * fp / Sp;
+            R one_k = 1 - kp;
+            r[kA][l] = one_k * one_k * a1 + kp * kp * rp;  // Joseph form
+            r[kB][l] = one_k * (b1 - kv_p * a1) + kp * kv_p * rp;
+            r[kC][l] = c1 - 2 * kv_p * b1 + kv_p * kv_p * (a1 + rp);
+            r[kP][l] = p_pred + kp * ep;
+            r[kV][l] = v_pred + kv_p * ep;
+            r[kEv][l] = 0, r[kKa][l] = kp, r[kKc][l] = kv_p, r[kKd][l] = 0;
+            r[kSpv][l] = 0, r[kSv][l] = 1;
+            // log N(e; 0, S) over the observed positions (axes.run_axes), but log S.
+            r[kLl][l] = R(-0.5) * (ep * ep / Sp + fp * R(1.8378770664093453));
+        } else {
+            R rpv = seen_p && seen_v ? g[kRpv][l] : R(0);
+            R rvv = seen_v ? g[kRvv][l] : R(1);
+            R ev = seen_v ? yv - v_pred : R(0);
+            // svsf_gain_ratio (torchsvs/linalg.py), Eq. (23): (|e| + γ|e_post|) / max(|e|, ψ).
+            R mag_p = std::fabs(ep), mag_v = std::fabs(ev), wp = g[kWp][l], wv = g[kWv][l];
+            R kp = (mag_p + gamma * std::fabs(r[kMemP][l])) / (mag_p > wp ? mag_p : wp) * fp;
+            R kv = (mag_v + gamma * std::fabs(r[kMemV][l])) / (mag_v > wv ? mag_v : wv) * fv;
+            R one_p = 1 - kp, one_v = 1 - kv;
+            r[kA][l] = one_p * one_p * a1 + kp * kp * rp;  // Joseph form, diagonal gain
+            r[kB][l] = one_p * one_v * b1 + kp * kv * rpv;
+            r[kC][l] = one_v * one_v * c1 + kv * kv * rvv;
+            R p_new = p_pred + kp * ep, v_new = v_pred + kv * ev;
+            r[kP][l] = p_new, r[kV][l] = v_new;
+            // Eq. (24): the a-posteriori innovation, carried where missing.
+            r[kMemP][l] = seen_p ? yp - p_new : r[kMemP][l];
+            r[kMemV][l] = seen_v ? yv - v_new : r[kMemV][l];
+            r[kEv][l] = ev, r[kKa][l] = kp, r[kKc][l] = 0, r[kKd][l] = kv;
+            r[kSpv][l] = b1 * fp * fv + rpv, r[kSv][l] = c1 * fv + rvv;
+        }
+        r[kPp][l] = p_pred, r[kVp][l] = v_pred, r[kA1][l] = a1, r[kB1][l] = b1, r[kC1][l] = c1, r[kEp][l] = ep;
+        r[kSp][l] = Sp, r[kSeenP][l] = fp, r[kSeenV][l] = fv;
+    }
+}
+
+// A lane's log-likelihood, Σ −(e²/S + log S + log 2π)/2 over its observed steps, summed in
+// double. The logarithms are taken once per kLogEvery steps instead of every step (log does
+// not vectorise; it cost more than the step): S multiplies into a double product, flushed
+// into the sum before it could leave double's range; a factor far from 1 goes straight in.
+struct Likelihood {
+    static constexpr int kLogEvery = 16;
+    double terms = 0, sum = 0, product = 1;  // terms: the parts without log S
+    void add(double term, double S) {
+        terms += term;
+        if (S > 1e-15 && S < 1e15) {
+            product *= S;
+        } else {
+            sum += std::log(S);
         }
     }
-    for (int64_t t = 0; t < T; ++t) {
-        for (int64_t bi = 0; bi < B; ++bi) {
-            for (int64_t j = 0; j < m; ++j) {
-                int64_t i = bi * m + j;
-                R p = P[i], v = V[i], a = A[i], b = Bc[i], c = Cc[i];
-                R memory_p = MP[i], memory_v = MV[i];
-                R dt = Ts.at(bi, t, j), fp = Fp.at(bi, t, j), fv = Fv.at(bi, t, j);
-                R yp = Yp.at(bi, t, j), yv = Yv.at(bi, t, j), rp = Rp.at(bi, t, j);
-                // Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
-                R p_pred = p + dt * v, v_pred = v;
-                R bT = b + dt * c;
-                R a1 = a + dt * (b + bT) + Qa.at(bi, t, j);
-                R b1 = bT + Qb.at(bi, t, j);
-                R c1 = c + Qc.at(bi, t, j);
-                R ep = (yp - p_pred) * fp;
-                R ev = 0, ka, kb = 0, kc, kd;
-                if (rule == 0) {
-                    R S = a1 * fp + rp;
-                    R kp = a1 * fp / S, kv_p = b1 * fp / S;
-                    R one_k = 1 - kp;
-                    a = one_k * one_k * a1 + kp * kp * rp;
-                    b = one_k * (b1 - kv_p * a1) + kp * kv_p * rp;
-                    c = c1 - 2 * kv_p * b1 + kv_p * kv_p * (a1 + rp);
-                    p = p_pred + kp * ep;
-                    v = v_pred + kv_p * ep;
-                    ka = kp, kc = kv_p, kd = 0;
-                } else {
-                    ev = (yv - v_pred) * fv;
-                    R kp = gain_ratio(ep, memory_p, Wp.at(bi, t, j), gamma) * fp;
-                    R kv = gain_ratio(ev, memory_v, Wv.at(bi, t, j), gamma) * fv;
-                    R one_p = 1 - kp, one_v = 1 - kv;
-                    a = one_p * one_p * a1 + kp * kp * rp;
-                    b = one_p * one_v * b1 + kp * kv * Rpv.at(bi, t, j);
-                    c = one_v * one_v * c1 + kv * kv * Rvv.at(bi, t, j);
-                    p = p_pred + kp * ep;
-                    v = v_pred + kv * ev;
-                    // Eq. (24): the a-posteriori innovation, carried where missing.
-                    if (fp > 0) memory_p = yp - p;
-                    if (fv > 0) memory_v = yv - v;
-                    ka = kp, kc = 0, kd = kv;
+    double total() {
+        flush();
+        return terms - 0.5 * sum;
+    }
+    void flush() {
+        sum += std::log(product);
+        product = 1;
+    }
+};
+
+// axes._forward_step over all steps, writing the general layout. rule 0: Kalman
+// (position-only), 1: SVSF. `velocity`: the corrector measures velocities too (H = I, m_z = n),
+// else positions only (m_z = m). M: the number of axes when known at compile time (1-3: the
+// record loops unroll), else 0 and `m` says.
+// Inputs (11, [B, T, m] views, in Given's order): T, Qa, Qb, Qc, yp, yv (NaN: missing), rp,
+// rpv, rvv (R per axis, unmasked), wp, wv. Prior (5, [B, m] views as [B, 1, m]): p, v, a, b, c.
+template <typename R, int Rule, int M>
+void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int threads,
+             const void* const* in, const int64_t* in_strides, const void* const* prior,
+             const int64_t* prior_strides, const Layout<R>& out) {
+    const int64_t m = M > 0 ? M : m_runtime;
+    View<R> given[kGiven];
+    // Inputs constant over steps (stride 0 in time, e.g. a fixed interval or R) are read once
+    // per block of tracks; the others at every step.
+    int per_step[kGiven], stepped = 0, fixed[kGiven], constant = 0;
+    for (int q = 0; q < kGiven; ++q) {
+        given[q] = view<R>(in, in_strides, q);
+        if (given[q].st == 0)
+            fixed[constant++] = q;
+        else
+            per_step[stepped++] = q;
+    }
+    const int64_t n = 2 * m, mz = velocity ? n : m;
+    // Blocks of tracks step together, chunk by chunk of kChunk steps. A chunk's records are
+    // staged per track and then copied out whole: each output gets one contiguous run per
+    // track and chunk instead of a record at a time interleaved across the block's tracks.
+    const int64_t block = kLanes / m;
+    constexpr int64_t kChunk = 16;
+    // Record sizes in Layout's order: mean, cov, pred_mean, pred_cov, innovation, gain, S, post.
+    const int64_t sizes[8] = {n, n * n, n, n * n, mz, n * mz, mz * mz, mz};
+    R* const targets[8] = {out.mean, out.cov,  out.pred_mean, out.pred_cov,
+                           out.innovation, out.gain, out.S, out.post};
+    int64_t offsets[9] = {0};
+    for (int o = 0; o < 8; ++o) offsets[o + 1] = offsets[o] + (targets[o] ? sizes[o] : 0);
+    const int64_t staged_size = block * kChunk * offsets[8];
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        alignas(64) R g[kGiven][kLanes];
+        alignas(64) R r[kResults][kLanes];
+        Likelihood logs[kLanes];
+        std::vector<R> staged(staged_size);
+        std::vector<uint8_t> staged_mask(block * kChunk * mz);
+        for (int64_t b0 = first; b0 < last; b0 += block) {
+            const int64_t b1 = std::min(last, b0 + block), lanes = (b1 - b0) * m;
+            for (int64_t bi = b0, l = 0; bi < b1; ++bi)
+                for (int64_t j = 0; j < m; ++j, ++l) {
+                    for (int q = 0; q < 5; ++q)
+                        r[q][l] = view<R>(prior, prior_strides, q).at(bi, 0, j);
+                    r[kMemP][l] = r[kMemV][l] = 0;
+                    logs[l] = Likelihood();
+                    for (int c = 0; c < constant; ++c) g[fixed[c]][l] = given[fixed[c]].at(bi, 0, j);
                 }
-                P[i] = p, V[i] = v, A[i] = a, Bc[i] = b, Cc[i] = c, MP[i] = memory_p;
-                MV[i] = memory_v;
-                int64_t k = (bi * T + t) * m + j;
-                R values[17] = {p,  v,  a,  b,  c,  p_pred, a1,       b1,      c1,
-                                ep, ev, ka, kb, kc, kd,     memory_p, memory_v};
-                for (int n = 0; n < 17; ++n) o[n][k] = values[n];
+            for (int64_t t0 = 0; t0 < T; t0 += kChunk) {
+                const int64_t t1 = std::min(T, t0 + kChunk);
+                for (int64_t t = t0; t < t1; ++t) {
+                    for (int c = 0; c < stepped; ++c) {
+                        const View<R> x = given[per_step[c]];
+                        R* lane = g[per_step[c]];
+                        for (int64_t bi = b0, l = 0; bi < b1; ++bi)
+                            for (int64_t j = 0; j < m; ++j, ++l) lane[l] = x.at(bi, t, j);
+                    }
+                    step_lanes<R, Rule>(lanes, gamma, g, r);
+                    if (Rule == 0) {
+                        for (int64_t l = 0; l < lanes; ++l) logs[l].add(r[kLl][l], r[kSp][l]);
+                        if (t % Likelihood::kLogEvery == Likelihood::kLogEvery - 1)
+                            for (int64_t l = 0; l < lanes; ++l) logs[l].flush();
+                    }
+                    for (int64_t bi = b0, l = 0; bi < b1; ++bi) {
+                        // This track-step's records in the staging area: per output, its
+                        // tracks' chunks one after the other, exactly as they are copied out.
+                        const int64_t record = (bi - b0) * kChunk + (t - t0);
+                        auto at = [&](int o) {
+                            return staged.data() + block * kChunk * offsets[o] + record * sizes[o];
+                        };
+                        R *mean = at(0), *cov = at(1), *pred_mean = at(2), *pred_cov = at(3);
+                        R *e = at(4), *K = at(5), *S = at(6);
+                        R* post = out.post ? at(7) : nullptr;
+                        uint8_t* mask = staged_mask.data() + record * mz;
+                        for (int64_t j = 0; j < m; ++j, ++l) {
+                            R ka = r[kKa][l], kc = r[kKc][l], Sp = r[kSp][l];
+                            mean[2 * j] = r[kP][l], mean[2 * j + 1] = r[kV][l];
+                            pred_mean[2 * j] = r[kPp][l], pred_mean[2 * j + 1] = r[kVp][l];
+                            block_rows(cov, n, j, r[kA][l], r[kB][l], r[kB][l], r[kC][l]);
+                            block_rows(pred_cov, n, j, r[kA1][l], r[kB1][l], r[kB1][l],
+                                       r[kC1][l]);
+                            if (velocity) {
+                                e[2 * j] = r[kEp][l], e[2 * j + 1] = r[kEv][l];
+                                block_rows(K, n, j, ka, R(0), kc, r[kKd][l]);
+                                block_rows(S, n, j, Sp, r[kSpv][l], r[kSpv][l], r[kSv][l]);
+                                if (post) post[2 * j] = r[kMemP][l], post[2 * j + 1] = r[kMemV][l];
+                            } else {  // position columns j: K[2j][j], K[2j + 1][j]; S diagonal
+                                e[j] = r[kEp][l];
+                                for (int64_t col = 0; col < m; ++col) {
+                                    K[2 * j * m + col] = col == j ? ka : R(0);
+                                    K[(2 * j + 1) * m + col] = col == j ? kc : R(0);
+                                    S[j * m + col] = col == j ? Sp : R(0);
+                                }
+                                if (post) post[j] = r[kMemP][l];
+                            }
+                        }
+                        // Last: a byte store may alias anything, so nothing is reloaded after.
+                        for (int64_t j = 0, lj = l - m; j < m; ++j, ++lj) {
+                            if (velocity) {
+                                mask[2 * j] = r[kSeenP][lj] > 0;
+                                mask[2 * j + 1] = r[kSeenV][lj] > 0;
+                            } else {
+                                mask[j] = r[kSeenP][lj] > 0;
+                            }
+                        }
+                    }
+                }
+                // Copy the chunk out: per track and output, one contiguous run.
+                const int64_t steps = t1 - t0;
+                for (int64_t bi = b0; bi < b1; ++bi) {
+                    for (int o = 0; o < 8; ++o) {
+                        if (!targets[o]) continue;
+                        const R* from = staged.data() + block * kChunk * offsets[o] +
+                                        (bi - b0) * kChunk * sizes[o];
+                        std::copy_n(from, steps * sizes[o], targets[o] + (bi * T + t0) * sizes[o]);
+                    }
+                    std::copy_n(staged_mask.data() + (bi - b0) * kChunk * mz, steps * mz,
+                                out.mask + (bi * T + t0) * mz);
+                }
             }
+            if (out.loglik)
+                for (int64_t bi = b0, l = 0; bi < b1; ++bi) {
+                    double total = 0;
+                    for (int64_t j = 0; j < m; ++j, ++l) total += logs[l].total();
+                    out.loglik[bi] = R(total);
+                }
         }
-    }
+    });
+}
+
+// forward with the axis count fixed at compile time where it is small.
+template <typename R, int Rule>
+void forward_axes(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads,
+                  const void* const* in, const int64_t* s, const void* const* prior,
+                  const int64_t* ps, const Layout<R>& out) {
+    if (m == 1)
+        forward<R, Rule, 1>(B, T, m, velocity, gamma, threads, in, s, prior, ps, out);
+    else if (m == 2)
+        forward<R, Rule, 2>(B, T, m, velocity, gamma, threads, in, s, prior, ps, out);
+    else if (m == 3)
+        forward<R, Rule, 3>(B, T, m, velocity, gamma, threads, in, s, prior, ps, out);
+    else
+        forward<R, Rule, 0>(B, T, m, velocity, gamma, threads, in, s, prior, ps, out);
 }
 
 // axes._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
 // Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)).
 // Inputs (11): p, v, a, b, c (filtered), p_pred, v_pred, a1, b1, c1 (predicted), T.
-// Outputs (5, [B, T, m]): p, v, a, b, c (smoothed).
+// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
 template <typename R>
-void rts_interval(int64_t B, int64_t T, int64_t m, const void* const* in,
-                  const int64_t* in_strides, void* const* out) {
+void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* const* in,
+                  const int64_t* in_strides, R* mean_out, R* cov_out) {
     View<R> P = view<R>(in, in_strides, 0), V = view<R>(in, in_strides, 1),
             A = view<R>(in, in_strides, 2), Bc = view<R>(in, in_strides, 3),
             Cc = view<R>(in, in_strides, 4), Pp = view<R>(in, in_strides, 5),
             Vp = view<R>(in, in_strides, 6), A1 = view<R>(in, in_strides, 7),
             B1 = view<R>(in, in_strides, 8), C1 = view<R>(in, in_strides, 9),
             Ts = view<R>(in, in_strides, 10);
-    R* o[5];
-    for (int i = 0; i < 5; ++i) o[i] = static_cast<R*>(out[i]);
-    for (int64_t bi = 0; bi < B; ++bi) {
-        for (int64_t j = 0; j < m; ++j) {
-            int64_t last = (bi * T + T - 1) * m + j;
-            R ps = P.at(bi, T - 1, j), vs = V.at(bi, T - 1, j);
-            R sa = A.at(bi, T - 1, j), sb = Bc.at(bi, T - 1, j), sc = Cc.at(bi, T - 1, j);
-            R values[5] = {ps, vs, sa, sb, sc};
-            for (int i = 0; i < 5; ++i) o[i][last] = values[i];
-            for (int64_t k = T - 2; k >= 0; --k) {
-                R dt = Ts.at(bi, k + 1, j);
-                R a = A.at(bi, k, j), b = Bc.at(bi, k, j), c = Cc.at(bi, k, j);
-                R pa = A1.at(bi, k + 1, j), pb = B1.at(bi, k + 1, j), pc = C1.at(bi, k + 1, j);
-                // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (axes.inverse, axes.mm).
-                R det = pa * pc - pb * pb;
-                R ia = pc / det, ib = -pb / det, ic = pa / det;
-                R xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
-                R ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
-                R cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
-                R dp = ps - Pp.at(bi, k + 1, j), dv = vs - Vp.at(bi, k + 1, j);
-                ps = P.at(bi, k, j) + (ca * dp + cb * dv);
-                vs = V.at(bi, k, j) + (cc * dp + cd * dv);
-                // axes.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
-                R da = sa - pa, db = sb - pb, dd = sc - pc;
-                R ma = ca * da + cb * db, mb = ca * db + cb * dd;
-                R mc = cc * da + cd * db, md = cc * db + cd * dd;
-                R ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
-                R ec = mc * ca + md * cb, ed = mc * cc + md * cd;
-                sa = a + ea;
-                sb = b + 0.5 * (eb + ec);
-                sc = c + ed;
-                int64_t idx = (bi * T + k) * m + j;
-                R now[5] = {ps, vs, sa, sb, sc};
-                for (int i = 0; i < 5; ++i) o[i][idx] = now[i];
+    const int64_t n = 2 * m;
+    auto write = [&](int64_t bi, int64_t k, int64_t j, R ps, R vs, R sa, R sb, R sc) {
+        int64_t idx = bi * T + k;
+        mean_out[idx * n + 2 * j] = ps, mean_out[idx * n + 2 * j + 1] = vs;
+        block_rows(cov_out + idx * n * n, n, j, sa, sb, sb, sc);
+    };
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        for (int64_t bi = first; bi < last; ++bi) {
+            for (int64_t j = 0; j < m; ++j) {
+                R ps = P.at(bi, T - 1, j), vs = V.at(bi, T - 1, j);
+                R sa = A.at(bi, T - 1, j), sb = Bc.at(bi, T - 1, j), sc = Cc.at(bi, T - 1, j);
+                write(bi, T - 1, j, ps, vs, sa, sb, sc);
+                for (int64_t k = T - 2; k >= 0; --k) {
+                    R dt = Ts.at(bi, k + 1, j);
+                    R a = A.at(bi, k, j), b = Bc.at(bi, k, j), c = Cc.at(bi, k, j);
+                    R pa = A1.at(bi, k + 1, j), pb = B1.at(bi, k + 1, j);
+                    R pc = C1.at(bi, k + 1, j);
+                    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (axes.inverse, axes.mm).
+                    R det = pa * pc - pb * pb;
+                    R ia = pc / det, ib = -pb / det, ic = pa / det;
+                    R xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
+                    R ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
+                    R cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
+                    R dp = ps - Pp.at(bi, k + 1, j), dv = vs - Vp.at(bi, k + 1, j);
+                    ps = P.at(bi, k, j) + (ca * dp + cb * dv);
+                    vs = V.at(bi, k, j) + (cc * dp + cd * dv);
+                    // axes.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
+                    R da = sa - pa, db = sb - pb, dd = sc - pc;
+                    R ma = ca * da + cb * db, mb = ca * db + cb * dd;
+                    R mc = cc * da + cd * db, md = cc * db + cd * dd;
+                    R ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
+                    R ec = mc * ca + md * cb, ed = mc * cc + md * cd;
+                    sa = a + ea;
+                    sb = b + 0.5 * (eb + ec);
+                    sc = c + ed;
+                    write(bi, k, j, ps, vs, sa, sb, sc);
+                }
             }
         }
-    }
+    });
 }
 
 template <typename R>
@@ -261,57 +464,65 @@ inline Backward<R> recurse(const R* w, const Backward<R>& s) {
 // axes._smoothed: x̂ˢ_k = x̂_k + g_k, Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k (symmetrised; the
 // last step as filtered).
 // Inputs (20, [B, T, m]): the filter's cov a, b, c; pred_cov a, b, c; gain a, b, c, d;
-// noise (masked) pp, pv, vv; observed p, v (0/1); T; innovation p, v; mean p, v.
-// Outputs (5, [B, T, m]): smoothed p, v, a, b, c.
+// noise (unmasked) pp, pv, vv; observed p, v (0/1); T; innovation p, v; mean p, v.
+// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
 template <typename R>
-void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, const void* const* in,
-              const int64_t* in_strides, void* const* out) {
+void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int threads,
+              const void* const* in, const int64_t* in_strides, R* mean_out, R* cov_out) {
     View<R> v[20];
     for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
-    R* o[5];
-    for (int i = 0; i < 5; ++i) o[i] = static_cast<R*>(out[i]);
     const Backward<R> zero{0, 0, {0, 0, 0, 0}, {0, 0, 0, 0}};
     const int64_t n = T - 1;  // steps with a successor
-    // One chain's terms, step by step (contiguous for the sweeps), and its results.
-    std::vector<R> terms(22 * (n > 0 ? n : 1));
-    std::vector<Backward<R>> result(n + 1, zero);  // result[n]: zero beyond the end
-    for (int64_t bi = 0; bi < B; ++bi) {
-        for (int64_t j = 0; j < m; ++j) {
-            auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
-            for (int64_t k = 0; k < n; ++k) {
-                int64_t t = k + 1;
-                M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
-                terms_at(&terms[22 * k], projection != 0, at(0, k), at(1, k), at(2, k), at(3, t),
-                         at(4, t), at(5, t), K, at(10, t), at(11, t), at(12, t), at(13, t),
-                         at(14, t), at(15, t), at(16, t), at(17, t));
-            }
-            if (lag >= n) {
-                for (int64_t k = n - 1; k >= 0; --k)
-                    result[k] = recurse(&terms[22 * k], result[k + 1]);
-            } else {
-                // `lag` sweeps, each applying one step to the previous sweep's value at k+1
-                // (read before it is overwritten, going forward).
-                for (int64_t k = 0; k < n; ++k) result[k] = zero;
-                for (int64_t sweep = 0; sweep < lag; ++sweep)
-                    for (int64_t k = 0; k < n; ++k)
-                        result[k] = recurse(&terms[22 * k], result[k + 1]);
-            }
-            for (int64_t k = 0; k <= n; ++k) {
-                R a = at(0, k), b = at(1, k), c = at(2, k);
-                R now[5] = {at(18, k), at(19, k), a, b, c};
-                if (k < n) {  // axes._smoothed
-                    const Backward<R>& s = result[k];
-                    M2<R> P{a, b, b, c};
-                    M2<R> PGt = mul(P, tr(s.G));
-                    M2<R> cov = plus(plus(plus(P, neg(PGt)), neg(tr(PGt))), s.Z);
-                    now[0] += s.g0, now[1] += s.g1;
-                    now[2] = cov.a, now[3] = 0.5 * (cov.b + cov.c), now[4] = cov.d;
+    const int64_t width = 2 * m;
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        // One chain's terms, step by step (contiguous for the sweeps), and its results.
+        std::vector<R> terms(22 * (n > 0 ? n : 1));
+        std::vector<Backward<R>> result(n + 1, zero);  // result[n]: zero beyond the end
+        for (int64_t bi = first; bi < last; ++bi) {
+            for (int64_t j = 0; j < m; ++j) {
+                auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
+                for (int64_t k = 0; k < n; ++k) {
+                    int64_t t = k + 1;
+                    M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
+                    // R with an identity on missing components (axes._masked_noise).
+                    R fp = at(13, t), fv = at(14, t);
+                    R rp = at(10, t) * fp + (1 - fp), rpv = at(11, t) * fp * fv;
+                    R rvv = at(12, t) * fv + (1 - fv);
+                    terms_at(&terms[22 * k], projection != 0, at(0, k), at(1, k), at(2, k),
+                             at(3, t), at(4, t), at(5, t), K, rp, rpv, rvv, fp, fv, at(15, t),
+                             at(16, t), at(17, t));
                 }
-                int64_t idx = (bi * T + k) * m + j;
-                for (int i = 0; i < 5; ++i) o[i][idx] = now[i];
+                if (lag >= n) {
+                    for (int64_t k = n - 1; k >= 0; --k)
+                        result[k] = recurse(&terms[22 * k], result[k + 1]);
+                } else {
+                    // `lag` sweeps, each applying one step to the previous sweep's value at
+                    // k+1 (read before it is overwritten, going forward).
+                    for (int64_t k = 0; k < n; ++k) result[k] = zero;
+                    for (int64_t sweep = 0; sweep < lag; ++sweep)
+                        for (int64_t k = 0; k < n; ++k)
+                            result[k] = recurse(&terms[22 * k], result[k + 1]);
+                }
+                for (int64_t k = 0; k <= n; ++k) {
+                    R a = at(0, k), b = at(1, k), c = at(2, k);
+                    R now[5] = {at(18, k), at(19, k), a, b, c};
+                    if (k < n) {  // axes._smoothed
+                        const Backward<R>& s = result[k];
+                        M2<R> P{a, b, b, c};
+                        M2<R> PGt = mul(P, tr(s.G));
+                        M2<R> cov = plus(plus(plus(P, neg(PGt)), neg(tr(PGt))), s.Z);
+                        now[0] += s.g0, now[1] += s.g1;
+                        now[2] = cov.a, now[3] = 0.5 * (cov.b + cov.c), now[4] = cov.d;
+                    }
+                    int64_t idx = bi * T + k;
+                    mean_out[idx * width + 2 * j] = now[0];
+                    mean_out[idx * width + 2 * j + 1] = now[1];
+                    block_rows(cov_out + idx * width * width, width, j, now[2], now[3], now[3],
+                               now[4]);
+                }
             }
         }
-    }
+    });
 }
 
 // One predict-correct step of a dense linear-Gaussian filter for one track:
@@ -321,7 +532,6 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, cons
 // F [n, n], Q [n, n], H [m, n], R [m, m]; writes x, P, x_pred, P_pred, e [m], K [n, m],
 // S [m, m], *loglik, e_post [m], observed [m]. Returns 0, or 1 when a Cholesky factor failed
 // (the caller then takes the tensor path, whose factorisation adds jitter).
-constexpr int64_t kMax = 16;
 
 // C = A B (r × k times k × c), or A Bᵀ with B stored c × k; row-major, summed in k order.
 template <typename R>
@@ -504,35 +714,37 @@ int dense_entry(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gam
 
 extern "C" {
 
-void forward_f32(int64_t B, int64_t T, int64_t m, int rule, double gamma, const void* const* in,
-                 const int64_t* s, const void* const* prior, const int64_t* ps, void* const* out) {
-    forward<float>(B, T, m, rule, static_cast<float>(gamma), in, s, prior, ps, out);
-}
+// Layout pointers in Layout's order; post and loglik may be null.
+#define TORCHSVS_FORWARD(suffix, R)                                                             \
+    void forward_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,             \
+                          double gamma, int threads, const void* const* in, const int64_t* s,  \
+                          const void* const* prior, const int64_t* ps, void* const* o) {       \
+        Layout<R> out{static_cast<R*>(o[0]), static_cast<R*>(o[1]), static_cast<R*>(o[2]),   \
+                      static_cast<R*>(o[3]), static_cast<R*>(o[4]), static_cast<R*>(o[5]),   \
+                      static_cast<R*>(o[6]), static_cast<R*>(o[7]), static_cast<R*>(o[8]),   \
+                      static_cast<uint8_t*>(o[9])};                                            \
+        if (rule == 0)                                                                         \
+            forward_axes<R, 0>(B, T, m, velocity, static_cast<R>(gamma), threads, in, s, prior, ps,  \
+                          out);                                                                \
+        else                                                                                   \
+            forward_axes<R, 1>(B, T, m, velocity, static_cast<R>(gamma), threads, in, s, prior, ps,  \
+                          out);                                                                \
+    }                                                                                          \
+    void rts_interval_##suffix(int64_t B, int64_t T, int64_t m, int threads,                   \
+                               const void* const* in, const int64_t* s, void* mean,            \
+                               void* cov) {                                                    \
+        rts_interval<R>(B, T, m, threads, in, s, static_cast<R*>(mean), static_cast<R*>(cov)); \
+    }                                                                                          \
+    void backward_##suffix(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,       \
+                           int threads, const void* const* in, const int64_t* s, void* mean,   \
+                           void* cov) {                                                        \
+        backward<R>(B, T, m, lag, projection, threads, in, s, static_cast<R*>(mean),           \
+                    static_cast<R*>(cov));                                                     \
+    }
 
-void forward_f64(int64_t B, int64_t T, int64_t m, int rule, double gamma, const void* const* in,
-                 const int64_t* s, const void* const* prior, const int64_t* ps, void* const* out) {
-    forward<double>(B, T, m, rule, gamma, in, s, prior, ps, out);
-}
-
-void rts_interval_f32(int64_t B, int64_t T, int64_t m, const void* const* in, const int64_t* s,
-                      void* const* out) {
-    rts_interval<float>(B, T, m, in, s, out);
-}
-
-void rts_interval_f64(int64_t B, int64_t T, int64_t m, const void* const* in, const int64_t* s,
-                      void* const* out) {
-    rts_interval<double>(B, T, m, in, s, out);
-}
-
-void backward_f32(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
-                  const void* const* in, const int64_t* s, void* const* out) {
-    backward<float>(B, T, m, lag, projection, in, s, out);
-}
-
-void backward_f64(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
-                  const void* const* in, const int64_t* s, void* const* out) {
-    backward<double>(B, T, m, lag, projection, in, s, out);
-}
+TORCHSVS_FORWARD(f32, float)
+TORCHSVS_FORWARD(f64, double)
+#undef TORCHSVS_FORWARD
 
 int dense_run_f32(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
                   const void* x, const void* P, const void* z, const void* memory, const void* psi,

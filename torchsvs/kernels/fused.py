@@ -9,12 +9,14 @@ cover.
 A step of the per-axis recursions (:mod:`torchsvs.kernels.axes`) is a few dozen flops per
 track and axis; as tensor operations it costs a few dozen dispatches of about a microsecond
 each, so on a dozen long tracks (recorded flights) the loop, not the arithmetic, is the cost.
-The compiled loops keep each chain's state in registers and take ``[B, T, m]`` views (strides,
-no copies) in and write contiguous outputs.
+The compiled loops step blocks of lanes together, take ``[B, T, m]`` views (strides, no
+copies) in and write the results in the general layout (what a
+:class:`~torchsvs.types.FilterResult` holds) directly, on ``torch.get_num_threads()`` threads
+for large batches, into buffers advised as huge pages (:func:`fresh`).
 
 They run only where no gradient is asked for (inference: ``torch.no_grad()``, ``torchsvs
 track``), on CPU float32/float64 tensors; training keeps the differentiable tensor loops. Both
-give the same numbers up to rounding (tested to 1e-9 in float64). Without a compiler the
+give the same numbers up to rounding (tested to 1e-10 in float64). Without a compiler the
 estimators fall back to the tensor loops with one warning; ``TORCHSVS_FUSED=0`` turns the
 compiled loops off, :func:`torchsvs.kernels.eager_loops` does so for a block. The library is
 cached per source, compiler, flags and platform under ``$TORCHSVS_CACHE`` (default
@@ -41,7 +43,7 @@ from torch import Tensor
 from torchsvs.kernels import AXIS_KERNEL
 
 SOURCE = Path(__file__).with_name("fused.cpp")
-FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC")
+FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-pthread")
 #: Seconds the last build took (0 when the cached library was loaded), for reports.
 BUILD = {"seconds": 0.0}
 
@@ -116,13 +118,14 @@ def library() -> ctypes.CDLL | None:
     size = (ctypes.c_int64,) * 3
     for suffix in ("f32", "f64"):
         forward = getattr(lib, f"forward_{suffix}")
-        forward.argtypes = [*size, ctypes.c_int, ctypes.c_double, pointers, strides]
-        forward.argtypes += [pointers, strides, pointers]
-        getattr(lib, f"rts_interval_{suffix}").argtypes = [*size, pointers, strides, pointers]
+        forward.argtypes = [*size, ctypes.c_int, ctypes.c_int, ctypes.c_double, ctypes.c_int]
+        forward.argtypes += [pointers, strides, pointers, strides, pointers]
+        vp, count = ctypes.c_void_p, ctypes.c_int
+        rts = getattr(lib, f"rts_interval_{suffix}")
+        rts.argtypes = [*size, count, pointers, strides, vp, vp]
         backward = getattr(lib, f"backward_{suffix}")
-        backward.argtypes = [*size, ctypes.c_int64, ctypes.c_int, pointers, strides, pointers]
+        backward.argtypes = [*size, ctypes.c_int64, count, count, pointers, strides, vp, vp]
         dense = getattr(lib, f"dense_run_{suffix}")
-        vp = ctypes.c_void_p
         dense.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
         dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, *(vp,) * 10]
         dense.restype = ctypes.c_int
@@ -168,12 +171,42 @@ class _Arrays:
         self.strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
 
 
-def _outputs(count: int, shape: tuple[int, int, int], dtype: torch.dtype) -> list[Tensor]:
-    return [torch.empty(shape, dtype=dtype) for _ in range(count)]
+_HUGE_PAGE = 2 << 20
+_libc: dict[str, ctypes.CDLL | None] = {}
 
 
-def _pointers(tensors: Sequence[Tensor]) -> ctypes.Array[ctypes.c_void_p]:
-    return (ctypes.c_void_p * len(tensors))(*(x.data_ptr() for x in tensors))
+def fresh(shape: Sequence[int], dtype: torch.dtype) -> Tensor:
+    """``torch.empty``, with large buffers advised to the kernel as huge pages before their
+    first touch: the page faults of a fresh multi-GB output otherwise cost more than
+    writing it (measured 3-4× on a whole-run output)."""
+    out = torch.empty(tuple(shape), dtype=dtype)
+    size = out.numel() * out.element_size()
+    if size < 8 * _HUGE_PAGE or platform.system() != "Linux":
+        return out
+    if "c" not in _libc:
+        try:
+            loaded = ctypes.CDLL(None, use_errno=True)
+            loaded.madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+            _libc["c"] = loaded
+        except (OSError, AttributeError):
+            _libc["c"] = None
+    libc = _libc["c"]
+    if libc is not None:
+        start = out.data_ptr()
+        first = -(-start // _HUGE_PAGE) * _HUGE_PAGE
+        last = (start + size) // _HUGE_PAGE * _HUGE_PAGE
+        libc.madvise(first, last - first, 14)  # MADV_HUGEPAGE; advice only, failure is fine
+    return out
+
+
+def threads(tracks: int, steps: int) -> int:
+    """Threads for a whole-run loop: torch's intra-op count, one below ~100k track-steps (a
+    thread's start costs about as much as that work)."""
+    return 1 if tracks < 2 or tracks * steps < 100_000 else torch.get_num_threads()
+
+
+def _pointers(tensors: Sequence[Tensor | None]) -> ctypes.Array[ctypes.c_void_p]:
+    return (ctypes.c_void_p * len(tensors))(*(None if x is None else x.data_ptr() for x in tensors))
 
 
 def forward(
@@ -182,65 +215,104 @@ def forward(
     given: Sequence[Tensor],
     prior: Sequence[Tensor],
     shape: tuple[int, int, int],
-) -> tuple[Tensor, ...]:
-    """The loop of :func:`torchsvs.kernels.axes._forward_step` over all steps: ``given`` the
-    13 per-step quantities (``[B, T, m]``-broadcastable), ``prior`` ``(p, v, a, b, c)``
-    ``[B, m]``; returns its 17 outputs ``[B, T, m]``."""
+    velocity: bool,
+) -> tuple[
+    Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor
+]:
+    """The loop of :func:`torchsvs.kernels.axes._forward_step` over all steps, writing the
+    general layout (state ``p1, v1, p2, ...``): ``given`` the 11 per-step quantities ``T, Qa,
+    Qb, Qc, y_p, y_v`` (NaN: missing), ``r_pp, r_pv, r_vv`` (unmasked), ``w_p, w_v``
+    (``[B, T, m]``-broadcastable), ``prior`` ``(p, v, a, b, c)`` ``[B, m]``; ``velocity``: the
+    corrector measures velocities (``m_z = 2m``), else positions (``m_z = m``). Returns the mean
+    ``[B, T, 2m]``, covariance, predicted mean and covariance, innovation ``[B, T, m_z]``, gain
+    ``[B, T, 2m, m_z]``, ``S``, the a-posteriori innovation (SVSF, else ``None``), the
+    log-likelihood ``[B]`` (Kalman, else ``None``) and the observed mask ``[B, T, m_z]``."""
     lib = library()
     assert lib is not None
+    B, T, m = shape
+    n, mz = 2 * m, 2 * m if velocity else m
     dtype = prior[0].dtype
-    inputs, start = _Arrays(given, shape), _Arrays(prior, (shape[0], 1, shape[2]))
-    out = _outputs(17, shape, dtype)
+    inputs, start = _Arrays(given, shape), _Arrays(prior, (B, 1, m))
+    svsf = rule != "kalman"
+    shapes = ((n,), (n, n), (n,), (n, n), (mz,), (n, mz), (mz, mz))
+    mean, cov, pred_mean, pred_cov, innovation, gain, S = (
+        fresh((B, T, *tail), dtype) for tail in shapes
+    )
+    post = fresh((B, T, mz), dtype) if svsf else None
+    loglik = None if svsf else torch.empty(B, dtype=dtype)
+    mask = fresh((B, T, mz), torch.bool)
     call = lib.forward_f32 if dtype == torch.float32 else lib.forward_f64
     call(
         *shape,
-        0 if rule == "kalman" else 1,
+        int(svsf),
+        int(velocity),
         float(gamma),
+        threads(B, T),
         inputs.pointers,
         inputs.strides,
         start.pointers,
         start.strides,
-        _pointers(out),
+        _pointers((mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask)),
     )
-    return tuple(out)
+    return mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask
 
 
-def _call(
-    name: str,
-    count: int,
-    given: Sequence[Tensor],
-    shape: tuple[int, int, int],
-    *extra: int,
-) -> tuple[Tensor, ...]:
+def _smoother_outputs(shape: tuple[int, int, int], dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    B, T, m = shape
+    return fresh((B, T, 2 * m), dtype), fresh((B, T, 2 * m, 2 * m), dtype)
+
+
+def rts_interval(given: Sequence[Tensor], shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+    """:func:`torchsvs.kernels.axes._rts_interval`'s loop: ``given`` the filtered
+    ``p, v, a, b, c``, predicted ``p, v, a, b, c`` and ``T`` (``[B, T, m]``-broadcastable);
+    returns the smoothed mean ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]`` (general
+    layout)."""
     lib = library()
     assert lib is not None
     dtype = given[0].dtype
     inputs = _Arrays(given, shape)
-    out = _outputs(count, shape, dtype)
-    call = getattr(lib, f"{name}_{'f32' if dtype == torch.float32 else 'f64'}")
-    call(*shape, *extra, inputs.pointers, inputs.strides, _pointers(out))
-    return tuple(out)
-
-
-def rts_interval(given: Sequence[Tensor], shape: tuple[int, int, int]) -> tuple[Tensor, ...]:
-    """:func:`torchsvs.kernels.axes._rts_interval`'s loop: ``given`` the filtered
-    ``p, v, a, b, c``, predicted ``p, v, a, b, c`` and ``T``; returns the smoothed
-    ``p, v, a, b, c``, ``[B, T, m]`` each."""
-    return _call("rts_interval", 5, given, shape)
+    mean, cov = _smoother_outputs(shape, dtype)
+    call = lib.rts_interval_f32 if dtype == torch.float32 else lib.rts_interval_f64
+    call(
+        *shape,
+        threads(*shape[:2]),
+        inputs.pointers,
+        inputs.strides,
+        mean.data_ptr(),
+        cov.data_ptr(),
+    )
+    return mean, cov
 
 
 def backward(
     given: Sequence[Tensor], shape: tuple[int, int, int], lag: int | None, projection: bool
-) -> tuple[Tensor, ...]:
+) -> tuple[Tensor, Tensor]:
     """:func:`torchsvs.kernels.axes.smooth_axes` after a filter pass: the backward recursion
     with its terms (:func:`~torchsvs.kernels.axes.backward_terms`) and the smoothed moments.
-    ``given``: the filter's covariance (3), predicted covariance (3), gain (4), masked noise
-    (3), observed masks (2, as 0/1), ``T``, innovation (2) and mean (2),
+    ``given``: the filter's covariance (3), predicted covariance (3), gain (4), noise
+    (unmasked, 3), observed masks (2, as 0/1), ``T``, innovation (2) and mean (2),
     ``[B, T, m]``-broadcastable; the recursion runs from the end (``lag`` None) or ``lag``
-    times from zero at each step. Returns the smoothed ``p, v, a, b, c``, ``[B, T, m]`` each."""
+    times from zero at each step. Returns the smoothed mean ``[B, T, 2m]`` and covariance
+    ``[B, T, 2m, 2m]`` (general layout)."""
+    lib = library()
+    assert lib is not None
+    dtype = given[0].dtype
     steps = shape[1] - 1
     limit = steps if lag is None else min(lag, steps)
-    return _call("backward", 5, given, shape, limit, int(projection))
+    inputs = _Arrays(given, shape)
+    mean, cov = _smoother_outputs(shape, dtype)
+    call = lib.backward_f32 if dtype == torch.float32 else lib.backward_f64
+    call(
+        *shape,
+        limit,
+        int(projection),
+        threads(*shape[:2]),
+        inputs.pointers,
+        inputs.strides,
+        mean.data_ptr(),
+        cov.data_ptr(),
+    )
+    return mean, cov
 
 
 #: Largest state or measurement size of :func:`dense_step` (``kMax`` in fused.cpp).

@@ -220,9 +220,8 @@ class RTSSmoother(Estimator[SmootherResult]):
         if T == 1:
             return SmootherResult(result.mean, result.cov, result)
         if result.axes is not None:  # the filter ran per axis: so does the smoother
-            (p, v), cov_axes = axes.smooth_axes(result.axes, self.projection_gain, self.lag)
-            cov = axes.block_diagonal(axes.full(cov_axes))
-            return SmootherResult(axes.interleave(p, v), cov, result)
+            mean, cov = axes.smooth_axes(result.axes, self.projection_gain, self.lag)
+            return SmootherResult(mean, cov, result)
         b = self._backward_terms(_shared_moments(result))
         if self.lag is None or self.lag >= T - 1:
             g, G, Z = self._fixed_interval(b)
