@@ -257,9 +257,28 @@ def forward(
     return mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask
 
 
-def _smoother_outputs(shape: tuple[int, int, int], dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+def _smoother(
+    name: str, given: Sequence[Tensor], shape: tuple[int, int, int], *settings: int
+) -> tuple[Tensor, Tensor]:
+    """Runs the compiled smoother loop ``name`` on ``given``; returns the smoothed mean
+    ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]`` in the general layout."""
+    lib = library()
+    assert lib is not None
     B, T, m = shape
-    return fresh((B, T, 2 * m), dtype), fresh((B, T, 2 * m, 2 * m), dtype)
+    dtype = given[0].dtype
+    inputs = _Arrays(given, shape)
+    mean, cov = fresh((B, T, 2 * m), dtype), fresh((B, T, 2 * m, 2 * m), dtype)
+    call = getattr(lib, f"{name}_{'f32' if dtype == torch.float32 else 'f64'}")
+    call(
+        *shape,
+        *settings,
+        threads(B, T),
+        inputs.pointers,
+        inputs.strides,
+        mean.data_ptr(),
+        cov.data_ptr(),
+    )
+    return mean, cov
 
 
 def rts_interval(given: Sequence[Tensor], shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
@@ -267,21 +286,7 @@ def rts_interval(given: Sequence[Tensor], shape: tuple[int, int, int]) -> tuple[
     ``p, v, a, b, c``, predicted ``p, v, a, b, c`` and ``T`` (``[B, T, m]``-broadcastable);
     returns the smoothed mean ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]`` (general
     layout)."""
-    lib = library()
-    assert lib is not None
-    dtype = given[0].dtype
-    inputs = _Arrays(given, shape)
-    mean, cov = _smoother_outputs(shape, dtype)
-    call = lib.rts_interval_f32 if dtype == torch.float32 else lib.rts_interval_f64
-    call(
-        *shape,
-        threads(*shape[:2]),
-        inputs.pointers,
-        inputs.strides,
-        mean.data_ptr(),
-        cov.data_ptr(),
-    )
-    return mean, cov
+    return _smoother("rts_interval", given, shape)
 
 
 def backward(
@@ -294,25 +299,9 @@ def backward(
     ``[B, T, m]``-broadcastable; the recursion runs from the end (``lag`` None) or ``lag``
     times from zero at each step. Returns the smoothed mean ``[B, T, 2m]`` and covariance
     ``[B, T, 2m, 2m]`` (general layout)."""
-    lib = library()
-    assert lib is not None
-    dtype = given[0].dtype
     steps = shape[1] - 1
     limit = steps if lag is None else min(lag, steps)
-    inputs = _Arrays(given, shape)
-    mean, cov = _smoother_outputs(shape, dtype)
-    call = lib.backward_f32 if dtype == torch.float32 else lib.backward_f64
-    call(
-        *shape,
-        limit,
-        int(projection),
-        threads(*shape[:2]),
-        inputs.pointers,
-        inputs.strides,
-        mean.data_ptr(),
-        cov.data_ptr(),
-    )
-    return mean, cov
+    return _smoother("backward", given, shape, limit, int(projection))
 
 
 #: Largest state or measurement size of :func:`dense_step` (``kMax`` in fused.cpp).
