@@ -285,7 +285,7 @@ def run_axes(
     noise = Sym2(*(per_step(x) for x in y.noise))
     prior = (x0[0], x0[1], P0.a, P0.b, P0.c)
     raw = given(T_all, *Q_all, y.position, y.velocity, *y.noise, width_p, width_v)
-    if fused.usable(*raw, *prior, gamma):
+    if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma):
         mean, cov, pm, pc, e, K, S, post, loglik, mask = fused.forward(
             rule, float(gamma), raw, prior, (B, steps, m), velocity
         )

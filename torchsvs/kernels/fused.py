@@ -171,6 +171,8 @@ class _Arrays:
         self.strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
 
 
+#: Most axes the compiled forward loop steps (``kLanes`` in fused.cpp); more take the tensor loops.
+MAX_AXES = 64
 _HUGE_PAGE = 2 << 20
 _libc: dict[str, ctypes.CDLL | None] = {}
 
