@@ -13,23 +13,13 @@ predictions, gains, S). Machines are shared and noisy: read the ratios.
 from __future__ import annotations
 
 import argparse
-import time
 from collections.abc import Callable
 
 import torch
 
 import torchsvs as ts
+from benchmarks.timing import best_of
 from torchsvs.evaluation import markdown_table
-
-
-def best_of(fn: Callable[[], object], repeats: int) -> float:
-    """The fastest of ``repeats`` wall-clock runs, in seconds."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -4,9 +4,9 @@ Online: the cost of one ``est.step`` call (B = 1, float64, no gradients) beside 
 ``predict`` + ``update``, over 2,000 steps, and the tensor path's step (the compiled step turned
 off) for scale. Offline: one recorded-length track (T = 1,000) and one long track (T = 100,000)
 through ``forward``, beside filterpy's ``batch_filter`` (and ``rts_smoother``). Models: the
-constant-velocity model of the papers, and a dense 3-state model (the general path). Timings are
-the best of ``--repeats`` runs, alternating between the libraries, in one process; ratios are
-filterpy ÷ torchsvs (> 1: torchsvs faster). Writes ``benchmarks/one_track.md``.
+constant-velocity model of the papers, and a dense 3-state model (no per-axis structure).
+Timings are the best of ``--repeats`` runs, alternating between the libraries, in one process;
+ratios are filterpy ÷ torchsvs (> 1: torchsvs faster). Writes ``benchmarks/one_track.md``.
 
     python -m benchmarks.one_track [--repeats 5]
 """
@@ -14,30 +14,16 @@ filterpy ÷ torchsvs (> 1: torchsvs faster). Writes ``benchmarks/one_track.md``.
 from __future__ import annotations
 
 import argparse
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
 import torchsvs as ts
+from benchmarks.timing import alternating_best
 from torchsvs.evaluation import markdown_table
 from torchsvs.kernels import eager_loops
 
 RESULTS = Path(__file__).with_name("one_track.md")
-
-
-def _best(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
-    """Seconds per call, best of ``repeats``, the calls alternating."""
-    best = {name: float("inf") for name in calls}
-    for call in calls.values():
-        call()  # warm-up (the compiled library, caches)
-    for _ in range(repeats):
-        for name, call in calls.items():
-            start = time.perf_counter()
-            call()
-            best[name] = min(best[name], time.perf_counter() - start)
-    return best
 
 
 class _Track:
@@ -84,7 +70,8 @@ def _online(label: str, est: torch.nn.Module, track: _Track, repeats: int) -> li
             f.predict()
             f.update(track.zn[t])
 
-    best = _best({"fp": filterpy_steps, "ts": torchsvs_steps, "tensor": tensor_path}, repeats)
+    calls = {"fp": filterpy_steps, "ts": torchsvs_steps, "tensor": tensor_path}
+    best = alternating_best(calls, repeats)
     us = {k: 1e6 * v / steps for k, v in best.items()}
     return [
         f"online step, {label}",
@@ -112,7 +99,7 @@ def _offline(
         if smooth:
             rts_smoother(mu, cov, [track.F] * T, [track.Q] * T)
 
-    best = _best({"fp": filterpy_run, "ts": torchsvs_run}, repeats)
+    best = alternating_best({"fp": filterpy_run, "ts": torchsvs_run}, repeats)
     us = {k: 1e6 * v / T for k, v in best.items()}
     return [
         f"one track T = {T:,}, {label}",
@@ -175,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
         "`update`); the compiled online step covers linear models (KF, EKF, the SVSF's H⁺ "
         "mode); the tensor path is the same step with it turned off. Offline rows time "
         "`forward` on one track (filterpy: `batch_filter`, `rts_smoother`); the CV model "
-        "runs the per-axis compiled loops, the dense model the general path.\n\n"
+        "runs the per-axis compiled loops, the dense model the compiled dense steps.\n\n"
         f"{table}\n"
     )
     RESULTS.write_text(text)

@@ -15,7 +15,7 @@ import argparse
 import torch
 
 import torchsvs as ts
-from benchmarks.forward import best_of
+from benchmarks.timing import best_of
 from torchsvs.evaluation import markdown_table
 
 

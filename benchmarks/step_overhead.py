@@ -18,12 +18,13 @@ import importlib
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
 import torch
+
+from benchmarks.timing import alternating_best
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).with_name("step_overhead.md")
@@ -111,8 +112,6 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=15)
     args = parser.parse_args(argv)
-    from tqdm.auto import tqdm
-
     import torchsvs
     from torchsvs.evaluation import markdown_table
 
@@ -123,17 +122,11 @@ def main(argv: list[str] | None = None) -> None:
             print(f"step overhead: skipped, the baseline {BASELINE} needs a git clone ({err})")
             return
         versions = {"before": _cases(baseline), "now": _cases(torchsvs)}
-        for cases in versions.values():
-            for call in cases.values():
-                call()  # warm-up: first-call costs (kernel builds, caches)
-        best: dict[str, dict[str, float]] = {"before": {}, "now": {}}
-        for _ in tqdm(range(args.rounds), desc="rounds"):
-            for name in versions["now"]:
-                for label, cases in versions.items():  # alternating, so noise hits both
-                    start = time.perf_counter()
-                    cases[name]()
-                    seconds = time.perf_counter() - start
-                    best[label][name] = min(seconds, best[label].get(name, float("inf")))
+        # Each case before and now in turn, so noise hits both alike.
+        names = list(versions["now"])
+        calls = {(label, name): versions[label][name] for name in names for label in versions}
+        timed = alternating_best(calls, args.rounds, progress="rounds")
+        best = {label: {name: timed[label, name] for name in names} for label in versions}
     rows = []
     for name, now in best["now"].items():
         old = best["before"][name]

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 import torchsvs as ts
-from benchmarks.forward import best_of
+from benchmarks.timing import best_of
 from torchsvs import estimator
 from torchsvs.evaluation import markdown_table
 from torchsvs.kernels import eager_loops, general_path

@@ -264,6 +264,27 @@ def test_compiled_loops_for_any_axis_count_on_threads(ndim, spy, monkeypatch):
 
 
 @needs_compiler
+@pytest.mark.parametrize("scale", [1e-12, 1e-7, 1.0, 1e7, 1e12])
+def test_compiled_log_likelihood_at_any_scale_of_S(scale, spy):
+    """The compiled loop takes the logarithm of S once per 16 steps, through a product of the
+    factors in (1e-15, 1e15), and of any other factor at once: the log-likelihood equals the
+    tensor loops' to 1e-12 relative whether S is tiny, ordinary or huge, over many flushes."""
+    z, dt, x0, P0 = _problem(seed=9, B=3, T=70)
+    # S ≈ r ≈ scale²: 1e±24 go straight in; 1e±14 multiply, and overflow without the flushes.
+    variance = scale**2
+    model = ts.models.ConstantVelocity(q=0.5 * variance, r=[4.0 * variance, 2.0 * variance])
+    kf = ts.KalmanFilter(model.double())
+    z, x0, P0 = z * scale, x0 * scale, P0 * variance
+    with torch.no_grad():
+        compiled = kf(z, x0, P0, dt=dt)
+        with eager_loops():
+            eager = kf(z, x0, P0, dt=dt)
+    assert spy["forward"] == 1
+    assert compiled.log_likelihood is not None and eager.log_likelihood is not None
+    assert_close(compiled.log_likelihood, eager.log_likelihood, atol=0, rtol=1e-12)
+
+
+@needs_compiler
 def test_compiled_loops_take_per_step_psi_and_lags_beyond_the_track(spy):
     z, dt, x0, P0 = _problem(seed=6, B=3, T=12)
     model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
@@ -488,10 +509,10 @@ def test_compiled_online_steps_follow_a_changed_model():
     x0, P0 = torch.zeros(2, 4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
     z = torch.randn(2, 3, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
-    def three_steps() -> torch.Tensor:
+    def three_steps(compiled: bool) -> torch.Tensor:
         state = kf.init(x0, P0)
         state, _ = kf.step(state, z[:, 0])
-        assert state.constants is not None or not fused.usable(z)
+        assert (state.constants is not None) == compiled
         cv.q.raw.mul_(4.0)  # in place, as an optimiser step would
         state, _ = kf.step(state, z[:, 1])
         cv.dt = 2.0
@@ -501,7 +522,7 @@ def test_compiled_online_steps_follow_a_changed_model():
         return out.cov
 
     with torch.no_grad():
-        compiled = three_steps()
+        compiled = three_steps(compiled=True)
         with eager_loops():
-            tensors = three_steps()
+            tensors = three_steps(compiled=False)
     assert_close(compiled, tensors, atol=1e-10, rtol=1e-10)

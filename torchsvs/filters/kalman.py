@@ -592,19 +592,10 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if R_c is None:  # measured per axis: R (unmasked) from its diagonal blocks
             R_c = axes.block_diagonal(axes.full(axes.Sym2(*torch.broadcast_tensors(*y.noise))))
         return FilterResult(
-            mean=out.mean,
-            cov=out.cov,
-            pred_mean=out.pred_mean,
-            pred_cov=out.pred_cov,
-            innovation=out.innovation,
-            mask=out.mask,
+            **out._asdict(),
             transition=_as_result_matrix(F),
             meas_matrix=_as_result_matrix(H),
             meas_cov=_as_result_matrix(R_c),
-            gain=out.gain,
-            post_innovation=out.post_innovation,
-            innovation_cov=out.innovation_cov,
-            log_likelihood=out.log_likelihood,
             axes=per_axis,
         )
 

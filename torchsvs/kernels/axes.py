@@ -393,13 +393,13 @@ def per_axis(out: Interleaved, noise: Sym2, interval: Tensor, velocity: bool) ->
         return Sym2(diagonal[..., 0::2], P.diagonal(1, -2, -1)[..., 0::2], diagonal[..., 1::2])
 
     absent = out.innovation.new_zeros(()).expand(out.mean[..., 0::2].shape)
+    K = out.gain
     if velocity:
-        K = out.gain
-        gain = Mat2(*sym(K)[:2], K.diagonal(-1, -2, -1)[..., 0::2], sym(K).c)
+        upper = sym(K)  # the diagonal and upper entries of the blocks; the lower one below
+        gain = Mat2(upper.a, upper.b, K.diagonal(-1, -2, -1)[..., 0::2], upper.c)
         innovation, observed = pair(out.innovation), pair(out.mask)
         post = None if out.post_innovation is None else pair(out.post_innovation)
     else:  # position columns: K[2j, j], K[2j + 1, j]
-        K = out.gain
         rows_p = K[..., 0::2, :].diagonal(dim1=-2, dim2=-1)
         rows_v = K[..., 1::2, :].diagonal(dim1=-2, dim2=-1)
         gain = Mat2(rows_p, absent, rows_v, absent)

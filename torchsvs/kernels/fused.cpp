@@ -20,7 +20,7 @@
 
 namespace {
 
-// Largest state or measurement size of the dense steps, and axis count of the per-axis loops.
+// Largest state or measurement size of the dense steps.
 constexpr int64_t kMax = 16;
 
 template <typename R>
@@ -80,6 +80,14 @@ inline void block_rows(R* record, int64_t n, int64_t j, R a, R b, R c, R d) {
     row0[2 * j] = a, row0[2 * j + 1] = b, row1[2 * j] = c, row1[2 * j + 1] = d;
 }
 
+// An axis's mean (p, v) and covariance [[a, b], [b, c]] into the general layout: entries 2j,
+// 2j + 1 of the n-vector `mean` and rows 2j, 2j + 1 of the n × n `cov`.
+template <typename R>
+inline void write_axis(R* mean, R* cov, int64_t n, int64_t j, R p, R v, R a, R b, R c) {
+    mean[2 * j] = p, mean[2 * j + 1] = v;
+    block_rows(cov, n, j, a, b, b, c);
+}
+
 // The per-step inputs of a lane (one track's axis) in axes._forward_step's order.
 enum Given { kT, kQa, kQb, kQc, kYp, kYv, kRp, kRpv, kRvv, kWp, kWv, kGiven };
 // A lane's results of a step: its state after the step, then what the step records.
@@ -127,10 +135,8 @@ inline void step_lanes(int64_t lanes, R gamma, const R (*g)[kLanes], R (*r)[kLan
             R rpv = seen_p && seen_v ? g[kRpv][l] : R(0);
             R rvv = seen_v ? g[kRvv][l] : R(1);
             R ev = seen_v ? yv - v_pred : R(0);
-            // svsf_gain_ratio (torchsvs/linalg.py), Eq. (23): (|e| + γ|e_post|) / max(|e|, ψ).
-            R mag_p = std::fabs(ep), mag_v = std::fabs(ev), wp = g[kWp][l], wv = g[kWv][l];
-            R kp = (mag_p + gamma * std::fabs(r[kMemP][l])) / (mag_p > wp ? mag_p : wp) * fp;
-            R kv = (mag_v + gamma * std::fabs(r[kMemV][l])) / (mag_v > wv ? mag_v : wv) * fv;
+            R kp = gain_ratio(ep, r[kMemP][l], g[kWp][l], gamma) * fp;
+            R kv = gain_ratio(ev, r[kMemV][l], g[kWv][l], gamma) * fv;
             R one_p = 1 - kp, one_v = 1 - kv;
             r[kA][l] = one_p * one_p * a1 + kp * kp * rp;  // Joseph form, diagonal gain
             r[kB][l] = one_p * one_v * b1 + kp * kv * rpv;
@@ -143,7 +149,8 @@ inline void step_lanes(int64_t lanes, R gamma, const R (*g)[kLanes], R (*r)[kLan
             r[kEv][l] = ev, r[kKa][l] = kp, r[kKc][l] = 0, r[kKd][l] = kv;
             r[kSpv][l] = b1 * fp * fv + rpv, r[kSv][l] = c1 * fv + rvv;
         }
-        r[kPp][l] = p_pred, r[kVp][l] = v_pred, r[kA1][l] = a1, r[kB1][l] = b1, r[kC1][l] = c1, r[kEp][l] = ep;
+        r[kPp][l] = p_pred, r[kVp][l] = v_pred, r[kA1][l] = a1, r[kB1][l] = b1, r[kC1][l] = c1;
+        r[kEp][l] = ep;
         r[kSp][l] = Sp, r[kSeenP][l] = fp, r[kSeenV][l] = fv;
     }
 }
@@ -153,12 +160,14 @@ inline void step_lanes(int64_t lanes, R gamma, const R (*g)[kLanes], R (*r)[kLan
 // not vectorise; it cost more than the step): S multiplies into a double product, flushed
 // into the sum before it could leave double's range; a factor far from 1 goes straight in.
 struct Likelihood {
-    static constexpr int kLogEvery = 16;
+    static constexpr int kLogEvery = 16;  // 16 factors in (1e-15, 1e15) stay in double's range
     double terms = 0, sum = 0, product = 1;  // terms: the parts without log S
+    int factors = 0;
     void add(double term, double S) {
         terms += term;
         if (S > 1e-15 && S < 1e15) {
             product *= S;
+            if (++factors == kLogEvery) flush();
         } else {
             sum += std::log(S);
         }
@@ -169,7 +178,7 @@ struct Likelihood {
     }
     void flush() {
         sum += std::log(product);
-        product = 1;
+        product = 1, factors = 0;
     }
 };
 
@@ -234,11 +243,8 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                             for (int64_t j = 0; j < m; ++j, ++l) lane[l] = x.at(bi, t, j);
                     }
                     step_lanes<R, Rule>(lanes, gamma, g, r);
-                    if (Rule == 0) {
+                    if (Rule == 0)
                         for (int64_t l = 0; l < lanes; ++l) logs[l].add(r[kLl][l], r[kSp][l]);
-                        if (t % Likelihood::kLogEvery == Likelihood::kLogEvery - 1)
-                            for (int64_t l = 0; l < lanes; ++l) logs[l].flush();
-                    }
                     for (int64_t bi = b0, l = 0; bi < b1; ++bi) {
                         // This track-step's records in the staging area: per output, its
                         // tracks' chunks one after the other, exactly as they are copied out.
@@ -252,11 +258,10 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                         uint8_t* mask = staged_mask.data() + record * mz;
                         for (int64_t j = 0; j < m; ++j, ++l) {
                             R ka = r[kKa][l], kc = r[kKc][l], Sp = r[kSp][l];
-                            mean[2 * j] = r[kP][l], mean[2 * j + 1] = r[kV][l];
-                            pred_mean[2 * j] = r[kPp][l], pred_mean[2 * j + 1] = r[kVp][l];
-                            block_rows(cov, n, j, r[kA][l], r[kB][l], r[kB][l], r[kC][l]);
-                            block_rows(pred_cov, n, j, r[kA1][l], r[kB1][l], r[kB1][l],
-                                       r[kC1][l]);
+                            write_axis(mean, cov, n, j, r[kP][l], r[kV][l], r[kA][l], r[kB][l],
+                                       r[kC][l]);
+                            write_axis(pred_mean, pred_cov, n, j, r[kPp][l], r[kVp][l], r[kA1][l],
+                                       r[kB1][l], r[kC1][l]);
                             if (velocity) {
                                 e[2 * j] = r[kEp][l], e[2 * j + 1] = r[kEv][l];
                                 block_rows(K, n, j, ka, R(0), kc, r[kKd][l]);
@@ -321,6 +326,22 @@ void forward_axes(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int th
         forward<R, Rule, 0>(B, T, m, velocity, gamma, threads, in, s, prior, ps, out);
 }
 
+// forward's entry: the output pointers `o` in Layout's order (post and loglik may be null).
+template <typename R>
+void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, double gamma,
+                   int threads, const void* const* in, const int64_t* s, const void* const* prior,
+                   const int64_t* ps, void* const* o) {
+    Layout<R> out{static_cast<R*>(o[0]), static_cast<R*>(o[1]), static_cast<R*>(o[2]),
+                  static_cast<R*>(o[3]), static_cast<R*>(o[4]), static_cast<R*>(o[5]),
+                  static_cast<R*>(o[6]), static_cast<R*>(o[7]), static_cast<R*>(o[8]),
+                  static_cast<uint8_t*>(o[9])};
+    R g = static_cast<R>(gamma);
+    if (rule == 0)
+        forward_axes<R, 0>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
+    else
+        forward_axes<R, 1>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
+}
+
 // axes._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
 // Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)).
 // Inputs (11): p, v, a, b, c (filtered), p_pred, v_pred, a1, b1, c1 (predicted), T.
@@ -337,8 +358,7 @@ void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* cons
     const int64_t n = 2 * m;
     auto write = [&](int64_t bi, int64_t k, int64_t j, R ps, R vs, R sa, R sb, R sc) {
         int64_t idx = bi * T + k;
-        mean_out[idx * n + 2 * j] = ps, mean_out[idx * n + 2 * j + 1] = vs;
-        block_rows(cov_out + idx * n * n, n, j, sa, sb, sb, sc);
+        write_axis(mean_out + idx * n, cov_out + idx * n * n, n, j, ps, vs, sa, sb, sc);
     };
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         for (int64_t bi = first; bi < last; ++bi) {
@@ -515,10 +535,8 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int 
                         now[2] = cov.a, now[3] = 0.5 * (cov.b + cov.c), now[4] = cov.d;
                     }
                     int64_t idx = bi * T + k;
-                    mean_out[idx * width + 2 * j] = now[0];
-                    mean_out[idx * width + 2 * j + 1] = now[1];
-                    block_rows(cov_out + idx * width * width, width, j, now[2], now[3], now[3],
-                               now[4]);
+                    write_axis(mean_out + idx * width, cov_out + idx * width * width, width, j,
+                               now[0], now[1], now[2], now[3], now[4]);
                 }
             }
         }
@@ -714,56 +732,37 @@ int dense_entry(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gam
 
 extern "C" {
 
-// Layout pointers in Layout's order; post and loglik may be null.
-#define TORCHSVS_FORWARD(suffix, R)                                                             \
-    void forward_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,             \
-                          double gamma, int threads, const void* const* in, const int64_t* s,  \
-                          const void* const* prior, const int64_t* ps, void* const* o) {       \
-        Layout<R> out{static_cast<R*>(o[0]), static_cast<R*>(o[1]), static_cast<R*>(o[2]),   \
-                      static_cast<R*>(o[3]), static_cast<R*>(o[4]), static_cast<R*>(o[5]),   \
-                      static_cast<R*>(o[6]), static_cast<R*>(o[7]), static_cast<R*>(o[8]),   \
-                      static_cast<uint8_t*>(o[9])};                                            \
-        if (rule == 0)                                                                         \
-            forward_axes<R, 0>(B, T, m, velocity, static_cast<R>(gamma), threads, in, s, prior, ps,  \
-                          out);                                                                \
-        else                                                                                   \
-            forward_axes<R, 1>(B, T, m, velocity, static_cast<R>(gamma), threads, in, s, prior, ps,  \
-                          out);                                                                \
-    }                                                                                          \
-    void rts_interval_##suffix(int64_t B, int64_t T, int64_t m, int threads,                   \
-                               const void* const* in, const int64_t* s, void* mean,            \
-                               void* cov) {                                                    \
-        rts_interval<R>(B, T, m, threads, in, s, static_cast<R*>(mean), static_cast<R*>(cov)); \
-    }                                                                                          \
-    void backward_##suffix(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,       \
-                           int threads, const void* const* in, const int64_t* s, void* mean,   \
-                           void* cov) {                                                        \
-        backward<R>(B, T, m, lag, projection, threads, in, s, static_cast<R*>(mean),           \
-                    static_cast<R*>(cov));                                                     \
+// The entry points of both dtypes.
+#define TORCHSVS_ENTRIES(suffix, R)                                                            \
+    void forward_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,            \
+                          double gamma, int threads, const void* const* in, const int64_t* s, \
+                          const void* const* prior, const int64_t* ps, void* const* o) {      \
+        forward_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, o);       \
+    }                                                                                         \
+    void rts_interval_##suffix(int64_t B, int64_t T, int64_t m, int threads,                  \
+                               const void* const* in, const int64_t* s, void* mean,           \
+                               void* cov) {                                                   \
+        rts_interval<R>(B, T, m, threads, in, s, static_cast<R*>(mean),                       \
+                        static_cast<R*>(cov));                                                \
+    }                                                                                         \
+    void backward_##suffix(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,      \
+                           int threads, const void* const* in, const int64_t* s, void* mean,  \
+                           void* cov) {                                                       \
+        backward<R>(B, T, m, lag, projection, threads, in, s, static_cast<R*>(mean),          \
+                    static_cast<R*>(cov));                                                    \
+    }                                                                                         \
+    int dense_run_##suffix(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma, \
+                           const void* x, const void* P, const void* z, const void* memory,   \
+                           const void* psi, int64_t psi_track, int64_t psi_step,              \
+                           const void* const* consts, void* o0, void* o1, void* o2, void* o3, \
+                           void* o4, void* o5, void* o6, void* o7, void* o8, void* o9) {      \
+        void* const outs[10] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9};                      \
+        return dense_entry<R>(B, T, n, m, rule, gamma, x, P, z, memory, psi, psi_track,       \
+                              psi_step, consts, outs);                                        \
     }
 
-TORCHSVS_FORWARD(f32, float)
-TORCHSVS_FORWARD(f64, double)
-#undef TORCHSVS_FORWARD
-
-int dense_run_f32(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
-                  const void* x, const void* P, const void* z, const void* memory, const void* psi,
-                  int64_t psi_track, int64_t psi_step, const void* const* consts, void* o0,
-                  void* o1, void* o2, void* o3, void* o4, void* o5, void* o6, void* o7, void* o8,
-                  void* o9) {
-    void* const outs[10] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9};
-    return dense_entry<float>(B, T, n, m, rule, gamma, x, P, z, memory, psi, psi_track, psi_step,
-                              consts, outs);
-}
-
-int dense_run_f64(int64_t B, int64_t T, int64_t n, int64_t m, int rule, double gamma,
-                  const void* x, const void* P, const void* z, const void* memory, const void* psi,
-                  int64_t psi_track, int64_t psi_step, const void* const* consts, void* o0,
-                  void* o1, void* o2, void* o3, void* o4, void* o5, void* o6, void* o7, void* o8,
-                  void* o9) {
-    void* const outs[10] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9};
-    return dense_entry<double>(B, T, n, m, rule, gamma, x, P, z, memory, psi, psi_track,
-                               psi_step, consts, outs);
-}
+TORCHSVS_ENTRIES(f32, float)
+TORCHSVS_ENTRIES(f64, double)
+#undef TORCHSVS_ENTRIES
 
 }  // extern "C"

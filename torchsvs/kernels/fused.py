@@ -120,11 +120,11 @@ def library() -> ctypes.CDLL | None:
         forward = getattr(lib, f"forward_{suffix}")
         forward.argtypes = [*size, ctypes.c_int, ctypes.c_int, ctypes.c_double, ctypes.c_int]
         forward.argtypes += [pointers, strides, pointers, strides, pointers]
-        vp, count = ctypes.c_void_p, ctypes.c_int
+        vp, integer = ctypes.c_void_p, ctypes.c_int
         rts = getattr(lib, f"rts_interval_{suffix}")
-        rts.argtypes = [*size, count, pointers, strides, vp, vp]
+        rts.argtypes = [*size, integer, pointers, strides, vp, vp]
         backward = getattr(lib, f"backward_{suffix}")
-        backward.argtypes = [*size, ctypes.c_int64, count, count, pointers, strides, vp, vp]
+        backward.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, vp, vp]
         dense = getattr(lib, f"dense_run_{suffix}")
         dense.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
         dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, *(vp,) * 10]
@@ -306,7 +306,7 @@ def backward(
     return _smoother("backward", given, shape, limit, int(projection))
 
 
-#: Largest state or measurement size of :func:`dense_step` (``kMax`` in fused.cpp).
+#: Largest state or measurement size of :func:`dense_run` (``kMax`` in fused.cpp).
 DENSE_MAX = 16
 
 
@@ -343,10 +343,10 @@ def dense_run(
     T, m = z.shape[-2:] if z.ndim == 3 else (1, z.shape[-1])
     dtype = x.dtype
     out = [
-        torch.empty(lead + shape, dtype=dtype)
+        fresh(lead + shape, dtype)
         for shape in ((n,), (n, n), (n,), (n, n), (m,), (n, m), (m, m), (), (m,))
     ]
-    out.append(torch.empty(*lead, m, dtype=torch.bool))
+    out.append(fresh((*lead, m), torch.bool))
     per_track = psi.ndim > 1
     call = lib.dense_run_f32 if dtype == torch.float32 else lib.dense_run_f64
     failed = call(
