@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import platform
 import shutil
@@ -174,6 +175,7 @@ class _Arrays:
 #: Most axes the compiled forward loop steps (``kLanes`` in fused.cpp); more take the tensor loops.
 MAX_AXES = 64
 _HUGE_PAGE = 2 << 20
+_ADVISED = 8 * _HUGE_PAGE  # smaller buffers: as torch.empty gives them
 _libc: dict[str, ctypes.CDLL | None] = {}
 
 
@@ -181,9 +183,9 @@ def fresh(shape: Sequence[int], dtype: torch.dtype) -> Tensor:
     """``torch.empty``, with large buffers advised to the kernel as huge pages before their
     first touch: the page faults of a fresh multi-GB output otherwise cost more than
     writing it (measured 3-4× on a whole-run output)."""
-    out = torch.empty(tuple(shape), dtype=dtype)
-    size = out.numel() * out.element_size()
-    if size < 8 * _HUGE_PAGE or platform.system() != "Linux":
+    size = math.prod(shape) * dtype.itemsize
+    out = torch.empty(shape, dtype=dtype)
+    if size < _ADVISED or platform.system() != "Linux":
         return out
     if "c" not in _libc:
         try:
