@@ -168,9 +168,10 @@ needs_compiler = pytest.mark.skipif(
 def spy(monkeypatch):
     """Counts the compiled loops' calls: the forward pass, the smoother passes together, and
     the dense linear steps."""
-    calls = {"forward": 0, "backward": 0, "dense": 0}
+    calls = {"forward": 0, "adjoint": 0, "backward": 0, "dense": 0}
     for function, counter in (
         ("forward", "forward"),
+        ("adjoint", "adjoint"),
         ("backward", "backward"),
         ("rts_interval", "backward"),
         ("dense_run", "dense"),
@@ -300,18 +301,137 @@ def test_compiled_loops_take_per_step_psi_and_lags_beyond_the_track(spy):
     assert spy["forward"] == 3 and spy["backward"] == 3
 
 
+def _gradients(est, dtype, z, dt, x0, P0):
+    """The gradients of a loss of every output field with respect to every learnable parameter
+    and to ``z``, ``x0`` and ``P0``."""
+    z, x0, P0 = (x.clone().requires_grad_(True) for x in (z, x0, P0))
+    out = est(z, x0, P0, dt=dt)
+    filtered = _filtered(out)
+    loss = torch.zeros((), dtype=dtype)
+    for i, key in enumerate(FIELDS):
+        value = getattr(filtered, key)
+        if value is not None and value.is_floating_point() and value.requires_grad:
+            weights = torch.linspace(-1.0, 1.0, value.numel(), dtype=dtype).reshape(value.shape)
+            loss = loss + (value * weights).sum() / (i + 1)
+    loss = loss + (out.mean * out.mean).sum() * 1e-3 + out.cov.diagonal(dim1=-2, dim2=-1).sum()
+    params = [p for p in est.parameters() if p.requires_grad]
+    return torch.autograd.grad(loss, [*params, z, x0, P0], allow_unused=True)
+
+
 @needs_compiler
-def test_gradients_take_the_tensor_loops(spy):
-    z, dt, x0, P0 = _problem(seed=7, T=10)
-    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
-    svss = ts.SVSS(ts.SVSF(model, psi=[3.0, 2.0, 4.0, 1.5], gamma=0.2), lag=2).double()
-    out = svss(z, x0, P0, dt=dt)
-    out.mean.sum().backward()
-    assert spy["forward"] == 0 and spy["backward"] == 0
-    assert svss.filter.boundary_layer.raw.grad is not None
-    # Inputs that ask for no gradient may still take the compiled loops with grad mode on.
-    ts.KalmanFilter(model).double()(z, x0, P0, dt=dt)
-    assert spy["forward"] == 1
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("name", NAMES)
+def test_compiled_gradients_equal_tensor_loop_gradients(name, dtype, spy):
+    """With gradients the per-axis forward loop runs compiled and its reverse mode too
+    (axes._CompiledAxes): the gradients of every output field (with weights, so that no term
+    cancels) with respect to ψ, γ, q, R, the measurements and the prior equal those of the
+    differentiable tensor loops, with gaps and a per-step interval."""
+    z, dt, x0, P0 = (x.to(dtype) for x in _problem(seed=11, B=3, T=25))
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0], learn_q=True, learn_r=True)
+    est = _estimators(model)[name].to(dtype)
+    for p in est.parameters():
+        p.requires_grad_(True)
+    compiled = _gradients(est, dtype, z, dt, x0, P0)
+    assert spy["forward"] == 1 and spy["adjoint"] == 1
+    with eager_loops():
+        eager = _gradients(est, dtype, z, dt, x0, P0)
+    assert spy["forward"] == 1 and spy["adjoint"] == 1
+    tol = {"atol": 1e-10, "rtol": 1e-10} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 2e-3}
+    for i, (a, b) in enumerate(zip(compiled, eager, strict=True)):
+        assert (a is None) == (b is None), i
+        if a is not None:
+            assert a.abs().sum() > 0, i  # every input reaches the loss
+            assert_close(a, b, msg=f"gradient {i}", **tol)
+
+
+@needs_compiler
+@pytest.mark.parametrize("rule", ["kalman", "svsf", "svsf velocity"])
+def test_compiled_reverse_mode_passes_gradcheck(rule):
+    """The compiled reverse mode against finite differences of the compiled forward (an
+    oracle that shares no code with it), every differentiable input and output: per-step
+    intervals, noise and widths, per-axis q, missing components, memory γ."""
+    from torchsvs.kernels.axes import _CompiledAxes
+
+    B, T, m = 2, 6, 2
+    gen = torch.Generator().manual_seed(3)
+
+    def rand(*shape, low=0.5, high=1.5):
+        return torch.rand(*shape, generator=gen, dtype=torch.float64) * (high - low) + low
+
+    velocity = rule == "svsf velocity"
+    yp = torch.randn(B, T, m, generator=gen, dtype=torch.float64) * 3
+    yv = torch.randn(B, T, m, generator=gen, dtype=torch.float64) * 2
+    yp[0, 2, 1] = yv[1, 3, 0] = float("nan")
+    if not velocity:
+        yv = torch.full_like(yv, float("nan"))
+    dt = rand(B, T, 1)
+    given = [
+        dt,
+        rand(m) * 0.3,
+        rand(B, T, m) * 0.1,
+        rand(B, T, m) * 0.4,
+        yp,
+        yv,
+        rand(B, T, m) * 2 + 1,
+        rand(B, T, m) * 0.2,
+        rand(B, T, m) * 2 + 1,
+        rand(B, T, m, low=0.5, high=6.0),
+        rand(m, low=0.5, high=6.0),
+    ]
+    prior = [
+        torch.randn(B, m, generator=gen, dtype=torch.float64),
+        rand(B, m),
+        rand(B, m) * 4,
+        rand(B, m) * 0.3,
+        rand(B, m) * 2,
+    ]
+    gamma = torch.tensor(0.3 if rule != "kalman" else 0.0, dtype=torch.float64)
+    inputs = [x.requires_grad_(True) for x in (*given, *prior)]
+    inputs[4].requires_grad_(False)  # y with NaN gaps: gradcheck perturbs the NaNs too
+    inputs[5].requires_grad_(False)
+    gamma.requires_grad_(rule != "kalman")
+    name = "kalman" if rule == "kalman" else "svsf"
+
+    def run(gamma, *inputs):
+        out = _CompiledAxes.apply(name, velocity, (B, T, m), gamma, *inputs)
+        return tuple(x for x in out[:-1] if x is not None)
+
+    assert torch.autograd.gradcheck(run, (gamma, *inputs), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+    def run_y(y):  # the measurements where observed
+        full = inputs[4].detach().clone()
+        full[~torch.isnan(full)] = y
+        return run(gamma, *inputs[:4], full, *inputs[5:])
+
+    observed = inputs[4].detach()[~torch.isnan(inputs[4].detach())].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(run_y, (observed,), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+@needs_compiler
+def test_compiled_gradients_on_threads_for_any_axis_count(monkeypatch, spy):
+    """Large batches run the reverse mode on threads too; 1 and 3 axes (compile-time and
+    run-time axis counts) equal the tensor loops' gradients."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for ndim in (1, 3):
+            B, T = 1100, 100
+            gen = torch.Generator().manual_seed(ndim)
+            z = torch.randn(B, T, ndim, generator=gen, dtype=torch.float64) * 3
+            z[torch.rand(B, T, ndim, generator=gen) < 0.1] = float("nan")
+            dt = torch.rand(B, T, generator=gen, dtype=torch.float64) + 0.5
+            x0 = torch.randn(B, 2 * ndim, generator=gen, dtype=torch.float64)
+            P0 = torch.eye(2 * ndim, dtype=torch.float64) * 4
+            model = ts.models.ConstantVelocity(ndim=ndim, q=0.5, r=[2.0] * ndim, learn_q=True)
+            svss = ts.SVSS(ts.SVSF(model.double(), psi=[3.0, 2.0] * ndim, gamma=0.2), lag=2)
+            compiled = _gradients(svss, torch.float64, z, dt, x0, P0)
+            with eager_loops():
+                eager = _gradients(svss, torch.float64, z, dt, x0, P0)
+            for a, b in zip(compiled, eager, strict=True):
+                assert_close(a, b, atol=1e-10, rtol=1e-10)
+    finally:
+        torch.set_num_threads(before)
+    assert spy["adjoint"] == 2
 
 
 def test_without_a_compiler_the_tensor_loops_run(monkeypatch, spy):

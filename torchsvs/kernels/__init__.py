@@ -9,7 +9,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 #: Whether estimators may use the per-axis kernel (:mod:`torchsvs.kernels.axes`), and its
-#: compiled loops where no gradient is needed.
+#: compiled loops (the forward loop with or without gradients, the smoother loops without).
 AXIS_KERNEL = {"enabled": True, "fused": True}
 
 
@@ -33,7 +33,8 @@ def general_path() -> Iterator[None]:
 
 @contextmanager
 def eager_loops() -> Iterator[None]:
-    """Within this block the per-axis kernel runs its time loops as tensor operations (the
-    differentiable path), never the compiled ones."""
+    """Within this block the per-axis kernel runs its time loops as tensor operations, never
+    the compiled ones (the reference for the compiled loops and their gradients; and the path
+    for higher derivatives, which the compiled reverse mode does not give)."""
     with _setting("fused", False):
         yield

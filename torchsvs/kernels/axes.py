@@ -7,9 +7,11 @@ Kalman filter, the SVSF (``H⁺`` mode or finite-difference velocities) and the 
 recursion then act on 2×2 blocks, written here element by element on ``[B, (T,) m]`` tensors:
 a few dozen elementwise operations per step instead of batched 4×4 (or 6×6) matrix products,
 which on a CPU cost far more per element than the arithmetic. Results are exactly the general
-path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves. Where no
-gradient is asked for, the time loops below run compiled (:mod:`torchsvs.kernels.fused`, the
-same formulas in C++); these tensor loops are the differentiable path.
+path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves. The forward
+loop runs compiled (:mod:`torchsvs.kernels.fused`, the same formulas in C++), with gradients
+through its compiled reverse mode (:class:`_CompiledAxes`); the smoother loops run compiled
+where no gradient is asked for. The tensor loops below are the reference, the fallback without
+a compiler, and the path for higher derivatives.
 
 Every axis has a two-component corrector measurement :math:`y = (y_p, y_v)` with ``H = I``;
 position-only correctors (Kalman filter, the SVSF's ``H⁺`` mode) have :math:`y_v` always missing.
@@ -21,10 +23,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from torchsvs.kernels import fused
 from torchsvs.linalg import svsf_gain_ratio
@@ -285,11 +288,13 @@ def run_axes(
     noise = Sym2(*(per_step(x) for x in y.noise))
     prior = (x0[0], x0[1], P0.a, P0.b, P0.c)
     raw = given(T_all, *Q_all, y.position, y.velocity, *y.noise, width_p, width_v)
-    if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma):
-        mean, cov, pm, pc, e, K, S, post, loglik, mask = fused.forward(
-            rule, float(gamma), raw, prior, (B, steps, m), velocity
-        )
-        out = Interleaved(mean, cov, pm, pc, e, K, S, post, loglik, mask)
+    if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
+        inputs = (*raw, *prior)
+        if torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma)):
+            outputs = _CompiledAxes.apply(rule, velocity, (B, steps, m), gamma, *inputs)
+        else:
+            outputs = fused.forward(rule, float(gamma), raw, prior, (B, steps, m), velocity)
+        out = Interleaved(*outputs)
         return per_axis(out, noise, T_all, velocity), out
     seen_p, seen_v = ~torch.isnan(y.position), ~torch.isnan(y.velocity)
     R_all = _masked_noise(y.noise, seen_p, seen_v)
@@ -344,6 +349,51 @@ def run_axes(
         log_likelihood=loglik,
     )
     return res, interleaved(res, velocity)
+
+
+class _CompiledAxes(torch.autograd.Function):
+    """The compiled forward loop (:func:`fused.forward`) with its compiled reverse mode
+    (:func:`fused.adjoint`): training runs the loop at inference speed. Inputs: the 11 given
+    quantities and the 5 prior ones of :func:`run_axes`, in :func:`fused.forward`'s order;
+    outputs: the :class:`Interleaved` fields. First derivatives only (``create_graph`` needs
+    the tensor loops: :func:`torchsvs.kernels.eager_loops`)."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        rule: str,
+        velocity: bool,
+        shape: tuple[int, int, int],
+        gamma: Tensor,
+        *inputs: Tensor,
+    ) -> tuple[Tensor | None, ...]:
+        out = fused.forward(rule, float(gamma), inputs[:11], inputs[11:], shape, velocity)
+        ctx.settings = (rule, velocity, shape)
+        ctx.save_for_backward(gamma, *inputs)
+        ctx.mark_non_differentiable(out[-1])
+        ctx.set_materialize_grads(False)
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
+        rule, velocity, shape = ctx.settings
+        gamma, *inputs = ctx.saved_tensors
+        wanted = ctx.needs_input_grad[4:]
+        given, prior = inputs[:11], inputs[11:]
+        dgiven, dprior, dgamma = fused.adjoint(
+            rule, float(gamma), given, prior, shape, velocity, grads[:9], wanted[:11]
+        )
+        B, steps, m = shape
+        result: list[Tensor | None] = [None, None, None]
+        result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[3] else None)
+        for x, dx in zip(given, dgiven, strict=True):
+            # An input broadcast to [B, T, m] gets the sum over its broadcast dimensions.
+            seen = x.shape if x.ndim == 3 else (1, 1, x.numel())
+            result.append(None if dx is None else dx.sum_to_size(seen).reshape(x.shape))
+        for x, dx, w in zip(prior, dprior, wanted[11:], strict=True):
+            result.append(dx.reshape(x.shape) if w else None)
+        return tuple(result)
 
 
 def interleaved(res: AxisResult, velocity: bool) -> Interleaved:
@@ -497,7 +547,8 @@ def prefer_scan(tracks: int, steps: int) -> bool:
     """Whether an associative scan over time beats the step-by-step tensor loop: for few, long
     tracks (its ``O(log T)`` rounds do several times the arithmetic of the loop, which pays only
     where the loop's cost is the per-step overhead of small operations). The compiled loops
-    beat both; this choice is for the differentiable path."""
+    beat both; this choice is for the tensor loops (:func:`~torchsvs.kernels.eager_loops`, no
+    compiler, higher derivatives)."""
     return steps >= 64 and tracks * 16 <= steps * 4 + 4096
 
 

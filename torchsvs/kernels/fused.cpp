@@ -98,60 +98,96 @@ enum Result {
 };
 constexpr int64_t kLanes = 64;  // lanes (track axes) stepped together
 
-// axes._forward_step for `lanes` independent lanes at once. Every lane runs the same branch-free
+// The state a lane carries from step to step: mean, covariance [[a, b], [b, c]], SVSF memory.
+template <typename R>
+struct State {
+    R p, v, a, b, c, mem_p, mem_v;
+};
+
+// One step of a lane: the state after it and everything it records.
+template <typename R>
+struct Step {
+    State<R> next;
+    R fp, fv;           // 1 where the position / velocity is observed, else 0
+    R rp, rpv, rvv;     // R masked: an identity on missing components (axes._masked_noise)
+    R p_pred, v_pred, bT, a1, b1, c1;
+    R ep, ev, Sp, Spv, Sv;
+    R kp, kc, kv;       // the axis's gain [[kp, 0], [kc, kv]] (Kalman: kv = 0; SVSF: kc = 0)
+    R ll;               // the log-likelihood's term without log S (Kalman)
+};
+
+// axes._forward_step for one lane: Rule 0 Kalman (position-only), 1 SVSF. g: the step's
+// inputs in Given's order.
+template <typename R, int Rule>
+inline Step<R> predict_correct(const State<R>& x, const R* g, R gamma) {
+    Step<R> s;
+    R dt = g[kT], yp = g[kYp], yv = g[kYv];
+    bool seen_p = yp == yp, seen_v = Rule == 1 && yv == yv;  // NaN: missing
+    s.fp = seen_p ? R(1) : R(0), s.fv = seen_v ? R(1) : R(0);
+    s.rp = seen_p ? g[kRp] : R(1);
+    // Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
+    s.p_pred = x.p + dt * x.v, s.v_pred = x.v;
+    s.bT = x.b + dt * x.c;
+    s.a1 = x.a + dt * (x.b + s.bT) + g[kQa];
+    s.b1 = s.bT + g[kQb];
+    s.c1 = x.c + g[kQc];
+    s.ep = seen_p ? yp - s.p_pred : R(0);
+    s.Sp = s.a1 * s.fp + s.rp;
+    State<R>& n = s.next;
+    if (Rule == 0) {
+        s.rpv = 0, s.rvv = 1, s.ev = 0, s.Spv = 0, s.Sv = 1;
+        R kp = s.a1 * s.fp / s.Sp, kv_p = s.b1 * s.fp / s.Sp;
+        R one_k = 1 - kp;
+        n.a = one_k * one_k * s.a1 + kp * kp * s.rp;  // Joseph form
+        n.b = one_k * (s.b1 - kv_p * s.a1) + kp * kv_p * s.rp;
+        n.c = s.c1 - 2 * kv_p * s.b1 + kv_p * kv_p * (s.a1 + s.rp);
+        n.p = s.p_pred + kp * s.ep;
+        n.v = s.v_pred + kv_p * s.ep;
+        n.mem_p = x.mem_p, n.mem_v = x.mem_v;
+        s.kp = kp, s.kc = kv_p, s.kv = 0;
+        // log N(e; 0, S) over the observed positions (axes.run_axes), but log S.
+        s.ll = R(-0.5) * (s.ep * s.ep / s.Sp + s.fp * R(1.8378770664093453));
+    } else {
+        s.rpv = seen_p && seen_v ? g[kRpv] : R(0);
+        s.rvv = seen_v ? g[kRvv] : R(1);
+        s.ev = seen_v ? yv - s.v_pred : R(0);
+        R kp = gain_ratio(s.ep, x.mem_p, g[kWp], gamma) * s.fp;
+        R kv = gain_ratio(s.ev, x.mem_v, g[kWv], gamma) * s.fv;
+        R one_p = 1 - kp, one_v = 1 - kv;
+        n.a = one_p * one_p * s.a1 + kp * kp * s.rp;  // Joseph form, diagonal gain
+        n.b = one_p * one_v * s.b1 + kp * kv * s.rpv;
+        n.c = one_v * one_v * s.c1 + kv * kv * s.rvv;
+        n.p = s.p_pred + kp * s.ep, n.v = s.v_pred + kv * s.ev;
+        // Eq. (24): the a-posteriori innovation, carried where missing.
+        n.mem_p = seen_p ? yp - n.p : x.mem_p;
+        n.mem_v = seen_v ? yv - n.v : x.mem_v;
+        s.kp = kp, s.kc = 0, s.kv = kv;
+        s.Spv = s.b1 * s.fp * s.fv + s.rpv, s.Sv = s.c1 * s.fv + s.rvv;
+        s.ll = 0;
+    }
+    return s;
+}
+
+// predict_correct for `lanes` independent lanes at once. Every lane runs the same branch-free
 // arithmetic, so the compiler vectorises the loop across lanes and the processor overlaps the
 // lanes' dependent chains. g: the step's inputs, r: the state before (r[kP..kMemV]) and the
 // results after; r[kLl] is the step's log-likelihood without log S (Likelihood adds it).
 template <typename R, int Rule>
 inline void step_lanes(int64_t lanes, R gamma, const R (*g)[kLanes], R (*r)[kLanes]) {
     for (int64_t l = 0; l < lanes; ++l) {
-        R p = r[kP][l], v = r[kV][l], a = r[kA][l], b = r[kB][l], c = r[kC][l];
-        R dt = g[kT][l], yp = g[kYp][l], yv = g[kYv][l];
-        bool seen_p = yp == yp, seen_v = Rule == 1 && yv == yv;  // NaN: missing
-        R fp = seen_p ? R(1) : R(0), fv = seen_v ? R(1) : R(0);
-        // R masked: an identity on missing components (axes._masked_noise).
-        R rp = seen_p ? g[kRp][l] : R(1);
-        // Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
-        R p_pred = p + dt * v, v_pred = v;
-        R bT = b + dt * c;
-        R a1 = a + dt * (b + bT) + g[kQa][l];
-        R b1 = bT + g[kQb][l];
-        R c1 = c + g[kQc][l];
-        R ep = seen_p ? yp - p_pred : R(0);
-        R Sp = a1 * fp + rp;
-        if (Rule == 0) {
-            R kp = a1 * fp / Sp, kv_p = b1 * fp / Sp;
-            R one_k = 1 - kp;
-            r[kA][l] = one_k * one_k * a1 + kp * kp * rp;  // Joseph form
-            r[kB][l] = one_k * (b1 - kv_p * a1) + kp * kv_p * rp;
-            r[kC][l] = c1 - 2 * kv_p * b1 + kv_p * kv_p * (a1 + rp);
-            r[kP][l] = p_pred + kp * ep;
-            r[kV][l] = v_pred + kv_p * ep;
-            r[kEv][l] = 0, r[kKa][l] = kp, r[kKc][l] = kv_p, r[kKd][l] = 0;
-            r[kSpv][l] = 0, r[kSv][l] = 1;
-            // log N(e; 0, S) over the observed positions (axes.run_axes), but log S.
-            r[kLl][l] = R(-0.5) * (ep * ep / Sp + fp * R(1.8378770664093453));
-        } else {
-            R rpv = seen_p && seen_v ? g[kRpv][l] : R(0);
-            R rvv = seen_v ? g[kRvv][l] : R(1);
-            R ev = seen_v ? yv - v_pred : R(0);
-            R kp = gain_ratio(ep, r[kMemP][l], g[kWp][l], gamma) * fp;
-            R kv = gain_ratio(ev, r[kMemV][l], g[kWv][l], gamma) * fv;
-            R one_p = 1 - kp, one_v = 1 - kv;
-            r[kA][l] = one_p * one_p * a1 + kp * kp * rp;  // Joseph form, diagonal gain
-            r[kB][l] = one_p * one_v * b1 + kp * kv * rpv;
-            r[kC][l] = one_v * one_v * c1 + kv * kv * rvv;
-            R p_new = p_pred + kp * ep, v_new = v_pred + kv * ev;
-            r[kP][l] = p_new, r[kV][l] = v_new;
-            // Eq. (24): the a-posteriori innovation, carried where missing.
-            r[kMemP][l] = seen_p ? yp - p_new : r[kMemP][l];
-            r[kMemV][l] = seen_v ? yv - v_new : r[kMemV][l];
-            r[kEv][l] = ev, r[kKa][l] = kp, r[kKc][l] = 0, r[kKd][l] = kv;
-            r[kSpv][l] = b1 * fp * fv + rpv, r[kSv][l] = c1 * fv + rvv;
-        }
-        r[kPp][l] = p_pred, r[kVp][l] = v_pred, r[kA1][l] = a1, r[kB1][l] = b1, r[kC1][l] = c1;
-        r[kEp][l] = ep;
-        r[kSp][l] = Sp, r[kSeenP][l] = fp, r[kSeenV][l] = fv;
+        R given[kGiven];
+        for (int q = 0; q < kGiven; ++q) given[q] = g[q][l];
+        State<R> x{r[kP][l], r[kV][l], r[kA][l], r[kB][l], r[kC][l], r[kMemP][l], r[kMemV][l]};
+        Step<R> s = predict_correct<R, Rule>(x, given, gamma);
+        r[kP][l] = s.next.p, r[kV][l] = s.next.v;
+        r[kA][l] = s.next.a, r[kB][l] = s.next.b, r[kC][l] = s.next.c;
+        r[kMemP][l] = s.next.mem_p, r[kMemV][l] = s.next.mem_v;
+        r[kPp][l] = s.p_pred, r[kVp][l] = s.v_pred;
+        r[kA1][l] = s.a1, r[kB1][l] = s.b1, r[kC1][l] = s.c1;
+        r[kEp][l] = s.ep, r[kEv][l] = s.ev;
+        r[kKa][l] = s.kp, r[kKc][l] = s.kc, r[kKd][l] = s.kv;
+        r[kSp][l] = s.Sp, r[kSpv][l] = s.Spv, r[kSv][l] = s.Sv;
+        r[kSeenP][l] = s.fp, r[kSeenV][l] = s.fv, r[kLl][l] = s.ll;
     }
 }
 
@@ -340,6 +376,213 @@ void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, doub
         forward_axes<R, 0>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
     else
         forward_axes<R, 1>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
+}
+
+// Reverse mode of the forward loop: the gradients of its inputs given those of its outputs,
+// for training (torchsvs.kernels.axes._CompiledAxes). Each lane recomputes its forward states,
+// then runs the adjoint of predict_correct backwards in time: every assignment of the step,
+// reversed. The derivatives follow torch's conventions where the step is not smooth
+// (d|x|/dx = 0 at 0; max(|e|, ψ) differentiates in |e| only when |e| > ψ).
+
+// Adjoints of what a step records besides the state (from the outputs' gradients).
+template <typename R>
+struct Recorded {
+    R p_pred, v_pred, a1, b1, c1, ep, ev, kp, kc, kv, Sp, Spv, Sv, ll;
+};
+
+// gain_ratio's adjoint: adds dk's contributions to those of e, the memory, ψ and γ.
+template <typename R>
+inline void gain_ratio_adjoint(R e, R memory, R width, R gamma, R dk, R& de, R& dmemory,
+                               R& dwidth, R& dgamma) {
+    R magnitude = std::fabs(e), held = std::fabs(memory);
+    bool saturated = magnitude > width;
+    R den = saturated ? magnitude : width, num = magnitude + gamma * held;
+    R sign_e = R((e > 0) - (e < 0)), sign_m = R((memory > 0) - (memory < 0));
+    R over = num / (den * den);
+    de += dk * (sign_e / den - (saturated ? over * sign_e : R(0)));
+    dmemory += dk * gamma * sign_m / den;
+    dwidth += saturated ? R(0) : -dk * over;
+    dgamma += dk * held / den;
+}
+
+// predict_correct's adjoint: from the adjoints of the state after the step (dn) and of its
+// records (o), those of the state before (returned), of the step's inputs (dg, Given's
+// order, overwritten) and of γ (added to dgamma).
+template <typename R, int Rule>
+inline State<R> step_adjoint(const State<R>& x, const R* g, R gamma, const Step<R>& s,
+                             const State<R>& dn, const Recorded<R>& o, R* dg, R& dgamma) {
+    const R dt = g[kT];
+    const bool seen_p = s.fp > 0, seen_v = s.fv > 0;
+    State<R> d{0, 0, 0, 0, 0, 0, 0};
+    R drp = 0, drpv = 0, drvv = 0, dyp = 0, dyv = 0;
+    R da1 = o.a1, db1 = o.b1, dc1 = o.c1, dep = o.ep, dev = o.ev;
+    R dpp = o.p_pred, dvp = o.v_pred, dkp = o.kp, dkc = o.kc, dkv = o.kv, dSp = o.Sp;
+    for (int q = 0; q < kGiven; ++q) dg[q] = 0;
+    if (Rule == 0) {
+        const R kp = s.kp, kvp = s.kc, one_k = 1 - kp;
+        // p' = p_pred + kp ep, v' = v_pred + kvp ep
+        dpp += dn.p, dvp += dn.v;
+        dkp += dn.p * s.ep, dkc += dn.v * s.ep, dep += dn.p * kp + dn.v * kvp;
+        // c' = c1 − 2 kvp b1 + kvp² (a1 + rp)
+        dc1 += dn.c, db1 -= 2 * kvp * dn.c, da1 += kvp * kvp * dn.c, drp += kvp * kvp * dn.c;
+        dkc += dn.c * (2 * kvp * (s.a1 + s.rp) - 2 * s.b1);
+        // b' = (1 − kp)(b1 − kvp a1) + kp kvp rp
+        R done = dn.b * (s.b1 - kvp * s.a1);
+        db1 += one_k * dn.b, da1 -= one_k * kvp * dn.b;
+        dkc += dn.b * (kp * s.rp - one_k * s.a1), dkp += dn.b * kvp * s.rp;
+        drp += dn.b * kp * kvp;
+        // a' = (1 − kp)² a1 + kp² rp
+        done += 2 * one_k * s.a1 * dn.a, da1 += one_k * one_k * dn.a;
+        dkp += 2 * kp * s.rp * dn.a, drp += kp * kp * dn.a;
+        dkp -= done;
+        // kp = a1 fp / Sp, kvp = b1 fp / Sp
+        da1 += s.fp / s.Sp * dkp, db1 += s.fp / s.Sp * dkc;
+        dSp -= (s.a1 * dkp + s.b1 * dkc) * s.fp / (s.Sp * s.Sp);
+        // ll = −(ep²/Sp + log Sp)/2 + const
+        dep -= o.ll * s.ep / s.Sp;
+        dSp += R(0.5) * o.ll * (s.ep * s.ep / (s.Sp * s.Sp) - 1 / s.Sp);
+        d.mem_p = dn.mem_p, d.mem_v = dn.mem_v;
+    } else {
+        const R kp = s.kp, kv = s.kv, one_p = 1 - kp, one_v = 1 - kv;
+        R dp = dn.p, dv = dn.v;
+        // mem' = y − x' where observed, else mem
+        if (seen_p) dyp += dn.mem_p, dp -= dn.mem_p; else d.mem_p += dn.mem_p;
+        if (seen_v) dyv += dn.mem_v, dv -= dn.mem_v; else d.mem_v += dn.mem_v;
+        // p' = p_pred + kp ep, v' = v_pred + kv ev
+        dpp += dp, dkp += dp * s.ep, dep += dp * kp;
+        dvp += dv, dkv += dv * s.ev, dev += dv * kv;
+        // c' = (1 − kv)² c1 + kv² rvv
+        R done_v = 2 * one_v * s.c1 * dn.c;
+        dc1 += one_v * one_v * dn.c, dkv += 2 * kv * s.rvv * dn.c, drvv += kv * kv * dn.c;
+        // b' = (1 − kp)(1 − kv) b1 + kp kv rpv
+        R done_p = one_v * s.b1 * dn.b;
+        done_v += one_p * s.b1 * dn.b, db1 += one_p * one_v * dn.b;
+        dkp += kv * s.rpv * dn.b, dkv += kp * s.rpv * dn.b, drpv += kp * kv * dn.b;
+        // a' = (1 − kp)² a1 + kp² rp
+        done_p += 2 * one_p * s.a1 * dn.a, da1 += one_p * one_p * dn.a;
+        dkp += 2 * kp * s.rp * dn.a, drp += kp * kp * dn.a;
+        dkp -= done_p, dkv -= done_v;
+        // k = gain_ratio(e, mem, ψ, γ) where observed, Eq. (23)
+        if (seen_p) gain_ratio_adjoint(s.ep, x.mem_p, g[kWp], gamma, dkp, dep, d.mem_p, dg[kWp], dgamma);
+        if (seen_v) gain_ratio_adjoint(s.ev, x.mem_v, g[kWv], gamma, dkv, dev, d.mem_v, dg[kWv], dgamma);
+        // Spv = b1 fp fv + rpv, Sv = c1 fv + rvv
+        db1 += s.fp * s.fv * o.Spv, drpv += o.Spv, dc1 += s.fv * o.Sv, drvv += o.Sv;
+        // ev = yv − v_pred where observed
+        if (seen_v) dyv += dev, dvp -= dev;
+    }
+    // Sp = a1 fp + rp; ep = yp − p_pred where observed
+    da1 += s.fp * dSp, drp += dSp;
+    if (seen_p) dyp += dep, dpp -= dep;
+    // The masked noise: the inputs count where observed only.
+    dg[kRp] = seen_p ? drp : R(0);
+    dg[kRpv] = seen_p && seen_v ? drpv : R(0);
+    dg[kRvv] = seen_v ? drvv : R(0);
+    dg[kYp] = dyp, dg[kYv] = dyv;
+    // c1 = c + Qc, b1 = bT + Qb, a1 = a + T (b + bT) + Qa, bT = b + T c
+    dg[kQa] = da1, dg[kQb] = db1, dg[kQc] = dc1;
+    R dbT = db1 + dt * da1;
+    d.a += da1, d.b += dt * da1 + dbT, d.c += dc1 + dt * dbT;
+    // p_pred = p + T v, v_pred = v
+    d.p += dpp, d.v += dt * dpp + dvp;
+    dg[kT] = (x.b + s.bT) * da1 + x.c * dbT + x.v * dpp;
+    return d;
+}
+
+// The forward loop's gradients. `grads`: the gradients of forward's outputs in Layout's order
+// (mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik; null: zero). Writes the
+// inputs' gradients: `dgiven` 11 contiguous [B, T, m] arrays (null: not wanted), `dprior` 5
+// [B, m] (p, v, a, b, c), and `dgamma` [B, m] (per lane, summed by the caller).
+template <typename R, int Rule>
+void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads,
+             const void* const* in, const int64_t* in_strides, const void* const* prior,
+             const int64_t* prior_strides, const R* const* grads, R* const* dgiven,
+             R* const* dprior, R* dgamma) {
+    View<R> given[kGiven];
+    for (int q = 0; q < kGiven; ++q) given[q] = view<R>(in, in_strides, q);
+    const int64_t n = 2 * m, mz = velocity ? n : m;
+    const R *g_mean = grads[0], *g_cov = grads[1], *g_pm = grads[2], *g_pc = grads[3];
+    const R *g_e = grads[4], *g_K = grads[5], *g_S = grads[6], *g_post = grads[7];
+    const R* g_ll = grads[8];
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        std::vector<State<R>> states(T + 1);
+        R g[kGiven], dg[kGiven];
+        for (int64_t bi = first; bi < last; ++bi) {
+            for (int64_t j = 0; j < m; ++j) {
+                State<R>& x0 = states[0];
+                x0.p = view<R>(prior, prior_strides, 0).at(bi, 0, j);
+                x0.v = view<R>(prior, prior_strides, 1).at(bi, 0, j);
+                x0.a = view<R>(prior, prior_strides, 2).at(bi, 0, j);
+                x0.b = view<R>(prior, prior_strides, 3).at(bi, 0, j);
+                x0.c = view<R>(prior, prior_strides, 4).at(bi, 0, j);
+                x0.mem_p = x0.mem_v = 0;
+                for (int64_t t = 0; t < T; ++t) {
+                    for (int q = 0; q < kGiven; ++q) g[q] = given[q].at(bi, t, j);
+                    states[t + 1] = predict_correct<R, Rule>(states[t], g, gamma).next;
+                }
+                State<R> dx{0, 0, 0, 0, 0, 0, 0};  // the adjoint of the state after step t
+                R dgam = 0, dll = g_ll ? g_ll[bi] : R(0);
+                for (int64_t t = T - 1; t >= 0; --t) {
+                    for (int q = 0; q < kGiven; ++q) g[q] = given[q].at(bi, t, j);
+                    const Step<R> s = predict_correct<R, Rule>(states[t], g, gamma);
+                    const int64_t rec = bi * T + t, p = 2 * j, v = 2 * j + 1;
+                    // The outputs' gradients at this step, read from the general layout (an
+                    // entry written twice, b of a symmetric block, gets both gradients).
+                    auto vec = [&](const R* grad, int64_t size, int64_t i) {
+                        return grad ? grad[rec * size + i] : R(0);
+                    };
+                    auto mat = [&](const R* grad, int64_t cols, int64_t row, int64_t col) {
+                        return grad ? grad[rec * n * cols + row * cols + col] : R(0);
+                    };
+                    auto sq = [&](const R* grad, int64_t size, int64_t row, int64_t col) {
+                        return grad ? grad[rec * size * size + row * size + col] : R(0);
+                    };
+                    dx.p += vec(g_mean, n, p), dx.v += vec(g_mean, n, v);
+                    dx.a += sq(g_cov, n, p, p), dx.c += sq(g_cov, n, v, v);
+                    dx.b += sq(g_cov, n, p, v) + sq(g_cov, n, v, p);
+                    Recorded<R> o{};
+                    o.p_pred = vec(g_pm, n, p), o.v_pred = vec(g_pm, n, v);
+                    o.a1 = sq(g_pc, n, p, p), o.c1 = sq(g_pc, n, v, v);
+                    o.b1 = sq(g_pc, n, p, v) + sq(g_pc, n, v, p);
+                    o.ll = dll;
+                    if (velocity) {
+                        o.ep = vec(g_e, mz, p), o.ev = vec(g_e, mz, v);
+                        o.kp = mat(g_K, n, p, p), o.kc = mat(g_K, n, v, p), o.kv = mat(g_K, n, v, v);
+                        o.Sp = sq(g_S, n, p, p), o.Sv = sq(g_S, n, v, v);
+                        o.Spv = sq(g_S, n, p, v) + sq(g_S, n, v, p);
+                        dx.mem_p += vec(g_post, mz, p), dx.mem_v += vec(g_post, mz, v);
+                    } else {
+                        o.ep = vec(g_e, mz, j);
+                        o.kp = mat(g_K, m, p, j), o.kc = mat(g_K, m, v, j);
+                        o.Sp = sq(g_S, m, j, j);
+                        dx.mem_p += vec(g_post, mz, j);
+                    }
+                    dx = step_adjoint<R, Rule>(states[t], g, gamma, s, dx, o, dg, dgam);
+                    for (int q = 0; q < kGiven; ++q)
+                        if (dgiven[q]) dgiven[q][rec * m + j] = dg[q];
+                }
+                const R prior_adjoint[5] = {dx.p, dx.v, dx.a, dx.b, dx.c};
+                for (int q = 0; q < 5; ++q)
+                    if (dprior[q]) dprior[q][bi * m + j] = prior_adjoint[q];
+                dgamma[bi * m + j] = dgam;
+            }
+        }
+    });
+}
+
+template <typename R>
+void adjoint_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, double gamma,
+                   int threads, const void* const* in, const int64_t* s, const void* const* prior,
+                   const int64_t* ps, void* const* grads, void* const* dgiven, void* const* dprior,
+                   void* dgamma) {
+    auto g = reinterpret_cast<const R* const*>(grads);
+    auto dg = reinterpret_cast<R* const*>(dgiven);
+    auto dp = reinterpret_cast<R* const*>(dprior);
+    R gm = static_cast<R>(gamma);
+    R* dgm = static_cast<R*>(dgamma);
+    if (rule == 0)
+        adjoint<R, 0>(B, T, m, velocity, gm, threads, in, s, prior, ps, g, dg, dp, dgm);
+    else
+        adjoint<R, 1>(B, T, m, velocity, gm, threads, in, s, prior, ps, g, dg, dp, dgm);
 }
 
 // axes._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
@@ -738,6 +981,13 @@ extern "C" {
                           double gamma, int threads, const void* const* in, const int64_t* s, \
                           const void* const* prior, const int64_t* ps, void* const* o) {      \
         forward_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, o);       \
+    }                                                                                         \
+    void adjoint_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,            \
+                          double gamma, int threads, const void* const* in, const int64_t* s, \
+                          const void* const* prior, const int64_t* ps, void* const* grads,    \
+                          void* const* dgiven, void* const* dprior, void* dgamma) {           \
+        adjoint_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, grads,    \
+                         dgiven, dprior, dgamma);                                             \
     }                                                                                         \
     void rts_interval_##suffix(int64_t B, int64_t T, int64_t m, int threads,                  \
                                const void* const* in, const int64_t* s, void* mean,           \

@@ -14,9 +14,11 @@ copies) in and write the results in the general layout (what a
 :class:`~torchsvs.types.FilterResult` holds) directly, on ``torch.get_num_threads()`` threads
 for large batches, into buffers advised as huge pages (:func:`fresh`).
 
-They run only where no gradient is asked for (inference: ``torch.no_grad()``, ``torchsvs
-track``), on CPU float32/float64 tensors; training keeps the differentiable tensor loops. Both
-give the same numbers up to rounding (tested to 1e-10 in float64). Without a compiler the
+They run on CPU float32/float64 tensors. The per-axis forward loop has a compiled reverse mode
+too (:func:`adjoint`, used by :class:`torchsvs.kernels.axes._CompiledAxes`), so training runs
+it at inference speed; the smoother loops run compiled where no gradient is asked for, and as
+(vectorised) tensor operations otherwise. Compiled and tensor loops give the same numbers and
+gradients up to rounding (tested to 1e-10 in float64). Without a compiler the
 estimators fall back to the tensor loops with one warning; ``TORCHSVS_FUSED=0`` turns the
 compiled loops off, :func:`torchsvs.kernels.eager_loops` does so for a block. The library is
 cached per source, compiler, flags and platform under ``$TORCHSVS_CACHE`` (default
@@ -122,6 +124,8 @@ def library() -> ctypes.CDLL | None:
         forward.argtypes = [*size, ctypes.c_int, ctypes.c_int, ctypes.c_double, ctypes.c_int]
         forward.argtypes += [pointers, strides, pointers, strides, pointers]
         vp, integer = ctypes.c_void_p, ctypes.c_int
+        adjoint = getattr(lib, f"adjoint_{suffix}")
+        adjoint.argtypes = [*forward.argtypes, pointers, pointers, vp]
         rts = getattr(lib, f"rts_interval_{suffix}")
         rts.argtypes = [*size, integer, pointers, strides, vp, vp]
         backward = getattr(lib, f"backward_{suffix}")
@@ -140,13 +144,14 @@ def failure() -> str | None:
     return value if isinstance(value, str) else None
 
 
-def usable(*tensors: Tensor) -> bool:
+def usable(*tensors: Tensor, differentiable: bool = False) -> bool:
     """Whether the compiled loops can replace the tensor loops for these inputs: CPU, one
-    floating dtype (float32/float64), no gradient asked for, the library available."""
+    floating dtype (float32/float64), the library available, and no gradient asked for unless
+    the loop is ``differentiable`` (has a compiled reverse mode)."""
     dtype = tensors[0].dtype
     if dtype not in _FLOATS or not AXIS_KERNEL["fused"]:
         return False
-    grad = torch.is_grad_enabled()
+    grad = torch.is_grad_enabled() and not differentiable
     for x in tensors:  # a plain loop: an online step calls this at every step
         if x.dtype != dtype or x.device.type != "cpu" or (grad and x.requires_grad):
             return False
@@ -259,6 +264,48 @@ def forward(
         _pointers((mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask)),
     )
     return mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask
+
+
+def adjoint(
+    rule: str,
+    gamma: float,
+    given: Sequence[Tensor],
+    prior: Sequence[Tensor],
+    shape: tuple[int, int, int],
+    velocity: bool,
+    grads: Sequence[Tensor | None],
+    wanted: Sequence[bool],
+) -> tuple[list[Tensor | None], list[Tensor], Tensor]:
+    """The reverse mode of :func:`forward` (same arguments): ``grads`` the gradients of its
+    first nine outputs (``None``: zero), ``wanted`` which of the 11 ``given`` need one.
+    Returns the ``given`` gradients ``[B, T, m]`` (``None`` where not wanted; the caller sums
+    them to each input's shape), the prior's ``[B, m]`` and ``γ``'s per lane ``[B, m]``."""
+    lib = library()
+    assert lib is not None
+    B, T, m = shape
+    dtype = prior[0].dtype
+    inputs, start = _Arrays(given, shape), _Arrays(prior, (B, 1, m))
+    dgiven = [torch.empty(B, T, m, dtype=dtype) if w else None for w in wanted]
+    dprior = [torch.empty(B, m, dtype=dtype) for _ in prior]
+    dgamma = torch.empty(B, m, dtype=dtype)
+    grads = [None if g is None else g.contiguous() for g in grads]
+    call = lib.adjoint_f32 if dtype == torch.float32 else lib.adjoint_f64
+    call(
+        *shape,
+        int(rule != "kalman"),
+        int(velocity),
+        float(gamma),
+        threads(B, T),
+        inputs.pointers,
+        inputs.strides,
+        start.pointers,
+        start.strides,
+        _pointers(grads),
+        _pointers(dgiven),
+        _pointers(dprior),
+        dgamma.data_ptr(),
+    )
+    return dgiven, dprior, dgamma
 
 
 def _smoother(
