@@ -172,6 +172,7 @@ def spy(monkeypatch):
     for function, counter in (
         ("forward", "forward"),
         ("adjoint", "adjoint"),
+        ("backward_adjoint", "adjoint"),
         ("backward", "backward"),
         ("rts_interval", "backward"),
         ("dense_run", "dense"),
@@ -332,10 +333,14 @@ def test_compiled_gradients_equal_tensor_loop_gradients(name, dtype, spy):
     for p in est.parameters():
         p.requires_grad_(True)
     compiled = _gradients(est, dtype, z, dt, x0, P0)
-    assert spy["forward"] == 1 and spy["adjoint"] == 1
+    # The general backward recursion (SVSS, fixed lags) has a compiled reverse mode; the RTS
+    # fixed interval takes the tensor loops with gradients.
+    smoother = isinstance(est, ts.RTSSmoother)
+    general = smoother and (est.projection_gain or est.lag is not None)
+    assert (spy["forward"], spy["backward"], spy["adjoint"]) == (1, general, 1 + general)
     with eager_loops():
         eager = _gradients(est, dtype, z, dt, x0, P0)
-    assert spy["forward"] == 1 and spy["adjoint"] == 1
+    assert (spy["forward"], spy["backward"], spy["adjoint"]) == (1, general, 1 + general)
     tol = {"atol": 1e-10, "rtol": 1e-10} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 2e-3}
     for i, (a, b) in enumerate(zip(compiled, eager, strict=True)):
         assert (a is None) == (b is None), i
@@ -431,7 +436,54 @@ def test_compiled_gradients_on_threads_for_any_axis_count(monkeypatch, spy):
                 assert_close(a, b, atol=1e-10, rtol=1e-10)
     finally:
         torch.set_num_threads(before)
-    assert spy["adjoint"] == 2
+    assert spy["adjoint"] == 4  # the filter and the smoother, twice
+
+
+@needs_compiler
+@pytest.mark.parametrize("lag", [1, 3, None], ids=["lag 1", "lag 3", "interval"])
+@pytest.mark.parametrize("projection", [True, False], ids=["SVSS", "RTS"])
+def test_compiled_smoother_reverse_mode_passes_gradcheck(lag, projection):
+    """The smoother recursion's compiled reverse mode against finite differences of its
+    compiled forward: every differentiable input (moments, gains, noise, intervals,
+    innovations), missing components, per-step and constant inputs."""
+    from torchsvs.kernels.axes import _CompiledSmoother
+
+    B, T, m = 2, 7, 2
+    gen = torch.Generator().manual_seed(4)
+
+    def rand(*shape, low=0.5, high=1.5):
+        return torch.rand(*shape, generator=gen, dtype=torch.float64) * (high - low) + low
+
+    def sym(scale):  # positive definite 2×2 blocks per step: (a, b, c)
+        a, c = rand(B, T, m) * scale, rand(B, T, m) * scale
+        return a, 0.3 * (a * c).sqrt() * rand(B, T, m, low=-1.0, high=1.0), c
+
+    seen_p = (torch.rand(B, T, m, generator=gen) > 0.2).double()
+    seen_v = (torch.rand(B, T, m, generator=gen) > 0.4).double() * seen_p
+    gain = [rand(B, T, m, low=0.1, high=0.9) * seen_p, rand(B, T, m, low=-0.2, high=0.2)]
+    gain += [rand(B, T, m, low=-0.2, high=0.2) * seen_p, rand(B, T, m, low=0.1, high=0.9)]
+    inputs = [
+        *sym(2.0),
+        *(x + 1.0 for x in sym(2.0)),
+        *gain,
+        rand(m) + 1.0,  # noise constant per axis
+        rand(B, T, m) * 0.2,
+        rand(B, T, m) + 1.0,
+        seen_p,
+        seen_v,
+        rand(B, T, 1),
+        torch.randn(B, T, m, generator=gen, dtype=torch.float64),
+        torch.randn(B, T, m, generator=gen, dtype=torch.float64),
+        torch.randn(B, T, m, generator=gen, dtype=torch.float64),
+        torch.randn(B, T, m, generator=gen, dtype=torch.float64),
+    ]
+    for i, x in enumerate(inputs):
+        x.requires_grad_(i not in (13, 14))
+
+    def run(*xs):
+        return _CompiledSmoother.apply((B, T, m), lag, projection, *xs)
+
+    assert torch.autograd.gradcheck(run, tuple(inputs), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
 def test_without_a_compiler_the_tensor_loops_run(monkeypatch, spy):

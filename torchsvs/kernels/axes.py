@@ -384,16 +384,50 @@ class _CompiledAxes(torch.autograd.Function):
         dgiven, dprior, dgamma = fused.adjoint(
             rule, float(gamma), given, prior, shape, velocity, grads[:9], wanted[:11]
         )
-        B, steps, m = shape
         result: list[Tensor | None] = [None, None, None]
         result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[3] else None)
-        for x, dx in zip(given, dgiven, strict=True):
-            # An input broadcast to [B, T, m] gets the sum over its broadcast dimensions.
-            seen = x.shape if x.ndim == 3 else (1, 1, x.numel())
-            result.append(None if dx is None else dx.sum_to_size(seen).reshape(x.shape))
+        result += _summed_to(given, dgiven)
         for x, dx, w in zip(prior, dprior, wanted[11:], strict=True):
             result.append(dx.reshape(x.shape) if w else None)
         return tuple(result)
+
+
+def _summed_to(inputs: Sequence[Tensor], grads: Sequence[Tensor | None]) -> list[Tensor | None]:
+    """Gradients ``[B, T, m]`` of inputs given ``[B, T, m]``-broadcastable (0-d, ``[m]``,
+    ``[B, T, 1]``, ...), summed over their broadcast dimensions."""
+    out: list[Tensor | None] = []
+    for x, dx in zip(inputs, grads, strict=True):
+        seen = x.shape if x.ndim == 3 else (1, 1, x.numel())
+        out.append(None if dx is None else dx.sum_to_size(seen).reshape(x.shape))
+    return out
+
+
+class _CompiledSmoother(torch.autograd.Function):
+    """The compiled backward recursion (:func:`fused.backward`: RTS or SVSS, fixed lag or
+    interval) with its compiled reverse mode (:func:`fused.backward_adjoint`). Inputs: the 20
+    of :func:`_backward_inputs`; outputs: the smoothed mean and covariance (general layout)."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        shape: tuple[int, int, int],
+        lag: int | None,
+        projection: bool,
+        *inputs: Tensor,
+    ) -> tuple[Tensor, Tensor]:
+        ctx.settings = (shape, lag, projection)
+        ctx.save_for_backward(*inputs)
+        ctx.set_materialize_grads(False)
+        return fused.backward(inputs, shape, lag, projection)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
+        shape, lag, projection = ctx.settings
+        inputs = ctx.saved_tensors
+        wanted = ctx.needs_input_grad[3:]
+        dinputs = fused.backward_adjoint(inputs, shape, lag, projection, grads, wanted)
+        return (None, None, None, *_summed_to(inputs, dinputs))
 
 
 def interleaved(res: AxisResult, velocity: bool) -> Interleaved:
@@ -585,8 +619,9 @@ def _rts_interval(res: AxisResult) -> tuple[tuple[Tensor, Tensor], Sym2]:
 
 def smooth_axes(res: AxisResult, projection: bool, lag: int | None) -> tuple[Tensor, Tensor]:
     """Smoothed mean ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]`` in the general layout (see
-    :meth:`~torchsvs.smoothers.RTSSmoother.smooth`): compiled where no gradient is asked for,
-    else as tensor operations."""
+    :meth:`~torchsvs.smoothers.RTSSmoother.smooth`): compiled (the general recursion, for SVSS
+    and fixed lags, with a compiled reverse mode; the RTS fixed interval where no gradient is
+    asked for), else as tensor operations."""
     B, steps, m = res.mean[0].shape
     fixed_interval = not projection and (lag is None or lag >= steps - 1)
     if steps > 1 and fixed_interval:
@@ -595,7 +630,9 @@ def smooth_axes(res: AxisResult, projection: bool, lag: int | None) -> tuple[Ten
             return fused.rts_interval(moments, (B, steps, m))
     elif steps > 1:
         filtered = _backward_inputs(res)
-        if fused.usable(*filtered):
+        if fused.usable(*filtered, differentiable=True):
+            if torch.is_grad_enabled() and any(x.requires_grad for x in filtered):
+                return _CompiledSmoother.apply((B, steps, m), lag, projection, *filtered)
             return fused.backward(filtered, (B, steps, m), lag, projection)
     (p, v), cov = _smooth_tensors(res, projection, lag, fixed_interval)
     return interleave(p, v), block_diagonal(full(cov))
@@ -629,35 +666,105 @@ def _smooth_tensors(
 
             return smoother_scan(res.mean, res.cov, res.pred_mean, res.pred_cov, res.interval)
         return _rts_interval(res)
+    if lag is not None and lag < steps - 1:
+        return _lagged(res, projection, lag)
+    b = backward_terms(_time_slice(res, 0, steps), projection)
+    zeros = torch.zeros_like(b.d[0])
+    g = (zeros[:, 0], zeros[:, 0])
+    G = Mat2(*(zeros[:, 0],) * 4)
+    Z = G
+    out = []
+    for k in range(steps - 2, -1, -1):
+        g, G, Z = _recurse(b, g, G, Z, k)
+        out.append((g, G, Z))
+    out.reverse()
+    g = (torch.stack([o[0][0] for o in out], 1), torch.stack([o[0][1] for o in out], 1))
+    G = Mat2(*(torch.stack([o[1][i] for o in out], 1) for i in range(4)))
+    Z = Mat2(*(torch.stack([o[2][i] for o in out], 1) for i in range(4)))
+    return _smoothed(res, g, G, Z)
+
+
+#: Lane-steps (tracks × axes × steps) of a window of the lagged recursion under gradient
+#: checkpointing: its graph holds ~300 intermediates of that size (in float64, ~150 MB).
+CHECKPOINT_LANE_STEPS = 1 << 16
+
+
+def _lagged(res: AxisResult, projection: bool, lag: int) -> tuple[tuple[Tensor, Tensor], Sym2]:
+    """The ``lag``-term backward recursion, by windows of time: a smoothed step ``k`` depends
+    on the filter's steps ``k .. k + lag`` only, so each window of outputs is computed from its
+    own steps and the ``lag`` after it. With gradients on long batches every window runs under
+    :func:`torch.utils.checkpoint.checkpoint` (its intermediates are recomputed in the backward
+    pass instead of kept), so memory grows with the outputs, not with the graph."""
+    B, steps, m = res.mean[0].shape
+    lanes = B * m
+    if not torch.is_grad_enabled() or lanes * steps <= CHECKPOINT_LANE_STEPS:
+        return _lagged_window(_time_slice(res, 0, steps), projection, lag, steps)
+    from torch.utils.checkpoint import checkpoint
+
+    window = max(4 * lag, CHECKPOINT_LANE_STEPS // lanes)
+    pieces = []
+    for first in range(0, steps, window):
+        last = min(steps, first + window)
+        piece = _time_slice(res, first, min(steps, last + lag))
+        pieces.append(
+            checkpoint(_lagged_window, piece, projection, lag, last - first, use_reentrant=False)
+        )
+    mean = tuple(torch.cat([p[0][i] for p in pieces], dim=1) for i in range(2))
+    cov = Sym2(*(torch.cat([p[1][i] for p in pieces], dim=1) for i in range(3)))
+    return (mean[0], mean[1]), cov
+
+
+def _time_slice(res: AxisResult, first: int, last: int) -> AxisResult:
+    """Steps ``first .. last − 1`` of a filter pass, contiguous (the compiled pass's fields are
+    strided views of its general layout, slow to read element by element)."""
+
+    def part(x: Tensor) -> Tensor:
+        return x[:, first:last].contiguous() if x.ndim == 3 else x
+
+    def pair(x: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+        return part(x[0]), part(x[1])
+
+    def sym(x: Sym2) -> Sym2:
+        return Sym2(*map(part, x))
+
+    return AxisResult(
+        mean=pair(res.mean),
+        cov=sym(res.cov),
+        pred_mean=pair(res.pred_mean),
+        pred_cov=sym(res.pred_cov),
+        innovation=pair(res.innovation),
+        gain=Mat2(*map(part, res.gain)),
+        observed=pair(res.observed),
+        noise=sym(res.noise),
+        interval=part(res.interval),
+        post_innovation=None if res.post_innovation is None else pair(res.post_innovation),
+    )
+
+
+def _lagged_window(
+    res: AxisResult, projection: bool, lag: int, keep: int
+) -> tuple[tuple[Tensor, Tensor], Sym2]:
+    """The ``lag``-term recursion on the steps of ``res``; the first ``keep`` smoothed steps
+    (exact when ``res`` reaches ``lag`` steps beyond them, or to the track's end)."""
+    if res.mean[0].shape[1] == 1:
+        return res.mean, res.cov
     b = backward_terms(res, projection)
     zeros = torch.zeros_like(b.d[0])
-    if lag is None or lag >= steps - 1:
-        g = (zeros[:, 0], zeros[:, 0])
-        G = Mat2(*(zeros[:, 0],) * 4)
-        Z = G
-        out = []
-        for k in range(steps - 2, -1, -1):
-            g, G, Z = _recurse(b, g, G, Z, k)
-            out.append((g, G, Z))
-        out.reverse()
-        g = (torch.stack([o[0][0] for o in out], 1), torch.stack([o[0][1] for o in out], 1))
-        G = Mat2(*(torch.stack([o[1][i] for o in out], 1) for i in range(4)))
-        Z = Mat2(*(torch.stack([o[2][i] for o in out], 1) for i in range(4)))
-    else:
-        g, G, Z = (zeros, zeros), Mat2(*(zeros,) * 4), Mat2(*(zeros,) * 4)
+    g, G, Z = (zeros, zeros), Mat2(*(zeros,) * 4), Mat2(*(zeros,) * 4)
 
-        def shift(x: Tensor) -> Tensor:
-            return torch.cat([x[:, 1:], torch.zeros_like(x[:, :1])], dim=1)
+    def shift(x: Tensor) -> Tensor:
+        return torch.cat([x[:, 1:], torch.zeros_like(x[:, :1])], dim=1)
 
-        for _ in range(lag):
-            g, G, Z = _recurse(
-                b,
-                (shift(g[0]), shift(g[1])),
-                Mat2(*(shift(x) for x in G)),
-                Mat2(*(shift(x) for x in Z)),
-                slice(None),
-            )
-    return _smoothed(res, g, G, Z)
+    for _ in range(lag):
+        g, G, Z = _recurse(
+            b,
+            (shift(g[0]), shift(g[1])),
+            Mat2(*(shift(x) for x in G)),
+            Mat2(*(shift(x) for x in Z)),
+            slice(None),
+        )
+    (p, v), cov = _smoothed(res, g, G, Z)
+    return (p[:, :keep], v[:, :keep]), Sym2(*(x[:, :keep] for x in cov))
 
 
 def _smoothed(

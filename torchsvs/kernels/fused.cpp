@@ -786,6 +786,247 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int 
     });
 }
 
+// Reverse mode of `backward`, for training (torchsvs.kernels.axes._CompiledSmoother): each
+// lane recomputes its terms and recursion, then runs their adjoints backwards (every matrix
+// product, inverse and transpose reversed: for Y = A B, dA = dY Bᵀ and dB = Aᵀ dY; for
+// Y = A⁻¹, dA = −Yᵀ dY Yᵀ).
+
+// The adjoint of inverse(a, b, d) = Y given dY, added to a symmetric block's (a, b, d) (b
+// stands for both off-diagonal entries).
+template <typename R>
+inline void inverse_adjoint(const M2<R>& Y, const M2<R>& dY, R& da, R& db, R& dd) {
+    M2<R> E = neg(mul(mul(tr(Y), dY), tr(Y)));
+    da += E.a, db += E.b + E.c, dd += E.d;
+}
+
+// The adjoint of a symmetric block [[a, b], [b, c]] built from (a, b, c).
+template <typename R>
+inline void symmetric_adjoint(const M2<R>& dX, R& da, R& db, R& dc) {
+    da += dX.a, db += dX.b + dX.c, dc += dX.d;
+}
+
+// terms_at's inputs, in its order: P (a, b, c) at k; Pp (a1, b1, c1), K (4), R masked (rp,
+// rpv, rvv), T, e (p, v) at k + 1.
+enum TermInput {
+    kTa, kTb, kTc, kTa1, kTb1, kTc1, kTKa, kTKb, kTKc, kTKd, kTrp, kTrpv, kTrvv, kTdt, kTep, kTev,
+    kTermInputs
+};
+
+// terms_at's adjoint: from dw (the adjoints of its 22 values) adds those of its inputs to d.
+template <typename R>
+inline void terms_adjoint(const R* dw, R* d, bool projection, R a, R b, R c, R a1, R b1, R c1,
+                          const M2<R>& K, R rp, R rpv, R rvv, R fp, R fv, R dt, R ep, R ev) {
+    M2<R> Pp{a1, b1, b1, c1}, P{a, b, b, c}, R_{rp, rpv, rpv, rvv};
+    M2<R> H{fp, 0, 0, fv}, F{1, dt, 0, 1};
+    M2<R> PHt = mul(Pp, H);
+    M2<R> S = plus(mul(H, PHt), R_);
+    M2<R> Sinv = inverse(S.a, S.b, S.d);
+    M2<R> Gamma = projection ? mul(PHt, Sinv) : K;
+    M2<R> A{1 - K.a, -K.b, -K.c, 1 - K.d};
+    M2<R> X = plus(mul(tr(PHt), tr(A)), neg(mul(R_, tr(K))));
+    M2<R> Ppinv = inverse(Pp.a, Pp.b, Pp.d);
+    M2<R> FP = mul(F, P), HF = mul(H, F);
+    M2<R> dC{dw[0], dw[1], dw[2], dw[3]}, dGHF{dw[6], dw[7], dw[8], dw[9]};
+    M2<R> dGSG{dw[10], dw[11], dw[12], dw[13]}, dGX{dw[14], dw[15], dw[16], dw[17]};
+    M2<R> dAF{dw[18], dw[19], dw[20], dw[21]};
+    const R dd0 = dw[4], dd1 = dw[5];
+    // AF = A F
+    M2<R> dA = mul(dAF, tr(F)), dF = mul(tr(A), dAF);
+    // ΓX = Γ X
+    M2<R> dGamma = mul(dGX, tr(X)), dX = mul(tr(Gamma), dGX);
+    // ΓSΓᵀ
+    dGamma = plus(dGamma, plus(mul(mul(dGSG, Gamma), tr(S)), mul(mul(tr(dGSG), Gamma), S)));
+    M2<R> dS = mul(mul(tr(Gamma), dGSG), Gamma);
+    // ΓHF = Γ (H F)
+    dGamma = plus(dGamma, mul(dGHF, tr(HF)));
+    dF = plus(dF, mul(tr(H), mul(tr(Gamma), dGHF)));
+    // d = Γ e
+    dGamma.a += dd0 * ep, dGamma.b += dd0 * ev, dGamma.c += dd1 * ep, dGamma.d += dd1 * ev;
+    d[kTep] += Gamma.a * dd0 + Gamma.c * dd1, d[kTev] += Gamma.b * dd0 + Gamma.d * dd1;
+    // C = (Pp⁻¹ F P)ᵀ
+    M2<R> dM = tr(dC);
+    M2<R> dFP = mul(tr(Ppinv), dM);
+    dF = plus(dF, mul(dFP, tr(P)));
+    M2<R> dP = mul(tr(F), dFP);
+    inverse_adjoint(Ppinv, mul(dM, tr(FP)), d[kTa1], d[kTb1], d[kTc1]);
+    // X = PHtᵀ Aᵀ − R Kᵀ
+    M2<R> dPHt = mul(tr(A), tr(dX));
+    dA = plus(dA, mul(tr(dX), tr(PHt)));
+    M2<R> dR = neg(mul(dX, K));
+    M2<R> dK = plus(neg(mul(tr(dX), R_)), neg(dA));  // and A = I − K
+    if (projection) {  // Γ = PHt S⁻¹
+        dPHt = plus(dPHt, mul(dGamma, tr(Sinv)));
+        inverse_adjoint(Sinv, mul(tr(PHt), dGamma), dS.a, dS.b, dS.d);
+    } else {
+        dK = plus(dK, dGamma);
+    }
+    // S = H PHt + R, PHt = Pp H
+    dPHt = plus(dPHt, mul(tr(H), dS));
+    dR = plus(dR, dS);
+    M2<R> dPp = mul(dPHt, tr(H));
+    symmetric_adjoint(dP, d[kTa], d[kTb], d[kTc]);
+    symmetric_adjoint(dPp, d[kTa1], d[kTb1], d[kTc1]);
+    d[kTKa] += dK.a, d[kTKb] += dK.b, d[kTKc] += dK.c, d[kTKd] += dK.d;
+    symmetric_adjoint(dR, d[kTrp], d[kTrpv], d[kTrvv]);
+    d[kTdt] += dF.b;
+}
+
+// recurse's adjoint: from the adjoint of its result (dout) adds those of its terms to dw and
+// of its input state s to ds.
+template <typename R>
+inline void recurse_adjoint(const R* w, const Backward<R>& s, const Backward<R>& dout, R* dw,
+                            Backward<R>& ds) {
+    M2<R> C{w[0], w[1], w[2], w[3]}, GHF{w[6], w[7], w[8], w[9]};
+    M2<R> GSG{w[10], w[11], w[12], w[13]}, GX{w[14], w[15], w[16], w[17]};
+    M2<R> AF{w[18], w[19], w[20], w[21]};
+    M2<R> cross = mul(GX, tr(s.G));
+    R d0 = w[4] + s.g0, d1 = w[5] + s.g1;
+    M2<R> U = plus(GHF, mul(s.G, AF));
+    M2<R> inner = plus(plus(plus(GSG, cross), tr(cross)), s.Z);
+    // g = C (d + g)
+    M2<R> dC{dout.g0 * d0, dout.g0 * d1, dout.g1 * d0, dout.g1 * d1};
+    R dd0 = C.a * dout.g0 + C.c * dout.g1, dd1 = C.b * dout.g0 + C.d * dout.g1;
+    dw[4] += dd0, dw[5] += dd1, ds.g0 += dd0, ds.g1 += dd1;
+    // G = C (ΓHF + G AF)
+    dC = plus(dC, mul(dout.G, tr(U)));
+    M2<R> dU = mul(tr(C), dout.G);
+    ds.G = plus(ds.G, mul(dU, tr(AF)));
+    M2<R> dAF = mul(tr(s.G), dU);
+    // Z = C inner Cᵀ, inner = ΓSΓᵀ + X + Xᵀ + Z with X = ΓX Gᵀ
+    dC = plus(dC, plus(mul(mul(dout.Z, C), tr(inner)), mul(mul(tr(dout.Z), C), inner)));
+    M2<R> dinner = mul(mul(tr(C), dout.Z), C);
+    ds.Z = plus(ds.Z, dinner);
+    M2<R> dcross = plus(dinner, tr(dinner));
+    M2<R> dGX = mul(dcross, s.G);
+    ds.G = plus(ds.G, mul(tr(dcross), GX));
+    const M2<R>* blocks[5] = {&dC, &dU, &dinner, &dGX, &dAF};  // dΓHF = dU, dΓSΓᵀ = dinner
+    const int offsets[5] = {0, 6, 10, 14, 18};
+    for (int i = 0; i < 5; ++i) {
+        R* o = dw + offsets[i];
+        o[0] += blocks[i]->a, o[1] += blocks[i]->b, o[2] += blocks[i]->c, o[3] += blocks[i]->d;
+    }
+}
+
+// backward's gradients: given those of its outputs (mean [B, T, 2m], cov [B, T, 2m, 2m];
+// null: zero), writes those of its 20 inputs (contiguous [B, T, m]; null: not wanted; the
+// observed masks get none).
+template <typename R>
+void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
+                      int threads, const void* const* in, const int64_t* in_strides,
+                      const R* g_mean, const R* g_cov, R* const* dgiven) {
+    View<R> v[20];
+    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
+    const Backward<R> zero{0, 0, {0, 0, 0, 0}, {0, 0, 0, 0}};
+    const int64_t n = T - 1, width = 2 * m;
+    const bool fixed_interval = lag >= n;
+    const int64_t sweeps = fixed_interval ? 1 : lag;
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        std::vector<R> terms(22 * (n > 0 ? n : 1)), dterms(22 * (n > 0 ? n : 1));
+        // states[s * (n + 1) + k]: the recursion's input at k + 1 of sweep s (fixed interval:
+        // one "sweep" holding result[k]); the entry at n is zero.
+        std::vector<Backward<R>> states((sweeps + 1) * (n + 1), zero);
+        std::vector<Backward<R>> dres(n + 1, zero), dprev(n + 1, zero);
+        std::vector<R> acc(20 * T);
+        for (int64_t bi = first; bi < last; ++bi) {
+            for (int64_t j = 0; j < m; ++j) {
+                auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
+                auto masked = [&](int64_t t, R& rp, R& rpv, R& rvv) {
+                    R fp = at(13, t), fv = at(14, t);
+                    rp = at(10, t) * fp + (1 - fp), rpv = at(11, t) * fp * fv;
+                    rvv = at(12, t) * fv + (1 - fv);
+                };
+                for (int64_t k = 0; k < n; ++k) {
+                    int64_t t = k + 1;
+                    M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
+                    R rp, rpv, rvv;
+                    masked(t, rp, rpv, rvv);
+                    terms_at(&terms[22 * k], projection != 0, at(0, k), at(1, k), at(2, k),
+                             at(3, t), at(4, t), at(5, t), K, rp, rpv, rvv, at(13, t), at(14, t),
+                             at(15, t), at(16, t), at(17, t));
+                }
+                // The recursion, every state kept.
+                if (fixed_interval) {
+                    for (int64_t k = n - 1; k >= 0; --k)
+                        states[k] = recurse(&terms[22 * k], states[k + 1]);
+                } else {
+                    for (int64_t s = 1; s <= sweeps; ++s)
+                        for (int64_t k = 0; k < n; ++k)
+                            states[s * (n + 1) + k] =
+                                recurse(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1]);
+                }
+                const Backward<R>* result = &states[(fixed_interval ? 0 : sweeps) * (n + 1)];
+                std::fill(acc.begin(), acc.end(), R(0));
+                std::fill(dterms.begin(), dterms.end(), R(0));
+                // The smoothed moments' adjoints (axes._smoothed).
+                for (int64_t k = 0; k <= n; ++k) {
+                    const int64_t idx = bi * T + k, p = 2 * j, q = 2 * j + 1;
+                    R dps = g_mean ? g_mean[idx * width + p] : R(0);
+                    R dvs = g_mean ? g_mean[idx * width + q] : R(0);
+                    const R* gc = g_cov ? g_cov + idx * width * width : nullptr;
+                    R dsa = gc ? gc[p * width + p] : R(0), dsc = gc ? gc[q * width + q] : R(0);
+                    R dsb = gc ? gc[p * width + q] + gc[q * width + p] : R(0);
+                    acc[18 * T + k] += dps, acc[19 * T + k] += dvs;
+                    if (k == n) {  // as filtered
+                        acc[0 * T + k] += dsa, acc[1 * T + k] += dsb, acc[2 * T + k] += dsc;
+                        continue;
+                    }
+                    const Backward<R>& s = result[k];
+                    M2<R> P{at(0, k), at(1, k), at(1, k), at(2, k)};
+                    M2<R> dY{dsa, R(0.5) * dsb, R(0.5) * dsb, dsc};
+                    // Y = P − P Gᵀ − G P + Z
+                    M2<R> dPGt = neg(plus(dY, tr(dY)));
+                    M2<R> dP = plus(dY, mul(dPGt, s.G));
+                    Backward<R>& dr = dres[k];
+                    dr = zero;
+                    dr.g0 = dps, dr.g1 = dvs;
+                    dr.G = mul(tr(dPGt), P);
+                    dr.Z = dY;
+                    symmetric_adjoint(dP, acc[0 * T + k], acc[1 * T + k], acc[2 * T + k]);
+                }
+                dres[n] = zero;
+                // The recursion's adjoint.
+                if (fixed_interval) {
+                    for (int64_t k = 0; k < n; ++k)  // dres[k] is complete once k − 1 is done
+                        recurse_adjoint(&terms[22 * k], states[k + 1], dres[k], &dterms[22 * k],
+                                        dres[k + 1]);
+                } else {
+                    for (int64_t s = sweeps; s >= 1; --s) {
+                        std::fill(dprev.begin(), dprev.end(), zero);
+                        for (int64_t k = 0; k < n; ++k)
+                            recurse_adjoint(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1],
+                                            dres[k], &dterms[22 * k], dprev[k + 1]);
+                        std::swap(dres, dprev);
+                    }
+                }
+                // The terms' adjoints, onto the inputs.
+                for (int64_t k = 0; k < n; ++k) {
+                    int64_t t = k + 1;
+                    M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
+                    R rp, rpv, rvv;
+                    masked(t, rp, rpv, rvv);
+                    R d[kTermInputs] = {0};
+                    terms_adjoint(&dterms[22 * k], d, projection != 0, at(0, k), at(1, k),
+                                  at(2, k), at(3, t), at(4, t), at(5, t), K, rp, rpv, rvv,
+                                  at(13, t), at(14, t), at(15, t), at(16, t), at(17, t));
+                    R fp = at(13, t), fv = at(14, t);
+                    acc[0 * T + k] += d[kTa], acc[1 * T + k] += d[kTb], acc[2 * T + k] += d[kTc];
+                    const int to[] = {3, 4, 5, 6, 7, 8, 9};
+                    for (int i = 0; i < 7; ++i) acc[to[i] * T + t] += d[kTa1 + i];
+                    acc[10 * T + t] += d[kTrp] * fp;  // R masked (axes._masked_noise)
+                    acc[11 * T + t] += d[kTrpv] * fp * fv;
+                    acc[12 * T + t] += d[kTrvv] * fv;
+                    acc[15 * T + t] += d[kTdt];
+                    acc[16 * T + t] += d[kTep], acc[17 * T + t] += d[kTev];
+                }
+                for (int i = 0; i < 20; ++i)
+                    if (dgiven[i])
+                        for (int64_t t = 0; t < T; ++t)
+                            dgiven[i][(bi * T + t) * m + j] = acc[i * T + t];
+            }
+        }
+    });
+}
+
 // One predict-correct step of a dense linear-Gaussian filter for one track:
 // GaussianFilter.predict, then KalmanFilter.correct (rule 0) or SVSF.correct with an H of
 // orthonormal rows, whose H⁺ is Hᵀ (rule 1). n, m ≤ kMax; every array contiguous.
@@ -988,6 +1229,14 @@ extern "C" {
                           void* const* dgiven, void* const* dprior, void* dgamma) {           \
         adjoint_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, grads,    \
                          dgiven, dprior, dgamma);                                             \
+    }                                                                                         \
+    void backward_adjoint_##suffix(int64_t B, int64_t T, int64_t m, int64_t lag,             \
+                                   int projection, int threads, const void* const* in,        \
+                                   const int64_t* s, const void* g_mean, const void* g_cov,   \
+                                   void* const* dgiven) {                                     \
+        backward_adjoint<R>(B, T, m, lag, projection, threads, in, s,                         \
+                            static_cast<const R*>(g_mean), static_cast<const R*>(g_cov),      \
+                            reinterpret_cast<R* const*>(dgiven));                             \
     }                                                                                         \
     void rts_interval_##suffix(int64_t B, int64_t T, int64_t m, int threads,                  \
                                const void* const* in, const int64_t* s, void* mean,           \

@@ -130,6 +130,8 @@ def library() -> ctypes.CDLL | None:
         rts.argtypes = [*size, integer, pointers, strides, vp, vp]
         backward = getattr(lib, f"backward_{suffix}")
         backward.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, vp, vp]
+        backward_adjoint = getattr(lib, f"backward_adjoint_{suffix}")
+        backward_adjoint.argtypes = [*backward.argtypes, pointers]
         dense = getattr(lib, f"dense_run_{suffix}")
         dense.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
         dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, *(vp,) * 10]
@@ -353,6 +355,40 @@ def backward(
     steps = shape[1] - 1
     limit = steps if lag is None else min(lag, steps)
     return _smoother("backward", given, shape, limit, int(projection))
+
+
+def backward_adjoint(
+    given: Sequence[Tensor],
+    shape: tuple[int, int, int],
+    lag: int | None,
+    projection: bool,
+    grads: Sequence[Tensor | None],
+    wanted: Sequence[bool],
+) -> list[Tensor | None]:
+    """The reverse mode of :func:`backward` (same arguments): ``grads`` the gradients of the
+    smoothed mean and covariance (``None``: zero), ``wanted`` which of the 20 inputs need one.
+    Returns their gradients ``[B, T, m]`` (``None`` where not wanted; the caller sums them to
+    each input's shape)."""
+    lib = library()
+    assert lib is not None
+    B, T, m = shape
+    dtype = given[0].dtype
+    inputs = _Arrays(given, shape)
+    out = [torch.empty(B, T, m, dtype=dtype) if w else None for w in wanted]
+    g_mean, g_cov = (None if g is None else g.contiguous() for g in grads)
+    call = lib.backward_adjoint_f32 if dtype == torch.float32 else lib.backward_adjoint_f64
+    call(
+        *shape,
+        min(lag, T - 1) if lag is not None else T - 1,
+        int(projection),
+        threads(B, T),
+        inputs.pointers,
+        inputs.strides,
+        None if g_mean is None else g_mean.data_ptr(),
+        None if g_cov is None else g_cov.data_ptr(),
+        _pointers(out),
+    )
+    return out
 
 
 #: Largest state or measurement size of :func:`dense_run` (``kMax`` in fused.cpp).
