@@ -31,6 +31,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.threads
 	$(PY) -m benchmarks.step_overhead
 	$(PY) -m benchmarks.one_track
+	$(PY) -m benchmarks.training
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks

@@ -9,7 +9,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 #: Whether estimators may use the per-axis kernel (:mod:`torchsvs.kernels.axes`), and its
-#: compiled loops (the forward loop with or without gradients, the smoother loops without).
+#: compiled loops (with gradients through their compiled reverse modes, except the RTS fixed
+#: interval's).
 AXIS_KERNEL = {"enabled": True, "fused": True}
 
 

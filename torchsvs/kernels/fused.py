@@ -14,10 +14,12 @@ copies) in and write the results in the general layout (what a
 :class:`~torchsvs.types.FilterResult` holds) directly, on ``torch.get_num_threads()`` threads
 for large batches, into buffers advised as huge pages (:func:`fresh`).
 
-They run on CPU float32/float64 tensors. The per-axis forward loop has a compiled reverse mode
-too (:func:`adjoint`, used by :class:`torchsvs.kernels.axes._CompiledAxes`), so training runs
-it at inference speed; the smoother loops run compiled where no gradient is asked for, and as
-(vectorised) tensor operations otherwise. Compiled and tensor loops give the same numbers and
+They run on CPU float32/float64 tensors. The per-axis forward loop and the general backward
+recursion (SVSS, fixed lags) have compiled reverse modes too (:func:`adjoint`,
+:func:`backward_adjoint`, used by :class:`torchsvs.kernels.axes._CompiledAxes` and
+``_CompiledSmoother``), so training runs them at near inference speed and keeps no graph of
+small tensors; the RTS fixed-interval loop runs compiled where no gradient is asked for, and
+as tensor operations otherwise. Compiled and tensor loops give the same numbers and
 gradients up to rounding (tested to 1e-10 in float64). Without a compiler the
 estimators fall back to the tensor loops with one warning; ``TORCHSVS_FUSED=0`` turns the
 compiled loops off, :func:`torchsvs.kernels.eager_loops` does so for a block. The library is
