@@ -240,12 +240,9 @@ def forward(
     ``[B, T, 2m]``, covariance, predicted mean and covariance, innovation ``[B, T, m_z]``, gain
     ``[B, T, 2m, m_z]``, ``S``, the a-posteriori innovation (SVSF, else ``None``), the
     log-likelihood ``[B]`` (Kalman, else ``None``) and the observed mask ``[B, T, m_z]``."""
-    lib = library()
-    assert lib is not None
     B, T, m = shape
     n, mz = 2 * m, 2 * m if velocity else m
     dtype = prior[0].dtype
-    inputs, start = _Arrays(given, shape), _Arrays(prior, (B, 1, m))
     svsf = rule != "kalman"
     shapes = ((n,), (n, n), (n,), (n, n), (mz,), (n, mz), (mz, mz))
     mean, cov, pred_mean, pred_cov, innovation, gain, S = (
@@ -254,10 +251,31 @@ def forward(
     post = fresh((B, T, mz), dtype) if svsf else None
     loglik = None if svsf else torch.empty(B, dtype=dtype)
     mask = fresh((B, T, mz), torch.bool)
-    call = lib.forward_f32 if dtype == torch.float32 else lib.forward_f64
+    outputs = (mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask)
+    _forward_loop("forward", rule, gamma, given, prior, shape, velocity, _pointers(outputs))
+    return mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask
+
+
+def _forward_loop(
+    name: str,
+    rule: str,
+    gamma: float,
+    given: Sequence[Tensor],
+    prior: Sequence[Tensor],
+    shape: tuple[int, int, int],
+    velocity: bool,
+    *buffers: object,
+) -> None:
+    """Calls the compiled function ``name`` (the forward loop or its adjoint) with the forward
+    loop's arguments, then ``buffers``."""
+    lib = library()
+    assert lib is not None
+    B, T, m = shape
+    inputs, start = _Arrays(given, shape), _Arrays(prior, (B, 1, m))
+    call = getattr(lib, f"{name}_{'f32' if prior[0].dtype == torch.float32 else 'f64'}")
     call(
         *shape,
-        int(svsf),
+        int(rule != "kalman"),
         int(velocity),
         float(gamma),
         threads(B, T),
@@ -265,9 +283,8 @@ def forward(
         inputs.strides,
         start.pointers,
         start.strides,
-        _pointers((mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask)),
+        *buffers,
     )
-    return mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask
 
 
 def adjoint(
@@ -284,31 +301,14 @@ def adjoint(
     first nine outputs (``None``: zero), ``wanted`` which of the 11 ``given`` need one.
     Returns the ``given`` gradients ``[B, T, m]`` (``None`` where not wanted; the caller sums
     them to each input's shape), the prior's ``[B, m]`` and ``γ``'s per lane ``[B, m]``."""
-    lib = library()
-    assert lib is not None
     B, T, m = shape
     dtype = prior[0].dtype
-    inputs, start = _Arrays(given, shape), _Arrays(prior, (B, 1, m))
     dgiven = [torch.empty(B, T, m, dtype=dtype) if w else None for w in wanted]
     dprior = [torch.empty(B, m, dtype=dtype) for _ in prior]
     dgamma = torch.empty(B, m, dtype=dtype)
     grads = [None if g is None else g.contiguous() for g in grads]
-    call = lib.adjoint_f32 if dtype == torch.float32 else lib.adjoint_f64
-    call(
-        *shape,
-        int(rule != "kalman"),
-        int(velocity),
-        float(gamma),
-        threads(B, T),
-        inputs.pointers,
-        inputs.strides,
-        start.pointers,
-        start.strides,
-        _pointers(grads),
-        _pointers(dgiven),
-        _pointers(dprior),
-        dgamma.data_ptr(),
-    )
+    buffers = (_pointers(grads), _pointers(dgiven), _pointers(dprior), dgamma.data_ptr())
+    _forward_loop("adjoint", rule, gamma, given, prior, shape, velocity, *buffers)
     return dgiven, dprior, dgamma
 
 
