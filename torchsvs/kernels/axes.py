@@ -9,9 +9,10 @@ a few dozen elementwise operations per step instead of batched 4×4 (or 6×6) ma
 which on a CPU cost far more per element than the arithmetic. Results are exactly the general
 path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves. The forward
 loop runs compiled (:mod:`torchsvs.kernels.fused`, the same formulas in C++), with gradients
-through its compiled reverse mode (:class:`_CompiledAxes`); the smoother loops run compiled
-where no gradient is asked for. The tensor loops below are the reference, the fallback without
-a compiler, and the path for higher derivatives.
+through its compiled reverse mode (:class:`_CompiledAxes`); so does the general smoother
+recursion (SVSS, fixed lags: :class:`_CompiledSmoother`), and the RTS fixed interval runs
+compiled where no gradient is asked for. The tensor loops below are the reference, the
+fallback without a compiler, and the path for higher derivatives.
 
 Every axis has a two-component corrector measurement :math:`y = (y_p, y_v)` with ``H = I``;
 position-only correctors (Kalman filter, the SVSF's ``H⁺`` mode) have :math:`y_v` always missing.
