@@ -187,6 +187,25 @@ def spy(monkeypatch):
     return calls
 
 
+@pytest.fixture
+def on_two_threads(monkeypatch):
+    """Runs a test with 2 intra-op threads; yields the thread count of every compiled call."""
+    counts = []
+    threads = fused.threads
+
+    def counted(*args):
+        counts.append(threads(*args))
+        return counts[-1]
+
+    monkeypatch.setattr(fused, "threads", counted)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        yield counts
+    finally:
+        torch.set_num_threads(before)
+
+
 @needs_compiler
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
 @pytest.mark.parametrize("name", NAMES)
@@ -217,7 +236,7 @@ def test_compiled_loops_equal_tensor_loops(name, dtype, spy):
 
 @needs_compiler
 @pytest.mark.parametrize("ndim", [1, 3, 4])
-def test_compiled_loops_for_any_axis_count_on_threads(ndim, spy, monkeypatch):
+def test_compiled_loops_for_any_axis_count_on_threads(ndim, spy, on_two_threads):
     """The compiled loops unroll 1-3 axes and take any other count at run time, and split
     large batches over threads (here 2): every case equals the tensor loops to 1e-10."""
     B, T = 1100, 100  # ≥ 100k track-steps and B·n² ≥ 4096: the loops run on threads
@@ -237,32 +256,19 @@ def test_compiled_loops_for_any_axis_count_on_threads(ndim, spy, monkeypatch):
         "SVSF H+": ts.SVSF(model, psi=[3.0] * ndim, gamma=0.2, artificial=None),
         "SVSS lag 2": ts.SVSS(ts.SVSF(model, psi=fd, gamma=0.2), lag=2),
     }
-    counts = []
-    threads = fused.threads
-
-    def counted(*args):
-        counts.append(threads(*args))
-        return counts[-1]
-
-    monkeypatch.setattr(fused, "threads", counted)
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        for name, est in estimators.items():
-            with torch.no_grad():
-                compiled = est(z, x0, P0, dt=dt)
-                with eager_loops():
-                    eager = est(z, x0, P0, dt=dt)
-            assert_close(compiled.mean, eager.mean, atol=1e-10, rtol=1e-10, msg=name)
-            assert_close(compiled.cov, eager.cov, atol=1e-10, rtol=1e-10, msg=name)
-            for key in FIELDS:
-                a, b = getattr(_filtered(compiled), key), getattr(_filtered(eager), key)
-                if a is not None:
-                    assert_close(a, b, atol=1e-10, rtol=1e-10, msg=f"{name} {key}")
-    finally:
-        torch.set_num_threads(before)
+    for name, est in estimators.items():
+        with torch.no_grad():
+            compiled = est(z, x0, P0, dt=dt)
+            with eager_loops():
+                eager = est(z, x0, P0, dt=dt)
+        assert_close(compiled.mean, eager.mean, atol=1e-10, rtol=1e-10, msg=name)
+        assert_close(compiled.cov, eager.cov, atol=1e-10, rtol=1e-10, msg=name)
+        for key in FIELDS:
+            a, b = getattr(_filtered(compiled), key), getattr(_filtered(eager), key)
+            if a is not None:
+                assert_close(a, b, atol=1e-10, rtol=1e-10, msg=f"{name} {key}")
     assert spy["forward"] == 4 and spy["backward"] == 2
-    assert counts == [2] * 6
+    assert on_two_threads == [2] * 6
 
 
 @needs_compiler
@@ -333,20 +339,53 @@ def test_compiled_gradients_equal_tensor_loop_gradients(name, dtype, spy):
     for p in est.parameters():
         p.requires_grad_(True)
     compiled = _gradients(est, dtype, z, dt, x0, P0)
-    # The general backward recursion (SVSS, fixed lags) has a compiled reverse mode; the RTS
-    # fixed interval takes the tensor loops with gradients.
+    # Every smoother trains through the general backward recursion and its reverse mode (the
+    # RTS fixed interval too: with Γ = K it is the RTS); the eager run calls neither.
     smoother = isinstance(est, ts.RTSSmoother)
-    general = smoother and (est.projection_gain or est.lag is not None)
-    assert (spy["forward"], spy["backward"], spy["adjoint"]) == (1, general, 1 + general)
+    assert (spy["forward"], spy["backward"], spy["adjoint"]) == (1, smoother, 1 + smoother)
     with eager_loops():
         eager = _gradients(est, dtype, z, dt, x0, P0)
-    assert (spy["forward"], spy["backward"], spy["adjoint"]) == (1, general, 1 + general)
+    assert (spy["forward"], spy["backward"], spy["adjoint"]) == (1, smoother, 1 + smoother)
     tol = {"atol": 1e-10, "rtol": 1e-10} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 2e-3}
     for i, (a, b) in enumerate(zip(compiled, eager, strict=True)):
         assert (a is None) == (b is None), i
         if a is not None:
             assert a.abs().sum() > 0, i  # every input reaches the loss
             assert_close(a, b, msg=f"gradient {i}", **tol)
+
+
+@needs_compiler
+@pytest.mark.parametrize("name", NAMES)
+def test_compiled_gradients_of_sums_equal_tensor_loop_gradients(name, spy):
+    """A sum's gradient reaches the compiled reverse modes as an expanded (non-contiguous)
+    tensor, which they copy before reading: the gradients equal the tensor loops', over
+    several calls (a copy freed too early is overwritten by then)."""
+    z, dt, x0, P0 = _problem(seed=12, B=4, T=40)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    est = _estimators(model)[name].double()
+    psi = None
+    if isinstance(getattr(est, "filter", est), ts.SVSF):
+        width = 4 if getattr(est, "filter", est).artificial is not None else 2
+        psi = torch.full((4, 40, width), 3.0, dtype=torch.float64, requires_grad=True)
+
+    def grads():
+        zz = z.clone().requires_grad_(True)
+        kwargs = {"dt": dt} if psi is None else {"dt": dt, "psi": psi * 1.0}
+        out = est(zz, x0, P0, **kwargs)
+        (out.mean.sum() + out.cov.sum()).backward()
+        found = [zz.grad] + ([] if psi is None else [psi.grad.clone()])
+        if psi is not None:
+            psi.grad = None
+        return found
+
+    compiled = [grads() for _ in range(3)]
+    assert spy["adjoint"] >= 3
+    with eager_loops():
+        eager = grads()
+    for run in compiled:
+        for a, b in zip(run, eager, strict=True):
+            assert a.abs().sum() > 0
+            assert_close(a, b, atol=1e-10, rtol=1e-10)
 
 
 @needs_compiler
@@ -413,30 +452,28 @@ def test_compiled_reverse_mode_passes_gradcheck(rule):
 
 
 @needs_compiler
-def test_compiled_gradients_on_threads_for_any_axis_count(monkeypatch, spy):
+def test_compiled_gradients_on_threads_for_any_axis_count(spy, on_two_threads):
     """Large batches run the reverse mode on threads too; 1 and 3 axes (compile-time and
     run-time axis counts) equal the tensor loops' gradients."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        for ndim in (1, 3):
-            B, T = 1100, 100
-            gen = torch.Generator().manual_seed(ndim)
-            z = torch.randn(B, T, ndim, generator=gen, dtype=torch.float64) * 3
-            z[torch.rand(B, T, ndim, generator=gen) < 0.1] = float("nan")
-            dt = torch.rand(B, T, generator=gen, dtype=torch.float64) + 0.5
-            x0 = torch.randn(B, 2 * ndim, generator=gen, dtype=torch.float64)
-            P0 = torch.eye(2 * ndim, dtype=torch.float64) * 4
-            model = ts.models.ConstantVelocity(ndim=ndim, q=0.5, r=[2.0] * ndim, learn_q=True)
-            svss = ts.SVSS(ts.SVSF(model.double(), psi=[3.0, 2.0] * ndim, gamma=0.2), lag=2)
-            compiled = _gradients(svss, torch.float64, z, dt, x0, P0)
-            with eager_loops():
-                eager = _gradients(svss, torch.float64, z, dt, x0, P0)
-            for a, b in zip(compiled, eager, strict=True):
-                assert_close(a, b, atol=1e-10, rtol=1e-10)
-    finally:
-        torch.set_num_threads(before)
+    for ndim in (1, 3):
+        B, T = 1100, 100
+        gen = torch.Generator().manual_seed(ndim)
+        z = torch.randn(B, T, ndim, generator=gen, dtype=torch.float64) * 3
+        z[torch.rand(B, T, ndim, generator=gen) < 0.1] = float("nan")
+        dt = torch.rand(B, T, generator=gen, dtype=torch.float64) + 0.5
+        x0 = torch.randn(B, 2 * ndim, generator=gen, dtype=torch.float64)
+        P0 = torch.eye(2 * ndim, dtype=torch.float64) * 4
+        model = ts.models.ConstantVelocity(ndim=ndim, q=0.5, r=[2.0] * ndim, learn_q=True)
+        svss = ts.SVSS(ts.SVSF(model.double(), psi=[3.0, 2.0] * ndim, gamma=0.2), lag=2)
+        compiled = _gradients(svss, torch.float64, z, dt, x0, P0)
+        with eager_loops():
+            eager = _gradients(svss, torch.float64, z, dt, x0, P0)
+        for a, b in zip(compiled, eager, strict=True):
+            assert_close(a, b, atol=1e-10, rtol=1e-10)
     assert spy["adjoint"] == 4  # the filter and the smoother, twice
+    assert (
+        on_two_threads == [2] * 8
+    )  # every compiled call (forward and reverse, filter and smoother)
 
 
 @needs_compiler

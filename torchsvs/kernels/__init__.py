@@ -9,8 +9,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 #: Whether estimators may use the per-axis kernel (:mod:`torchsvs.kernels.axes`), and its
-#: compiled loops (with gradients through their compiled reverse modes, except the RTS fixed
-#: interval's).
+#: compiled loops (with gradients through their compiled reverse modes).
 AXIS_KERNEL = {"enabled": True, "fused": True}
 
 

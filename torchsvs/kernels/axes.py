@@ -9,9 +9,8 @@ a few dozen elementwise operations per step instead of batched 4×4 (or 6×6) ma
 which on a CPU cost far more per element than the arithmetic. Results are exactly the general
 path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves. The forward
 loop runs compiled (:mod:`torchsvs.kernels.fused`, the same formulas in C++), with gradients
-through its compiled reverse mode (:class:`_CompiledAxes`); so does the general smoother
-recursion (SVSS, fixed lags: :class:`_CompiledSmoother`), and the RTS fixed interval runs
-compiled where no gradient is asked for. The tensor loops below are the reference, the
+through its compiled reverse mode (:class:`_CompiledAxes`); so does the smoother's general
+recursion (:class:`_CompiledSmoother`). The tensor loops below are the reference, the
 fallback without a compiler, and the path for higher derivatives.
 
 Every axis has a two-component corrector measurement :math:`y = (y_p, y_v)` with ``H = I``;
@@ -398,8 +397,8 @@ def _summed_to(inputs: Sequence[Tensor], grads: Sequence[Tensor | None]) -> list
     ``[B, T, 1]``, ...), summed over their broadcast dimensions."""
     out: list[Tensor | None] = []
     for x, dx in zip(inputs, grads, strict=True):
-        seen = x.shape if x.ndim == 3 else (1, 1, x.numel())
-        out.append(None if dx is None else dx.sum_to_size(seen).reshape(x.shape))
+        broadcast = x.shape if x.ndim == 3 else (1, 1, x.numel())
+        out.append(None if dx is None else dx.sum_to_size(broadcast).reshape(x.shape))
     return out
 
 
@@ -620,16 +619,18 @@ def _rts_interval(res: AxisResult) -> tuple[tuple[Tensor, Tensor], Sym2]:
 
 def smooth_axes(res: AxisResult, projection: bool, lag: int | None) -> tuple[Tensor, Tensor]:
     """Smoothed mean ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]`` in the general layout (see
-    :meth:`~torchsvs.smoothers.RTSSmoother.smooth`): compiled (the general recursion, for SVSS
-    and fixed lags, with a compiled reverse mode; the RTS fixed interval where no gradient is
-    asked for), else as tensor operations."""
+    :meth:`~torchsvs.smoothers.RTSSmoother.smooth`): compiled (the RTS fixed interval by its own
+    loop, Eq. (17), where no gradient is asked for; everything else by the general recursion,
+    with its compiled reverse mode), else as tensor operations."""
     B, steps, m = res.mean[0].shape
     fixed_interval = not projection and (lag is None or lag >= steps - 1)
     if steps > 1 and fixed_interval:
         moments = (*res.mean, *res.cov, *res.pred_mean, *res.pred_cov, res.interval)
         if fused.usable(*moments):
             return fused.rts_interval(moments, (B, steps, m))
-    elif steps > 1:
+    if steps > 1:
+        # The general recursion: the SVSS and fixed lags, and (with Γ = K it is the RTS) the
+        # fixed interval when gradients are asked for, through its compiled reverse mode.
         filtered = _backward_inputs(res)
         if fused.usable(*filtered, differentiable=True):
             if torch.is_grad_enabled() and any(x.requires_grad for x in filtered):
@@ -667,105 +668,35 @@ def _smooth_tensors(
 
             return smoother_scan(res.mean, res.cov, res.pred_mean, res.pred_cov, res.interval)
         return _rts_interval(res)
-    if lag is not None and lag < steps - 1:
-        return _lagged(res, projection, lag)
-    b = backward_terms(_time_slice(res, 0, steps), projection)
-    zeros = torch.zeros_like(b.d[0])
-    g = (zeros[:, 0], zeros[:, 0])
-    G = Mat2(*(zeros[:, 0],) * 4)
-    Z = G
-    out = []
-    for k in range(steps - 2, -1, -1):
-        g, G, Z = _recurse(b, g, G, Z, k)
-        out.append((g, G, Z))
-    out.reverse()
-    g = (torch.stack([o[0][0] for o in out], 1), torch.stack([o[0][1] for o in out], 1))
-    G = Mat2(*(torch.stack([o[1][i] for o in out], 1) for i in range(4)))
-    Z = Mat2(*(torch.stack([o[2][i] for o in out], 1) for i in range(4)))
-    return _smoothed(res, g, G, Z)
-
-
-#: Lane-steps (tracks × axes × steps) of a window of the lagged recursion under gradient
-#: checkpointing: its graph holds ~300 intermediates of that size (in float64, ~150 MB).
-CHECKPOINT_LANE_STEPS = 1 << 16
-
-
-def _lagged(res: AxisResult, projection: bool, lag: int) -> tuple[tuple[Tensor, Tensor], Sym2]:
-    """The ``lag``-term backward recursion, by windows of time: a smoothed step ``k`` depends
-    on the filter's steps ``k .. k + lag`` only, so each window of outputs is computed from its
-    own steps and the ``lag`` after it. With gradients on long batches every window runs under
-    :func:`torch.utils.checkpoint.checkpoint` (its intermediates are recomputed in the backward
-    pass instead of kept), so memory grows with the outputs, not with the graph."""
-    B, steps, m = res.mean[0].shape
-    lanes = B * m
-    if not torch.is_grad_enabled() or lanes * steps <= CHECKPOINT_LANE_STEPS:
-        return _lagged_window(_time_slice(res, 0, steps), projection, lag, steps)
-    from torch.utils.checkpoint import checkpoint
-
-    window = max(4 * lag, CHECKPOINT_LANE_STEPS // lanes)
-    pieces = []
-    for first in range(0, steps, window):
-        last = min(steps, first + window)
-        piece = _time_slice(res, first, min(steps, last + lag))
-        pieces.append(
-            checkpoint(_lagged_window, piece, projection, lag, last - first, use_reentrant=False)
-        )
-    mean = tuple(torch.cat([p[0][i] for p in pieces], dim=1) for i in range(2))
-    cov = Sym2(*(torch.cat([p[1][i] for p in pieces], dim=1) for i in range(3)))
-    return (mean[0], mean[1]), cov
-
-
-def _time_slice(res: AxisResult, first: int, last: int) -> AxisResult:
-    """Steps ``first .. last − 1`` of a filter pass, contiguous (the compiled pass's fields are
-    strided views of its general layout, slow to read element by element)."""
-
-    def part(x: Tensor) -> Tensor:
-        return x[:, first:last].contiguous() if x.ndim == 3 else x
-
-    def pair(x: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
-        return part(x[0]), part(x[1])
-
-    def sym(x: Sym2) -> Sym2:
-        return Sym2(*map(part, x))
-
-    return AxisResult(
-        mean=pair(res.mean),
-        cov=sym(res.cov),
-        pred_mean=pair(res.pred_mean),
-        pred_cov=sym(res.pred_cov),
-        innovation=pair(res.innovation),
-        gain=Mat2(*map(part, res.gain)),
-        observed=pair(res.observed),
-        noise=sym(res.noise),
-        interval=part(res.interval),
-        post_innovation=None if res.post_innovation is None else pair(res.post_innovation),
-    )
-
-
-def _lagged_window(
-    res: AxisResult, projection: bool, lag: int, keep: int
-) -> tuple[tuple[Tensor, Tensor], Sym2]:
-    """The ``lag``-term recursion on the steps of ``res``; the first ``keep`` smoothed steps
-    (exact when ``res`` reaches ``lag`` steps beyond them, or to the track's end)."""
-    if res.mean[0].shape[1] == 1:
-        return res.mean, res.cov
     b = backward_terms(res, projection)
     zeros = torch.zeros_like(b.d[0])
-    g, G, Z = (zeros, zeros), Mat2(*(zeros,) * 4), Mat2(*(zeros,) * 4)
+    if lag is None or lag >= steps - 1:
+        g = (zeros[:, 0], zeros[:, 0])
+        G = Mat2(*(zeros[:, 0],) * 4)
+        Z = G
+        out = []
+        for k in range(steps - 2, -1, -1):
+            g, G, Z = _recurse(b, g, G, Z, k)
+            out.append((g, G, Z))
+        out.reverse()
+        g = (torch.stack([o[0][0] for o in out], 1), torch.stack([o[0][1] for o in out], 1))
+        G = Mat2(*(torch.stack([o[1][i] for o in out], 1) for i in range(4)))
+        Z = Mat2(*(torch.stack([o[2][i] for o in out], 1) for i in range(4)))
+    else:
+        g, G, Z = (zeros, zeros), Mat2(*(zeros,) * 4), Mat2(*(zeros,) * 4)
 
-    def shift(x: Tensor) -> Tensor:
-        return torch.cat([x[:, 1:], torch.zeros_like(x[:, :1])], dim=1)
+        def shift(x: Tensor) -> Tensor:
+            return torch.cat([x[:, 1:], torch.zeros_like(x[:, :1])], dim=1)
 
-    for _ in range(lag):
-        g, G, Z = _recurse(
-            b,
-            (shift(g[0]), shift(g[1])),
-            Mat2(*(shift(x) for x in G)),
-            Mat2(*(shift(x) for x in Z)),
-            slice(None),
-        )
-    (p, v), cov = _smoothed(res, g, G, Z)
-    return (p[:, :keep], v[:, :keep]), Sym2(*(x[:, :keep] for x in cov))
+        for _ in range(lag):
+            g, G, Z = _recurse(
+                b,
+                (shift(g[0]), shift(g[1])),
+                Mat2(*(shift(x) for x in G)),
+                Mat2(*(shift(x) for x in Z)),
+                slice(None),
+            )
+    return _smoothed(res, g, G, Z)
 
 
 def _smoothed(

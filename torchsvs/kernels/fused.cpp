@@ -508,13 +508,9 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads
         R g[kGiven], dg[kGiven];
         for (int64_t bi = first; bi < last; ++bi) {
             for (int64_t j = 0; j < m; ++j) {
-                State<R>& x0 = states[0];
-                x0.p = view<R>(prior, prior_strides, 0).at(bi, 0, j);
-                x0.v = view<R>(prior, prior_strides, 1).at(bi, 0, j);
-                x0.a = view<R>(prior, prior_strides, 2).at(bi, 0, j);
-                x0.b = view<R>(prior, prior_strides, 3).at(bi, 0, j);
-                x0.c = view<R>(prior, prior_strides, 4).at(bi, 0, j);
-                x0.mem_p = x0.mem_v = 0;
+                R start[5];  // the prior p, v, a, b, c; the memory starts at zero
+                for (int q = 0; q < 5; ++q) start[q] = view<R>(prior, prior_strides, q).at(bi, 0, j);
+                states[0] = {start[0], start[1], start[2], start[3], start[4], 0, 0};
                 for (int64_t t = 0; t < T; ++t) {
                     for (int q = 0; q < kGiven; ++q) g[q] = given[q].at(bi, t, j);
                     states[t + 1] = predict_correct<R, Rule>(states[t], g, gamma).next;
@@ -672,29 +668,69 @@ inline M2<R> inverse(R a, R b, R d) {
     return {d / det, -b / det, -b / det, a / det};
 }
 
-// axes.backward_terms at one step: C, d, ΓHF, ΓSΓᵀ, ΓX, AF (22 values, in that order) of the
-// backward recursion at index k+1, from the filter's moments (P at k; the rest at k+1).
+// What axes.backward_terms reads at index k (the step k and its successor t = k + 1): P at k;
+// the prediction, gain, noise (masked: an identity on missing components, as
+// axes._masked_noise), masks, interval and innovation at t.
+template <typename R>
+struct TermArgs {
+    R a, b, c, a1, b1, c1;
+    M2<R> K;
+    R rp, rpv, rvv, fp, fv, dt, ep, ev;
+};
+
+// TermArgs at index k from a lane's 20 inputs, `at(i, step)` in backward's input order.
+template <typename R, typename At>
+inline TermArgs<R> term_args(const At& at, int64_t k) {
+    const int64_t t = k + 1;
+    const R fp = at(13, t), fv = at(14, t);
+    return {at(0, k),  at(1, k),  at(2, k),  at(3, t),
+            at(4, t),  at(5, t),  {at(6, t), at(7, t), at(8, t), at(9, t)},
+            at(10, t) * fp + (1 - fp),       at(11, t) * fp * fv,
+            at(12, t) * fv + (1 - fv),       fp,
+            fv,        at(15, t), at(16, t), at(17, t)};
+}
+
+// axes.backward_terms at one index, with its intermediates (the reverse mode reads them):
+// C, d, ΓHF, ΓSΓᵀ, ΓX, AF of the backward recursion at index k+1, from the filter's moments.
 // Γ = K (RTS) or, with `projection`, P Hᵀ S⁻¹ (SVSS, Eq. (42)).
 template <typename R>
-inline void terms_at(R* w, bool projection, R a, R b, R c, R a1, R b1, R c1, const M2<R>& K,
-                     R rp, R rpv, R rvv, R fp, R fv, R dt, R ep, R ev) {
-    M2<R> Pp{a1, b1, b1, c1}, P{a, b, b, c}, R_{rp, rpv, rpv, rvv};
-    M2<R> H{fp, 0, 0, fv}, F{1, dt, 0, 1};
-    M2<R> PHt = mul(Pp, H);
-    M2<R> S = plus(mul(H, PHt), R_);
-    M2<R> Gamma = projection ? mul(PHt, inverse(S.a, S.b, S.d)) : K;
-    M2<R> A{1 - K.a, -K.b, -K.c, 1 - K.d};
-    M2<R> X = plus(mul(tr(PHt), tr(A)), neg(mul(R_, tr(K))));
-    M2<R> C = tr(mul(inverse(Pp.a, Pp.b, Pp.d), mul(F, P)));
-    M2<R> GHF = mul(mul(Gamma, H), F), GSG = mul(mul(Gamma, S), tr(Gamma));
-    M2<R> GX = mul(Gamma, X), AF = mul(A, F);
-    R d0 = Gamma.a * ep + Gamma.b * ev, d1 = Gamma.c * ep + Gamma.d * ev;
-    const M2<R>* blocks[5] = {&C, &GHF, &GSG, &GX, &AF};
+struct Terms {
+    M2<R> Pp, P, R_, H, F, PHt, S, Sinv, Gamma, A, X, Ppinv, FP, HF;
+    M2<R> C, GHF, GSG, GX, AF;
+    R d0, d1;
+};
+
+template <typename R>
+inline Terms<R> terms(bool projection, const TermArgs<R>& x) {
+    Terms<R> t;
+    t.Pp = {x.a1, x.b1, x.b1, x.c1}, t.P = {x.a, x.b, x.b, x.c};
+    t.R_ = {x.rp, x.rpv, x.rpv, x.rvv};
+    t.H = {x.fp, 0, 0, x.fv}, t.F = {1, x.dt, 0, 1};
+    t.PHt = mul(t.Pp, t.H);
+    t.S = plus(mul(t.H, t.PHt), t.R_);
+    t.Sinv = inverse(t.S.a, t.S.b, t.S.d);
+    t.Gamma = projection ? mul(t.PHt, t.Sinv) : x.K;
+    t.A = {1 - x.K.a, -x.K.b, -x.K.c, 1 - x.K.d};
+    t.X = plus(mul(tr(t.PHt), tr(t.A)), neg(mul(t.R_, tr(x.K))));
+    t.Ppinv = inverse(t.Pp.a, t.Pp.b, t.Pp.d);
+    t.FP = mul(t.F, t.P), t.HF = mul(t.H, t.F);
+    t.C = tr(mul(t.Ppinv, t.FP));
+    t.GHF = mul(t.Gamma, t.HF), t.GSG = mul(mul(t.Gamma, t.S), tr(t.Gamma));
+    t.GX = mul(t.Gamma, t.X), t.AF = mul(t.A, t.F);
+    t.d0 = t.Gamma.a * x.ep + t.Gamma.b * x.ev, t.d1 = t.Gamma.c * x.ep + t.Gamma.d * x.ev;
+    return t;
+}
+
+// The 22 values the recursion reads at an index (C, d, ΓHF, ΓSΓᵀ, ΓX, AF in order).
+template <typename R>
+inline void terms_at(R* w, bool projection, const TermArgs<R>& x) {
+    const Terms<R> t = terms(projection, x);
+    const M2<R>* blocks[5] = {&t.C, &t.GHF, &t.GSG, &t.GX, &t.AF};
     int n = 0;
     for (int i = 0; i < 5; ++i) {
         w[n++] = blocks[i]->a, w[n++] = blocks[i]->b, w[n++] = blocks[i]->c;
         w[n++] = blocks[i]->d;
-        if (i == 0) w[n++] = d0, w[n++] = d1;
+        if (i == 0) w[n++] = t.d0, w[n++] = t.d1;
     }
 }
 
@@ -722,6 +758,38 @@ inline Backward<R> recurse(const R* w, const Backward<R>& s) {
     return out;
 }
 
+// How many sweeps of `lane_recursion` a run of n steps with a successor takes: one from the
+// end (fixed interval, lag ≥ n) or `lag` from zero.
+inline int64_t sweeps_of(int64_t n, int64_t lag) { return lag >= n ? 1 : lag; }
+
+// The backward recursion of a lane over its terms (n indices), every state kept (the reverse
+// mode reads them): `states` holds (sweeps_of(n, lag) + 1) rows of n + 1, all zero to begin
+// with. Fixed interval (lag ≥ n): row 0, from zero at the end, states[k] = recurse(k,
+// states[k + 1]). Fixed lag: row s (s = 1..lag) applies one step to row s − 1 at every
+// index, states[s][k] = recurse(k, states[s − 1][k + 1]): after `lag` rows, the sum of `lag`
+// terms from zero at k + lag. Returns the results' row; its entry at n stays zero.
+template <typename R>
+inline const Backward<R>* lane_recursion(const R* terms, int64_t n, int64_t lag,
+                                         std::vector<Backward<R>>& states) {
+    if (lag >= n) {
+        for (int64_t k = n - 1; k >= 0; --k) states[k] = recurse(&terms[22 * k], states[k + 1]);
+        return states.data();
+    }
+    for (int64_t s = 1; s <= lag; ++s)
+        for (int64_t k = 0; k < n; ++k)
+            states[s * (n + 1) + k] = recurse(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1]);
+    return &states[lag * (n + 1)];
+}
+
+// A lane's terms (written to `terms`, n indices) and recursion (in `states`, see
+// lane_recursion), from its 20 inputs `at(i, step)`; returns the results' row.
+template <typename R, typename At>
+inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bool projection,
+                                        std::vector<R>& terms, std::vector<Backward<R>>& states) {
+    for (int64_t k = 0; k < n; ++k) terms_at(&terms[22 * k], projection, term_args<R>(at, k));
+    return lane_recursion(terms.data(), n, lag, states);
+}
+
 // axes.smooth_axes: the backward recursion from zero at the end (fixed interval) or, with a
 // lag L < T-1, L applications from zero at step k+L for each k (the fixed-lag form), then
 // axes._smoothed: x̂ˢ_k = x̂_k + g_k, Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k (symmetrised; the
@@ -738,34 +806,14 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int 
     const int64_t n = T - 1;  // steps with a successor
     const int64_t width = 2 * m;
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        // One chain's terms, step by step (contiguous for the sweeps), and its results.
+        // One chain's terms, step by step (contiguous for the sweeps), and its states.
         std::vector<R> terms(22 * (n > 0 ? n : 1));
-        std::vector<Backward<R>> result(n + 1, zero);  // result[n]: zero beyond the end
+        std::vector<Backward<R>> states((sweeps_of(n, lag) + 1) * (n + 1), zero);
         for (int64_t bi = first; bi < last; ++bi) {
             for (int64_t j = 0; j < m; ++j) {
                 auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
-                for (int64_t k = 0; k < n; ++k) {
-                    int64_t t = k + 1;
-                    M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
-                    // R with an identity on missing components (axes._masked_noise).
-                    R fp = at(13, t), fv = at(14, t);
-                    R rp = at(10, t) * fp + (1 - fp), rpv = at(11, t) * fp * fv;
-                    R rvv = at(12, t) * fv + (1 - fv);
-                    terms_at(&terms[22 * k], projection != 0, at(0, k), at(1, k), at(2, k),
-                             at(3, t), at(4, t), at(5, t), K, rp, rpv, rvv, fp, fv, at(15, t),
-                             at(16, t), at(17, t));
-                }
-                if (lag >= n) {
-                    for (int64_t k = n - 1; k >= 0; --k)
-                        result[k] = recurse(&terms[22 * k], result[k + 1]);
-                } else {
-                    // `lag` sweeps, each applying one step to the previous sweep's value at
-                    // k+1 (read before it is overwritten, going forward).
-                    for (int64_t k = 0; k < n; ++k) result[k] = zero;
-                    for (int64_t sweep = 0; sweep < lag; ++sweep)
-                        for (int64_t k = 0; k < n; ++k)
-                            result[k] = recurse(&terms[22 * k], result[k + 1]);
-                }
+                const Backward<R>* result =
+                    lane_backward<R>(at, n, lag, projection != 0, terms, states);
                 for (int64_t k = 0; k <= n; ++k) {
                     R a = at(0, k), b = at(1, k), c = at(2, k);
                     R now[5] = {at(18, k), at(19, k), a, b, c};
@@ -805,70 +853,55 @@ inline void symmetric_adjoint(const M2<R>& dX, R& da, R& db, R& dc) {
     da += dX.a, db += dX.b + dX.c, dc += dX.d;
 }
 
-// terms_at's inputs, in its order: P (a, b, c) at k; Pp (a1, b1, c1), K (4), R masked (rp,
-// rpv, rvv), T, e (p, v) at k + 1.
-enum TermInput {
-    kTa, kTb, kTc, kTa1, kTb1, kTc1, kTKa, kTKb, kTKc, kTKd, kTrp, kTrpv, kTrvv, kTdt, kTep, kTev,
-    kTermInputs
-};
-
-// terms_at's adjoint: from dw (the adjoints of its 22 values) adds those of its inputs to d.
+// terms_at's adjoint: from dw (the adjoints of its 22 values) those of its inputs, as a
+// TermArgs of adjoints (dR: of the masked noise).
 template <typename R>
-inline void terms_adjoint(const R* dw, R* d, bool projection, R a, R b, R c, R a1, R b1, R c1,
-                          const M2<R>& K, R rp, R rpv, R rvv, R fp, R fv, R dt, R ep, R ev) {
-    M2<R> Pp{a1, b1, b1, c1}, P{a, b, b, c}, R_{rp, rpv, rpv, rvv};
-    M2<R> H{fp, 0, 0, fv}, F{1, dt, 0, 1};
-    M2<R> PHt = mul(Pp, H);
-    M2<R> S = plus(mul(H, PHt), R_);
-    M2<R> Sinv = inverse(S.a, S.b, S.d);
-    M2<R> Gamma = projection ? mul(PHt, Sinv) : K;
-    M2<R> A{1 - K.a, -K.b, -K.c, 1 - K.d};
-    M2<R> X = plus(mul(tr(PHt), tr(A)), neg(mul(R_, tr(K))));
-    M2<R> Ppinv = inverse(Pp.a, Pp.b, Pp.d);
-    M2<R> FP = mul(F, P), HF = mul(H, F);
+inline TermArgs<R> terms_adjoint(const R* dw, bool projection, const TermArgs<R>& x) {
+    const Terms<R> t = terms(projection, x);
+    TermArgs<R> d{};
     M2<R> dC{dw[0], dw[1], dw[2], dw[3]}, dGHF{dw[6], dw[7], dw[8], dw[9]};
     M2<R> dGSG{dw[10], dw[11], dw[12], dw[13]}, dGX{dw[14], dw[15], dw[16], dw[17]};
     M2<R> dAF{dw[18], dw[19], dw[20], dw[21]};
     const R dd0 = dw[4], dd1 = dw[5];
     // AF = A F
-    M2<R> dA = mul(dAF, tr(F)), dF = mul(tr(A), dAF);
+    M2<R> dA = mul(dAF, tr(t.F)), dF = mul(tr(t.A), dAF);
     // ΓX = Γ X
-    M2<R> dGamma = mul(dGX, tr(X)), dX = mul(tr(Gamma), dGX);
+    M2<R> dGamma = mul(dGX, tr(t.X)), dX = mul(tr(t.Gamma), dGX);
     // ΓSΓᵀ
-    dGamma = plus(dGamma, plus(mul(mul(dGSG, Gamma), tr(S)), mul(mul(tr(dGSG), Gamma), S)));
-    M2<R> dS = mul(mul(tr(Gamma), dGSG), Gamma);
+    dGamma = plus(dGamma, plus(mul(mul(dGSG, t.Gamma), tr(t.S)), mul(mul(tr(dGSG), t.Gamma), t.S)));
+    M2<R> dS = mul(mul(tr(t.Gamma), dGSG), t.Gamma);
     // ΓHF = Γ (H F)
-    dGamma = plus(dGamma, mul(dGHF, tr(HF)));
-    dF = plus(dF, mul(tr(H), mul(tr(Gamma), dGHF)));
+    dGamma = plus(dGamma, mul(dGHF, tr(t.HF)));
+    dF = plus(dF, mul(tr(t.H), mul(tr(t.Gamma), dGHF)));
     // d = Γ e
-    dGamma.a += dd0 * ep, dGamma.b += dd0 * ev, dGamma.c += dd1 * ep, dGamma.d += dd1 * ev;
-    d[kTep] += Gamma.a * dd0 + Gamma.c * dd1, d[kTev] += Gamma.b * dd0 + Gamma.d * dd1;
+    dGamma.a += dd0 * x.ep, dGamma.b += dd0 * x.ev, dGamma.c += dd1 * x.ep, dGamma.d += dd1 * x.ev;
+    d.ep = t.Gamma.a * dd0 + t.Gamma.c * dd1, d.ev = t.Gamma.b * dd0 + t.Gamma.d * dd1;
     // C = (Pp⁻¹ F P)ᵀ
     M2<R> dM = tr(dC);
-    M2<R> dFP = mul(tr(Ppinv), dM);
-    dF = plus(dF, mul(dFP, tr(P)));
-    M2<R> dP = mul(tr(F), dFP);
-    inverse_adjoint(Ppinv, mul(dM, tr(FP)), d[kTa1], d[kTb1], d[kTc1]);
+    M2<R> dFP = mul(tr(t.Ppinv), dM);
+    dF = plus(dF, mul(dFP, tr(t.P)));
+    M2<R> dP = mul(tr(t.F), dFP);
+    inverse_adjoint(t.Ppinv, mul(dM, tr(t.FP)), d.a1, d.b1, d.c1);
     // X = PHtᵀ Aᵀ − R Kᵀ
-    M2<R> dPHt = mul(tr(A), tr(dX));
-    dA = plus(dA, mul(tr(dX), tr(PHt)));
-    M2<R> dR = neg(mul(dX, K));
-    M2<R> dK = plus(neg(mul(tr(dX), R_)), neg(dA));  // and A = I − K
+    M2<R> dPHt = mul(tr(t.A), tr(dX));
+    dA = plus(dA, mul(tr(dX), tr(t.PHt)));
+    M2<R> dR = neg(mul(dX, x.K));
+    d.K = plus(neg(mul(tr(dX), t.R_)), neg(dA));  // and A = I − K
     if (projection) {  // Γ = PHt S⁻¹
-        dPHt = plus(dPHt, mul(dGamma, tr(Sinv)));
-        inverse_adjoint(Sinv, mul(tr(PHt), dGamma), dS.a, dS.b, dS.d);
+        dPHt = plus(dPHt, mul(dGamma, tr(t.Sinv)));
+        inverse_adjoint(t.Sinv, mul(tr(t.PHt), dGamma), dS.a, dS.b, dS.d);
     } else {
-        dK = plus(dK, dGamma);
+        d.K = plus(d.K, dGamma);
     }
     // S = H PHt + R, PHt = Pp H
-    dPHt = plus(dPHt, mul(tr(H), dS));
+    dPHt = plus(dPHt, mul(tr(t.H), dS));
     dR = plus(dR, dS);
-    M2<R> dPp = mul(dPHt, tr(H));
-    symmetric_adjoint(dP, d[kTa], d[kTb], d[kTc]);
-    symmetric_adjoint(dPp, d[kTa1], d[kTb1], d[kTc1]);
-    d[kTKa] += dK.a, d[kTKb] += dK.b, d[kTKc] += dK.c, d[kTKd] += dK.d;
-    symmetric_adjoint(dR, d[kTrp], d[kTrpv], d[kTrvv]);
-    d[kTdt] += dF.b;
+    M2<R> dPp = mul(dPHt, tr(t.H));
+    symmetric_adjoint(dP, d.a, d.b, d.c);
+    symmetric_adjoint(dPp, d.a1, d.b1, d.c1);
+    symmetric_adjoint(dR, d.rp, d.rpv, d.rvv);
+    d.dt = dF.b;
+    return d;
 }
 
 // recurse's adjoint: from the adjoint of its result (dout) adds those of its terms to dw and
@@ -918,43 +951,17 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
     for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
     const Backward<R> zero{0, 0, {0, 0, 0, 0}, {0, 0, 0, 0}};
     const int64_t n = T - 1, width = 2 * m;
-    const bool fixed_interval = lag >= n;
-    const int64_t sweeps = fixed_interval ? 1 : lag;
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         std::vector<R> terms(22 * (n > 0 ? n : 1)), dterms(22 * (n > 0 ? n : 1));
-        // states[s * (n + 1) + k]: the recursion's input at k + 1 of sweep s (fixed interval:
-        // one "sweep" holding result[k]); the entry at n is zero.
-        std::vector<Backward<R>> states((sweeps + 1) * (n + 1), zero);
+        std::vector<Backward<R>> states((sweeps_of(n, lag) + 1) * (n + 1), zero);
         std::vector<Backward<R>> dres(n + 1, zero), dprev(n + 1, zero);
-        std::vector<R> acc(20 * T);
+        std::vector<R> acc(20 * T);  // the inputs' adjoints, input by input over the steps
+        auto add = [&acc, T](int input, int64_t step, R value) { acc[input * T + step] += value; };
         for (int64_t bi = first; bi < last; ++bi) {
             for (int64_t j = 0; j < m; ++j) {
                 auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
-                auto masked = [&](int64_t t, R& rp, R& rpv, R& rvv) {
-                    R fp = at(13, t), fv = at(14, t);
-                    rp = at(10, t) * fp + (1 - fp), rpv = at(11, t) * fp * fv;
-                    rvv = at(12, t) * fv + (1 - fv);
-                };
-                for (int64_t k = 0; k < n; ++k) {
-                    int64_t t = k + 1;
-                    M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
-                    R rp, rpv, rvv;
-                    masked(t, rp, rpv, rvv);
-                    terms_at(&terms[22 * k], projection != 0, at(0, k), at(1, k), at(2, k),
-                             at(3, t), at(4, t), at(5, t), K, rp, rpv, rvv, at(13, t), at(14, t),
-                             at(15, t), at(16, t), at(17, t));
-                }
-                // The recursion, every state kept.
-                if (fixed_interval) {
-                    for (int64_t k = n - 1; k >= 0; --k)
-                        states[k] = recurse(&terms[22 * k], states[k + 1]);
-                } else {
-                    for (int64_t s = 1; s <= sweeps; ++s)
-                        for (int64_t k = 0; k < n; ++k)
-                            states[s * (n + 1) + k] =
-                                recurse(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1]);
-                }
-                const Backward<R>* result = &states[(fixed_interval ? 0 : sweeps) * (n + 1)];
+                const Backward<R>* result =
+                    lane_backward<R>(at, n, lag, projection != 0, terms, states);
                 std::fill(acc.begin(), acc.end(), R(0));
                 std::fill(dterms.begin(), dterms.end(), R(0));
                 // The smoothed moments' adjoints (axes._smoothed).
@@ -965,9 +972,9 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
                     const R* gc = g_cov ? g_cov + idx * width * width : nullptr;
                     R dsa = gc ? gc[p * width + p] : R(0), dsc = gc ? gc[q * width + q] : R(0);
                     R dsb = gc ? gc[p * width + q] + gc[q * width + p] : R(0);
-                    acc[18 * T + k] += dps, acc[19 * T + k] += dvs;
+                    add(18, k, dps), add(19, k, dvs);
                     if (k == n) {  // as filtered
-                        acc[0 * T + k] += dsa, acc[1 * T + k] += dsb, acc[2 * T + k] += dsc;
+                        add(0, k, dsa), add(1, k, dsb), add(2, k, dsc);
                         continue;
                     }
                     const Backward<R>& s = result[k];
@@ -981,16 +988,18 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
                     dr.g0 = dps, dr.g1 = dvs;
                     dr.G = mul(tr(dPGt), P);
                     dr.Z = dY;
-                    symmetric_adjoint(dP, acc[0 * T + k], acc[1 * T + k], acc[2 * T + k]);
+                    R da = 0, db = 0, dc = 0;
+                    symmetric_adjoint(dP, da, db, dc);
+                    add(0, k, da), add(1, k, db), add(2, k, dc);
                 }
                 dres[n] = zero;
-                // The recursion's adjoint.
-                if (fixed_interval) {
+                // The recursion's adjoint, in lane_recursion's layout of states.
+                if (lag >= n) {
                     for (int64_t k = 0; k < n; ++k)  // dres[k] is complete once k − 1 is done
                         recurse_adjoint(&terms[22 * k], states[k + 1], dres[k], &dterms[22 * k],
                                         dres[k + 1]);
                 } else {
-                    for (int64_t s = sweeps; s >= 1; --s) {
+                    for (int64_t s = lag; s >= 1; --s) {
                         std::fill(dprev.begin(), dprev.end(), zero);
                         for (int64_t k = 0; k < n; ++k)
                             recurse_adjoint(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1],
@@ -998,25 +1007,17 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
                         std::swap(dres, dprev);
                     }
                 }
-                // The terms' adjoints, onto the inputs.
+                // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked).
                 for (int64_t k = 0; k < n; ++k) {
-                    int64_t t = k + 1;
-                    M2<R> K{at(6, t), at(7, t), at(8, t), at(9, t)};
-                    R rp, rpv, rvv;
-                    masked(t, rp, rpv, rvv);
-                    R d[kTermInputs] = {0};
-                    terms_adjoint(&dterms[22 * k], d, projection != 0, at(0, k), at(1, k),
-                                  at(2, k), at(3, t), at(4, t), at(5, t), K, rp, rpv, rvv,
-                                  at(13, t), at(14, t), at(15, t), at(16, t), at(17, t));
-                    R fp = at(13, t), fv = at(14, t);
-                    acc[0 * T + k] += d[kTa], acc[1 * T + k] += d[kTb], acc[2 * T + k] += d[kTc];
-                    const int to[] = {3, 4, 5, 6, 7, 8, 9};
-                    for (int i = 0; i < 7; ++i) acc[to[i] * T + t] += d[kTa1 + i];
-                    acc[10 * T + t] += d[kTrp] * fp;  // R masked (axes._masked_noise)
-                    acc[11 * T + t] += d[kTrpv] * fp * fv;
-                    acc[12 * T + t] += d[kTrvv] * fv;
-                    acc[15 * T + t] += d[kTdt];
-                    acc[16 * T + t] += d[kTep], acc[17 * T + t] += d[kTev];
+                    const int64_t t = k + 1;
+                    const TermArgs<R> x = term_args<R>(at, k);
+                    const TermArgs<R> d = terms_adjoint(&dterms[22 * k], projection != 0, x);
+                    add(0, k, d.a), add(1, k, d.b), add(2, k, d.c);
+                    add(3, t, d.a1), add(4, t, d.b1), add(5, t, d.c1);
+                    add(6, t, d.K.a), add(7, t, d.K.b), add(8, t, d.K.c), add(9, t, d.K.d);
+                    add(10, t, d.rp * x.fp), add(11, t, d.rpv * x.fp * x.fv);
+                    add(12, t, d.rvv * x.fv);
+                    add(15, t, d.dt), add(16, t, d.ep), add(17, t, d.ev);
                 }
                 for (int i = 0; i < 20; ++i)
                     if (dgiven[i])

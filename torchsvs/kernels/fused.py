@@ -14,13 +14,13 @@ copies) in and write the results in the general layout (what a
 :class:`~torchsvs.types.FilterResult` holds) directly, on ``torch.get_num_threads()`` threads
 for large batches, into buffers advised as huge pages (:func:`fresh`).
 
-They run on CPU float32/float64 tensors. The per-axis forward loop and the general backward
-recursion (SVSS, fixed lags) have compiled reverse modes too (:func:`adjoint`,
-:func:`backward_adjoint`, used by :class:`torchsvs.kernels.axes._CompiledAxes` and
-``_CompiledSmoother``), so training runs them at near inference speed and keeps no graph of
-small tensors; the RTS fixed-interval loop runs compiled where no gradient is asked for, and
-as tensor operations otherwise. Compiled and tensor loops give the same numbers and
-gradients up to rounding (tested to 1e-10 in float64). Without a compiler the
+They run on CPU float32/float64 tensors. The per-axis forward loop and the smoother's general
+backward recursion have compiled reverse modes too (:func:`adjoint`, :func:`backward_adjoint`,
+used by :class:`torchsvs.kernels.axes._CompiledAxes` and ``_CompiledSmoother``), so training
+runs them at near inference speed and keeps no graph of small tensors (the RTS fixed interval,
+whose own loop :func:`rts_interval` has no reverse mode, trains through the general
+recursion). Compiled and tensor loops give the same numbers and gradients up to rounding
+(tested to 1e-10 in float64). Without a compiler the
 estimators fall back to the tensor loops with one warning; ``TORCHSVS_FUSED=0`` turns the
 compiled loops off, :func:`torchsvs.kernels.eager_loops` does so for a block. The library is
 cached per source, compiler, flags and platform under ``$TORCHSVS_CACHE`` (default
@@ -41,6 +41,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -218,6 +219,13 @@ def threads(tracks: int, steps: int) -> int:
     return 1 if tracks < 2 or tracks * steps < 100_000 else torch.get_num_threads()
 
 
+def _function(name: str, dtype: torch.dtype) -> Any:
+    """The loaded library's function ``name`` for ``dtype`` (float32 or float64)."""
+    lib = library()
+    assert lib is not None
+    return getattr(lib, f"{name}_{'f32' if dtype == torch.float32 else 'f64'}")
+
+
 def _pointers(tensors: Sequence[Tensor | None]) -> ctypes.Array[ctypes.c_void_p]:
     return (ctypes.c_void_p * len(tensors))(*(None if x is None else x.data_ptr() for x in tensors))
 
@@ -268,12 +276,9 @@ def _forward_loop(
 ) -> None:
     """Calls the compiled function ``name`` (the forward loop or its adjoint) with the forward
     loop's arguments, then ``buffers``."""
-    lib = library()
-    assert lib is not None
     B, T, m = shape
     inputs, start = _Arrays(given, shape), _Arrays(prior, (B, 1, m))
-    call = getattr(lib, f"{name}_{'f32' if prior[0].dtype == torch.float32 else 'f64'}")
-    call(
+    _function(name, prior[0].dtype)(
         *shape,
         int(rule != "kalman"),
         int(velocity),
@@ -317,23 +322,35 @@ def _smoother(
 ) -> tuple[Tensor, Tensor]:
     """Runs the compiled smoother loop ``name`` on ``given``; returns the smoothed mean
     ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]`` in the general layout."""
-    lib = library()
-    assert lib is not None
     B, T, m = shape
     dtype = given[0].dtype
-    inputs = _Arrays(given, shape)
     mean, cov = fresh((B, T, 2 * m), dtype), fresh((B, T, 2 * m, 2 * m), dtype)
-    call = getattr(lib, f"{name}_{'f32' if dtype == torch.float32 else 'f64'}")
-    call(
-        *shape,
-        *settings,
-        threads(B, T),
-        inputs.pointers,
-        inputs.strides,
-        mean.data_ptr(),
-        cov.data_ptr(),
-    )
+    _smoother_loop(name, given, shape, settings, mean.data_ptr(), cov.data_ptr())
     return mean, cov
+
+
+def _smoother_loop(
+    name: str,
+    given: Sequence[Tensor],
+    shape: tuple[int, int, int],
+    settings: Sequence[int],
+    *buffers: object,
+) -> None:
+    """Calls the compiled function ``name`` (a smoother loop or its adjoint) with a smoother
+    loop's arguments, then ``buffers``."""
+    inputs = _Arrays(given, shape)
+    _function(name, given[0].dtype)(
+        *shape, *settings, threads(shape[0], shape[1]), inputs.pointers, inputs.strides, *buffers
+    )
+
+
+def _backward_settings(
+    shape: tuple[int, int, int], lag: int | None, projection: bool
+) -> tuple[int, int]:
+    """The compiled backward recursion's settings: how many times it recurses (the steps
+    with a successor, or fewer for a fixed lag) and whether Γ is the projection gain."""
+    steps = shape[1] - 1
+    return (steps if lag is None else min(lag, steps)), int(projection)
 
 
 def rts_interval(given: Sequence[Tensor], shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
@@ -354,9 +371,7 @@ def backward(
     ``[B, T, m]``-broadcastable; the recursion runs from the end (``lag`` None) or ``lag``
     times from zero at each step. Returns the smoothed mean ``[B, T, 2m]`` and covariance
     ``[B, T, 2m, 2m]`` (general layout)."""
-    steps = shape[1] - 1
-    limit = steps if lag is None else min(lag, steps)
-    return _smoother("backward", given, shape, limit, int(projection))
+    return _smoother("backward", given, shape, *_backward_settings(shape, lag, projection))
 
 
 def backward_adjoint(
@@ -371,25 +386,11 @@ def backward_adjoint(
     smoothed mean and covariance (``None``: zero), ``wanted`` which of the 20 inputs need one.
     Returns their gradients ``[B, T, m]`` (``None`` where not wanted; the caller sums them to
     each input's shape)."""
-    lib = library()
-    assert lib is not None
-    B, T, m = shape
-    dtype = given[0].dtype
-    inputs = _Arrays(given, shape)
-    out = [torch.empty(B, T, m, dtype=dtype) if w else None for w in wanted]
-    g_mean, g_cov = (None if g is None else g.contiguous() for g in grads)
-    call = lib.backward_adjoint_f32 if dtype == torch.float32 else lib.backward_adjoint_f64
-    call(
-        *shape,
-        min(lag, T - 1) if lag is not None else T - 1,
-        int(projection),
-        threads(B, T),
-        inputs.pointers,
-        inputs.strides,
-        None if g_mean is None else g_mean.data_ptr(),
-        None if g_cov is None else g_cov.data_ptr(),
-        _pointers(out),
-    )
+    out = [torch.empty(shape, dtype=given[0].dtype) if w else None for w in wanted]
+    held = [None if g is None else g.contiguous() for g in grads]  # alive through the call
+    g_mean, g_cov = (None if g is None else g.data_ptr() for g in held)
+    settings = _backward_settings(shape, lag, projection)
+    _smoother_loop("backward_adjoint", given, shape, settings, g_mean, g_cov, _pointers(out))
     return out
 
 
