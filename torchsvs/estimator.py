@@ -32,6 +32,7 @@ class Inputs:
     psi: Tensor | None  #: per-step boundary layer override [B, T, m'] (checked by the SVSF)
     generator: torch.Generator | None
     single: bool  #: the caller passed one track without the batch axis
+    keep: str = "all"  #: what the result keeps of each step (:data:`KEEP`)
 
     @property
     def batch(self) -> int:
@@ -68,6 +69,7 @@ def prepare_inputs(
     psi: Any = None,
     generator: torch.Generator | None = None,
     state_prior: bool = False,
+    keep: str = "all",
 ) -> Inputs:
     """Checks every argument of an estimator call against ``model`` and adds the batch axis.
 
@@ -126,7 +128,9 @@ def prepare_inputs(
             raise ValueError("psi: expected finite boundary layer widths > 0")
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
-    return Inputs(zb, x0, P0, dt_t, u_t, psi_t, generator, single)
+    if not isinstance(keep, str) or keep not in KEEP:
+        raise ValueError(f"keep: expected one of {', '.join(map(repr, KEEP))}, got {keep!r}")
+    return Inputs(zb, x0, P0, dt_t, u_t, psi_t, generator, single, keep)
 
 
 def _check_prior(
@@ -228,6 +232,28 @@ def threads_for(batch: int, n: int) -> Iterator[None]:
 #: Result fields without a time axis: the run's totals and its final particles.
 RUN_FIELDS = ("log_likelihood", "particles", "log_weights")
 
+#: What an estimator's result keeps of each step (``keep`` of every call): ``"all"`` (the
+#: whole result: predictions, innovations, gains, ``S``, ..., what smoothers and losses read),
+#: ``"moments"`` (``mean`` and ``cov``) or ``"mean"`` (no covariance history). The fields not
+#: kept are ``None``; the run's totals (:data:`RUN_FIELDS`) stay.
+KEEP = ("all", "moments", "mean")
+
+
+def trim(result: Any, keep: str) -> Any:
+    """``result`` with the per-step fields that ``keep`` (:data:`KEEP`) leaves out set to
+    ``None`` (a smoother's filter pass trimmed the same way)."""
+    if keep == "all":
+        return result
+    kept = ("mean",) if keep == "mean" else ("mean", "cov")
+    fields = []
+    for name, value in zip(result._fields, result, strict=True):
+        if name == "filtered":
+            value = trim(value, keep)
+        elif name not in kept and name not in RUN_FIELDS:
+            value = None
+        fields.append(value)
+    return type(result)(*fields)
+
 
 def at_step(result: Any, t: int, time_axis: int = 1) -> Any:
     """Step ``t`` of every per-step tensor of a result NamedTuple (the run's totals, such as the
@@ -279,6 +305,7 @@ class Estimator(nn.Module, Generic[Result]):
         dt: float | Tensor | None = None,
         psi: Tensor | None = None,
         generator: torch.Generator | None = None,
+        keep: str = "all",
     ) -> Result:
         """Estimates the states of every track.
 
@@ -290,6 +317,9 @@ class Estimator(nn.Module, Generic[Result]):
             dt: per-step intervals, a scalar or ``[B, T]``, for models whose F and Q depend on it.
             psi: per-step boundary layer override ``[B, T, m]`` for SVSF-based estimators.
             generator: source of randomness for stochastic estimators.
+            keep: what the result keeps of each step: ``"all"``, ``"moments"`` (means and
+                covariances) or ``"mean"`` (:data:`KEEP`); less to keep is less memory and, in
+                the compiled loops, less to write.
 
         Returns:
             A :class:`~torchsvs.types.FilterResult`, :class:`~torchsvs.types.SmootherResult` or
@@ -300,9 +330,11 @@ class Estimator(nn.Module, Generic[Result]):
         float32 (pass float64 ``z`` for float64 results). Gradients still reach the parameters.
         """
         self.check_psi(psi)
-        inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator)
+        inputs = prepare_inputs(
+            self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator, keep=keep
+        )
         with threads_for(inputs.batch, self.model.state_dim):
-            result = self.run(inputs)
+            result = trim(self.run(inputs), keep)
         return drop_batch(result) if inputs.single else result
 
     def run(self, inputs: Inputs) -> Result:
@@ -339,12 +371,14 @@ class SteppedEstimator(Estimator[Result]):
         dt: float | Tensor | None = None,
         psi: Tensor | None = None,
         generator: torch.Generator | None = None,
+        keep: str = "all",
     ) -> tuple[Any, Result]:
         """Runs the steps ``z [B, T, m]`` (``[T, m]`` for a state of one track) from ``state``:
         the state after the last of them and their result, as :meth:`forward` gives it (a
         recording run in chunks, the state carried between them, gives the same numbers).
-        ``u``, ``dt``, ``psi``, ``generator`` as for :meth:`forward` (a stochastic estimator
-        equals its whole run when one generator is passed to ``init`` and every call)."""
+        ``u``, ``dt``, ``psi``, ``generator``, ``keep`` as for :meth:`forward` (a stochastic
+        estimator equals its whole run when one generator is passed to ``init`` and every
+        call; the state is whole whatever ``keep`` drops)."""
         if not isinstance(state, self.state_type):
             raise TypeError(
                 f"state: expected a {self.state_type.__name__} (est.init), "
@@ -353,7 +387,16 @@ class SteppedEstimator(Estimator[Result]):
         self.check_psi(psi)
         x0, P0 = self.state_prior(state)
         inputs = prepare_inputs(
-            self.model, z, x0, P0, u=u, dt=dt, psi=psi, generator=generator, state_prior=True
+            self.model,
+            z,
+            x0,
+            P0,
+            u=u,
+            dt=dt,
+            psi=psi,
+            generator=generator,
+            state_prior=True,
+            keep=keep,
         )
         if state.single and not inputs.single and state.steps == 0:
             state = self.share(state, inputs)
@@ -362,6 +405,7 @@ class SteppedEstimator(Estimator[Result]):
             raise ValueError(f"z: expected shape {want} for this state, got {tuple(z.shape)}")
         with threads_for(inputs.batch, self.model.state_dim):
             state, result = self._scan(state, inputs)
+        result = trim(result, keep)
         return state, drop_batch(result) if inputs.single else result
 
     def step(

@@ -29,6 +29,10 @@ from torch import Tensor
 class FilterResult(NamedTuple):
     """What a Gaussian filter pass produced, enough for any smoother to run without re-filtering.
 
+    A call with ``keep="moments"`` (or ``"mean"``) keeps only ``mean`` and ``cov`` (or
+    ``mean``) of each step, and the log-likelihood: the other fields are ``None``
+    (:data:`torchsvs.estimator.KEEP`).
+
     Attributes:
         mean: filtered mean ``x̂_{t|t}``, ``[B, T, n]``.
         cov: filtered covariance ``P_{t|t}``, ``[B, T, n, n]``.

@@ -265,20 +265,24 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         # The per-axis kernel starts from a prior: any state without a corrector's memory or
         # earlier rows is one (a KF's chunks all run there; an SVSF's first chunk).
         fresh = state.steps == 0 or (state.post_innovation is None and state.history is None)
-        result = self._run_axes(inputs) if fresh else None
-        if result is None:
-            result = self._dense_scan(state, inputs)
-        if result is None:
-            result = self._loop(inputs, state.post_innovation, state.history)
+        by_axis = self._run_axes(inputs) if fresh else None
+        if by_axis is not None:
+            result, last = by_axis
+        else:
+            result = self._dense_scan(state, inputs) or self._loop(
+                inputs, state.post_innovation, state.history
+            )
+            post = result.post_innovation
+            last = fused.Last(
+                result.mean[:, -1], result.cov[:, -1], None if post is None else post[:, -1]
+            )
         loglik = result.log_likelihood
         if loglik is not None and state.log_likelihood is not None:
             loglik = state.log_likelihood + loglik
         after = FilterState(
-            mean=result.mean[:, -1],
-            cov=result.cov[:, -1],
-            post_innovation=None
-            if result.post_innovation is None
-            else result.post_innovation[:, -1],
+            mean=last.mean,
+            cov=last.cov,
+            post_innovation=last.post_innovation,
             log_likelihood=loglik,
             history=self.carried_history(state.history, inputs),
             steps=state.steps + inputs.steps,
@@ -547,10 +551,12 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             log_likelihood=None if loglik is None else loglik.sum(dim=1),
         )
 
-    def _run_axes(self, inputs: Inputs) -> FilterResult | None:
+    def _run_axes(self, inputs: Inputs) -> tuple[FilterResult, fused.Last] | None:
         """The pass through the per-axis kernel when the problem decouples by axis (a
         :class:`~torchsvs.models.ConstantVelocity` with diagonal ``R``, a prior without cross-axis
-        covariance, a position-only or a finite-difference-velocity corrector); else ``None``."""
+        covariance, a position-only or a finite-difference-velocity corrector), and the state
+        after its last step; else ``None``. Its compiled loop writes only what ``inputs.keep``
+        keeps."""
         model = self.model
         if not AXIS_KERNEL["enabled"] or self.axis_rule is None:
             return None
@@ -577,7 +583,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         interval = inputs.dt if inputs.dt is not None else torch.tensor(model.dt, dtype=dtype)
         settings = self.axis_settings(inputs)
         psi, gamma = settings if settings is not None else (None, None)
-        per_axis, out = axes.run_axes(
+        per_axis, out, last = axes.run_axes(
             y,
             (inputs.x0[:, pos], inputs.x0[:, vel]),
             prior,
@@ -587,7 +593,11 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             psi,
             gamma,
             with_velocity,
+            inputs.keep,
         )
+        if per_axis is None:  # only the kept moments were written
+            none = dict.fromkeys(("transition", "meas_matrix", "meas_cov"))
+            return FilterResult(**out._asdict(), **none), last
         F = model.transition(inputs.dt).to(dtype)  # Q is not part of a result
         if R_c is None:  # measured per axis: R (unmasked) from its diagonal blocks
             R_c = axes.block_diagonal(axes.full(axes.Sym2(*torch.broadcast_tensors(*y.noise))))
@@ -597,7 +607,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             meas_matrix=_as_result_matrix(H),
             meas_cov=_as_result_matrix(R_c),
             axes=per_axis,
-        )
+        ), last
 
     def axis_measurements(self, inputs: Inputs) -> axes.AxisMeasurements | None:
         """The corrector's full-state measurements built axis by axis, where a filter can

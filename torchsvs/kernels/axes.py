@@ -250,8 +250,12 @@ def run_axes(
     psi: Tensor | None = None,
     gamma: Tensor | None = None,
     velocity: bool = False,
-) -> tuple[AxisResult, Interleaved]:
-    """The forward pass of every axis, per axis and in the general layout.
+    keep: str = "all",
+) -> tuple[AxisResult | None, Interleaved, fused.Last]:
+    """The forward pass of every axis, per axis and in the general layout, and the state after
+    its last step. ``keep`` (:data:`torchsvs.estimator.KEEP`): ``"all"``, or the compiled loop
+    writes only the filtered moments (``"moments"``) or means (``"mean"``) of each step (the
+    other fields ``None``, no per-axis result); without gradients only (else it keeps all).
 
     Args:
         y: the corrector's measurements per axis.
@@ -291,11 +295,16 @@ def run_axes(
     if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
         inputs = (*raw, *prior)
         if torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma)):
-            outputs = _CompiledAxes.apply(rule, velocity, (B, steps, m), gamma, *inputs)
+            out = Interleaved(*_CompiledAxes.apply(rule, velocity, (B, steps, m), gamma, *inputs))
+            last = _last(out)
         else:
-            outputs = fused.forward(rule, float(gamma), raw, prior, (B, steps, m), velocity)
-        out = Interleaved(*outputs)
-        return per_axis(out, noise, T_all, velocity), out
+            outputs, last = fused.forward(
+                rule, float(gamma), raw, prior, (B, steps, m), velocity, keep
+            )
+            out = Interleaved(*outputs)
+            if keep != "all":
+                return None, out, last
+        return per_axis(out, noise, T_all, velocity), out, last
     seen_p, seen_v = ~torch.isnan(y.position), ~torch.isnan(y.velocity)
     R_all = _masked_noise(y.noise, seen_p, seen_v)
     inputs = given(
@@ -348,7 +357,14 @@ def run_axes(
         post_innovation=(mp, mv) if rule == "svsf" else None,
         log_likelihood=loglik,
     )
-    return res, interleaved(res, velocity)
+    out = interleaved(res, velocity)
+    return res, out, _last(out)
+
+
+def _last(out: Interleaved) -> fused.Last:
+    """The state after a whole-history pass's last step."""
+    post = out.post_innovation
+    return fused.Last(out.mean[:, -1], out.cov[:, -1], None if post is None else post[:, -1])
 
 
 class _CompiledAxes(torch.autograd.Function):
@@ -367,7 +383,7 @@ class _CompiledAxes(torch.autograd.Function):
         gamma: Tensor,
         *inputs: Tensor,
     ) -> tuple[Tensor | None, ...]:
-        out = fused.forward(rule, float(gamma), inputs[:11], inputs[11:], shape, velocity)
+        out, _ = fused.forward(rule, float(gamma), inputs[:11], inputs[11:], shape, velocity)
         ctx.settings = (rule, velocity, shape)
         ctx.save_for_backward(gamma, *inputs)
         ctx.mark_non_differentiable(out[-1])

@@ -63,11 +63,15 @@ void over_tracks(int64_t B, int threads, const Body& body) {
 
 // The outputs in the general layout (state p1, v1, p2, v2, ...; FilterResult's fields), each
 // contiguous [B, T, ...]; a track-step's record of every output is written in one go, so the
-// block-diagonal zeros cost no extra pass. `post` (SVSF) and `loglik` [B] (KF) may be null.
+// block-diagonal zeros cost no extra pass. Any per-step output may be null (not kept: the
+// estimators' `keep`); `post` is null for the KF and `loglik` [B] for the SVSF. The last
+// state (mean [B, n], cov [B, n, n], SVSF memory [B, m_z]; null: not wanted) is what a
+// filter's next chunk starts from when the history is not kept.
 template <typename R>
 struct Layout {
     R *mean, *cov, *pred_mean, *pred_cov, *innovation, *gain, *S, *post, *loglik;
     uint8_t* mask;
+    R *last_mean, *last_cov, *last_post;
 };
 
 // Writes an axis's two rows (2j, 2j + 1) of a block-diagonal n × n record: [[a, b], [c, d]]
@@ -285,41 +289,49 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                         // This track-step's records in the staging area: per output, its
                         // tracks' chunks one after the other, exactly as they are copied out.
                         const int64_t record = (bi - b0) * kChunk + (t - t0);
+                        // Outputs not kept have no staging area (null here).
                         auto at = [&](int o) {
-                            return staged.data() + block * kChunk * offsets[o] + record * sizes[o];
+                            return targets[o] ? staged.data() + block * kChunk * offsets[o] +
+                                                    record * sizes[o]
+                                              : nullptr;
                         };
                         R *mean = at(0), *cov = at(1), *pred_mean = at(2), *pred_cov = at(3);
-                        R *e = at(4), *K = at(5), *S = at(6);
-                        R* post = out.post ? at(7) : nullptr;
-                        uint8_t* mask = staged_mask.data() + record * mz;
+                        R *e = at(4), *K = at(5), *S = at(6), *post = at(7);
                         for (int64_t j = 0; j < m; ++j, ++l) {
                             R ka = r[kKa][l], kc = r[kKc][l], Sp = r[kSp][l];
-                            write_axis(mean, cov, n, j, r[kP][l], r[kV][l], r[kA][l], r[kB][l],
-                                       r[kC][l]);
-                            write_axis(pred_mean, pred_cov, n, j, r[kPp][l], r[kVp][l], r[kA1][l],
-                                       r[kB1][l], r[kC1][l]);
+                            if (mean) mean[2 * j] = r[kP][l], mean[2 * j + 1] = r[kV][l];
+                            if (cov) block_rows(cov, n, j, r[kA][l], r[kB][l], r[kB][l], r[kC][l]);
+                            if (pred_mean)
+                                pred_mean[2 * j] = r[kPp][l], pred_mean[2 * j + 1] = r[kVp][l];
+                            if (pred_cov)
+                                block_rows(pred_cov, n, j, r[kA1][l], r[kB1][l], r[kB1][l],
+                                           r[kC1][l]);
                             if (velocity) {
-                                e[2 * j] = r[kEp][l], e[2 * j + 1] = r[kEv][l];
-                                block_rows(K, n, j, ka, R(0), kc, r[kKd][l]);
-                                block_rows(S, n, j, Sp, r[kSpv][l], r[kSpv][l], r[kSv][l]);
+                                if (e) e[2 * j] = r[kEp][l], e[2 * j + 1] = r[kEv][l];
+                                if (K) block_rows(K, n, j, ka, R(0), kc, r[kKd][l]);
+                                if (S) block_rows(S, n, j, Sp, r[kSpv][l], r[kSpv][l], r[kSv][l]);
                                 if (post) post[2 * j] = r[kMemP][l], post[2 * j + 1] = r[kMemV][l];
                             } else {  // position columns j: K[2j][j], K[2j + 1][j]; S diagonal
-                                e[j] = r[kEp][l];
-                                for (int64_t col = 0; col < m; ++col) {
+                                if (e) e[j] = r[kEp][l];
+                                for (int64_t col = 0; col < m && K; ++col) {
                                     K[2 * j * m + col] = col == j ? ka : R(0);
                                     K[(2 * j + 1) * m + col] = col == j ? kc : R(0);
-                                    S[j * m + col] = col == j ? Sp : R(0);
                                 }
+                                for (int64_t col = 0; col < m && S; ++col)
+                                    S[j * m + col] = col == j ? Sp : R(0);
                                 if (post) post[j] = r[kMemP][l];
                             }
                         }
                         // Last: a byte store may alias anything, so nothing is reloaded after.
-                        for (int64_t j = 0, lj = l - m; j < m; ++j, ++lj) {
-                            if (velocity) {
-                                mask[2 * j] = r[kSeenP][lj] > 0;
-                                mask[2 * j + 1] = r[kSeenV][lj] > 0;
-                            } else {
-                                mask[j] = r[kSeenP][lj] > 0;
+                        if (out.mask) {
+                            uint8_t* mask = staged_mask.data() + record * mz;
+                            for (int64_t j = 0, lj = l - m; j < m; ++j, ++lj) {
+                                if (velocity) {
+                                    mask[2 * j] = r[kSeenP][lj] > 0;
+                                    mask[2 * j + 1] = r[kSeenV][lj] > 0;
+                                } else {
+                                    mask[j] = r[kSeenP][lj] > 0;
+                                }
                             }
                         }
                     }
@@ -333,10 +345,23 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                                         (bi - b0) * kChunk * sizes[o];
                         std::copy_n(from, steps * sizes[o], targets[o] + (bi * T + t0) * sizes[o]);
                     }
-                    std::copy_n(staged_mask.data() + (bi - b0) * kChunk * mz, steps * mz,
-                                out.mask + (bi * T + t0) * mz);
+                    if (out.mask)
+                        std::copy_n(staged_mask.data() + (bi - b0) * kChunk * mz, steps * mz,
+                                    out.mask + (bi * T + t0) * mz);
                 }
             }
+            for (int64_t bi = b0, l = 0; bi < b1; ++bi)  // the state after the last step
+                for (int64_t j = 0; j < m; ++j, ++l) {
+                    if (out.last_mean)
+                        write_axis(out.last_mean + bi * n, out.last_cov + bi * n * n, n, j,
+                                   r[kP][l], r[kV][l], r[kA][l], r[kB][l], r[kC][l]);
+                    if (!out.last_post) continue;
+                    R* last_post = out.last_post + bi * mz;
+                    if (velocity)
+                        last_post[2 * j] = r[kMemP][l], last_post[2 * j + 1] = r[kMemV][l];
+                    else
+                        last_post[j] = r[kMemP][l];
+                }
             if (out.loglik)
                 for (int64_t bi = b0, l = 0; bi < b1; ++bi) {
                     double total = 0;
@@ -362,7 +387,7 @@ void forward_axes(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int th
         forward<R, Rule, 0>(B, T, m, velocity, gamma, threads, in, s, prior, ps, out);
 }
 
-// forward's entry: the output pointers `o` in Layout's order (post and loglik may be null).
+// forward's entry: the output pointers `o` in Layout's order (13; see Layout for the nulls).
 template <typename R>
 void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, double gamma,
                    int threads, const void* const* in, const int64_t* s, const void* const* prior,
@@ -370,7 +395,8 @@ void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, doub
     Layout<R> out{static_cast<R*>(o[0]), static_cast<R*>(o[1]), static_cast<R*>(o[2]),
                   static_cast<R*>(o[3]), static_cast<R*>(o[4]), static_cast<R*>(o[5]),
                   static_cast<R*>(o[6]), static_cast<R*>(o[7]), static_cast<R*>(o[8]),
-                  static_cast<uint8_t*>(o[9])};
+                  static_cast<uint8_t*>(o[9]), static_cast<R*>(o[10]), static_cast<R*>(o[11]),
+                  static_cast<R*>(o[12])};
     R g = static_cast<R>(gamma);
     if (rule == 0)
         forward_axes<R, 0>(B, T, m, velocity, g, threads, in, s, prior, ps, out);

@@ -41,7 +41,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -230,6 +230,14 @@ def _pointers(tensors: Sequence[Tensor | None]) -> ctypes.Array[ctypes.c_void_p]
     return (ctypes.c_void_p * len(tensors))(*(None if x is None else x.data_ptr() for x in tensors))
 
 
+class Last(NamedTuple):
+    """The state after a pass's last step (what its next chunk starts from)."""
+
+    mean: Tensor  #: [B, n]
+    cov: Tensor  #: [B, n, n]
+    post_innovation: Tensor | None  #: [B, m_z] (SVSF), else None
+
+
 def forward(
     rule: str,
     gamma: float,
@@ -237,9 +245,8 @@ def forward(
     prior: Sequence[Tensor],
     shape: tuple[int, int, int],
     velocity: bool,
-) -> tuple[
-    Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor
-]:
+    keep: str = "all",
+) -> tuple[tuple[Tensor | None, ...], Last]:
     """The loop of :func:`torchsvs.kernels.axes._forward_step` over all steps, writing the
     general layout (state ``p1, v1, p2, ...``): ``given`` the 11 per-step quantities ``T, Qa,
     Qb, Qc, y_p, y_v`` (NaN: missing), ``r_pp, r_pv, r_vv`` (unmasked), ``w_p, w_v``
@@ -247,21 +254,29 @@ def forward(
     corrector measures velocities (``m_z = 2m``), else positions (``m_z = m``). Returns the mean
     ``[B, T, 2m]``, covariance, predicted mean and covariance, innovation ``[B, T, m_z]``, gain
     ``[B, T, 2m, m_z]``, ``S``, the a-posteriori innovation (SVSF, else ``None``), the
-    log-likelihood ``[B]`` (Kalman, else ``None``) and the observed mask ``[B, T, m_z]``."""
+    log-likelihood ``[B]`` (Kalman, else ``None``) and the observed mask ``[B, T, m_z]`` (the
+    per-step outputs that ``keep`` (:data:`torchsvs.estimator.KEEP`) leaves out are ``None``,
+    never written), and the state after the last step."""
     B, T, m = shape
     n, mz = 2 * m, 2 * m if velocity else m
     dtype = prior[0].dtype
     svsf = rule != "kalman"
-    shapes = ((n,), (n, n), (n,), (n, n), (mz,), (n, mz), (mz, mz))
-    mean, cov, pred_mean, pred_cov, innovation, gain, S = (
-        fresh((B, T, *tail), dtype) for tail in shapes
-    )
-    post = fresh((B, T, mz), dtype) if svsf else None
+    kept = {"all": 10, "moments": 2, "mean": 1}[keep]
+    shapes = ((n,), (n, n), (n,), (n, n), (mz,), (n, mz), (mz, mz), (mz,))
+    per_step: list[Tensor | None] = [
+        fresh((B, T, *tail), dtype) if i < kept and (svsf or i < 7) else None
+        for i, tail in enumerate(shapes)
+    ]
     loglik = None if svsf else torch.empty(B, dtype=dtype)
-    mask = fresh((B, T, mz), torch.bool)
-    outputs = (mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask)
+    mask = fresh((B, T, mz), torch.bool) if keep == "all" else None
+    last = Last(
+        torch.empty(B, n, dtype=dtype),
+        torch.empty(B, n, n, dtype=dtype),
+        torch.empty(B, mz, dtype=dtype) if svsf else None,
+    )
+    outputs = (*per_step, loglik, mask, *last)
     _forward_loop("forward", rule, gamma, given, prior, shape, velocity, _pointers(outputs))
-    return mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, mask
+    return (*per_step, loglik, mask), last
 
 
 def _forward_loop(

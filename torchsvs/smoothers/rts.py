@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, NamedTuple
 
 import torch
@@ -139,7 +140,8 @@ class RTSSmoother(Estimator[SmootherResult]):
         return self.filter.model
 
     def run(self, inputs: Inputs) -> SmootherResult:
-        return self.smooth(self.filter.run(inputs))
+        # The smoother reads the filter's whole record, whatever the caller keeps of its own.
+        return self.smooth(self.filter.run(replace(inputs, keep="all")))
 
     # --- Online fixed-lag smoothing: the filter steps, and x̂_{t-L|t} as measurements arrive. ---
 
