@@ -596,7 +596,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             inputs.keep,
         )
         if per_axis is None:  # only the kept moments were written
-            none = dict.fromkeys(("transition", "meas_matrix", "meas_cov"))
+            none: dict[str, Any] = dict.fromkeys(("transition", "meas_matrix", "meas_cov"))
             return FilterResult(**out._asdict(), **none), last
         F = model.transition(inputs.dt).to(dtype)  # Q is not part of a result
         if R_c is None:  # measured per axis: R (unmasked) from its diagonal blocks

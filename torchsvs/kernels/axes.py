@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -301,7 +301,7 @@ def run_axes(
             outputs, last = fused.forward(
                 rule, float(gamma), raw, prior, (B, steps, m), velocity, keep
             )
-            out = Interleaved(*outputs)
+            out = Interleaved(*cast(Any, outputs))  # the fields not kept are None
             if keep != "all":
                 return None, out, last
         return per_axis(out, noise, T_all, velocity), out, last
