@@ -166,3 +166,39 @@ def test_reference_paths_agree_when_keeping_less():
             general = svss(z, x0, P0, dt=dt, keep="moments")
     for other in (eager, general):
         _check(other, compiled, "moments", {"atol": 1e-9, "rtol": 1e-9})
+
+
+@needs_compiler
+@pytest.mark.parametrize("keep", KEEPS)
+@pytest.mark.parametrize("case", ["KF dense", "SVSF CV"])
+@pytest.mark.parametrize("single", [False, True], ids=["batch", "one track"])
+def test_online_steps_keep_what_is_asked(case, keep, single, spy):  # noqa: F811
+    """An online step keeping less writes less (the compiled dense step) and gives the whole
+    step's moments; the states, which carry the filter on, are whole."""
+    dense = random_system(3, 2, T=25, B=3)
+    z, x0, P0 = dense.tensors()
+    z = z.clone()
+    z[:, 4] = float("nan")  # a pure prediction
+    z[1, 7:9, 0] = float("nan")  # a component missing
+    x0 = x0.expand(3, -1)
+    est = ts.KalmanFilter(dense.model())
+    if case == "SVSF CV":
+        cv = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0])
+        est = ts.SVSF(cv, psi=[3.0, 2.0], gamma=0.2, artificial=None)
+        x0, P0 = x0.new_zeros(3, 4), torch.eye(4, dtype=x0.dtype) * 5
+    est = est.double()
+    if single:
+        z, x0 = z[0], x0[0]
+        P0 = P0[0] if P0.ndim == 3 else P0
+    with torch.no_grad():
+        whole_state, trimmed_state = est.init(x0, P0), est.init(x0, P0)
+        for t in range(z.shape[-2]):
+            whole_state, whole = est.step(whole_state, z[..., t, :])
+            trimmed_state, trimmed = est.step(trimmed_state, z[..., t, :], keep=keep)
+            _check(trimmed, whole, keep, {"atol": 0.0, "rtol": 0.0})
+            for name in ("mean", "cov", "post_innovation", "log_likelihood"):
+                a, b = getattr(trimmed_state, name), getattr(whole_state, name)
+                assert (a is None) == (b is None), name
+                if a is not None:
+                    assert_close(a, b, atol=0.0, rtol=0.0, msg=name)
+    assert spy["dense"] == 2 * z.shape[-2]

@@ -19,7 +19,7 @@ def _problem(seed=0, B=3, T=30, missing=0.2):
     z = torch.randn(B, T, 2, generator=gen, dtype=torch.float64) * 3
     z = z + torch.arange(T, dtype=torch.float64)[None, :, None] * torch.tensor([2.0, -1.0])
     z[torch.rand(B, T, 2, generator=gen) < missing] = float("nan")
-    z[:, 7] = float("nan")
+    z[:, 7:8] = float("nan")
     dt = torch.rand(B, T, generator=gen, dtype=torch.float64) + 0.5
     x0 = torch.randn(B, 4, generator=gen, dtype=torch.float64)
     P0 = torch.diag(torch.tensor([9.0, 2.0, 9.0, 2.0], dtype=torch.float64)).repeat(B, 1, 1)
@@ -32,12 +32,14 @@ def _estimators(model):
     return {
         "KF": ts.KalmanFilter(model),
         "KS": ts.RTSSmoother(ts.KalmanFilter(model)),
+        "KS lag 1": ts.RTSSmoother(ts.KalmanFilter(model), lag=1),
         "KS lag 2": ts.RTSSmoother(ts.KalmanFilter(model), lag=2),
         "SVSF": ts.SVSF(model, psi=fd, gamma=0.2),
         "SVSF H+": ts.SVSF(model, psi=hplus, gamma=0.2, artificial=None),
         "SVSF adjacent": ts.SVSF(
             model, psi=fd, gamma=0.2, artificial=ts.FiniteDifferenceVelocity(bridge_gaps=False)
         ),
+        "SVSS lag 1": ts.SVSS(ts.SVSF(model, psi=fd, gamma=0.2), lag=1),
         "SVSS lag 2": ts.SVSS(ts.SVSF(model, psi=fd, gamma=0.2), lag=2),
         "SVSS H+ lag 3": ts.SVSS(ts.SVSF(model, psi=hplus, gamma=0.2, artificial=None), lag=3),
         "SVSS interval": ts.SVSS(ts.SVSF(model, psi=fd, gamma=0.2), lag=None),
@@ -219,7 +221,8 @@ def test_compiled_loops_equal_tensor_loops(name, dtype, spy):
     with torch.no_grad():
         compiled = est(z, x0, P0, dt=dt)
         assert spy["forward"] == 1
-        assert spy["backward"] == (1 if isinstance(est, ts.RTSSmoother) else 0)
+        # lag 1 runs inside the forward loop; other smoothers over its record
+        assert spy["backward"] == int(isinstance(est, ts.RTSSmoother) and est.lag != 1)
         with eager_loops():
             eager = est(z, x0, P0, dt=dt)
     assert spy["forward"] == 1
@@ -305,7 +308,82 @@ def test_compiled_loops_take_per_step_psi_and_lags_beyond_the_track(spy):
                 general = svss(z, x0, P0, dt=dt, psi=psi)
         assert_close(compiled.mean, general.mean, atol=1e-9)
         assert_close(compiled.cov, general.cov, atol=1e-9)
-    assert spy["forward"] == 3 and spy["backward"] == 3
+    assert spy["forward"] == 3 and spy["backward"] == 2  # lag 1 smooths in the forward loop
+
+
+LAG_ONE = {
+    "KS": lambda model: ts.RTSSmoother(ts.KalmanFilter(model), lag=1),
+    "SVSTPS": lambda model: ts.RTSSmoother(ts.SVSF(model, psi=[3.0, 2.0], artificial=None), lag=1),
+    "SVSS H+": lambda model: ts.SVSS(ts.SVSF(model, psi=[3.0, 4.0], gamma=0.2, artificial=None)),
+    "SVSS": lambda model: ts.SVSS(ts.SVSF(model, psi=[3.0, 2.0, 4.0, 1.5], gamma=0.2)),
+}
+
+
+@needs_compiler
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("name", list(LAG_ONE))
+def test_lag_one_smoothing_in_the_forward_loop_equals_the_backward_pass(name, dtype, spy):
+    """A one-step-lag smoother runs inside the compiled forward loop (each step smooths the one
+    before it from the lanes' registers) and gives exactly what the backward pass over the
+    stored record gives: every track of a batch wider than a block of lanes, steps across
+    the loop's chunk boundaries, gaps, per-step intervals, tracks of one and two steps, and
+    whatever the call keeps."""
+    model = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0]).to(dtype)
+    est = LAG_ONE[name](model).to(dtype)
+    for B, T in ((70, 40), (3, 1), (3, 2), (40, 17)):
+        z, dt, x0, P0 = (x.to(dtype) for x in _problem(seed=T, B=B, T=T))
+        with torch.no_grad():
+            record = est.filter(z, x0, P0, dt=dt)
+            calls = spy["backward"]
+            reference = est.smooth(record)
+            assert spy["backward"] == calls + (T > 1)
+            # The same recursion to the bit; over two steps the RTS's backward pass is Eq. (17)
+            close = 1e-12 if dtype == torch.float64 else 1e-5
+            same = est.projection_gain or T != 2
+            tol = {"atol": 0, "rtol": 0} if same else {"atol": close, "rtol": close}
+            for keep in ("all", "moments", "mean"):
+                fused_pass = est(z, x0, P0, dt=dt, keep=keep)
+                assert spy["backward"] == calls + (T > 1), "the smoothing ran in the forward loop"
+                assert_close(fused_pass.mean, reference.mean, **tol)
+                if keep != "mean":
+                    assert_close(fused_pass.cov, reference.cov, **tol)
+                    assert_close(fused_pass.filtered.cov, record.cov, atol=0, rtol=0)
+                assert_close(fused_pass.filtered.mean, record.mean, atol=0, rtol=0)
+                if keep == "all":
+                    for key in FIELDS:
+                        a, b = getattr(fused_pass.filtered, key), getattr(record, key)
+                        if a is not None:
+                            assert_close(a, b, atol=0, rtol=0, msg=key)
+
+
+@needs_compiler
+def test_lag_one_smoothing_in_the_forward_loop_on_threads(spy, on_two_threads):
+    """Tracks split over threads smooth in the forward loop like one thread does."""
+    z, dt, x0, P0 = _problem(seed=11, B=1100, T=100, missing=0.1)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    svss = LAG_ONE["SVSS"](model).double()
+    with torch.no_grad():
+        whole = svss(z, x0, P0, dt=dt)
+        reference = svss.smooth(svss.filter(z, x0, P0, dt=dt))
+    assert_close(whole.mean, reference.mean, atol=0, rtol=0)
+    assert_close(whole.cov, reference.cov, atol=0, rtol=0)
+    assert spy["forward"] == 2 and spy["backward"] == 1
+    assert on_two_threads == [2] * 3
+
+
+@needs_compiler
+def test_lag_one_smoothing_with_gradients_takes_the_backward_pass(spy):
+    """Training keeps the smoother's own compiled pass (it has a reverse mode): the fused one
+    runs without gradients only, and both give the same numbers."""
+    z, dt, x0, P0 = _problem(seed=12, B=5, T=30)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    svss = LAG_ONE["SVSS"](model).double()
+    trained = svss(z, x0, P0, dt=dt)
+    assert spy["backward"] == 1 and trained.mean.requires_grad  # the smoother's own pass
+    with torch.no_grad():
+        inferred = svss(z, x0, P0, dt=dt)
+    assert_close(trained.mean.detach(), inferred.mean, atol=1e-12, rtol=0)
+    assert_close(trained.cov.detach(), inferred.cov, atol=1e-12, rtol=0)
 
 
 def _gradients(est, dtype, z, dt, x0, P0):
@@ -551,6 +629,15 @@ def test_the_library_builds_into_the_cache(tmp_path, monkeypatch):
     assert fused.library() is not None, fused.failure()
     assert len(list(tmp_path.glob("fused-*.so"))) == 1
     assert fused.BUILD["seconds"] > 0
+
+
+@needs_compiler
+def test_a_compiler_that_refuses_the_native_flags_builds_the_plain_library(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHSVS_CACHE", str(tmp_path))
+    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
+    monkeypatch.setattr(fused, "NATIVE", ("-fno-such-option-anywhere",))
+    assert fused.library() is not None, fused.failure()
+    assert len(list(tmp_path.glob("fused-*.so"))) == 1
 
 
 def _dense_problem(seed: int, B: int = 3, T: int = 30):

@@ -128,9 +128,13 @@ def prepare_inputs(
             raise ValueError("psi: expected finite boundary layer widths > 0")
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
+    check_keep(keep)
+    return Inputs(zb, x0, P0, dt_t, u_t, psi_t, generator, single, keep)
+
+
+def check_keep(keep: Any) -> None:
     if not isinstance(keep, str) or keep not in KEEP:
         raise ValueError(f"keep: expected one of {', '.join(map(repr, KEEP))}, got {keep!r}")
-    return Inputs(zb, x0, P0, dt_t, u_t, psi_t, generator, single, keep)
 
 
 def _check_prior(
@@ -417,16 +421,17 @@ class SteppedEstimator(Estimator[Result]):
         dt: float | Tensor | None = None,
         psi: Tensor | None = None,
         generator: torch.Generator | None = None,
+        keep: str = "all",
     ) -> tuple[Any, Result]:
         """One step for ``z [B, m]`` (``[m]`` for one track; NaN: missing): the new state and the
         step's result (the result's fields without the time axis). ``dt`` a scalar or ``[B]``,
-        ``u [B, p]``, ``psi [B, m']``."""
+        ``u [B, p]``, ``psi [B, m']``; ``keep`` as for :meth:`forward` (the state is whole)."""
         if not isinstance(z, Tensor):
             raise TypeError(f"z: expected a tensor [B, m] or [m], got {type(z).__name__}")
-        if u is None and dt is None:
-            shortcut = self.step_shortcut(state, z, psi)
+        if u is None and dt is None and keep in KEEP:
+            shortcut = self.step_shortcut(state, z, psi, keep)
             if shortcut is not None:
-                return shortcut
+                return shortcut[0], trim(shortcut[1], keep)
 
         def one_step(x: Any) -> Any:
             return x.unsqueeze(-2) if isinstance(x, Tensor) and x.ndim >= 1 else x
@@ -434,11 +439,19 @@ class SteppedEstimator(Estimator[Result]):
         if isinstance(dt, Tensor) and dt.ndim == 1 and z.ndim == 2:
             dt = dt.unsqueeze(-1)
         state, result = self.scan(
-            state, one_step(z), u=one_step(u), dt=dt, psi=one_step(psi), generator=generator
+            state,
+            one_step(z),
+            u=one_step(u),
+            dt=dt,
+            psi=one_step(psi),
+            generator=generator,
+            keep=keep,
         )
         return state, at_step(result, 0, time_axis=0 if state.single else 1)
 
-    def step_shortcut(self, state: Any, z: Tensor, psi: Tensor | None) -> tuple[Any, Result] | None:
+    def step_shortcut(
+        self, state: Any, z: Tensor, psi: Tensor | None, keep: str
+    ) -> tuple[Any, Result] | None:
         """A faster way to the same :meth:`step` (the model's own interval, no input), or
         ``None``: then, and for every error message, the step runs as a one-step :meth:`scan`."""
         return None

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from dataclasses import replace
+from typing import Any, NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -267,7 +268,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         fresh = state.steps == 0 or (state.post_innovation is None and state.history is None)
         by_axis = self._run_axes(inputs) if fresh else None
         if by_axis is not None:
-            result, last = by_axis
+            result, last, _ = by_axis
         else:
             result = self._dense_scan(state, inputs) or self._loop(
                 inputs, state.post_innovation, state.history
@@ -356,11 +357,13 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         memory: Tensor | None,
         psi: Tensor | None,
         lead: tuple[int, ...],
+        keep: str,
     ) -> FilterResult | None:
         """:func:`~torchsvs.kernels.fused.dense_run` from ``x [B, n]``, ``P [B|1, n, n]`` over
         ``z`` (``[B, T, m]``, or one step ``[B, m]``/``[m]``), as a result with the leading
-        shape ``lead`` (its log-likelihood per step); ``None`` where it could not run (an
-        infinity in ``z``, ``S`` not positive definite)."""
+        shape ``lead`` (its log-likelihood per step) keeping what ``keep`` keeps (and the SVSF
+        memory); ``None`` where it could not run (an infinity in ``z``, ``S`` not positive
+        definite)."""
         rule = self.dense_rule
         assert rule is not None
         B, n = x.shape
@@ -378,14 +381,20 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             widths,
             constants.matrices,
             lead,
+            keep,
         )
         if out is None:
             return None
-        mean, cov, x_pred, P_pred, e, K, S, loglik, e_post, seen = out
+        # The fields not kept are None (FilterResult's doc says so).
+        mean, cov, x_pred, P_pred, e, K, S, loglik, e_post, seen = cast(Any, out)
         kalman = rule == "kalman"
-        F, _, H, R = constants.matrices.tensors
-        if lead:  # the run's matrices, broadcast over the leading axes
-            F, H, R = (A.view((1,) * len(lead) + A.shape) for A in (F, H, R))
+        F: Any = None
+        H: Any = None
+        R: Any = None
+        if keep == "all":
+            F, _, H, R = constants.matrices.tensors
+            if lead:  # the run's matrices, broadcast over the leading axes
+                F, H, R = (A.view((1,) * len(lead) + A.shape) for A in (F, H, R))
         return FilterResult(
             mean=mean,
             cov=cov,
@@ -422,14 +431,21 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return None
         x0 = inputs.x0.expand(B, self.model.state_dim)
         result = self._dense_call(
-            constants, x0, inputs.P0, inputs.z, state.post_innovation, inputs.psi, (B, T)
+            constants,
+            x0,
+            inputs.P0,
+            inputs.z,
+            state.post_innovation,
+            inputs.psi,
+            (B, T),
+            inputs.keep,
         )
         if result is None or result.log_likelihood is None:
             return result
         return result._replace(log_likelihood=result.log_likelihood.sum(1))
 
     def step_shortcut(
-        self, state: Any, z: Tensor, psi: Tensor | None
+        self, state: Any, z: Tensor, psi: Tensor | None, keep: str
     ) -> tuple[FilterState, FilterResult] | None:
         # An online step on a linear model without gradients runs compiled (the same numbers
         # up to rounding); anything else takes the one-step scan.
@@ -450,7 +466,9 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if constants is None:
             return None
         lead = () if single else (B,)
-        result = self._dense_call(constants, x, state.cov, z, state.post_innovation, psi, lead)
+        result = self._dense_call(
+            constants, x, state.cov, z, state.post_innovation, psi, lead, keep
+        )
         if result is None:
             return None  # inf in z, or S not positive definite: the scan says or copes
         mean, cov, memory, total = (
@@ -551,12 +569,27 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             log_likelihood=None if loglik is None else loglik.sum(dim=1),
         )
 
-    def _run_axes(self, inputs: Inputs) -> tuple[FilterResult, fused.Last] | None:
+    def smoother_pass(
+        self, inputs: Inputs, smoothing: str | None = None
+    ) -> tuple[FilterResult, tuple[Tensor, Tensor] | None]:
+        """The pass a smoother consumes: the whole record (whatever the caller keeps), or,
+        with ``smoothing`` (``"gain"``: RTS, ``"projection"``: SVSS) where the per-axis compiled
+        loop runs without gradients, the one-step-lag smoothed mean and covariance computed in
+        that loop beside a record that keeps what ``inputs.keep`` keeps."""
+        if smoothing is not None:
+            by_axis = self._run_axes(inputs, smoothing)
+            if by_axis is not None:  # without the fused smoothing the record is whole
+                return by_axis[0], by_axis[2]
+        return self.run(replace(inputs, keep="all")), None
+
+    def _run_axes(
+        self, inputs: Inputs, smoothing: str | None = None
+    ) -> tuple[FilterResult, fused.Last, tuple[Tensor, Tensor] | None] | None:
         """The pass through the per-axis kernel when the problem decouples by axis (a
         :class:`~torchsvs.models.ConstantVelocity` with diagonal ``R``, a prior without cross-axis
-        covariance, a position-only or a finite-difference-velocity corrector), and the state
-        after its last step; else ``None``. Its compiled loop writes only what ``inputs.keep``
-        keeps."""
+        covariance, a position-only or a finite-difference-velocity corrector), the state
+        after its last step and the smoothed moments asked for (:func:`axes.run_axes`); else
+        ``None``. Its compiled loop writes only what ``inputs.keep`` keeps."""
         model = self.model
         if not AXIS_KERNEL["enabled"] or self.axis_rule is None:
             return None
@@ -583,7 +616,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         interval = inputs.dt if inputs.dt is not None else torch.tensor(model.dt, dtype=dtype)
         settings = self.axis_settings(inputs)
         psi, gamma = settings if settings is not None else (None, None)
-        per_axis, out, last = axes.run_axes(
+        per_axis, out, last, smoothed = axes.run_axes(
             y,
             (inputs.x0[:, pos], inputs.x0[:, vel]),
             prior,
@@ -594,20 +627,25 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             gamma,
             with_velocity,
             inputs.keep,
+            smoothing,
         )
         if per_axis is None:  # only the kept moments were written
             none: dict[str, Any] = dict.fromkeys(("transition", "meas_matrix", "meas_cov"))
-            return FilterResult(**out._asdict(), **none), last
+            return FilterResult(**out._asdict(), **none), last, smoothed
         F = model.transition(inputs.dt).to(dtype)  # Q is not part of a result
         if R_c is None:  # measured per axis: R (unmasked) from its diagonal blocks
             R_c = axes.block_diagonal(axes.full(axes.Sym2(*torch.broadcast_tensors(*y.noise))))
-        return FilterResult(
-            **out._asdict(),
-            transition=_as_result_matrix(F),
-            meas_matrix=_as_result_matrix(H),
-            meas_cov=_as_result_matrix(R_c),
-            axes=per_axis,
-        ), last
+        return (
+            FilterResult(
+                **out._asdict(),
+                transition=_as_result_matrix(F),
+                meas_matrix=_as_result_matrix(H),
+                meas_cov=_as_result_matrix(R_c),
+                axes=per_axis,
+            ),
+            last,
+            smoothed,
+        )
 
     def axis_measurements(self, inputs: Inputs) -> axes.AxisMeasurements | None:
         """The corrector's full-state measurements built axis by axis, where a filter can

@@ -10,7 +10,10 @@ which on a CPU cost far more per element than the arithmetic. Results are exactl
 path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves. The forward
 loop runs compiled (:mod:`torchsvs.kernels.fused`, the same formulas in C++), with gradients
 through its compiled reverse mode (:class:`_CompiledAxes`); so does the smoother's general
-recursion (:class:`_CompiledSmoother`). The tensor loops below are the reference, the
+recursion (:class:`_CompiledSmoother`). Without gradients a one-step-lag smoother (the
+paper's KS, SVSTPS and SVSS) needs no pass of its own: the compiled forward loop smooths step
+``k`` as soon as step ``k + 1`` is done (:func:`run_axes` with ``smoothing``), so the filter's
+record need not be written and read back. The tensor loops below are the reference, the
 fallback without a compiler, and the path for higher derivatives.
 
 Every axis has a two-component corrector measurement :math:`y = (y_p, y_v)` with ``H = I``;
@@ -240,6 +243,17 @@ def _time_major(x: Tensor) -> Tensor:
     return x if x.ndim <= 1 else x.transpose(0, 1).contiguous()
 
 
+class AxesPass(NamedTuple):
+    """What :func:`run_axes` gives."""
+
+    per_axis: AxisResult | None  #: the pass per axis (None: only the kept moments written)
+    out: Interleaved  #: the pass in the general layout
+    last: fused.Last  #: the state after the last step
+    #: the one-step-lag smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m], when asked for
+    #: and computed in the compiled loop
+    smoothed: tuple[Tensor, Tensor] | None = None
+
+
 def run_axes(
     y: AxisMeasurements,
     x0: tuple[Tensor, Tensor],
@@ -251,11 +265,15 @@ def run_axes(
     gamma: Tensor | None = None,
     velocity: bool = False,
     keep: str = "all",
-) -> tuple[AxisResult | None, Interleaved, fused.Last]:
+    smoothing: str | None = None,
+) -> AxesPass:
     """The forward pass of every axis, per axis and in the general layout, and the state after
     its last step. ``keep`` (:data:`torchsvs.estimator.KEEP`): ``"all"``, or the compiled loop
     writes only the filtered moments (``"moments"``) or means (``"mean"``) of each step (the
     other fields ``None``, no per-axis result); without gradients only (else it keeps all).
+    ``smoothing`` (``"gain"``: RTS, ``"projection"``: SVSS): the compiled loop also gives the
+    one-step-lag smoothed moments (:func:`fused.forward`), without gradients only (else
+    ``smoothed`` is ``None`` and the pass keeps all, for :func:`smooth_axes`).
 
     Args:
         y: the corrector's measurements per axis.
@@ -297,14 +315,15 @@ def run_axes(
         if torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma)):
             out = Interleaved(*_CompiledAxes.apply(rule, velocity, (B, steps, m), gamma, *inputs))
             last = _last(out)
+            smoothed = None
         else:
-            outputs, last = fused.forward(
-                rule, float(gamma), raw, prior, (B, steps, m), velocity, keep
+            outputs, last, smoothed = fused.forward(
+                rule, float(gamma), raw, prior, (B, steps, m), velocity, keep, smoothing
             )
             out = Interleaved(*cast(Any, outputs))  # the fields not kept are None
             if keep != "all":
-                return None, out, last
-        return per_axis(out, noise, T_all, velocity), out, last
+                return AxesPass(None, out, last, smoothed)
+        return AxesPass(per_axis(out, noise, T_all, velocity), out, last, smoothed)
     seen_p, seen_v = ~torch.isnan(y.position), ~torch.isnan(y.velocity)
     R_all = _masked_noise(y.noise, seen_p, seen_v)
     inputs = given(
@@ -358,7 +377,7 @@ def run_axes(
         log_likelihood=loglik,
     )
     out = interleaved(res, velocity)
-    return res, out, _last(out)
+    return AxesPass(res, out, _last(out))
 
 
 def _last(out: Interleaved) -> fused.Last:
@@ -383,7 +402,7 @@ class _CompiledAxes(torch.autograd.Function):
         gamma: Tensor,
         *inputs: Tensor,
     ) -> tuple[Tensor | None, ...]:
-        out, _ = fused.forward(rule, float(gamma), inputs[:11], inputs[11:], shape, velocity)
+        out, _, _ = fused.forward(rule, float(gamma), inputs[:11], inputs[11:], shape, velocity)
         ctx.settings = (rule, velocity, shape)
         ctx.save_for_backward(gamma, *inputs)
         ctx.mark_non_differentiable(out[-1])

@@ -67,11 +67,19 @@ void over_tracks(int64_t B, int threads, const Body& body) {
 // estimators' `keep`); `post` is null for the KF and `loglik` [B] for the SVSF. The last
 // state (mean [B, n], cov [B, n, n], SVSF memory [B, m_z]; null: not wanted) is what a
 // filter's next chunk starts from when the history is not kept.
+//
+// With `smoothing` (1: Γ = K, the RTS; 2: Γ = P Hᵀ S⁻¹, the SVSS) the loop also writes the
+// one-step-lag smoothed moments x̂_{k|k+1}, P_{k|k+1} (smooth_mean [B, T, n], smooth_cov
+// [B, T, n, n]; the last step as filtered): what `backward` with lag 1 gives from the written
+// record, computed from the lanes' registers as each step completes, so the record need not be
+// written or read back.
 template <typename R>
 struct Layout {
     R *mean, *cov, *pred_mean, *pred_cov, *innovation, *gain, *S, *post, *loglik;
     uint8_t* mask;
     R *last_mean, *last_cov, *last_post;
+    R *smooth_mean, *smooth_cov;
+    int smoothing;
 };
 
 // Writes an axis's two rows (2j, 2j + 1) of a block-diagonal n × n record: [[a, b], [c, d]]
@@ -195,6 +203,171 @@ inline void step_lanes(int64_t lanes, R gamma, const R (*g)[kLanes], R (*r)[kLan
     }
 }
 
+template <typename R>
+struct M2 {
+    R a, b, c, d;
+};
+
+template <typename R>
+inline M2<R> mul(const M2<R>& X, const M2<R>& Y) {
+    return {X.a * Y.a + X.b * Y.c, X.a * Y.b + X.b * Y.d, X.c * Y.a + X.d * Y.c,
+            X.c * Y.b + X.d * Y.d};
+}
+
+template <typename R>
+inline M2<R> tr(const M2<R>& X) {
+    return {X.a, X.c, X.b, X.d};
+}
+
+template <typename R>
+inline M2<R> plus(const M2<R>& X, const M2<R>& Y) {
+    return {X.a + Y.a, X.b + Y.b, X.c + Y.c, X.d + Y.d};
+}
+
+template <typename R>
+inline M2<R> neg(const M2<R>& X) {
+    return {-X.a, -X.b, -X.c, -X.d};
+}
+
+// axes.full(axes.inverse(S)) of a symmetric block given as (a, b, -, d).
+template <typename R>
+inline M2<R> inverse(R a, R b, R d) {
+    R det = a * d - b * b;
+    return {d / det, -b / det, -b / det, a / det};
+}
+
+// What axes.backward_terms reads at index k (the step k and its successor t = k + 1): P at k;
+// the prediction, gain, noise (masked: an identity on missing components, as
+// axes._masked_noise), masks, interval and innovation at t.
+template <typename R>
+struct TermArgs {
+    R a, b, c, a1, b1, c1;
+    M2<R> K;
+    R rp, rpv, rvv, fp, fv, dt, ep, ev;
+};
+
+// TermArgs from a lane's values, the noise unmasked: masked here (an identity on missing
+// components, as axes._masked_noise).
+template <typename R>
+inline TermArgs<R> masked_args(R a, R b, R c, R a1, R b1, R c1, const M2<R>& K, R rp, R rpv,
+                               R rvv, R fp, R fv, R dt, R ep, R ev) {
+    return {a, b, c, a1, b1, c1, K, rp * fp + (1 - fp), rpv * fp * fv, rvv * fv + (1 - fv),
+            fp, fv, dt, ep, ev};
+}
+
+// TermArgs at index k from a lane's 20 inputs, `at(i, step)` in backward's input order.
+template <typename R, typename At>
+inline TermArgs<R> term_args(const At& at, int64_t k) {
+    const int64_t t = k + 1;
+    return masked_args<R>(at(0, k), at(1, k), at(2, k), at(3, t), at(4, t), at(5, t),
+                          {at(6, t), at(7, t), at(8, t), at(9, t)}, at(10, t), at(11, t),
+                          at(12, t), at(13, t), at(14, t), at(15, t), at(16, t), at(17, t));
+}
+
+// axes.backward_terms at one index, with its intermediates (the reverse mode reads them):
+// C, d, ΓHF, ΓSΓᵀ, ΓX, AF of the backward recursion at index k+1, from the filter's moments.
+// Γ = K (RTS) or, with `projection`, P Hᵀ S⁻¹ (SVSS, Eq. (42)).
+template <typename R>
+struct Terms {
+    M2<R> Pp, P, R_, H, F, PHt, S, Sinv, Gamma, A, X, Ppinv, FP, HF;
+    M2<R> C, GHF, GSG, GX, AF;
+    R d0, d1;
+};
+
+template <typename R>
+__attribute__((always_inline)) inline Terms<R> terms(bool projection, const TermArgs<R>& x) {
+    Terms<R> t;
+    t.Pp = {x.a1, x.b1, x.b1, x.c1}, t.P = {x.a, x.b, x.b, x.c};
+    t.R_ = {x.rp, x.rpv, x.rpv, x.rvv};
+    t.H = {x.fp, 0, 0, x.fv}, t.F = {1, x.dt, 0, 1};
+    t.PHt = mul(t.Pp, t.H);
+    t.S = plus(mul(t.H, t.PHt), t.R_);
+    t.Sinv = inverse(t.S.a, t.S.b, t.S.d);
+    // Γ entry by entry: a whole-block copy here keeps the lanes' loop from vectorising.
+    const M2<R> projected = mul(t.PHt, t.Sinv);
+    t.Gamma.a = projection ? projected.a : x.K.a, t.Gamma.b = projection ? projected.b : x.K.b;
+    t.Gamma.c = projection ? projected.c : x.K.c, t.Gamma.d = projection ? projected.d : x.K.d;
+    t.A = {1 - x.K.a, -x.K.b, -x.K.c, 1 - x.K.d};
+    t.X = plus(mul(tr(t.PHt), tr(t.A)), neg(mul(t.R_, tr(x.K))));
+    t.Ppinv = inverse(t.Pp.a, t.Pp.b, t.Pp.d);
+    t.FP = mul(t.F, t.P), t.HF = mul(t.H, t.F);
+    t.C = tr(mul(t.Ppinv, t.FP));
+    t.GHF = mul(t.Gamma, t.HF), t.GSG = mul(mul(t.Gamma, t.S), tr(t.Gamma));
+    t.GX = mul(t.Gamma, t.X), t.AF = mul(t.A, t.F);
+    t.d0 = t.Gamma.a * x.ep + t.Gamma.b * x.ev, t.d1 = t.Gamma.c * x.ep + t.Gamma.d * x.ev;
+    return t;
+}
+
+// The 22 values the recursion reads at an index (C, d, ΓHF, ΓSΓᵀ, ΓX, AF in order).
+template <typename R>
+__attribute__((always_inline)) inline void terms_at(R* w, bool projection, const TermArgs<R>& x) {
+    const Terms<R> t = terms(projection, x);
+    const M2<R>* blocks[5] = {&t.C, &t.GHF, &t.GSG, &t.GX, &t.AF};
+    int n = 0;
+    for (int i = 0; i < 5; ++i) {
+        w[n++] = blocks[i]->a, w[n++] = blocks[i]->b, w[n++] = blocks[i]->c;
+        w[n++] = blocks[i]->d;
+        if (i == 0) w[n++] = t.d0, w[n++] = t.d1;
+    }
+}
+
+template <typename R>
+struct Backward {
+    R g0, g1;
+    M2<R> G, Z;
+};
+
+// axes._recurse at a step whose 22 terms are `w` (C, d, ΓHF, ΓSΓᵀ, ΓX, AF in order):
+// g_k = C (d + g), G_k = C (ΓHF + G AF), Z_k = C (ΓSΓᵀ + X + Xᵀ + Z) Cᵀ with X = ΓX Gᵀ.
+template <typename R>
+__attribute__((always_inline)) inline Backward<R> recurse(const R* w, const Backward<R>& s) {
+    M2<R> C{w[0], w[1], w[2], w[3]}, GHF{w[6], w[7], w[8], w[9]};
+    M2<R> GSG{w[10], w[11], w[12], w[13]}, GX{w[14], w[15], w[16], w[17]};
+    M2<R> AF{w[18], w[19], w[20], w[21]};
+    M2<R> cross = mul(GX, tr(s.G));
+    R d0 = w[4] + s.g0, d1 = w[5] + s.g1;
+    Backward<R> out;
+    out.g0 = C.a * d0 + C.b * d1;
+    out.g1 = C.c * d0 + C.d * d1;
+    out.G = mul(C, plus(GHF, mul(s.G, AF)));
+    M2<R> inner = plus(plus(plus(GSG, cross), tr(cross)), s.Z);
+    out.Z = mul(mul(C, inner), tr(C));
+    return out;
+}
+
+// axes._smoothed at one step of a lane: `now` holds its filtered moments (p, v, a, b, c) and
+// becomes x̂ˢ = x̂ + g, Pˢ = P − P Gᵀ − G P + Z (symmetrised).
+template <typename R>
+__attribute__((always_inline)) inline void smoothed(R* now, const Backward<R>& s) {
+    M2<R> P{now[2], now[3], now[3], now[4]};
+    M2<R> PGt = mul(P, tr(s.G));
+    M2<R> cov = plus(plus(plus(P, neg(PGt)), neg(tr(PGt))), s.Z);
+    now[0] += s.g0, now[1] += s.g1;
+    now[2] = cov.a, now[3] = 0.5 * (cov.b + cov.c), now[4] = cov.d;
+}
+
+// The one-step-lag smoother at k = t − 1 for `lanes` lanes, as step t completes: `backward`'s
+// recursion from zero over one step (lane_recursion with lag 1) and its smoothed moments, from
+// the step's inputs `g` and results `r`. `moments` holds each lane's filtered moments at k
+// (p, v, a, b, c) and becomes the smoothed ones. (Projection is a template argument: a branch
+// in the loop would keep it from vectorising.)
+template <typename R, bool Projection>
+inline void smooth_lanes(int64_t lanes, const R (*g)[kLanes], const R (*r)[kLanes],
+                         R (*moments)[kLanes]) {
+    const Backward<R> zero{0, 0, {0, 0, 0, 0}, {0, 0, 0, 0}};
+    for (int64_t l = 0; l < lanes; ++l) {
+        R now[5] = {moments[0][l], moments[1][l], moments[2][l], moments[3][l], moments[4][l]};
+        const TermArgs<R> x = masked_args<R>(
+            now[2], now[3], now[4], r[kA1][l], r[kB1][l], r[kC1][l],
+            {r[kKa][l], R(0), r[kKc][l], r[kKd][l]}, g[kRp][l], g[kRpv][l], g[kRvv][l],
+            r[kSeenP][l], r[kSeenV][l], g[kT][l], r[kEp][l], r[kEv][l]);
+        R w[22];
+        terms_at(w, Projection, x);
+        smoothed(now, recurse(w, zero));
+        for (int q = 0; q < 5; ++q) moments[q][l] = now[q];
+    }
+}
+
 // A lane's log-likelihood, Σ −(e²/S + log S + log 2π)/2 over its observed steps, summed in
 // double. The logarithms are taken once per kLogEvery steps instead of every step (log does
 // not vectorise; it cost more than the step): S multiplies into a double product, flushed
@@ -250,16 +423,22 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
     // track and chunk instead of a record at a time interleaved across the block's tracks.
     const int64_t block = kLanes / m;
     constexpr int64_t kChunk = 16;
-    // Record sizes in Layout's order: mean, cov, pred_mean, pred_cov, innovation, gain, S, post.
-    const int64_t sizes[8] = {n, n * n, n, n * n, mz, n * mz, mz * mz, mz};
-    R* const targets[8] = {out.mean, out.cov,  out.pred_mean, out.pred_cov,
-                           out.innovation, out.gain, out.S, out.post};
-    int64_t offsets[9] = {0};
-    for (int o = 0; o < 8; ++o) offsets[o + 1] = offsets[o] + (targets[o] ? sizes[o] : 0);
-    const int64_t staged_size = block * kChunk * offsets[8];
+    // Record sizes in Layout's order: mean, cov, pred_mean, pred_cov, innovation, gain, S, post,
+    // then the smoothed mean and cov (kLagged on: a step's slot holds its predecessor's).
+    constexpr int kOutputs = 10, kLagged = 8;
+    const int64_t sizes[kOutputs] = {n, n * n, n, n * n, mz, n * mz, mz * mz, mz, n, n * n};
+    R* const targets[kOutputs] = {out.mean,       out.cov,  out.pred_mean, out.pred_cov,
+                                  out.innovation, out.gain, out.S,         out.post,
+                                  out.smooth_mean, out.smooth_cov};
+    int64_t offsets[kOutputs + 1] = {0};
+    for (int o = 0; o < kOutputs; ++o)
+        offsets[o + 1] = offsets[o] + (targets[o] ? sizes[o] : 0);
+    const int64_t staged_size = block * kChunk * offsets[kOutputs];
+    const bool smoothing = out.smoothing != 0, projection = out.smoothing == 2;
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         alignas(64) R g[kGiven][kLanes];
         alignas(64) R r[kResults][kLanes];
+        alignas(64) R moments[5][kLanes];  // the filtered moments before a step (smoothing)
         Likelihood logs[kLanes];
         std::vector<R> staged(staged_size);
         std::vector<uint8_t> staged_mask(block * kChunk * mz);
@@ -282,7 +461,15 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                         for (int64_t bi = b0, l = 0; bi < b1; ++bi)
                             for (int64_t j = 0; j < m; ++j, ++l) lane[l] = x.at(bi, t, j);
                     }
+                    if (smoothing)
+                        for (int q = 0; q < 5; ++q) std::copy_n(r[kP + q], lanes, moments[q]);
                     step_lanes<R, Rule>(lanes, gamma, g, r);
+                    if (smoothing && t > 0) {
+                        if (projection)
+                            smooth_lanes<R, true>(lanes, g, r, moments);
+                        else
+                            smooth_lanes<R, false>(lanes, g, r, moments);
+                    }
                     if (Rule == 0)
                         for (int64_t l = 0; l < lanes; ++l) logs[l].add(r[kLl][l], r[kSp][l]);
                     for (int64_t bi = b0, l = 0; bi < b1; ++bi) {
@@ -297,7 +484,12 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                         };
                         R *mean = at(0), *cov = at(1), *pred_mean = at(2), *pred_cov = at(3);
                         R *e = at(4), *K = at(5), *S = at(6), *post = at(7);
+                        R *smooth_mean = t > 0 ? at(8) : nullptr, *smooth_cov = at(9);
                         for (int64_t j = 0; j < m; ++j, ++l) {
+                            if (smooth_mean)
+                                write_axis(smooth_mean, smooth_cov, n, j, moments[0][l],
+                                           moments[1][l], moments[2][l], moments[3][l],
+                                           moments[4][l]);
                             R ka = r[kKa][l], kc = r[kKc][l], Sp = r[kSp][l];
                             if (mean) mean[2 * j] = r[kP][l], mean[2 * j + 1] = r[kV][l];
                             if (cov) block_rows(cov, n, j, r[kA][l], r[kB][l], r[kB][l], r[kC][l]);
@@ -339,11 +531,14 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                 // Copy the chunk out: per track and output, one contiguous run.
                 const int64_t steps = t1 - t0;
                 for (int64_t bi = b0; bi < b1; ++bi) {
-                    for (int o = 0; o < 8; ++o) {
+                    for (int o = 0; o < kOutputs; ++o) {
                         if (!targets[o]) continue;
+                        // A lagged output's slots hold the steps before (none before step 0).
+                        const int64_t lag = o >= kLagged, skip = lag && t0 == 0;
                         const R* from = staged.data() + block * kChunk * offsets[o] +
-                                        (bi - b0) * kChunk * sizes[o];
-                        std::copy_n(from, steps * sizes[o], targets[o] + (bi * T + t0) * sizes[o]);
+                                        ((bi - b0) * kChunk + skip) * sizes[o];
+                        std::copy_n(from, (steps - skip) * sizes[o],
+                                    targets[o] + (bi * T + t0 - lag + skip) * sizes[o]);
                     }
                     if (out.mask)
                         std::copy_n(staged_mask.data() + (bi - b0) * kChunk * mz, steps * mz,
@@ -355,6 +550,10 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                     if (out.last_mean)
                         write_axis(out.last_mean + bi * n, out.last_cov + bi * n * n, n, j,
                                    r[kP][l], r[kV][l], r[kA][l], r[kB][l], r[kC][l]);
+                    if (out.smooth_mean)  // the last step smoothed is the last filtered
+                        write_axis(out.smooth_mean + (bi * T + T - 1) * n,
+                                   out.smooth_cov + (bi * T + T - 1) * n * n, n, j, r[kP][l],
+                                   r[kV][l], r[kA][l], r[kB][l], r[kC][l]);
                     if (!out.last_post) continue;
                     R* last_post = out.last_post + bi * mz;
                     if (velocity)
@@ -387,16 +586,18 @@ void forward_axes(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int th
         forward<R, Rule, 0>(B, T, m, velocity, gamma, threads, in, s, prior, ps, out);
 }
 
-// forward's entry: the output pointers `o` in Layout's order (13; see Layout for the nulls).
+// forward's entry: the output pointers `o` in Layout's order (15; see Layout for the nulls),
+// and the smoothing (0: none).
 template <typename R>
 void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, double gamma,
                    int threads, const void* const* in, const int64_t* s, const void* const* prior,
-                   const int64_t* ps, void* const* o) {
-    Layout<R> out{static_cast<R*>(o[0]), static_cast<R*>(o[1]), static_cast<R*>(o[2]),
-                  static_cast<R*>(o[3]), static_cast<R*>(o[4]), static_cast<R*>(o[5]),
-                  static_cast<R*>(o[6]), static_cast<R*>(o[7]), static_cast<R*>(o[8]),
+                   const int64_t* ps, void* const* o, int smoothing) {
+    Layout<R> out{static_cast<R*>(o[0]),  static_cast<R*>(o[1]),       static_cast<R*>(o[2]),
+                  static_cast<R*>(o[3]),  static_cast<R*>(o[4]),       static_cast<R*>(o[5]),
+                  static_cast<R*>(o[6]),  static_cast<R*>(o[7]),       static_cast<R*>(o[8]),
                   static_cast<uint8_t*>(o[9]), static_cast<R*>(o[10]), static_cast<R*>(o[11]),
-                  static_cast<R*>(o[12])};
+                  static_cast<R*>(o[12]), static_cast<R*>(o[13]),      static_cast<R*>(o[14]),
+                  smoothing};
     R g = static_cast<R>(gamma);
     if (rule == 0)
         forward_axes<R, 0>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
@@ -661,129 +862,6 @@ void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* cons
     });
 }
 
-template <typename R>
-struct M2 {
-    R a, b, c, d;
-};
-
-template <typename R>
-inline M2<R> mul(const M2<R>& X, const M2<R>& Y) {
-    return {X.a * Y.a + X.b * Y.c, X.a * Y.b + X.b * Y.d, X.c * Y.a + X.d * Y.c,
-            X.c * Y.b + X.d * Y.d};
-}
-
-template <typename R>
-inline M2<R> tr(const M2<R>& X) {
-    return {X.a, X.c, X.b, X.d};
-}
-
-template <typename R>
-inline M2<R> plus(const M2<R>& X, const M2<R>& Y) {
-    return {X.a + Y.a, X.b + Y.b, X.c + Y.c, X.d + Y.d};
-}
-
-template <typename R>
-inline M2<R> neg(const M2<R>& X) {
-    return {-X.a, -X.b, -X.c, -X.d};
-}
-
-// axes.full(axes.inverse(S)) of a symmetric block given as (a, b, -, d).
-template <typename R>
-inline M2<R> inverse(R a, R b, R d) {
-    R det = a * d - b * b;
-    return {d / det, -b / det, -b / det, a / det};
-}
-
-// What axes.backward_terms reads at index k (the step k and its successor t = k + 1): P at k;
-// the prediction, gain, noise (masked: an identity on missing components, as
-// axes._masked_noise), masks, interval and innovation at t.
-template <typename R>
-struct TermArgs {
-    R a, b, c, a1, b1, c1;
-    M2<R> K;
-    R rp, rpv, rvv, fp, fv, dt, ep, ev;
-};
-
-// TermArgs at index k from a lane's 20 inputs, `at(i, step)` in backward's input order.
-template <typename R, typename At>
-inline TermArgs<R> term_args(const At& at, int64_t k) {
-    const int64_t t = k + 1;
-    const R fp = at(13, t), fv = at(14, t);
-    return {at(0, k),  at(1, k),  at(2, k),  at(3, t),
-            at(4, t),  at(5, t),  {at(6, t), at(7, t), at(8, t), at(9, t)},
-            at(10, t) * fp + (1 - fp),       at(11, t) * fp * fv,
-            at(12, t) * fv + (1 - fv),       fp,
-            fv,        at(15, t), at(16, t), at(17, t)};
-}
-
-// axes.backward_terms at one index, with its intermediates (the reverse mode reads them):
-// C, d, ΓHF, ΓSΓᵀ, ΓX, AF of the backward recursion at index k+1, from the filter's moments.
-// Γ = K (RTS) or, with `projection`, P Hᵀ S⁻¹ (SVSS, Eq. (42)).
-template <typename R>
-struct Terms {
-    M2<R> Pp, P, R_, H, F, PHt, S, Sinv, Gamma, A, X, Ppinv, FP, HF;
-    M2<R> C, GHF, GSG, GX, AF;
-    R d0, d1;
-};
-
-template <typename R>
-inline Terms<R> terms(bool projection, const TermArgs<R>& x) {
-    Terms<R> t;
-    t.Pp = {x.a1, x.b1, x.b1, x.c1}, t.P = {x.a, x.b, x.b, x.c};
-    t.R_ = {x.rp, x.rpv, x.rpv, x.rvv};
-    t.H = {x.fp, 0, 0, x.fv}, t.F = {1, x.dt, 0, 1};
-    t.PHt = mul(t.Pp, t.H);
-    t.S = plus(mul(t.H, t.PHt), t.R_);
-    t.Sinv = inverse(t.S.a, t.S.b, t.S.d);
-    t.Gamma = projection ? mul(t.PHt, t.Sinv) : x.K;
-    t.A = {1 - x.K.a, -x.K.b, -x.K.c, 1 - x.K.d};
-    t.X = plus(mul(tr(t.PHt), tr(t.A)), neg(mul(t.R_, tr(x.K))));
-    t.Ppinv = inverse(t.Pp.a, t.Pp.b, t.Pp.d);
-    t.FP = mul(t.F, t.P), t.HF = mul(t.H, t.F);
-    t.C = tr(mul(t.Ppinv, t.FP));
-    t.GHF = mul(t.Gamma, t.HF), t.GSG = mul(mul(t.Gamma, t.S), tr(t.Gamma));
-    t.GX = mul(t.Gamma, t.X), t.AF = mul(t.A, t.F);
-    t.d0 = t.Gamma.a * x.ep + t.Gamma.b * x.ev, t.d1 = t.Gamma.c * x.ep + t.Gamma.d * x.ev;
-    return t;
-}
-
-// The 22 values the recursion reads at an index (C, d, ΓHF, ΓSΓᵀ, ΓX, AF in order).
-template <typename R>
-inline void terms_at(R* w, bool projection, const TermArgs<R>& x) {
-    const Terms<R> t = terms(projection, x);
-    const M2<R>* blocks[5] = {&t.C, &t.GHF, &t.GSG, &t.GX, &t.AF};
-    int n = 0;
-    for (int i = 0; i < 5; ++i) {
-        w[n++] = blocks[i]->a, w[n++] = blocks[i]->b, w[n++] = blocks[i]->c;
-        w[n++] = blocks[i]->d;
-        if (i == 0) w[n++] = t.d0, w[n++] = t.d1;
-    }
-}
-
-template <typename R>
-struct Backward {
-    R g0, g1;
-    M2<R> G, Z;
-};
-
-// axes._recurse at a step whose 22 terms are `w` (C, d, ΓHF, ΓSΓᵀ, ΓX, AF in order):
-// g_k = C (d + g), G_k = C (ΓHF + G AF), Z_k = C (ΓSΓᵀ + X + Xᵀ + Z) Cᵀ with X = ΓX Gᵀ.
-template <typename R>
-inline Backward<R> recurse(const R* w, const Backward<R>& s) {
-    M2<R> C{w[0], w[1], w[2], w[3]}, GHF{w[6], w[7], w[8], w[9]};
-    M2<R> GSG{w[10], w[11], w[12], w[13]}, GX{w[14], w[15], w[16], w[17]};
-    M2<R> AF{w[18], w[19], w[20], w[21]};
-    M2<R> cross = mul(GX, tr(s.G));
-    R d0 = w[4] + s.g0, d1 = w[5] + s.g1;
-    Backward<R> out;
-    out.g0 = C.a * d0 + C.b * d1;
-    out.g1 = C.c * d0 + C.d * d1;
-    out.G = mul(C, plus(GHF, mul(s.G, AF)));
-    M2<R> inner = plus(plus(plus(GSG, cross), tr(cross)), s.Z);
-    out.Z = mul(mul(C, inner), tr(C));
-    return out;
-}
-
 // How many sweeps of `lane_recursion` a run of n steps with a successor takes: one from the
 // end (fixed interval, lag ≥ n) or `lag` from zero.
 inline int64_t sweeps_of(int64_t n, int64_t lag) { return lag >= n ? 1 : lag; }
@@ -841,16 +919,8 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int 
                 const Backward<R>* result =
                     lane_backward<R>(at, n, lag, projection != 0, terms, states);
                 for (int64_t k = 0; k <= n; ++k) {
-                    R a = at(0, k), b = at(1, k), c = at(2, k);
-                    R now[5] = {at(18, k), at(19, k), a, b, c};
-                    if (k < n) {  // axes._smoothed
-                        const Backward<R>& s = result[k];
-                        M2<R> P{a, b, b, c};
-                        M2<R> PGt = mul(P, tr(s.G));
-                        M2<R> cov = plus(plus(plus(P, neg(PGt)), neg(tr(PGt))), s.Z);
-                        now[0] += s.g0, now[1] += s.g1;
-                        now[2] = cov.a, now[3] = 0.5 * (cov.b + cov.c), now[4] = cov.d;
-                    }
+                    R now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
+                    if (k < n) smoothed(now, result[k]);  // the last step as filtered
                     int64_t idx = bi * T + k;
                     write_axis(mean_out + idx * width, cov_out + idx * width * width, width, j,
                                now[0], now[1], now[2], now[3], now[4]);
@@ -1247,8 +1317,10 @@ extern "C" {
 #define TORCHSVS_ENTRIES(suffix, R)                                                            \
     void forward_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,            \
                           double gamma, int threads, const void* const* in, const int64_t* s, \
-                          const void* const* prior, const int64_t* ps, void* const* o) {      \
-        forward_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, o);       \
+                          const void* const* prior, const int64_t* ps, void* const* o,        \
+                          int smoothing) {                                                    \
+        forward_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, o,        \
+                         smoothing);                                                          \
     }                                                                                         \
     void adjoint_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,            \
                           double gamma, int threads, const void* const* in, const int64_t* s, \

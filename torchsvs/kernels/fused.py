@@ -50,6 +50,10 @@ from torchsvs.kernels import AXIS_KERNEL
 
 SOURCE = Path(__file__).with_name("fused.cpp")
 FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-pthread")
+#: Tried first: the build machine's vector width (the library is built where it runs, and cached
+#: per processor); no fused multiply-add contraction, so the numbers stay those of the plain
+#: build, bit for bit. Without them where the compiler refuses.
+NATIVE = ("-march=native", "-ffp-contract=off")
 #: Seconds the last build took (0 when the cached library was loaded), for reports.
 BUILD = {"seconds": 0.0}
 
@@ -71,31 +75,47 @@ def _compiler() -> str | None:
     return None
 
 
+def _processor() -> str:
+    """What a native build depends on: the processor's feature flags (Linux), else its name."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return line
+    except OSError:
+        pass
+    return platform.processor()
+
+
 def _build(compiler: str) -> Path:
     version = subprocess.run(
         [compiler, "--version"], capture_output=True, text=True, check=False
     ).stdout
-    built_for = f"{version} {' '.join(FLAGS)} {platform.machine()} {platform.system()}"
-    key = hashlib.sha256(SOURCE.read_bytes() + built_for.encode()).hexdigest()[:16]
-    target = cache_dir() / f"fused-{key}.so"
-    if target.exists():
-        return target
-    target.parent.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    # Built beside the target and renamed: processes building at once never load half a file.
-    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-        built = Path(tmp) / target.name
-        result = subprocess.run(
-            [compiler, *FLAGS, str(SOURCE), "-o", str(built)],
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        if result.returncode != 0:
-            raise RuntimeError(f"{compiler} failed: {result.stderr.strip()[-2000:]}")
-        os.replace(built, target)
-    BUILD["seconds"] = time.perf_counter() - start
-    return target
+    failures = []
+    for flags in ((*FLAGS, *NATIVE), FLAGS):
+        native = flags != FLAGS
+        built_for = f"{version} {' '.join(flags)} {platform.machine()} {platform.system()}"
+        built_for += _processor() if native else ""
+        key = hashlib.sha256(SOURCE.read_bytes() + built_for.encode()).hexdigest()[:16]
+        target = cache_dir() / f"fused-{key}.so"
+        if target.exists():
+            return target
+        target.parent.mkdir(parents=True, exist_ok=True)
+        start = time.perf_counter()
+        # Built beside the target and renamed: processes building at once never load half a file.
+        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+            built = Path(tmp) / target.name
+            result = subprocess.run(
+                [compiler, *flags, str(SOURCE), "-o", str(built)],
+                capture_output=True,
+                text=True,
+                check=False,
+            )
+            if result.returncode == 0:
+                os.replace(built, target)
+                BUILD["seconds"] = time.perf_counter() - start
+                return target
+        failures.append(result.stderr.strip()[-2000:])
+    raise RuntimeError(f"{compiler} failed: {failures[-1]}")
 
 
 def library() -> ctypes.CDLL | None:
@@ -123,12 +143,12 @@ def library() -> ctypes.CDLL | None:
     pointers, strides = ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(ctypes.c_int64)
     size = (ctypes.c_int64,) * 3
     for suffix in ("f32", "f64"):
-        forward = getattr(lib, f"forward_{suffix}")
-        forward.argtypes = [*size, ctypes.c_int, ctypes.c_int, ctypes.c_double, ctypes.c_int]
-        forward.argtypes += [pointers, strides, pointers, strides, pointers]
         vp, integer = ctypes.c_void_p, ctypes.c_int
+        loop = [*size, integer, integer, ctypes.c_double, integer, pointers, strides, pointers]
+        loop += [strides, pointers]  # the forward loop's arguments and its outputs (or grads)
+        getattr(lib, f"forward_{suffix}").argtypes = [*loop, integer]  # and the smoothing
         adjoint = getattr(lib, f"adjoint_{suffix}")
-        adjoint.argtypes = [*forward.argtypes, pointers, pointers, vp]
+        adjoint.argtypes = [*loop, pointers, pointers, vp]
         rts = getattr(lib, f"rts_interval_{suffix}")
         rts.argtypes = [*size, integer, pointers, strides, vp, vp]
         backward = getattr(lib, f"backward_{suffix}")
@@ -246,7 +266,8 @@ def forward(
     shape: tuple[int, int, int],
     velocity: bool,
     keep: str = "all",
-) -> tuple[tuple[Tensor | None, ...], Last]:
+    smoothing: str | None = None,
+) -> tuple[tuple[Tensor | None, ...], Last, tuple[Tensor, Tensor] | None]:
     """The loop of :func:`torchsvs.kernels.axes._forward_step` over all steps, writing the
     general layout (state ``p1, v1, p2, ...``): ``given`` the 11 per-step quantities ``T, Qa,
     Qb, Qc, y_p, y_v`` (NaN: missing), ``r_pp, r_pv, r_vv`` (unmasked), ``w_p, w_v``
@@ -256,7 +277,10 @@ def forward(
     ``[B, T, 2m, m_z]``, ``S``, the a-posteriori innovation (SVSF, else ``None``), the
     log-likelihood ``[B]`` (Kalman, else ``None``) and the observed mask ``[B, T, m_z]`` (the
     per-step outputs that ``keep`` (:data:`torchsvs.estimator.KEEP`) leaves out are ``None``,
-    never written), and the state after the last step."""
+    never written), the state after the last step, and with ``smoothing`` (``"gain"``: the
+    RTS, ``"projection"``: the SVSS) the one-step-lag smoothed mean ``[B, T, 2m]`` and
+    covariance ``[B, T, 2m, 2m]``, computed in the same loop (what :func:`backward` with lag 1
+    gives from the whole record), else ``None``."""
     B, T, m = shape
     n, mz = 2 * m, 2 * m if velocity else m
     dtype = prior[0].dtype
@@ -274,9 +298,13 @@ def forward(
         torch.empty(B, n, n, dtype=dtype),
         torch.empty(B, mz, dtype=dtype) if svsf else None,
     )
-    outputs = (*per_step, loglik, mask, *last)
-    _forward_loop("forward", rule, gamma, given, prior, shape, velocity, _pointers(outputs))
-    return (*per_step, loglik, mask), last
+    smoothed = None
+    if smoothing is not None:
+        smoothed = fresh((B, T, n), dtype), fresh((B, T, n, n), dtype)
+    outputs = (*per_step, loglik, mask, *last, *(smoothed or (None, None)))
+    mode = {None: 0, "gain": 1, "projection": 2}[smoothing]
+    _forward_loop("forward", rule, gamma, given, prior, shape, velocity, _pointers(outputs), mode)
+    return (*per_step, loglik, mask), last, smoothed
 
 
 def _forward_loop(
@@ -432,24 +460,30 @@ def dense_run(
     psi: Tensor,
     matrices: DenseMatrices,
     lead: tuple[int, ...],
-) -> tuple[Tensor, ...] | None:
+    keep: str = "all",
+) -> tuple[Tensor | None, ...] | None:
     """Predict-correct steps of a dense linear-Gaussian filter, compiled: ``B`` tracks from
     ``x [B, n]``, ``P [B, n, n]`` over ``z [B, T, m]`` (NaN: missing), the SVSF's ``memory
     [B, m]`` and ``psi`` (``[B, T, m]`` or ``[m]``); all contiguous, one dtype. ``rule``
     ``"kalman"`` or ``"svsf"`` (``H`` with orthonormal rows). ``lead``: the outputs' leading
     shape (``(B, T)``; ``(B,)`` or ``()`` for one step). Returns ``x, P, x_pred, P_pred, e, K,
-    S, log_likelihood, e_post, observed``, or ``None`` when ``z`` holds an infinity or a
+    S, log_likelihood, e_post, observed`` (with ``keep`` other than ``"all"``: ``None`` for
+    those it leaves out, written to a scratch buffer; the log-likelihood and the SVSF's
+    ``e_post`` stay, a state needs them), or ``None`` when ``z`` holds an infinity or a
     Cholesky factor failed."""
     lib = _state["library"]  # loaded: usable() said so
     assert isinstance(lib, ctypes.CDLL)
     B, n = x.shape
     T, m = z.shape[-2:] if z.ndim == 3 else (1, z.shape[-1])
     dtype = x.dtype
-    out = [
-        fresh(lead + shape, dtype)
-        for shape in ((n,), (n, n), (n,), (n, n), (m,), (n, m), (m, m), (), (m,))
+    shapes = ((n,), (n, n), (n,), (n, n), (m,), (n, m), (m, m), (), (m,), (m,))
+    kept = range(10) if keep == "all" else (0, 1, 7, 8)  # a state needs the covariance
+    out: list[Tensor | None] = [
+        fresh(lead + shape, torch.bool if i == 9 else dtype) if i in kept else None
+        for i, shape in enumerate(shapes)
     ]
-    out.append(fresh((*lead, m), torch.bool))
+    if rule == "kalman":
+        out[8] = None  # no a-posteriori innovation: scratch
     per_track = psi.ndim > 1
     call = lib.dense_run_f32 if dtype == torch.float32 else lib.dense_run_f64
     failed = call(
@@ -467,6 +501,33 @@ def dense_run(
         T * m if per_track else 0,
         m if per_track and T > 1 else 0,
         matrices.pointers,
-        *[o.data_ptr() for o in out],
+        *_addresses(out, shapes, lead, dtype),
     )
     return None if failed else tuple(out)
+
+
+_scratch: dict[str, Tensor] = {}
+
+
+def _addresses(
+    outputs: Sequence[Tensor | None],
+    shapes: Sequence[tuple[int, ...]],
+    lead: tuple[int, ...],
+    dtype: torch.dtype,
+) -> list[int]:
+    """The outputs' addresses; those not kept (``None``) get disjoint parts of a scratch
+    buffer nobody reads (reused, grown as needed: the compiled step reads what it wrote)."""
+    # Sizes in bytes, rounded up to 64 (aligned parts).
+    sizes = [-(-math.prod(lead) * math.prod(shape) * dtype.itemsize // 64) * 64 for shape in shapes]
+    needed = sum(size for size, x in zip(sizes, outputs, strict=True) if x is None)
+    buffer = _scratch.get("buffer")
+    if buffer is None or buffer.numel() < needed:
+        buffer = _scratch["buffer"] = torch.empty(max(needed, 4096), dtype=torch.uint8)
+    address, out = buffer.data_ptr(), []
+    for x, size in zip(outputs, sizes, strict=True):
+        if x is None:
+            out.append(address)
+            address += size
+        else:
+            out.append(x.data_ptr())
+    return out

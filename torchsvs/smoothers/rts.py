@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Any, NamedTuple
 
 import torch
@@ -140,8 +139,15 @@ class RTSSmoother(Estimator[SmootherResult]):
         return self.filter.model
 
     def run(self, inputs: Inputs) -> SmootherResult:
-        # The smoother reads the filter's whole record, whatever the caller keeps of its own.
-        return self.smooth(self.filter.run(replace(inputs, keep="all")))
+        # Lag 1 may run inside the filter's compiled loop; else the smoother reads the filter's
+        # whole record, whatever the caller keeps of its own.
+        smoothing = None
+        if self.lag == 1:
+            smoothing = "projection" if self.projection_gain else "gain"
+        result, smoothed = self.filter.smoother_pass(inputs, smoothing)
+        if smoothed is not None:
+            return SmootherResult(*smoothed, result)
+        return self.smooth(result)
 
     # --- Online fixed-lag smoothing: the filter steps, and x̂_{t-L|t} as measurements arrive. ---
 
