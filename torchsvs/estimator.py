@@ -431,7 +431,7 @@ class SteppedEstimator(Estimator[Result]):
         if u is None and dt is None and keep in KEEP:
             shortcut = self.step_shortcut(state, z, psi, keep)
             if shortcut is not None:
-                return shortcut[0], trim(shortcut[1], keep)
+                return shortcut
 
         def one_step(x: Any) -> Any:
             return x.unsqueeze(-2) if isinstance(x, Tensor) and x.ndim >= 1 else x
@@ -452,8 +452,9 @@ class SteppedEstimator(Estimator[Result]):
     def step_shortcut(
         self, state: Any, z: Tensor, psi: Tensor | None, keep: str
     ) -> tuple[Any, Result] | None:
-        """A faster way to the same :meth:`step` (the model's own interval, no input), or
-        ``None``: then, and for every error message, the step runs as a one-step :meth:`scan`."""
+        """A faster way to the same :meth:`step` (the model's own interval, no input; its result
+        keeping what ``keep`` keeps), or ``None``: then, and for every error message, the step
+        runs as a one-step :meth:`scan`."""
         return None
 
     def state_prior(self, state: Any) -> tuple[Tensor, Tensor]:

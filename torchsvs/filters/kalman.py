@@ -449,10 +449,13 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     ) -> tuple[FilterState, FilterResult] | None:
         # An online step on a linear model without gradients runs compiled (the same numbers
         # up to rounding); anything else takes the one-step scan.
-        if not isinstance(state, FilterState) or not self._dense_ready(state.history):
+        if not isinstance(state, FilterState):
             return None
-        m = self.model.meas_dim
-        x, single = state.mean, state.single
+        x, single, known = state.mean, state.single, state.constants
+        # A state an earlier compiled step made was ready for it (checked once, not per step).
+        if known is None and not self._dense_ready(state.history):
+            return None
+        m = self.model.meas_dim if known is None else known.matrices.tensors[2].shape[0]
         if z.ndim != (1 if single else 2) or z.shape[-1] != m or z.dtype != x.dtype:
             return None
         B = 1 if single else z.shape[0]
@@ -460,7 +463,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return None
         if psi is not None and (self.dense_rule != "svsf" or psi.shape not in ((m,), (B, m))):
             return None
-        if not fused.usable(z, x, state.cov):
+        if not fused.usable(z, x):  # (the state's covariance is x's dtype and device)
             return None  # (usable: CPU float32/64, no gradient asked for, compiler available)
         constants = self._valid_constants(state.constants, x.dtype)
         if constants is None:
@@ -484,6 +487,11 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if total is not None and state.log_likelihood is not None:
             total = state.log_likelihood + total
         after = FilterState(mean, cov, memory, total, None, state.steps + 1, single, constants)
+        if keep != "all":  # the state is whole; the result keeps what is asked
+            dropped: dict[str, Any] = {"post_innovation": None}
+            if keep == "mean":
+                dropped["cov"] = None
+            result = result._replace(**dropped)
         return after, result
 
     def carried_history(self, history: Any, inputs: Inputs) -> Any:

@@ -20,10 +20,11 @@ used by :class:`torchsvs.kernels.axes._CompiledAxes` and ``_CompiledSmoother``),
 runs them at near inference speed and keeps no graph of small tensors (the RTS fixed interval,
 whose own loop :func:`rts_interval` has no reverse mode, trains through the general
 recursion). Compiled and tensor loops give the same numbers and gradients up to rounding
-(tested to 1e-10 in float64). Without a compiler the
-estimators fall back to the tensor loops with one warning; ``TORCHSVS_FUSED=0`` turns the
+(tested to 1e-10 in float64). Without a compiler the estimators fall back to the tensor loops
+with one warning; ``TORCHSVS_FUSED=0`` (read when the library is first needed) turns the
 compiled loops off, :func:`torchsvs.kernels.eager_loops` does so for a block. The library is
-cached per source, compiler, flags and platform under ``$TORCHSVS_CACHE`` (default
+built for the machine's vector width where the compiler allows (:data:`NATIVE`) and cached
+per source, compiler, flags, processor and platform under ``$TORCHSVS_CACHE`` (default
 ``~/.cache/torchsvs``).
 """
 
@@ -37,6 +38,7 @@ import platform
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -119,13 +121,13 @@ def _build(compiler: str) -> Path:
 
 
 def library() -> ctypes.CDLL | None:
-    """The loaded library, building it if needed; ``None`` when turned off or unavailable."""
-    if os.environ.get("TORCHSVS_FUSED", "1") == "0":
-        return None
+    """The loaded library, building it if needed; ``None`` when turned off (``TORCHSVS_FUSED=0``
+    before it was loaded: an online step asks at every step, an environment look-up costs
+    about as much as the step) or unavailable."""
     lib = _state["library"]
     if isinstance(lib, ctypes.CDLL):
         return lib
-    if _state["failure"] is not None:
+    if _state["failure"] is not None or os.environ.get("TORCHSVS_FUSED", "1") == "0":
         return None
     compiler = _compiler()
     try:
@@ -477,14 +479,15 @@ def dense_run(
     T, m = z.shape[-2:] if z.ndim == 3 else (1, z.shape[-1])
     dtype = x.dtype
     shapes = ((n,), (n, n), (n,), (n, n), (m,), (n, m), (m, m), (), (m,), (m,))
-    kept = range(10) if keep == "all" else (0, 1, 7, 8)  # a state needs the covariance
+    # A state needs the covariance, the log-likelihood (Kalman) and the memory (SVSF).
+    kept = _KEPT[keep, rule]
+    make = fresh if T > 1 else torch.empty  # one step's outputs are small
     out: list[Tensor | None] = [
-        fresh(lead + shape, torch.bool if i == 9 else dtype) if i in kept else None
+        make(lead + shape, dtype=torch.bool if i == 9 else dtype) if i in kept else None
         for i, shape in enumerate(shapes)
     ]
-    if rule == "kalman":
-        out[8] = None  # no a-posteriori innovation: scratch
     per_track = psi.ndim > 1
+    addresses, _scratch_held = _addresses(out, shapes, (lead, dtype, kept))  # held in the call
     call = lib.dense_run_f32 if dtype == torch.float32 else lib.dense_run_f64
     failed = call(
         B,
@@ -501,33 +504,46 @@ def dense_run(
         T * m if per_track else 0,
         m if per_track and T > 1 else 0,
         matrices.pointers,
-        *_addresses(out, shapes, lead, dtype),
+        *addresses,
     )
     return None if failed else tuple(out)
 
 
-_scratch: dict[str, Tensor] = {}
+#: dense_run's outputs written to tensors, by (keep, rule): those the result and state keep
+_KEPT = {
+    ("all", "kalman"): (0, 1, 2, 3, 4, 5, 6, 7, 9),
+    ("all", "svsf"): tuple(range(10)),
+    **{(keep, "kalman"): (0, 1, 7) for keep in ("moments", "mean")},
+    **{(keep, "svsf"): (0, 1, 8) for keep in ("moments", "mean")},
+}
+_scratch = threading.local()  # per thread: a buffer is never written by two calls at once
+_SCRATCH_CACHED = 1 << 16  # bytes: one step's outputs; a whole run's are allocated per call
 
 
 def _addresses(
     outputs: Sequence[Tensor | None],
     shapes: Sequence[tuple[int, ...]],
-    lead: tuple[int, ...],
-    dtype: torch.dtype,
-) -> list[int]:
-    """The outputs' addresses; those not kept (``None``) get disjoint parts of a scratch
-    buffer nobody reads (reused, grown as needed: the compiled step reads what it wrote)."""
-    # Sizes in bytes, rounded up to 64 (aligned parts).
-    sizes = [-(-math.prod(lead) * math.prod(shape) * dtype.itemsize // 64) * 64 for shape in shapes]
-    needed = sum(size for size, x in zip(sizes, outputs, strict=True) if x is None)
-    buffer = _scratch.get("buffer")
-    if buffer is None or buffer.numel() < needed:
-        buffer = _scratch["buffer"] = torch.empty(max(needed, 4096), dtype=torch.uint8)
-    address, out = buffer.data_ptr(), []
-    for x, size in zip(outputs, sizes, strict=True):
-        if x is None:
-            out.append(address)
-            address += size
-        else:
-            out.append(x.data_ptr())
-    return out
+    key: tuple[tuple[int, ...], torch.dtype, tuple[int, ...]],
+) -> tuple[list[int], Tensor | None]:
+    """The outputs' addresses, those not kept (``None``) parts of a scratch buffer nobody
+    reads (the compiled step reads back what it wrote, so the parts are disjoint); and that
+    buffer, which the caller holds through the call. ``key``: the outputs' leading shape,
+    dtype and which are kept."""
+    lead, dtype, _ = key
+    cached = getattr(_scratch, "layouts", {}).get(key)
+    if cached is not None:
+        offsets, buffer = cached
+    else:
+        # Sizes in bytes, rounded up to 64 (aligned parts).
+        sizes = [-(-math.prod(lead) * math.prod(s) * dtype.itemsize // 64) * 64 for s in shapes]
+        offsets, total = [], 0
+        for x, size in zip(outputs, sizes, strict=True):
+            offsets.append(total if x is None else -1)
+            total += size if x is None else 0
+        buffer = torch.empty(total, dtype=torch.uint8) if total else None
+        if total <= _SCRATCH_CACHED:
+            _scratch.__dict__.setdefault("layouts", {})[key] = (offsets, buffer)
+    base = 0 if buffer is None else buffer.data_ptr()
+    return [
+        base + at if x is None else x.data_ptr() for x, at in zip(outputs, offsets, strict=True)
+    ], buffer
