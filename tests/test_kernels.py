@@ -560,8 +560,10 @@ def test_compiled_gradients_on_threads_for_any_axis_count(spy, on_two_threads):
 def test_compiled_smoother_reverse_mode_passes_gradcheck(lag, projection):
     """The smoother recursion's compiled reverse mode against finite differences of its
     compiled forward: every differentiable input (moments, gains, noise, intervals,
-    innovations), missing components, per-step and constant inputs."""
-    from torchsvs.kernels.axes import _CompiledSmoother
+    innovations), missing components, per-step and constant inputs; the filtered covariance
+    given as views of one tensor, as the filter's general layout gives it (the gradient then
+    gathers in that tensor)."""
+    from torchsvs.kernels.axes import _CompiledSmoother, _Views
 
     B, T, m = 2, 7, 2
     gen = torch.Generator().manual_seed(4)
@@ -594,11 +596,15 @@ def test_compiled_smoother_reverse_mode_passes_gradcheck(lag, projection):
     ]
     for i, x in enumerate(inputs):
         x.requires_grad_(i not in (13, 14))
+    filtered_cov = torch.stack(inputs[:3], dim=-1).detach().requires_grad_()  # [B, T, m, 3]
 
-    def run(*xs):
-        return _CompiledSmoother.apply((B, T, m), lag, projection, *xs)
+    def run(cov, *xs):
+        views, tensors = _Views.of([*cov.unbind(-1), *xs])
+        assert len(tensors) == len(xs) + 1  # a, b, c through their base
+        return _CompiledSmoother.apply((B, T, m), lag, projection, views, *tensors)
 
-    assert torch.autograd.gradcheck(run, tuple(inputs), eps=1e-6, atol=1e-6, rtol=1e-5)
+    args = (filtered_cov, *inputs[3:])
+    assert torch.autograd.gradcheck(run, args, eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
 def test_without_a_compiler_the_tensor_loops_run(monkeypatch, spy):

@@ -437,10 +437,72 @@ def _summed_to(inputs: Sequence[Tensor], grads: Sequence[Tensor | None]) -> list
     return out
 
 
+class _Views(NamedTuple):
+    """How a Function's inputs stand to the tensors it is given: input ``i`` is ``tensors[j]``
+    itself (``strides[i]`` None) or its view ``as_strided(size, stride, offset)``. Handing a
+    Function the base of the views it reads, instead of the views, gives its gradient in one
+    buffer: autograd would back-propagate each view into a zero-filled copy of the whole base
+    and add those up (three full passes per view)."""
+
+    source: tuple[int, ...]  #: per input, the index of its tensor
+    strides: tuple[
+        tuple[tuple[int, ...], tuple[int, ...], int] | None, ...
+    ]  #: size, stride, offset
+
+    @staticmethod
+    def of(inputs: Sequence[Tensor]) -> tuple[_Views, list[Tensor]]:
+        """The recipe and the tensors for ``inputs``: views of a base that needs a gradient,
+        with no element twice (no zero stride), go through their base."""
+        tensors: list[Tensor] = []
+        source: list[int] = []
+        strides: list[tuple[tuple[int, ...], tuple[int, ...], int] | None] = []
+        for x in inputs:
+            base = x._base
+            if base is None or not base.requires_grad or 0 in x.stride() or x.ndim == 0:
+                source.append(len(tensors))
+                strides.append(None)
+                tensors.append(x)
+                continue
+            found = next((j for j, t in enumerate(tensors) if t is base), None)
+            if found is None:
+                found = len(tensors)
+                tensors.append(base)
+            source.append(found)
+            strides.append((tuple(x.shape), x.stride(), int(x.storage_offset())))
+        return _Views(tuple(source), tuple(strides)), tensors
+
+    def inputs(self, tensors: Sequence[Tensor]) -> list[Tensor]:
+        return [
+            tensors[j] if at is None else tensors[j].as_strided(*at)
+            for j, at in zip(self.source, self.strides, strict=True)
+        ]
+
+    def gradients(
+        self, tensors: Sequence[Tensor], grads: Sequence[Tensor | None]
+    ) -> list[Tensor | None]:
+        """The tensors' gradients from the inputs' (``[B, T, m]``, summed to broadcast
+        inputs' shapes)."""
+        inputs = self.inputs(tensors)
+        out: list[Tensor | None] = [None] * len(tensors)
+        for i, (j, at) in enumerate(zip(self.source, self.strides, strict=True)):
+            grad = grads[i]
+            if grad is None:
+                continue
+            if at is None:
+                out[j] = _summed_to([inputs[i]], [grad])[0]
+                continue
+            buffer = out[j]
+            if buffer is None:
+                buffer = out[j] = torch.zeros_like(tensors[j])
+            buffer.as_strided(*at).add_(grad)
+        return out
+
+
 class _CompiledSmoother(torch.autograd.Function):
     """The compiled backward recursion (:func:`fused.backward`: RTS or SVSS, fixed lag or
     interval) with its compiled reverse mode (:func:`fused.backward_adjoint`). Inputs: the 20
-    of :func:`_backward_inputs`; outputs: the smoothed mean and covariance (general layout)."""
+    of :func:`_backward_inputs`, given as :class:`_Views` of tensors (the filter's general
+    layout); outputs: the smoothed mean and covariance (general layout)."""
 
     @staticmethod
     def forward(
@@ -448,21 +510,24 @@ class _CompiledSmoother(torch.autograd.Function):
         shape: tuple[int, int, int],
         lag: int | None,
         projection: bool,
-        *inputs: Tensor,
+        views: _Views,
+        *tensors: Tensor,
     ) -> tuple[Tensor, Tensor]:
-        ctx.settings = (shape, lag, projection)
-        ctx.save_for_backward(*inputs)
+        ctx.settings = (shape, lag, projection, views)
+        ctx.save_for_backward(*tensors)
         ctx.set_materialize_grads(False)
-        return fused.backward(inputs, shape, lag, projection)
+        return fused.backward(views.inputs(tensors), shape, lag, projection)
 
     @staticmethod
     @once_differentiable
     def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
-        shape, lag, projection = ctx.settings
-        inputs = ctx.saved_tensors
-        wanted = ctx.needs_input_grad[3:]
+        shape, lag, projection, views = ctx.settings
+        tensors = ctx.saved_tensors
+        needed = ctx.needs_input_grad[4:]
+        wanted = [needed[j] for j in views.source]
+        inputs = views.inputs(tensors)
         dinputs = fused.backward_adjoint(inputs, shape, lag, projection, grads, wanted)
-        return (None, None, None, *_summed_to(inputs, dinputs))
+        return (None, None, None, None, *views.gradients(tensors, dinputs))
 
 
 def interleaved(res: AxisResult, velocity: bool) -> Interleaved:
@@ -669,7 +734,8 @@ def smooth_axes(res: AxisResult, projection: bool, lag: int | None) -> tuple[Ten
         filtered = _backward_inputs(res)
         if fused.usable(*filtered, differentiable=True):
             if torch.is_grad_enabled() and any(x.requires_grad for x in filtered):
-                return _CompiledSmoother.apply((B, steps, m), lag, projection, *filtered)
+                views, tensors = _Views.of(filtered)
+                return _CompiledSmoother.apply((B, steps, m), lag, projection, views, *tensors)
             return fused.backward(filtered, (B, steps, m), lag, projection)
     (p, v), cov = _smooth_tensors(res, projection, lag, fixed_interval)
     return interleave(p, v), block_diagonal(full(cov))
