@@ -279,7 +279,8 @@ __attribute__((always_inline)) inline Terms<R> terms(bool projection, const Term
     Terms<R> t;
     t.Pp = {x.a1, x.b1, x.b1, x.c1}, t.P = {x.a, x.b, x.b, x.c};
     t.R_ = {x.rp, x.rpv, x.rpv, x.rvv};
-    t.H = {x.fp, 0, 0, x.fv}, t.F = {1, x.dt, 0, 1};
+    const R zero{}, one = zero + 1;  // scalars, or vectors of lanes (Wide)
+    t.H = {x.fp, zero, zero, x.fv}, t.F = {one, x.dt, zero, one};
     t.PHt = mul(t.Pp, t.H);
     t.S = plus(mul(t.H, t.PHt), t.R_);
     t.Sinv = inverse(t.S.a, t.S.b, t.S.d);
@@ -862,6 +863,44 @@ void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* cons
     });
 }
 
+// The smoother loops step W lanes (track axes) together: a lane's formulas above are
+// templates on R, and with R a vector of W lanes (GCC/Clang vector extensions, 32 bytes) the
+// same code runs W lanes at once, element by element, so each lane gets exactly the numbers
+// it gets alone. A block's lanes are gathered from the inputs and scattered to the outputs; a
+// short last block repeats its last lane.
+template <typename R>
+struct Wide;
+template <>
+struct Wide<float> {
+    typedef float type __attribute__((vector_size(32)));
+};
+template <>
+struct Wide<double> {
+    typedef double type __attribute__((vector_size(32)));
+};
+constexpr int kMaxWidth = 8;
+
+template <typename R>
+struct LaneBlock {
+    static constexpr int kWidth = sizeof(typename Wide<R>::type) / sizeof(R);
+    int64_t b[kWidth], j[kWidth];  // each lane's track and axis
+    int count;                     // lanes that are real (the rest repeat the last)
+
+    // The lanes [l, min(l + width, end)) of lane index track · m + axis.
+    LaneBlock(int64_t l, int64_t end, int64_t m) : count(static_cast<int>(std::min<int64_t>(kWidth, end - l))) {
+        for (int w = 0; w < kWidth; ++w) {
+            const int64_t lane = l + std::min(w, count - 1);
+            b[w] = lane / m, j[w] = lane % m;
+        }
+    }
+    // The lanes' values of input `v` at step t.
+    typename Wide<R>::type at(const View<R>& v, int64_t t) const {
+        typename Wide<R>::type out;
+        for (int w = 0; w < kWidth; ++w) out[w] = v.at(b[w], t, j[w]);
+        return out;
+    }
+};
+
 // How many sweeps of `lane_recursion` a run of n steps with a successor takes: one from the
 // end (fixed interval, lag ≥ n) or `lag` from zero.
 inline int64_t sweeps_of(int64_t n, int64_t lag) { return lag >= n ? 1 : lag; }
@@ -904,26 +943,27 @@ inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bo
 template <typename R>
 void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int threads,
               const void* const* in, const int64_t* in_strides, R* mean_out, R* cov_out) {
+    using V = typename Wide<R>::type;
     View<R> v[20];
     for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
-    const Backward<R> zero{0, 0, {0, 0, 0, 0}, {0, 0, 0, 0}};
     const int64_t n = T - 1;  // steps with a successor
     const int64_t width = 2 * m;
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        // One chain's terms, step by step (contiguous for the sweeps), and its states.
-        std::vector<R> terms(22 * (n > 0 ? n : 1));
-        std::vector<Backward<R>> states((sweeps_of(n, lag) + 1) * (n + 1), zero);
-        for (int64_t bi = first; bi < last; ++bi) {
-            for (int64_t j = 0; j < m; ++j) {
-                auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
-                const Backward<R>* result =
-                    lane_backward<R>(at, n, lag, projection != 0, terms, states);
-                for (int64_t k = 0; k <= n; ++k) {
-                    R now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
-                    if (k < n) smoothed(now, result[k]);  // the last step as filtered
-                    int64_t idx = bi * T + k;
-                    write_axis(mean_out + idx * width, cov_out + idx * width * width, width, j,
-                               now[0], now[1], now[2], now[3], now[4]);
+        // A block of lanes' terms, step by step (contiguous for the sweeps), and its states.
+        std::vector<V> terms(22 * (n > 0 ? n : 1));
+        std::vector<Backward<V>> states((sweeps_of(n, lag) + 1) * (n + 1), Backward<V>{});
+        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
+            const LaneBlock<R> lanes(l, last * m, m);
+            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
+            const Backward<V>* result =
+                lane_backward<V>(at, n, lag, projection != 0, terms, states);
+            for (int64_t k = 0; k <= n; ++k) {
+                V now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
+                if (k < n) smoothed(now, result[k]);  // the last step as filtered
+                for (int w = 0; w < lanes.count; ++w) {
+                    const int64_t idx = lanes.b[w] * T + k;
+                    write_axis(mean_out + idx * width, cov_out + idx * width * width, width,
+                               lanes.j[w], now[0][w], now[1][w], now[2][w], now[3][w], now[4][w]);
                 }
             }
         }
@@ -1043,48 +1083,54 @@ template <typename R>
 void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
                       int threads, const void* const* in, const int64_t* in_strides,
                       const R* g_mean, const R* g_cov, R* const* dgiven) {
+    using V = typename Wide<R>::type;
     View<R> v[20];
     for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
-    const Backward<R> zero{0, 0, {0, 0, 0, 0}, {0, 0, 0, 0}};
+    const Backward<V> zero{};
     const int64_t n = T - 1, width = 2 * m;
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        std::vector<R> terms(22 * (n > 0 ? n : 1)), dterms(22 * (n > 0 ? n : 1));
-        std::vector<Backward<R>> states((sweeps_of(n, lag) + 1) * (n + 1), zero);
-        std::vector<Backward<R>> dres(n + 1, zero), dprev(n + 1, zero);
-        std::vector<R> acc(20 * T);  // the inputs' adjoints, input by input over the steps
-        auto add = [&acc, T](int input, int64_t step, R value) { acc[input * T + step] += value; };
-        for (int64_t bi = first; bi < last; ++bi) {
-            for (int64_t j = 0; j < m; ++j) {
-                auto at = [&](int i, int64_t t) { return v[i].at(bi, t, j); };
-                const Backward<R>* result =
-                    lane_backward<R>(at, n, lag, projection != 0, terms, states);
-                std::fill(acc.begin(), acc.end(), R(0));
-                std::fill(dterms.begin(), dterms.end(), R(0));
+        std::vector<V> terms(22 * (n > 0 ? n : 1)), dterms(22 * (n > 0 ? n : 1));
+        std::vector<Backward<V>> states((sweeps_of(n, lag) + 1) * (n + 1), zero);
+        std::vector<Backward<V>> dres(n + 1, zero), dprev(n + 1, zero);
+        std::vector<V> acc(20 * T);  // the inputs' adjoints, input by input over the steps
+        auto add = [&acc, T](int input, int64_t step, V value) { acc[input * T + step] += value; };
+        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
+            const LaneBlock<R> lanes(l, last * m, m);
+            {
+                auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
+                const Backward<V>* result =
+                    lane_backward<V>(at, n, lag, projection != 0, terms, states);
+                std::fill(acc.begin(), acc.end(), V{});
+                std::fill(dterms.begin(), dterms.end(), V{});
                 // The smoothed moments' adjoints (axes._smoothed).
                 for (int64_t k = 0; k <= n; ++k) {
-                    const int64_t idx = bi * T + k, p = 2 * j, q = 2 * j + 1;
-                    R dps = g_mean ? g_mean[idx * width + p] : R(0);
-                    R dvs = g_mean ? g_mean[idx * width + q] : R(0);
-                    const R* gc = g_cov ? g_cov + idx * width * width : nullptr;
-                    R dsa = gc ? gc[p * width + p] : R(0), dsc = gc ? gc[q * width + q] : R(0);
-                    R dsb = gc ? gc[p * width + q] + gc[q * width + p] : R(0);
+                    V dps{}, dvs{}, dsa{}, dsb{}, dsc{};
+                    for (int w = 0; w < lanes.kWidth; ++w) {  // the lanes' output gradients
+                        const int64_t idx = lanes.b[w] * T + k;
+                        const int64_t p = 2 * lanes.j[w], q = p + 1;
+                        if (g_mean) dps[w] = g_mean[idx * width + p], dvs[w] = g_mean[idx * width + q];
+                        if (!g_cov) continue;
+                        const R* gc = g_cov + idx * width * width;
+                        dsa[w] = gc[p * width + p], dsc[w] = gc[q * width + q];
+                        dsb[w] = gc[p * width + q] + gc[q * width + p];
+                    }
                     add(18, k, dps), add(19, k, dvs);
                     if (k == n) {  // as filtered
                         add(0, k, dsa), add(1, k, dsb), add(2, k, dsc);
                         continue;
                     }
-                    const Backward<R>& s = result[k];
-                    M2<R> P{at(0, k), at(1, k), at(1, k), at(2, k)};
-                    M2<R> dY{dsa, R(0.5) * dsb, R(0.5) * dsb, dsc};
+                    const Backward<V>& s = result[k];
+                    M2<V> P{at(0, k), at(1, k), at(1, k), at(2, k)};
+                    M2<V> dY{dsa, R(0.5) * dsb, R(0.5) * dsb, dsc};
                     // Y = P − P Gᵀ − G P + Z
-                    M2<R> dPGt = neg(plus(dY, tr(dY)));
-                    M2<R> dP = plus(dY, mul(dPGt, s.G));
-                    Backward<R>& dr = dres[k];
+                    M2<V> dPGt = neg(plus(dY, tr(dY)));
+                    M2<V> dP = plus(dY, mul(dPGt, s.G));
+                    Backward<V>& dr = dres[k];
                     dr = zero;
                     dr.g0 = dps, dr.g1 = dvs;
                     dr.G = mul(tr(dPGt), P);
                     dr.Z = dY;
-                    R da = 0, db = 0, dc = 0;
+                    V da{}, db{}, dc{};
                     symmetric_adjoint(dP, da, db, dc);
                     add(0, k, da), add(1, k, db), add(2, k, dc);
                 }
@@ -1106,8 +1152,8 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
                 // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked).
                 for (int64_t k = 0; k < n; ++k) {
                     const int64_t t = k + 1;
-                    const TermArgs<R> x = term_args<R>(at, k);
-                    const TermArgs<R> d = terms_adjoint(&dterms[22 * k], projection != 0, x);
+                    const TermArgs<V> x = term_args<V>(at, k);
+                    const TermArgs<V> d = terms_adjoint(&dterms[22 * k], projection != 0, x);
                     add(0, k, d.a), add(1, k, d.b), add(2, k, d.c);
                     add(3, t, d.a1), add(4, t, d.b1), add(5, t, d.c1);
                     add(6, t, d.K.a), add(7, t, d.K.b), add(8, t, d.K.c), add(9, t, d.K.d);
@@ -1117,8 +1163,9 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
                 }
                 for (int i = 0; i < 20; ++i)
                     if (dgiven[i])
-                        for (int64_t t = 0; t < T; ++t)
-                            dgiven[i][(bi * T + t) * m + j] = acc[i * T + t];
+                        for (int w = 0; w < lanes.count; ++w)
+                            for (int64_t t = 0; t < T; ++t)
+                                dgiven[i][(lanes.b[w] * T + t) * m + lanes.j[w]] = acc[i * T + t][w];
             }
         }
     });
