@@ -878,8 +878,6 @@ template <>
 struct Wide<double> {
     typedef double type __attribute__((vector_size(32)));
 };
-constexpr int kMaxWidth = 8;
-
 template <typename R>
 struct LaneBlock {
     static constexpr int kWidth = sizeof(typename Wide<R>::type) / sizeof(R);
@@ -887,7 +885,8 @@ struct LaneBlock {
     int count;                     // lanes that are real (the rest repeat the last)
 
     // The lanes [l, min(l + width, end)) of lane index track · m + axis.
-    LaneBlock(int64_t l, int64_t end, int64_t m) : count(static_cast<int>(std::min<int64_t>(kWidth, end - l))) {
+    LaneBlock(int64_t l, int64_t end, int64_t m)
+        : count(static_cast<int>(std::min<int64_t>(kWidth, end - l))) {
         for (int w = 0; w < kWidth; ++w) {
             const int64_t lane = l + std::min(w, count - 1);
             b[w] = lane / m, j[w] = lane % m;
@@ -1096,77 +1095,77 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
         auto add = [&acc, T](int input, int64_t step, V value) { acc[input * T + step] += value; };
         for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
             const LaneBlock<R> lanes(l, last * m, m);
-            {
-                auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
-                const Backward<V>* result =
-                    lane_backward<V>(at, n, lag, projection != 0, terms, states);
-                std::fill(acc.begin(), acc.end(), V{});
-                std::fill(dterms.begin(), dterms.end(), V{});
-                // The smoothed moments' adjoints (axes._smoothed).
-                for (int64_t k = 0; k <= n; ++k) {
-                    V dps{}, dvs{}, dsa{}, dsb{}, dsc{};
-                    for (int w = 0; w < lanes.kWidth; ++w) {  // the lanes' output gradients
-                        const int64_t idx = lanes.b[w] * T + k;
-                        const int64_t p = 2 * lanes.j[w], q = p + 1;
-                        if (g_mean) dps[w] = g_mean[idx * width + p], dvs[w] = g_mean[idx * width + q];
-                        if (!g_cov) continue;
-                        const R* gc = g_cov + idx * width * width;
-                        dsa[w] = gc[p * width + p], dsc[w] = gc[q * width + q];
-                        dsb[w] = gc[p * width + q] + gc[q * width + p];
-                    }
-                    add(18, k, dps), add(19, k, dvs);
-                    if (k == n) {  // as filtered
-                        add(0, k, dsa), add(1, k, dsb), add(2, k, dsc);
-                        continue;
-                    }
-                    const Backward<V>& s = result[k];
-                    M2<V> P{at(0, k), at(1, k), at(1, k), at(2, k)};
-                    M2<V> dY{dsa, R(0.5) * dsb, R(0.5) * dsb, dsc};
-                    // Y = P − P Gᵀ − G P + Z
-                    M2<V> dPGt = neg(plus(dY, tr(dY)));
-                    M2<V> dP = plus(dY, mul(dPGt, s.G));
-                    Backward<V>& dr = dres[k];
-                    dr = zero;
-                    dr.g0 = dps, dr.g1 = dvs;
-                    dr.G = mul(tr(dPGt), P);
-                    dr.Z = dY;
-                    V da{}, db{}, dc{};
-                    symmetric_adjoint(dP, da, db, dc);
-                    add(0, k, da), add(1, k, db), add(2, k, dc);
+            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
+            const Backward<V>* result =
+                lane_backward<V>(at, n, lag, projection != 0, terms, states);
+            std::fill(acc.begin(), acc.end(), V{});
+            std::fill(dterms.begin(), dterms.end(), V{});
+            // The smoothed moments' adjoints (axes._smoothed).
+            for (int64_t k = 0; k <= n; ++k) {
+                V dps{}, dvs{}, dsa{}, dsb{}, dsc{};
+                for (int w = 0; w < lanes.kWidth; ++w) {  // the lanes' output gradients
+                    const int64_t idx = lanes.b[w] * T + k;
+                    const int64_t p = 2 * lanes.j[w], q = p + 1;
+                    if (g_mean)
+                        dps[w] = g_mean[idx * width + p], dvs[w] = g_mean[idx * width + q];
+                    if (!g_cov) continue;
+                    const R* gc = g_cov + idx * width * width;
+                    dsa[w] = gc[p * width + p], dsc[w] = gc[q * width + q];
+                    dsb[w] = gc[p * width + q] + gc[q * width + p];
                 }
-                dres[n] = zero;
-                // The recursion's adjoint, in lane_recursion's layout of states.
-                if (lag >= n) {
-                    for (int64_t k = 0; k < n; ++k)  // dres[k] is complete once k − 1 is done
-                        recurse_adjoint(&terms[22 * k], states[k + 1], dres[k], &dterms[22 * k],
-                                        dres[k + 1]);
-                } else {
-                    for (int64_t s = lag; s >= 1; --s) {
-                        std::fill(dprev.begin(), dprev.end(), zero);
-                        for (int64_t k = 0; k < n; ++k)
-                            recurse_adjoint(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1],
-                                            dres[k], &dterms[22 * k], dprev[k + 1]);
-                        std::swap(dres, dprev);
-                    }
+                add(18, k, dps), add(19, k, dvs);
+                if (k == n) {  // as filtered
+                    add(0, k, dsa), add(1, k, dsb), add(2, k, dsc);
+                    continue;
                 }
-                // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked).
-                for (int64_t k = 0; k < n; ++k) {
-                    const int64_t t = k + 1;
-                    const TermArgs<V> x = term_args<V>(at, k);
-                    const TermArgs<V> d = terms_adjoint(&dterms[22 * k], projection != 0, x);
-                    add(0, k, d.a), add(1, k, d.b), add(2, k, d.c);
-                    add(3, t, d.a1), add(4, t, d.b1), add(5, t, d.c1);
-                    add(6, t, d.K.a), add(7, t, d.K.b), add(8, t, d.K.c), add(9, t, d.K.d);
-                    add(10, t, d.rp * x.fp), add(11, t, d.rpv * x.fp * x.fv);
-                    add(12, t, d.rvv * x.fv);
-                    add(15, t, d.dt), add(16, t, d.ep), add(17, t, d.ev);
-                }
-                for (int i = 0; i < 20; ++i)
-                    if (dgiven[i])
-                        for (int w = 0; w < lanes.count; ++w)
-                            for (int64_t t = 0; t < T; ++t)
-                                dgiven[i][(lanes.b[w] * T + t) * m + lanes.j[w]] = acc[i * T + t][w];
+                const Backward<V>& s = result[k];
+                M2<V> P{at(0, k), at(1, k), at(1, k), at(2, k)};
+                M2<V> dY{dsa, R(0.5) * dsb, R(0.5) * dsb, dsc};
+                // Y = P − P Gᵀ − G P + Z
+                M2<V> dPGt = neg(plus(dY, tr(dY)));
+                M2<V> dP = plus(dY, mul(dPGt, s.G));
+                Backward<V>& dr = dres[k];
+                dr = zero;
+                dr.g0 = dps, dr.g1 = dvs;
+                dr.G = mul(tr(dPGt), P);
+                dr.Z = dY;
+                V da{}, db{}, dc{};
+                symmetric_adjoint(dP, da, db, dc);
+                add(0, k, da), add(1, k, db), add(2, k, dc);
             }
+            dres[n] = zero;
+            // The recursion's adjoint, in lane_recursion's layout of states.
+            if (lag >= n) {
+                for (int64_t k = 0; k < n; ++k)  // dres[k] is complete once k − 1 is done
+                    recurse_adjoint(&terms[22 * k], states[k + 1], dres[k], &dterms[22 * k],
+                                    dres[k + 1]);
+            } else {
+                for (int64_t s = lag; s >= 1; --s) {
+                    std::fill(dprev.begin(), dprev.end(), zero);
+                    for (int64_t k = 0; k < n; ++k)
+                        recurse_adjoint(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1],
+                                        dres[k], &dterms[22 * k], dprev[k + 1]);
+                    std::swap(dres, dprev);
+                }
+            }
+            // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked).
+            for (int64_t k = 0; k < n; ++k) {
+                const int64_t t = k + 1;
+                const TermArgs<V> x = term_args<V>(at, k);
+                const TermArgs<V> d = terms_adjoint(&dterms[22 * k], projection != 0, x);
+                add(0, k, d.a), add(1, k, d.b), add(2, k, d.c);
+                add(3, t, d.a1), add(4, t, d.b1), add(5, t, d.c1);
+                add(6, t, d.K.a), add(7, t, d.K.b), add(8, t, d.K.c), add(9, t, d.K.d);
+                add(10, t, d.rp * x.fp), add(11, t, d.rpv * x.fp * x.fv);
+                add(12, t, d.rvv * x.fv);
+                add(15, t, d.dt), add(16, t, d.ep), add(17, t, d.ev);
+            }
+            for (int i = 0; i < 20; ++i)
+                if (dgiven[i])
+                    for (int w = 0; w < lanes.count; ++w)
+                        for (int64_t t = 0; t < T; ++t)
+                            dgiven[i][(lanes.b[w] * T + t) * m + lanes.j[w]] =
+                                acc[i * T + t][w];
         }
     });
 }
