@@ -43,7 +43,6 @@ from torchsvs.tracking import (
     make_model,
     prepare_estimator,
 )
-from torchsvs.training.data import _identity
 
 
 class TrackGroups(Dataset[GroupBatch]):
@@ -103,10 +102,20 @@ class TrackFileDataModule(L.LightningDataModule):
             self.groups = list(self.block.steps.batches(self.max_cells))
             self.read_seconds = time.perf_counter() - tick
 
+    def transfer_batch_to_device(
+        self, batch: Any, device: torch.device, dataloader_idx: int
+    ) -> Any:
+        return batch  # CPU only; the batch holds arrays and a dataclass Lightning need not copy
+
     def predict_dataloader(self) -> DataLoader:
+        # Batches of one group, so the sampler (and the prediction writer) see group indices.
         return DataLoader(
-            TrackGroups(self.steps, self.groups, self.dtype), batch_size=None, collate_fn=_identity
+            TrackGroups(self.steps, self.groups, self.dtype), batch_size=1, collate_fn=_only
         )
+
+
+def _only(items: list[GroupBatch]) -> GroupBatch:
+    return items[0]
 
 
 class TrackPredictor(L.LightningModule):
@@ -174,11 +183,6 @@ class TrackPredictor(L.LightningModule):
         self.settings, self.estimator = settings, estimator.to(self.compute_dtype)
         self.meas_std = torch.tensor(settings.meas_var, dtype=self.compute_dtype).sqrt()
         self.prepare_seconds = time.perf_counter() - tick
-
-    def transfer_batch_to_device(
-        self, batch: Any, device: torch.device, dataloader_idx: int
-    ) -> Any:
-        return batch  # CPU only; the batch holds arrays and a dataclass Lightning need not copy
 
     def predict_step(self, batch: GroupBatch, batch_idx: int) -> StepEstimates:
         assert self.estimator is not None and self.meas_std is not None
