@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import torch
@@ -47,6 +47,8 @@ from torchsvs.filters import (
 )
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import SVSS, RTSSmoother
+
+Item = TypeVar("Item")
 
 #: Estimator names of ``torchsvs track --estimator`` and what they are.
 ESTIMATORS = {
@@ -319,7 +321,8 @@ class TrackRun:
     seconds: float = 0.0
     estimate_seconds: float = 0.0
     fit: Any = None  #: the fit's summary (:class:`~torchsvs.training.tuning.FitResult`)
-    #: seconds of rank 0's phases in a multi-process run (``torchsvs.training.predict``)
+    #: seconds spent reading, reading off settings (and fitting), estimating, ..., writing
+    #: (rank 0's in a multi-process run, ``torchsvs.training.predict``)
     phases: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
@@ -337,7 +340,7 @@ class TrackRun:
         if self.phases:
             rest = self.seconds - sum(self.phases.values())
             timed = ", ".join(f"{k} {v:.1f} s" for k, v in self.phases.items())
-            lines.append(f"rank 0: {timed}; start-up and waiting {rest:.1f} s")
+            lines.append(f"phases: {timed}, other {rest:.1f} s")
         return "\n".join(lines)
 
 
@@ -401,15 +404,19 @@ def track_file(
     if whole is None:
         whole = Path(source).stat().st_size < 256 << 20
     run = TrackRun()
+    run.phases = dict.fromkeys(("reading", "settings", "estimating", "writing"), 0.0)
     estimator: nn.Module | None = None
     bar: Any = None
     with EstimateWriter(target) as writer:
-        for block in track_blocks(source, columns, block_rows=block_rows, whole=whole):
+        blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
+        for block in timed(blocks, run.phases, "reading"):
             steps = block.steps
             if estimator is None:
+                tick = time.perf_counter()
                 estimator, settings, run.fit = prepare_estimator(
                     steps, settings, fit, fit_options, checkpoint, save, say
                 )
+                run.phases["settings"] += time.perf_counter() - tick
                 estimator = estimator.to(dtype)
                 run.settings = settings
                 bar = tqdm(desc="tracks", unit=" tracks", disable=not progress, leave=False)
@@ -424,12 +431,27 @@ def track_file(
             run.estimate_seconds += time.perf_counter() - tick
             run.report.add(steps.report)
             run.report.notes.update(found.notes)
+            tick = time.perf_counter()
             writer.write(found.table(block))
+            run.phases["writing"] += time.perf_counter() - tick
+    run.phases["estimating"] = run.estimate_seconds
     if bar is not None:
         bar.close()
     run.report.notes = +run.report.notes
     run.seconds = time.perf_counter() - start
     return run
+
+
+def timed(items: Iterable[Item], phases: dict[str, float], name: str) -> Iterator[Item]:
+    """The items of ``items``, adding the seconds spent producing each to ``phases[name]``."""
+    source = iter(items)
+    while True:
+        tick = time.perf_counter()
+        item = next(source, None)
+        phases[name] = phases.get(name, 0.0) + time.perf_counter() - tick
+        if item is None:
+            return
+        yield item
 
 
 def _sample_tracks(steps: Any, fit_options: dict[str, Any] | None) -> np.ndarray:

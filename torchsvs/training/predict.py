@@ -87,6 +87,7 @@ class TrackFileDataModule(L.LightningDataModule):
         self.block: TrackBlock | None = None
         self.groups: list[np.ndarray] = []
         self.read_seconds = 0.0
+        self.setup_time = 0.0  #: perf_counter() when setup began (every process had started)
 
     @property
     def steps(self) -> TrackSteps:
@@ -95,7 +96,7 @@ class TrackFileDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         if self.block is None:
-            tick = time.perf_counter()
+            tick = self.setup_time = time.perf_counter()
             self.block = next(
                 track_blocks(self.source, self.columns, block_rows=self.block_rows, whole=True)
             )
@@ -323,6 +324,7 @@ def predict_file(
     run.estimate_seconds = gather.estimate_seconds
     run.seconds = time.perf_counter() - start
     run.phases = {
+        "start-up": data.setup_time - start,  # the trainer, the processes, the process group
         "reading": data.read_seconds,
         "settings": module.prepare_seconds,
         "estimating": gather.estimate_seconds,
