@@ -84,11 +84,17 @@ def test_two_processes_write_the_same_file_as_one(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "args",
-    [[], ["--estimator", "pf", "--particles", "40"], ["--fit", "--fit-steps", "3", "--double"]],
-    ids=["default", "pf", "fit"],
+    [
+        [],
+        ["--estimator", "pf", "--particles", "40"],
+        ["--fit", "--fit-steps", "3", "--double"],
+        ["--max-cells", str(1 << 19)],
+    ],
+    ids=["default", "pf", "fit", "one-group"],
 )
 def test_two_processes_write_the_same_file_as_one_for_each_setting(tmp_path, args):
-    """The default estimator, random draws and a fit (once, on rank 0, then broadcast)."""
+    """The default estimator, random draws, a fit (once, on rank 0, then broadcast), and fewer
+    groups than processes (the last ``--max-cells`` counts)."""
     source = _source(tmp_path)
     one, two = tmp_path / "one.parquet", tmp_path / "two.parquet"
     _track(source, one, *args)

@@ -45,18 +45,28 @@ from torchsvs.tracking import (
 )
 
 
-class TrackGroups(Dataset[GroupBatch]):
+class TrackGroups(Dataset["GroupBatch | None"]):
     """The groups of a block's tracks (:meth:`~torchsvs.datasets.TrackSteps.batches`), each
     item one estimator call: the group padded and centred (:func:`~torchsvs.tracking.
-    group_batch`), ``z [B, T, m]`` in ``dtype``."""
+    group_batch`), ``z [B, T, m]`` in ``dtype``. Items past the last group (up to ``length``)
+    are ``None``: Lightning's distributed sampler needs an item for every process."""
 
-    def __init__(self, steps: TrackSteps, groups: Sequence[np.ndarray], dtype: torch.dtype) -> None:
+    def __init__(
+        self,
+        steps: TrackSteps,
+        groups: Sequence[np.ndarray],
+        dtype: torch.dtype,
+        length: int = 0,
+    ) -> None:
         self.steps, self.groups, self.dtype = steps, list(groups), dtype
+        self.length = max(length, len(self.groups))
 
     def __len__(self) -> int:
-        return len(self.groups)
+        return self.length
 
-    def __getitem__(self, index: int) -> GroupBatch:
+    def __getitem__(self, index: int) -> GroupBatch | None:
+        if index >= len(self.groups):
+            return None
         return group_batch(self.steps, self.groups[index], index, self.dtype)
 
 
@@ -109,13 +119,13 @@ class TrackFileDataModule(L.LightningDataModule):
         return batch  # CPU only; the batch holds arrays and a dataclass Lightning need not copy
 
     def predict_dataloader(self) -> DataLoader:
+        processes = self.trainer.world_size if self.trainer is not None else 1
+        groups = TrackGroups(self.steps, self.groups, self.dtype, processes)
         # Batches of one group, so the sampler (and the prediction writer) see group indices.
-        return DataLoader(
-            TrackGroups(self.steps, self.groups, self.dtype), batch_size=1, collate_fn=_only
-        )
+        return DataLoader(groups, batch_size=1, collate_fn=_only)
 
 
-def _only(items: list[GroupBatch]) -> GroupBatch:
+def _only(items: list[GroupBatch | None]) -> GroupBatch | None:
     return items[0]
 
 
@@ -185,8 +195,11 @@ class TrackPredictor(L.LightningModule):
         self.meas_std = torch.tensor(settings.meas_var, dtype=self.compute_dtype).sqrt()
         self.prepare_seconds = time.perf_counter() - tick
 
-    def predict_step(self, batch: GroupBatch, batch_idx: int) -> StepEstimates:
+    def predict_step(self, batch: GroupBatch | None, batch_idx: int) -> StepEstimates | None:
+        """The group's estimates (``None`` for a filler item of :class:`TrackGroups`)."""
         assert self.estimator is not None and self.meas_std is not None
+        if batch is None:
+            return None
         return estimate_group(self.estimator, batch, self.meas_std, self.covariance)
 
 
@@ -212,7 +225,7 @@ class GatherEstimates(BasePredictionWriter):
     ) -> None:
         tick = time.perf_counter()
         self.estimate_seconds = tick - self._tick
-        local = list(predictions)
+        local = [part for part in predictions if part is not None]
         if trainer.world_size == 1:
             self.parts = local
             return
