@@ -296,9 +296,11 @@ def predict_file(
     )
     gather = GatherEstimates()
     strategy: Any = DDPStrategy(process_group_backend="gloo") if processes > 1 else "auto"
-    lightning_log = logging.getLogger("lightning.pytorch")
-    level = lightning_log.level
-    lightning_log.setLevel(logging.WARNING)  # no banner about GPUs on every run
+    # No banners about GPUs and process groups on every run.
+    loggers = [logging.getLogger(f"lightning.{name}") for name in ("pytorch", "fabric")]
+    levels = [one.level for one in loggers]
+    for one in loggers:
+        one.setLevel(logging.WARNING)
     try:
         trainer = L.Trainer(
             accelerator="cpu",
@@ -314,9 +316,12 @@ def predict_file(
         with warnings.catch_warnings():
             # Loading workers would copy the file into more processes; the groups are ready.
             warnings.filterwarnings("ignore", ".*does not have many workers.*")
+            # Lightning 2.6 on torch 2.13, at every run: not the user's to act on.
+            warnings.filterwarnings("ignore", ".*LeafSpec.*", FutureWarning)
             trainer.predict(module, datamodule=data, return_predictions=True)
     finally:
-        lightning_log.setLevel(level)
+        for one, level in zip(loggers, levels, strict=True):
+            one.setLevel(level)
     if trainer.global_rank != 0:
         return None
     tick = time.perf_counter()
