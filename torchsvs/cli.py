@@ -5,7 +5,7 @@
     torchsvs reproduce spvsf [--runs 100]             Tables 1, 2, 4, 5, Figs 5-9 of Gadsden 2012
                                                       (reports in ./torchsvs-results/ or --out)
     torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
-    torchsvs track INPUT -o OUTPUT [--estimator svss] [--fit] ...
+    torchsvs track INPUT -o OUTPUT [--estimator svss] [--fit] [--processes 2] ...
                                                       estimate every track of a CSV/Parquet file
 
 The experiments are scripts of the source checkout (``experiments/``), not of the installed

@@ -280,6 +280,7 @@ def predict_file(
     """
     check_processes(processes)
     start = time.perf_counter()
+    before = torch.get_num_threads(), os.environ.get("OMP_NUM_THREADS")
     # The launched processes inherit the environment; Lightning leaves a set value alone.
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
@@ -322,6 +323,11 @@ def predict_file(
     finally:
         for one, level in zip(loggers, levels, strict=True):
             one.setLevel(level)
+        torch.set_num_threads(before[0])
+        if before[1] is None:
+            del os.environ["OMP_NUM_THREADS"]
+        else:
+            os.environ["OMP_NUM_THREADS"] = before[1]
     if trainer.global_rank != 0:
         return None
     tick = time.perf_counter()
