@@ -254,11 +254,13 @@ class StepEstimates(NamedTuple):
     notes: dict[str, int]  #: :func:`~torchsvs.datasets.files.short_track_notes` of the group
 
 
-def group_batch(steps: TrackSteps, group: np.ndarray, index: int, dtype: torch.dtype) -> GroupBatch:
-    """The tracks ``group`` of a block padded (float64, so the offsets are exact), centred, then
-    cast to ``dtype``."""
+def group_batch(
+    steps: TrackSteps, group: np.ndarray, position: int, dtype: torch.dtype
+) -> GroupBatch:
+    """The tracks ``group`` (the block's group number ``position``) padded (float64, so the
+    offsets are exact), centred, then cast to ``dtype``."""
     tracks, offset = centred(steps.pad(group, torch.float64))
-    return GroupBatch(index, group, tracks.to(dtype), offset)
+    return GroupBatch(position, group, tracks.to(dtype), offset)
 
 
 def estimate_group(
@@ -266,7 +268,7 @@ def estimate_group(
 ) -> StepEstimates:
     """Priors from ``meas_std [m]`` (:func:`~torchsvs.datasets.with_prior`), the estimator's
     run and the offsets added back. Random draws (particle filters) come from a generator
-    seeded with the group's index, so a group's estimates do not depend on which groups ran
+    seeded with the group's position, so a group's estimates do not depend on which groups ran
     before it, nor in which process."""
     tracks = with_prior(batch.tracks, meas_std)
     generator = torch.Generator().manual_seed(batch.position)
@@ -288,7 +290,7 @@ class BlockEstimates:
     cov: np.ndarray | None  #: [S, 2m, 2m]
     never_observed: np.ndarray  #: [K, m] bool
     notes: Counter[str] = field(default_factory=Counter)
-    groups: set[int] = field(default_factory=set)  #: indices of the groups added
+    groups: set[int] = field(default_factory=set)  #: positions of the groups added
 
     @classmethod
     def empty(cls, steps: TrackSteps, covariance: bool = False) -> BlockEstimates:
@@ -320,6 +322,7 @@ class TrackRun:
     settings: Settings | None = None
     seconds: float = 0.0
     estimate_seconds: float = 0.0
+    estimate_cpu_seconds: float = 0.0  #: CPU time of this process (rank 0) while estimating
     fit: Any = None  #: the fit's summary (:class:`~torchsvs.training.tuning.FitResult`)
     #: seconds spent reading, reading off settings (and fitting), estimating, ..., writing
     #: (rank 0's in a multi-process run, ``torchsvs.training.predict``)
@@ -335,7 +338,8 @@ class TrackRun:
         steps = self.report.placed
         lines.append(
             f"{self.seconds:.1f} s in all, {self.estimate_seconds:.1f} s estimating "
-            f"({1e6 * self.estimate_seconds / max(steps, 1):.2f} µs per row placed)"
+            f"({self.estimate_cpu_seconds:.1f} s CPU; "
+            f"{1e6 * self.estimate_seconds / max(steps, 1):.2f} µs per row placed)"
         )
         if self.phases:
             rest = self.seconds - sum(self.phases.values())
@@ -423,12 +427,13 @@ def track_file(
             assert run.settings is not None and run.settings.meas_var is not None
             meas_std = torch.tensor(run.settings.meas_var, dtype=dtype).sqrt()
             found = BlockEstimates.empty(steps, covariance)
-            tick = time.perf_counter()
-            for index, group in enumerate(steps.batches(max_cells)):
-                batch = group_batch(steps, group, index, dtype)
+            tick, cpu = time.perf_counter(), time.process_time()
+            for position, group in enumerate(steps.batches(max_cells)):
+                batch = group_batch(steps, group, position, dtype)
                 found.add(estimate_group(estimator, batch, meas_std, covariance))
                 bar.update(len(group))
             run.estimate_seconds += time.perf_counter() - tick
+            run.estimate_cpu_seconds += time.process_time() - cpu
             run.report.add(steps.report)
             run.report.notes.update(found.notes)
             tick = time.perf_counter()

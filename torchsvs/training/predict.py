@@ -210,11 +210,11 @@ class GatherEstimates(BasePredictionWriter):
     def __init__(self) -> None:
         super().__init__(write_interval="epoch")
         self.parts: list[StepEstimates] = []
-        self.estimate_seconds = self.gather_seconds = 0.0
-        self._tick = 0.0
+        self.estimate_seconds = self.estimate_cpu_seconds = self.gather_seconds = 0.0
+        self._tick = self._cpu = 0.0
 
     def on_predict_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self._tick = time.perf_counter()
+        self._tick, self._cpu = time.perf_counter(), time.process_time()
 
     def write_on_epoch_end(
         self,
@@ -225,6 +225,7 @@ class GatherEstimates(BasePredictionWriter):
     ) -> None:
         tick = time.perf_counter()
         self.estimate_seconds = tick - self._tick
+        self.estimate_cpu_seconds = time.process_time() - self._cpu
         local = [part for part in predictions if part is not None]
         if trainer.world_size == 1:
             self.parts = local
@@ -346,6 +347,7 @@ def predict_file(
     with EstimateWriter(target) as writer:
         writer.write(found.table(data.block))
     run.estimate_seconds = gather.estimate_seconds
+    run.estimate_cpu_seconds = gather.estimate_cpu_seconds
     run.seconds = time.perf_counter() - start
     run.phases = {
         "start-up": data.setup_time - start,  # the trainer, the processes, the process group
