@@ -155,7 +155,8 @@ def track_parser() -> argparse.ArgumentParser:
         default=1,
         help="processes sharing the tracks (Lightning DDP on CPU, gloo; each reads the whole "
         "file and runs --threads threads; rank 0 fits once and writes the same file as one "
-        "process); default 1",
+        "process; only the estimating is shared, so it pays only where that dominates, see "
+        "benchmarks/ddp_predict.md); default 1",
     )
     parser.add_argument(
         "--double", action="store_true", help="compute in float64 (default float32)"
