@@ -21,7 +21,18 @@ from pathlib import Path
 import numpy as np
 
 
-def write_tracks(path: Path, tracks: int, steps: int, chunk: int = 50_000, seed: int = 0) -> None:
+def write_tracks(
+    path: Path,
+    tracks: int,
+    steps: int,
+    chunk: int = 50_000,
+    seed: int = 0,
+    ragged: bool = False,
+    missing: float = 0.0,
+) -> None:
+    """Seeded tracks (rows of each track together, 1 s scans, 50 m noise); ``ragged``: each
+    track keeps its first ``steps/2`` to ``steps`` scans; ``missing``: share of empty
+    position values."""
     import pyarrow as pa
     import pyarrow.csv as pcsv
     import pyarrow.parquet as pq
@@ -36,13 +47,20 @@ def write_tracks(path: Path, tracks: int, steps: int, chunk: int = 50_000, seed:
         t = np.arange(steps, dtype=float)
         pos = start + v * t[None, :, None] + np.cumsum(accel, axis=1)
         z = pos + gen.normal(0, 50, pos.shape)
+        if missing > 0:
+            z[gen.random(z.shape) < missing] = np.nan
         ids = np.repeat(np.char.add("track-", np.arange(first, first + count).astype(str)), steps)
+        kept = np.ones((count, steps), dtype=bool)
+        if ragged:
+            lengths = gen.integers(steps // 2, steps + 1, count)
+            kept = t[None, :] < lengths[:, None]
+        rows = kept.ravel()
         table = pa.table(
             {
-                "track_id": ids,
-                "time": np.tile(t, count),
-                "x": z[..., 0].ravel().round(2),
-                "y": z[..., 1].ravel().round(2),
+                "track_id": ids[rows],
+                "time": np.tile(t, count)[rows],
+                "x": pa.array(z[..., 0].ravel()[rows].round(2), from_pandas=True),
+                "y": pa.array(z[..., 1].ravel()[rows].round(2), from_pandas=True),
             }
         )
         if writer is None:

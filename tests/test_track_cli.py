@@ -18,17 +18,21 @@ from torchsvs.cli import main
 TEXT = pcsv.ConvertOptions(column_types={"id": pa.string(), "t": pa.string()})
 
 
-def _simulated_csv(path, tracks: int = 12, steps: int = 60, sigma: float = 30.0, seed: int = 0):
+def _simulated_csv(
+    path, tracks: int = 12, steps: int | list[int] = 60, sigma: float = 30.0, seed: int = 0
+):
     """CV tracks with irregular times (1-3 s), 5% missing values, some duplicated rows, string
-    ids, rows of each track shuffled; returns the truth positions by (id, time)."""
+    ids, rows of each track shuffled; ``steps``: of every track, or one count per track;
+    returns the truth positions by (id, time)."""
     gen = np.random.default_rng(seed)
     rows, truth = [], {}
     for k in range(tracks):
         ident = f"flight-{k:02d}"
-        t = np.cumsum(gen.uniform(1.0, 3.0, steps))
+        count = steps if isinstance(steps, int) else steps[k]
+        t = np.cumsum(gen.uniform(1.0, 3.0, count))
         v = gen.normal(0, 40, 2)
-        pos = gen.normal(0, 1e3, 2) + t[:, None] * v + np.cumsum(gen.normal(0, 2, (steps, 2)), 0)
-        for i in gen.permutation(steps):
+        pos = gen.normal(0, 1e3, 2) + t[:, None] * v + np.cumsum(gen.normal(0, 2, (count, 2)), 0)
+        for i in gen.permutation(count):
             x, y = pos[i] + gen.normal(0, sigma, 2)
             xs = "" if gen.random() < 0.05 else f"{x:.3f}"
             rows.append(f"{ident},{t[i]:.3f},{xs},{y:.3f}")

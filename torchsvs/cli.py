@@ -5,7 +5,7 @@
     torchsvs reproduce spvsf [--runs 100]             Tables 1, 2, 4, 5, Figs 5-9 of Gadsden 2012
                                                       (reports in ./torchsvs-results/ or --out)
     torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
-    torchsvs track INPUT -o OUTPUT [--estimator svss] [--fit] ...
+    torchsvs track INPUT -o OUTPUT [--estimator svss] [--fit] [--processes 2] ...
                                                       estimate every track of a CSV/Parquet file
 
 The experiments are scripts of the source checkout (``experiments/``), not of the installed
@@ -19,6 +19,7 @@ import importlib
 import sys
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 COMMANDS = {
     "demo": ("experiments.demo", "learn ψ, γ, then track the scenarios of Chen et al. 2020"),
@@ -49,6 +50,16 @@ def _floats(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(
             f"expected numbers separated by commas, got {text!r}"
         ) from err
+
+
+def _at_least_one(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
 
 
 def track_parser() -> argparse.ArgumentParser:
@@ -133,6 +144,21 @@ def track_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--block-rows", type=int, default=1 << 18, help="rows per streamed block")
     parser.add_argument(
+        "--max-cells",
+        type=_at_least_one,
+        default=1 << 19,
+        help="padded steps (tracks × steps) per estimator call: bounds memory (default 2^19)",
+    )
+    parser.add_argument(
+        "--processes",
+        type=_at_least_one,
+        default=1,
+        help="processes sharing the tracks (Lightning DDP on CPU, gloo; each reads the whole "
+        "file and runs --threads threads; rank 0 fits once and writes the same file as one "
+        "process; only the estimating is shared, so it pays only where that dominates, see "
+        "benchmarks/ddp_predict.md); default 1",
+    )
+    parser.add_argument(
         "--double", action="store_true", help="compute in float64 (default float32)"
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
@@ -175,25 +201,45 @@ def track(argv: list[str]) -> None:
         }
         if args.fit_steps is not None:
             fit_options["steps"] = args.fit_steps
-        run = track_file(
-            args.input,
-            args.output,
-            settings,
-            columns=columns,
-            fit=args.fit,
-            fit_options=fit_options,
-            checkpoint=args.checkpoint,
-            save=args.save,
-            covariance=args.covariance,
-            whole=True if args.in_memory else False if args.stream else None,
-            block_rows=args.block_rows,
-            dtype=torch.float64 if args.double else torch.float32,
-            progress=not args.quiet,
-            log=None if args.quiet else lambda text: print(text, file=sys.stderr),
-        )
+        common: dict[str, Any] = {
+            "columns": columns,
+            "fit": args.fit,
+            "fit_options": fit_options,
+            "checkpoint": args.checkpoint,
+            "save": args.save,
+            "covariance": args.covariance,
+            "block_rows": args.block_rows,
+            "max_cells": args.max_cells,
+            "dtype": torch.float64 if args.double else torch.float32,
+            "log": None if args.quiet else lambda text: print(text, file=sys.stderr),
+        }
+        if args.processes > 1:
+            if args.stream:
+                raise ValueError(
+                    "processes: more than one process reads the whole file; drop --stream"
+                )
+            from torchsvs.training.predict import predict_file
+
+            run = predict_file(
+                args.input,
+                args.output,
+                settings,
+                processes=args.processes,
+                threads=args.threads,
+                **common,
+            )
+        else:
+            run = track_file(
+                args.input,
+                args.output,
+                settings,
+                whole=True if args.in_memory else False if args.stream else None,
+                progress=not args.quiet,
+                **common,
+            )
     except (ValueError, TypeError, FileNotFoundError) as err:
         raise SystemExit(f"torchsvs track: {err}") from err
-    if not args.quiet:
+    if run is not None and not args.quiet:  # None: a process launched by rank 0
         print(run.summary(), file=sys.stderr)
 
 

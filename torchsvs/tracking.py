@@ -12,10 +12,11 @@ priors from two-point differencing, and the SVSF's boundary layer from the rule 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import torch
@@ -26,12 +27,14 @@ from torchsvs.datasets import (
     EstimateWriter,
     RecordedTracks,
     RowReport,
+    TrackBlock,
+    TrackSteps,
     estimate_noise,
     estimate_table,
     track_blocks,
     with_prior,
 )
-from torchsvs.datasets.files import scatter_steps, short_track_notes
+from torchsvs.datasets.files import flat_steps, short_track_notes
 from torchsvs.estimator import Estimator
 from torchsvs.filters import (
     SPVSF,
@@ -44,6 +47,8 @@ from torchsvs.filters import (
 )
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import SVSS, RTSSmoother
+
+Item = TypeVar("Item")
 
 #: Estimator names of ``torchsvs track --estimator`` and what they are.
 ESTIMATORS = {
@@ -227,6 +232,88 @@ def run_estimator(
     return out.mean, out.cov
 
 
+class GroupBatch(NamedTuple):
+    """One estimator call of ``torchsvs track``: a group of a block's tracks
+    (:meth:`~torchsvs.datasets.TrackSteps.batches`), padded and moved to start near 0."""
+
+    position: int  #: the group's position among the block's groups (seeds its random draws)
+    group: np.ndarray  #: [B] int64 the group's tracks among the block's
+    tracks: RecordedTracks  #: z [B, T, m] in the computation's dtype, priors not yet set
+    offset: Tensor  #: [B, m] float64 what :func:`centred` took off, to add back
+
+
+class StepEstimates(NamedTuple):
+    """A group's estimates at the block's flat steps, in float64: what a process hands back."""
+
+    position: int  #: the group's position among the block's groups
+    group: np.ndarray  #: [B] int64 the group's tracks among the block's
+    steps: np.ndarray  #: [s] int64 the block's flat step of each estimate
+    mean: np.ndarray  #: [s, 2m]
+    cov: np.ndarray | None  #: [s, 2m, 2m], or None when not asked for
+    never_observed: np.ndarray  #: [B, m] bool
+    notes: dict[str, int]  #: :func:`~torchsvs.datasets.files.short_track_notes` of the group
+
+
+def group_batch(
+    steps: TrackSteps, group: np.ndarray, position: int, dtype: torch.dtype
+) -> GroupBatch:
+    """The tracks ``group`` (the block's group number ``position``) padded (float64, so the
+    offsets are exact), centred, then cast to ``dtype``."""
+    tracks, offset = centred(steps.pad(group, torch.float64))
+    return GroupBatch(position, group, tracks.to(dtype), offset)
+
+
+def estimate_group(
+    estimator: nn.Module, batch: GroupBatch, meas_std: Tensor, covariance: bool = False
+) -> StepEstimates:
+    """Priors from ``meas_std [m]`` (:func:`~torchsvs.datasets.with_prior`), the estimator's
+    run and the offsets added back. Random draws (particle filters) come from a generator
+    seeded with the group's position, so a group's estimates do not depend on which groups ran
+    before it, nor in which process."""
+    tracks = with_prior(batch.tracks, meas_std)
+    generator = torch.Generator().manual_seed(batch.position)
+    mean, cov = run_estimator(estimator, tracks, generator)
+    mean = mean.double()
+    mean[..., 0::2] += batch.offset.unsqueeze(1)
+    target, values, covs = flat_steps(tracks, mean, cov if covariance else None)
+    assert tracks.never_observed is not None
+    never = tracks.never_observed.numpy()
+    notes = short_track_notes(tracks)
+    return StepEstimates(batch.position, batch.group, target, values, covs, never, notes)
+
+
+@dataclass
+class BlockEstimates:
+    """A block's estimates at its flat steps, filled group by group (:meth:`add`)."""
+
+    mean: np.ndarray  #: [S, 2m] NaN until estimated
+    cov: np.ndarray | None  #: [S, 2m, 2m]
+    never_observed: np.ndarray  #: [K, m] bool
+    notes: Counter[str] = field(default_factory=Counter)
+    groups: set[int] = field(default_factory=set)  #: positions of the groups added
+
+    @classmethod
+    def empty(cls, steps: TrackSteps, covariance: bool = False) -> BlockEstimates:
+        S, m = steps.position.shape
+        return cls(
+            np.full((S, 2 * m), np.nan),
+            np.full((S, 2 * m, 2 * m), np.nan) if covariance else None,
+            np.zeros((steps.num_tracks, m), dtype=bool),
+        )
+
+    def add(self, part: StepEstimates) -> None:
+        self.mean[part.steps] = part.mean
+        if self.cov is not None and part.cov is not None:
+            self.cov[part.steps] = part.cov
+        self.never_observed[part.group] = part.never_observed
+        self.notes.update(part.notes)
+        self.groups.add(part.position)
+
+    def table(self, block: TrackBlock) -> Any:
+        """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
+        return estimate_table(block, self.mean, self.cov, self.never_observed)
+
+
 @dataclass
 class TrackRun:
     """What ``torchsvs track`` did."""
@@ -235,7 +322,11 @@ class TrackRun:
     settings: Settings | None = None
     seconds: float = 0.0
     estimate_seconds: float = 0.0
+    estimate_cpu_seconds: float = 0.0  #: CPU time of this process (rank 0) while estimating
     fit: Any = None  #: the fit's summary (:class:`~torchsvs.training.tuning.FitResult`)
+    #: seconds spent reading, reading off settings (and fitting), estimating, ..., writing
+    #: (rank 0's in a multi-process run, ``torchsvs.training.predict``)
+    phases: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
         lines = [self.report.summary()]
@@ -247,8 +338,13 @@ class TrackRun:
         steps = self.report.placed
         lines.append(
             f"{self.seconds:.1f} s in all, {self.estimate_seconds:.1f} s estimating "
-            f"({1e6 * self.estimate_seconds / max(steps, 1):.2f} µs per row placed)"
+            f"({self.estimate_cpu_seconds:.1f} s CPU; "
+            f"{1e6 * self.estimate_seconds / max(steps, 1):.2f} µs per row placed)"
         )
+        if self.phases:
+            rest = self.seconds - sum(self.phases.values())
+            timed = ", ".join(f"{k} {v:.1f} s" for k, v in self.phases.items())
+            lines.append(f"phases: {timed}, other {rest:.1f} s")
         return "\n".join(lines)
 
 
@@ -312,48 +408,55 @@ def track_file(
     if whole is None:
         whole = Path(source).stat().st_size < 256 << 20
     run = TrackRun()
+    run.phases = dict.fromkeys(("reading", "settings", "estimating", "writing"), 0.0)
     estimator: nn.Module | None = None
-    generator = torch.Generator().manual_seed(0)
     bar: Any = None
     with EstimateWriter(target) as writer:
-        for block in track_blocks(source, columns, block_rows=block_rows, whole=whole):
+        blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
+        for block in timed(blocks, run.phases, "reading"):
             steps = block.steps
             if estimator is None:
-                sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
-                settings = complete_settings(settings, sample)
-                say(_settings_note(settings))
-                estimator, settings, run.fit = _prepare(
-                    settings, sample, fit, fit_options, checkpoint, save, say
+                tick = time.perf_counter()
+                estimator, settings, run.fit = prepare_estimator(
+                    steps, settings, fit, fit_options, checkpoint, save, say
                 )
+                run.phases["settings"] += time.perf_counter() - tick
                 estimator = estimator.to(dtype)
                 run.settings = settings
                 bar = tqdm(desc="tracks", unit=" tracks", disable=not progress, leave=False)
             assert run.settings is not None and run.settings.meas_var is not None
-            meas_var = torch.tensor(run.settings.meas_var, dtype=dtype)
-            n = 2 * len(run.settings.meas_var)
-            S = len(steps.time)
-            flat = (np.full((S, n), np.nan), np.full((S, n, n), np.nan) if covariance else None)
-            never = np.zeros((steps.num_tracks, n // 2), dtype=bool)
-            tick = time.perf_counter()
-            for group in steps.batches(max_cells):
-                tracks, offset = centred(steps.pad(group, torch.float64))  # offsets exact
-                tracks = with_prior(tracks.to(dtype), meas_var.sqrt())
-                mean, cov = run_estimator(estimator, tracks, generator)
-                mean = mean.double()
-                mean[..., 0::2] += offset.unsqueeze(1)
-                scatter_steps(steps, tracks, mean, cov if covariance else None, into=flat)
-                assert tracks.never_observed is not None
-                never[group] = tracks.never_observed.numpy()
-                run.report.notes.update(short_track_notes(tracks))
+            meas_std = torch.tensor(run.settings.meas_var, dtype=dtype).sqrt()
+            found = BlockEstimates.empty(steps, covariance)
+            tick, cpu = time.perf_counter(), time.process_time()
+            for position, group in enumerate(steps.batches(max_cells)):
+                batch = group_batch(steps, group, position, dtype)
+                found.add(estimate_group(estimator, batch, meas_std, covariance))
                 bar.update(len(group))
             run.estimate_seconds += time.perf_counter() - tick
+            run.estimate_cpu_seconds += time.process_time() - cpu
             run.report.add(steps.report)
-            writer.write(estimate_table(block, flat[0], flat[1], never))
+            run.report.notes.update(found.notes)
+            tick = time.perf_counter()
+            writer.write(found.table(block))
+            run.phases["writing"] += time.perf_counter() - tick
+    run.phases["estimating"] = run.estimate_seconds
     if bar is not None:
         bar.close()
     run.report.notes = +run.report.notes
     run.seconds = time.perf_counter() - start
     return run
+
+
+def timed(items: Iterable[Item], phases: dict[str, float], name: str) -> Iterator[Item]:
+    """The items of ``items``, adding the seconds spent producing each to ``phases[name]``."""
+    source = iter(items)
+    while True:
+        tick = time.perf_counter()
+        item = next(source, None)
+        phases[name] = phases.get(name, 0.0) + time.perf_counter() - tick
+        if item is None:
+            return
+        yield item
 
 
 def _sample_tracks(steps: Any, fit_options: dict[str, Any] | None) -> np.ndarray:
@@ -375,16 +478,27 @@ def _settings_note(settings: Settings) -> str:
     )
 
 
-def _prepare(
+def prepare_estimator(
+    steps: TrackSteps,
     settings: Settings,
-    sample: RecordedTracks,
-    fit: bool,
-    fit_options: dict[str, Any] | None,
-    checkpoint: str | Path | None,
-    save: str | Path | None,
-    say: Callable[[str], None],
+    fit: bool = False,
+    fit_options: dict[str, Any] | None = None,
+    checkpoint: str | Path | None = None,
+    save: str | Path | None = None,
+    say: Callable[[str], None] | None = None,
 ) -> tuple[nn.Module, Settings, Any]:
-    """Builds the estimator; loads a checkpoint, fits, saves, as asked."""
+    """The estimator of ``torchsvs track`` for a block's tracks: the settings left open read
+    off them (:func:`complete_settings`, on up to ``fit_options["tracks"]`` tracks spread over
+    the block), then fitted, loaded from ``checkpoint``, saved to ``save``, as asked.
+
+    Returns:
+        The estimator (float64), the settings it was built from, and the fit's summary (or
+        ``None``).
+    """
+    say = say or (lambda _: None)
+    sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
+    settings = complete_settings(settings, sample)
+    say(_settings_note(settings))
     summary = None
     if fit:
         from torchsvs.training.tuning import self_tune

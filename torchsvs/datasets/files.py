@@ -289,27 +289,28 @@ def write_estimates(
 
 
 def scatter_steps(
-    steps: TrackSteps,
-    tracks: RecordedTracks,
-    mean: Tensor,
-    cov: Tensor | None = None,
-    into: tuple[np.ndarray, np.ndarray | None] | None = None,
+    steps: TrackSteps, tracks: RecordedTracks, mean: Tensor, cov: Tensor | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Padded results ``[B, T, ...]`` back to the flat steps of the block (``[S, ...]``)."""
+    """Padded results ``[B, T, ...]`` back to the flat steps of the block (``[S, ...]``, NaN at
+    the steps of other tracks)."""
     n = mean.shape[-1]
     S = len(steps.time)
-    flat_mean, flat_cov = (
-        into
-        if into is not None
-        else (
-            np.full((S, n), np.nan),
-            None if cov is None else np.full((S, n, n), np.nan),
-        )
-    )
+    flat_mean = np.full((S, n), np.nan)
+    flat_cov = None if cov is None else np.full((S, n, n), np.nan)
+    target, values, covs = flat_steps(tracks, mean, cov)
+    flat_mean[target] = values
+    if covs is not None and flat_cov is not None:
+        flat_cov[target] = covs
+    return flat_mean, flat_cov
+
+
+def flat_steps(
+    tracks: RecordedTracks, mean: Tensor, cov: Tensor | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Padded results at the real steps only: the block's flat step of each (``[s]`` int64) and
+    the float64 values there (``mean [s, n]``, ``cov [s, n, n]`` or ``None``)."""
     assert tracks.steps is not None
     where = tracks.steps >= 0
     target = tracks.steps[where].numpy()
-    flat_mean[target] = mean.detach()[where].double().numpy()
-    if cov is not None and flat_cov is not None:
-        flat_cov[target] = cov.detach()[where].double().numpy()
-    return flat_mean, flat_cov
+    covs = None if cov is None else cov.detach()[where].double().numpy()
+    return target, mean.detach()[where].double().numpy(), covs

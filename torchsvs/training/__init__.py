@@ -3,6 +3,8 @@
 * :class:`ManeuveringTargetDataModule`: random maneuvering tracks, seeded splits.
 * :class:`RecordedTracksDataModule`: a fixed set of recorded tracks (no truth needed).
 * :func:`self_tune`: the fast truth-free fit behind ``torchsvs track --fit``.
+* :mod:`torchsvs.training.predict`: ``torchsvs track --processes N``, a track file estimated by
+  ``Trainer.predict`` with DDP on CPU (:func:`~torchsvs.training.predict.predict_file`).
 * :class:`EstimatorModule`: any torchsvs estimator as a LightningModule, with supervised and
   self-supervised losses.
 * ``torchsvs fit --config CONFIG.yaml``: the LightningCLI; ``--config`` also takes the name of a

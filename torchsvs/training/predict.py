@@ -1,0 +1,360 @@
+"""``torchsvs track --processes N``: a track file estimated by ``N`` processes, as Lightning's
+``Trainer.predict`` with ``strategy="ddp"`` on CPU (gloo).
+
+Every process reads the whole file (:class:`TrackFileDataModule`, all at the same time) and
+cuts it into the groups of tracks that :func:`~torchsvs.tracking.track_file` estimates one call
+at a time; Lightning's distributed sampler gives each process a disjoint share of the groups.
+Rank 0 reads the settings off the data (and fits, if asked) once and broadcasts them with the
+estimator's parameters (:class:`TrackPredictor`), so every process estimates with the same
+ones; the estimates are gathered on rank 0 (:class:`GatherEstimates`), which writes the file.
+Each group is estimated exactly as in one process, so the output is the same file, byte for
+byte.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.strategies import DDPStrategy
+from torch import Tensor, nn
+from torch.utils.data import DataLoader, Dataset
+
+from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
+from torchsvs.tracking import (
+    BlockEstimates,
+    GroupBatch,
+    Settings,
+    StepEstimates,
+    TrackRun,
+    estimate_group,
+    group_batch,
+    make_estimator,
+    make_model,
+    prepare_estimator,
+)
+
+
+class TrackGroups(Dataset["GroupBatch | None"]):
+    """The groups of a block's tracks (:meth:`~torchsvs.datasets.TrackSteps.batches`), each
+    item one estimator call: the group padded and centred (:func:`~torchsvs.tracking.
+    group_batch`), ``z [B, T, m]`` in ``dtype``. Items past the last group (up to ``length``)
+    are ``None``: Lightning's distributed sampler needs an item for every process."""
+
+    def __init__(
+        self,
+        steps: TrackSteps,
+        groups: Sequence[np.ndarray],
+        dtype: torch.dtype,
+        length: int = 0,
+    ) -> None:
+        self.steps, self.groups, self.dtype = steps, list(groups), dtype
+        self.length = max(length, len(self.groups))
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, index: int) -> GroupBatch | None:
+        if index >= len(self.groups):
+            return None
+        return group_batch(self.steps, self.groups[index], index, self.dtype)
+
+
+class TrackFileDataModule(L.LightningDataModule):
+    """A track file for ``Trainer.predict``, as :class:`TrackGroups`.
+
+    Args:
+        source: a ``.csv`` or ``.parquet`` track file, read whole in :meth:`setup` (by every
+            process; any row order).
+        columns: its column names.
+        block_rows: rows per block while reading.
+        max_cells: padded steps (``B × T``) per group, as in
+            :func:`~torchsvs.tracking.track_file`.
+        dtype: of the batches.
+    """
+
+    def __init__(
+        self,
+        source: str | Path,
+        columns: Columns | None = None,
+        block_rows: int = 1 << 18,
+        max_cells: int = 1 << 19,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        super().__init__()
+        self.source, self.columns = source, columns
+        self.block_rows, self.max_cells, self.dtype = block_rows, max_cells, dtype
+        self.block: TrackBlock | None = None
+        self.groups: list[np.ndarray] = []
+        self.read_seconds = 0.0
+        self.setup_time = 0.0  #: perf_counter() when setup began (every process had started)
+
+    @property
+    def steps(self) -> TrackSteps:
+        assert self.block is not None, "setup() reads the file"
+        return self.block.steps
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.block is None:
+            tick = self.setup_time = time.perf_counter()
+            self.block = next(
+                track_blocks(self.source, self.columns, block_rows=self.block_rows, whole=True)
+            )
+            self.groups = list(self.block.steps.batches(self.max_cells))
+            self.read_seconds = time.perf_counter() - tick
+
+    def transfer_batch_to_device(
+        self, batch: Any, device: torch.device, dataloader_idx: int
+    ) -> Any:
+        return batch  # CPU only; the batch holds arrays and a dataclass Lightning need not copy
+
+    def predict_dataloader(self) -> DataLoader:
+        processes = self.trainer.world_size if self.trainer is not None else 1
+        groups = TrackGroups(self.steps, self.groups, self.dtype, processes)
+        # Batches of one group, so the sampler (and the prediction writer) see group indices.
+        return DataLoader(groups, batch_size=1, collate_fn=_only)
+
+
+def _only(items: list[GroupBatch | None]) -> GroupBatch | None:
+    return items[0]
+
+
+class TrackPredictor(L.LightningModule):
+    """The estimator of ``torchsvs track`` for ``Trainer.predict`` on a
+    :class:`TrackFileDataModule`; :meth:`predict_step` gives a group's
+    :class:`~torchsvs.tracking.StepEstimates`.
+
+    The estimator is built in :meth:`setup`, once the file is read: rank 0 completes the
+    settings from the data, fits (``fit``: :func:`~torchsvs.training.self_tune`, on rank 0
+    only, while the other processes wait), loads ``checkpoint`` and saves to ``save``
+    (:func:`~torchsvs.tracking.prepare_estimator`), then broadcasts the settings and the
+    estimator's parameters to the other processes.
+
+    Args:
+        settings: the estimator and whatever of its settings are known.
+        fit, fit_options, checkpoint, save, covariance: as for
+            :func:`~torchsvs.tracking.track_file`.
+        dtype: of the computation.
+        log: where rank 0 prints what was read off the data (default: nowhere).
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        *,
+        fit: bool = False,
+        fit_options: dict[str, Any] | None = None,
+        checkpoint: str | Path | None = None,
+        save: str | Path | None = None,
+        covariance: bool = False,
+        dtype: torch.dtype = torch.float32,
+        log: Callable[[str], None] | None = None,
+    ) -> None:
+        super().__init__()
+        self.settings, self.fit, self.fit_options = settings, fit, fit_options
+        self.checkpoint, self.save, self.covariance = checkpoint, save, covariance
+        self.compute_dtype, self.say = dtype, log
+        self.estimator: nn.Module | None = None
+        self.meas_std: Tensor | None = None
+        self.fit_summary: Any = None
+        self.prepare_seconds = 0.0
+
+    def setup(self, stage: str) -> None:
+        if self.estimator is not None:
+            return
+        tick = time.perf_counter()
+        steps = self.trainer.datamodule.steps  # type: ignore[attr-defined]
+        shared: tuple[dict[str, Any], dict[str, Tensor]] | None = None
+        if self.trainer.global_rank == 0:
+            estimator, settings, self.fit_summary = prepare_estimator(
+                steps,
+                self.settings,
+                self.fit,
+                self.fit_options,
+                self.checkpoint,
+                self.save,
+                self.say,
+            )
+            shared = (asdict(settings), estimator.state_dict())
+        known, state = self.trainer.strategy.broadcast(shared, src=0)  # type: ignore[misc]
+        settings = Settings(**known)
+        estimator = make_estimator(settings, make_model(settings))
+        estimator.load_state_dict(state)
+        assert settings.meas_var is not None
+        self.settings, self.estimator = settings, estimator.to(self.compute_dtype)
+        self.meas_std = torch.tensor(settings.meas_var, dtype=self.compute_dtype).sqrt()
+        self.prepare_seconds = time.perf_counter() - tick
+
+    def predict_step(self, batch: GroupBatch | None, batch_idx: int) -> StepEstimates | None:
+        """The group's estimates (``None`` for a filler item of :class:`TrackGroups`)."""
+        assert self.estimator is not None and self.meas_std is not None
+        if batch is None:
+            return None
+        return estimate_group(self.estimator, batch, self.meas_std, self.covariance)
+
+
+class GatherEstimates(BasePredictionWriter):
+    """Collects every process's :class:`~torchsvs.tracking.StepEstimates` on rank 0 at the
+    end of the predict epoch (``parts``; empty on the other ranks), and times the epoch."""
+
+    def __init__(self) -> None:
+        super().__init__(write_interval="epoch")
+        self.parts: list[StepEstimates] = []
+        self.estimate_seconds = self.estimate_cpu_seconds = self.gather_seconds = 0.0
+        self._tick = self._cpu = 0.0
+
+    def on_predict_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._tick, self._cpu = time.perf_counter(), time.process_time()
+
+    def write_on_epoch_end(
+        self,
+        trainer: L.Trainer,
+        pl_module: L.LightningModule,
+        predictions: Sequence[Any],
+        batch_indices: Sequence[Any],
+    ) -> None:
+        tick = time.perf_counter()
+        self.estimate_seconds = tick - self._tick
+        self.estimate_cpu_seconds = time.process_time() - self._cpu
+        local = [part for part in predictions if part is not None]
+        if trainer.world_size == 1:
+            self.parts = local
+            return
+        rank0 = trainer.global_rank == 0
+        shares: list[Any] | None = [None] * trainer.world_size if rank0 else None
+        torch.distributed.gather_object(local, shares, dst=0)
+        self.parts = [part for share in shares for part in share] if shares is not None else []
+        self.gather_seconds = time.perf_counter() - tick
+
+
+def check_processes(processes: Any) -> int:
+    """``processes`` if it is an integer ``>= 1``, else ``ValueError`` naming it."""
+    if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
+        raise ValueError(f"processes: expected an integer >= 1, got {processes!r}")
+    return processes
+
+
+def predict_file(
+    source: str | Path,
+    target: str | Path,
+    settings: Settings,
+    *,
+    processes: int = 2,
+    columns: Columns | None = None,
+    fit: bool = False,
+    fit_options: dict[str, Any] | None = None,
+    checkpoint: str | Path | None = None,
+    save: str | Path | None = None,
+    covariance: bool = False,
+    block_rows: int = 1 << 18,
+    max_cells: int = 1 << 19,
+    dtype: torch.dtype = torch.float32,
+    threads: int = 1,
+    log: Callable[[str], None] | None = None,
+) -> TrackRun | None:
+    """:func:`~torchsvs.tracking.track_file` (the whole file read at once) in ``processes``
+    processes: ``Trainer.predict`` with ``strategy="ddp"`` (gloo) on CPU.
+
+    Lightning's DDP launcher starts processes 1 to ``N - 1`` by running the command that started
+    this one again (``sys.argv``), so call this from a script or the ``torchsvs track`` command
+    (every process must reach the call with the same arguments), not from an interactive
+    session. ``fit`` runs once, on rank 0, inside the run; the other processes receive the
+    fitted parameters. Every process holds the whole file in memory.
+
+    Args:
+        processes: processes to run (1: the same path in this process alone).
+        threads: intra-op threads of each process (``OMP_NUM_THREADS`` of the launched ones).
+        others: as for :func:`~torchsvs.tracking.track_file`.
+
+    Returns:
+        What the run did, on rank 0; ``None`` on the other processes.
+    """
+    check_processes(processes)
+    start = time.perf_counter()
+    before = torch.get_num_threads(), os.environ.get("OMP_NUM_THREADS")
+    # The launched processes inherit the environment; Lightning leaves a set value alone.
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
+    data = TrackFileDataModule(source, columns, block_rows, max_cells, dtype)
+    module = TrackPredictor(
+        settings,
+        fit=fit,
+        fit_options=fit_options,
+        checkpoint=checkpoint,
+        save=save,
+        covariance=covariance,
+        dtype=dtype,
+        log=log,
+    )
+    gather = GatherEstimates()
+    strategy: Any = DDPStrategy(process_group_backend="gloo") if processes > 1 else "auto"
+    # No banners about GPUs and process groups on every run.
+    loggers = [logging.getLogger(f"lightning.{name}") for name in ("pytorch", "fabric")]
+    levels = [one.level for one in loggers]
+    for one in loggers:
+        one.setLevel(logging.WARNING)
+    try:
+        trainer = L.Trainer(
+            accelerator="cpu",
+            devices=processes,
+            strategy=strategy,
+            logger=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            enable_checkpointing=False,
+            inference_mode=False,  # the estimators run under no_grad, as in one process
+            callbacks=[gather],
+        )
+        with warnings.catch_warnings():
+            # Loading workers would copy the file into more processes; the groups are ready.
+            warnings.filterwarnings("ignore", ".*does not have many workers.*")
+            # Lightning 2.6 on torch 2.13, at every run: not the user's to act on.
+            warnings.filterwarnings("ignore", ".*LeafSpec.*", FutureWarning)
+            trainer.predict(module, datamodule=data, return_predictions=True)
+    finally:
+        for one, level in zip(loggers, levels, strict=True):
+            one.setLevel(level)
+        torch.set_num_threads(before[0])
+        if before[1] is None:
+            del os.environ["OMP_NUM_THREADS"]
+        else:
+            os.environ["OMP_NUM_THREADS"] = before[1]
+    if trainer.global_rank != 0:
+        return None
+    tick = time.perf_counter()
+    steps = data.steps
+    found = BlockEstimates.empty(steps, covariance)
+    for part in gather.parts:
+        if part.position not in found.groups:  # a sampler that evens out ranks repeats groups
+            found.add(part)
+    if len(found.groups) != len(data.groups):
+        raise RuntimeError(f"estimated {len(found.groups)} of {len(data.groups)} groups of tracks")
+    run = TrackRun(settings=module.settings, fit=module.fit_summary)
+    run.report.add(steps.report)
+    run.report.notes.update(found.notes)
+    run.report.notes = +run.report.notes
+    assert data.block is not None
+    with EstimateWriter(target) as writer:
+        writer.write(found.table(data.block))
+    run.estimate_seconds = gather.estimate_seconds
+    run.estimate_cpu_seconds = gather.estimate_cpu_seconds
+    run.seconds = time.perf_counter() - start
+    run.phases = {
+        "start-up": data.setup_time - start,  # the trainer, the processes, the process group
+        "reading": data.read_seconds,
+        "settings": module.prepare_seconds,
+        "estimating": gather.estimate_seconds,
+        "gathering": gather.gather_seconds,
+        "writing": time.perf_counter() - tick,
+    }
+    return run
