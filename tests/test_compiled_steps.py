@@ -76,7 +76,7 @@ def test_compiled_steps_equal_eager_steps(name):
     with torch.no_grad(), eager_loops():
         expected = est(z, x0, P0)
         before = compiled.STATS["compiles"]
-        with compiled_steps(backend="eager", always=True):
+        with compiled_steps(backend="eager"):
             got = est(z, x0, P0)
             again = est(z, x0, P0)
     _compare(got, expected)
@@ -98,7 +98,7 @@ def test_gradients_through_compiled_steps_equal_eager_ones(name):
         return torch.autograd.grad(loss, params)
 
     expected = grads()
-    with compiled_steps(backend="aot_eager", always=True, chunk=1):
+    with compiled_steps(backend="aot_eager", chunk=1):
         got = grads()
         again = grads()
     assert len(got) == len(expected) >= 1
@@ -112,7 +112,7 @@ def test_chunked_scans_with_compiled_steps_equal_the_whole_run(name):
     est, z, x0, P0 = _cases()[name]
     with torch.no_grad(), eager_loops():
         whole = est(z, x0, P0)
-        with compiled_steps(backend="eager", always=True):
+        with compiled_steps(backend="eager"):
             state = est.init(x0, P0)
             parts = []
             for start in range(0, z.shape[1], 5):
@@ -131,10 +131,27 @@ def test_chunks_of_any_length_equal_eager_steps(chunk):
     with torch.no_grad():
         expected = est(z, x0, P0)
         before = compiled.STATS["compiles"]
-        with compiled_steps(backend="eager", always=True, chunk=chunk):
+        with compiled_steps(backend="eager", chunk=chunk):
             got = est(z, x0, P0)
     _compare(got, expected)
     assert compiled.STATS["compiles"] == before + 1
+
+
+def test_online_steps_compile_once_with_one_step_chunks():
+    z, x0, P0, model = _ballistic(T=8)
+    z[1, 4, 0] = z[1, 3, 0]  # no missing component: every step has the same inputs
+    est = ts.ExtendedKalmanFilter(model)
+    with torch.no_grad():
+        whole = est(z, x0, P0)
+        before = compiled.STATS["compiles"]
+        with compiled_steps(backend="eager", chunk=1):
+            state = est.init(x0, P0)
+            means = []
+            for t in range(z.shape[1]):
+                state, out = est.step(state, z[:, t])
+                means.append(out.mean)
+    assert_close(torch.stack(means, 1), whole.mean, **TOL)
+    assert compiled.STATS["compiles"] == before + 1  # the first step eager, then one shape
 
 
 def test_a_failing_compiler_falls_back_to_eager_steps_with_one_warning(monkeypatch):
@@ -146,7 +163,7 @@ def test_a_failing_compiler_falls_back_to_eager_steps_with_one_warning(monkeypat
     est = ts.ExtendedKalmanFilter(model)
     with torch.no_grad():
         expected = est(z, x0, P0)
-        with compiled_steps(always=True):
+        with compiled_steps():
             with pytest.warns(RuntimeWarning, match="compiled steps unavailable.*no compiler"):
                 got = est(z, x0, P0)
             again = est(z, x0, P0)  # no second warning (filterwarnings = error)
@@ -175,7 +192,7 @@ def test_a_factor_that_fails_in_a_compiled_step_reruns_it_eagerly():
     est = _SingularFactor(est.model)
     with torch.no_grad(), eager_loops():
         expected = est(z, x0, P0)
-        with compiled_steps(backend="eager", always=True):
+        with compiled_steps(backend="eager"):
             got = est(z, x0, P0)
     assert expected.log_likelihood.isfinite().all()
     _compare(got, expected)
@@ -185,7 +202,7 @@ def test_the_off_switches(monkeypatch):
     z, x0, P0, model = _ballistic()
     est = ts.ExtendedKalmanFilter(model)
     before = compiled.STATS["compiles"]
-    with torch.no_grad(), compiled_steps(backend="eager", always=True):
+    with torch.no_grad(), compiled_steps(backend="eager"):
         with compiled_steps(False):
             est(z, x0, P0)
         monkeypatch.setenv("TORCHSVS_COMPILE", "0")
@@ -202,12 +219,24 @@ def test_a_users_torch_compile_of_the_estimator(name):
     with torch.no_grad(), eager_loops():
         expected = est(z, x0, P0)
         before = compiled.STATS["compiles"]
-        with compiled_steps(False, backend="eager", always=True):
+        with compiled_steps(False, backend="eager"):
             got = torch.compile(est, backend="eager")(z, x0, P0)
             state, scanned = torch.compile(est.scan, backend="eager")(est.init(x0, P0), z)
     assert compiled.STATS["compiles"] > before
     _compare(got, expected)
     _compare(scanned, expected)
+
+
+def test_a_users_torch_compile_of_an_svsf_on_compiled_per_axis_loops():
+    """The issue's case: ``torch.compile(svsf)`` of a CV model (B = 64, T = 200) had not
+    finished its first call after 14 minutes; its per-axis C++ loops now run outside Dynamo."""
+    sc = ts.scenarios.atc_scenario(64, torch.Generator().manual_seed(0))
+    z = sc.z[:, :200]
+    est = ts.SVSF(sc.model, psi=[800.0, 600.0, 800.0, 600.0], gamma=0.1)
+    with torch.no_grad():
+        expected = est(z, sc.x0, sc.P0)
+        got = torch.compile(est)(z, sc.x0, sc.P0)
+    _compare(got, expected)
 
 
 def _inductor_case(name):
@@ -223,7 +252,7 @@ def _inductor_run(name, backward, chunk=None):
     x0 = x0.clone().requires_grad_(backward)
     with eager_loops(), torch.set_grad_enabled(backward):
         expected = est(z, x0, P0)
-        with compiled_steps(always=True, chunk=chunk):
+        with compiled_steps(chunk=chunk):
             got = est(z, x0, P0)
         if backward:
             (g_expected,) = torch.autograd.grad(expected.mean.square().sum(), x0)

@@ -288,7 +288,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             result, last = by_axis
         else:
             result = self._dense_scan(state, inputs) or self._loop(
-                inputs, state.post_innovation, state.history
+                inputs, state.post_innovation, state.history, fresh=state.steps == 0
             )
             post = result.post_innovation
             last = fused.Last(
@@ -522,16 +522,19 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         step = self.correct(x_pred, P_pred, prep.observation(t), carried, inputs)
         return x_pred, P_pred, F_t, step
 
-    def _loop(self, inputs: Inputs, carried: Tensor | None, history: Any) -> FilterResult:
+    def _loop(
+        self, inputs: Inputs, carried: Tensor | None, history: Any, fresh: bool = True
+    ) -> FilterResult:
         """The predict-correct loop over the steps of ``inputs`` from its prior, the corrector
-        carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``."""
+        carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``;
+        ``fresh``: the prior is ``init``'s (no step taken yet)."""
         prep = self.prepare(inputs, history)
         steps: list[Step] = []
         pred_means: list[Tensor] = []
         pred_covs: list[Tensor] = []
         linearised: list[Tensor] = []
         x, P = inputs.x0, inputs.P0
-        run_steps = compiled.runner(self, prep, inputs)  # filter_step, compiled or not
+        run_steps = compiled.runner(self, prep, inputs, fresh)  # filter_step, compiled or not
         while len(steps) < inputs.steps:
             for x_pred, P_pred, F_t, step in run_steps(len(steps), x, P, carried):
                 if prep.F is None:

@@ -18,7 +18,6 @@ AXIS_KERNEL = {"enabled": True, "fused": True}
 #: Whether the Gaussian filters' general steps run through ``torch.compile``
 #: (:mod:`torchsvs.kernels.compiled`): off by default, see :func:`compiled_steps`.
 COMPILED_STEPS: dict[str, Any] = {"enabled": False, "chunk": 4, "backend": "inductor"}
-COMPILED_STEPS["always"] = False
 
 
 @contextmanager
@@ -54,7 +53,6 @@ def compiled_steps(
     *,
     chunk: int | None = None,
     backend: str | None = None,
-    always: bool | None = None,
 ) -> Iterator[None]:
     """Within this block the Gaussian filters' general steps (EKF, UKF, the SVSF on nonlinear
     models, any linear filter the compiled loops of :mod:`~torchsvs.kernels.fused` do not
@@ -66,11 +64,10 @@ def compiled_steps(
         enabled: ``False`` turns compiled steps off within the block.
         chunk: steps per compiled call (default 4: fewer calls per step, a longer compilation).
         backend: the ``torch.compile`` backend (default ``"inductor"``).
-        always: compile also where :func:`torchsvs.kernels.compiled.pays` says it does not pay.
     """
     before = dict(COMPILED_STEPS)
     COMPILED_STEPS["enabled"] = enabled
-    for key, value in (("chunk", chunk), ("backend", backend), ("always", always)):
+    for key, value in (("chunk", chunk), ("backend", backend)):
         if value is not None:
             COMPILED_STEPS[key] = value
     try:

@@ -29,8 +29,16 @@ sequence is never traced, so compile time does not grow with ``T``.
   Dynamo (:func:`outside_dynamo`; its Python time loop would be unrolled, and input checks
   break the graph) and runs its time loop eagerly with compiled steps.
 
-Where it pays: see ``benchmarks/compiled_steps.md`` (``python -m benchmarks.compiled_steps``);
-:func:`pays` holds the rule that benchmark supports.
+Where it pays (``benchmarks/compiled_steps.md``, ``python -m benchmarks.compiled_steps``: the
+ballistic re-entry model, T = 300, one thread, a 2-core machine shared with other jobs): per
+step in every case measured, the EKF, UKF and SVSF at B = 1 and 100, float32 and float64,
+forward and forward + backward: compiled ÷ eager RATIOS. What does not pay is the compilation
+of a single run: COMPILES s per filter and pass (inductor, caches cold), repaid after REPAY
+runs of 300 steps. Hence compiled steps are opt-in, for many runs in one process (training,
+evaluation sweeps, streams of tracks): outside :func:`torchsvs.kernels.compiled_steps` the steps
+run eagerly, and ``TORCHSVS_COMPILE=0`` keeps them eager even within it. Online
+:meth:`~torchsvs.estimator.SteppedEstimator.step` calls are one-step runs: they compile with
+``chunk=1`` only (a longer chunk never fills).
 """
 
 from __future__ import annotations
@@ -81,27 +89,21 @@ def active() -> bool:
     return bool(COMPILED_STEPS["enabled"]) and os.environ.get("TORCHSVS_COMPILE", "1") != "0"
 
 
-def pays(estimator: Any, batch: int) -> bool:
-    """Whether compiling the steps of ``estimator`` on ``batch`` tracks is worth it: the rule
-    measured by ``benchmarks/compiled_steps.py`` (``compiled_steps(always=True)`` overrides)."""
-    return True
-
-
 def clear() -> None:
     """Forgets every compiled step and failure (the next run compiles, and may warn, again)."""
     _cache.clear()
     _failures["warned"] = None
 
 
-def runner(estimator: Any, prep: Any, inputs: Any) -> Runner:
-    """What runs a prepared run's steps (``prep``: ``estimator.prepare(inputs)``): its
-    ``filter_step`` one at a time, or compiled chunks of them when :func:`active` and
-    :func:`pays`."""
+def runner(estimator: Any, prep: Any, inputs: Any, fresh: bool) -> Runner:
+    """What runs a prepared run's steps (``prep``: ``estimator.prepare(inputs)``; ``fresh``:
+    from ``init``'s state): its ``filter_step`` one at a time, or compiled chunks of them when
+    :func:`active`."""
 
     def eager(t: int, x: Tensor, P: Tensor, carried: Tensor | None) -> list[StepOut]:
         return [estimator.filter_step(t, x, P, carried, prep, inputs)]
 
-    if not active() or not (COMPILED_STEPS["always"] or pays(estimator, inputs.batch)):
+    if not active():
         return eager
     chunk = max(1, int(COMPILED_STEPS["chunk"]))
     T = inputs.steps
@@ -119,7 +121,7 @@ def runner(estimator: Any, prep: Any, inputs: Any) -> Runner:
     )
 
     def compiled(t: int, x: Tensor, P: Tensor, carried: Tensor | None) -> list[StepOut]:
-        if (t == 0 and carried is None) or t + chunk > T:
+        if (fresh and t == 0) or t + chunk > T:
             # A fresh run's first step, and the steps that do not fill a chunk: eager (the
             # module's notes), so that a run compiles once.
             return eager(t, x, P, carried)
