@@ -29,7 +29,7 @@ import torch._inductor.config
 import torchsvs as ts
 from benchmarks.timing import alternating_best
 from torchsvs.evaluation import markdown_table
-from torchsvs.kernels import COMPILED_STEPS, compiled, compiled_steps
+from torchsvs.kernels import COMPILED_STEPS, compiled_steps
 
 RESULTS = Path(__file__).with_name("compiled_steps.md")
 BATCHES = (1, 100)
@@ -70,70 +70,116 @@ def _compiled(call: Callable[[], object]) -> Callable[[], object]:
     return run
 
 
+HEADER = ["filter", "dtype", "B", "pass", "eager (µs/step)", "compiled (µs/step)", "ratio"]
+HEADER += ["compile (s)", "runs to repay"]
+
+
+def _case(name: str, dtype: torch.dtype, B: int, mode: str, T: int, rounds: int) -> list[str]:
+    """One table row: eager and compiled calls of one case, alternating."""
+    sc = ts.scenarios.ballistic_scenario(
+        B, torch.Generator().manual_seed(0), duration=T / 10, dtype=dtype
+    )
+    est = _filters(sc.model)[name].to(dtype)
+    call = _call(est, sc.z, sc.x0, sc.P0, mode)
+    fast = _compiled(call)
+    start = time.perf_counter()
+    fast()
+    first = time.perf_counter() - start
+    best = alternating_best({"eager": call, "compiled": fast}, rounds)
+    compile_s = first - best["compiled"]
+    saved = best["eager"] - best["compiled"]
+    return [
+        name,
+        str(dtype).removeprefix("torch."),
+        str(B),
+        mode,
+        f"{1e6 * best['eager'] / T:.0f}",
+        f"{1e6 * best['compiled'] / T:.0f}",
+        f"{best['compiled'] / best['eager']:.2f}×",
+        f"{compile_s:.1f}",
+        f"{compile_s / saved:.0f}" if saved > 0 else "never",
+    ]
+
+
+def _merged(logs: list[Path]) -> list[list[str]]:
+    """The rows printed by earlier runs (a benchmark split over processes; a case measured
+    twice: the later log's), in the table's order."""
+    rows = {}
+    for log in logs:
+        for line in log.read_text().splitlines():
+            cells = line.split(" | ")
+            if len(cells) == len(HEADER) and cells[0] in ("EKF", "UKF", "SVSF"):
+                rows[tuple(cells[:4])] = cells
+    order = [
+        (name, dtype, str(B), mode)
+        for name in ("EKF", "UKF", "SVSF")
+        for dtype in DTYPES
+        for B in BATCHES
+        for mode in MODES
+    ]
+    return [rows[case] for case in order if case in rows]
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--filters", default="EKF,UKF,SVSF")
+    parser.add_argument("--dtypes", default=",".join(DTYPES))
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--merge", type=Path, nargs="+", help="write the table of rows printed by earlier runs"
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     torch._inductor.config.fx_graph_cache = False  # compile times from scratch
     torch._functorch.config.enable_autograd_cache = False
-    names = args.filters.split(",")
     T = args.steps
-    rows, records = [], []
-    for name in names:
-        for dtype_name, dtype in DTYPES.items():
-            for B in BATCHES:
-                sc = ts.scenarios.ballistic_scenario(
-                    B, torch.Generator().manual_seed(0), duration=T / 10, dtype=dtype
-                )
-                for mode in MODES:
-                    est = _filters(sc.model)[name].to(dtype)
-                    call = _call(est, sc.z, sc.x0, sc.P0, mode)
-                    fast = _compiled(call)
-                    start = time.perf_counter()
-                    fast()
-                    first = time.perf_counter() - start
-                    best = alternating_best({"eager": call, "compiled": fast}, args.rounds)
-                    compile_s = first - best["compiled"]
-                    saved = best["eager"] - best["compiled"]
-                    runs = f"{compile_s / saved:.0f}" if saved > 0 else "never"
-                    ratio = best["compiled"] / best["eager"]
-                    records.append((name, dtype_name, B, mode, ratio))
-                    row = [
-                        name,
-                        dtype_name,
-                        str(B),
-                        mode,
-                        f"{1e6 * best['eager'] / T:.0f}",
-                        f"{1e6 * best['compiled'] / T:.0f}",
-                        f"{ratio:.2f}×",
-                        f"{compile_s:.1f}",
-                        runs,
-                    ]
-                    rows.append(row)
-                    print(" | ".join(row), flush=True)
-    header = ["filter", "dtype", "B", "pass", "eager (µs/step)", "compiled (µs/step)"]
-    header += ["ratio", "compile (s)", "runs to repay"]
-    table = markdown_table(header, rows)
-    paying = [r for r in records if r[4] < 0.9]
+    command = f"python -m benchmarks.compiled_steps --rounds {args.rounds} --steps {T}"
+    if args.merge:
+        rows = _merged(args.merge)
+        command = (
+            f"{command} --filters NAMES`, one run per filter list, merged by "
+            "`python -m benchmarks.compiled_steps --merge LOGS"
+        )
+    else:
+        rows = []
+        for name in args.filters.split(","):
+            for dtype in (DTYPES[d] for d in args.dtypes.split(",")):
+                for B in BATCHES:
+                    for mode in MODES:
+                        rows.append(_case(name, dtype, B, mode, T, args.rounds))
+                        print(" | ".join(rows[-1]), flush=True)
+    ratios = [float(row[6].rstrip("×")) for row in rows]
+    compile_s = [float(row[7]) for row in rows]
+    measured = {tuple(row[:4]) for row in rows}
+    missing = [
+        f"{name} {dtype} B = {B} {mode}"
+        for name in args.filters.split(",")
+        for dtype in DTYPES
+        for B in BATCHES
+        for mode in MODES
+        if (name, dtype, str(B), mode) not in measured
+    ]
     text = (
         "# Compiled steps\n\n"
-        f"Generated by `python -m benchmarks.compiled_steps --rounds {args.rounds} --steps {T}`: "
-        "the general predict-correct step of each filter on the ballistic re-entry model, eager "
-        "and through `torch.compile` (inductor, `ts.kernels.compiled_steps()`, "
-        f"chunks of {COMPILED_STEPS['chunk']} steps per compiled call), {T} steps, eager and "
-        f"compiled calls alternating, best of {args.rounds} rounds, one intra-op thread. "
-        "Per-step times are a whole call divided by T. Compile time: the first compiled call "
-        "minus a warm one, inductor's on-disk caches off; runs to repay: compile time ÷ time "
-        "saved per call. Ratio = compiled ÷ eager.\n\n"
-        f"{table}\n\n"
-        f"Compiling pays (ratio < 0.9) in {len(paying)} of {len(records)} cases; "
-        f"{compiled.STATS['compiles']} compilations took {compiled.STATS['seconds']:.0f} s "
-        "in all (forward graphs; a backward graph compiles at the first backward pass).\n"
+        f"Generated by `{command}`: the general predict-correct step of each filter on the "
+        "ballistic re-entry model, eager and through `torch.compile` (inductor, "
+        f"`ts.kernels.compiled_steps()`, chunks of {COMPILED_STEPS['chunk']} steps per compiled "
+        f"call), {T} steps, eager and compiled calls alternating, best of {args.rounds} rounds, "
+        "one intra-op thread. Per-step times are a whole call divided by T. Compile time: the "
+        "first compiled call minus a warm one, inductor's on-disk caches off (forward and, for "
+        "forward + backward, the backward graph compiled at the first backward pass); runs to "
+        "repay: compile time ÷ time saved per call. Ratio = compiled ÷ eager. The machine "
+        "(2 cores) is shared with other jobs: absolute times and compile times vary with its "
+        "load (up to 2-4× here), the ratios of alternating calls much less.\n\n"
+        f"{markdown_table(HEADER, rows)}\n\n"
+        f"Compiled steps are faster in {sum(r < 1 for r in ratios)} of {len(rows)} cases "
+        f"(ratio {min(ratios):.2f}-{max(ratios):.2f}×); a compilation takes "
+        f"{min(compile_s):.0f}-{max(compile_s):.0f} s.\n"
     )
+    if missing:
+        text += f"\nNot measured (the run was stopped): {'; '.join(missing)}.\n"
     args.out.write_text(text)
     print(text)
 

@@ -2,12 +2,14 @@
 
 Every Gaussian filter (KF, EKF, UKF, SVSF, RSTKF, SIF) runs its time loop in Python around one
 function, :meth:`~torchsvs.filters.kalman.GaussianFilter.filter_step`: a few dozen to a few
-hundred small tensor operations per step, each paying a dispatch. Within
-:func:`torchsvs.kernels.compiled_steps` that step (or a short chunk of ``chunk`` steps) is
-compiled once per estimator, shapes, dtype and grad mode, and every step of a run, and of later
-runs, calls the same compiled function on one-step views of the run's tensors
-(``Prepared.window``, ``Inputs.window``). The time loop itself stays in Python: the unrolled
-sequence is never traced, so compile time does not grow with ``T``.
+hundred small tensor operations per step, each paying a dispatch (where the C++ loops of
+:mod:`~torchsvs.kernels.fused` apply, linear models without gradients, they run instead).
+Within :func:`torchsvs.kernels.compiled_steps` a chunk of ``chunk`` steps (default 4) is
+compiled once per estimator, shapes, dtype and grad mode (inductor, with its C++ wrapper:
+:data:`INDUCTOR_OPTIONS`), and every chunk of a run, and of later runs, calls the same compiled
+function on views of the run's tensors (``Prepared.window``, ``Inputs.window``). The time loop
+itself stays in Python: the unrolled sequence is never traced, so compile time does not grow
+with ``T``.
 
 * Bounded compile time: ``dynamic=False`` and ``fullgraph=True``; one compiled function per
   estimator and key (backend, dtype, grad mode, batch, which inputs vary per step, chunk
