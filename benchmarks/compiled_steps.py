@@ -152,6 +152,7 @@ def main(argv: list[str] | None = None) -> None:
                         print(" | ".join(rows[-1]), flush=True)
     ratios = [float(row[6].rstrip("×")) for row in rows]
     compile_s = [float(row[7]) for row in rows]
+    repay = [int(row[8]) for row in rows if row[8].isdigit()]
     measured = {tuple(row[:4]) for row in rows}
     missing = [
         f"{name} {dtype} B = {B} {mode}"
@@ -176,7 +177,8 @@ def main(argv: list[str] | None = None) -> None:
         f"{markdown_table(HEADER, rows)}\n\n"
         f"Compiled steps are faster in {sum(r < 1 for r in ratios)} of {len(rows)} cases "
         f"(ratio {min(ratios):.2f}-{max(ratios):.2f}×); a compilation takes "
-        f"{min(compile_s):.0f}-{max(compile_s):.0f} s.\n"
+        f"{min(compile_s):.0f}-{max(compile_s):.0f} s, repaid after "
+        f"{min(repay)}-{max(repay)} runs of {T} steps.\n"
     )
     if missing:
         text += f"\nNot measured (the run was stopped): {'; '.join(missing)}.\n"
