@@ -35,7 +35,7 @@ Where it pays (``benchmarks/compiled_steps.md``, ``python -m benchmarks.compiled
 ballistic re-entry model, T = 300, one thread, a 2-core machine shared with other jobs): per
 step, in every case measured (the EKF, UKF and SVSF at B = 1 and 100, float32 and float64,
 forward and forward + backward), compiled ÷ eager 0.19-0.65×. What does not pay is the
-compilation for a single run: 13-460 s per filter and pass (inductor, caches cold), repaid after
+compilation for a single run: 13-571 s per filter and pass (inductor, caches cold), repaid after
 32-307 runs of 300 steps. Hence compiled steps are opt-in, for many runs in one process
 (training, evaluation sweeps, streams of tracks): outside :func:`torchsvs.kernels.compiled_steps`
 the steps run eagerly, and ``TORCHSVS_COMPILE=0`` keeps them eager even within it. Online
