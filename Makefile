@@ -33,6 +33,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.one_track
 	$(PY) -m benchmarks.training
 	$(PY) -m benchmarks.ddp_predict
+	$(PY) -m benchmarks.compiled_steps
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks

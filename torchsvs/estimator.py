@@ -10,13 +10,14 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from numbers import Real
 from typing import Any, Generic, TypeVar
 
 import torch
 from torch import Tensor, nn
 
+from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.models.base import StateSpaceModel
 
 
@@ -41,6 +42,16 @@ class Inputs:
     @property
     def steps(self) -> int:
         return self.z.shape[1]
+
+    def window(self, start: int, stop: int) -> Inputs:
+        """Steps ``start`` to ``stop - 1`` as inputs of their own (views, no copies)."""
+
+        def span(x: Tensor | None) -> Tensor | None:
+            return x[:, start:stop] if x is not None and x.ndim >= 2 else x
+
+        return replace(
+            self, z=self.z[:, start:stop], dt=span(self.dt), u=span(self.u), psi=span(self.psi)
+        )
 
 
 def _shape(x: Any) -> str:
@@ -299,6 +310,7 @@ class Estimator(nn.Module, Generic[Result]):
 
     model: StateSpaceModel
 
+    @outside_dynamo  # a user's torch.compile: the time loop stays outside Dynamo
     def forward(
         self,
         z: Tensor,
@@ -366,6 +378,7 @@ class SteppedEstimator(Estimator[Result]):
     #: the carry type of :meth:`init`, :meth:`step` and :meth:`scan`
     state_type: type[Any] = tuple
 
+    @outside_dynamo
     def scan(
         self,
         state: Any,
@@ -412,6 +425,7 @@ class SteppedEstimator(Estimator[Result]):
         result = trim(result, keep)
         return state, drop_batch(result) if inputs.single else result
 
+    @outside_dynamo
     def step(
         self,
         state: Any,

@@ -23,6 +23,11 @@ def matvec(A: Tensor, x: Tensor) -> Tensor:
     return (A @ x.unsqueeze(-1)).squeeze(-1)
 
 
+#: Set while a compiled step runs (:mod:`torchsvs.kernels.compiled`): :func:`cholesky` then
+#: does not branch on its data; a factor that fails is NaN, and the step runs again eagerly.
+BRANCH_FREE = {"cholesky": False}
+
+
 def cholesky(S: Tensor) -> Tensor:
     """Lower Cholesky factor of a symmetric positive definite matrix.
 
@@ -31,6 +36,8 @@ def cholesky(S: Tensor) -> Tensor:
     factored exactly and gradients stay those of ``torch.linalg.cholesky``.
     """
     L, info = torch.linalg.cholesky_ex(S)
+    if BRANCH_FREE["cholesky"]:
+        return torch.where((info == 0)[..., None, None], L, torch.nan)
     if not bool((info > 0).any()):
         return L
     eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
-from torchsvs.kernels import AXIS_KERNEL, axes, fused
+from torchsvs.kernels import AXIS_KERNEL, axes, compiled, fused
 from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
@@ -107,6 +107,19 @@ class Prepared(NamedTuple):
             self.settings,
         )
 
+    def window(self, start: int, stop: int) -> Prepared:
+        """Steps ``start`` to ``stop - 1`` as a run of their own (views, no copies): step ``t`` of
+        the window is step ``start + t`` of the run (a compiled step sees the same shapes at
+        every ``start``)."""
+        return self._replace(
+            z=self.z[:, start:stop],
+            observed=self.observed[:, start:stop],
+            H=None if self.H is None else _span(self.H, start, stop),
+            R=_span(self.R, start, stop),
+            F=None if self.F is None else _span(self.F, start, stop),
+            Q=_span(self.Q, start, stop),
+        )
+
     def transition(self, t: int, x: Tensor, inputs: Inputs) -> tuple[Tensor, Tensor]:
         """``f(x)`` and ``F_t`` at step ``t`` from ``x [B, n]``: the run's ``F`` or the
         model's linearisation at ``x``."""
@@ -119,6 +132,11 @@ class Prepared(NamedTuple):
 def _at(A: Tensor, t: int) -> Tensor:
     """Step ``t`` of a model matrix stored as ``[r, c]`` (constant) or ``[B, T, r, c]``."""
     return A[:, t] if A.ndim == 4 else A
+
+
+def _span(A: Tensor, start: int, stop: int) -> Tensor:
+    """Steps ``start`` to ``stop - 1`` of a model matrix stored as in :func:`_at`."""
+    return A[:, start:stop] if A.ndim == 4 else A
 
 
 def _stack_over_time(values: list[Tensor] | list[Tensor | None], batch: int) -> Tensor | None:
@@ -271,7 +289,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             result, last, _ = by_axis
         else:
             result = self._dense_scan(state, inputs) or self._loop(
-                inputs, state.post_innovation, state.history
+                inputs, state.post_innovation, state.history, fresh=state.steps == 0
             )
             post = result.post_innovation
             last = fused.Last(
@@ -530,23 +548,27 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         step = self.correct(x_pred, P_pred, prep.observation(t), carried, inputs)
         return x_pred, P_pred, F_t, step
 
-    def _loop(self, inputs: Inputs, carried: Tensor | None, history: Any) -> FilterResult:
+    def _loop(
+        self, inputs: Inputs, carried: Tensor | None, history: Any, fresh: bool = True
+    ) -> FilterResult:
         """The predict-correct loop over the steps of ``inputs`` from its prior, the corrector
-        carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``."""
+        carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``;
+        ``fresh``: the prior is ``init``'s (no step taken yet)."""
         prep = self.prepare(inputs, history)
         steps: list[Step] = []
         pred_means: list[Tensor] = []
         pred_covs: list[Tensor] = []
         linearised: list[Tensor] = []
         x, P = inputs.x0, inputs.P0
-        for t in range(inputs.steps):
-            x_pred, P_pred, F_t, step = self.filter_step(t, x, P, carried, prep, inputs)
-            if prep.F is None:
-                linearised.append(F_t)
-            x, P, carried = step.mean, step.cov, step.post_innovation
-            steps.append(step)
-            pred_means.append(x_pred)
-            pred_covs.append(P_pred)
+        run_steps = compiled.runner(self, prep, inputs, fresh)  # filter_step, compiled or not
+        while len(steps) < inputs.steps:
+            for x_pred, P_pred, F_t, step in run_steps(len(steps), x, P, carried):
+                if prep.F is None:
+                    linearised.append(F_t)
+                x, P, carried = step.mean, step.cov, step.post_innovation
+                steps.append(step)
+                pred_means.append(x_pred)
+                pred_covs.append(P_pred)
 
         def stacked(field: str) -> Tensor | None:
             return _stack_over_time([getattr(s, field) for s in steps], inputs.batch)
