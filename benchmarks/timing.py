@@ -21,14 +21,17 @@ def best_of(fn: Callable[[], object], repeats: int) -> float:
 
 
 def alternating_best(
-    calls: Mapping[Key, Callable[[], object]], repeats: int, progress: str | None = None
+    calls: Mapping[Key, Callable[[], object]],
+    repeats: int,
+    progress: str | None = None,
+    warm_up: bool = True,
 ) -> dict[Key, float]:
     """Seconds per call, the best of ``repeats`` rounds in which the calls take turns (noise
-    hits them alike), after one warm-up call each (library builds, caches); ``progress``: a
-    progress bar's label."""
+    hits them alike), after one warm-up call each (library builds, caches; ``warm_up=False``
+    when the caller has made it); ``progress``: a progress bar's label."""
     from tqdm.auto import tqdm
 
-    for call in calls.values():
+    for call in calls.values() if warm_up else ():
         call()
     best = {key: float("inf") for key in calls}
     for _ in tqdm(range(repeats), desc=progress, disable=progress is None):
