@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.step_overhead
 	$(PY) -m benchmarks.one_track
 	$(PY) -m benchmarks.training
+	$(PY) -m benchmarks.matrix
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks
