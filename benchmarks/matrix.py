@@ -59,6 +59,7 @@ class Settings:
     steps: int = 1000
     particles: int = 100
     spvsf_tracks: int = 20
+    spvsf_steps: int = 200
     filterpy_tracks: int = 20
     pykalman_tracks: int = 5
     threads: int = 0  # torch's intra-op threads; 0: torch's default
@@ -66,25 +67,26 @@ class Settings:
 
 @dataclass
 class Runner:
-    """One timed call on ``tracks`` tracks; it returns the means ``[tracks, T, n]`` (or the
-    loss, for forward+backward); ``check``: the float64 torchsvs pass its means are compared
-    with (``"filter"``: the KF, ``"smooth"``: the RTS), if any."""
+    """One timed call on the first ``tracks`` tracks (and ``steps`` steps, if not all); it
+    returns the means ``[tracks, T, n]`` (or the loss, for forward+backward); ``check``: the
+    float64 torchsvs pass its means are compared with (``"filter"``: the KF, ``"smooth"``: the
+    RTS), if any."""
 
     call: Callable[[], Any]
     tracks: int
     check: str | None = None
+    steps: int | None = None
 
 
 @dataclass(frozen=True)
 class Case:
     """An implementation: its builder ``(problem, dtype, pass, settings) -> Runner``, the dtypes
-    it runs in, whether it has a forward+backward pass, and how it is subsampled."""
+    it runs in, and whether it has a forward+backward pass."""
 
     name: str
     build: Callable[[CVProblem, torch.dtype, str, Settings], Runner]
     dtypes: tuple[str, ...] = ("float32", "float64")
     backward: bool = False
-    subsample: str | None = None  # the Settings field capping its tracks
 
 
 Make = Callable[[ts.models.ConstantVelocity, Settings], torch.nn.Module]
@@ -99,10 +101,10 @@ def _torchsvs(make: Make, check: str | None = None):  # noqa: ANN202
         # The Kalman pair learns its noise in the forward+backward pass.
         model = problem.make_model(learn_noise=mode == BACKWARD and check is not None)
         est = make(model, settings).to(dtype)
-        tracks = problem.tracks
+        tracks, steps = problem.tracks, problem.steps
         if isinstance(est, ts.ParticleFilter):
-            tracks = min(tracks, settings.spvsf_tracks)
-        z = problem.z_as(dtype)[:tracks]
+            tracks, steps = min(tracks, settings.spvsf_tracks), min(steps, settings.spvsf_steps)
+        z = problem.z_as(dtype)[:tracks, :steps]
         x0, P0 = problem.x0.to(dtype), problem.per_track_P0(dtype)[:tracks]
         stochastic = isinstance(est, ts.ParticleFilter)
 
@@ -115,7 +117,7 @@ def _torchsvs(make: Make, check: str | None = None):  # noqa: ANN202
                 with torch.no_grad():
                     return est(z, x0, P0, keep="moments", **options()).mean
 
-            return Runner(forward, tracks, check)
+            return Runner(forward, tracks, check, steps)
 
         def forward_backward() -> Any:
             est.zero_grad(set_to_none=True)
@@ -123,7 +125,7 @@ def _torchsvs(make: Make, check: str | None = None):  # noqa: ANN202
             loss.backward()
             return loss
 
-        return Runner(forward_backward, tracks)
+        return Runner(forward_backward, tracks, steps=steps)
 
     return build
 
@@ -227,16 +229,15 @@ CASES: dict[str, Case] = {
             "torchsvs SPVSF",
             _torchsvs(lambda m, s: ts.SPVSF(m, psi=PSI, gamma=GAMMA, num_particles=s.particles)),
             backward=True,
-            subsample="spvsf_tracks",
         ),
         Case("torch-kf KF", _torch_kf(False)),
         Case("torch-kf KF + RTS", _torch_kf(True)),
         Case("simdkalman KF", _simdkalman(False), dtypes=("float64",)),
         Case("simdkalman KF + RTS", _simdkalman(True), dtypes=("float64",)),
-        Case("filterpy KF", _filterpy(False), ("float64",), subsample="filterpy_tracks"),
-        Case("filterpy KF + RTS", _filterpy(True), ("float64",), subsample="filterpy_tracks"),
-        Case("pykalman filter", _pykalman(False), ("float64",), subsample="pykalman_tracks"),
-        Case("pykalman smooth", _pykalman(True), ("float64",), subsample="pykalman_tracks"),
+        Case("filterpy KF", _filterpy(False), ("float64",)),
+        Case("filterpy KF + RTS", _filterpy(True), ("float64",)),
+        Case("pykalman filter", _pykalman(False), ("float64",)),
+        Case("pykalman smooth", _pykalman(True), ("float64",)),
     ]
 }
 
@@ -294,7 +295,8 @@ class FreshProcesses:
     imported the libraries and run nothing (``forkserver``), so every case starts clean without
     paying the imports again."""
 
-    PRELOAD = ["benchmarks.matrix", "filterpy.kalman", "pykalman", "simdkalman", "torch_kf"]
+    # Not this module: each child runs it afresh as its __main__ (runpy warns when preloaded).
+    PRELOAD = ["benchmarks.common", "filterpy.kalman", "pykalman", "simdkalman", "torch_kf"]
 
     def __enter__(self) -> FreshProcesses:
         context = multiprocessing.get_context("forkserver")
@@ -317,6 +319,7 @@ class Measurement:
     dtype: str
     B: int
     tracks: int
+    steps: int
     seconds: float
     ns: float = 0.0  # per track-step
     ratio: float = float("nan")  # time ÷ torchsvs KF's, same B, dtype and pass
@@ -375,10 +378,10 @@ def run_configuration(
     )
     results = []
     for (name, mode), seconds in timed.items():
-        tracks = runners[(name, mode)].tracks
+        tracks, steps = runners[(name, mode)].tracks, runners[(name, mode)].steps or T
         results.append(
             Measurement(
-                name, mode, dtype, B, tracks, seconds, 1e9 * seconds / (tracks * T),
+                name, mode, dtype, B, tracks, steps, seconds, 1e9 * seconds / (tracks * steps),
                 max_abs_diff=diffs[(name, mode)],
             )
         )  # fmt: skip
@@ -430,6 +433,18 @@ def _fmt_mb(mb: float) -> str:
     return f"{mb:,.0f}" if abs(mb) >= 10 else f"{mb:.1f}"
 
 
+def _subsample(cells: Sequence[Measurement | None], steps: int) -> str:
+    """What a row ran where it did not run the whole problem."""
+    runs = [c for c in cells if c is not None]
+    tracks = {c.tracks for c in runs if c.tracks < c.B}
+    short = {c.steps for c in runs if c.steps < steps}
+    parts = (
+        [f"first {', '.join(map(str, sorted(tracks)))} tracks when B is larger"] if tracks else []
+    )
+    parts += [f"first {', '.join(map(str, sorted(short)))} steps"] if short else []
+    return "; ".join(parts) or "none"
+
+
 def tables(results: list[Measurement], sizes: Sequence[int], settings: Settings) -> str:
     """One markdown table per dtype: ns per track-step (÷ torchsvs KF) and peak MB per B."""
     out = []
@@ -437,7 +452,7 @@ def tables(results: list[Measurement], sizes: Sequence[int], settings: Settings)
         header = ["implementation", "pass"]
         header += [f"B = {B:,}: ns / track-step (÷ KF)" for B in sizes]
         header += [f"B = {B:,}: peak MB" for B in sizes]
-        header.append("tracks run")
+        header.append("subsample (timed per track-step)")
         rows = []
         for name, case in CASES.items():
             for mode in _passes(case):
@@ -447,12 +462,7 @@ def tables(results: list[Measurement], sizes: Sequence[int], settings: Settings)
                 row: list[object] = [name, mode]
                 row += ["–" if c is None else f"{_fmt_ns(c.ns)} ({c.ratio:.2f}×)" for c in cells]
                 row += ["–" if c is None else _fmt_mb(c.peak_mb) for c in cells]
-                sub = {c.tracks for c in cells if c is not None and c.tracks < c.B}
-                row.append(
-                    "all"
-                    if not sub
-                    else f"first {min(sub) if len(sub) == 1 else sorted(sub)} when B is larger"
-                )
+                row.append(_subsample(cells, settings.steps))
                 rows.append(row)
         out.append(f"### {dtype}\n\n" + markdown_table(header, rows))
     return "\n\n".join(out)
@@ -549,6 +559,7 @@ def reading(results: list[Measurement], sizes: Sequence[int], settings: Settings
             f"{top.dtype}: {_fmt_mb(top.peak_mb)} MB above the process's resident memory "
             "before the call"
             + (f" (on its first {top.tracks:,} tracks)" if top.tracks < top.B else "")
+            + (f" (on its first {top.steps:,} steps)" if top.steps < settings.steps else "")
             + "."
         )
     diffs = [r.max_abs_diff for r in results if r.max_abs_diff is not None and r.dtype == "float64"]
@@ -609,6 +620,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--particles", type=int, default=Settings.particles)
     parser.add_argument("--spvsf-tracks", type=int, default=Settings.spvsf_tracks)
+    parser.add_argument("--spvsf-steps", type=int, default=Settings.spvsf_steps)
     parser.add_argument("--filterpy-tracks", type=int, default=Settings.filterpy_tracks)
     parser.add_argument("--pykalman-tracks", type=int, default=Settings.pykalman_tracks)
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's)")
@@ -623,6 +635,7 @@ def main(argv: list[str] | None = None) -> None:
         args.steps,
         args.particles,
         args.spvsf_tracks,
+        args.spvsf_steps,
         args.filterpy_tracks,
         args.pykalman_tracks,
         args.threads,
@@ -676,7 +689,9 @@ def main(argv: list[str] | None = None) -> None:
         "ψ and γ learnable (SVSF, SVSS, SPVSF) or the model's q and R (KF, RTS). SVSF: "
         f"finite-difference velocity (ts.SVSF's default), ψ = {PSI}, γ = {GAMMA}. SPVSF: "
         f"{settings.particles} particles, on the first {settings.spvsf_tracks} tracks when B "
-        f"is larger; filterpy on the first {settings.filterpy_tracks}, pykalman on the first "
+        f"is larger and the first {settings.spvsf_steps} steps (its forward+backward pass is "
+        "slow whatever B: a per-step cost); filterpy on the first "
+        f"{settings.filterpy_tracks}, pykalman on the first "
         f"{settings.pykalman_tracks} (one track at a time), scaled per track-step. Peers run "
         "with their fastest options: simdkalman states and covariances only "
         "(`observations=False`), torch-kf its defaults (explicit inverse of S, no Joseph "
