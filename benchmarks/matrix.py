@@ -28,11 +28,12 @@ import argparse
 import gc
 import json
 import multiprocessing
+import os
 import resource
 import sys
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -62,6 +63,7 @@ class Settings:
     spvsf_steps: int = 200
     filterpy_tracks: int = 20
     pykalman_tracks: int = 5
+    torch_kf_tracks: int = 100
     threads: int = 0  # torch's intra-op threads; 0: torch's default
 
 
@@ -184,9 +186,9 @@ def _torch_kf(smooth: bool):  # noqa: ANN202
 
         F, H, Q, R = (torch.from_numpy(a).to(dtype) for a in problem.matrices)
         m0, P_init = (torch.from_numpy(a).to(dtype) for a in problem.first_prior)
-        B = problem.tracks
+        B = min(problem.tracks, settings.torch_kf_tracks)
         kf = torch_kf.KalmanFilter(F, H, Q, R)
-        measures = problem.z_as(dtype).transpose(0, 1).unsqueeze(-1).contiguous()
+        measures = problem.z_as(dtype)[:B].transpose(0, 1).unsqueeze(-1).contiguous()
         prior = torch_kf.GaussianState(
             m0.expand(B, 4).unsqueeze(-1).contiguous(), P_init.expand(B, 4, 4).contiguous()
         )
@@ -307,8 +309,9 @@ class FreshProcesses:
     def __exit__(self, *exc: object) -> None:
         self.pool.shutdown()
 
-    def memory(self, name: str, tracks: int, dtype: str, mode: str, settings: Settings) -> dict:
-        return self.pool.submit(memory_case, name, tracks, dtype, mode, settings).result()
+    def memory(self, name: str, tracks: int, dtype: str, mode: str, settings: Settings) -> Future:
+        """The case's :func:`memory_case` result, to come (the cases queue: one at a time)."""
+        return self.pool.submit(memory_case, name, tracks, dtype, mode, settings)
 
 
 # ------------------------------------------------------------------------------ the matrix
@@ -326,6 +329,7 @@ class Measurement:
     peak_mb: float = float("nan")
     max_abs_diff: float | None = None
     extra: dict = field(default_factory=dict)
+    memory: Future | None = field(default=None, repr=False)
 
 
 def _as_numpy(means: Any) -> np.ndarray:
@@ -343,38 +347,34 @@ def run_configuration(
     reference: dict[str, np.ndarray],
     processes: FreshProcesses | None = None,
 ) -> list[Measurement]:
-    """Every case of ``names`` that runs in ``dtype`` on ``problem``: first call (checks the
-    means against ``reference``), alternating timing rounds, and the peak memory of each in a
-    fresh process."""
+    """Every case of ``names`` that runs in ``dtype`` on ``problem``: a warm-up call on one
+    short track, alternating timing rounds (the first round's means are checked against
+    ``reference``), and each case's peak memory queued for a fresh process (its
+    :attr:`Measurement.memory`, collected later)."""
     B, T = problem.tracks, problem.steps
+    tiny = CVProblem(1, 10)
     runners: dict[tuple[str, str], Runner] = {}
-    diffs: dict[tuple[str, str], float | None] = {}
     for name in names:
         case = CASES[name]
         if dtype not in case.dtypes:
             continue
         for mode in _passes(case):
-            key = (name, mode)
-            runner = _build(name, problem, dtype, mode, settings)
-            start = time.perf_counter()
-            means = runner.call()
-            first = time.perf_counter() - start
-            diff = None
-            if runner.check is not None:
-                ref = reference[runner.check][: runner.tracks]
-                diff = float(np.abs(_as_numpy(means) - ref).max())
-            del means
-            runners[key], diffs[key] = runner, diff
-            print(
-                f"  B={B:,} {dtype} {name}, {mode}: first call {first:.2f} s"
-                + (f", max |Δ| {diff:.2e}" if diff is not None else ""),
-                flush=True,
-            )
+            _build(name, tiny, dtype, mode, settings).call()  # library loads, compiled kernels
+            runners[(name, mode)] = _build(name, problem, dtype, mode, settings)
+    diffs: dict[tuple[str, str], float] = {}
+
+    def check(key: tuple[str, str], means: Any) -> None:
+        runner = runners[key]
+        if runner.check is not None and key not in diffs:
+            ref = reference[runner.check][: runner.tracks]
+            diffs[key] = float(np.abs(_as_numpy(means) - ref).max())
+
     timed = alternating_best(
         {key: runner.call for key, runner in runners.items()},
         repeats,
         progress=f"B={B:,} {dtype}, {len(runners)} calls a round",
         warm_up=False,
+        inspect=check,
     )
     results = []
     for (name, mode), seconds in timed.items():
@@ -382,9 +382,14 @@ def run_configuration(
         results.append(
             Measurement(
                 name, mode, dtype, B, tracks, steps, seconds, 1e9 * seconds / (tracks * steps),
-                max_abs_diff=diffs[(name, mode)],
+                max_abs_diff=diffs.get((name, mode)),
             )
         )  # fmt: skip
+        print(
+            f"  B={B:,} {dtype} {name}, {mode}: {results[-1].ns:,.0f} ns / track-step"
+            + (f", max |Δ| {diffs[(name, mode)]:.2e}" if (name, mode) in diffs else ""),
+            flush=True,
+        )
     runners.clear()
     gc.collect()
     for m in results:
@@ -392,14 +397,21 @@ def run_configuration(
         if base is not None:
             m.ratio = m.ns / base.ns
         if processes is not None:
-            probe = processes.memory(m.implementation, B, dtype, m.mode, settings)
+            m.memory = processes.memory(m.implementation, B, dtype, m.mode, settings)
+    return results
+
+
+def collect_memory(results: list[Measurement], wait: bool = True) -> None:
+    """Records the peaks of the queued memory processes (those done, unless ``wait``)."""
+    for m in results:
+        if m.memory is not None and np.isnan(m.peak_mb) and (wait or m.memory.done()):
+            probe = m.memory.result()
             m.peak_mb, m.extra = probe["peak_mb"], probe
             print(
-                f"  memory B={B:,} {dtype} {m.implementation}, {m.mode}: "
+                f"  memory B={m.B:,} {m.dtype} {m.implementation}, {m.mode}: "
                 f"{probe['peak_mb']:.1f} MB above {probe['baseline_mb']:.0f} MB",
                 flush=True,
             )
-    return results
 
 
 def reference_means(problem: CVProblem) -> dict[str, np.ndarray]:
@@ -623,6 +635,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--spvsf-steps", type=int, default=Settings.spvsf_steps)
     parser.add_argument("--filterpy-tracks", type=int, default=Settings.filterpy_tracks)
     parser.add_argument("--pykalman-tracks", type=int, default=Settings.pykalman_tracks)
+    parser.add_argument("--torch-kf-tracks", type=int, default=Settings.torch_kf_tracks)
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's)")
     parser.add_argument("--cases", nargs="+", default=list(CASES), metavar="NAME")
     parser.add_argument("--no-memory", action="store_true", help="skip the memory processes")
@@ -638,6 +651,7 @@ def main(argv: list[str] | None = None) -> None:
         args.spvsf_steps,
         args.filterpy_tracks,
         args.pykalman_tracks,
+        args.torch_kf_tracks,
         args.threads,
     )
     if args.threads:
@@ -650,9 +664,22 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--cases: unknown {sorted(unknown)}; known: {list(CASES)}")
 
     start = time.perf_counter()
-    threads = torch.get_num_threads()
-    print(f"torch {torch.__version__}, {threads} threads; {settings}", flush=True)
+    load = os.getloadavg()[0]
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; {settings}", flush=True)
+    command = " ".join(["python -m benchmarks.matrix", *(sys.argv[1:] if argv is None else argv)])
     results: list[Measurement] = []
+
+    def report(final: bool) -> str:
+        collect_memory(results, wait=final)
+        minutes = (time.perf_counter() - start) / 60
+        text = write_report(results, args, settings, command, minutes, (load, os.getloadavg()[0]))
+        if not final:
+            text = "**Partial: the run is still going.**\n\n" + text
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "results.md").write_text(text)
+        plot(results, list(args.tracks), args.out / "results.png")
+        return text
+
     with FreshProcesses() as processes:
         for B in args.tracks:
             problem = CVProblem(B, args.steps)
@@ -667,22 +694,37 @@ def main(argv: list[str] | None = None) -> None:
                     reference,
                     None if args.no_memory else processes,
                 )
+                report(final=False)
             del problem, reference
             gc.collect()
-    minutes = (time.perf_counter() - start) / 60
+        text = report(final=True)
+    print(text)
+    print(f"total run time {(time.perf_counter() - start) / 60:.1f} min")
 
+
+def write_report(
+    results: list[Measurement],
+    args: argparse.Namespace,
+    settings: Settings,
+    command: str,
+    minutes: float,
+    load: tuple[float, float],
+) -> str:
+    """results.md's text."""
     sizes = list(args.tracks)
-    command = " ".join(["python -m benchmarks.matrix", *(sys.argv[1:] if argv is None else argv)])
-    text = (
+    return (
         f"# Benchmark matrix: B ∈ {{{', '.join(f'{B:,}' for B in sizes)}}} × T = "
         f"{args.steps:,}\n\n"
         f"Generated by `{command}` in {minutes:.1f} min: torch {torch.__version__}, "
-        f"{threads} threads, numpy {np.__version__}. Model: the papers' 2-D constant-velocity "
+        f"{torch.get_num_threads()} threads, numpy {np.__version__}; the machine is shared "
+        f"(1-minute load average {load[0]:.1f} at the start, {load[1]:.1f} at the end, on "
+        f"{os.cpu_count()} cores). Model: the papers' 2-D constant-velocity "
         "model (dt 1 s, q 0.16, 200 m position noise), seeded tracks from one prior, "
         "per-track priors `P0 [B, 4, 4]`; float32 and float64 runs get the same numbers. "
         "Timing: best of "
-        f"{args.repeats} rounds in one process, per (B, dtype) the implementations taking "
-        "turns, after an untimed first call; ns per track-step, and in brackets the time ÷ "
+        f"{args.repeats} round(s) in one process, per (B, dtype) the implementations taking "
+        "turns, after a warm-up call of each on one 10-step track (the first round's means "
+        "are the ones checked); ns per track-step, and in brackets the time ÷ "
         "torchsvs KF's in the same B, dtype and pass. torchsvs forward: no gradients, "
         "keeping means and covariances (`keep='moments'`, what the peers return); "
         "forward+backward: the mean of the means as loss, `.backward()` (`keep='mean'`) with "
@@ -690,26 +732,24 @@ def main(argv: list[str] | None = None) -> None:
         f"finite-difference velocity (ts.SVSF's default), ψ = {PSI}, γ = {GAMMA}. SPVSF: "
         f"{settings.particles} particles, on the first {settings.spvsf_tracks} tracks when B "
         f"is larger and the first {settings.spvsf_steps} steps (its forward+backward pass is "
-        "slow whatever B: a per-step cost); filterpy on the first "
-        f"{settings.filterpy_tracks}, pykalman on the first "
-        f"{settings.pykalman_tracks} (one track at a time), scaled per track-step. Peers run "
+        "slow whatever B: a per-step cost). Subsamples, timed per track-step: filterpy on "
+        f"the first {settings.filterpy_tracks} tracks, pykalman on the first "
+        f"{settings.pykalman_tracks} (both one track at a time), torch-kf on the first "
+        f"{settings.torch_kf_tracks}. Peers run "
         "with their fastest options: simdkalman states and covariances only "
         "(`observations=False`), torch-kf its defaults (explicit inverse of S, no Joseph "
         "form), measurements rearranged to its `[T, B, m, 1]` outside the timed call. Peak "
-        "MB: each case once more in a fresh process after a warm-up on one 10-step track, "
-        "the peak resident memory of the call above the resident memory before it (`VmHWM` "
-        "reset through `/proc/self/clear_refs`); subsampled cases on their subsample.\n\n"
+        "MB: each case once more in a fresh process (forked from a server that only imported "
+        "the libraries, while the next configuration is timed) after a warm-up on one "
+        "10-step track: the peak resident memory of the call above the resident memory "
+        "before it (`VmHWM` reset through `/proc/self/clear_refs`); subsampled cases on "
+        "their subsample.\n\n"
         f"![ns per track-step](results.png)\n\n{tables(results, sizes, settings)}\n\n"
         "## Max abs difference of the means\n\n"
         "Against torchsvs's float64 KF (filtered means) or RTS (smoothed means), on the "
         f"tracks each ran, in metres:\n\n{differences(results, sizes)}\n\n"
         f"## Reading\n\n{reading(results, sizes, settings)}\n"
     )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.md").write_text(text)
-    plot(results, sizes, args.out / "results.png")
-    print(text)
-    print(f"total run time {minutes:.1f} min")
 
 
 if __name__ == "__main__":
