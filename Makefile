@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench bench-million reproduce real learn lint clean
+.PHONY: demo test test-slow bench bench-matrix bench-million reproduce real learn lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,10 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.training
 	$(PY) -m benchmarks.ddp_predict
 	$(PY) -m benchmarks.compiled_steps
+
+# The full matrix (every estimator × B × dtype × pass beside four peers): most of an hour.
+bench-matrix: $(STAMP)
+	$(PY) -m benchmarks.matrix
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks

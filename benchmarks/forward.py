@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 import torchsvs as ts
+from benchmarks.common import CVProblem, filterpy_run, simdkalman_run
 from benchmarks.timing import alternating_best, best_of
 from torchsvs.evaluation import markdown_table
 
@@ -38,11 +39,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     B, T = args.tracks, args.steps
 
-    model = ts.models.ConstantVelocity(dt=1.0, q=0.16, r=200.0**2)
-    x0 = torch.tensor([-25000.0, 120.0, -10000.0, 0.0])
-    P0 = torch.diag(torch.tensor([1e4, 1e3, 1e4, 1e3]))
-    _, z = model.simulate(x0.expand(B, 4), T, generator=torch.Generator().manual_seed(0))
-    z = z.float().contiguous()
+    problem = CVProblem(B, T)
+    model, x0, P0, z = problem.model, problem.x0, problem.P0, problem.z
     kf = ts.KalmanFilter(model)
     svsf = ts.SVSF(model, psi=[800.0, 800.0], gamma=0.1, artificial=None)
     svsf_fd = ts.SVSF(model, psi=[800.0, 60.0, 800.0, 60.0], gamma=0.1)
@@ -58,46 +56,18 @@ def main(argv: list[str] | None = None) -> None:
 
         return call
 
-    F, H = model.transition().numpy(), model.meas_matrix().numpy()
-    Q, R = model.process_noise().numpy(), model.meas_cov().numpy()
-    z_np = z.double().numpy()
-    # simdkalman and filterpy take the prior at the first measurement: predict x0 once.
-    m0, P_init = F @ x0.double().numpy(), F @ P0.double().numpy() @ F.T + Q
-
-    import simdkalman
-    from filterpy.kalman import KalmanFilter as FilterpyKF
-
-    simd = simdkalman.KalmanFilter(F, Q, H, R)
-
     def run_simdkalman(fastest: bool = True) -> Callable[[], object]:
-        def call() -> object:
-            return simd.compute(
-                z_np,
-                0,
-                initial_value=m0,
-                initial_covariance=P_init,
-                smoothed=False,
-                filtered=True,
-                observations=not fastest,
-            )
-
-        return call
-
-    sub = z_np[: args.filterpy_tracks]
+        return lambda: simdkalman_run(problem, observations=not fastest)
 
     def run_filterpy() -> object:
-        for track in sub:
-            f = FilterpyKF(dim_x=4, dim_z=2)
-            f.x, f.P, f.F, f.H, f.Q, f.R = m0.copy(), P_init.copy(), F, H, Q, R
-            f.batch_filter(list(track), update_first=True)
-        return None
+        return filterpy_run(problem, args.filterpy_tracks)
 
     print(
         f"B = {B} tracks × T = {T} steps; torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads"
     )
     # Per-track P0 [B, n, n]: B covariance recursions, as simdkalman and filterpy run.
-    per_track = P0.expand(B, 4, 4).contiguous()
+    per_track = problem.per_track_P0()
     cases = {
         "torchsvs KF": kf,
         "torchsvs SVSF (H⁺ mode)": svsf,
@@ -115,7 +85,9 @@ def main(argv: list[str] | None = None) -> None:
     # Alternating, round by round: the machine's noise hits every implementation alike.
     timed = alternating_best(calls, args.repeats, progress="rounds")
     results = {name: seconds / (B * T) for name, seconds in timed.items()}
-    results["filterpy KF (float64)"] = best_of(run_filterpy, 1) / (len(sub) * T)
+    filterpy_tracks = min(B, args.filterpy_tracks)
+    filterpy_run(problem, 1)  # imports filterpy outside the timed call
+    results["filterpy KF (float64)"] = best_of(run_filterpy, 1) / (filterpy_tracks * T)
 
     simd_time = results[fastest]
     rows = [[name, f"{1e9 * sec:,.1f}", f"{simd_time / sec:.1f}×"] for name, sec in results.items()]
@@ -124,7 +96,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     with torch.no_grad():
         ours = kf(z.double(), x0.double(), per_track.double()).mean.numpy()
-    theirs = run_simdkalman(True)().filtered.states.mean
+    theirs = run_simdkalman(True)()
     svsf_time = results["torchsvs SVSF (H⁺ mode) (float32)"]
     svss_time = results["torchsvs SVSS lag 1 (H⁺ mode) (float32)"]
     svss_moments = results["torchsvs SVSS lag 1 (H⁺ mode), keep='moments' (float32)"]
@@ -138,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
         "(means, covariances, predictions, innovations, gains, S) by default, or with "
         "`keep='moments'` the means and covariances of every step (the covariance history), "
         "as simdkalman's fastest options do: they compute the filtered means and covariances "
-        f"only (`observations=False`). filterpy ran once on {len(sub)} tracks, scaled per "
+        f"only (`observations=False`). filterpy ran once on {filterpy_tracks} tracks, scaled per "
         f"track-step.\n\n{table}\n\n"
         f"max |x̂ torchsvs − x̂ simdkalman| (float64 KF): {abs(ours - theirs).max():.2e}; "
         f"SVSS lag 1 ÷ SVSF: {svss_time / svsf_time:.2f} (whole results), "
