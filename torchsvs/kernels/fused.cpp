@@ -15,8 +15,12 @@
 #include <cmath>
 #include <cstdint>
 #include <algorithm>
+#include <atomic>
 #include <thread>
 #include <vector>
+#if defined(__SSE2__)
+#include <immintrin.h>
+#endif
 
 namespace {
 
@@ -43,21 +47,49 @@ inline R gain_ratio(R e, R memory, R width, R gamma) {
     return (magnitude + gamma * std::fabs(memory)) / (magnitude > width ? magnitude : width);
 }
 
+// std::copy_n into a fresh output nobody reads soon: non-temporal stores write whole cache
+// lines without reading them first (half the memory traffic); a plain copy without SSE2.
+template <typename R>
+inline void stream(const R* from, int64_t count, R* to) {
+#if defined(__SSE2__)
+    constexpr int64_t kPer = 16 / sizeof(R);  // elements of a 16-byte store
+    int64_t i = 0;
+    for (; i < count && reinterpret_cast<uintptr_t>(to + i) % 16 != 0; ++i) to[i] = from[i];
+    for (; i + kPer <= count; i += kPer) {
+        if constexpr (sizeof(R) == 4)
+            _mm_stream_ps(reinterpret_cast<float*>(to + i),
+                          _mm_loadu_ps(reinterpret_cast<const float*>(from + i)));
+        else
+            _mm_stream_pd(reinterpret_cast<double*>(to + i),
+                          _mm_loadu_pd(reinterpret_cast<const double*>(from + i)));
+    }
+    for (; i < count; ++i) to[i] = from[i];
+#else
+    std::copy_n(from, count, to);
+#endif
+}
+
 // Runs body(first, last) over track ranges on `threads` threads (the calling one included).
 template <typename Body>
 void over_tracks(int64_t B, int threads, const Body& body) {
+    // Each range ends with a full fence: the non-temporal stores of `stream` are weakly
+    // ordered, and the caller reads what every thread wrote.
+    auto fenced = [&body](int64_t first, int64_t last) {
+        body(first, last);
+        std::atomic_thread_fence(std::memory_order_seq_cst);
+    };
     if (threads > B) threads = static_cast<int>(B);
     if (threads <= 1) {
-        body(int64_t(0), B);
+        fenced(int64_t(0), B);
         return;
     }
     std::vector<std::thread> pool;
     int64_t per = (B + threads - 1) / threads;
     for (int i = 1; i < threads; ++i) {
         int64_t first = i * per, last = std::min(B, first + per);
-        if (first < last) pool.emplace_back([&body, first, last] { body(first, last); });
+        if (first < last) pool.emplace_back([&fenced, first, last] { fenced(first, last); });
     }
-    body(int64_t(0), std::min(B, per));
+    fenced(int64_t(0), std::min(B, per));
     for (auto& worker : pool) worker.join();
 }
 
@@ -538,8 +570,8 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                         const int64_t lag = o >= kLagged, skip = lag && t0 == 0;
                         const R* from = staged.data() + block * kChunk * offsets[o] +
                                         ((bi - b0) * kChunk + skip) * sizes[o];
-                        std::copy_n(from, (steps - skip) * sizes[o],
-                                    targets[o] + (bi * T + t0 - lag + skip) * sizes[o]);
+                        stream(from, (steps - skip) * sizes[o],
+                               targets[o] + (bi * T + t0 - lag + skip) * sizes[o]);
                     }
                     if (out.mask)
                         std::copy_n(staged_mask.data() + (bi - b0) * kChunk * mz, steps * mz,
