@@ -470,9 +470,9 @@ def dense_run(
     ``"kalman"`` or ``"svsf"`` (``H`` with orthonormal rows). ``lead``: the outputs' leading
     shape (``(B, T)``; ``(B,)`` or ``()`` for one step). Returns ``x, P, x_pred, P_pred, e, K,
     S, log_likelihood, e_post, observed`` (with ``keep`` other than ``"all"``: ``None`` for
-    those it leaves out, written to a scratch buffer; the log-likelihood and the SVSF's
-    ``e_post`` stay, a state needs them), or ``None`` when ``z`` holds an infinity or a
-    Cholesky factor failed."""
+    those it leaves out, written to a scratch buffer; the covariance, the Kalman rule's
+    log-likelihood and the SVSF's ``e_post`` stay, a state needs them), or ``None`` when ``z``
+    holds an infinity or a Cholesky factor failed."""
     lib = _state["library"]  # loaded: usable() said so
     assert isinstance(lib, ctypes.CDLL)
     B, n = x.shape
