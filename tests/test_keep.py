@@ -151,6 +151,8 @@ def test_bad_keep_names_the_argument(keep):
         kf(z, x0, P0, keep=keep)
     with pytest.raises(ValueError, match="keep"):
         kf.scan(kf.init(x0, P0), z, keep=keep)
+    with pytest.raises(ValueError, match="keep: expected one of"):
+        kf.step(kf.init(x0, P0), z[:, 0], keep=keep)  # the compiled step says so too
 
 
 def test_reference_paths_agree_when_keeping_less():

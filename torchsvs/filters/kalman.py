@@ -473,7 +473,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         # A state an earlier compiled step made was ready for it (checked once, not per step).
         if known is None and not self._dense_ready(state.history):
             return None
-        m = self.model.meas_dim if known is None else known.matrices.tensors[2].shape[0]
+        m = self.model.meas_dim if known is None else known.matrices.meas_dim
         if z.ndim != (1 if single else 2) or z.shape[-1] != m or z.dtype != x.dtype:
             return None
         B = 1 if single else z.shape[0]
@@ -609,7 +609,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if smoothing is not None:
             by_axis = self._run_axes(inputs, smoothing)
             if by_axis is not None:  # without the fused smoothing the record is whole
-                return by_axis[0], by_axis[2]
+                result, _, smoothed = by_axis
+                return result, smoothed
         return self.run(replace(inputs, keep="all")), None
 
     def _run_axes(

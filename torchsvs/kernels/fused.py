@@ -450,6 +450,7 @@ class DenseMatrices:
     def __init__(self, matrices: Sequence[Tensor]) -> None:
         self.tensors = list(matrices)
         self.pointers = _pointers(self.tensors)
+        self.meas_dim = self.tensors[2].shape[0]  #: rows of H
 
 
 def dense_run(
