@@ -186,6 +186,13 @@ def spy(monkeypatch):
             return _original(*args, **kwargs)
 
         monkeypatch.setattr(fused, function, counted)
+    online_step = fused.OnlineStep.__call__
+
+    def counted_step(self, *args, **kwargs):  # an online step: dense_run's one-step form
+        calls["dense"] += 1
+        return online_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(fused.OnlineStep, "__call__", counted_step)
     return calls
 
 
@@ -746,6 +753,38 @@ def test_online_steps_step_aside_where_the_compiled_step_cannot_run(spy):
             kf.step(kf.init(x4, P4), z[:, 0], psi=torch.ones(2, 2, dtype=torch.float64))
         kf.step(kf.init(x4, P4), z[:, 0])
     assert spy["dense"] == 2  # the inf step tried it first, then the plain step ran it
+
+
+@needs_compiler
+def test_a_compiled_state_stepped_with_gradients_differentiates(spy):
+    """A state made by compiled online steps (without gradients) and then stepped with grad
+    mode on takes the differentiable path when a parameter or ``psi`` wants a gradient, and
+    that step equals the compiled one's numbers."""
+    _, z = _dense_problem(seed=14, B=2, T=6)
+    cv = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    x4, P4 = torch.zeros(2, 4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
+    learnable = ts.SVSF(cv, psi=[3.0, 2.0], gamma=0.2, artificial=None).double()
+    with torch.no_grad():
+        state, _ = learnable.step(learnable.init(x4, P4), z[:, 0])
+        _, compiled = learnable.step(state, z[:, 1])
+    assert spy["dense"] == 2 and state.constants is not None
+    _, out = learnable.step(state, z[:, 1])  # ψ learnable, grad mode on
+    assert spy["dense"] == 2 and out.mean.requires_grad
+    out.mean.sum().backward()
+    assert torch.isfinite(learnable.boundary_layer.raw.grad).all()
+    assert_close(out.mean.detach(), compiled.mean, atol=1e-10, rtol=1e-10)
+    fixed = ts.SVSF(cv, psi=[3.0, 2.0], gamma=0.2, artificial=None, learn=False).double()
+    with torch.no_grad():
+        state, _ = fixed.step(fixed.init(x4, P4), z[:, 0])
+    psi = torch.tensor([[3.0, 2.0]] * 2, dtype=torch.float64, requires_grad=True)
+    _, out = fixed.step(state, z[:, 1], psi=psi)
+    assert spy["dense"] == 3 and out.mean.requires_grad  # ψ given with a gradient
+    kf = ts.KalmanFilter(cv)
+    with torch.no_grad():
+        state, _ = kf.step(kf.init(x4, P4), z[:, 0])
+    wanted = z[:, 1].clone().requires_grad_()
+    _, out = kf.step(state, wanted)
+    assert spy["dense"] == 4 and out.mean.requires_grad  # z given with a gradient
 
 
 @needs_compiler

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import replace
 from typing import Any, NamedTuple, cast
 
@@ -67,6 +68,9 @@ class DenseConstants(NamedTuple):
     tensors: list[Tensor]  #: the filter's and model's parameters and buffers they came from
     settings: list[str]  #: the model's plain settings (its ``dt``) they came from
     fingerprint: tuple[Any, ...]  #: :func:`_fingerprint` when they were built
+    #: the compiled online steps formed so far, by (keep, leading shape, thread: each has its
+    #: own scratch)
+    steps: dict[tuple[Any, ...], fused.OnlineStep]
 
 
 def _plain_settings(model: StateSpaceModel) -> list[str]:
@@ -74,10 +78,15 @@ def _plain_settings(model: StateSpaceModel) -> list[str]:
 
 
 def _fingerprint(tensors: list[Tensor], model: StateSpaceModel, settings: list[str]) -> tuple:
-    """Changes when a parameter or buffer is updated in place or given new data, or a plain
-    setting of the model (its ``dt``) changes: the constants are then rebuilt."""
+    """Changes when a parameter or buffer is updated in place or given new data, a plain
+    setting of the model (its ``dt``) changes, or the filter is given another model: the
+    constants are then rebuilt."""
     values = model.__dict__
-    return (*[(t._version, t.data_ptr()) for t in tensors], *[values[k] for k in settings])
+    return (
+        id(model),
+        *[(t._version, t.data_ptr()) for t in tensors],
+        *[values[k] for k in settings],
+    )
 
 
 class Prepared(NamedTuple):
@@ -340,6 +349,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             tensors,
             plain,
             _fingerprint(tensors, model, plain),
+            {},
         )
 
     def _dense_ready(self, history: Any) -> bool:
@@ -357,12 +367,15 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
 
     def _valid_constants(self, constants: Any, dtype: torch.dtype) -> DenseConstants | None:
         """``constants`` while they still describe the filter and its model, else new ones."""
+        model = cast(StateSpaceModel, self._modules["model"])  # (Module.__getattr__: slow)
         if (
             isinstance(constants, DenseConstants)
             and constants.widths.dtype == dtype
-            and constants.fingerprint
-            == _fingerprint(constants.tensors, self.model, constants.settings)
+            and constants.fingerprint == _fingerprint(constants.tensors, model, constants.settings)
         ):
+            # Made without gradients; a parameter they came from may want one now.
+            if torch.is_grad_enabled() and any(t.requires_grad for t in constants.tensors):
+                return None
             return constants
         return self._dense_constants(dtype)
 
@@ -436,7 +449,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return None
         if inputs.psi is not None and self.dense_rule != "svsf":
             return None
-        if not fused.usable(inputs.z, inputs.x0, inputs.P0):
+        given = (inputs.z, inputs.x0, inputs.P0, *(() if inputs.psi is None else (inputs.psi,)))
+        if not fused.usable(*given):  # (ψ given with a gradient: the differentiable path)
             return None
         B, T = inputs.batch, inputs.steps
         if self.dense_rule == "kalman" and B > 1 and inputs.P0.shape[0] == 1:
@@ -466,51 +480,103 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         self, state: Any, z: Tensor, psi: Tensor | None, keep: str
     ) -> tuple[FilterState, FilterResult] | None:
         # An online step on a linear model without gradients runs compiled (the same numbers
-        # up to rounding); anything else takes the one-step scan.
+        # up to rounding); anything else takes the one-step scan. Per call: checks, the step's
+        # tensors and one library call (fused.OnlineStep); filterpy's predict + update costs
+        # about 20 µs, so every µs here shows.
         if not isinstance(state, FilterState):
             return None
         x, single, known = state.mean, state.single, state.constants
-        # A state an earlier compiled step made was ready for it (checked once, not per step).
-        if known is None and not self._dense_ready(state.history):
+        if torch.is_grad_enabled() and psi is not None and psi.requires_grad:
             return None
-        m = self.model.meas_dim if known is None else known.matrices.meas_dim
+        if known is None:
+            if not self._dense_ready(state.history) or not fused.usable(z, x):
+                return None  # (usable: CPU float32/64, no gradient, compiler available)
+            m = self.model.meas_dim
+        else:
+            # A state an earlier compiled step made: its x is a CPU float tensor and the
+            # library loaded; what may have changed is z, the mode, and whether a gradient is
+            # asked for (of z here, of a parameter in _valid_constants).
+            if not (AXIS_KERNEL["fused"] and z.is_cpu) or (
+                z.requires_grad and torch.is_grad_enabled()
+            ):
+                return None
+            m = known.matrices.meas_dim
         if z.ndim != (1 if single else 2) or z.shape[-1] != m or z.dtype != x.dtype:
             return None
         B = 1 if single else z.shape[0]
         if x.shape[0] != B or B == 0:
             return None
-        if psi is not None and (self.dense_rule != "svsf" or psi.shape not in ((m,), (B, m))):
-            return None
-        if not fused.usable(z, x):  # (the state's covariance is x's dtype and device)
-            return None  # (usable: CPU float32/64, no gradient asked for, compiler available)
-        constants = self._valid_constants(state.constants, x.dtype)
+        rule = self.dense_rule
+        if psi is not None and (rule != "svsf" or psi.shape != z.shape):
+            return None  # (the scan names what is wrong)
+        constants = self._valid_constants(known, x.dtype)
         if constants is None:
             return None
         lead = () if single else (B,)
-        result = self._dense_call(
-            constants, x, state.cov, z, state.post_innovation, psi, lead, keep
-        )
-        if result is None:
+        key = (keep, lead, threading.get_ident())
+        step = constants.steps.get(key)
+        if step is None:
+            assert rule is not None
+            step = fused.OnlineStep(
+                rule, constants.gamma, constants.matrices, x.shape[1], lead, x.dtype, keep
+            )
+            constants.steps[key] = step
+        P, memory = state.cov, state.post_innovation
+        if P.shape[0] != B:  # a prior shared by the batch, before the first step
+            P = P.expand(B, *P.shape[1:])
+        if memory is None:  # the SVSF's memory before the first step (the KF reads none)
+            memory = x if rule == "kalman" else x.new_zeros(B, m)
+        elif memory.shape[0] != B:  # one memory shared by the batch
+            memory = memory.expand(B, m).contiguous()
+        widths = constants.widths if psi is None else psi.to(x.dtype).contiguous()
+        total = state.log_likelihood
+        done = step(x.contiguous(), P.contiguous(), z.contiguous(), memory, widths, total)
+        if done is None:
             return None  # inf in z, or S not positive definite: the scan says or copes
-        mean, cov, memory, total = (
-            result.mean,
-            result.cov,
-            result.post_innovation,
-            result.log_likelihood,
+        out, after = done
+        if rule == "kalman":
+            mean, cov, *rest = out
+            e_post = None
+            if keep == "all":
+                x_pred, P_pred, e, K, S, loglik, seen = rest
+            else:
+                (loglik,) = rest
+        else:
+            mean, cov, *rest = out
+            if keep == "all":
+                x_pred, P_pred, e, K, S, _, e_post, seen = rest
+            else:
+                (e_post,) = rest
+        # The state keeps the batch axis; the step's result of one track drops it.
+        state_mean, state_cov, memory = (
+            (mean, cov, e_post)
+            if not single
+            else (
+                mean[None],
+                cov[None],
+                None if e_post is None else e_post[None],
+            )
         )
-        if single:  # the state keeps the batch axis; the step's result drops it
-            mean, cov = mean.unsqueeze(0), cov.unsqueeze(0)
-            memory = None if memory is None else memory.unsqueeze(0)
-            total = None if total is None else total.unsqueeze(0)
-        if total is not None and state.log_likelihood is not None:
-            total = state.log_likelihood + total
-        after = FilterState(mean, cov, memory, total, None, state.steps + 1, single, constants)
-        if keep != "all":  # the state is whole; the result keeps what is asked
-            dropped: dict[str, Any] = {"post_innovation": None}
-            if keep == "mean":
-                dropped["cov"] = None
-            result = result._replace(**dropped)
-        return after, result
+        after_state = FilterState(
+            state_mean, state_cov, memory, after, None, state.steps + 1, single, constants
+        )
+        kalman = rule == "kalman"
+        if keep != "all":
+            nothing: Any = None  # the fields a kept result leaves out (FilterResult's doc)
+            result = FilterResult(
+                mean,
+                cov if keep == "moments" else nothing,
+                *(nothing,) * 8,
+                log_likelihood=loglik if kalman else None,
+            )
+            return after_state, result
+        F, _, H, R = constants.matrices.tensors
+        if lead:  # the run's matrices, broadcast over the batch
+            F, H, R = (A.view((1,) * len(lead) + A.shape) for A in (F, H, R))
+        result = FilterResult(  # (positional: FilterResult's field order)
+            mean, cov, x_pred, P_pred, e, seen, F, H, R, K, e_post, S, loglik if kalman else None
+        )
+        return after_state, result
 
     def carried_history(self, history: Any, inputs: Inputs) -> Any:
         """What the next :meth:`scan` needs of these steps to form its measurements (``None``:

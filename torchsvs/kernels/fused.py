@@ -31,6 +31,7 @@ per source, compiler, flags, processor and platform under ``$TORCHSVS_CACHE`` (d
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import math
 import os
@@ -159,8 +160,12 @@ def library() -> ctypes.CDLL | None:
         backward_adjoint.argtypes = [*backward.argtypes, pointers]
         dense = getattr(lib, f"dense_run_{suffix}")
         dense.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
-        dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, *(vp,) * 10]
+        # psi, its strides, F Q H R, the 10 outputs, the totals in and out
+        dense.argtypes += [vp, ctypes.c_int64, ctypes.c_int64, pointers, *(vp,) * 12]
         dense.restype = ctypes.c_int
+        step = getattr(lib, f"dense_step_{suffix}")
+        step.argtypes = [strides, ctypes.c_double, pointers]
+        step.restype = ctypes.c_int
     _state["library"] = lib
     return lib
 
@@ -506,8 +511,83 @@ def dense_run(
         m if per_track and T > 1 else 0,
         matrices.pointers,
         *addresses,
+        None,
+        None,
     )
     return None if failed else tuple(out)
+
+
+class OnlineStep:
+    """:func:`dense_run` for one step of ``B`` tracks (results of leading shape ``lead``),
+    keeping what ``keep`` keeps, with everything but the step's own tensors formed once: the
+    outputs' prototypes, the scratch addresses of those not kept, the call's other arguments
+    (in the arrays ``dense_step`` reads). An online step then costs its allocations and one
+    call of three arguments (a few µs; filterpy's ``predict`` + ``update`` about 20). One
+    thread's: the arguments and scratch are written by every call."""
+
+    def __init__(
+        self,
+        rule: str,
+        gamma: float,
+        matrices: DenseMatrices,
+        n: int,
+        lead: tuple[int, ...],
+        dtype: torch.dtype,
+        keep: str,
+    ) -> None:
+        lib = _state["library"]
+        assert isinstance(lib, ctypes.CDLL)
+        m = matrices.meas_dim
+        B = math.prod(lead)
+        shapes = ((n,), (n, n), (n,), (n, n), (m,), (n, m), (m, m), (), (m,), (m,))
+        self.kept = _KEPT[keep, rule]
+        self.prototypes = [
+            torch.empty(lead + shapes[i], dtype=torch.bool if i == 9 else dtype) for i in self.kept
+        ]
+        given: list[Tensor | None] = [None] * 10
+        for i, x in zip(self.kept, self.prototypes, strict=True):
+            given[i] = x
+        outs, self._scratch = _addresses(given, shapes, (lead, dtype, self.kept))
+        self.totals = torch.empty(B, dtype=dtype) if rule == "kalman" else None
+        self.sizes = (ctypes.c_int64 * 5)(B, n, m, 0 if rule == "kalman" else 1, 0)
+        # x, P, z, memory, psi, F, Q, H, R, the outputs, the totals in and out
+        self.arguments = (ctypes.c_void_p * 21)(*[None] * 5, *matrices.pointers, *outs)
+        # The kept outputs' slots as runs of consecutive ones (a slice assignment each).
+        self.runs: list[tuple[int, int, int]] = []  # slot start, output start, output stop
+        for j, i in enumerate(self.kept):
+            if self.runs and self.runs[-1][0] + j - self.runs[-1][1] == 9 + i:
+                self.runs[-1] = (*self.runs[-1][:2], j + 1)
+            else:
+                self.runs.append((9 + i, j, j + 1))
+        self.matrices = matrices  # (alive while its pointers are used)
+        call = lib.dense_step_f32 if dtype == torch.float32 else lib.dense_step_f64
+        self.call = functools.partial(call, self.sizes, gamma, self.arguments)
+
+    def __call__(
+        self, x: Tensor, P: Tensor, z: Tensor, memory: Tensor, psi: Tensor, total: Tensor | None
+    ) -> tuple[list[Tensor], Tensor | None] | None:
+        """The kept outputs (in :func:`dense_run`'s order) of the step from ``x [B, n]``,
+        ``P [B, n, n]`` over ``z [B, m]``, with the SVSF's ``memory [B, m]`` and ``psi`` (``[m]``
+        or ``[B, m]``), all contiguous; and the running log-likelihood ``total [B]`` (``None``:
+        from 0) plus the step's (Kalman rule; else ``None``). ``None`` as for :func:`dense_run`."""
+        out = [torch.empty_like(p) for p in self.prototypes]
+        a = self.arguments
+        a[0], a[1], a[2], a[3], a[4] = (
+            x.data_ptr(),
+            P.data_ptr(),
+            z.data_ptr(),
+            memory.data_ptr(),
+            psi.data_ptr(),
+        )
+        pointers: list[Any] = [y.data_ptr() for y in out]
+        for slot, start, stop in self.runs:
+            a[slot : slot + stop - start] = pointers[start:stop]
+        after = None
+        if self.totals is not None:
+            after = torch.empty_like(self.totals)
+            a[19], a[20] = None if total is None else total.data_ptr(), after.data_ptr()
+        self.sizes[4] = psi.shape[-1] if psi.ndim > 1 else 0
+        return None if self.call() else (out, after)
 
 
 #: dense_run's outputs written to tensors, by (keep, rule): those the result and state keep
