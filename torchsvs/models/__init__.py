@@ -4,6 +4,11 @@ from torchsvs.models.ballistic import BallisticReentry
 from torchsvs.models.base import LinearModel, StateSpaceModel
 from torchsvs.models.eha import ElectrohydrostaticActuator
 from torchsvs.models.linear import LinearGaussian
+from torchsvs.models.mileage import (
+    MileageConstantAcceleration,
+    MileageConstantVelocity,
+    SeparateModel,
+)
 from torchsvs.models.motion import ConstantVelocity
 
 __all__ = [
@@ -12,5 +17,8 @@ __all__ = [
     "ElectrohydrostaticActuator",
     "LinearGaussian",
     "LinearModel",
+    "MileageConstantAcceleration",
+    "MileageConstantVelocity",
+    "SeparateModel",
     "StateSpaceModel",
 ]

@@ -1,4 +1,5 @@
-"""Seeded, batched simulators of maneuvering targets and the papers' scenarios."""
+"""Seeded, batched simulators of maneuvering targets and the papers' scenarios (road targets
+included: :mod:`torchsvs.scenarios.road`)."""
 
 from torchsvs.scenarios.maneuver import (
     Controls,
@@ -12,9 +13,36 @@ from torchsvs.scenarios.maneuver import (
     simulate_segments,
 )
 from torchsvs.scenarios.paper import Scenario, atc_scenario, complex_scenario, random_scenario
+from torchsvs.scenarios.road import (
+    CURVE_ROAD_I_POINTS,
+    CURVE_ROAD_II_POINTS,
+    CircularRoad,
+    RoadScenario,
+    SpeedProfile,
+    StraightRoad,
+    circular_road_scenario,
+    curve_road_scenario,
+    road_scenario,
+    speed_profile,
+    straight_road_scenario,
+)
+from torchsvs.scenarios.spline import ArcLengthSpline, NaturalCubicSpline
 from torchsvs.scenarios.spvsf import ballistic_scenario, eha_scenario
 
 __all__ = [
+    "ArcLengthSpline",
+    "CURVE_ROAD_II_POINTS",
+    "CURVE_ROAD_I_POINTS",
+    "CircularRoad",
+    "NaturalCubicSpline",
+    "RoadScenario",
+    "SpeedProfile",
+    "StraightRoad",
+    "circular_road_scenario",
+    "curve_road_scenario",
+    "road_scenario",
+    "speed_profile",
+    "straight_road_scenario",
     "Controls",
     "ManeuverBatch",
     "ManeuverRanges",
