@@ -332,16 +332,13 @@ def curve_road_scenario(
     uses 10 and 14 on road II). ``points`` replaces the designed supporting points
     (:data:`CURVE_ROAD_I_POINTS`, :data:`CURVE_ROAD_II_POINTS`; the road starts at the first).
     """
+    default: Sequence[tuple[float, float]]
     if variant == 1:
-        default, profile = (
-            CURVE_ROAD_I_POINTS,
-            speed_profile(2.3, [(41, 70, 3.7), (111, 150, 2.2)], 200, dt),
-        )
+        default = CURVE_ROAD_I_POINTS
+        profile = speed_profile(2.3, [(41, 70, 3.7), (111, 150, 2.2)], 200, dt)
     elif variant == 2:
-        default, profile = (
-            CURVE_ROAD_II_POINTS,
-            speed_profile(16.5, [(41, 80, 1.9), (111, 150, 1.6), (181, 210, 0.1)], 250, dt),
-        )
+        default = CURVE_ROAD_II_POINTS
+        profile = speed_profile(16.5, [(41, 80, 1.9), (111, 150, 1.6), (181, 210, 0.1)], 250, dt)
     else:
         raise ValueError(f"variant: expected 1 or 2 (curve road I or II), got {variant!r}")
     road = ArcLengthSpline(default if points is None else points)
