@@ -166,6 +166,21 @@ def test_spline_road_passes_through_its_supporting_points(points):
     assert_close(road.direction(s).norm(dim=-1), torch.ones(5001), atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    ("points", "length", "radius"),
+    [
+        (ts.scenarios.CURVE_ROAD_I_POINTS, 1107.7, 123.0),
+        (ts.scenarios.CURVE_ROAD_II_POINTS, 1822.1, 110.0),
+    ],
+)
+def test_designed_roads_have_the_documented_geometry(points, length, radius):
+    """The lengths and smallest radii of curvature quoted in torchsvs.scenarios.road."""
+    road = ts.scenarios.ArcLengthSpline(points)
+    assert abs(road.length - length) < 0.05
+    curvature = road.curvature(torch.linspace(0, road.length, 20001, dtype=F64))
+    assert abs(1.0 / float(curvature.abs().max()) - radius) < 0.5
+
+
 def test_speed_profile_and_scenarios_reject_bad_input():
     with pytest.raises(ValueError, match="accelerations"):
         ts.scenarios.speed_profile(1.0, [(1, 5, 1.0)], 10, 0.1)

@@ -35,12 +35,13 @@ pushed through the unscented transform (Julier & Uhlmann 1997), Eqs. (17)-(18):
 
     W_0 = \frac{\kappa}{n+\kappa},\quad W_i = W_{i+n} = \frac{1}{2(n+\kappa)},\quad i = 1..n
 
-(the columns of the lower Cholesky factor), and Eqs. (20)-(21):
+(the columns of the lower Cholesky factor), then the covariance, Eq. (20), about the mean,
+Eq. (21) (the text gives them in this order):
 
 .. math::
-    \hat{\mathbf x}^a_3 = \sum_{i=0}^{2n} W_i\, g(\chi_i),\qquad
     P^a_3 = \sum_{i=0}^{2n} W_i\, \big(g(\chi_i) - \hat{\mathbf x}^a_3\big)
-    \big(g(\chi_i) - \hat{\mathbf x}^a_3\big)'.
+    \big(g(\chi_i) - \hat{\mathbf x}^a_3\big)',\qquad
+    \hat{\mathbf x}^a_3 = \sum_{i=0}^{2n} W_i\, g(\chi_i).
 
 The NCV acceleration is identically 0, so its mean and every covariance element with it are 0,
 as the paper says. The filter starts at ``k = 4``: in torchsvs' convention (the prior one step
@@ -53,26 +54,28 @@ definite prior, needs ``floor > 0``.
 :math:`[k_1, k_2]` of the latest :math:`k_m` samples; the parameters estimated at
 :math:`k_2 - 1` belong to the previous window, so they are recomputed from the window's
 measurements except the new one, :math:`j = k_1..k_2-1`, with their estimated arc lengths
-:math:`\hat s_j` and :math:`s_l = \hat s_{k_1}`. The cost, Eq. (36):
+:math:`\hat s_j` and :math:`s_l = \hat s_{k_1}`. The cost :math:`J = \sum_j \lVert z_j -
+h(\hat s_j, \eta)\rVert^2` (Eq. (35), inferred) separates into the two of Eq. (36):
 
 .. math::
     J_x = \sum_{j=k_1}^{k_2-1} \big(x_j - x_l - r_x(\hat s_j - s_l)\big)^2,\qquad
     J_y = \sum_{j=k_1}^{k_2-1} \big(y_j - y_l - r_y(\hat s_j - s_l)\big)^2.
 
-With :math:`V = [\mathbf 1,\ \hat{\mathbf s} - s_l]` (Eq. (37)) and its QR decomposition
-:math:`V = UG`, :math:`U'U = I`, :math:`G` upper triangular (Eq. (38)):
+With :math:`V = [\mathbf 1,\ \hat{\mathbf s} - s_l]` and its QR decomposition
+:math:`V = UG`, :math:`U'U = I`, :math:`G` upper triangular (Eqs. (37)-(38), inferred), the
+normal equations :math:`V'V\theta = V'\mathbf x` become :math:`G\theta = U'\mathbf x`:
 
 .. math::
     [x_l^*, r_x^*]' = G^{-1}U'\mathbf x,\qquad [y_l^*, r_y^*]' = G^{-1}U'\mathbf y
-    \quad \text{(Eq. (39))},
+    \quad \text{(Eq. (39), inferred)},
 
 and the parameter vector is reset to :math:`\eta^* = [x_l^*, r_x^*, y_l^*, r_y^*, s_l]'`
-(Eq. (40)). The line of Eq. (13) is the natural (arc-length) parameterisation, so the direction
-is a unit vector; the unconstrained LS slope has norm 1 only when the estimated arc lengths are
-exact. This implementation normalises it, :math:`(r_x^*, r_y^*) \leftarrow (r_x^*, r_y^*) /
-\lVert(r_x^*, r_y^*)\rVert`, and keeps the LS intercept (``normalize=False`` keeps the raw LS
-solution): the window's scale error then shows in the innovations, where the filter corrects
-the arc length, instead of being absorbed in the direction.
+(Eq. (40), inferred). The line of Eq. (13) is the natural (arc-length) parameterisation, so
+the direction is a unit vector; the unconstrained LS slope has norm 1 only when the estimated
+arc lengths are exact. This implementation normalises it, :math:`(r_x^*, r_y^*) \leftarrow
+(r_x^*, r_y^*) / \lVert(r_x^*, r_y^*)\rVert`, and keeps the LS intercept (``normalize=False``
+keeps the raw LS solution): the window's scale error then shows in the innovations, where the
+filter corrects the arc length, instead of being absorbed in the direction.
 
 **Online fitting** (the paper's baseline, its ref. [30]): per axis, the first-degree polynomial
 in time fitted by least squares to the latest ``k_m`` measurements; the estimate is the fit at

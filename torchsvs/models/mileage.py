@@ -287,7 +287,11 @@ class SeparateModel(StateSpaceModel):
         #: size of the kinematic block in the augmented state (3 when NCV is embedded)
         self.base_dim = 3 if embed_acceleration else base.state_dim
         self.state_dim, self.meas_dim = self.base_dim + len(ETA_NAMES), 2
-        self.dt = base.dt
+
+    @property
+    def dt(self) -> float:
+        """The base model's sampling interval ``T`` (s)."""
+        return self.base.dt
 
     # --- layout ---
 

@@ -22,10 +22,13 @@ Readings of the paper's numbers (its text lost the equations, and some values ar
   (the paper's angle convention) by default. Initial speed 5 m/s, +3 m/s² over steps 41-70,
   +2 m/s² over 111-150, 200 steps. ``T`` is not stated: 0.1 s, the round value for which the
   200 steps stay on one arc of the circle (286 m of its 314 m; 0.3 s as in (i) would lap the
-  circle more than six times at up to 56 m/s, 0.2 s three times). ``σ`` is not stated either:
+  circle more than six times at up to 56 m/s, 0.2 s about three times). ``σ`` is not stated either:
   2 m, carried over from (i).
 * (iii) curve road I, Eq. (48): a natural cubic spline in chord length through supporting points
-  (:mod:`torchsvs.scenarios.spline`); the paper's points were lost, so
+  (:mod:`torchsvs.scenarios.spline`). The paper's text suggests its Eq. (48) re-fits the spline
+  with the chord spline's arc lengths at the points as knots (a parameter only close to arc
+  length); here the chord-length spline itself is reparameterised by arc length exactly. The
+  paper's points were lost, so
   :data:`CURVE_ROAD_I_POINTS` is a designed road from (−400, 0) m with a few gentle bends
   (1107.7 m long, smallest radius of curvature 123 m) that fits the 981.7 m travelled. 2.3 m/s,
   +3.7 m/s² over steps 41-70, +2.2 m/s² over 111-150, 200 steps, ``T = 0.2`` s. The text's
@@ -33,8 +36,8 @@ Readings of the paper's numbers (its text lost the equations, and some values ar
   unit is metres).
 * (iv) curve road II: as (iii) ("the rest parameters unchanged") with 250 steps, from
   (−700, 260) m at 16.5 m/s, +1.9 m/s² over 41-80, +1.6 m/s² over 111-150, +0.1 m/s² over
-  181-210; :data:`CURVE_ROAD_II_POINTS` is a designed winding road (1822.1 m, six bends,
-  smallest radius 110 m) for the 1713.1 m travelled.
+  181-210; :data:`CURVE_ROAD_II_POINTS` is a designed winding road (1822.1 m, with bends
+  alternately left and right, smallest radius 110 m) for the 1713.1 m travelled.
 
 Each scenario also carries the paper's estimator settings for it: the standard deviation of the
 mileage models' process noise ``q``, of the artificial process noise of the trajectory
