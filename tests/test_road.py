@@ -91,7 +91,7 @@ def test_positions_move_along_the_road_by_arc_length(name):
     increment, and the velocity is the speed along the road's tangent."""
     sc = _scenario(name, num_runs=1)
     s = sc.arc_length[0]
-    fine = s[:-1, None] + (s.diff()[:, None]) * torch.linspace(0, 1, 201, dtype=F64)
+    fine = s[:-1, None] + (s.diff()[:, None]) * torch.linspace(0, 1, 51, dtype=F64)
     dense = sc.road.position(fine)
     along = dense.diff(dim=1).norm(dim=-1).sum(-1)
     assert_close(along, s.diff(), atol=1e-5, rtol=1e-6)
