@@ -4,11 +4,13 @@ from torchsvs.models.ballistic import BallisticReentry
 from torchsvs.models.base import LinearModel, StateSpaceModel
 from torchsvs.models.eha import ElectrohydrostaticActuator
 from torchsvs.models.linear import LinearGaussian
-from torchsvs.models.motion import ConstantVelocity
+from torchsvs.models.motion import ConstantAcceleration, ConstantVelocity, CoordinatedTurn
 
 __all__ = [
     "BallisticReentry",
+    "ConstantAcceleration",
     "ConstantVelocity",
+    "CoordinatedTurn",
     "ElectrohydrostaticActuator",
     "LinearGaussian",
     "LinearModel",
