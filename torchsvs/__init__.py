@@ -1,7 +1,8 @@
 """torchsvs: smooth variable structure estimation in PyTorch.
 
 Batched, differentiable state estimators as ``nn.Module`` s: the Kalman filter and RTS smoother,
-the extended and unscented Kalman filters, the interacting multiple model estimator (IMM),
+the extended and unscented Kalman filters, the interacting multiple model estimator (IMM) and
+its smoother,
 the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable boundary layer ψ
 and memory γ. See ``torchsvs.types`` for the shape conventions.
 """
@@ -21,7 +22,7 @@ from torchsvs.filters import (
     SlidingInnovationFilter,
     UnscentedKalmanFilter,
 )
-from torchsvs.smoothers import SVSS, RTSSmoother
+from torchsvs.smoothers import SVSS, IMMSmoother, IMMSmootherResult, RTSSmoother
 from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 __all__ = [
@@ -36,6 +37,8 @@ __all__ = [
     "FiniteDifferenceVelocity",
     "IMM",
     "IMMResult",
+    "IMMSmoother",
+    "IMMSmootherResult",
     "IMMState",
     "KalmanFilter",
     "RTSSmoother",

@@ -52,7 +52,13 @@ def imm(z, x0, P0, modes, transition, mu0):
     mu = np.asarray(mu0, dtype=float)
     xs = [x0[np.array(md["index"])] for md in modes]
     Ps = [P0[np.ix_(md["index"], md["index"])] for md in modes]
-    out = {"mean": [], "cov": [], "mu": [], "means": [[] for _ in modes], "covs": [[] for _ in modes]}
+    out = {
+        "mean": [],
+        "cov": [],
+        "mu": [],
+        "means": [[] for _ in modes],
+        "covs": [[] for _ in modes],
+    }
     total = 0.0
     for zt in z:
         # Interaction.
@@ -76,7 +82,9 @@ def imm(z, x0, P0, modes, transition, mu0):
                 lent_P.append(P)
             w = [Pi[i, j] * mu[i] / c[j] for i in range(M)]
             x0j = sum(w[i] * lent_x[i] for i in range(M))
-            P0j = sum(w[i] * (lent_P[i] + np.outer(lent_x[i] - x0j, lent_x[i] - x0j)) for i in range(M))
+            P0j = sum(
+                w[i] * (lent_P[i] + np.outer(lent_x[i] - x0j, lent_x[i] - x0j)) for i in range(M)
+            )
             mixed.append((x0j, P0j))
         # Mode-matched filtering.
         logliks = np.empty(M)
@@ -105,3 +113,85 @@ def imm(z, x0, P0, modes, transition, mu0):
     result["covs"] = [np.array(v) for v in out["covs"]]
     result["log_likelihood"] = total
     return result
+
+
+def kim_smoother(filtered, z, modes, transition, lag=None):
+    """Kim's (1994) smoother over an :func:`imm` pass of linear modes, written from the paper's
+    Eqs.: for a window ending at ``e`` (``T - 1`` for the fixed interval, ``k + lag`` for a
+    lag), backwards from the filtered moments at ``e``:
+
+    ``P(s_k=j, s_{k+1}=l | Z_e) = mu_l(k+1|e) mu_j(k) pi_jl / c_l(k+1)``,
+    ``x^{jl}_{k|e} = x^j_{k|k} + P^j_{k|k} F_l' (P^{jl}_{k+1|k})^-1 (x^l_{k+1|e} - F_l x^j_{k|k})``
+    (mode ``j``'s estimate padded into mode ``l``'s space as in the mixing), collapsed per mode;
+    returns the combined ``mean [T, N]``, ``cov`` and ``mu [T, M]``."""
+    M = len(modes)
+    Pi = np.asarray(transition, dtype=float)
+    T = len(z)
+    mu = filtered["mu"]
+    xs, Ps = filtered["means"], filtered["covs"]
+    N = filtered["mean"].shape[1]
+
+    def padded(j, l, k):
+        """Mode j's estimate at k in mode l's space and the selection S (x~ = S x_j + fill)."""
+        idx_j, idx_l = list(modes[j]["index"]), list(modes[l]["index"])
+        S = np.zeros((len(idx_l), len(idx_j)))
+        x = xs[l][k].copy()
+        P = np.zeros((len(idx_l), len(idx_l)))
+        for a, ka in enumerate(idx_l):
+            if ka in idx_j:
+                S[a, idx_j.index(ka)] = 1.0
+        has = S.sum(1) > 0
+        x[has] = (S @ xs[j][k])[has]
+        P += S @ Ps[j][k] @ S.T
+        P[np.ix_(~has, ~has)] = Ps[l][k][np.ix_(~has, ~has)]
+        return x, P, S
+
+    def window(k, e):
+        x_s = [xs[j][e].copy() for j in range(M)]
+        P_s = [Ps[j][e].copy() for j in range(M)]
+        mu_s = mu[e].copy()
+        for t in range(e - 1, k - 1, -1):
+            c = mu[t] @ Pi  # c_l(t+1)
+            q = np.array(
+                [[mu_s[l] * mu[t][j] * Pi[j, l] / c[l] for l in range(M)] for j in range(M)]
+            )
+            new_mu = q.sum(1)
+            new_x, new_P = [], []
+            for j in range(M):
+                pairs = []
+                for l in range(M):
+                    xt, Pt, S = padded(j, l, t)
+                    F, Q = modes[l]["F"], modes[l]["Q"]
+                    x_pred = F @ xt
+                    P_pred = F @ Pt @ F.T + Q
+                    C = Ps[j][t] @ S.T @ F.T @ np.linalg.inv(P_pred)
+                    pairs.append(
+                        (
+                            xs[j][t] + C @ (x_s[l] - x_pred),
+                            Ps[j][t] + C @ (P_s[l] - P_pred) @ C.T,
+                        )
+                    )
+                w = q[j] / new_mu[j]
+                xj = sum(w[l] * pairs[l][0] for l in range(M))
+                Pj = sum(
+                    w[l] * (pairs[l][1] + np.outer(pairs[l][0] - xj, pairs[l][0] - xj))
+                    for l in range(M)
+                )
+                new_x.append(xj)
+                new_P.append(Pj)
+            x_s, P_s, mu_s = new_x, new_P, new_mu
+        X = np.zeros((M, N))
+        PP = np.zeros((M, N, N))
+        for j, md in enumerate(modes):
+            X[j, md["index"]] = x_s[j]
+            PP[j][np.ix_(md["index"], md["index"])] = P_s[j]
+        x = sum(mu_s[j] * X[j] for j in range(M))
+        P = sum(mu_s[j] * (PP[j] + np.outer(X[j] - x, X[j] - x)) for j in range(M))
+        return x, P, mu_s
+
+    out = [window(k, T - 1 if lag is None else min(k + lag, T - 1)) for k in range(T)]
+    return {
+        "mean": np.array([o[0] for o in out]),
+        "cov": np.array([o[1] for o in out]),
+        "mu": np.array([o[2] for o in out]),
+    }

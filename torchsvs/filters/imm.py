@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, NamedTuple, cast
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -20,7 +21,7 @@ from torchsvs.estimator import (
 )
 from torchsvs.filters.kalman import GaussianFilter, step_input, step_interval
 from torchsvs.kernels.compiled import outside_dynamo
-from torchsvs.linalg import cholesky, gaussian_log_density, symmetrize
+from torchsvs.linalg import cholesky, gaussian_log_density, mixture_moments
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.types import FilterResult, FilterState
 
@@ -177,6 +178,17 @@ class Embedding:
         P_from_i = P_i[..., at, :][..., :, at]
         P = torch.where(both, P_from_i, torch.where(neither, P_j, torch.zeros_like(P_j)))
         return x, P
+
+    def columns(self, j: int, l: int, P_j: Tensor) -> Tensor:
+        """``Cov(x^j, x̃)`` of mode ``j``'s state with itself padded into mode ``l``'s space
+        (:meth:`into`): the columns of ``P_j`` at mode ``l``'s components, zero where mode ``j``
+        lacks them (the padding is uncorrelated), ``[..., n_j, n_l]``."""
+        if j == l:
+            return P_j
+        src = self.source[j][l]
+        return torch.where(
+            src >= 0, P_j[..., :, src.clamp_min(0)], torch.zeros((), dtype=P_j.dtype)
+        )
 
     def common(self, j: int, x: Tensor, P: Tensor) -> tuple[Tensor, Tensor]:
         """Mode ``j``'s moments in the common state, zero where mode ``j`` has no component."""
@@ -440,11 +452,8 @@ class IMM(SteppedEstimator[IMMResult]):
         if mode_probs is None:
             log_probs = self.log_initial_probs.to(dtype).expand(B, M)
         else:
-            shape = (
-                (M,)
-                if single or (isinstance(mode_probs, Tensor) and mode_probs.ndim == 1)
-                else (B, M)
-            )
+            rank = mode_probs.ndim if isinstance(mode_probs, Tensor) else np.ndim(mode_probs)
+            shape = (M,) if single or rank == 1 else (B, M)
             want = "mode probabilities [M]" if single else "mode probabilities [M] or [B, M]"
             probs = check_probabilities(mode_probs, shape, "mode_probs", want)
             log_probs = probs.log().to(dtype).expand(B, M)
@@ -633,12 +642,7 @@ class IMM(SteppedEstimator[IMMResult]):
             lent = [
                 self.embedding.into(i, j, means[i], covs[i], means[j], covs[j]) for i in range(M)
             ]
-            w = weights[..., j]  # [B, i]
-            x = _total([w[:, i, None] * lent[i][0] for i in range(M)])
-            P = _total(
-                [w[:, i, None, None] * (lent[i][1] + _outer(lent[i][0] - x)) for i in range(M)]
-            )
-            priors.append((x, symmetrize(P)))
+            priors.append(mixture_moments(weights[..., j], *zip(*lent, strict=True)))
         return priors, log_pred
 
     def combine(
@@ -653,11 +657,7 @@ class IMM(SteppedEstimator[IMMResult]):
             self.embedding.common(j, x.expand(*lead, -1), P.expand(*lead, -1, -1))
             for j, (x, P) in enumerate(zip(means, covs, strict=True))
         ]
-        x = _total([probs[..., j, None] * X for j, (X, _) in enumerate(common)])
-        P = _total(
-            [probs[..., j, None, None] * (Pj + _outer(X - x)) for j, (X, Pj) in enumerate(common)]
-        )
-        return x, symmetrize(P)
+        return mixture_moments(probs, *zip(*common, strict=True))
 
 
 def _total(terms: list[Tensor]) -> Tensor:
@@ -666,7 +666,3 @@ def _total(terms: list[Tensor]) -> Tensor:
     for term in terms[1:]:
         total = total + term
     return total
-
-
-def _outer(d: Tensor) -> Tensor:
-    return d.unsqueeze(-1) * d.unsqueeze(-2)

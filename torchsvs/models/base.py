@@ -97,8 +97,12 @@ class StateSpaceModel(nn.Module):
             dt_t = dt[:, t] if dt is not None and dt.ndim == 2 else dt
             x = self.f(x, dt_t, None if u is None else u[:, t])
             if noise_scale != 0.0:
-                Q = self.process_noise(dt_t) if cov is None else cov
-                x = x + gaussian_noise(Q.to(x.dtype), x.shape[:-1], generator, noise_scale)
+                Q = (self.process_noise(dt_t) if cov is None else cov).to(x.dtype)
+                if Q.ndim > 2:  # one covariance per track (a per-step dt): one draw each
+                    w = gaussian_noise(Q, (*x.shape[:-1], 1), generator, noise_scale)
+                    x = x + w.squeeze(-2)
+                else:
+                    x = x + gaussian_noise(Q, x.shape[:-1], generator, noise_scale)
             states.append(x)
         return torch.stack(states, dim=1)
 
