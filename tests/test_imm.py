@@ -463,6 +463,11 @@ def test_gradients_flow_through_the_imm_and_gradcheck_the_transition_logits():
     (-out.log_likelihood.sum() + out.mean.square().mean()).backward()
     for grad in (imm.transition_logits.grad, cv.q.raw.grad, x0.grad):
         assert grad is not None and bool(torch.isfinite(grad).all()) and bool(grad.abs().sum() > 0)
+    imm.zero_grad()
+    smoothed = ts.IMMSmoother(imm, lag=3)(z[:, :30], CT_PRIOR[0], CT_PRIOR[1])
+    (smoothed.mean[..., [0, 2]] - truth[:, :30, [0, 2]]).square().mean().backward()
+    for grad in (imm.transition_logits.grad, cv.q.raw.grad):
+        assert grad is not None and bool(torch.isfinite(grad).all()) and bool(grad.abs().sum() > 0)
     # The gradient of the log-likelihood w.r.t. x0 is that of finite differences.
     h = 1e-5
     for k in (1, 2):
