@@ -538,8 +538,10 @@ class _Recorder(ts.IMM):
         mean[:, [2, 5]] = 0.0
         return state._replace(modes=(state.modes[0], ca._replace(mean=mean)))
 
-    def update_aux(self, aux, z, dt, u):
-        return z.unsqueeze(1) if aux is None else torch.cat([aux, z.unsqueeze(1)], 1)
+    def update_aux(self, state, z, dt, u):
+        assert state.steps >= 1 and state.modes[1].mean.shape == (2, 6)
+        seen = z.unsqueeze(1)
+        return seen if state.aux is None else torch.cat([state.aux, seen], 1)
 
 
 def test_interaction_hooks_see_every_step_and_carry_aux_through_chunks():

@@ -324,9 +324,11 @@ class IMM(SteppedEstimator[IMMResult]):
     Extending the interaction stage: :meth:`interact` is the whole stage; it calls
     :meth:`adjust_modes` first, a hook that may change each mode's state before it is mixed
     (by default nothing), then :meth:`mix`. A separate-modeling tracker, for instance, resets
-    the augmented part of each mode's state by least squares over the recent measurements
-    there; it keeps those measurements in ``IMMState.aux`` through :meth:`update_aux`, which
-    sees every step's ``z``, ``dt``, ``u`` after the step.
+    the augmented part of each mode's state (its trajectory parameters) by least squares over
+    a sliding window there, from the second cycle on (``state.steps``); it keeps the window's
+    measurements and estimates in ``IMMState.aux`` through :meth:`update_aux`, which sees the
+    state after every step and that step's ``z``, ``dt``, ``u``. The hooks run inside every
+    :meth:`step` and :meth:`scan`, so chunked and whole runs stay equal.
 
     Args:
         filters: the mode-matched filters, one per mode (same measurement; their models may
@@ -588,8 +590,8 @@ class IMM(SteppedEstimator[IMMResult]):
         total = step_log_likelihood
         if state.log_likelihood is not None:
             total = state.log_likelihood + step_log_likelihood
-        aux = self.update_aux(state.aux, z_t, dt_t, u_t)
-        after = IMMState(tuple(modes), log_probs, total, state.steps + 1, state.single, aux)
+        after = IMMState(tuple(modes), log_probs, total, state.steps + 1, state.single, state.aux)
+        after = after._replace(aux=self.update_aux(after, z_t, dt_t, u_t))
         out = _StepOut(mean, cov, log_probs, log_pred, log_lik, tuple(results), step_log_likelihood)
         return after, out
 
@@ -612,11 +614,13 @@ class IMM(SteppedEstimator[IMMResult]):
         by least squares over measurements kept in ``state.aux``). By default unchanged."""
         return state
 
-    def update_aux(self, aux: Any, z: Tensor, dt: Tensor | None, u: Tensor | None) -> Any:
-        """Hook called after each step with its measurement ``z [B, m]`` (NaN: missing), its
-        interval (``None``, 0-d or ``[B]``) and input: the new ``IMMState.aux``. By default
-        ``aux`` unchanged."""
-        return aux
+    def update_aux(self, state: IMMState, z: Tensor, dt: Tensor | None, u: Tensor | None) -> Any:
+        """Hook called after each step with the state after it (each mode's new estimate, the
+        mode probabilities, and ``state.aux`` as the step before left it) and the step's
+        measurement ``z [B, m]`` (NaN: missing), interval (``None``, 0-d or ``[B]``) and input:
+        the new ``IMMState.aux`` (e.g. a sliding window of measurements and estimated
+        positions). By default ``state.aux`` unchanged."""
+        return state.aux
 
     def mix(
         self, modes: Sequence[FilterState], log_probs: Tensor, log_transition: Tensor
