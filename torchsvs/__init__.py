@@ -1,24 +1,28 @@
 """torchsvs: smooth variable structure estimation in PyTorch.
 
 Batched, differentiable state estimators as ``nn.Module`` s: the Kalman filter and RTS smoother,
-the extended and unscented Kalman filters,
+the extended and unscented Kalman filters, the interacting multiple model estimator (IMM) and
+its smoother,
 the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable boundary layer ψ
 and memory γ. See ``torchsvs.types`` for the shape conventions.
 """
 
 from torchsvs import datasets, metrics, models, scenarios
 from torchsvs.filters import (
+    IMM,
     SPVSF,
     SVSF,
     ExtendedKalmanFilter,
     FiniteDifferenceVelocity,
+    IMMResult,
+    IMMState,
     KalmanFilter,
     ParticleFilter,
     RobustStudentTKalmanFilter,
     SlidingInnovationFilter,
     UnscentedKalmanFilter,
 )
-from torchsvs.smoothers import SVSS, RTSSmoother
+from torchsvs.smoothers import SVSS, IMMSmoother, IMMSmootherResult, RTSSmoother
 from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 __all__ = [
@@ -31,6 +35,11 @@ __all__ = [
     "FilterResult",
     "FilterState",
     "FiniteDifferenceVelocity",
+    "IMM",
+    "IMMResult",
+    "IMMSmoother",
+    "IMMSmootherResult",
+    "IMMState",
     "KalmanFilter",
     "RTSSmoother",
     "RobustStudentTKalmanFilter",

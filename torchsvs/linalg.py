@@ -8,6 +8,7 @@ Covariances are never inverted explicitly: solves go through a Cholesky factor.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -90,6 +91,32 @@ def gaussian_log_density(residual: Tensor, L: Tensor, count: Tensor | float) -> 
     white = torch.linalg.solve_triangular(L, residual.unsqueeze(-1), upper=False).squeeze(-1)
     log_det = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     return -0.5 * (white.square().sum(-1) + log_det + count * math.log(2 * math.pi))
+
+
+def mixture_moments(
+    weights: Tensor, means: Sequence[Tensor], covs: Sequence[Tensor]
+) -> tuple[Tensor, Tensor]:
+    """Mean and covariance of the Gaussian mixture ``Σ_k w_k N(x_k, P_k)`` (moment matching):
+    ``x = Σ_k w_k x_k``, ``P = Σ_k w_k (P_k + (x_k − x)(x_k − x)ᵀ)``, the spread of the means
+    included; the IMM's mixing and combination and its smoother's collapse.
+
+    Args:
+        weights: ``[..., K]``, summing to 1 over the last axis.
+        means: ``K`` tensors ``[..., n]``; covs: ``K`` tensors ``[..., n, n]`` (terms added in
+            order).
+    """
+    K = len(means)
+    x = weights[..., 0, None] * means[0]
+    for k in range(1, K):
+        x = x + weights[..., k, None] * means[k]
+    P = weights[..., 0, None, None] * (covs[0] + _outer(means[0] - x))
+    for k in range(1, K):
+        P = P + weights[..., k, None, None] * (covs[k] + _outer(means[k] - x))
+    return x, symmetrize(P)
+
+
+def _outer(d: Tensor) -> Tensor:
+    return d.unsqueeze(-1) * d.unsqueeze(-2)
 
 
 def svsf_gain_ratio(e_prior: Tensor, e_post_prev: Tensor, psi: Tensor, gamma: Tensor) -> Tensor:

@@ -97,8 +97,12 @@ class StateSpaceModel(nn.Module):
             dt_t = dt[:, t] if dt is not None and dt.ndim == 2 else dt
             x = self.f(x, dt_t, None if u is None else u[:, t])
             if noise_scale != 0.0:
-                Q = self.process_noise(dt_t) if cov is None else cov
-                x = x + gaussian_noise(Q.to(x.dtype), x.shape[:-1], generator, noise_scale)
+                Q = (self.process_noise(dt_t) if cov is None else cov).to(x.dtype)
+                if Q.ndim > 2:  # one covariance per track (a per-step dt): one draw each
+                    w = gaussian_noise(Q, (*x.shape[:-1], 1), generator, noise_scale)
+                    x = x + w.squeeze(-2)
+                else:
+                    x = x + gaussian_noise(Q, x.shape[:-1], generator, noise_scale)
             states.append(x)
         return torch.stack(states, dim=1)
 
@@ -177,20 +181,33 @@ def gaussian_noise(
     Cholesky factor of ``cov``, ``[d, d]`` or one per leading index ``[*batch_shape[:-1], d, d]``
     (e.g. a covariance per track for ``batch_shape = (B, T)``). Components of zero variance in a
     ``[d, d]`` ``cov`` are not drawn (a parameter without process noise), so ``cov`` may be
-    singular there."""
+    singular there; a singular ``cov`` of another kind (a noise entering through a gain of
+    lower rank, as the coordinated turn's) is factored by :func:`noise_factor`."""
     d = cov.shape[-1]
     if cov.ndim == 2:
         active = cov.diagonal() > 0
         if not bool(active.all()):
-            L = scale * torch.linalg.cholesky(cov[active][:, active])
+            L = scale * noise_factor(cov[active][:, active])
             eps = torch.randn(
                 *batch_shape, L.shape[-1], generator=generator, dtype=cov.dtype, device=cov.device
             )
             noise = torch.zeros(*batch_shape, d, dtype=cov.dtype, device=cov.device)
             noise[..., active] = eps @ L.mT
             return noise
-    L = torch.linalg.cholesky(cov)
+    L = noise_factor(cov)
     if scale != 1.0:
         L = scale * L
     eps = torch.randn(*batch_shape, d, generator=generator, dtype=cov.dtype, device=cov.device)
     return eps @ L.mT
+
+
+def noise_factor(cov: Tensor) -> Tensor:
+    """A factor ``L`` with ``L Lᵀ = cov`` for drawing noise: the Cholesky factor of a positive
+    definite ``cov`` (so draws are those of ``torch.linalg.cholesky``), else ``V diag(√λ)`` from
+    the eigendecomposition of a positive semi-definite one (negative rounding clipped to 0)."""
+    L, info = torch.linalg.cholesky_ex(cov)
+    if not bool((info > 0).any()):
+        return L
+    values, vectors = torch.linalg.eigh(cov)
+    root = vectors * values.clamp_min(0.0).sqrt().unsqueeze(-2)
+    return torch.where((info > 0)[..., None, None], root, L)
