@@ -785,6 +785,11 @@ def test_a_compiled_state_stepped_with_gradients_differentiates(spy):
     wanted = z[:, 1].clone().requires_grad_()
     _, out = kf.step(state, wanted)
     assert spy["dense"] == 4 and out.mean.requires_grad  # z given with a gradient
+    moved = state._replace(mean=state.mean.clone().requires_grad_())  # a caller's edit
+    _, out = kf.step(moved, z[:, 1])
+    assert spy["dense"] == 4 and out.mean.requires_grad
+    out.mean.sum().backward()
+    assert torch.isfinite(moved.mean.grad).all()
 
 
 @needs_compiler

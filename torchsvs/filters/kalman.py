@@ -495,9 +495,12 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         else:
             # A state an earlier compiled step made: its x is a CPU float tensor and the
             # library loaded; what may have changed is z, the mode, and whether a gradient is
-            # asked for (of z here, of a parameter in _valid_constants).
-            if not (AXIS_KERNEL["fused"] and z.is_cpu) or (
-                z.requires_grad and torch.is_grad_enabled()
+            # asked for (of z or of a state a caller edited, here; of a parameter, in
+            # _valid_constants).
+            if not (AXIS_KERNEL["fused"] and z.is_cpu):
+                return None
+            if torch.is_grad_enabled() and (
+                z.requires_grad or x.requires_grad or state.cov.requires_grad
             ):
                 return None
             m = known.matrices.meas_dim
