@@ -1,17 +1,20 @@
 """torchsvs: smooth variable structure estimation in PyTorch.
 
 Batched, differentiable state estimators as ``nn.Module`` s: the Kalman filter and RTS smoother,
-the extended and unscented Kalman filters,
+the extended and unscented Kalman filters, the interacting multiple model estimator (IMM),
 the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable boundary layer ψ
 and memory γ. See ``torchsvs.types`` for the shape conventions.
 """
 
 from torchsvs import datasets, metrics, models, scenarios
 from torchsvs.filters import (
+    IMM,
     SPVSF,
     SVSF,
     ExtendedKalmanFilter,
     FiniteDifferenceVelocity,
+    IMMResult,
+    IMMState,
     KalmanFilter,
     ParticleFilter,
     RobustStudentTKalmanFilter,
@@ -31,6 +34,9 @@ __all__ = [
     "FilterResult",
     "FilterState",
     "FiniteDifferenceVelocity",
+    "IMM",
+    "IMMResult",
+    "IMMState",
     "KalmanFilter",
     "RTSSmoother",
     "RobustStudentTKalmanFilter",

@@ -279,8 +279,19 @@ def at_step(result: Any, t: int, time_axis: int = 1) -> Any:
             value = None
         elif isinstance(value, Tensor) and name not in RUN_FIELDS:
             value = value.select(time_axis, min(t, value.shape[time_axis] - 1))
+        elif _results(value):  # one result per mode (an IMM's)
+            value = tuple(at_step(v, t, time_axis) for v in value)
         fields.append(value)
     return type(result)(*fields)
+
+
+def _results(value: Any) -> bool:
+    """Whether ``value`` is a plain tuple of result NamedTuples (an IMM's per-mode results)."""
+    return (
+        isinstance(value, tuple)
+        and not hasattr(value, "_fields")
+        and all(hasattr(v, "_fields") for v in value)
+    )
 
 
 def drop_batch(result: Any) -> Any:
@@ -291,6 +302,8 @@ def drop_batch(result: Any) -> Any:
             value = None  # the per-axis internals stay batched: not part of a single track's result
         elif isinstance(value, Tensor):
             value = value.squeeze(0)
+        elif _results(value):
+            value = tuple(drop_batch(v) for v in value)
         elif isinstance(value, tuple):
             value = drop_batch(value)
         fields.append(value)

@@ -5,6 +5,7 @@ from torchsvs.filters.artificial import (
     FiniteDifferenceVelocity,
     ModulusFromAcceleration,
 )
+from torchsvs.filters.imm import IMM, IMMResult, IMMState
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
@@ -14,6 +15,9 @@ from torchsvs.filters.svsf import SVSF
 
 __all__ = [
     "BallisticCoefficientFromDrag",
+    "IMM",
+    "IMMResult",
+    "IMMState",
     "SPVSF",
     "SVSF",
     "ParticleFilter",

@@ -9,11 +9,13 @@ from torchsvs.models.mileage import (
     MileageConstantVelocity,
     SeparateModel,
 )
-from torchsvs.models.motion import ConstantVelocity
+from torchsvs.models.motion import ConstantAcceleration, ConstantVelocity, CoordinatedTurn
 
 __all__ = [
     "BallisticReentry",
+    "ConstantAcceleration",
     "ConstantVelocity",
+    "CoordinatedTurn",
     "ElectrohydrostaticActuator",
     "LinearGaussian",
     "LinearModel",

@@ -177,20 +177,33 @@ def gaussian_noise(
     Cholesky factor of ``cov``, ``[d, d]`` or one per leading index ``[*batch_shape[:-1], d, d]``
     (e.g. a covariance per track for ``batch_shape = (B, T)``). Components of zero variance in a
     ``[d, d]`` ``cov`` are not drawn (a parameter without process noise), so ``cov`` may be
-    singular there."""
+    singular there; a singular ``cov`` of another kind (a noise entering through a gain of
+    lower rank, as the coordinated turn's) is factored by :func:`noise_factor`."""
     d = cov.shape[-1]
     if cov.ndim == 2:
         active = cov.diagonal() > 0
         if not bool(active.all()):
-            L = scale * torch.linalg.cholesky(cov[active][:, active])
+            L = scale * noise_factor(cov[active][:, active])
             eps = torch.randn(
                 *batch_shape, L.shape[-1], generator=generator, dtype=cov.dtype, device=cov.device
             )
             noise = torch.zeros(*batch_shape, d, dtype=cov.dtype, device=cov.device)
             noise[..., active] = eps @ L.mT
             return noise
-    L = torch.linalg.cholesky(cov)
+    L = noise_factor(cov)
     if scale != 1.0:
         L = scale * L
     eps = torch.randn(*batch_shape, d, generator=generator, dtype=cov.dtype, device=cov.device)
     return eps @ L.mT
+
+
+def noise_factor(cov: Tensor) -> Tensor:
+    """A factor ``L`` with ``L Lᵀ = cov`` for drawing noise: the Cholesky factor of a positive
+    definite ``cov`` (so draws are those of ``torch.linalg.cholesky``), else ``V diag(√λ)`` from
+    the eigendecomposition of a positive semi-definite one (negative rounding clipped to 0)."""
+    L, info = torch.linalg.cholesky_ex(cov)
+    if not bool((info > 0).any()):
+        return L
+    values, vectors = torch.linalg.eigh(cov)
+    root = vectors * values.clamp_min(0.0).sqrt().unsqueeze(-2)
+    return torch.where((info > 0)[..., None, None], root, L)
