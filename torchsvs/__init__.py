@@ -19,6 +19,7 @@ from torchsvs.filters import (
     ParticleFilter,
     RobustStudentTKalmanFilter,
     SlidingInnovationFilter,
+    TurnIMM,
     UnscentedKalmanFilter,
 )
 from torchsvs.smoothers import SVSS, RTSSmoother
@@ -42,6 +43,7 @@ __all__ = [
     "RobustStudentTKalmanFilter",
     "SlidingInnovationFilter",
     "SmootherResult",
+    "TurnIMM",
     "datasets",
     "metrics",
     "models",

@@ -52,7 +52,13 @@ def imm(z, x0, P0, modes, transition, mu0):
     mu = np.asarray(mu0, dtype=float)
     xs = [x0[np.array(md["index"])] for md in modes]
     Ps = [P0[np.ix_(md["index"], md["index"])] for md in modes]
-    out = {"mean": [], "cov": [], "mu": [], "means": [[] for _ in modes], "covs": [[] for _ in modes]}
+    out = {
+        "mean": [],
+        "cov": [],
+        "mu": [],
+        "means": [[] for _ in modes],
+        "covs": [[] for _ in modes],
+    }
     total = 0.0
     for zt in z:
         # Interaction.
@@ -76,7 +82,9 @@ def imm(z, x0, P0, modes, transition, mu0):
                 lent_P.append(P)
             w = [Pi[i, j] * mu[i] / c[j] for i in range(M)]
             x0j = sum(w[i] * lent_x[i] for i in range(M))
-            P0j = sum(w[i] * (lent_P[i] + np.outer(lent_x[i] - x0j, lent_x[i] - x0j)) for i in range(M))
+            P0j = sum(
+                w[i] * (lent_P[i] + np.outer(lent_x[i] - x0j, lent_x[i] - x0j)) for i in range(M)
+            )
             mixed.append((x0j, P0j))
         # Mode-matched filtering.
         logliks = np.empty(M)

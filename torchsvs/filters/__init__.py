@@ -12,6 +12,7 @@ from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
 from torchsvs.filters.sif import SlidingInnovationFilter
 from torchsvs.filters.svsf import SVSF
+from torchsvs.filters.turn_imm import TurnIMM
 
 __all__ = [
     "BallisticCoefficientFromDrag",
@@ -30,4 +31,5 @@ __all__ = [
     "ModulusFromAcceleration",
     "RobustStudentTKalmanFilter",
     "SlidingInnovationFilter",
+    "TurnIMM",
 ]
