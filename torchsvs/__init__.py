@@ -11,6 +11,7 @@ from torchsvs.filters import (
     IMM,
     SPVSF,
     SVSF,
+    ArtificialKalmanFilter,
     ExtendedKalmanFilter,
     FiniteDifferenceVelocity,
     IMMResult,
@@ -26,6 +27,7 @@ from torchsvs.smoothers import SVSS, RTSSmoother
 from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 __all__ = [
+    "ArtificialKalmanFilter",
     "SVSF",
     "SPVSF",
     "SVSS",
