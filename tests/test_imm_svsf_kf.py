@@ -66,3 +66,21 @@ def test_artificial_kalman_filter_needs_an_artificial_measurement():
         ts.ArtificialKalmanFilter(ts.models.LinearGaussian(eye, eye, eye, eye))
     with pytest.raises(TypeError, match="^artificial: expected 'auto' or a callable"):
         ts.ArtificialKalmanFilter(ts.models.ConstantVelocity(), artificial=3)
+
+
+def test_reduced_experiment_imm_beats_each_mode_and_writes_its_report(tmp_path):
+    """``experiments/imm_svsf_kf.py`` on 30 runs: the IMM's velocity beats the SVSF's and both
+    KFs', its positions the KFs'; the report and figures are written."""
+    from experiments.imm_svsf_kf import MAIN, figures, imm_name, report, run
+
+    res = run(runs=30, seed=2)
+    imm, svsf = res.rows[imm_name(MAIN)][0], res.rows["SVSF"][0]
+    for kf in ("KF", "KF on [z, FD velocity]"):
+        assert all(a < b for a, b in zip(imm, res.rows[kf][0], strict=True))
+    assert imm[1] < svsf[1] and imm[3] < svsf[3]
+    mu = res.mode_probs[imm_name(MAIN)]
+    assert float(((mu > 0.01) & (mu < 0.99)).double().mean()) > 0.8
+    assert res.likelihood_check < 1e-12
+    names = figures(res, tmp_path)
+    text = report(res)
+    assert all((tmp_path / n).exists() for n in names) and "## Accumulative RMSE" in text
