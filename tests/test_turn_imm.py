@@ -217,3 +217,29 @@ def test_coordinated_turn_3d_is_the_planar_turn_and_a_cv_height():
     assert not Q[:, horizontal][:, :, vertical].any()
     assert_close(model.h(x), x[:, [0, 2, 4]])
     assert_close(model.meas_cov(), torch.diag(torch.tensor([4.0, 4.0, 9.0], dtype=torch.float64)))
+
+
+def test_real_flights_merges_the_imm_rows_without_touching_the_rest():
+    """``experiments/real_flights.py --only-imm`` merges its rows into the recorded report:
+    every other line stays as it was, and merging again changes nothing."""
+    from pathlib import Path
+
+    from experiments.real_flights import IMM_LABEL, merge_imm
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "results" / "real_flights.md"
+    text = path.read_text()
+    rows = [
+        [IMM_LABEL, "rules of thumb", "84.0", "10.5", "17.1", "290.00", "CV q 6.3"],
+        [IMM_LABEL, "learned, SURE (σ known)", "83.3", "10.3", "16.9", "280.00", "CV q 0.9"],
+    ]
+    section = [f"## {IMM_LABEL}: test", "", "IMM_RANKING", ""]
+    once = merge_imm(text, rows, section)
+    assert merge_imm(once, rows, section) == once
+    kept = [line for line in text.rstrip("\n").split("\n") if not line.startswith("| IMM")]
+    heading = [i for i, line in enumerate(kept) if line.startswith(f"## {IMM_LABEL}")]
+    kept = kept[: heading[0]] if heading else kept  # a recorded IMM section is replaced
+    rest = [line for line in once.split("\n") if not line.startswith("| IMM")]
+    assert rest[: len(kept)] == kept
+    table = once[once.index("## Held-out flights") :]
+    assert table.index("| IMM(CV, CT) | learned") < table.index("| traffic KalmanSmoother6D")
+    assert re.search(r"the learned IMM ranks \d+ of \d+ rows \(83\.3 m\)", once)

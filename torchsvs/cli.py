@@ -103,7 +103,7 @@ def track_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="process noise of the CV model (imm: of its CV mode; default: read off the data, "
-        "for imm a tenth of it)",
+        "for imm 0.03 of it)",
     )
     parser.add_argument(
         "--psi",

@@ -73,7 +73,7 @@ DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
 #: Boundary layer of the rule of thumb, in noise standard deviations of each component.
 PSI_IN_SIGMAS = 5.0
 #: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
-IMM_QUIET = 0.1
+IMM_QUIET = 0.03
 #: The IMM's turn-rate scale in units of ``√(q/T) / v̄`` (:func:`turn_settings`).
 TURN_RATE_SCALE = 0.3
 
@@ -227,35 +227,43 @@ def typical_speed(tracks: RecordedTracks) -> float:
 
 
 def turn_settings(
-    q: float, meas_var: Sequence[float], interval: float, speed: float
+    q: float,
+    meas_var: Sequence[float],
+    interval: float,
+    speed: float,
+    quiet: float = IMM_QUIET,
+    rate_scale: float = TURN_RATE_SCALE,
 ) -> dict[str, float]:
     r"""The IMM's mode noises from the data's ``q`` (the spectral density of a single CV model,
     which counts the maneuvers as noise), the measurement noise, the typical interval ``T``
     and the typical horizontal speed :math:`\bar v` (:func:`typical_speed`):
 
-    * CV mode: ``q_CV = IMM_QUIET · q`` (:data:`IMM_QUIET`): quiet, the turns go to the CT mode;
+    * CV mode: ``q_CV = quiet · q`` (:data:`IMM_QUIET`): quiet, the turns go to the CT mode;
     * CT mode: white acceleration variance ``turn_q = q / T`` (the velocity noise per step of
       the single CV model) and a turn-rate scale :math:`\omega_s = s\,\sqrt{q/T}/\bar v`
-      with ``s =`` :data:`TURN_RATE_SCALE`: :math:`\sqrt{q/T}/\bar v` is the turn rate whose
-      centripetal acceleration at the typical speed is the CV model's acceleration noise over
-      a step. :math:`\omega_s` is the prior standard deviation of the turn rate and its
-      standard deviation of change per typical step (``turn_rate_q = (ω_s / T)²``).
+      with ``s = rate_scale`` (:data:`TURN_RATE_SCALE`): :math:`\sqrt{q/T}/\bar v` is the
+      turn rate whose centripetal acceleration at the typical speed is the CV model's
+      acceleration noise over a step. :math:`\omega_s` is the prior standard deviation of
+      the turn rate and its standard deviation of change per typical step
+      (``turn_rate_q = (ω_s / T)²``).
 
     For a three-axis file ``q`` is read off the horizontal axes (the turn is horizontal; a calm
     height would dilute the one ``q`` of all three). The speed is floored at the speed the
     measurement noise alone shows between two steps
     (:math:`\sqrt{2r}/T`), so still or slow targets get a finite, small turn rate. The factors
     were chosen on the training half of the recorded calibration flights at σ = 50, 100 and
-    200 m (``experiments/results/real_flights.md``, IMM section): the CV mode at a tenth of the
-    data's ``q`` and the turn-rate scale at 0.3 were best or within 1% of the best there; a
-    turn-rate scale of 1 let the CT mode's turn rate wander to aliasing values (ωT of several
-    radians) on some flights.
+    200 m (``experiments/results/real_flights.md``, IMM section: a grid of CV shares 0.01-1
+    and turn-rate scales 0.1-1): the defaults are within 0.4% of the grid's best position RMSE
+    at every level, and a quieter CV mode is better down to 0.03 there (and on simulated
+    turns); a turn-rate scale of 1 let the turn mode's turn rate wander to aliasing values
+    (ωT of several radians between scans) on some flights, with velocity errors of thousands
+    of m/s.
     """
     r = sum(meas_var[:2]) / len(meas_var[:2])
     speed = max(speed, math.sqrt(2.0 * r) / interval)
-    scale = TURN_RATE_SCALE * math.sqrt(q / interval) / speed
+    scale = rate_scale * math.sqrt(q / interval) / speed
     return {
-        "q": IMM_QUIET * q,
+        "q": quiet * q,
         "turn_q": q / interval,
         "turn_rate_q": (scale / interval) ** 2,
         "turn_rate_std": scale,

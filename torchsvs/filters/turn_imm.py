@@ -50,6 +50,13 @@ class TurnIMM(Estimator[IMMResult]):
 
     Both modes measure the positions with the CV model's ``R`` (one parameter, shared).
 
+    The turn rate is estimated by the EKF from positions alone: a turn-rate noise much larger
+    than the data support lets it wander, on noisy tracks with long gaps, to values whose turn
+    over one interval is several radians, where the linearisation means nothing and the turn
+    mode's velocity diverges (measured on recorded flights, ``experiments/results/
+    real_flights.md``); :func:`torchsvs.tracking.turn_settings` derives a safe scale from the
+    data.
+
     Args:
         model: the CV mode's :class:`~torchsvs.models.ConstantVelocity`, 2 or 3 axes.
         turn_q: the CT mode's white acceleration variance per horizontal axis (m²/s⁴);
