@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench bench-matrix bench-million reproduce real learn lint clean
+.PHONY: demo test test-slow bench bench-matrix bench-million reproduce real real-imm learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -45,6 +45,10 @@ bench-million: $(STAMP)
 real: $(STAMP)
 	$(PY) -m experiments.real_flights
 
+# Only the IMM(CV, CT) rows and section of real_flights.md, merged into the recorded report.
+real-imm: $(STAMP)
+	$(PY) -m experiments.real_flights --only-imm
+
 reproduce: $(STAMP)
 	$(PY) -m experiments.svss_paper
 	$(PY) -m experiments.spvsf_paper
@@ -52,6 +56,10 @@ reproduce: $(STAMP)
 learn: $(STAMP)
 	$(PY) -m experiments.learn_psi
 	$(PY) -m experiments.adaptive_psi
+
+# Beyond the papers: an IMM of the SVSF and a KF on Chen et al. 2020's complex scenario.
+imm-svsf-kf: $(STAMP)
+	$(PY) -m experiments.imm_svsf_kf
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check torchsvs tests experiments benchmarks

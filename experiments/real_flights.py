@@ -16,9 +16,17 @@ parameters
 beside the ``traffic`` library's own ``KalmanSmoother6D`` where it is installed, and
 ``torchsvs track --fit`` run on a CSV of the held-out flights themselves. Velocities are scored
 against the reported velocity where it agrees with the motion, and against the motion itself.
-Writes ``experiments/results/real_flights.md`` and PNGs.
+The IMM of a CV and a coordinated-turn mode (``torchsvs track --estimator imm``) has rows of
+its own and a section: its rank, and the study on the training flights its default settings
+come from. Writes ``experiments/results/real_flights.md`` and PNGs.
 
     python -m experiments.real_flights [--flights calibration] [--seeds 2] [--quick]
+    python -m experiments.real_flights --only-imm   # the IMM rows and section alone, merged
+
+``--only-imm`` runs only the IMM's rows and section on the same flights, noise and split, and
+merges them into the existing ``real_flights.md`` (its rows into the held-out table, its section
+replaced or appended), leaving every other number of the file as it was: the whole run takes
+tens of minutes, much of it in ``traffic``'s smoother and the fits.
 """
 
 from __future__ import annotations
@@ -40,22 +48,28 @@ from tqdm.auto import tqdm
 
 from experiments import traffic_baseline
 from experiments.flight_data import load_flights, noisy, score, split
-from torchsvs.datasets import RecordedTracks, with_prior
+from torchsvs.datasets import RecordedTracks, estimate_noise, with_prior
 from torchsvs.datasets.flights import flight_steps
 from torchsvs.evaluation import markdown_table
 from torchsvs.kernels import eager_loops, fused
 from torchsvs.metrics import pooled_rmse
 from torchsvs.tracking import (
+    IMM_QUIET,
+    TURN_RATE_SCALE,
     Settings,
     centred,
     complete_settings,
     make_estimator,
     make_model,
     run_estimator,
+    turn_settings,
+    typical_speed,
 )
 from torchsvs.training.tuning import self_tune
 
 RESULTS = Path(__file__).parent / "results"
+#: The IMM's rows in the held-out table start with this label.
+IMM_LABEL = "IMM(CV, CT)"
 #: The SVSS lag of the learned rows (the lag study below shows why).
 DEFAULT_SVSS_LAG = 5
 SIGMAS = (50.0, 100.0, 200.0)
@@ -332,6 +346,7 @@ def run(sets: str, seeds: int, quick: bool, progress: bool = True) -> str:
         lines += why_section(train, test, MAIN_SIGMA)
     lines += noise_table(flights, seeds, quick)
     report = "\n".join(lines)
+    report = merge_imm(report, *imm_part(flights, train, test, quick, progress))
     (RESULTS / "real_flights.md").write_text(report + "\n")
     return report
 
@@ -412,6 +427,33 @@ def dirty_section() -> list[str]:
     ]
 
 
+def table_row(
+    label: str, source: str, settings: Settings | None, result: dict[str, float]
+) -> list[object]:
+    """A row of the held-out table: accuracy, cost and the parameters used."""
+    shown = ""
+    if settings is not None:
+        shown = f"q {settings.q:.0f}"
+        if settings.psi is not None and settings.estimator not in ("kf", "ks"):
+            shown += ", ψ " + "/".join(f"{p:.0f}" for p in settings.psi[:2])
+            shown += f", γ {settings.gamma:.2f}"
+        if settings.estimator == "imm":
+            assert settings.turn_q is not None and settings.turn_rate_q is not None
+            shown = f"CV q {settings.q:.1f}, turn q {settings.turn_q:.1f}" + (
+                f", ω noise {math.degrees(math.sqrt(settings.turn_rate_q) * settings.interval):.2f}"
+                "°/s per scan"
+            )
+    return [
+        label,
+        source,
+        f"{result['position']:.1f}",
+        f"{result['velocity']:.1f}",
+        f"{result['velocity_motion']:.1f}",
+        f"{result['us_per_point']:.2f}" if "us_per_point" in result else "",
+        shown,
+    ]
+
+
 def main_table(
     train: RecordedTracks, test: RecordedTracks, quick: bool, progress: bool
 ) -> list[str]:
@@ -421,23 +463,7 @@ def main_table(
 
     def add(label: str, source: str, settings: Settings | None, result: dict[str, float]) -> None:
         results[f"{label}, {source}"] = result
-        shown = ""
-        if settings is not None:
-            shown = f"q {settings.q:.0f}"
-            if settings.psi is not None and settings.estimator not in ("kf", "ks"):
-                shown += ", ψ " + "/".join(f"{p:.0f}" for p in settings.psi[:2])
-                shown += f", γ {settings.gamma:.2f}"
-        rows.append(
-            [
-                label,
-                source,
-                f"{result['position']:.1f}",
-                f"{result['velocity']:.1f}",
-                f"{result['velocity_motion']:.1f}",
-                f"{result['us_per_point']:.2f}" if "us_per_point" in result else "",
-                shown,
-            ]
-        )
+        rows.append(table_row(label, source, settings, result))
 
     raw = score(
         torch.stack(
@@ -893,14 +919,213 @@ def _spread(values: list[float]) -> str:
     return f"{mean:.1f}" + (f" ± {half:.1f}" if len(values) > 1 else "")
 
 
+# ------------------------------------------------------------------------------------------
+# the IMM of a CV and a coordinated-turn mode
+
+#: The study of the IMM's defaults (:func:`torchsvs.tracking.turn_settings`) on the training
+#: flights: the CV mode's share of the data's q, and the turn-rate scale.
+IMM_QUIET_GRID = (0.01, 0.03, 0.1, 0.3, 1.0)
+IMM_RATE_GRID = (0.1, 0.3, 1.0)
+
+
+def imm_part(
+    flights: RecordedTracks,
+    train: RecordedTracks,
+    test: RecordedTracks,
+    quick: bool,
+    progress: bool = True,
+) -> tuple[list[list[object]], list[str]]:
+    """The IMM's rows of the held-out table (σ = :data:`MAIN_SIGMA`: settings read off the
+    training flights as ``torchsvs track`` reads them, and learned there by SURE) and its
+    section: the study of its defaults on the training flights at every noise level, and
+    ``torchsvs track --estimator imm --fit`` on the held-out flights."""
+    sigma = MAIN_SIGMA
+    rows: list[list[object]] = []
+    base = rule_of_thumb("imm", train, sigma)
+    rows.append(table_row(IMM_LABEL, "rules of thumb", base, evaluate(base, test)))
+    fit = self_tune(base, train, known_noise=True)
+    rows.append(
+        table_row(IMM_LABEL, "learned, SURE (σ known)", fit.settings, evaluate(fit.settings, test))
+    )
+    study = imm_defaults_study(flights, quick, progress)
+    with tempfile.TemporaryDirectory() as workdir:
+        cli = cli_fit(test, "imm", sigma, Path(workdir))
+    ks_cli = min(grid_ks(rule_of_thumb("ks", train, sigma), test).values())
+    section = [
+        f"## {IMM_LABEL}: a constant-velocity and a coordinated-turn mode",
+        "",
+        "`torchsvs track --estimator imm` (`ts.TurnIMM`): a KF on the CV model and an EKF on a "
+        "coordinated turn with unknown turn rate (the CV state nested in the turn's), mixed by "
+        "an IMM with a switch probability of 0.05 per scan. Its rows in the held-out table: "
+        "`rules of thumb` are the settings `torchsvs track` reads off the data "
+        "(`tracking.turn_settings`, here off the training flights: the CV mode at "
+        f"{IMM_QUIET:g} of the data's q, the turn mode's acceleration noise the data's q per "
+        f"scan, a turn-rate scale of {TURN_RATE_SCALE:g} √(q/T)/v̄ as prior and per-scan "
+        "change); `learned, SURE (σ known)` tunes the three process noises on the training "
+        f"flights (`--fit`: {fit.summary()[5:]}).",
+        "",
+        "IMM_RANKING",
+        "",
+        "Its cost is that of the general tensor step in a Python loop over scans (two "
+        "filters, mixing and combination per scan), two orders of magnitude above the "
+        "compiled loops of the other torchsvs rows.",
+        "",
+        f"`torchsvs track held_out.csv -o out.csv --estimator imm --meas-std {sigma:.0f} --fit` "
+        f"on the held-out flights themselves: {cli['position']:.2f} m in {cli['seconds']:.1f} s "
+        f"(the KS's best grid q on these flights, needing their truth: {ks_cli:.2f} m).",
+        "",
+        *study,
+    ]
+    return rows, section
+
+
+def imm_defaults_study(flights: RecordedTracks, quick: bool, progress: bool) -> list[str]:
+    """Position RMSE and velocity RMSE against the motion on the training flights (the training
+    half of each noise level's seed-0 draw, as in :func:`noise_table`) over the two factors of
+    :func:`torchsvs.tracking.turn_settings`."""
+    quiet_grid = IMM_QUIET_GRID if not quick else (IMM_QUIET, 1.0)
+    rate_grid = IMM_RATE_GRID if not quick else (0.3,)
+    header = ["CV mode's share of q", "turn-rate scale"]
+    table: dict[tuple[float, float], list[str]] = {
+        (a, b): [f"{a:g}", f"{b:g}"] for a in quiet_grid for b in rate_grid
+    }
+    ratio: dict[float, float] = {}
+    for sigma in tqdm(SIGMAS, desc="imm defaults", disable=not progress, leave=False):
+        train, _ = split(noisy(flights, sigma, seed=0))
+        header += [f"σ = {sigma:.0f}: position (m)", "velocity vs motion (m/s)"]
+        base = rule_of_thumb("imm", train, sigma)
+        q = estimate_noise(train.z, train.dt).q
+        speed = typical_speed(train)
+        scores = {}
+        for a, b in table:
+            derived = turn_settings(q, [sigma**2] * 2, base.interval, speed, a, b)
+            result = evaluate(replace(base, **derived), train)
+            scores[(a, b)] = result["position"]
+            table[(a, b)] += [f"{result['position']:.1f}", f"{result['velocity_motion']:.1f}"]
+        chosen = scores.get((IMM_QUIET, TURN_RATE_SCALE))
+        if chosen is not None:
+            ratio[sigma] = chosen / min(scores.values())
+    ratios = ", ".join(f"σ = {s:.0f}: {r:.3f}" for s, r in ratio.items())
+    return [
+        "Where the defaults come from: the training flights only (the training half of each "
+        "noise level's seed-0 draw, as in the noise-level table), position RMSE and velocity "
+        "RMSE against the motion for the two factors of `turn_settings` (the turn mode's "
+        "acceleration noise fixed at the data's q per scan):",
+        "",
+        markdown_table(header, list(table.values())),
+        "",
+        f"The defaults ({IMM_QUIET:g}, {TURN_RATE_SCALE:g}) against the best of this grid, "
+        f"position RMSE ratio: {ratios}. A velocity error of hundreds or thousands of m/s marks "
+        "a CT mode whose turn rate wandered to aliasing values (ωT of several radians between "
+        "scans of up to tens of seconds) on some flight.",
+        "",
+    ]
+
+
+def _table_span(lines: list[str]) -> tuple[int, int]:
+    """First and one-past-last line of the held-out table (its header included)."""
+    heading = next(i for i, line in enumerate(lines) if line.startswith("## Held-out flights"))
+    start = next(i for i in range(heading, len(lines)) if lines[i].startswith("| estimator"))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    return start, end
+
+
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def merge_imm(report: str, rows: list[list[object]], section: list[str]) -> str:
+    """``report`` with the IMM's ``rows`` in the held-out table (in place of any earlier IMM
+    rows, before traffic's) and its ``section`` (with the ranking of the merged table) in place
+    of any earlier one, or at the end. Nothing else changes."""
+    lines = report.rstrip("\n").split("\n")
+    start, end = _table_span(lines)
+    body = [line for line in lines[start + 2 : end] if not _cells(line)[0].startswith(IMM_LABEL)]
+    at = next(
+        (i for i, line in enumerate(body) if _cells(line)[0].startswith("traffic")), len(body)
+    )
+    new = ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    body = body[:at] + new + body[at:]
+    lines = lines[: start + 2] + body + lines[end:]
+    heading = f"## {IMM_LABEL}"
+    if any(line.startswith(heading) for line in lines):
+        first = next(i for i, line in enumerate(lines) if line.startswith(heading))
+        last = next(
+            (i for i in range(first + 1, len(lines)) if lines[i].startswith("## ")), len(lines)
+        )
+        lines = lines[:first] + lines[last:]
+        while lines and not lines[-1]:
+            lines.pop()
+    ranking = imm_ranking(body)
+    section = [line for part in section for line in (ranking if part == "IMM_RANKING" else [part])]
+    return "\n".join([*lines, "", *section]).rstrip("\n")
+
+
+def imm_ranking(body: list[str]) -> list[str]:
+    """The held-out table's rows ranked by position RMSE, and where the IMM's stand."""
+    ranked = []
+    for line in body:
+        cells = _cells(line)
+        if cells[0] == "measurements":
+            continue
+        ranked.append((float(cells[2]), cells))
+    ranked.sort(key=lambda item: item[0])
+    rows = [[k + 1, cells[0], cells[1], cells[2], cells[4]] for k, (_, cells) in enumerate(ranked)]
+    learned = next(r for r in rows if r[1] == IMM_LABEL and r[2].startswith("learned"))
+    ks = next(r for r in rows if r[1] == "KS" and r[2] == "learned, SURE (σ known)")
+    family = [r for r in rows if r[1].split(" ")[0] in ("SVSF", "SVSS", "SVSTPS")]
+    ahead = [r for r in family if r[0] < learned[0]]
+    behind = [r for r in family if r[0] > learned[0]]
+    svsf = ", ".join(str(r[3]) for r in behind if r[1] == "SVSF")
+    filters = [r for r in rows if r[1] in ("KF", "SVSF", "RSTKF", IMM_LABEL)]
+    return [
+        f"By held-out position RMSE the learned IMM ranks {learned[0]} of {len(rows)} rows "
+        f"({learned[3]} m): behind the learned KS (rank {ks[0]}, {ks[3]} m) and "
+        f"{len(ahead)} of the {len(family)} rows of the SVSF family (the best "
+        f"{ahead[0][1] if ahead else '—'}, {ahead[0][3] if ahead else '—'} m), ahead of "
+        f"{len(behind)} of them"
+        + (f" (the SVSF filter rows, {svsf} m, among them)" if svsf else "")
+        + ". The IMM is a filter: it estimates each scan from the scans up to it, while KS, "
+        "SVSS and SVSTPS (and traffic's smoother) also use the scans after it. Among the "
+        f"filters ({', '.join(sorted({r[1] for r in filters}))}) the learned IMM ranks "
+        f"{1 + sum(r[0] < learned[0] for r in filters)} of {len(filters)}. All rows, ranked:",
+        "",
+        markdown_table(
+            ["rank", "estimator", "parameters", "position (m)", "vs motion (m/s)"], rows
+        ),
+    ]
+
+
+def only_imm(sets: str, quick: bool, progress: bool = True) -> str:
+    """The IMM's rows and section on the flights, noise and split of :func:`run`, merged into
+    the existing ``real_flights.md``."""
+    torch.set_num_threads(1)
+    path = RESULTS / "real_flights.md"
+    if not path.exists():
+        raise SystemExit(f"--only-imm merges into {path}, which is missing: run the whole study")
+    flights = load_flights(sets)
+    train, test = split(noisy(flights, MAIN_SIGMA, seed=0))
+    report = merge_imm(path.read_text(), *imm_part(flights, train, test, quick, progress))
+    path.write_text(report + "\n")
+    return report
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flights", default="calibration", help="sample folders or files")
     parser.add_argument("--seeds", type=int, default=2, help="noise seeds per level")
     parser.add_argument("--quick", action="store_true", help="fewer fits and grids")
+    parser.add_argument(
+        "--only-imm",
+        action="store_true",
+        help="run only the IMM's rows and section and merge them into the existing report",
+    )
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    print(run(args.flights, args.seeds, args.quick))
+    if args.only_imm:
+        print(only_imm(args.flights, args.quick))
+    else:
+        print(run(args.flights, args.seeds, args.quick))
     print(f"\n(total {time.perf_counter() - start:.0f} s)")
 
 

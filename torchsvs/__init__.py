@@ -12,6 +12,7 @@ from torchsvs.filters import (
     IMM,
     SPVSF,
     SVSF,
+    ArtificialKalmanFilter,
     ExtendedKalmanFilter,
     FiniteDifferenceVelocity,
     IMMResult,
@@ -20,12 +21,14 @@ from torchsvs.filters import (
     ParticleFilter,
     RobustStudentTKalmanFilter,
     SlidingInnovationFilter,
+    TurnIMM,
     UnscentedKalmanFilter,
 )
 from torchsvs.smoothers import SVSS, IMMSmoother, IMMSmootherResult, RTSSmoother
 from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 __all__ = [
+    "ArtificialKalmanFilter",
     "SVSF",
     "SPVSF",
     "SVSS",
@@ -45,6 +48,7 @@ __all__ = [
     "RobustStudentTKalmanFilter",
     "SlidingInnovationFilter",
     "SmootherResult",
+    "TurnIMM",
     "datasets",
     "metrics",
     "models",

@@ -98,7 +98,13 @@ def track_parser() -> argparse.ArgumentParser:
         help="measurement noise standard deviation, one value or one per axis (default: read off "
         "the data; with --fit, learned)",
     )
-    parser.add_argument("--q", type=float, default=None, help="process noise of the CV model")
+    parser.add_argument(
+        "--q",
+        type=float,
+        default=None,
+        help="process noise of the CV model (imm: of its CV mode; default: read off the data, "
+        "for imm 0.03 of it)",
+    )
     parser.add_argument(
         "--psi",
         type=_floats,
@@ -121,6 +127,31 @@ def track_parser() -> argparse.ArgumentParser:
         "finite-difference velocities",
     )
     parser.add_argument("--particles", type=int, default=350, help="particles of pf and spvsf")
+    parser.add_argument(
+        "--turn-q",
+        type=float,
+        default=None,
+        help="imm: white acceleration variance of the turn mode (m²/s⁴; default q/T of the data)",
+    )
+    parser.add_argument(
+        "--turn-rate-q",
+        type=float,
+        default=None,
+        help="imm: turn-rate noise of the turn mode (rad²/s⁴; default from the data's q, "
+        "interval and speed)",
+    )
+    parser.add_argument(
+        "--turn-rate-std",
+        type=float,
+        default=None,
+        help="imm: prior standard deviation of the turn rate (rad/s; default from the data)",
+    )
+    parser.add_argument(
+        "--switch-prob",
+        type=float,
+        default=0.05,
+        help="imm: probability of a switch between the CV and turn modes per step (default 0.05)",
+    )
     parser.add_argument(
         "--fit", action="store_true", help="tune the estimator on the input itself (no truth)"
     )
@@ -194,6 +225,10 @@ def track(argv: list[str]) -> None:
             lag=args.lag,
             velocity=not args.no_velocity,
             particles=args.particles,
+            turn_q=args.turn_q,
+            turn_rate_q=args.turn_rate_q,
+            turn_rate_std=args.turn_rate_std,
+            switch_prob=args.switch_prob,
         )
         fit_options: dict[str, object] = {
             "tracks": args.fit_tracks,

@@ -2,15 +2,18 @@
 behind ``torchsvs track``.
 
 Every estimator runs on a nearly-constant-velocity model (:class:`~torchsvs.models.
-ConstantVelocity`) of the file's axes. What the model needs and the user did not give comes from
-the data: the measurement noise and ``q`` from :func:`~torchsvs.datasets.estimate_noise`, the
-priors from two-point differencing, and the SVSF's boundary layer from the rule of thumb
-:func:`rule_of_thumb_psi`. ``--fit`` then tunes them on the file itself
+ConstantVelocity`) of the file's axes; the IMM (``imm``) mixes it with a coordinated turn
+(:class:`~torchsvs.filters.TurnIMM`) and writes the same constant-velocity state. What the model
+needs and the user did not give comes from the data: the measurement noise and ``q`` from
+:func:`~torchsvs.datasets.estimate_noise`, the priors from two-point differencing, the SVSF's
+boundary layer from the rule of thumb :func:`rule_of_thumb_psi`, and the IMM's mode noises from
+:func:`turn_settings`. ``--fit`` then tunes them on the file itself
 (:func:`torchsvs.training.tuning.self_tune`).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -45,6 +48,7 @@ from torchsvs.filters import (
     RobustStudentTKalmanFilter,
     UnscentedKalmanFilter,
 )
+from torchsvs.filters.turn_imm import TurnIMM
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import SVSS, RTSSmoother
 
@@ -62,11 +66,16 @@ ESTIMATORS = {
     "rstkf": "robust Student's t Kalman filter",
     "pf": "SIR particle filter",
     "spvsf": "smooth particle variable structure filter",
+    "imm": "IMM of a KF on constant velocity and an EKF on a coordinated turn (horizontal)",
 }
 #: Lag of each smoother when none is given (``None``: fixed interval).
 DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
 #: Boundary layer of the rule of thumb, in noise standard deviations of each component.
 PSI_IN_SIGMAS = 5.0
+#: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
+IMM_QUIET = 0.03
+#: The IMM's turn-rate scale in units of ``√(q/T) / v̄`` (:func:`turn_settings`).
+TURN_RATE_SCALE = 0.3
 
 
 @dataclass
@@ -86,6 +95,11 @@ class Settings:
     velocity: bool = True  #: SVSF corrects velocity (finite differences); False: the H⁺ mode
     particles: int = 350  #: particles of the PF and SPVSF
     interval: float = 1.0  #: typical sampling interval of the data (s), for the rule of thumb
+    #: IMM: the CT mode's white acceleration variance per horizontal axis (m²/s⁴)
+    turn_q: float | None = None
+    turn_rate_q: float | None = None  #: IMM: the CT mode's turn-rate noise (rad²/s⁴)
+    turn_rate_std: float | None = None  #: IMM: prior standard deviation of the turn rate (rad/s)
+    switch_prob: float = 0.05  #: IMM: probability of a mode switch per step
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -102,6 +116,12 @@ class Settings:
             raise ValueError(f"q: expected a number > 0, got {self.q!r}")
         if self.psi is not None and not all(p > 0 for p in self.psi):
             raise ValueError(f"psi: expected widths > 0, got {self.psi!r}")
+        for name in ("turn_q", "turn_rate_q", "turn_rate_std"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name}: expected a number > 0, got {value!r}")
+        if not 0.0 <= self.switch_prob < 1.0:
+            raise ValueError(f"switch_prob: expected a value in [0, 1), got {self.switch_prob!r}")
 
     @property
     def smoother_lag(self) -> int | None:
@@ -143,8 +163,27 @@ def make_model(
 
 
 def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
-    """The estimator ``settings.estimator`` on ``model``."""
+    """The estimator ``settings.estimator`` on ``model`` (the IMM's turn settings must be set;
+    its turn noises are learnable when ``model``'s ``q`` is)."""
     name = settings.estimator
+    if name == "imm":
+        if settings.turn_rate_q is None or settings.turn_rate_std is None:
+            raise ValueError(
+                "settings: turn_rate_q and turn_rate_std must be known before the IMM is built"
+            )
+        if model.ndim not in (2, 3):
+            raise ValueError(
+                f"estimator: imm turns in the horizontal plane of 2 or 3 position axes, got "
+                f"{model.ndim}"
+            )
+        p = settings.switch_prob
+        return TurnIMM(
+            model,
+            turn_q=settings.turn_q,
+            turn_rate_q=settings.turn_rate_q,
+            turn_rate_std=settings.turn_rate_std,
+            transition=[[1.0 - p, p], [p, 1.0 - p]],
+        )
     if name in ("kf", "ks"):
         kf = KalmanFilter(model)
         return kf if name == "kf" else RTSSmoother(kf, lag=settings.smoother_lag)
@@ -177,11 +216,69 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
     return RTSSmoother(svsf, lag=settings.smoother_lag)
 
 
+def typical_speed(tracks: RecordedTracks) -> float:
+    """The median horizontal speed of the tracks (their first two axes) between successive
+    observed positions (noise included), or 0 where no two successive positions are
+    observed."""
+    z = tracks.z[..., :2].to(torch.float64)
+    step = (z[:, 1:] - z[:, :-1]).norm(dim=-1) / tracks.dt[:, 1:].to(torch.float64)
+    step = step[torch.isfinite(step)]
+    return float(step.median()) if step.numel() else 0.0
+
+
+def turn_settings(
+    q: float,
+    meas_var: Sequence[float],
+    interval: float,
+    speed: float,
+    quiet: float = IMM_QUIET,
+    rate_scale: float = TURN_RATE_SCALE,
+) -> dict[str, float]:
+    r"""The IMM's mode noises from the data's ``q`` (the spectral density of a single CV model,
+    which counts the maneuvers as noise), the measurement noise, the typical interval ``T``
+    and the typical horizontal speed :math:`\bar v` (:func:`typical_speed`):
+
+    * CV mode: ``q_CV = quiet · q`` (:data:`IMM_QUIET`): quiet, the turns go to the CT mode;
+    * CT mode: white acceleration variance ``turn_q = q / T`` (the velocity noise per step of
+      the single CV model) and a turn-rate scale :math:`\omega_s = s\,\sqrt{q/T}/\bar v`
+      with ``s = rate_scale`` (:data:`TURN_RATE_SCALE`): :math:`\sqrt{q/T}/\bar v` is the
+      turn rate whose centripetal acceleration at the typical speed is the CV model's
+      acceleration noise over a step. :math:`\omega_s` is the prior standard deviation of
+      the turn rate and its standard deviation of change per typical step
+      (``turn_rate_q = (ω_s / T)²``).
+
+    For a three-axis file ``q`` is read off the horizontal axes (the turn is horizontal; a calm
+    height would dilute the one ``q`` of all three). The speed is floored at the speed the
+    measurement noise alone shows between two steps
+    (:math:`\sqrt{2r}/T`), so still or slow targets get a finite, small turn rate. The factors
+    were chosen on the training half of the recorded calibration flights at σ = 50, 100 and
+    200 m (``experiments/results/real_flights.md``, IMM section: a grid of CV shares 0.01-1
+    and turn-rate scales 0.1-1): the defaults are within 0.4% of the grid's best position RMSE
+    at every level, and a quieter CV mode is better down to 0.03 there (and on simulated
+    turns); a turn-rate scale of 1 let the turn mode's turn rate wander to aliasing values
+    (ωT of several radians between scans) on some flights, with velocity errors of thousands
+    of m/s.
+    """
+    r = sum(meas_var[:2]) / len(meas_var[:2])
+    speed = max(speed, math.sqrt(2.0 * r) / interval)
+    scale = rate_scale * math.sqrt(q / interval) / speed
+    return {
+        "q": quiet * q,
+        "turn_q": q / interval,
+        "turn_rate_q": (scale / interval) ** 2,
+        "turn_rate_std": scale,
+    }
+
+
 def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
-    """Fills what the settings leave open from the data: noise levels and the typical interval."""
+    """Fills what the settings leave open from the data: noise levels and the typical interval
+    (and the IMM's mode noises, :func:`turn_settings`)."""
     interval = float(tracks.dt[tracks.mask].median()) if len(tracks) else 1.0
     meas_var, q = settings.meas_var, settings.q
-    if meas_var is None or q is None:
+    imm = settings.estimator == "imm"
+    turn_open = imm and None in (settings.turn_q, settings.turn_rate_q, settings.turn_rate_std)
+    data_q = None
+    if meas_var is None or q is None or turn_open:
         try:
             noise = estimate_noise(tracks.z, tracks.dt)
         except ValueError as err:
@@ -193,18 +290,47 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
             # Too little data to say: process noise worth the measurement noise over one step.
             noise = None
         meas_var = meas_var if meas_var is not None else noise.meas_var.double().tolist()  # type: ignore[union-attr]
-        if q is None:
-            q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
+        data_q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
+        if q is None and not imm:
+            q = data_q
+        if imm and noise is not None and tracks.z.shape[-1] > 2:
+            # The turn is horizontal: its scale is the horizontal axes' maneuvering (a calm
+            # height would dilute the q shared by all three axes).
+            data_q = estimate_noise(tracks.z[..., :2], tracks.dt).q
     m = tracks.z.shape[-1]
     if len(meas_var) == 1 and m > 1:
         meas_var = list(meas_var) * m
     if len(meas_var) != m:
         raise ValueError(f"meas_std: expected one value or one per axis ({m}), got {len(meas_var)}")
+    turn_q, turn_rate_q, turn_rate_std = (
+        settings.turn_q,
+        settings.turn_rate_q,
+        settings.turn_rate_std,
+    )
+    if imm:
+        if m not in (2, 3):
+            raise ValueError(
+                f"estimator: imm turns in the horizontal plane of 2 or 3 position axes, got {m}"
+            )
+        if data_q is not None:
+            derived = turn_settings(data_q, meas_var, interval, typical_speed(tracks))
+            q = derived["q"] if q is None else q
+            turn_q = turn_q or derived["turn_q"]
+            turn_rate_q = turn_rate_q or derived["turn_rate_q"]
+            turn_rate_std = turn_rate_std or derived["turn_rate_std"]
     psi = settings.psi
     if psi is None and settings.estimator in ("svsf", "svss", "svstps", "spvsf"):
         psi = rule_of_thumb_psi(meas_var, interval, settings.velocity)
+    assert q is not None  # (an open q sent the IMM through the data too)
     return replace(
-        settings, meas_var=[float(v) for v in meas_var], q=float(q), interval=interval, psi=psi
+        settings,
+        meas_var=[float(v) for v in meas_var],
+        q=float(q),
+        interval=interval,
+        psi=psi,
+        turn_q=turn_q,
+        turn_rate_q=turn_rate_q,
+        turn_rate_std=turn_rate_std,
     )
 
 

@@ -11,9 +11,11 @@ from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilt
 from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
 from torchsvs.filters.sif import SlidingInnovationFilter
-from torchsvs.filters.svsf import SVSF
+from torchsvs.filters.svsf import SVSF, ArtificialKalmanFilter
+from torchsvs.filters.turn_imm import TurnIMM
 
 __all__ = [
+    "ArtificialKalmanFilter",
     "BallisticCoefficientFromDrag",
     "IMM",
     "IMMResult",
@@ -30,4 +32,5 @@ __all__ = [
     "ModulusFromAcceleration",
     "RobustStudentTKalmanFilter",
     "SlidingInnovationFilter",
+    "TurnIMM",
 ]

@@ -11,7 +11,13 @@ from torch import Tensor
 from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
-from torchsvs.filters.kalman import GaussianFilter, Observation, Step, innovation_covariance
+from torchsvs.filters.kalman import (
+    GaussianFilter,
+    KalmanFilter,
+    Observation,
+    Step,
+    innovation_covariance,
+)
 from torchsvs.kernels import fused
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
 from torchsvs.linalg import (
@@ -161,13 +167,7 @@ class SVSF(GaussianFilter):
     ) -> tuple[Tensor, Tensor | None, Tensor]:
         z, H, R = super().measurements(inputs)
         if self.artificial is not None:
-            # Formed over the rows kept from earlier steps and these (see carried_history).
-            window = _window(history, inputs)
-            z, H, R = self.artificial(window.z, self.model, window.dt, window.u)
-            H, R = H.to(z.dtype), R.to(z.dtype)
-            kept = window.z.shape[1] - inputs.steps
-            z = z[:, kept:]
-            R = R[:, kept:] if R.ndim == 4 else R
+            z, H, R = _artificial_measurements(self.artificial, self.model, history, inputs)
         self._check_widths(z.shape[-1], inputs)
         return z, H, R
 
@@ -177,16 +177,7 @@ class SVSF(GaussianFilter):
         gaps back to it), and at least the last row (a step's previous row)."""
         if self.artificial is None:
             return None
-        window = _window(history, inputs)
-        T = window.z.shape[1]
-        if not bool(torch.isnan(window.z[:, -1]).any()):  # every component seen last step
-            return _window_rows(window, T - 1)
-        seen = ~torch.isnan(window.z)
-        index = torch.arange(T).view(1, T, 1).expand_as(seen)
-        last = torch.where(seen, index, torch.full_like(index, -1)).amax(dim=1)  # [B, m]
-        observed = last[last >= 0]
-        start = min(T - 1, int(observed.min())) if observed.numel() else T - 1
-        return _window_rows(window, start)
+        return _rows_to_keep(history, inputs)
 
     def axis_measurements(self, inputs: Inputs) -> AxisMeasurements | None:
         """Finite-difference velocities axis by axis (``R_y`` never assembled)."""
@@ -275,6 +266,84 @@ class SVSF(GaussianFilter):
         missing component."""
         e_post = obs.z - obs.fitted(x)
         return e_post if obs.mask is None else torch.where(obs.mask, e_post, memory)
+
+
+class ArtificialKalmanFilter(KalmanFilter):
+    r"""The Kalman filter on an artificial measurement: the correction of
+    :class:`~torchsvs.filters.KalmanFilter` applied to the pseudo-measurements the SVSF corrects
+    with (e.g. :class:`~torchsvs.filters.FiniteDifferenceVelocity`: ``y = [z_1, v_1, z_2, v_2,
+    ...]`` with ``H_y = I`` and its derived ``R_y``, Eq. (51), Chen et al. 2020).
+
+    .. math::
+        S = H_y P_{k+1|k} H_y^T + R_y,\quad K = P_{k+1|k} H_y^T S^{-1},\quad
+        \hat x_{k+1|k+1} = \hat x_{k+1|k} + K (y_{k+1} - H_y \hat x_{k+1|k})
+
+    It exists so a KF and an :class:`SVSF` that measure the same thing can be the modes of one
+    :class:`~torchsvs.filters.IMM` (their innovation likelihoods then compare). As a filter on
+    its own it is not the optimal KF: the finite-difference velocities of successive steps
+    share a position and are correlated (``−R/T²``), which the white-noise correction ignores.
+
+    Args:
+        model: a :class:`~torchsvs.models.LinearModel`.
+        artificial: ``"auto"`` (finite-difference velocity for a position/velocity model, as
+            for :class:`SVSF`) or an artificial measurement callable.
+    """
+
+    axis_rule = None  # the kernels' Kalman rule measures z itself
+    dense_rule = None
+
+    def __init__(
+        self, model: StateSpaceModel, artificial: ArtificialMeasurement | str = "auto"
+    ) -> None:
+        super().__init__(model)
+        if artificial == "auto":
+            found = auto_artificial(model)
+            if found is None:
+                raise ValueError(
+                    f"artificial: 'auto' finds no artificial measurement for "
+                    f"{type(model).__name__} (a model with position_index and velocity_index)"
+                )
+            artificial = found
+        if not callable(artificial):
+            raise TypeError(f"artificial: expected 'auto' or a callable, got {artificial!r}")
+        self.artificial = artificial
+
+    def measurements(
+        self, inputs: Inputs, history: Any = None
+    ) -> tuple[Tensor, Tensor | None, Tensor]:
+        return _artificial_measurements(self.artificial, self.model, history, inputs)
+
+    def carried_history(self, history: Any, inputs: Inputs) -> Any:
+        """The raw rows the artificial measurement may still look back to (as for the SVSF)."""
+        return _rows_to_keep(history, inputs)
+
+
+def _artificial_measurements(
+    artificial: ArtificialMeasurement, model: StateSpaceModel, history: Any, inputs: Inputs
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The artificial measurement of the steps of ``inputs``, ``H`` and ``R``, formed over the
+    rows kept from earlier steps and these (see :func:`_rows_to_keep`)."""
+    window = _window(history, inputs)
+    z, H, R = artificial(window.z, model, window.dt, window.u)
+    H, R = H.to(z.dtype), R.to(z.dtype)
+    kept = window.z.shape[1] - inputs.steps
+    return z[:, kept:], H, R[:, kept:] if R.ndim == 4 else R
+
+
+def _rows_to_keep(history: Any, inputs: Inputs) -> _Rows:
+    """The raw rows an artificial measurement may still look back to: from the earliest step at
+    which some track last observed some component (finite differences bridge gaps back to it),
+    and at least the last row (a step's previous row)."""
+    window = _window(history, inputs)
+    T = window.z.shape[1]
+    if not bool(torch.isnan(window.z[:, -1]).any()):  # every component seen last step
+        return _window_rows(window, T - 1)
+    seen = ~torch.isnan(window.z)
+    index = torch.arange(T).view(1, T, 1).expand_as(seen)
+    last = torch.where(seen, index, torch.full_like(index, -1)).amax(dim=1)  # [B, m]
+    observed = last[last >= 0]
+    start = min(T - 1, int(observed.min())) if observed.numel() else T - 1
+    return _window_rows(window, start)
 
 
 class _Gains(NamedTuple):

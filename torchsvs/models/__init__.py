@@ -10,12 +10,14 @@ from torchsvs.models.mileage import (
     SeparateModel,
 )
 from torchsvs.models.motion import ConstantAcceleration, ConstantVelocity, CoordinatedTurn
+from torchsvs.models.turn import CoordinatedTurn3D
 
 __all__ = [
     "BallisticReentry",
     "ConstantAcceleration",
     "ConstantVelocity",
     "CoordinatedTurn",
+    "CoordinatedTurn3D",
     "ElectrohydrostaticActuator",
     "LinearGaussian",
     "LinearModel",

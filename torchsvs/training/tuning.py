@@ -7,7 +7,8 @@ Two stages, each a short L-BFGS run on (at most 64) windows of 128 steps cut fro
 1. **The sensor's noise, when it is not given**: a Kalman filter on the same nearly-constant
    velocity model learns ``q`` and ``R`` by maximum likelihood (innovation NLL). ``R`` is then
    taken as known.
-2. **The estimator's own parameters** (``q``; the SVSF's ψ and γ) by Stein's unbiased risk
+2. **The estimator's own parameters** (``q``; the SVSF's ψ and γ; the IMM's turn-mode noises
+   ``turn_q`` and ``turn_rate_q`` beside its CV mode's ``q``) by Stein's unbiased risk
    estimate of the position MSE with that ``R`` (:func:`~torchsvs.training.losses.stein_risk`):
    the loss that targets the error users care about, while the NLL only scores one-step
    predictions.
@@ -32,12 +33,12 @@ from torch.nn.utils import parametrize
 
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimator import threads_for
-from torchsvs.filters import SVSF
+from torchsvs.filters import SVSF, TurnIMM
 from torchsvs.training.data import TrackBatch, recorded_batches
 from torchsvs.training.module import batch_loss
 
 #: Estimators whose parameters ``self_tune`` fits (particle filters' losses are random).
-TUNABLE = ("kf", "ks", "ekf", "ukf", "rstkf", "svsf", "svss", "svstps")
+TUNABLE = ("kf", "ks", "ekf", "ukf", "rstkf", "svsf", "svss", "svstps", "imm")
 
 
 @dataclass
@@ -206,6 +207,9 @@ def self_tune(
         estimator, batches, "sure", steps, lr, meas_cov=meas_cov, seed=seed, optimizer=optimizer
     )
     learned: dict[str, Any] = {"q": float(model.q().detach())}
+    if isinstance(estimator, TurnIMM):
+        learned["turn_q"] = float(estimator.turn_q.detach())
+        learned["turn_rate_q"] = float(estimator.turn_rate_q.detach())
     for svsf in _svsfs(estimator):
         learned["psi"] = [float(p) for p in svsf.psi.detach().reshape(-1)]
         learned["gamma"] = float(svsf.gamma.detach())
@@ -242,6 +246,8 @@ def _best_start(settings: Any, batches: list[TrackBatch], meas_cov: Tensor, seed
                 q=settings.q * q_factor,
                 psi=None if settings.psi is None else [p * psi_factor for p in settings.psi],
             )
+            if settings.turn_q is not None:  # the IMM: its turn mode's noise along
+                candidate = replace(candidate, turn_q=settings.turn_q * q_factor)
             estimator = make_estimator(candidate, make_model(candidate)).double()
             with torch.no_grad():
                 risk = sum(
