@@ -1,9 +1,10 @@
 """torchsvs: smooth variable structure estimation in PyTorch.
 
 Batched, differentiable state estimators as ``nn.Module`` s: the Kalman filter and RTS smoother,
-the extended and unscented Kalman filters, the interacting multiple model estimator (IMM),
-the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable boundary layer ψ
-and memory γ. See ``torchsvs.types`` for the shape conventions.
+the extended and unscented Kalman filters, the interacting multiple model estimator (IMM) and
+the separate-modeling road tracker built on it, the smooth variable structure filter (SVSF) and
+smoother (SVSS), with learnable boundary layer ψ and memory γ. See ``torchsvs.types`` for the
+shape conventions.
 """
 
 from torchsvs import datasets, metrics, models, scenarios
@@ -18,6 +19,8 @@ from torchsvs.filters import (
     KalmanFilter,
     ParticleFilter,
     RobustStudentTKalmanFilter,
+    SeparateModelingResult,
+    SeparateModelingTracker,
     SlidingInnovationFilter,
     UnscentedKalmanFilter,
 )
@@ -40,6 +43,8 @@ __all__ = [
     "KalmanFilter",
     "RTSSmoother",
     "RobustStudentTKalmanFilter",
+    "SeparateModelingResult",
+    "SeparateModelingTracker",
     "SlidingInnovationFilter",
     "SmootherResult",
     "datasets",

@@ -10,6 +10,7 @@ from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
+from torchsvs.filters.separate import SeparateModelingResult, SeparateModelingTracker
 from torchsvs.filters.sif import SlidingInnovationFilter
 from torchsvs.filters.svsf import SVSF
 
@@ -29,5 +30,7 @@ __all__ = [
     "KalmanFilter",
     "ModulusFromAcceleration",
     "RobustStudentTKalmanFilter",
+    "SeparateModelingResult",
+    "SeparateModelingTracker",
     "SlidingInnovationFilter",
 ]
