@@ -77,6 +77,17 @@ arc lengths are exact. This implementation normalises it, :math:`(r_x^*, r_y^*) 
 keeps the raw LS solution): the window's scale error then shows in the innovations, where the
 filter corrects the arc length, instead of being absorbed in the direction.
 
+**The reset's covariance** (not in the paper's text): per axis the LS problem is
+:math:`V\theta = \mathbf x` with noise of covariance :math:`R` between the axes, so
+:math:`\mathrm{Cov}([x_l^*, r_x^*, y_l^*, r_y^*]') = \tilde R\otimes(V'V)^{-1}`,
+:math:`(V'V)^{-1} = G^{-1}G^{-\prime}`, carried through the normalisation's Jacobian
+:math:`(I - uu')/\rho` (:func:`reset_covariance`); :math:`\tilde R` is :math:`R` or the
+window's residual covariance pooled with it. :class:`SeparateModelingTracker` sets ``η``'s
+block to it at each reset (its docstring says why).
+
+**The tracker**, :class:`SeparateModelingTracker`, is the :class:`~torchsvs.IMM` of the
+NCV and NCA augmented models with these blocks in its interaction hooks.
+
 **Online fitting** (the paper's baseline, its ref. [30]): per axis, the first-degree polynomial
 in time fitted by least squares to the latest ``k_m`` measurements; the estimate is the fit at
 the newest time and the velocity its slope.
