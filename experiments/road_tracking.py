@@ -110,7 +110,12 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "η covariance: R only": {"reset_covariance": "measurement"},
     "η covariance: kept (no covariance reset)": {"reset_covariance": "keep"},
     "no LS reset": {"reset": False},
-    "unnormalised reset direction": {"normalize": False},
+    "direction: raw LS slope (mileage unit drifts)": {"direction": "raw"},
+    "direction: normalised, scale discarded": {"direction": "normalize"},
+    "normalised, scale discarded, η covariance kept": {
+        "direction": "normalize",
+        "reset_covariance": "keep",
+    },
     "UKF modes": {"unscented": True},
 }
 
@@ -774,8 +779,8 @@ def report(res: Results, pngs: list[str]) -> str:
         "- **SM tracker**: `ts.SeparateModelingTracker`: NCV-NCA IMM with EKF modes on the "
         "augmented mileage models, unscented initialisation from z₁..z₃, least-squares (QR) "
         "reset of η over the latest k_m − 1 measurements before every interaction stage but the "
-        "first, η's covariance set to the least-squares estimate's (residual-pooled noise) at a "
-        "reset, transition matrix `[[0.95, 0.05], [0.05, 0.95]]` and μ₀ = [0.5, 0.5], the "
+        "first (the direction normalised and the slope's norm moved into the mileage state, η's "
+        "covariance set to the least-squares estimate's with residual-pooled noise), transition matrix `[[0.95, 0.05], [0.05, 0.95]]` and μ₀ = [0.5, 0.5], the "
         "scenario's σ_η. Its first three estimates are the initialisation.",
         "- **Cartesian filters**: `ts.KalmanFilter(ConstantAcceleration)`, "
         "`ts.ExtendedKalmanFilter(CoordinatedTurn)`, `ts.IMM([KF(CV), KF(CA)])` in the CA "
@@ -880,7 +885,7 @@ def report(res: Results, pngs: list[str]) -> str:
         "",
         "The default tracker beside: η's covariance at a reset from R alone (no residuals), "
         "kept as the filter had it (the paper's silence read literally), no least-squares reset "
-        "at all, the raw (unnormalised) least-squares direction, and UKF modes.",
+        "at all, the raw least-squares slope as the direction (the paper's text; the mileage unit drifts by the slope's norm), the direction normalised without moving its norm into the mileage state, that with the covariance kept (the configuration the SM building blocks were first tried in), and UKF modes. The default normalises the direction and rescales the mileage state by the slope's norm.",
         "",
     ]
     for name, out in res.scenarios.items():
@@ -913,39 +918,48 @@ def report(res: Results, pngs: list[str]) -> str:
 
 DISCUSSION = """## Why the results differ from the paper's
 
-**Process noise.** At the paper's q (0.008-0.01 m/s²) a discrete white-noise-acceleration model
-lets the speed change by about q·T per step and the NCA acceleration by q per step; the
-scenarios' accelerations jump from 0 to several m/s² in one step. No mode of the SM tracker can
-follow such a step with that noise, so its arc length lags during the accelerations (a
-single-model NCA EKF diverged outright). The SM tracker's IMM, with its reset covariance (below),
-lags rather than diverges, but its errors during the accelerations are several times the
-measurement noise on the straight road. The Cartesian KF(CA) lags far more at the same q, which
-is what the paper's figures show. The IMM baselines are less affected: mixing two modes whose
-estimates disagree widens the mixed covariance by the spread of their means, an adaptive
-process noise of its own. We therefore report every scenario at the paper's q *and* at the
-tracking q, and give the sweep: the ordering of the estimators depends on q.
+**Process noise.** At the paper's q (0.008-0.01 m/s², a definition of the paper) a discrete
+white-noise-acceleration model lets the speed change by about q·T per step and the NCA
+acceleration by q per step, while the scenarios' accelerations jump from 0 to several m/s² in
+one step. The Cartesian KF(CA) cannot follow such a step with that noise and lags far behind,
+which is what the paper's figures show of it. The IMM baselines are much less affected: mixing
+two modes whose estimates disagree widens the mixed covariance by the spread of their means, an
+adaptive process noise of their own. The SM tracker is affected least on the bends and the
+circle, where its trajectory model keeps the target on the fitted line whatever its speed, and
+most on the straight road, whose accelerations are the largest. We therefore report every
+scenario at the paper's q *and* at the tracking q, and give the sweep: the ordering of the
+estimators depends on q.
 
-**The reset's covariance.** Resetting only η's mean and keeping the filter's covariance (the
-ablation "kept") diverges on the straight road: with σ_η as small as the paper's, the filter's η
-covariance shrinks without bound while each reset moves η by a step's travel, and the EKF then
-puts every innovation into the arc length. Setting η's block to the least-squares estimate's own
-covariance removes the divergence; pooling the window's residuals into it lets a window that
-the line does not fit (a bend) count the new measurement more.
+**The reset.** Two choices the paper's lost equations leave open decide whether the SM tracker
+works at the paper's q (ablations). (1) The least-squares slope has norm ρ ≠ 1 whenever the
+estimated arc lengths of the window are off in scale, which is exactly what a lagging speed
+does. Resetting to the raw slope (the paper's text) keeps positions and velocities right but
+lets the mileage unit drift by ρ at every reset (‖r‖ ends far from 1, and q then stands for a
+larger noise in metres); normalising the direction alone discards ρ and the tracker lags the
+accelerations. The default normalises and moves ρ into the arc length, speed and acceleration:
+the same positions as the raw reset, with the mileage in metres. (2) Resetting only η's mean and
+keeping the filter's covariance makes the filter overconfident in a line that every reset moves;
+with a normalised direction this diverges on the straight road (the previous finding of a
+single-model NCA EKF). Setting η's block to the least-squares estimate's own covariance removes
+that; pooling the window's residuals into it lets a window that the line does not fit (a bend)
+count the new measurement more.
 
 **Bends.** The SM tracker approximates the road over k_m − 1 samples by a straight line and
-extrapolates it to the newest sample. On a bend of radius ρ a line fitted over an arc of length
-L misses the arc's end by about L²/(12ρ), and its direction is the window's mean direction,
-which lags the target's by about L/(2ρ) radians; the velocity ṡ·r inherits that lag. These
+extrapolates it to the newest sample. On a bend of radius ρ_c a line fitted over an arc of
+length L misses the arc's end by about L²/(12ρ_c), and its direction is the window's mean
+direction, which lags the target's by about L/(2ρ_c) radians; the velocity ṡ·r inherits that
+lag, which is why the SM velocity RMSE stays high on the circle and the curves at every q. These
 biases grow with the speed (L = (k_m − 1)·v·T) and with k_m. The Cartesian filters have no such
-bias once their q lets them follow the turn. The paper's curve roads were lost; ours are
-designed (smallest radii above), and a gentler road would favour the SM tracker.
+bias once their q lets them follow the turn, and IMM-EKF(CVCACT) follows turns at any q through
+its turn-rate mode. The paper's curve roads were lost; ours are designed (smallest radii above),
+and a gentler road would favour the SM tracker.
 
-**Where the paper's claims hold.** At the paper's q the SM tracker beats KF(CA) and
-IMM-KF(CVCA) during the accelerations on the roads where their lag dominates, because its
-straight-line (or nearly straight) trajectory model does not need an acceleration state to
-keep the target on the road. At the tracking q, where the Cartesian filters follow the
-accelerations too, the ordering is decided by the bias above (curves, circle) or by a few
-tenths of a metre (straight road), and it no longer favours SM everywhere.
+**Online fitting** fits a line in time over D = (k_m − 1)·T, so during an acceleration a its
+position lags by about a·D²/12 and its velocity (the window's mean) by a·D/2, and it cuts a bend
+like the SM line does. Its error grows quickly with k_m (Fig. 10), the
+paper's finding; at the shortest windows it is as good as SM in position because a short line
+fits a bend well, and the paper's claim that SM's velocity is far better does not hold on our
+roads, where both velocities are dominated by the window's mean direction.
 """
 
 

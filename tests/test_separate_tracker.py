@@ -128,10 +128,11 @@ def test_step_protocol_in_chunks_equals_the_whole_run():
 
 def test_the_reset_fits_the_window_before_the_newest_at_the_filtered_arc_lengths():
     """The state a step starts from has η equal to the least-squares fit of the latest
-    k_m − 1 measurements at the arc lengths the tracker estimated for them."""
+    k_m − 1 measurements at the arc lengths the tracker estimated for them (with the raw LS
+    direction, which leaves the arc lengths as estimated)."""
     sc = ts.scenarios.curve_road_scenario(2, 2, _gen(3))
     window = 6
-    tracker = _tracker(sc, window=window)
+    tracker = _tracker(sc, window=window, direction="raw")
     z = sc.z[:, :20]
     with torch.no_grad():
         full = tracker(z)
@@ -140,7 +141,8 @@ def test_the_reset_fits_the_window_before_the_newest_at_the_filtered_arc_lengths
         adjusted = tracker.adjust_modes(state)
     arc = full.mileage[:, :15, 0]  # ŝ_{j|j}, j = 1..15 (1..3: the initialisation's)
     assert bool((full.mileage[:, 4:15, 1] > 0).all())  # (no turned orientation here)
-    expected = reset_trajectory_parameters(z[:, 15 - (window - 1) : 15], arc[:, -(window - 1) :])
+    latest = slice(15 - (window - 1), 15)
+    expected = reset_trajectory_parameters(z[:, latest], arc[:, latest], normalize=False)
     for mode in adjusted.modes:
         assert_close(mode.mean[:, 3:], expected, atol=1e-9)
         # η's block is the least-squares covariance (plus the floor), uncorrelated with s.
@@ -149,6 +151,36 @@ def test_the_reset_fits_the_window_before_the_newest_at_the_filtered_arc_lengths
     # At the first cycle there is no reset.
     first = tracker.initialise(z[:, :3])
     assert tracker.adjust_modes(first) is first
+
+
+def test_the_default_reset_moves_the_slopes_norm_into_the_mileage_state():
+    """``direction="rescale"``: a unit direction and ``s ← s_l + ρ(s − s_l)``, ``ṡ ← ρṡ``,
+    ``s̈ ← ρs̈`` with ρ the LS slope's norm: the same positions as the raw reset."""
+    sc = ts.scenarios.straight_road_scenario(2, _gen(11), steps=60)
+    tracker = _tracker(sc, window=8)
+    with torch.no_grad():
+        state = tracker.initialise(sc.z[:, :3])
+        state, _ = tracker.scan(state, sc.z[:, 3:50])
+        adjusted = tracker.adjust_modes(state)
+    aux = state.aux
+    assert_close(aux.z, sc.z[:, 50 - 7 : 50])  # the latest k_m − 1 measurements
+    assert bool(torch.isnan(aux.arc_length[:, -1]).all())  # the newest: filled in at the reset
+    probs = state.log_probs.exp()
+    s_hat = sum(probs[:, j] * m.mean[:, 0] for j, m in enumerate(state.modes))
+    arc = torch.cat([aux.arc_length[:, :-1], s_hat[:, None]], dim=1)
+    raw = reset_trajectory_parameters(aux.z, arc, normalize=False)
+    rho = raw[:, [1, 3]].norm(dim=-1)
+    s_l = arc[:, 0]
+    assert_close(adjusted.aux.arc_length, s_l[:, None] + rho[:, None] * (arc - s_l[:, None]))
+    for before, after in zip(state.modes, adjusted.modes, strict=True):
+        x, y = before.mean, after.mean
+        assert_close(y[:, 3:], reset_trajectory_parameters(aux.z, arc), atol=1e-9)
+        assert_close(y[:, 0], s_l + rho * (x[:, 0] - s_l), atol=1e-9)
+        assert_close(y[:, 1:3], rho[:, None] * x[:, 1:3], atol=1e-9)
+        assert_close(after.cov[:, :3, :3], rho[:, None, None] ** 2 * before.cov[:, :3, :3])
+        # The same positions as the raw reset would give.
+        raw_state = torch.cat([x[:, :3], raw], dim=-1)
+        assert_close(tracker.mode_models[1].h(y), tracker.mode_models[1].h(raw_state), atol=1e-9)
 
 
 def test_without_the_reset_the_circle_is_tracked_worse():
@@ -221,6 +253,7 @@ def test_gradients_are_finite_and_match_finite_differences():
         ({"q": (1.0, 2.0, 3.0)}, "q"),
         ({"q": -1.0}, "q"),
         ({"reset_covariance": "inflate"}, "reset_covariance"),
+        ({"direction": "unit"}, "direction"),
         ({"floor": 0.0}, "floor"),
         ({"transition": [[0.9, 0.2], [0.1, 0.9]]}, "transition"),
         ({"eta_std": 0.0}, "eta_std"),

@@ -72,15 +72,20 @@ normal equations :math:`V'V\theta = V'\mathbf x` become :math:`G\theta = U'\math
 and the parameter vector is reset to :math:`\eta^* = [x_l^*, r_x^*, y_l^*, r_y^*, s_l]'`
 (Eq. (40), inferred). The line of Eq. (13) is the natural (arc-length) parameterisation, so
 the direction is a unit vector; the unconstrained LS slope has norm 1 only when the estimated
-arc lengths are exact. This implementation normalises it, :math:`(r_x^*, r_y^*) \leftarrow
-(r_x^*, r_y^*) / \lVert(r_x^*, r_y^*)\rVert`, and keeps the LS intercept (``normalize=False``
-keeps the raw LS solution): the window's scale error then shows in the innovations, where the
-filter corrects the arc length, instead of being absorbed in the direction.
+arc lengths are exact. :func:`reset_trajectory_parameters` can normalise it,
+:math:`(r_x^*, r_y^*) \leftarrow (r_x^*, r_y^*) / \rho`, :math:`\rho = \lVert(r_x^*,
+r_y^*)\rVert`, keeping the LS intercept (``normalize=True``, its default), or return the raw
+LS solution, as the paper's text resets (``normalize=False``). The norm :math:`\rho` is the
+window's verdict on the scale of the estimated arc lengths (the fitted positions are
+:math:`x_l^* + \rho\,u\,(\hat s_j - s_l)`: the target travelled :math:`\rho` times the
+estimated distance); normalising alone discards it, keeping the raw slope lets the mileage
+unit drift by it (see :class:`SeparateModelingTracker`, which by default moves it into the
+mileage state instead).
 
 **The reset's covariance** (not in the paper's text): per axis the LS problem is
 :math:`V\theta = \mathbf x` with noise of covariance :math:`R` between the axes, so
 :math:`\mathrm{Cov}([x_l^*, r_x^*, y_l^*, r_y^*]') = \tilde R\otimes(V'V)^{-1}`,
-:math:`(V'V)^{-1} = G^{-1}G^{-\prime}`, carried through the normalisation's Jacobian
+:math:`(V'V)^{-1} = G^{-1}G^{-\prime}`, carried through a normalisation's Jacobian
 :math:`(I - uu')/\rho` (:func:`reset_covariance`); :math:`\tilde R` is :math:`R` or the
 window's residual covariance pooled with it. :class:`SeparateModelingTracker` sets ``η``'s
 block to it at each reset (its docstring says why).
@@ -529,6 +534,8 @@ DEFAULT_TRANSITION = ((0.95, 0.05), (0.05, 0.95))
 
 #: What the SM tracker does to ``η``'s covariance at a reset (:class:`SeparateModelingTracker`).
 RESET_COVARIANCES = ("residual", "measurement", "keep")
+#: What the SM tracker does with the norm of the LS direction (:class:`SeparateModelingTracker`).
+RESET_DIRECTIONS = ("rescale", "normalize", "raw")
 
 
 class ResetWindow(NamedTuple):
@@ -574,7 +581,8 @@ class SeparateModelingResult(NamedTuple):
 
     @property
     def mileage(self) -> Tensor:
-        """``[B, T, 3]`` the mileage state ``[s, ṡ, s̈]``."""
+        """``[B, T, 3]`` the mileage state ``[s, ṡ, s̈]`` (in units of the line's parameter:
+        arc length times ``‖r‖`` when the reset keeps the raw LS direction)."""
         return self.mean[..., :3]
 
     @property
@@ -608,22 +616,37 @@ class SeparateModelingTracker(IMM):
        latest ``k_m = window`` samples ``k − k_m + 1 .. k``; its measurements except the newest,
        with the arc lengths estimated at their own steps (:math:`\hat s_{j|j}`, the IMM's
        combined estimate), give :math:`\eta^*` by the QR least squares of
-       :func:`reset_trajectory_parameters` (Eqs. (36)-(40); ``s_l = ŝ_{k_1}``, the direction
-       normalised unless ``normalize=False``). Every mode's ``η`` mean is set to
-       :math:`\eta^*` (its covariance: see below); the base state (``s, ṡ, s̈``) keeps its latest
-       update. A window with fewer than two usable samples (missing measurements) keeps the
-       filter's ``η``.
+       :func:`reset_trajectory_parameters` (Eqs. (36)-(40); ``s_l = ŝ_{k_1}``). Every mode's
+       ``η`` mean is set to :math:`\eta^*` (its direction and covariance: see below); the base
+       state (``s, ṡ, s̈``) keeps its latest update, rescaled by the fit (below). A window with
+       fewer than two usable samples (missing measurements) keeps the filter's ``η``.
     3. **Interaction, mode-matched filtering, mode probabilities, combination**: the
        :class:`~torchsvs.IMM`'s.
+
+    **The reset's direction** (``direction``). The LS slope :math:`r^* = \rho u` has norm
+    :math:`\rho \ne 1` when the estimated arc lengths of the window are off in scale (a speed
+    that lags an acceleration: the target travelled :math:`\rho` times the estimated
+    distance). The paper's text resets to the LS solution (``"raw"``): the positions and
+    velocities ``ṡ r`` are then right, but the unit of the mileage drifts by every
+    :math:`\rho` (``‖r‖`` wanders far from 1; ``q`` acts on ``s`` in that drifting unit, so
+    it stands for a larger noise in metres). Normalising ``r`` alone (``"normalize"``) keeps
+    the natural parameterisation but discards :math:`\rho`, and the tracker lags the
+    accelerations unless ``q`` is large. By default (``"rescale"``) the direction is normalised
+    and :math:`\rho` moves into the mileage state, an exact reparameterisation of the raw
+    reset: :math:`s \leftarrow s_l + \rho(s - s_l)`, :math:`\dot s \leftarrow \rho\dot s`,
+    :math:`\ddot s \leftarrow \rho\ddot s` (their covariance by the same factor; the window's
+    arc lengths too), so the mileage stays in metres, ``r`` a unit vector and ``q`` in m/s².
+    ``experiments/road_tracking.py`` compares the three.
 
     **η's covariance at a reset** (``reset_covariance``). The paper resets "the parameter
     vector" and says nothing of its covariance (its equation for the updated covariance was
     lost). Keeping the filter's covariance for the moved mean (``"keep"``) is inconsistent:
     with the tiny artificial noise ``σ_η`` the filter's ``η`` covariance shrinks without bound,
     while every reset moves ``η`` by far more than it allows (``s_l`` by a step's travel, ``x_l``
-    with it); the EKF then puts each innovation into the arc length and, on the straight road,
-    diverges. By default the reset sets ``η``'s block to the covariance of the least-squares
-    estimate itself (:func:`reset_covariance`: :math:`\tilde R \otimes (V'V)^{-1}`, through the
+    with it); the EKF then puts each innovation into the arc length. With a normalised
+    direction this diverges on the straight road; with the raw one it is only less accurate,
+    most on bends. By default the reset sets ``η``'s block to the covariance of the least-squares
+    estimate itself (:func:`reset_covariance`: :math:`\tilde R \otimes (V'V)^{-1}`, through a
     normalisation's Jacobian, ``s_l`` an anchor of variance 0, plus ``floor``), with the noise
     :math:`\tilde R` estimated from the window's residuals pooled with ``R``
     (``"residual"``: a window the line does not fit, on a bend, gets a wider covariance, so
@@ -674,8 +697,8 @@ class SeparateModelingTracker(IMM):
         reset: reset ``η`` by least squares (``False``: the augmented IMM alone, an ablation).
         reset_covariance: ``η``'s covariance at a reset: ``"residual"`` (default),
             ``"measurement"`` or ``"keep"`` (:data:`RESET_COVARIANCES`, see above).
-        normalize: normalise the reset direction to unit length
-            (:func:`reset_trajectory_parameters`).
+        direction: the reset's direction: ``"rescale"`` (default), ``"normalize"`` or
+            ``"raw"`` (:data:`RESET_DIRECTIONS`, see above).
         floor: variance added to the diagonal of the initialisation's covariance and of ``η``'s
             block at a reset (> 0: both are singular).
         kappa: the initialisation's unscented ``κ``.
@@ -698,7 +721,7 @@ class SeparateModelingTracker(IMM):
         unscented: bool = False,
         reset: bool = True,
         reset_covariance: str = "residual",
-        normalize: bool = True,
+        direction: str = "rescale",
         floor: float = 1e-6,
         kappa: float = 0.0,
     ) -> None:
@@ -718,6 +741,11 @@ class SeparateModelingTracker(IMM):
                 f"reset_covariance: expected one of {', '.join(map(repr, RESET_COVARIANCES))}, "
                 f"got {reset_covariance!r}"
             )
+        if direction not in RESET_DIRECTIONS:
+            raise ValueError(
+                f"direction: expected one of {', '.join(map(repr, RESET_DIRECTIONS))}, "
+                f"got {direction!r}"
+            )
         if not (isinstance(floor, (int, float)) and math.isfinite(floor) and floor > 0):
             raise ValueError(f"floor: expected a number > 0, got {floor!r}")
         ncv = SeparateModel(MileageConstantVelocity(dt, q_ncv), eta_std, r, embed_acceleration=True)
@@ -729,7 +757,7 @@ class SeparateModelingTracker(IMM):
         self.window = window
         self.reset = bool(reset)
         self.reset_covariance = reset_covariance
-        self.normalize = bool(normalize)
+        self.direction = direction
         self.floor = float(floor)
         self.kappa = float(kappa)
 
@@ -848,23 +876,41 @@ class SeparateModelingTracker(IMM):
             return state
         fit = fit_window_line(aux.z, arc)
         solved = fit.solvable.unsqueeze(-1)
-        eta = _eta(fit, self.normalize)
+        normalize = self.direction != "raw"
+        eta = _eta(fit, normalize)
         if self.reset_covariance != "keep":
             R = self.mode_models[0].meas_cov()
             residual = self.reset_covariance == "residual"
-            eta_cov = _reset_covariance(fit, aux.z, R, self.normalize, residual)
+            eta_cov = _reset_covariance(fit, aux.z, R, normalize, residual)
+        if self.direction == "rescale":
+            tiny = torch.finfo(arc.dtype).tiny
+            rho = torch.where(fit.solvable, fit.slope.norm(dim=-1).clamp_min(tiny), 1.0)
+            anchor = torch.where(fit.solvable, fit.s_l, 0.0).unsqueeze(-1)
+            arc = anchor + rho.unsqueeze(-1) * (arc - anchor)
+            state = state._replace(aux=aux._replace(arc_length=arc))
         adjusted = []
         for mdl, mode in zip(self.mode_models, state.modes, strict=True):
             b = mdl.base_dim
             x, P = mode.mean, mode.cov
+            base, P_base = x[:, :b], P[:, :b, :b]
+            if self.direction == "rescale":
+                offset = torch.zeros_like(base)
+                offset[:, 0] = anchor.squeeze(-1)
+                base = offset + rho.unsqueeze(-1) * (base - offset)
+                P_base = P_base * (rho * rho)[:, None, None]
             eta_j = torch.where(solved, eta.to(x.dtype), x[:, b:])
-            x = torch.cat([x[:, :b], eta_j], dim=-1)
-            if self.reset_covariance != "keep":
+            x = torch.cat([base, eta_j], dim=-1)
+            if self.reset_covariance == "keep":
+                scale = torch.ones_like(x)
+                if self.direction == "rescale":
+                    scale = torch.cat([rho.unsqueeze(-1).expand(-1, b), scale[:, b:]], -1)
+                P = P * scale.unsqueeze(-1) * scale.unsqueeze(-2)
+            else:
                 B = x.shape[0]
                 eye = torch.eye(eta_cov.shape[-1], dtype=P.dtype)
                 reset = torch.cat(
                     [
-                        torch.cat([P[:, :b, :b].expand(B, b, b), P.new_zeros(B, b, 5)], -1),
+                        torch.cat([P_base.expand(B, b, b), P.new_zeros(B, b, 5)], -1),
                         torch.cat([P.new_zeros(B, 5, b), eta_cov + self.floor * eye], -1),
                     ],
                     dim=-2,
