@@ -106,7 +106,7 @@ SETTINGS = {
 
 #: SM tracker variants of the ablation: label → constructor keywords.
 ABLATIONS: dict[str, dict[str, Any]] = {
-    "SM (LS reset, residual covariance)": {},
+    "SM (default: rescaled direction, residual covariance)": {},
     "η covariance: R only": {"reset_covariance": "measurement"},
     "η covariance: kept (no covariance reset)": {"reset_covariance": "keep"},
     "no LS reset": {"reset": False},
@@ -272,6 +272,9 @@ class Score(NamedTuple):
     #: (position all, position maneuvers, velocity all, velocity maneuvers): the mean over those
     #: steps of the RMSE curve, each with its bootstrap 95% interval (mean, low, high)
     averages: tuple[tuple[float, float, float], ...]
+    #: ``[4, BOOTSTRAP]``: those averages over the bootstrap resamples (the same resamples for
+    #: every estimator, so differences between estimators are paired)
+    replicas: Tensor
 
 
 def counted_steps(sc: RoadScenario) -> tuple[Tensor, Tensor]:
@@ -297,7 +300,7 @@ def score(est: Tensor, sc: RoadScenario, weights: Tensor) -> Score:
     for the time averages."""
     err = (est - sc.truth).double()
     everything, maneuver = counted_steps(sc)
-    curves, averages = [], []
+    curves, averages, replicas = [], [], []
     for cols in ([0, 2], [1, 3]):
         sq = err[..., cols].square().sum(-1)  # [B, T]
         rmse = sq.mean(0).sqrt()
@@ -306,11 +309,10 @@ def score(est: Tensor, sc: RoadScenario, weights: Tensor) -> Score:
         curves.append(Curve(rmse, lo, hi))
         for mask in (everything, maneuver):
             value = float(rmse[mask].mean())
-            replicas = boot[:, mask].mean(1)
-            averages.append(
-                (value, float(replicas.quantile(0.025)), float(replicas.quantile(0.975)))
-            )
-    return Score(curves[0], curves[1], tuple(averages))
+            replica = boot[:, mask].mean(1)
+            replicas.append(replica)
+            averages.append((value, float(replica.quantile(0.025)), float(replica.quantile(0.975))))
+    return Score(curves[0], curves[1], tuple(averages), torch.stack(replicas))
 
 
 def min_radius(sc: RoadScenario) -> float:
@@ -580,15 +582,27 @@ HEADER = [
 ]
 
 
-def acceptance(out: ScenarioResults, q: float) -> tuple[bool, str]:
+def acceptance(out: ScenarioResults, q: float) -> tuple[str, str]:
     """Issue 14's acceptance point at ``q``: SM's position RMSE during the accelerations below
-    IMM-KF(CVCA)'s and KF(CA)'s."""
+    IMM-KF(CVCA)'s and KF(CA)'s. Returns the verdict (``"holds"``; ``"holds nominally"`` when
+    a paired bootstrap 95% interval of a difference includes 0; ``"FAILS"``) and the numbers,
+    each difference with its interval."""
     scores = out.scores[(q, SETTINGS[out.name].windows[0])]
-    sm = scores["SM"].averages[1][0]
-    rivals = {k: scores[k].averages[1][0] for k in ("IMM-KF(CVCA)", "KF(CA)")}
-    holds = all(sm < v for v in rivals.values())
-    text = f"SM {sm:.2f} m vs " + ", ".join(f"{k} {v:.2f} m" for k, v in rivals.items())
-    return holds, text
+    sm = scores["SM"]
+    below, clear, parts = True, True, [f"SM {sm.averages[1][0]:.2f} m"]
+    for rival in ("IMM-KF(CVCA)", "KF(CA)"):
+        other = scores[rival]
+        below = below and sm.averages[1][0] < other.averages[1][0]
+        diff = sm.replicas[1] - other.replicas[1]
+        high = float(diff.quantile(0.975))
+        clear = clear and high < 0
+        parts.append(
+            f"{rival} {other.averages[1][0]:.2f} m (SM − it: "
+            f"{sm.averages[1][0] - other.averages[1][0]:+.2f} "
+            f"[{float(diff.quantile(0.025)):+.2f}, {high:+.2f}])"
+        )
+    verdict = ("holds" if clear else "holds nominally") if below else "FAILS"
+    return verdict, ", ".join(parts)
 
 
 def scores_at(out: ScenarioResults, q: float, window: int) -> dict[str, Score]:
@@ -615,15 +629,24 @@ def claims(res: Results) -> list[str]:
     def verdict(ok: bool) -> str:
         return "**holds**" if ok else "**does not hold**"
 
-    def ordering(out: ScenarioResults, q: float, window: int, rivals: Sequence[str], column: int):
+    def ordering(
+        out: ScenarioResults,
+        q: float,
+        window: int,
+        rivals: Sequence[str],
+        column: int,
+        margin: float = 1.0,
+    ) -> tuple[bool, str]:
+        """SM below every rival (by ``margin``: 0.9 for the paper's "significantly")."""
         sm = _during(out, q, window, "SM", column)
         values = {r: _during(out, q, window, r, column) for r in rivals}
-        ok = all(sm < v for v in values.values())
-        beaten = [r for r, v in values.items() if v <= sm]
+        ok = all(sm < margin * v for v in values.values())
+        beaten = [r for r, v in values.items() if not sm < margin * v]
         unit = "m" if column < 2 else "m/s"
         detail = f"SM {sm:.2f} {unit}; " + ", ".join(f"{r} {v:.2f}" for r, v in values.items())
         if beaten:
-            detail += f" (below SM: {', '.join(beaten)})"
+            below = "below SM" if margin == 1.0 else f"not {100 * (1 - margin):.0f}% above SM"
+            detail += f" ({below}: {', '.join(beaten)})"
         return ok, detail
 
     def each_q(out: ScenarioResults, claim: str, check: Callable[[float], tuple[bool, str]]):
@@ -639,9 +662,9 @@ def claims(res: Results) -> list[str]:
         lines.append("**Fig. 2, straight road.**")
         each_q(
             st,
-            "(a) During the accelerations the SM position RMSE is well below KF(CA), "
-            "IMM-KF(CVCA) and online fitting:",
-            lambda q: ordering(st, q, w, rivals, 1),
+            "(a) During the accelerations SM significantly outperforms KF(CA), IMM-KF(CVCA) "
+            "and online fitting in position (read: at least 10% lower RMSE):",
+            lambda q: ordering(st, q, w, rivals, 1, 0.9),
         )
         each_q(
             st,
@@ -721,8 +744,8 @@ def claims(res: Results) -> list[str]:
             each_q(
                 out,
                 "At k_m = 14 SM is remarkably better than online fitting (position, "
-                "accelerations):",
-                lambda q, out=out: ordering(out, q, 14, ("online fitting",), 1),
+                "accelerations; read: at least 10% lower RMSE):",
+                lambda q, out=out: ordering(out, q, 14, ("online fitting",), 1, 0.9),
             )
     c2 = res.scenarios.get("curve2")
     if c2 is not None:
@@ -741,7 +764,7 @@ def claims(res: Results) -> list[str]:
             )
             if column == 0:
                 return (max(of) - min(of)) > (max(sm) - min(sm)), detail
-            return all(s < o for s, o in zip(sm, of, strict=True)), detail
+            return all(s < 0.9 * o for s, o in zip(sm, of, strict=True)), detail
 
         lines.append("")
         lines.append("**Fig. 10, curve road II, window sweep (averages over all steps).**")
@@ -750,7 +773,12 @@ def claims(res: Results) -> list[str]:
             "The window length moves online fitting's position RMSE much more than SM's:",
             lambda q: fig10(q, 0),
         )
-        each_q(c2, "SM's velocity RMSE is well below online fitting's:", lambda q: fig10(q, 2))
+        each_q(
+            c2,
+            "SM's velocity RMSE is significantly below online fitting's (read: at least 10% "
+            "lower at every window length):",
+            lambda q: fig10(q, 2),
+        )
     return lines
 
 
@@ -842,7 +870,7 @@ def report(res: Results, pngs: list[str]) -> str:
             f"### {setting.title} ({setting.figures})",
             "",
             f"T = {sc.dt:g} s, σ = {sc.meas_std:g} m per axis, {sc.z.shape[1]} steps, "
-            f"σ_η = {sc.eta_std:g}, paper's windows {', '.join(map(str, setting.windows))}; "
+            f"σ_η = {sc.eta_std:g}, paper's windows {', '.join(map(str, sorted(setting.windows)))}; "
             f"smallest radius of curvature {min_radius(sc):.0f} m.",
             "",
         ]
@@ -905,12 +933,16 @@ def report(res: Results, pngs: list[str]) -> str:
     rows = []
     for name, out in res.scenarios.items():
         for q in out.qs:
-            ok, text = acceptance(out, q)
+            verdict, text = acceptance(out, q)
             label = "paper" if q == out.paper_q else "tracking"
-            rows.append(
-                [SETTINGS[name].title, f"{q:g} ({label})", "holds" if ok else "FAILS", text]
-            )
+            rows.append([SETTINGS[name].title, f"{q:g} ({label})", verdict, text])
     lines += [markdown_table(["scenario", "q", "acceptance", "during the accelerations"], rows)]
+    lines += [
+        "",
+        "Differences are SM's minus the rival's average RMSE during the accelerations, with the "
+        "paired bootstrap 95% interval (the same resampled runs for both); *holds nominally*: "
+        "SM is lower but an interval includes 0.",
+    ]
     lines += ["", "## The paper's claims (Figs 2-10)", "", *claims(res), "", DISCUSSION]
     lines += ["", "Figures: " + ", ".join(pngs)]
     return "\n".join(lines) + "\n"
@@ -952,14 +984,17 @@ lag, which is why the SM velocity RMSE stays high on the circle and the curves a
 biases grow with the speed (L = (k_m − 1)·v·T) and with k_m. The Cartesian filters have no such
 bias once their q lets them follow the turn, and IMM-EKF(CVCACT) follows turns at any q through
 its turn-rate mode. The paper's curve roads were lost; ours are designed (smallest radii above),
-and a gentler road would favour the SM tracker.
+and a gentler road would favour the SM tracker. On the circle, whose interval T the paper does
+not give (we use 0.1 s, `torchsvs/scenarios/road.py`), windows of 12-16 samples span only
+1.1-1.5 s, short enough for a line in time to follow the arc: online fitting there matches SM
+and hardly changes with k_m, unlike the paper's Fig. 5.
 
 **Online fitting** fits a line in time over D = (k_m − 1)·T, so during an acceleration a its
 position lags by about a·D²/12 and its velocity (the window's mean) by a·D/2, and it cuts a bend
-like the SM line does. Its error grows quickly with k_m (Fig. 10), the
-paper's finding; at the shortest windows it is as good as SM in position because a short line
-fits a bend well, and the paper's claim that SM's velocity is far better does not hold on our
-roads, where both velocities are dominated by the window's mean direction.
+like the SM line does. Its error grows quickly with k_m (Fig. 10), the paper's finding; at the
+shortest windows it comes close to SM in position because a short line fits a bend well, and
+the paper's claim that SM's velocity is far better does not hold on our roads, where both
+velocities are dominated by the window's mean direction.
 """
 
 
