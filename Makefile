@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench bench-matrix bench-million reproduce real real-imm learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road real real-imm learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -52,6 +52,11 @@ real-imm: $(STAMP)
 reproduce: $(STAMP)
 	$(PY) -m experiments.svss_paper
 	$(PY) -m experiments.spvsf_paper
+	$(PY) -m experiments.road_tracking
+
+# Zhang & Zhou 2022 alone: the separate-modeling road tracker beside its baselines.
+road: $(STAMP)
+	$(PY) -m experiments.road_tracking
 
 learn: $(STAMP)
 	$(PY) -m experiments.learn_psi

@@ -2,9 +2,9 @@
 
 Batched, differentiable state estimators as ``nn.Module`` s: the Kalman filter and RTS smoother,
 the extended and unscented Kalman filters, the interacting multiple model estimator (IMM) and
-its smoother,
-the smooth variable structure filter (SVSF) and smoother (SVSS), with learnable boundary layer ψ
-and memory γ. See ``torchsvs.types`` for the shape conventions.
+its smoother, the separate-modeling road tracker built on it, the smooth variable structure filter
+(SVSF) and smoother (SVSS), with learnable boundary layer ψ and memory γ. See ``torchsvs.types``
+for the shape conventions.
 """
 
 from torchsvs import datasets, metrics, models, scenarios
@@ -20,6 +20,8 @@ from torchsvs.filters import (
     KalmanFilter,
     ParticleFilter,
     RobustStudentTKalmanFilter,
+    SeparateModelingResult,
+    SeparateModelingTracker,
     SlidingInnovationFilter,
     TurnIMM,
     UnscentedKalmanFilter,
@@ -46,6 +48,8 @@ __all__ = [
     "KalmanFilter",
     "RTSSmoother",
     "RobustStudentTKalmanFilter",
+    "SeparateModelingResult",
+    "SeparateModelingTracker",
     "SlidingInnovationFilter",
     "SmootherResult",
     "TurnIMM",

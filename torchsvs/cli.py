@@ -3,6 +3,7 @@
     torchsvs demo [--epochs 4] [--runs 500]           learn ψ, γ; track Chen et al. 2020's scenarios
     torchsvs reproduce svss [--runs 500] [--seed 0]   Tables 1-3, A2 and Figs 4-9 of that paper
     torchsvs reproduce spvsf [--runs 100]             Tables 1, 2, 4, 5, Figs 5-9 of Gadsden 2012
+    torchsvs reproduce road [--runs 100]              Figs 2-10 of Zhang & Zhou 2022 (road targets)
                                                       (reports in ./torchsvs-results/ or --out)
     torchsvs fit --config CONFIG.yaml                 train an estimator (LightningCLI)
     torchsvs track INPUT -o OUTPUT [--estimator svss] [--fit] [--processes 2] ...
@@ -27,6 +28,10 @@ COMMANDS = {
     "reproduce spvsf": (
         "experiments.spvsf_paper",
         "Gadsden et al. 2012: Tables 1, 2, 4, 5, Figs 5-9",
+    ),
+    "reproduce road": (
+        "experiments.road_tracking",
+        "Zhang & Zhou 2022: the SM road tracker, Figs 2-10",
     ),
 }
 

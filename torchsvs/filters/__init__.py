@@ -10,6 +10,7 @@ from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
+from torchsvs.filters.separate import SeparateModelingResult, SeparateModelingTracker
 from torchsvs.filters.sif import SlidingInnovationFilter
 from torchsvs.filters.svsf import SVSF, ArtificialKalmanFilter
 from torchsvs.filters.turn_imm import TurnIMM
@@ -31,6 +32,8 @@ __all__ = [
     "KalmanFilter",
     "ModulusFromAcceleration",
     "RobustStudentTKalmanFilter",
+    "SeparateModelingResult",
+    "SeparateModelingTracker",
     "SlidingInnovationFilter",
     "TurnIMM",
 ]

@@ -41,7 +41,10 @@ Readings of the paper's numbers (its text lost the equations, and some values ar
 
 Each scenario also carries the paper's estimator settings for it: the standard deviation of the
 mileage models' process noise ``q``, of the artificial process noise of the trajectory
-parameters ``eta_std`` and the window length.
+parameters ``eta_std`` and the window length. ``q`` is kept as the paper gives it; whether the
+estimators follow the scenarios' acceleration steps with so small a ``q`` is studied by
+``experiments/road_tracking.py``, which reports every estimator at the paper's ``q`` and at the
+smallest ``q`` with which the SM tracker follows them (``experiments/results/road_tracking.md``).
 
 References:
     Zhang Zhuanhua, Zhou Gongjian, J. Syst. Eng. Electron. 33(5), 2022, Sec. 5.
