@@ -532,20 +532,20 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         elif memory.shape[0] != B:  # one memory shared by the batch
             memory = memory.expand(B, m).contiguous()
         widths = constants.widths if psi is None else psi.to(x.dtype).contiguous()
-        total = state.log_likelihood
+        total = state.log_likelihood  # (the library reads it as x's dtype, contiguous)
+        total = None if total is None else total.to(x.dtype).contiguous()
         done = step(x.contiguous(), P.contiguous(), z.contiguous(), memory, widths, total)
         if done is None:
             return None  # inf in z, or S not positive definite: the scan says or copes
         out, after = done
+        mean, cov, *rest = out
         if rule == "kalman":
-            mean, cov, *rest = out
             e_post = None
             if keep == "all":
                 x_pred, P_pred, e, K, S, loglik, seen = rest
             else:
                 (loglik,) = rest
         else:
-            mean, cov, *rest = out
             if keep == "all":
                 x_pred, P_pred, e, K, S, _, e_post, seen = rest
             else:
