@@ -44,13 +44,13 @@ class _PerAxisMotion(LinearModel):
 
     def __init__(
         self,
-        ndim: int,
-        dt: float,
-        q: float,
-        r: ArrayLike,
-        learn_noise: bool,
-        learn_q: bool | None,
-        learn_r: bool | None,
+        ndim: int = 2,
+        dt: float = 1.0,
+        q: float = 0.16,
+        r: ArrayLike = 1.0,
+        learn_noise: bool = False,
+        learn_q: bool | None = None,
+        learn_r: bool | None = None,
     ) -> None:
         super().__init__()
         if isinstance(ndim, bool) or not isinstance(ndim, int) or ndim < 1:
@@ -132,18 +132,6 @@ class ConstantVelocity(_PerAxisMotion):
 
     order = 2
 
-    def __init__(
-        self,
-        ndim: int = 2,
-        dt: float = 1.0,
-        q: float = 0.16,
-        r: ArrayLike = 1.0,
-        learn_noise: bool = False,
-        learn_q: bool | None = None,
-        learn_r: bool | None = None,
-    ) -> None:
-        super().__init__(ndim, dt, q, r, learn_noise, learn_q, learn_r)
-
     def transition(self, dt: Tensor | None = None) -> Tensor:
         T = self._interval(dt)
         one, zero = torch.ones_like(T), torch.zeros_like(T)
@@ -182,18 +170,6 @@ class ConstantAcceleration(_PerAxisMotion):
     """
 
     order = 3
-
-    def __init__(
-        self,
-        ndim: int = 2,
-        dt: float = 1.0,
-        q: float = 0.16,
-        r: ArrayLike = 1.0,
-        learn_noise: bool = False,
-        learn_q: bool | None = None,
-        learn_r: bool | None = None,
-    ) -> None:
-        super().__init__(ndim, dt, q, r, learn_noise, learn_q, learn_r)
 
     @property
     def acceleration_index(self) -> list[int]:
