@@ -172,7 +172,9 @@ def write_report(args: argparse.Namespace, results: dict, imports: dict[str, flo
         "Where the time goes (seconds, from the best run of each; two processes: rank 0's "
         "phases; `start-up` is rank 0's time from the call to every process having joined the "
         "process group: the trainer, the launch of rank 1, its interpreter and imports; "
-        "`settings` includes rank 1 waiting for rank 0's broadcast; `estimating CPU`: the "
+        "`reading`: rank 0's wait for its reading thread after the start-up, and the transfer "
+        "of the tracks' steps to rank 1; `settings` includes rank 1 waiting for rank 0's "
+        "broadcast; `estimating CPU`: the "
         "CPU time of the process while estimating, where `estimating` is its wall time):",
         "",
     ]
@@ -219,18 +221,16 @@ WHY = """Where two processes lose time, in the order of the table's columns: eve
 imports Lightning (one process does not need it) and tears it down at exit (the start-up table
 above); Lightning's launcher starts rank 1 only when rank 0 calls `Trainer.predict`, after rank
 0's own imports, so rank 1's interpreter and imports run after rank 0's rather than beside them
-(`start-up`: rank 0 waits for rank 1 to join the process group); both processes read and parse
-the whole file at the same time (rank 1 needs every row to know the groups of tracks), which on
-two shared cores takes longer than one read; on a machine loaded by other work, as here, two
+(`start-up`: rank 0 waits for rank 1 to join the process group). Rank 0 reads the file in a
+thread during that wait, and `reading` is what is left of it after the start-up plus sending
+the tracks' steps to rank 1 (which reads nothing). On a machine loaded by other work two
 processes get less than two cores (compare the CPU and wall times of estimating); the settings
 (noise read off the data, or a fit) and the output are computed and written once, on rank 0,
 while rank 1 waits or has finished. Only the estimating phase is shared. So two processes can pay
 off only where estimating dominates a run by far (long runs of the particle filters, or files
 much larger than here) on otherwise idle cores, and a 1.6× speed-up on the Kalman smoother or
 the SVSS would need more than a second process: starting the processes before the imports (as
-`torchrun` does; Lightning joins processes created outside it), reading a share of the rows per
-process, and writing per process."""
-
+`torchrun` does; Lightning joins processes created outside it) and writing per process."""
 
 if __name__ == "__main__":
     main()

@@ -124,3 +124,23 @@ def test_bad_process_arguments_name_what_is_wrong(tmp_path, capsys, args, messag
 def test_predict_file_refuses_bad_process_counts(tmp_path, processes):
     with pytest.raises(ValueError, match=r"^processes: expected an integer >= 1, got "):
         predict_file(tmp_path / "in.csv", tmp_path / "o.csv", Settings(), processes=processes)
+
+
+def test_the_reading_thread_hands_its_error_to_setup(tmp_path):
+    """A file that cannot be read fails in ``setup`` (the caller's thread), with the reader's
+    own error; without the thread, ``setup`` reads the file itself."""
+    from torchsvs.training.predict import TrackFileDataModule
+
+    missing = TrackFileDataModule(tmp_path / "missing.csv", Columns("id", "t"))
+    missing.start_reading()
+    with pytest.raises((FileNotFoundError, OSError)):
+        missing.setup("predict")
+    source = _source(tmp_path)
+    threaded, direct = (
+        TrackFileDataModule(source, Columns("id", "t"), max_cells=MAX_CELLS) for _ in range(2)
+    )
+    threaded.start_reading()
+    threaded.setup("predict")
+    direct.setup("predict")
+    assert threaded.steps.ids == direct.steps.ids
+    assert [g.tolist() for g in threaded.groups] == [g.tolist() for g in direct.groups]

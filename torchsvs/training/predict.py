@@ -1,9 +1,11 @@
 """``torchsvs track --processes N``: a track file estimated by ``N`` processes, as Lightning's
 ``Trainer.predict`` with ``strategy="ddp"`` on CPU (gloo).
 
-Every process reads the whole file (:class:`TrackFileDataModule`, all at the same time) and
-cuts it into the groups of tracks that :func:`~torchsvs.tracking.track_file` estimates one call
-at a time; Lightning's distributed sampler gives each process a disjoint share of the groups.
+The launching process (rank 0) reads the whole file (:class:`TrackFileDataModule`) in a
+thread while Lightning starts the other processes, and sends them the tracks' steps; every
+process cuts them into the groups of tracks that :func:`~torchsvs.tracking.track_file`
+estimates one call at a time, and Lightning's distributed sampler gives each process a disjoint
+share of the groups.
 Rank 0 reads the settings off the data (and fits, if asked) once and broadcasts them with the
 estimator's parameters (:class:`TrackPredictor`), so every process estimates with the same
 ones; the estimates are gathered on rank 0 (:class:`GatherEstimates`), which writes the file.
@@ -15,10 +17,11 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -73,9 +76,13 @@ class TrackGroups(Dataset["GroupBatch | None"]):
 class TrackFileDataModule(L.LightningDataModule):
     """A track file for ``Trainer.predict``, as :class:`TrackGroups`.
 
+    Only rank 0 reads the file: :meth:`start_reading` reads it in a thread while the trainer
+    launches the other processes (their interpreters and imports take seconds), and
+    :meth:`setup` sends them the tracks' steps (without the raw rows, which only rank 0 writes
+    back). Two processes reading the same file at once on two cores took longer than one.
+
     Args:
-        source: a ``.csv`` or ``.parquet`` track file, read whole in :meth:`setup` (by every
-            process; any row order).
+        source: a ``.csv`` or ``.parquet`` track file, read whole (any row order).
         columns: its column names.
         block_rows: rows per block while reading.
         max_cells: padded steps (``B × T``) per group, as in
@@ -94,24 +101,60 @@ class TrackFileDataModule(L.LightningDataModule):
         super().__init__()
         self.source, self.columns = source, columns
         self.block_rows, self.max_cells, self.dtype = block_rows, max_cells, dtype
-        self.block: TrackBlock | None = None
+        self.block: TrackBlock | None = None  #: the rows read (rank 0 only)
+        self._steps: TrackSteps | None = None
         self.groups: list[np.ndarray] = []
-        self.read_seconds = 0.0
+        self._reader: threading.Thread | None = None
+        self._read_error: BaseException | None = None
+        self.read_seconds = 0.0  #: setup's wait for the file (and the steps' transfer)
         self.setup_time = 0.0  #: perf_counter() when setup began (every process had started)
 
     @property
     def steps(self) -> TrackSteps:
-        assert self.block is not None, "setup() reads the file"
-        return self.block.steps
+        assert self._steps is not None, "setup() reads the file"
+        return self._steps
 
-    def setup(self, stage: str | None = None) -> None:
-        if self.block is None:
-            tick = self.setup_time = time.perf_counter()
+    def _read(self) -> None:
+        try:
             self.block = next(
                 track_blocks(self.source, self.columns, block_rows=self.block_rows, whole=True)
             )
-            self.groups = list(self.block.steps.batches(self.max_cells))
-            self.read_seconds = time.perf_counter() - tick
+        except BaseException as error:  # raised again in setup, in the caller's thread
+            self._read_error = error
+
+    def start_reading(self) -> None:
+        """Reads the file in a thread, to overlap the launch of the other processes."""
+        if self._reader is None and self.block is None:
+            self._reader = threading.Thread(target=self._read, name="read-tracks", daemon=True)
+            self._reader.start()
+
+    def setup(self, stage: str | None = None) -> None:
+        if self._steps is not None:
+            return
+        tick = self.setup_time = time.perf_counter()
+        trainer = self.trainer
+        rank = trainer.global_rank if trainer is not None else 0
+        processes = trainer.world_size if trainer is not None else 1
+        steps: TrackSteps | None = None
+        if rank == 0:
+            if self._reader is None:
+                self._read()
+            else:
+                self._reader.join()
+            if self._read_error is not None:
+                raise self._read_error
+            assert self.block is not None
+            steps = self.block.steps
+        if processes > 1:
+            assert trainer is not None
+            # Raw-row bookkeeping stays on rank 0, the one process that writes.
+            sent = None if steps is None else replace(steps, row_step=steps.row_step[:0])
+            received = trainer.strategy.broadcast(sent, src=0)
+            steps = steps if rank == 0 else received
+        assert steps is not None
+        self._steps = steps
+        self.groups = list(steps.batches(self.max_cells))
+        self.read_seconds = time.perf_counter() - tick
 
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
@@ -269,7 +312,7 @@ def predict_file(
     this one again (``sys.argv``), so call this from a script or the ``torchsvs track`` command
     (every process must reach the call with the same arguments), not from an interactive
     session. ``fit`` runs once, on rank 0, inside the run; the other processes receive the
-    fitted parameters. Every process holds the whole file in memory.
+    fitted parameters. Rank 0 holds the whole file in memory, the others its tracks' steps.
 
     Args:
         processes: processes to run (1: the same path in this process alone).
@@ -286,6 +329,8 @@ def predict_file(
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
     data = TrackFileDataModule(source, columns, block_rows, max_cells, dtype)
+    if os.environ.get("LOCAL_RANK", "0") == "0":  # the launching process (Lightning's ranks
+        data.start_reading()  # 1..N-1 run this function again with LOCAL_RANK set)
     module = TrackPredictor(
         settings,
         fit=fit,
