@@ -57,7 +57,9 @@ def track(source: Path, target: Path, options: list[str], record: list) -> None:
     command += ["--meas-std", "50", *options]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     start = time.perf_counter()
-    done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    if done.returncode:  # say why, not only that it failed
+        raise RuntimeError(f"{' '.join(command)} exited {done.returncode}:\n{done.stderr[-3000:]}")
     wall = time.perf_counter() - start
     line = next(t for t in done.stderr.splitlines() if t.startswith("phases: "))
     phases = {k: float(v) for k, v in re.findall(r"([\w -]+?) ([\d.]+) s", line[8:])}
@@ -171,7 +173,7 @@ def write_report(args: argparse.Namespace, results: dict, imports: dict[str, flo
         "",
         "Where the time goes (seconds, from the best run of each; two processes: rank 0's "
         "phases; `start-up` is rank 0's time from the call to every process having joined the "
-        "process group: the trainer, the launch of rank 1, its interpreter and imports; "
+        "process group: the trainer and what is left of rank 1's interpreter and imports; "
         "`reading`: rank 0's wait for its reading thread after the start-up, and the transfer "
         "of the tracks' steps to rank 1; `settings` includes rank 1 waiting for rank 0's "
         "broadcast; `estimating CPU`: the "
@@ -218,19 +220,19 @@ def reading(case: str, result: tuple) -> str:
 
 
 WHY = """Where two processes lose time, in the order of the table's columns: every process
-imports Lightning (one process does not need it) and tears it down at exit (the start-up table
-above); Lightning's launcher starts rank 1 only when rank 0 calls `Trainer.predict`, after rank
-0's own imports, so rank 1's interpreter and imports run after rank 0's rather than beside them
-(`start-up`: rank 0 waits for rank 1 to join the process group). Rank 0 reads the file in a
-thread during that wait, and `reading` is what is left of it after the start-up plus sending
-the tracks' steps to rank 1 (which reads nothing). On a machine loaded by other work two
-processes get less than two cores (compare the CPU and wall times of estimating); the settings
-(noise read off the data, or a fit) and the output are computed and written once, on rank 0,
-while rank 1 waits or has finished. Only the estimating phase is shared. So two processes can pay
-off only where estimating dominates a run by far (long runs of the particle filters, or files
-much larger than here) on otherwise idle cores, and a 1.6× speed-up on the Kalman smoother or
-the SVSS would need more than a second process: starting the processes before the imports (as
-`torchrun` does; Lightning joins processes created outside it) and writing per process."""
+imports Lightning (one process does not need it; the start-up table above, with the
+interpreter's teardown at exit, which the command skips). The command starts rank 1 before its
+own imports, as `torchrun` does (Lightning joins processes created outside it), so rank 1's
+interpreter and imports run beside rank 0's (`start-up`: what is left of rank 0's wait for rank
+1 to join the process group). Rank 0 reads the file in a thread during that wait, and `reading`
+is what is left of it after the start-up plus sending the tracks' steps to rank 1 (which reads
+nothing). On a machine loaded by other work two processes get less than two cores (compare the
+CPU and wall times of estimating); the settings (noise read off the data, or a fit) and the
+output are computed and written once, on rank 0, while rank 1 waits or has finished. Only the
+estimating phase is shared. So two processes can pay off only where estimating dominates a run
+by far (long runs of the particle filters, or files much larger than here) on otherwise idle
+cores; a 1.6× speed-up on the Kalman smoother or the SVSS would need more than a second
+process and writing per process."""
 
 if __name__ == "__main__":
     main()

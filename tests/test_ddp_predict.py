@@ -144,3 +144,27 @@ def test_the_reading_thread_hands_its_error_to_setup(tmp_path):
     direct.setup("predict")
     assert threaded.steps.ids == direct.steps.ids
     assert [g.tolist() for g in threaded.groups] == [g.tolist() for g in direct.groups]
+
+
+def test_rank_zero_ends_when_another_rank_fails(tmp_path):
+    """The command starts ranks 1..N-1 itself (before Lightning); one that fails (here: no such
+    file) must end rank 0, which would otherwise wait for it in a collective forever."""
+    script = (
+        "import time\n"
+        "from torchsvs.cli import OtherRanks\n"
+        "with OtherRanks(['missing.csv', '-o', 'out.csv'], 2, 1):\n"
+        "    time.sleep(120)\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("LOCAL_RANK", None)
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=100,
+    )
+    assert done.returncode == 1
+    assert "No such file or directory: 'missing.csv'" in done.stderr  # rank 1's own error
+    assert "a process ended with" in done.stderr

@@ -16,8 +16,13 @@ library: the command runs them from the clone that ``pip install -e .`` installe
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib
+import os
+import socket
+import subprocess
 import sys
+import threading
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -204,12 +209,87 @@ def track_parser() -> argparse.ArgumentParser:
 
 def track(argv: list[str]) -> None:
     """``torchsvs track``: see :func:`track_parser`."""
+    args = track_parser().parse_args(argv)
+    if args.processes > 1 and not args.stream and "LOCAL_RANK" not in os.environ:
+        with OtherRanks(argv, args.processes, args.threads):
+            _track(args)
+    else:
+        _track(args)
+
+
+class OtherRanks:
+    """Starts ranks ``1..N-1`` of ``torchsvs track --processes N`` at once, as ``torchrun``
+    does, and sets this process up as rank 0 of that group (Lightning then joins the processes
+    instead of launching them). Lightning's own launcher starts them only when rank 0 reaches
+    ``Trainer.predict``, after its imports: their interpreters and imports (seconds) then run
+    after rank 0's instead of beside them. A rank that fails ends the others, as Lightning's
+    launcher does; on leaving, rank 0 waits for the others and restores its environment."""
+
+    VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "WORLD_SIZE", "LOCAL_RANK")
+
+    def __init__(self, argv: list[str], processes: int, threads: int) -> None:
+        self.command = [sys.executable, "-m", "torchsvs.cli", "track", *argv]
+        self.processes, self.threads = processes, threads
+        self.saved = {k: os.environ.get(k) for k in (*self.VARIABLES, "OMP_NUM_THREADS")}
+        self.children: list[subprocess.Popen[bytes]] = []
+        self.done = threading.Event()
+
+    def __enter__(self) -> OtherRanks:
+        with socket.socket() as probe:  # a free port for the process group
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        os.environ.update(
+            MASTER_ADDR="127.0.0.1",
+            MASTER_PORT=str(port),
+            NODE_RANK="0",
+            WORLD_SIZE=str(self.processes),
+            OMP_NUM_THREADS=str(self.threads),
+        )
+        for rank in range(1, self.processes):
+            env = dict(os.environ, LOCAL_RANK=str(rank))
+            self.children.append(subprocess.Popen(self.command, env=env))
+        os.environ["LOCAL_RANK"] = "0"
+        threading.Thread(target=self._watch, daemon=True, name="other-ranks").start()
+        return self
+
+    def _watch(self) -> None:
+        """Ends this process if another rank fails (rank 0 would wait for it forever)."""
+        while not self.done.wait(0.5):
+            codes = [child.poll() for child in self.children]
+            if all(code == 0 for code in codes):
+                return
+            failed = [(c.pid, code) for c, code in zip(self.children, codes, strict=True) if code]
+            if failed:
+                print(f"torchsvs track: a process ended with {failed}; ending", file=sys.stderr)
+                self._end_children()
+                os._exit(1)
+
+    def _end_children(self) -> None:
+        for child in self.children:
+            if child.poll() is None:
+                child.kill()
+
+    def __exit__(self, kind: object, error: object, trace: object) -> None:
+        try:
+            if kind is not None:  # rank 0 failed: the others would wait for it
+                self._end_children()
+            for child in self.children:
+                child.wait()
+        finally:
+            self.done.set()  # stops the watch
+            for key, value in self.saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+
+def _track(args: argparse.Namespace) -> None:
     import torch
 
     from torchsvs.datasets import Columns
     from torchsvs.tracking import Settings, saved_settings, track_file
 
-    args = track_parser().parse_args(argv)
     torch.set_num_threads(args.threads)
     pos = tuple(args.pos_cols.split(",")) if args.pos_cols else None
     columns = Columns(args.id_col, args.time_col, pos, time_unit=args.time_unit)
@@ -330,5 +410,22 @@ def main(argv: list[str] | None = None) -> None:
     raise SystemExit(2)
 
 
+def command() -> None:
+    """The ``torchsvs`` program: :func:`main`, then an exit that skips tearing down the
+    interpreter's modules (torch, Lightning: about a second, paid by every process of a run)
+    once the exit handlers have run and the output is flushed."""
+    try:
+        main()
+        code = 0
+    except SystemExit as stop:
+        if stop.code is not None and not isinstance(stop.code, int):
+            print(stop.code, file=sys.stderr)
+        code = stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 1
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    main()
+    command()

@@ -311,8 +311,9 @@ def predict_file(
     Lightning's DDP launcher starts processes 1 to ``N - 1`` by running the command that started
     this one again (``sys.argv``), so call this from a script or the ``torchsvs track`` command
     (every process must reach the call with the same arguments), not from an interactive
-    session. ``fit`` runs once, on rank 0, inside the run; the other processes receive the
-    fitted parameters. Rank 0 holds the whole file in memory, the others its tracks' steps.
+    session; ``torchsvs track`` starts them itself, before its imports
+    (:class:`torchsvs.cli.OtherRanks`), and Lightning joins them. ``fit`` runs once, on rank 0,
+    inside the run; the other processes receive the fitted parameters. Rank 0 holds the whole file in memory, the others its tracks' steps.
 
     Args:
         processes: processes to run (1: the same path in this process alone).
