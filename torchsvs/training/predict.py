@@ -313,7 +313,8 @@ def predict_file(
     (every process must reach the call with the same arguments), not from an interactive
     session; ``torchsvs track`` starts them itself, before its imports
     (:class:`torchsvs.cli.OtherRanks`), and Lightning joins them. ``fit`` runs once, on rank 0,
-    inside the run; the other processes receive the fitted parameters. Rank 0 holds the whole file in memory, the others its tracks' steps.
+    inside the run; the other processes receive the fitted parameters. Rank 0 holds the whole
+    file in memory, the others its tracks' steps.
 
     Args:
         processes: processes to run (1: the same path in this process alone).
