@@ -182,3 +182,11 @@ def mask_covariance(R: Tensor, mask: Tensor) -> Tensor:
     both = mask.unsqueeze(-1) & mask.unsqueeze(-2)
     eye = torch.eye(mask.shape[-1], dtype=R.dtype, device=R.device)
     return torch.where(both, R, eye)
+
+
+def log_divisor(log_total: Tensor) -> tuple[Tensor, Tensor]:
+    """``log_total`` (a normaliser in log space) with ``-inf`` replaced by 0, and where it was
+    ``-inf``: dividing by a total of probability 0 would give NaN, so the caller divides by 1
+    there and sets those quotients itself."""
+    zero = torch.isneginf(log_total)
+    return torch.where(zero, torch.zeros_like(log_total), log_total), zero

@@ -21,7 +21,7 @@ from torchsvs.estimator import (
 )
 from torchsvs.filters.kalman import GaussianFilter, step_input, step_interval
 from torchsvs.kernels.compiled import outside_dynamo
-from torchsvs.linalg import cholesky, gaussian_log_density, mixture_moments
+from torchsvs.linalg import cholesky, gaussian_log_density, log_divisor, mixture_moments
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.types import FilterResult, FilterState
 
@@ -632,8 +632,7 @@ class IMM(SteppedEstimator[IMMResult]):
         M = self.num_modes
         log_joint = log_probs.unsqueeze(-1) + log_transition  # [B, i, j]: log π_ij μ_i
         log_pred = torch.logsumexp(log_joint, dim=-2)  # [B, j]: log c_j
-        unreachable = torch.isneginf(log_pred)
-        safe = torch.where(unreachable, torch.zeros_like(log_pred), log_pred)
+        safe, unreachable = log_divisor(log_pred)
         weights = torch.exp(log_joint - safe.unsqueeze(-2))  # μ_{i|j}
         if bool(unreachable.any()):
             eye = torch.eye(M, dtype=dtype, device=weights.device)

@@ -17,7 +17,7 @@ from torchsvs.estimator import (
 )
 from torchsvs.filters.imm import IMM, IMMResult
 from torchsvs.kernels.compiled import outside_dynamo
-from torchsvs.linalg import matvec, mixture_moments, right_psd_solve, symmetrize
+from torchsvs.linalg import log_divisor, matvec, mixture_moments, right_psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
 
 
@@ -233,16 +233,14 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         """One step of Kim's recursion, from the smoothed moments at ``k + 1`` (``after``) and
         the filter's at ``k``, for any leading shape."""
         M = len(means)
-        impossible = torch.isneginf(log_c)  # c_l(k+1) = 0: mode l cannot be reached
-        safe_c = torch.where(impossible, torch.zeros_like(log_c), log_c)
+        safe_c, impossible = log_divisor(log_c)  # c_l(k+1) = 0: mode l cannot be reached
         log_back = log_mu.unsqueeze(-1) + log_T - safe_c.unsqueeze(-2)  # P(s_k=j | s_k+1=l, z_1:k)
         log_back = torch.where(
             impossible.unsqueeze(-2), torch.full_like(log_back, -torch.inf), log_back
         )
         log_joint = log_back + after.log_probs.unsqueeze(-2)  # [.., j, l]
         log_probs = torch.logsumexp(log_joint, dim=-1)  # μ_j(k|e)
-        gone = torch.isneginf(log_probs)
-        safe = torch.where(gone, torch.zeros_like(log_probs), log_probs)
+        safe, gone = log_divisor(log_probs)
         weights = torch.exp(log_joint - safe.unsqueeze(-1))  # P(s_k+1=l | s_k=j, z_1:e)
         if bool(gone.any()):  # a mode of probability 0: its estimate is its filtered one
             weights = torch.where(gone.unsqueeze(-1), torch.zeros_like(weights), weights)
