@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road real real-imm learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road ksvd real real-imm learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -53,10 +53,15 @@ reproduce: $(STAMP)
 	$(PY) -m experiments.svss_paper
 	$(PY) -m experiments.spvsf_paper
 	$(PY) -m experiments.road_tracking
+	$(PY) -m experiments.ksvd_paper
 
 # Zhang & Zhou 2022 alone: the separate-modeling road tracker beside its baselines.
 road: $(STAMP)
 	$(PY) -m experiments.road_tracking
+
+# Bermúdez Ordoñez et al. 2020 alone: Examples 1 and 4 per covariance form, the adaptive R.
+ksvd: $(STAMP)
+	$(PY) -m experiments.ksvd_paper
 
 learn: $(STAMP)
 	$(PY) -m experiments.learn_psi

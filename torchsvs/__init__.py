@@ -12,6 +12,7 @@ from torchsvs.filters import (
     IMM,
     SPVSF,
     SVSF,
+    AdaptiveNoise,
     ArtificialKalmanFilter,
     ExtendedKalmanFilter,
     FiniteDifferenceVelocity,
@@ -30,6 +31,7 @@ from torchsvs.smoothers import SVSS, IMMSmoother, IMMSmootherResult, RTSSmoother
 from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 __all__ = [
+    "AdaptiveNoise",
     "ArtificialKalmanFilter",
     "SVSF",
     "SPVSF",

@@ -1,5 +1,6 @@
 """Filters: how we estimate x_t from z_1..z_t."""
 
+from torchsvs.filters.adaptive import AdaptiveNoise
 from torchsvs.filters.artificial import (
     BallisticCoefficientFromDrag,
     FiniteDifferenceVelocity,
@@ -16,6 +17,7 @@ from torchsvs.filters.svsf import SVSF, ArtificialKalmanFilter
 from torchsvs.filters.turn_imm import TurnIMM
 
 __all__ = [
+    "AdaptiveNoise",
     "ArtificialKalmanFilter",
     "BallisticCoefficientFromDrag",
     "IMM",

@@ -52,6 +52,10 @@ class FiniteDifferenceVelocity:
             (a diagonal-block noise model, for ablations).
         bridge_gaps: difference against the last observed position of the axis (default), not
             only against the step before.
+
+    A call may pass ``meas_cov`` (``[m, m]`` or per step ``[B, T, m, m]``, e.g. the adaptive
+    ``R_k`` of :class:`~torchsvs.filters.AdaptiveNoise`) to stand for the model's ``R``; a
+    velocity's variance then takes ``R_k`` of its own step for both of its positions.
     """
 
     def __init__(self, correlated: bool = True, bridge_gaps: bool = True) -> None:
@@ -59,7 +63,12 @@ class FiniteDifferenceVelocity:
         self.bridge_gaps = bridge_gaps
 
     def __call__(
-        self, z: Tensor, model: StateSpaceModel, dt: Tensor | None, u: Tensor | None = None
+        self,
+        z: Tensor,
+        model: StateSpaceModel,
+        dt: Tensor | None,
+        u: Tensor | None = None,
+        meas_cov: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         pos, vel = _positions_and_velocities(model, z.shape[-1])
         m, n = len(pos), model.state_dim
@@ -68,7 +77,7 @@ class FiniteDifferenceVelocity:
             same = torch.ones(1, 1, m, m, dtype=torch.bool)
         else:  # whether axes i, j difference against the same earlier step
             same = previous.unsqueeze(-1) == previous.unsqueeze(-2)
-        R = model.meas_cov().to(z.dtype)
+        R = (model.meas_cov() if meas_cov is None else meas_cov).to(z.dtype)
         cross = R * inv.unsqueeze(-2)  # Cov(z_i, v_j) = R_ij / Δ_j
         if not self.correlated:
             cross = torch.zeros_like(cross)

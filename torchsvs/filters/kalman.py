@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
+from torchsvs.filters.adaptive import AdaptiveNoise, check_adaptive_noise
 from torchsvs.kernels import AXIS_KERNEL, axes, compiled, fused
 from torchsvs.linalg import (
     cholesky,
@@ -210,6 +211,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
 
     #: the kind of model the filter needs (nonlinear filters take any StateSpaceModel)
     model_type: type[StateSpaceModel] = LinearModel
+    #: the adaptive ``R_k`` (:mod:`torchsvs.filters.adaptive`) of filters that take one, or None
+    adaptive_noise: AdaptiveNoise | None = None
 
     def __init__(self, model: StateSpaceModel) -> None:
         super().__init__()
@@ -245,10 +248,15 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
 
         ``H`` and ``R`` are ``[m, ·]`` when constant or ``[B, T, m, ·]`` per step; ``H`` is
         ``None`` for filters that linearise ``h`` per step (each step then reports its own).
+        With :attr:`adaptive_noise`, ``R`` is its ``R_k`` of every step (``history``: the raw
+        rows before these).
         """
         dtype, model = inputs.z.dtype, self.model
         H = model.meas_matrix().to(dtype) if isinstance(model, LinearModel) else None
-        return inputs.z, H, model.meas_cov().to(dtype)
+        R = model.meas_cov().to(dtype)
+        if self.adaptive_noise is not None:  # the one place R enters: Eqs. (29)-(30)
+            R = self.adaptive_noise.covariance(R, inputs.z, history)
+        return inputs.z, H, R
 
     def correct(
         self,
@@ -359,6 +367,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         model = self.model
         return (
             self.dense_rule is not None
+            and self.adaptive_noise is None  # the compiled steps take one constant R
             and isinstance(model, LinearModel)
             and history is None
             and model.state_dim <= fused.DENSE_MAX
@@ -583,8 +592,11 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
 
     def carried_history(self, history: Any, inputs: Inputs) -> Any:
         """What the next :meth:`scan` needs of these steps to form its measurements (``None``:
-        nothing; the SVSF's artificial measurements keep raw rows)."""
-        return None
+        nothing; the adaptive ``R``'s segments and the SVSF's artificial measurements keep raw
+        rows)."""
+        if self.adaptive_noise is None:
+            return None
+        return self.adaptive_noise.carried(history, inputs.z)
 
     def prepare(self, inputs: Inputs, history: Any = None) -> Prepared:
         """The measurements (:meth:`measurements`), their mask and the model matrices
@@ -691,7 +703,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         after its last step and the smoothed moments asked for (:func:`axes.run_axes`); else
         ``None``. Its compiled loop writes only what ``inputs.keep`` keeps."""
         model = self.model
-        if not AXIS_KERNEL["enabled"] or self.axis_rule is None:
+        if not AXIS_KERNEL["enabled"] or self.axis_rule is None or self.adaptive_noise is not None:
             return None
         if not isinstance(model, ConstantVelocity):
             return None
@@ -802,6 +814,10 @@ class KalmanFilter(GaussianFilter):
 
     Args:
         model: a :class:`~torchsvs.models.LinearModel`.
+        adaptive_noise: an :class:`~torchsvs.filters.AdaptiveNoise` to replace the model's ``R``
+            by ``R_k`` from the spread of the differenced recent measurements (Eqs. (29)-(30),
+            Bermúdez Ordoñez et al. 2020; the result's ``meas_cov`` is then ``[B, T, m, m]``),
+            or ``None`` (the model's ``R``).
 
     References:
         Kalman, "A new approach to linear filtering and prediction problems", J. Basic Eng. 82,
@@ -810,6 +826,10 @@ class KalmanFilter(GaussianFilter):
 
     axis_rule: str | None = "kalman"
     dense_rule: str | None = "kalman"
+
+    def __init__(self, model: StateSpaceModel, adaptive_noise: AdaptiveNoise | None = None) -> None:
+        super().__init__(model)
+        self.adaptive_noise = check_adaptive_noise(adaptive_noise)
 
     def correct(
         self,

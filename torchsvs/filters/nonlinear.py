@@ -32,6 +32,9 @@ class ExtendedKalmanFilter(KalmanFilter):
     then the Kalman correction in Joseph form (:class:`KalmanFilter`). Jacobians come from the
     model (autograd by default). The result stores the per-step ``F_k`` and ``H_k``, so the RTS
     and SVSS smoothers run on it unchanged. On a linear model it is the Kalman filter.
+    ``adaptive_noise`` is :class:`KalmanFilter`'s: it reads the differenced ``z`` itself, so for
+    a non-linear ``h`` it sees the noise plus the change of ``h``'s rate over its window
+    (:mod:`torchsvs.filters.adaptive`).
 
     References:
         Gadsden, Habibi, Kirubarajan, Trans. CSME 36(2), 2012, Eqs. (3)-(4) · Bar-Shalom, Li,

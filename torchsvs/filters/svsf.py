@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import torch
 from torch import Tensor
 
 from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
+from torchsvs.filters.adaptive import AdaptiveNoise, check_adaptive_noise
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import (
     GaussianFilter,
@@ -97,6 +99,12 @@ class SVSF(GaussianFilter):
         artificial: ``"auto"`` (default: finite-difference velocity where the model has
             positions and velocities, else none), an artificial measurement callable (see
             :mod:`torchsvs.filters.artificial`), or ``None`` for the ``H⁺`` mode.
+        adaptive_noise: an :class:`~torchsvs.filters.AdaptiveNoise`: ``R_k`` from the spread
+            of the differenced recent measurements ``z`` (Eqs. (29)-(30), Bermúdez Ordoñez et
+            al. 2020), or ``None`` (the model's ``R``). The gain does not read ``R``: it changes
+            the covariance (Eq. (28)) and ``S``, and so what smoothers and an IMM see. An
+            artificial measurement must take it as ``meas_cov`` (as
+            :class:`~torchsvs.filters.FiniteDifferenceVelocity` does).
 
     A per-step ``psi=`` of shape ``[B, T, m]`` passed at call time replaces ψ (for an upstream
     network that drives the boundary layer).
@@ -116,10 +124,12 @@ class SVSF(GaussianFilter):
         gamma: float | torch.Tensor = 0.1,
         learn: bool = True,
         artificial: ArtificialMeasurement | str | None = "auto",
+        adaptive_noise: AdaptiveNoise | None = None,
     ) -> None:
         super().__init__(model)
         if artificial == "auto":
             artificial = auto_artificial(model)
+        self.adaptive_noise = check_adaptive_noise(adaptive_noise)
         self.boundary_layer = Positive(psi, "psi", learn=learn)
         self.memory = UnitInterval(gamma, "gamma", learn=learn)
         if self.boundary_layer.raw.ndim > 1:
@@ -131,6 +141,16 @@ class SVSF(GaussianFilter):
             raise ValueError(f"gamma: expected a scalar, got shape {tuple(self.memory.raw.shape)}")
         if artificial is not None and not callable(artificial):
             raise TypeError(f"artificial: expected 'auto', a callable or None, got {artificial!r}")
+        if (
+            adaptive_noise is not None
+            and artificial is not None
+            and "meas_cov" not in inspect.signature(artificial).parameters
+        ):
+            raise ValueError(
+                f"adaptive_noise: the artificial measurement {type(artificial).__name__} takes no "
+                "meas_cov to build its noise from; use FiniteDifferenceVelocity, one that takes "
+                "meas_cov, or artificial=None (the H⁺ mode)"
+            )
         self.artificial = artificial
 
     @property
@@ -165,19 +185,24 @@ class SVSF(GaussianFilter):
     def measurements(
         self, inputs: Inputs, history: Any = None
     ) -> tuple[Tensor, Tensor | None, Tensor]:
-        z, H, R = super().measurements(inputs)
-        if self.artificial is not None:
-            z, H, R = _artificial_measurements(self.artificial, self.model, history, inputs)
+        if self.artificial is None:
+            z, H, R = super().measurements(inputs, history)
+        else:
+            z, H, R = _artificial_measurements(
+                self.artificial, self.model, history, inputs, self.adaptive_noise
+            )
         self._check_widths(z.shape[-1], inputs)
         return z, H, R
 
     def carried_history(self, history: Any, inputs: Inputs) -> Any:
         """The raw rows an artificial measurement may still look back to: from the earliest
         step at which some track last observed some component (finite differences bridge
-        gaps back to it), and at least the last row (a step's previous row)."""
+        gaps back to it), and at least the last row (a step's previous row); with
+        ``adaptive_noise``, at least its segments' rows."""
         if self.artificial is None:
-            return None
-        return _rows_to_keep(history, inputs)
+            return super().carried_history(history, inputs)
+        adaptive = self.adaptive_noise
+        return _rows_to_keep(history, inputs, 1 if adaptive is None else adaptive.rows_needed)
 
     def axis_measurements(self, inputs: Inputs) -> AxisMeasurements | None:
         """Finite-difference velocities axis by axis (``R_y`` never assembled)."""
@@ -319,31 +344,41 @@ class ArtificialKalmanFilter(KalmanFilter):
 
 
 def _artificial_measurements(
-    artificial: ArtificialMeasurement, model: StateSpaceModel, history: Any, inputs: Inputs
+    artificial: ArtificialMeasurement,
+    model: StateSpaceModel,
+    history: Any,
+    inputs: Inputs,
+    adaptive: AdaptiveNoise | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The artificial measurement of the steps of ``inputs``, ``H`` and ``R``, formed over the
-    rows kept from earlier steps and these (see :func:`_rows_to_keep`)."""
+    rows kept from earlier steps and these (see :func:`_rows_to_keep`); with ``adaptive``, from
+    the adaptive ``R_k`` of those rows."""
     window = _window(history, inputs)
-    z, H, R = artificial(window.z, model, window.dt, window.u)
+    if adaptive is None:
+        z, H, R = artificial(window.z, model, window.dt, window.u)
+    else:  # the kept rows cover the segments of this call's steps (carried_history)
+        R_k = adaptive.covariance(model.meas_cov().to(window.z.dtype), window.z)
+        z, H, R = cast(Any, artificial)(window.z, model, window.dt, window.u, meas_cov=R_k)
     H, R = H.to(z.dtype), R.to(z.dtype)
     kept = window.z.shape[1] - inputs.steps
     return z[:, kept:], H, R[:, kept:] if R.ndim == 4 else R
 
 
-def _rows_to_keep(history: Any, inputs: Inputs) -> _Rows:
+def _rows_to_keep(history: Any, inputs: Inputs, at_least: int = 1) -> _Rows:
     """The raw rows an artificial measurement may still look back to: from the earliest step at
     which some track last observed some component (finite differences bridge gaps back to it),
-    and at least the last row (a step's previous row)."""
+    and at least the last ``at_least`` rows (a step's previous row)."""
     window = _window(history, inputs)
     T = window.z.shape[1]
+    least = max(0, T - at_least)
     if not bool(torch.isnan(window.z[:, -1]).any()):  # every component seen last step
-        return _window_rows(window, T - 1)
+        return _window_rows(window, least)
     seen = ~torch.isnan(window.z)
     index = torch.arange(T).view(1, T, 1).expand_as(seen)
     last = torch.where(seen, index, torch.full_like(index, -1)).amax(dim=1)  # [B, m]
     observed = last[last >= 0]
     start = min(T - 1, int(observed.min())) if observed.numel() else T - 1
-    return _window_rows(window, start)
+    return _window_rows(window, min(start, least))
 
 
 class _Gains(NamedTuple):

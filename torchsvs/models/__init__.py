@@ -10,6 +10,7 @@ from torchsvs.models.mileage import (
     SeparateModel,
 )
 from torchsvs.models.motion import ConstantAcceleration, ConstantVelocity, CoordinatedTurn
+from torchsvs.models.sensors import SlantRanges
 from torchsvs.models.turn import CoordinatedTurn3D
 
 __all__ = [
@@ -24,5 +25,6 @@ __all__ = [
     "MileageConstantAcceleration",
     "MileageConstantVelocity",
     "SeparateModel",
+    "SlantRanges",
     "StateSpaceModel",
 ]

@@ -1,6 +1,7 @@
 """Seeded, batched simulators of maneuvering targets and the papers' scenarios (road targets
-included: :mod:`torchsvs.scenarios.road`)."""
+included: :mod:`torchsvs.scenarios.road`; DME navigation: :mod:`torchsvs.scenarios.dme`)."""
 
+from torchsvs.scenarios.dme import DMEScenario, dme_scenario
 from torchsvs.scenarios.maneuver import (
     Controls,
     ManeuverBatch,
@@ -44,6 +45,7 @@ __all__ = [
     "speed_profile",
     "straight_road_scenario",
     "Controls",
+    "DMEScenario",
     "ManeuverBatch",
     "ManeuverRanges",
     "Scenario",
@@ -52,6 +54,7 @@ __all__ = [
     "atc_scenario",
     "ballistic_scenario",
     "complex_scenario",
+    "dme_scenario",
     "eha_scenario",
     "random_maneuvers",
     "random_scenario",
