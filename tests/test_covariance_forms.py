@@ -191,6 +191,31 @@ def test_chunked_and_online_runs_equal_the_whole_run(kind, form):
         assert state.constants is None  # no compiled online step was taken
 
 
+@pytest.mark.parametrize("form", FACTORED)
+def test_per_step_intervals_psi_and_one_track(form):
+    """Per-step ``dt`` (``F`` and ``Q`` per track and step), a per-step ψ, and one track without
+    the batch axis run online."""
+    model, z, x0, P0 = _cv_problem()
+    gen = torch.Generator().manual_seed(6)
+    dt = torch.rand(z.shape[:2], generator=gen, dtype=torch.float64) + 0.5
+    psi = torch.rand(*z.shape[:2], 4, generator=gen, dtype=torch.float64) * 3 + 1
+    for make, kw in (
+        (lambda f: ts.KalmanFilter(model, covariance_form=f), {}),
+        (lambda f: _filters("SVSF FD", f, model), {"psi": psi}),
+    ):
+        with torch.no_grad():
+            got, want = make(form)(z, x0, P0, dt=dt, **kw), make("joseph")(z, x0, P0, dt=dt, **kw)
+        _compare(got, want, ("mean", "cov", "gain"))
+    kf = ts.KalmanFilter(model, covariance_form=form)
+    with torch.no_grad():
+        whole = kf(z[1], x0[1], P0[1])
+        state = kf.init(x0[1], P0[1])
+        for t in range(z.shape[1]):
+            state, out = kf.step(state, z[1, t])
+            assert out.mean.shape == (4,) and out.cov.shape == (4, 4)
+            assert_close(out.cov, whole.cov[t], **CHUNK_TOL)
+
+
 def test_a_replaced_covariance_is_factored_anew():
     """An IMM mixes its modes' covariances into their states (``_replace(cov=...)``): the
     carried factor no longer stands for the covariance and must not be used."""

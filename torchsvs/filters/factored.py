@@ -65,22 +65,29 @@ receives ``H`` with zero rows and ``R`` with an identity block there
 (:func:`torchsvs.linalg.mask_measurement`), which every pre-array above turns into a zero column
 of the gain; the SVSF's gain already has zero columns there.
 
+What a Kalman filter records beside (``S = HP⁻Hᵀ + R`` and the log-likelihood of the
+innovations) is formed from the reconstructed ``P⁻`` as in the Joseph form, whatever the form:
+the likelihoods of the forms compare, and a form's robustness does not extend to them.
+
 Gradients: QR, Cholesky, triangular solves and the scalar recursions are differentiable as they
 stand. The SVD's singular vectors are not differentiable where singular values coincide (a
 constant-velocity model with identical axes has every singular value twice), and
 ``torch.linalg.svd``'s backward is then infinite or NaN; :func:`right_svd` has its own backward
 that drops the terms of coinciding pairs (relative gap under ``1e3·eps``). That is exact for
-perturbations that keep the multiplicity (a ``q`` or ``r`` shared by identical axes: the
-dropped terms multiply zero) and an approximation otherwise.
+perturbations that keep the multiplicity (the measurements; a ``q`` shared by identical axes:
+the dropped terms multiply zero) and misses a term otherwise: with identical axes, the
+gradient with respect to a parameter of one axis only (an entry of ``R``'s factor) is not
+the Joseph filter's (``tests/test_covariance_forms.py`` checks the exact cases; the other
+forms have no such limit).
 
 References:
     Bermúdez Ordoñez, Arnaldo Valdés, Gómez Comendador, "Engineering Applications of Adaptive
     Kalman Filtering Based on Singular Value Decomposition (SVD)", Appl. Sci. 10(15):5168, 2020.
     doi:10.3390/app10155168 ·
     Morf, Kailath, "Square-root algorithms for least-squares estimation", IEEE Trans. Automatic
-    Control 20(4), 1975. doi:10.1109/TAC.1975.1100972 ·
+    Control 20(4), 1975 ·
     Thornton, Bierman, "Gram-Schmidt algorithms for covariance propagation", Int. J. Control
-    25(2), 1977. doi:10.1080/00207177708922226 ·
+    25(2), 1977 ·
     Bierman, "Factorization Methods for Discrete Sequential Estimation", Academic Press, 1977 ·
     Grewal, Andrews, "Kalman Filtering: Theory and Practice Using MATLAB", 4th ed., Wiley 2015,
     Ch. 7.
