@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.training
 	$(PY) -m benchmarks.ddp_predict
 	$(PY) -m benchmarks.compiled_steps
+	$(PY) -m benchmarks.covariance_forms
 
 # The full matrix (every estimator × B × dtype × pass beside four peers): most of an hour.
 bench-matrix: $(STAMP)

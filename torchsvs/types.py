@@ -92,6 +92,9 @@ class FilterState(NamedTuple):
         constants: what compiled online steps computed once for the run (the model's matrices
             and the corrector's settings, rebuilt when a parameter, buffer or setting of the
             filter or its model changes), or ``None``.
+        factor: ``cov`` in the filter's factored ``covariance_form``
+            (:class:`torchsvs.filters.factored.Carried`), so that a run in chunks equals the
+            whole run; ``None`` for the Joseph form (a state without it is factored anew).
     """
 
     mean: Tensor
@@ -102,6 +105,7 @@ class FilterState(NamedTuple):
     steps: int = 0
     single: bool = False
     constants: Any = None
+    factor: Any = None
 
 
 class SmootherResult(NamedTuple):

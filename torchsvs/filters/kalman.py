@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
+from torchsvs.filters import factored
 from torchsvs.filters.adaptive import AdaptiveNoise, check_adaptive_noise
 from torchsvs.kernels import AXIS_KERNEL, axes, compiled, fused
 from torchsvs.linalg import (
@@ -36,6 +37,8 @@ class Step(NamedTuple):
     innovation_cov: Tensor | None = None
     log_likelihood: Tensor | None = None
     meas_matrix: Tensor | None = None  #: the (linearised) H used, when it varies per step
+    #: the posterior in the filter's factored ``covariance_form`` (:mod:`.factored`), else None
+    factor: Any = None
 
 
 class Observation(NamedTuple):
@@ -48,6 +51,8 @@ class Observation(NamedTuple):
     R: Tensor  #: [m, m] or [B, m, m]
     model: StateSpaceModel
     settings: Any = None  #: the corrector's constants of the run (``run_settings``)
+    #: the prediction in the filter's factored ``covariance_form`` (:mod:`.factored`), else None
+    factor: Any = None
 
     def linearize(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """``h(x)`` and ``H`` at ``x [B, n]``: the run's ``H`` or the model's linearisation."""
@@ -213,6 +218,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     model_type: type[StateSpaceModel] = LinearModel
     #: the adaptive ``R_k`` (:mod:`torchsvs.filters.adaptive`) of filters that take one, or None
     adaptive_noise: AdaptiveNoise | None = None
+    #: how the covariance is carried and updated (:mod:`torchsvs.filters.factored`)
+    covariance_form: str = "joseph"
 
     def __init__(self, model: StateSpaceModel) -> None:
         super().__init__()
@@ -302,12 +309,19 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         # earlier rows is one (a KF's chunks all run there; an SVSF's first chunk).
         fresh = state.steps == 0 or (state.post_innovation is None and state.history is None)
         by_axis = self._run_axes(inputs) if fresh else None
+        factor = None
         if by_axis is not None:
             result, last, _ = by_axis
         else:
-            result = self._dense_scan(state, inputs) or self._loop(
-                inputs, state.post_innovation, state.history, fresh=state.steps == 0
-            )
+            dense = self._dense_scan(state, inputs)
+            if dense is not None:
+                result = dense
+            else:
+                form, dtype = self.covariance_form, inputs.z.dtype
+                prior = factored.resume(state.factor, state.cov, dtype, form)
+                result, factor = self._loop(
+                    inputs, state.post_innovation, state.history, state.steps == 0, prior
+                )
             post = result.post_innovation
             last = fused.Last(
                 result.mean[:, -1], result.cov[:, -1], None if post is None else post[:, -1]
@@ -323,6 +337,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             history=self.carried_history(state.history, inputs),
             steps=state.steps + inputs.steps,
             single=state.single,
+            factor=None if factor is None else factored.Carried(factor, last.cov),
         )
         return after, result
 
@@ -368,6 +383,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         return (
             self.dense_rule is not None
             and self.adaptive_noise is None  # the compiled steps take one constant R
+            and self.covariance_form == "joseph"
             and isinstance(model, LinearModel)
             and history is None
             and model.state_dim <= fused.DENSE_MAX
@@ -492,7 +508,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         # up to rounding); anything else takes the one-step scan. Per call: checks, the step's
         # tensors and one library call (fused.OnlineStep); filterpy's predict + update costs
         # about 20 µs, so every µs here shows.
-        if not isinstance(state, FilterState):
+        if not isinstance(state, FilterState) or self.covariance_form != "joseph":
             return None
         x, single, known = state.mean, state.single, state.constants
         if torch.is_grad_enabled() and psi is not None and psi.requires_grad:
@@ -624,29 +640,49 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         inputs: Inputs,
     ) -> tuple[Tensor, Tensor, Tensor, Step]:
         """One predict-correct cycle from ``x``, ``P`` at step ``t`` of a prepared run: the
-        prediction ``x̂_{t|t-1}``, ``P_{t|t-1}``, the ``F_t`` used and the corrector's step."""
+        prediction ``x̂_{t|t-1}``, ``P_{t|t-1}``, the ``F_t`` used and the corrector's step.
+
+        In a factored ``covariance_form`` ``P`` may be the factor the step before returned
+        (``Step.factor``); the prediction is made on it and handed to the corrector in
+        ``Observation.factor``, and the step's own factor rides in its :class:`Step`."""
+        if self.covariance_form != "joseph":
+            kind = factored.FACTORS[self.covariance_form]
+            prior = P if isinstance(P, kind) else kind.of(P)
+            x_pred, F_t = prep.transition(t, x, inputs)
+            predicted = prior.predict(F_t, _at(prep.Q, t))
+            obs = prep.observation(t)._replace(factor=predicted)
+            P_pred = predicted.full()
+            return x_pred, P_pred, F_t, self.correct(x_pred, P_pred, obs, carried, inputs)
         x_pred, P_pred, F_t = self.predict(t, x, P, prep, inputs)
         step = self.correct(x_pred, P_pred, prep.observation(t), carried, inputs)
         return x_pred, P_pred, F_t, step
 
     def _loop(
-        self, inputs: Inputs, carried: Tensor | None, history: Any, fresh: bool = True
-    ) -> FilterResult:
+        self,
+        inputs: Inputs,
+        carried: Tensor | None,
+        history: Any,
+        fresh: bool = True,
+        factor: Any = None,
+    ) -> tuple[FilterResult, Any]:
         """The predict-correct loop over the steps of ``inputs`` from its prior, the corrector
         carrying ``carried`` (see :meth:`correct`) in, measurements formed with ``history``;
-        ``fresh``: the prior is ``init``'s (no step taken yet)."""
+        ``fresh``: the prior is ``init``'s (no step taken yet); ``factor``: the prior's factor
+        in a factored ``covariance_form``, carried from an earlier run (else ``P0`` is
+        factored). Returns the result and the last step's factor (``None``: Joseph form)."""
         prep = self.prepare(inputs, history)
         steps: list[Step] = []
         pred_means: list[Tensor] = []
         pred_covs: list[Tensor] = []
         linearised: list[Tensor] = []
-        x, P = inputs.x0, inputs.P0
+        x, P = inputs.x0, inputs.P0 if factor is None else factor
         run_steps = compiled.runner(self, prep, inputs, fresh)  # filter_step, compiled or not
         while len(steps) < inputs.steps:
             for x_pred, P_pred, F_t, step in run_steps(len(steps), x, P, carried):
                 if prep.F is None:
                     linearised.append(F_t)
-                x, P, carried = step.mean, step.cov, step.post_innovation
+                x, carried = step.mean, step.post_innovation
+                P = step.cov if step.factor is None else step.factor
                 steps.append(step)
                 pred_means.append(x_pred)
                 pred_covs.append(P_pred)
@@ -660,7 +696,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return out
 
         loglik = stacked("log_likelihood")
-        return FilterResult(
+        result = FilterResult(
             mean=stacked_all([s.mean for s in steps]),
             cov=stacked_all([s.cov for s in steps]),
             pred_mean=stacked_all(pred_means),
@@ -679,6 +715,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             innovation_cov=stacked("innovation_cov"),
             log_likelihood=None if loglik is None else loglik.sum(dim=1),
         )
+        return result, steps[-1].factor
 
     def smoother_pass(
         self, inputs: Inputs, smoothing: str | None = None
@@ -703,7 +740,12 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         after its last step and the smoothed moments asked for (:func:`axes.run_axes`); else
         ``None``. Its compiled loop writes only what ``inputs.keep`` keeps."""
         model = self.model
-        if not AXIS_KERNEL["enabled"] or self.axis_rule is None or self.adaptive_noise is not None:
+        if (
+            not AXIS_KERNEL["enabled"]
+            or self.axis_rule is None
+            or self.adaptive_noise is not None
+            or self.covariance_form != "joseph"
+        ):
             return None
         if not isinstance(model, ConstantVelocity):
             return None
@@ -818,6 +860,14 @@ class KalmanFilter(GaussianFilter):
             by ``R_k`` from the spread of the differenced recent measurements (Eqs. (29)-(30),
             Bermúdez Ordoñez et al. 2020; the result's ``meas_cov`` is then ``[B, T, m, m]``),
             or ``None`` (the model's ``R``).
+        covariance_form: how ``P`` is carried and updated: ``"joseph"`` (default, the form
+            above), ``"conventional"`` (``P⁺ = (I − KH)P⁻``), ``"sqrt"`` (``P = SSᵀ``, QR of
+            pre-arrays, Morf-Kailath update), ``"ud"`` (``P = UDUᵀ``, Thornton and Bierman) or
+            ``"svd"`` (``P = UD²Uᵀ``, K-SVD, Bermúdez Ordoñez et al. 2020): the same filter in
+            exact arithmetic, with different rounding (:mod:`torchsvs.filters.factored`). The
+            factored forms run the general step loop (no fused or per-axis kernels); the
+            result's ``cov`` is the full ``P`` and ``S`` and the log-likelihood are formed from
+            the predicted ``P`` as in the Joseph form.
 
     References:
         Kalman, "A new approach to linear filtering and prediction problems", J. Basic Eng. 82,
@@ -827,9 +877,15 @@ class KalmanFilter(GaussianFilter):
     axis_rule: str | None = "kalman"
     dense_rule: str | None = "kalman"
 
-    def __init__(self, model: StateSpaceModel, adaptive_noise: AdaptiveNoise | None = None) -> None:
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        adaptive_noise: AdaptiveNoise | None = None,
+        covariance_form: str = "joseph",
+    ) -> None:
         super().__init__(model)
         self.adaptive_noise = check_adaptive_noise(adaptive_noise)
+        self.covariance_form = factored.check_form(covariance_form)
 
     def correct(
         self,
@@ -840,17 +896,33 @@ class KalmanFilter(GaussianFilter):
         inputs: Inputs,
     ) -> Step:
         fitted, H = obs.linearize(x_pred)  # Eq. (4) of Gadsden et al. 2012 for a nonlinear h
-        step = self.kalman_correct(x_pred, P_pred, obs.z - fitted, obs.mask, H, obs.R)
+        e = obs.z - fitted
+        step = self.kalman_correct(x_pred, P_pred, e, obs.mask, H, obs.R, obs.factor)
         return step if obs.H is not None else step._replace(meas_matrix=H)
 
     def kalman_correct(
-        self, x_pred: Tensor, P_pred: Tensor, e: Tensor, mask: Tensor | None, H: Tensor, R: Tensor
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        e: Tensor,
+        mask: Tensor | None,
+        H: Tensor,
+        R: Tensor,
+        factor: Any = None,
     ) -> Step:
-        """The Kalman correction with innovation ``e``; missing components are dropped."""
+        """The Kalman correction with innovation ``e``; missing components are dropped.
+        ``factor``: ``P_pred`` in a factored covariance form, whose update then gives the gain
+        and the posterior (:mod:`.factored`)."""
         if mask is not None:
             H, R = mask_measurement(H, R, mask)
             e = e * mask
-        x, P, K, S, L = kalman_update(x_pred, P_pred, e, H, R)
+        if factor is None:
+            x, P, K, S, L = kalman_update(x_pred, P_pred, e, H, R)
+        else:
+            S = innovation_covariance(H, P_pred @ H.mT, R)
+            L = cholesky(S)
+            K, factor = factor.kalman_update(H, R, S)
+            x, P = x_pred + matvec(K, e), factor.full()
         observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)
         loglik = gaussian_log_density(e, L, observed)
-        return Step(x, P, e, K, innovation_cov=S, log_likelihood=loglik)
+        return Step(x, P, e, K, innovation_cov=S, log_likelihood=loglik, factor=factor)

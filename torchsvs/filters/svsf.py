@@ -11,6 +11,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike, Positive, UnitInterval
 from torchsvs.estimator import Inputs
+from torchsvs.filters import factored
 from torchsvs.filters.adaptive import AdaptiveNoise, check_adaptive_noise
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
 from torchsvs.filters.kalman import (
@@ -105,6 +106,12 @@ class SVSF(GaussianFilter):
             the covariance (Eq. (28)) and ``S``, and so what smoothers and an IMM see. An
             artificial measurement must take it as ``meas_cov`` (as
             :class:`~torchsvs.filters.FiniteDifferenceVelocity` does).
+        covariance_form: how Eq. (28) is carried out: ``"joseph"`` (default, its left side),
+            the factored ``"sqrt"``, ``"ud"`` or ``"svd"`` forms of the same update (the
+            covariance as a factor, updated through a pre-array built with the SVSF's gain:
+            :mod:`torchsvs.filters.factored`), or ``"conventional"``: the right side
+            ``(I − KH)P`` as printed, which for the SVSF's gain is *not* the covariance of its
+            estimate (the estimates are unchanged: the SVSF's gain does not read ``P``).
 
     A per-step ``psi=`` of shape ``[B, T, m]`` passed at call time replaces ψ (for an upstream
     network that drives the boundary layer).
@@ -125,8 +132,10 @@ class SVSF(GaussianFilter):
         learn: bool = True,
         artificial: ArtificialMeasurement | str | None = "auto",
         adaptive_noise: AdaptiveNoise | None = None,
+        covariance_form: str = "joseph",
     ) -> None:
         super().__init__(model)
+        self.covariance_form = factored.check_form(covariance_form)
         if artificial == "auto":
             artificial = auto_artificial(model)
         self.adaptive_noise = check_adaptive_noise(adaptive_noise)
@@ -256,7 +265,12 @@ class SVSF(GaussianFilter):
         memory = carried if carried is not None else torch.zeros_like(e)
         K = H_plus * svsf_gain_ratio(e, memory, psi, gains.gamma).unsqueeze(-2)
         x = x_pred + matvec(K, e)  # Eq. (22)
-        P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
+        factor = obs.factor  # P_pred in a factored covariance form, else None
+        if factor is None:
+            P = joseph_update(P_pred, K, H, R)  # Eq. (28), left side
+        else:
+            factor = factor.gain_update(K, H, R)
+            P = factor.full()
         S = innovation_covariance(H, P_pred @ H.mT, R)
         if mask is not None:  # H P Hᵀ + R of the observed components (see mask_measurement)
             S = mask_covariance(S, mask)
@@ -268,6 +282,7 @@ class SVSF(GaussianFilter):
             post_innovation=self.memory_after(x, obs, memory),
             innovation_cov=S,
             meas_matrix=H if obs.H is None else None,
+            factor=factor,
         )
 
     @property

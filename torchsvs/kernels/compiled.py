@@ -105,7 +105,8 @@ def runner(estimator: Any, prep: Any, inputs: Any, fresh: bool) -> Runner:
     def eager(t: int, x: Tensor, P: Tensor, carried: Tensor | None) -> list[StepOut]:
         return [estimator.filter_step(t, x, P, carried, prep, inputs)]
 
-    if not active():
+    if not active() or estimator.covariance_form != "joseph":
+        # (a factored covariance form hands its factor from step to step: eager)
         return eager
     chunk = max(1, int(COMPILED_STEPS["chunk"]))
     T = inputs.steps
