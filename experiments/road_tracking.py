@@ -988,8 +988,13 @@ def mixing_discussion(res: Results) -> list[str]:
         "drags it along; on the straight road, with the largest accelerations, that put the SM "
         "tracker behind IMM-KF(CVCA). The tracker now mixes as the Cartesian IMMs do (unbiased "
         "mixing, Yuan et al. 2012): the NCV mode lends the NCA mode's own acceleration mean and "
-        "variance, so only the NCA mode's own filter changes its acceleration. Position / "
-        "velocity RMSE during the accelerations (m / m/s), paper's q and main window:",
+        "variance, so only the NCA mode's own filter changes its acceleration. That has a "
+        "price where the NCA acceleration starts wrong: on the circle (5 m/s at T = 0.1 s under "
+        "2 m noise) the chord lengths of the unscented initialisation are mostly noise, the "
+        "initial speed far too high, and the NCA mode learns a spurious deceleration while it "
+        "comes down; the zero padding shrinks that away, unbiased mixing leaves it to the NCA "
+        "filter, slow at the paper's q. Position / velocity RMSE during the accelerations "
+        "(m / m/s), paper's q and main window:",
         "",
         markdown_table(
             ["scenario", "SM, zero padding", "SM (unbiased mixing)", "IMM-KF(CVCA)"], rows

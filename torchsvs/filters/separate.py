@@ -655,7 +655,11 @@ class SeparateModelingTracker(IMM):
     ``experiments/road_tracking.py``): mixing into the NCA mode, the NCV mode lends the NCA
     mode's own ``s̈`` mean and variance, uncorrelated with its ``s``, ``ṡ``, ``η``, so only the
     NCA mode's own filter changes its acceleration, while ``s``, ``ṡ`` and ``η`` mix with the
-    spread of the modes' means as usual. The experiment compares the two (ablation).
+    spread of the modes' means as usual. The price: an NCA acceleration that is wrong (the
+    spurious one the initialisation's chord-length speed leaves for a slow target, whose
+    chords are mostly noise) is corrected by the NCA mode's own filter alone, slowly at a
+    small ``q``, where the zero padding would shrink it away. The experiment compares the two
+    (ablation).
 
     **The reset's direction** (``direction``). The LS slope :math:`r^* = \rho u` has norm
     :math:`\rho \ne 1` when the estimated arc lengths of the window are off in scale (a speed
