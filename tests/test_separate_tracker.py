@@ -11,6 +11,7 @@ import torch
 import torchsvs as ts
 from tests.conftest import assert_close
 from torchsvs.filters.separate import (
+    DEFAULT_TRANSITION,
     fit_window_line,
     online_fit,
     reset_covariance,
@@ -75,6 +76,72 @@ def test_mode_probabilities_sum_to_one_and_favour_nca_while_accelerating(straigh
     steady = ((k >= 80) & (k <= 120)) | (k >= 160)
     assert float(nca[:, accelerating].mean()) > float(nca[:, steady].mean()) + 0.2
     assert float(nca[:, accelerating].mean()) > 0.6
+
+
+def test_mixing_leaves_the_nca_mode_its_own_acceleration():
+    """The NCV mode has no acceleration (its state is ``[s, ṡ]``): mixing into the NCA mode
+    takes the NCA mode's own ``s̈`` mean and variance for the NCV mode's share (unbiased mixing,
+    Yuan et al. 2012), so a probable NCV mode does not pull the NCA acceleration towards 0. The
+    combined estimate counts the NCV mode's acceleration as 0 (the paper's Sec. 4)."""
+    sc = ts.scenarios.straight_road_scenario(3, _gen(12), steps=70)
+    tracker = _tracker(sc, q=sc.q)
+    with torch.no_grad():
+        out = tracker(sc.z)
+        state = tracker.initialise(sc.z[:, :3])
+        state, _ = tracker.scan(state, sc.z[:, 3:60])  # into the first acceleration
+        state = tracker.adjust_modes(state)
+        nca = state.modes[1]
+        log_probs = torch.tensor([0.8, 0.2], dtype=F64).log().expand(3, 2)  # NCV probable
+        priors, _ = tracker.mix(state.modes, log_probs, tracker.log_transition(F64))
+    mixed_mean, mixed_cov = priors[1]
+    assert bool((nca.mean[:, 2] > 1.0).all())
+    assert_close(mixed_mean[:, 2], nca.mean[:, 2], atol=1e-12)
+    assert_close(mixed_cov[:, 2, 2], nca.cov[:, 2, 2], atol=1e-12)
+    # The shared components mix with the spread of the means as in any IMM.
+    assert bool((mixed_cov[:, 1, 1] > nca.cov[:, 1, 1]).all())
+    combined = out.mode_probs[:, 3:, 1] * out.imm.modes[1].mean[..., 2]
+    assert_close(out.mileage[:, 3:, 2], combined, atol=1e-12)
+
+
+def test_at_the_papers_q_the_straight_road_speed_follows_the_accelerations():
+    """On the straight road the SM trajectory model is exact. At the paper's q its velocity
+    error during the accelerations is no larger than that of the mileage IMM that is given the
+    road (the NCV-NCA IMM on the measurements projected on it: the SM tracker without the
+    trajectory to estimate), and its position error is below the Cartesian IMM-KF(CVCA)'s
+    (issue 14's acceptance point)."""
+    from experiments import road_tracking as rt
+
+    sc = ts.scenarios.straight_road_scenario(8, _gen(13))
+    q, dt, var = sc.q, sc.dt, sc.meas_std**2
+    with torch.no_grad():
+        sm = _tracker(sc, q=q)(sc.z).cartesian
+        y = (sc.z - sc.road.start) @ sc.road.unit  # the measured arc length on the known road
+        known = ts.IMM(
+            [
+                ts.KalmanFilter(ts.models.MileageConstantVelocity(dt, q, var).double()),
+                ts.KalmanFilter(ts.models.MileageConstantAcceleration(dt, q, var).double()),
+            ],
+            DEFAULT_TRANSITION,
+            embedding=[[0, 1], [0, 1, 2]],
+        )
+        x0 = torch.stack([y[:, 1], (y[:, 1] - y[:, 0]) / dt, torch.zeros_like(y[:, 0])], -1)
+        P0 = torch.tensor(
+            [[var, var / dt, 0.0], [var / dt, 2 * var / dt**2, 0.0], [0.0, 0.0, 25.0]], dtype=F64
+        )
+        speed = known(y[:, 2:, None], x0, P0).mean[..., 1]
+    cartesian_imm = rt.estimate("IMM-KF(CVCA)", sc, q, sc.window)
+    during = (sc.acceleration[0] != 0).nonzero().flatten()
+
+    def rmse(err: torch.Tensor) -> float:
+        return float(err.square().mean().sqrt())
+
+    sm_velocity = rmse((sm - sc.truth)[:, during][..., [1, 3]].norm(dim=-1))
+    known_speed = rmse((speed - sc.speed[:, 2:])[:, during - 2])
+    assert sm_velocity < 1.2 * known_speed
+    sm_position, imm_position = (
+        rmse((e - sc.truth)[:, during][..., [0, 2]].norm(dim=-1)) for e in (sm, cartesian_imm)
+    )
+    assert sm_position < imm_position
 
 
 def test_result_shapes_and_first_three_steps(straight):
@@ -143,11 +210,12 @@ def test_the_reset_fits_the_window_before_the_newest_at_the_filtered_arc_lengths
     assert bool((full.mileage[:, 4:15, 1] > 0).all())  # (no turned orientation here)
     latest = slice(15 - (window - 1), 15)
     expected = reset_trajectory_parameters(z[:, latest], arc[:, latest], normalize=False)
-    for mode in adjusted.modes:
-        assert_close(mode.mean[:, 3:], expected, atol=1e-9)
+    for mdl, mode, before in zip(tracker.mode_models, adjusted.modes, state.modes, strict=True):
+        b = mdl.base_dim  # the NCV mode's [s, ṡ], the NCA mode's [s, ṡ, s̈]
+        assert_close(mode.mean[:, b:], expected, atol=1e-9)
         # η's block is the least-squares covariance (plus the floor), uncorrelated with s.
-        assert_close(mode.cov[:, :3, 3:], torch.zeros(2, 3, 5, dtype=F64))
-    assert_close(adjusted.modes[0].mean[:, :3], state.modes[0].mean[:, :3])
+        assert_close(mode.cov[:, :b, b:], torch.zeros(2, b, 5, dtype=F64))
+        assert_close(mode.mean[:, :b], before.mean[:, :b])
     # At the first cycle there is no reset.
     first = tracker.initialise(z[:, :3])
     assert tracker.adjust_modes(first) is first
@@ -172,15 +240,15 @@ def test_the_default_reset_moves_the_slopes_norm_into_the_mileage_state():
     rho = raw[:, [1, 3]].norm(dim=-1)
     s_l = arc[:, 0]
     assert_close(adjusted.aux.arc_length, s_l[:, None] + rho[:, None] * (arc - s_l[:, None]))
-    for before, after in zip(state.modes, adjusted.modes, strict=True):
-        x, y = before.mean, after.mean
-        assert_close(y[:, 3:], reset_trajectory_parameters(aux.z, arc), atol=1e-9)
+    for mdl, before, after in zip(tracker.mode_models, state.modes, adjusted.modes, strict=True):
+        x, y, b = before.mean, after.mean, mdl.base_dim
+        assert_close(y[:, b:], reset_trajectory_parameters(aux.z, arc), atol=1e-9)
         assert_close(y[:, 0], s_l + rho * (x[:, 0] - s_l), atol=1e-9)
-        assert_close(y[:, 1:3], rho[:, None] * x[:, 1:3], atol=1e-9)
-        assert_close(after.cov[:, :3, :3], rho[:, None, None] ** 2 * before.cov[:, :3, :3])
+        assert_close(y[:, 1:b], rho[:, None] * x[:, 1:b], atol=1e-9)
+        assert_close(after.cov[:, :b, :b], rho[:, None, None] ** 2 * before.cov[:, :b, :b])
         # The same positions as the raw reset would give.
-        raw_state = torch.cat([x[:, :3], raw], dim=-1)
-        assert_close(tracker.mode_models[1].h(y), tracker.mode_models[1].h(raw_state), atol=1e-9)
+        raw_state = torch.cat([x[:, :b], raw], dim=-1)
+        assert_close(mdl.h(y), mdl.h(raw_state), atol=1e-9)
 
 
 def test_without_the_reset_the_circle_is_tracked_worse():
@@ -254,6 +322,7 @@ def test_gradients_are_finite_and_match_finite_differences():
         ({"q": -1.0}, "q"),
         ({"reset_covariance": "inflate"}, "reset_covariance"),
         ({"direction": "unit"}, "direction"),
+        ({"mixing": "padded"}, "mixing"),
         ({"floor": 0.0}, "floor"),
         ({"transition": [[0.9, 0.2], [0.1, 0.9]]}, "transition"),
         ({"eta_std": 0.0}, "eta_std"),
@@ -363,16 +432,17 @@ def test_experiment_configurations_run_on_a_tiny_case(tmp_path):
         names=("curve1",),
         q_grid=(),
         fig10_windows=(),
-        ablations={"no LS reset": {"reset": False}},
+        ablations={"no LS reset": {"reset": False}, rt.MIXING_ABLATION: {"mixing": "zero"}},
         progress=False,
     )
     out = res.scenarios["curve1"]
     assert out.tracking_q == out.paper_q and out.qs == [out.paper_q]
     key = (out.paper_q, 12)
     assert set(out.scores[key]) == set(rt.ESTIMATORS)
-    assert set(out.ablations[out.paper_q]) == {"no LS reset"}
+    assert set(out.ablations[out.paper_q]) == {"no LS reset", rt.MIXING_ABLATION}
     curve = out.scores[key]["SM"].position
     assert bool((curve.low[3:] <= curve.rmse[3:] + 1e-12).all())
     assert bool((curve.rmse[3:] <= curve.high[3:] + 1e-12).all())
     text = rt.report(res, [])
     assert "Acceptance point" in text and "curve road I" in text
+    assert "## The NCV mode's missing acceleration" in text

@@ -91,7 +91,8 @@ window's residual covariance pooled with it. :class:`SeparateModelingTracker` se
 block to it at each reset (its docstring says why).
 
 **The tracker**, :class:`SeparateModelingTracker`, is the :class:`~torchsvs.IMM` of the
-NCV and NCA augmented models with these blocks in its interaction hooks.
+NCV and NCA augmented models with these blocks in its interaction hooks; the acceleration the
+NCV mode lacks is mixed without bias (its docstring).
 
 **Online fitting** (the paper's baseline, its ref. [30]): per axis, the first-degree polynomial
 in time fitted by least squares to the latest ``k_m`` measurements; the estimate is the fit at
@@ -532,6 +533,15 @@ def online_fit(z: Tensor, window: int, dt: float | Tensor = 1.0) -> Tensor:
 DEFAULT_TRANSITION = ((0.95, 0.05), (0.05, 0.95))
 
 
+#: Where the NCV mode's ``[s, ṡ, η]`` and the NCA mode's ``[s, ṡ, s̈, η]`` sit in the
+#: tracker's common state ``[s, ṡ, s̈, x_l, r_x, y_l, r_y, s_l]`` (the
+#: :class:`~torchsvs.IMM`'s ``embedding`` with the default ``mixing="unbiased"`` of
+#: :class:`SeparateModelingTracker`: the NCV mode has no acceleration to mix).
+MODE_EMBEDDING = ((0, 1, 3, 4, 5, 6, 7), (0, 1, 2, 3, 4, 5, 6, 7))
+#: How the SM tracker mixes the acceleration the NCV mode lacks (:class:`SeparateModelingTracker`).
+MIXINGS = ("unbiased", "zero")
+
+
 #: What the SM tracker does to ``η``'s covariance at a reset (:class:`SeparateModelingTracker`).
 RESET_COVARIANCES = ("residual", "measurement", "keep")
 #: What the SM tracker does with the norm of the LS direction (:class:`SeparateModelingTracker`).
@@ -568,7 +578,9 @@ class SeparateModelingResult(NamedTuple):
         cov: ``[B, T, 8, 8]`` its covariance (``None`` with ``keep="mean"``).
         mode_probs: ``[B, T, 2]`` probabilities of the NCV and NCA modes.
         imm: the :class:`~torchsvs.filters.imm.IMMResult` of the filtered steps (``z[:, 3:]``
-            after a self-initialisation, else every step), per-mode results included.
+            after a self-initialisation, else every step), per-mode results included, each in
+            its mode's own state (the NCV mode's ``[s, ṡ, η]``, the NCA mode's
+            ``[s, ṡ, s̈, η]``; :attr:`SeparateModelingTracker.mode_models`).
         log_likelihood: ``[B]``, the IMM's, over the filtered steps.
     """
 
@@ -597,12 +609,14 @@ class SeparateModelingTracker(IMM):
     trajectory parameters ``η`` are reset by least squares before every interaction stage
     except the first.
 
-    Modes: NCV (:class:`~torchsvs.models.MileageConstantVelocity` embedded in the NCA layout,
-    ``s̈ ↦ 0`` without noise, the paper's Sec. 4 (i)) and NCA
-    (:class:`~torchsvs.models.MileageConstantAcceleration`), both augmented by
-    :math:`\eta = [x_l, r_x, y_l, r_y, s_l]`, so both modes share the state
-    ``[s, ṡ, s̈, x_l, r_x, y_l, r_y, s_l]`` and mix without an embedding (the NCV mode's zero
-    acceleration takes part in the mixing, as the paper says). Each mode is filtered by an
+    Modes: NCV (:class:`~torchsvs.models.MileageConstantVelocity`, state ``[s, ṡ, η]``) and
+    NCA (:class:`~torchsvs.models.MileageConstantAcceleration`, ``[s, ṡ, s̈, η]``), both
+    augmented by :math:`\eta = [x_l, r_x, y_l, r_y, s_l]`. The estimate lives in the common
+    state ``[s, ṡ, s̈, x_l, r_x, y_l, r_y, s_l]`` (the IMM's ``embedding``,
+    :data:`MODE_EMBEDDING`), where the NCV mode's acceleration counts as 0 with variance 0 in
+    the combination (the paper's Sec. 4: "for the NCV model, the acceleration component ... is
+    zero and the elements related to the acceleration in the covariance are zero"); how the
+    missing acceleration is mixed: see below. Each mode is filtered by an
     :class:`~torchsvs.ExtendedKalmanFilter` (the paper's choice) or, with ``unscented=True``,
     an :class:`~torchsvs.UnscentedKalmanFilter`.
 
@@ -623,6 +637,30 @@ class SeparateModelingTracker(IMM):
     3. **Interaction, mode-matched filtering, mode probabilities, combination**: the
        :class:`~torchsvs.IMM`'s.
 
+    **Mixing the acceleration the NCV mode lacks** (``mixing``). When the NCA mode's initial
+    condition is mixed, the NCV mode has no ``s̈`` to contribute. Padding its state with
+    ``s̈ = 0`` of variance 0 (``"zero"``: the NCV model embedded in the NCA layout,
+    ``SeparateModel(..., embed_acceleration=True)``, every mode in one state) turns the mixing
+    into a shrinkage of the NCA acceleration: with :math:`\mu_{i|j}` the mixing probabilities,
+    :math:`\hat{\ddot s}^{0,NCA} = \mu_{NCA|NCA}\,\hat{\ddot s}^{NCA}`, and its variance and
+    its covariances with ``s``, ``ṡ`` shrink by the same factor (plus the spread of the two
+    means), at every step. The zero is not an estimate of the target's acceleration but the
+    absence of one, so this mixing is biased (Yuan et al. 2012; Granström et al. 2015). With
+    the paper's small ``q`` (the NCA acceleration may change by ``q`` per step) the bias
+    decides the result: whenever the NCV mode is probable the NCA mode's acceleration and its
+    variance are pulled to 0 step after step, so when an acceleration starts the NCA mode
+    cannot build up ``s̈``, the speed lags, and only the reset's slope norm (``ρ``, below) drags
+    it along. The default (``"unbiased"``) mixes as :class:`~torchsvs.IMM` does modes of
+    unequal state (and as the Cartesian IMM-KF(CVCA) the paper compares with is run in
+    ``experiments/road_tracking.py``): mixing into the NCA mode, the NCV mode lends the NCA
+    mode's own ``s̈`` mean and variance, uncorrelated with its ``s``, ``ṡ``, ``η``, so only the
+    NCA mode's own filter changes its acceleration, while ``s``, ``ṡ`` and ``η`` mix with the
+    spread of the modes' means as usual. The price: an NCA acceleration that is wrong (the
+    spurious one the initialisation's chord-length speed leaves for a slow target, whose
+    chords are mostly noise) is corrected by the NCA mode's own filter alone, slowly at a
+    small ``q``, where the zero padding would shrink it away. The experiment compares the two
+    (ablation).
+
     **The reset's direction** (``direction``). The LS slope :math:`r^* = \rho u` has norm
     :math:`\rho \ne 1` when the estimated arc lengths of the window are off in scale (a speed
     that lags an acceleration: the target travelled :math:`\rho` times the estimated
@@ -631,11 +669,13 @@ class SeparateModelingTracker(IMM):
     :math:`\rho` (``‖r‖`` wanders far from 1; ``q`` acts on ``s`` in that drifting unit, so
     it stands for a larger noise in metres). Normalising ``r`` alone (``"normalize"``) keeps
     the natural parameterisation but discards :math:`\rho`, and the tracker lags the
-    accelerations unless ``q`` is large. By default (``"rescale"``) the direction is normalised
-    and :math:`\rho` moves into the mileage state, an exact reparameterisation of the raw
-    reset: :math:`s \leftarrow s_l + \rho(s - s_l)`, :math:`\dot s \leftarrow \rho\dot s`,
+    accelerations more. By default (``"rescale"``) the direction is normalised and
+    :math:`\rho` moves into the mileage state, an exact reparameterisation of the raw reset's
+    mean: :math:`s \leftarrow s_l + \rho(s - s_l)`, :math:`\dot s \leftarrow \rho\dot s`,
     :math:`\ddot s \leftarrow \rho\ddot s` (their covariance by the same factor; the window's
     arc lengths too), so the mileage stays in metres, ``r`` a unit vector and ``q`` in m/s².
+    :math:`\rho` is taken as exact: its variance (the least-squares slope's along its
+    direction) is left out, as the normalised direction's covariance leaves it out.
     ``experiments/road_tracking.py`` compares the three.
 
     **η's covariance at a reset** (``reset_covariance``). The paper resets "the parameter
@@ -643,17 +683,16 @@ class SeparateModelingTracker(IMM):
     lost). Keeping the filter's covariance for the moved mean (``"keep"``) is inconsistent:
     with the tiny artificial noise ``σ_η`` the filter's ``η`` covariance shrinks without bound,
     while every reset moves ``η`` by far more than it allows (``s_l`` by a step's travel, ``x_l``
-    with it); the EKF then puts each innovation into the arc length. With a normalised
-    direction this diverges on the straight road; with the raw one it is only less accurate,
-    most on bends. By default the reset sets ``η``'s block to the covariance of the least-squares
-    estimate itself (:func:`reset_covariance`: :math:`\tilde R \otimes (V'V)^{-1}`, through a
-    normalisation's Jacobian, ``s_l`` an anchor of variance 0, plus ``floor``), with the noise
-    :math:`\tilde R` estimated from the window's residuals pooled with ``R``
-    (``"residual"``: a window the line does not fit, on a bend, gets a wider covariance, so
-    the new measurement counts more) or ``R`` alone (``"measurement"``), and zeroes ``η``'s
-    cross-covariance with the base state: the reset is a re-initialisation of the line, and
-    its dependence on the filter's earlier arc lengths is ignored, as in any reset. The base
-    block is the filter's. ``experiments/road_tracking.py`` compares the three.
+    with it); the EKF then puts each innovation into the arc length, and the tracker is less
+    accurate, most on the bends. By default the reset sets ``η``'s block to the covariance of
+    the least-squares estimate itself (:func:`reset_covariance`: :math:`\tilde R \otimes
+    (V'V)^{-1}`, through a normalisation's Jacobian, ``s_l`` an anchor of variance 0, plus
+    ``floor``), with the noise :math:`\tilde R` estimated from the window's residuals pooled
+    with ``R`` (``"residual"``: a window the line does not fit, on a bend, gets a wider
+    covariance, so the new measurement counts more) or ``R`` alone (``"measurement"``), and
+    zeroes ``η``'s cross-covariance with the base state: the reset is a re-initialisation of
+    the line, and its dependence on the filter's earlier arc lengths is ignored, as in any
+    reset. The base block is the filter's. ``experiments/road_tracking.py`` compares the three.
 
     **Orientation.** ``(s, ṡ, s̈, r, s_l)`` and its negative give the same measurement function
     and the same likelihoods (the models are symmetric), and from three noisy measurements of a
@@ -699,13 +738,20 @@ class SeparateModelingTracker(IMM):
             ``"measurement"`` or ``"keep"`` (:data:`RESET_COVARIANCES`, see above).
         direction: the reset's direction: ``"rescale"`` (default), ``"normalize"`` or
             ``"raw"`` (:data:`RESET_DIRECTIONS`, see above).
+        mixing: how the acceleration the NCV mode lacks is mixed: ``"unbiased"`` (default) or
+            ``"zero"`` (:data:`MIXINGS`, see above). With ``"zero"`` both modes' states (and
+            their results) are ``[s, ṡ, s̈, η]``; by default the NCV mode's is ``[s, ṡ, η]``.
         floor: variance added to the diagonal of the initialisation's covariance and of ``η``'s
             block at a reset (> 0: both are singular).
         kappa: the initialisation's unscented ``κ``.
 
     References:
         Zhang Zhuanhua, Zhou Gongjian, J. Syst. Eng. Electron. 33(5), 2022, Secs. 3-4 ·
-        Blom, Bar-Shalom, IEEE Trans. Autom. Control 33(8), 1988. doi:10.1109/9.1299
+        Blom, Bar-Shalom, IEEE Trans. Autom. Control 33(8), 1988. doi:10.1109/9.1299 ·
+        Yuan, Bar-Shalom, Willett, Mozeson, Pollak, Hardiman, "A multiple IMM estimation
+        approach with unbiased mixing for thrusting projectiles", IEEE Trans. Aerosp. Electron.
+        Syst. 48(4), 2012 · Granström, Willett, Bar-Shalom, "Systematic approach to IMM mixing
+        for unequal dimension states", IEEE Trans. Aerosp. Electron. Syst. 51(4), 2015.
     """
 
     def __init__(
@@ -722,6 +768,7 @@ class SeparateModelingTracker(IMM):
         reset: bool = True,
         reset_covariance: str = "residual",
         direction: str = "rescale",
+        mixing: str = "unbiased",
         floor: float = 1e-6,
         kappa: float = 0.0,
     ) -> None:
@@ -746,18 +793,27 @@ class SeparateModelingTracker(IMM):
                 f"direction: expected one of {', '.join(map(repr, RESET_DIRECTIONS))}, "
                 f"got {direction!r}"
             )
+        if mixing not in MIXINGS:
+            raise ValueError(
+                f"mixing: expected one of {', '.join(map(repr, MIXINGS))}, got {mixing!r}"
+            )
         if not (isinstance(floor, (int, float)) and math.isfinite(floor) and floor > 0):
             raise ValueError(f"floor: expected a number > 0, got {floor!r}")
-        ncv = SeparateModel(MileageConstantVelocity(dt, q_ncv), eta_std, r, embed_acceleration=True)
+        zero = mixing == "zero"
+        ncv = SeparateModel(MileageConstantVelocity(dt, q_ncv), eta_std, r, embed_acceleration=zero)
         nca = SeparateModel(MileageConstantAcceleration(dt, q_nca), eta_std, r)
         mode_filter = UnscentedKalmanFilter if unscented else ExtendedKalmanFilter
         super().__init__(
-            [mode_filter(ncv), mode_filter(nca)], transition, initial_probs=initial_probs
+            [mode_filter(ncv), mode_filter(nca)],
+            transition,
+            initial_probs=initial_probs,
+            embedding=None if zero else MODE_EMBEDDING,
         )
         self.window = window
         self.reset = bool(reset)
         self.reset_covariance = reset_covariance
         self.direction = direction
+        self.mixing = mixing
         self.floor = float(floor)
         self.kappa = float(kappa)
 

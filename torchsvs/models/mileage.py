@@ -63,11 +63,15 @@ and an artificial process noise, Eq. (16):
     Q^a_k = \begin{bmatrix} q^2\Gamma_k\Gamma_k' & 0\\ 0 & \sigma_\eta^2 I_5\end{bmatrix},
 
 with :math:`\sigma_\eta` = 1e-5 (straight road), 0.001 (circular arc), 0.002 (curves) in the
-paper. For an NCV-NCA IMM both modes need one state layout: the NCV model is embedded in the
-NCA layout :math:`[s, \dot s, \ddot s, \eta']'` with the acceleration row and column of ``F``
-and ``Γ`` zero, so the NCV mode maps any acceleration to 0 and adds no noise to it (the paper:
-"for the NCV model, the acceleration component ... is zero and the elements related to the
-acceleration in the covariance are zero").
+paper. In an NCV-NCA IMM the NCV mode has no acceleration: the paper says "for the NCV model,
+the acceleration component ... is zero and the elements related to the acceleration in the
+covariance are zero". :class:`~torchsvs.SeparateModelingTracker` keeps each mode in its own
+state and lets the IMM's embedding count the NCV mode's acceleration as that zero in the
+combined estimate, while mixing it without bias (its docstring). The NCV model can also be
+embedded in the NCA layout :math:`[s, \dot s, \ddot s, \eta']'` with the acceleration row and
+column of ``F`` and ``Γ`` zero (``embed_acceleration``), so that it maps any acceleration to 0
+and adds no noise to it; mixed as a state of its own, that zero pulls the NCA mode's
+acceleration towards 0 (zero padding, the tracker's ``mixing="zero"``).
 
 References:
     Zhang Zhuanhua, Zhou Gongjian, on separate modeling of target trajectory shape and dynamic
@@ -247,8 +251,10 @@ class SeparateModel(StateSpaceModel):
         r: measurement noise: a variance, per-axis variances ``[2]`` or a covariance ``[2, 2]``
             (m²).
         embed_acceleration: with an NCV ``base``, use the NCA layout ``[s, ṡ, s̈, η]`` with the
-            acceleration row and column of ``F`` and ``Γ`` zero (``s̈ ↦ 0`` without noise): the
-            NCV mode of an NCV-NCA IMM. Ignored (already so) for an NCA base.
+            acceleration row and column of ``F`` and ``Γ`` zero (``s̈ ↦ 0`` without noise): an
+            NCV mode that an IMM mixes with an NCA mode in one state, its zero acceleration
+            included (zero padding, biased; the IMM's ``embedding`` of the 7-state NCV mixes
+            without bias, module docstring). Ignored (already so) for an NCA base.
         learn_r: learn ``R`` (through its Cholesky factor).
 
     References:
