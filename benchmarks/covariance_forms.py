@@ -1,5 +1,5 @@
 """`make bench`: the covariance forms (``covariance_form=``) of the KF and the SVSF, their cost
-and their agreement with the Joseph form, and the ill-conditioned example where they differ.
+and their agreement with the Joseph form.
 
 Speed: nanoseconds per track-step of each form on the papers' 2-D constant-velocity problem
 (:class:`benchmarks.common.CVProblem`, per-track priors ``P0 [B, 4, 4]``, no gradients, the
@@ -9,11 +9,7 @@ and on the general step loop the factored forms run (``general_path()`` + ``eage
 the ratio to which is the cost of the form itself. The largest differences from the Joseph
 filter's means and covariances (its default path) are printed beside.
 
-Robustness: the example of Grewal & Andrews that Bermúdez Ordoñez et al. 2020 take as their
-Example 1: one measurement update from ``P0 = I₃`` with ``H = [[1, 1, 1], [1, 1, 1 + δ]]``,
-``R = δ² I₂``, ``δ`` from 10⁻¹ down, in float64 and float32: the largest error of each form's
-posterior covariance from the exact one (mpmath, 60 digits, from the same floating inputs) and
-whether the covariance (or its factor) stayed positive definite.
+Robustness (the ill-conditioned example, δ swept) is ``experiments/ksvd_paper.py``'s.
 
     python -m benchmarks.covariance_forms [--tracks 1,100,10000] [--steps 1000,1000,10]
 
@@ -26,14 +22,12 @@ import argparse
 from collections.abc import Callable
 from pathlib import Path
 
-import mpmath
 import torch
 
 import torchsvs as ts
 from benchmarks.common import CVProblem
 from benchmarks.timing import alternating_best
 from torchsvs.evaluation import markdown_table
-from torchsvs.filters import factored
 from torchsvs.kernels import eager_loops, general_path
 
 RESULTS = Path(__file__).with_name("covariance_forms.md")
@@ -106,71 +100,6 @@ def speed_rows(B: int, T: int, repeats: int) -> list[list[object]]:
     return rows
 
 
-def _exact_posterior(P: torch.Tensor, H: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
-    """``(P⁻¹ + HᵀR⁻¹H)⁻¹`` in 60-digit arithmetic from the floating entries given."""
-    with mpmath.workdps(60):
-
-        def mp(A: torch.Tensor) -> mpmath.matrix:
-            return mpmath.matrix([[mpmath.mpf(float(v)) for v in row] for row in A.double()])
-
-        Hm = mp(H)
-        info = mp(P) ** -1 + Hm.T * mp(R) ** -1 * Hm
-        post = info**-1
-        values = [[float(post[i, j]) for j in range(3)] for i in range(3)]
-        return torch.tensor(values, dtype=torch.float64)
-
-
-def _delta_update(delta: float, dtype: torch.dtype, form: str) -> tuple[str, float]:
-    """The example's update in ``form``: ``(status, largest error)``."""
-    eye = torch.eye(3, dtype=torch.float64)
-    H = torch.tensor([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0 + delta]], dtype=torch.float64)
-    model = ts.models.LinearGaussian(
-        eye, H, 1e-30 * eye, delta**2 * torch.eye(2, dtype=torch.float64)
-    )
-    model = model.to(dtype)
-    est = ts.KalmanFilter(model, covariance_form=form)
-    prior = est.init(torch.zeros(1, 3, dtype=dtype), torch.eye(3, dtype=dtype))
-    try:
-        with torch.no_grad():
-            state, out = est.scan(prior, torch.zeros(1, 1, 2, dtype=dtype))
-    except torch.linalg.LinAlgError:
-        return "fails", float("nan")
-    P = out.cov[0, 0].double()
-    P_prior = torch.eye(3, dtype=torch.float64) + model.process_noise().double()
-    exact = _exact_posterior(P_prior, model.meas_matrix(), model.meas_cov())
-    error = (P - exact).abs().max().item()
-    if not bool(torch.isfinite(P).all()):
-        return "NaN", error
-    carried = state.factor
-    if carried is None or isinstance(carried.factor, factored.Full):
-        definite = bool(torch.linalg.cholesky_ex(P).info == 0)
-    else:
-        f = carried.factor
-        pivots = f.S.diagonal(dim1=-2, dim2=-1) if isinstance(f, factored.Cholesky) else f.d
-        definite = bool((pivots > 0).all())
-    return ("PD" if definite else "not PD"), error
-
-
-def delta_rows(dtype: torch.dtype, exponents: range) -> tuple[list[list[object]], dict[str, str]]:
-    """The sweep's rows and, per form, the smallest δ down to which (from 10⁻¹) every update
-    left a positive definite covariance within 10⁻³ of the exact one (``P0 = I``)."""
-    forms = ("joseph", *FORMS)
-    rows: list[list[object]] = []
-    smallest = dict.fromkeys(forms, "none")
-    failed: set[str] = set()
-    for k in exponents:
-        cells: list[object] = [f"1e-{k}"]
-        for form in forms:
-            status, error = _delta_update(10.0**-k, dtype, form)
-            cells.append(f"{error:.1e} ({status})")
-            if status != "PD" or not error < 1e-3:
-                failed.add(form)
-            elif form not in failed:
-                smallest[form] = f"1e-{k}"
-        rows.append(cells)
-    return rows, smallest
-
-
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tracks", default="1,100,10000")
@@ -196,18 +125,6 @@ def main(argv: list[str] | None = None) -> None:
     for B, T in sizes:
         print(f"B = {B}, T = {T}")
         speed += speed_rows(B, T, args.repeats)
-    forms = ("joseph", *FORMS)
-    sweep = []
-    # Down to the last δ with 1 + δ ≠ 1 (below, H has rank one and the problem is easy again).
-    for dtype, exponents in ((torch.float64, range(1, 16)), (torch.float32, range(1, 8))):
-        rows, smallest = delta_rows(dtype, exponents)
-        name = str(dtype).removeprefix("torch.")
-        survive = ", ".join(f"{form} {smallest[form]}" for form in forms)
-        sweep.append(
-            f"### {name}\n\n{markdown_table(['δ', *forms], rows)}\n\n"
-            f"Smallest δ with a positive definite covariance within 10⁻³ of the exact one: "
-            f"{survive}.\n"
-        )
     sizes_text = ", ".join(f"B = {B:,} × T = {T:,}" for B, T in sizes)
     text = (
         "# Covariance forms: cost and robustness\n\n"
@@ -227,16 +144,9 @@ def main(argv: list[str] | None = None) -> None:
         "the covariance; its conventional covariance is Eq. (28)'s printed right side, not "
         "the SVSF's covariance, hence its large Δ.\n\n"
         f"{markdown_table(header, speed)}\n\n"
-        "## The ill-conditioned example (Grewal & Andrews; Example 1 of Bermúdez Ordoñez et "
-        "al. 2020)\n\n"
-        "One measurement update from `P0 = I₃` (`F = I`, `Q = 10⁻³⁰ I`) with "
-        "`H = [[1, 1, 1], [1, 1, 1 + δ]]`, `R = δ² I₂`: the largest entry of "
-        "`|P − P_exact|`, `P_exact` in 60-digit arithmetic from the same floating inputs "
-        "(its smallest eigenvalue is about δ²/6), and in parentheses whether the covariance "
-        "is positive definite (for the factored forms: the factor's pivots, `P = SSᵀ`, `UDUᵀ`, "
-        "`UD²Uᵀ`, are positive; reconstructing `P` rounds away eigenvalues below eps) or "
-        "*fails* (the innovation covariance could not be factored, even with jitter); down to "
-        "the last δ with `1 + δ ≠ 1` in the dtype.\n\n" + "\n".join(sweep)
+        "Which form survives how ill-conditioned an update (the δ sweep of Example 1 of "
+        "Bermúdez Ordoñez et al. 2020) is in `experiments/results/ksvd_paper.md` "
+        "(`make ksvd`).\n"
     )
     RESULTS.write_text(text)
     print(text)

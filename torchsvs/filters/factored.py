@@ -272,6 +272,10 @@ class Full(NamedTuple):
     def full(self) -> Tensor:
         return self.P
 
+    def positive_definite(self) -> Tensor:
+        """``[...]``: every eigenvalue of ``P`` (symmetrised) positive."""
+        return torch.linalg.eigvalsh(symmetrize(self.P)).amin(-1) > 0
+
     def predict(self, F: Tensor, Q: Tensor) -> Full:
         return Full(F @ self.P @ F.mT + Q)  # Eq. (6)
 
@@ -294,6 +298,11 @@ class Cholesky(NamedTuple):
 
     def full(self) -> Tensor:
         return symmetrize(self.S @ self.S.mT)
+
+    def positive_definite(self) -> Tensor:
+        """``[...]``: ``S`` nonsingular (its pivots positive), so ``SSᵀ`` is, whatever rounding
+        does to eigenvalues below eps when ``P`` is formed."""
+        return (self.S.diagonal(dim1=-2, dim2=-1) > 0).all(-1)
 
     def predict(self, F: Tensor, Q: Tensor) -> Cholesky:
         return Cholesky(_lower_factor(_rows((F @ self.S).mT, cholesky(Q).mT)))
@@ -329,6 +338,10 @@ class UD(NamedTuple):
 
     def full(self) -> Tensor:
         return symmetrize((self.U * self.d.unsqueeze(-2)) @ self.U.mT)
+
+    def positive_definite(self) -> Tensor:
+        """``[...]``: ``d > 0``."""
+        return (self.d > 0).all(-1)
 
     def predict(self, F: Tensor, Q: Tensor) -> UD:
         G = cholesky(Q)
@@ -367,6 +380,10 @@ class SVD(NamedTuple):
 
     def full(self) -> Tensor:
         return symmetrize((self.U * self.d.square().unsqueeze(-2)) @ self.U.mT)
+
+    def positive_definite(self) -> Tensor:
+        """``[...]``: every singular value of the root positive."""
+        return (self.d > 0).all(-1)
 
     def predict(self, F: Tensor, Q: Tensor) -> SVD:
         root = (F @ self.U) * self.d.unsqueeze(-2)  # F U D: P⁻ = (FUD)(FUD)ᵀ + Q, Eq. (18)
