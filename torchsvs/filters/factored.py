@@ -77,8 +77,8 @@ that drops the terms of coinciding pairs (relative gap under ``1e3·eps``). That
 perturbations that keep the multiplicity (the measurements; a ``q`` shared by identical axes:
 the dropped terms multiply zero) and misses a term otherwise: with identical axes, the
 gradient with respect to a parameter of one axis only (an entry of ``R``'s factor) is not
-the Joseph filter's, so such a backward warns (:data:`COINCIDING`;
-``tests/test_covariance_forms.py`` checks the exact cases; the other forms have no such limit).
+the Joseph filter's (``tests/test_covariance_forms.py`` checks the exact cases; the other
+forms have no such limit).
 
 References:
     Bermúdez Ordoñez, Arnaldo Valdés, Gómez Comendador, "Engineering Applications of Adaptive
@@ -95,7 +95,6 @@ References:
 
 from __future__ import annotations
 
-import warnings
 from typing import Any, NamedTuple
 
 import torch
@@ -139,15 +138,6 @@ def _lower_factor(M: Tensor) -> Tensor:
     return (R * sign.unsqueeze(-1)).mT
 
 
-#: Said when a gradient passes singular values that coincide (see the module's notes).
-COINCIDING = (
-    "covariance_form='svd': a gradient passed coinciding singular values (identical axes?); "
-    "it is exact for perturbations that keep them equal (measurements, parameters shared by "
-    "the axes) and misses a term for a parameter of one axis only: train with 'sqrt' or "
-    "'joseph' there"
-)
-
-
 class _RightSVD(torch.autograd.Function):
     """``M = W diag(s) Vᵀ`` → ``(V, s)``, with the backward of :func:`right_svd`."""
 
@@ -174,8 +164,6 @@ class _RightSVD(torch.autograd.Function):
             gap = square.unsqueeze(-2) - square.unsqueeze(-1)  # [i, j]: s_j² − s_i²
             tol = 1e3 * torch.finfo(s.dtype).eps * square.amax(-1, keepdim=True).unsqueeze(-1)
             apart = gap.abs() > tol
-            if not bool(apart.logical_or(torch.eye(s.shape[-1], dtype=torch.bool)).all()):
-                warnings.warn(COINCIDING, stacklevel=2)
             E = torch.where(apart, 1.0 / torch.where(apart, gap, 1.0), 0.0)
             Y = V.mT @ gV
             inner = inner + s.unsqueeze(-1) * (E * (Y - Y.mT))
