@@ -270,7 +270,8 @@ def run_axes(
     """The forward pass of every axis, per axis and in the general layout, and the state after
     its last step. ``keep`` (:data:`torchsvs.estimator.KEEP`): ``"all"``, or the compiled loop
     writes only the filtered moments (``"moments"``) or means (``"mean"``) of each step (the
-    other fields ``None``, no per-axis result); without gradients only (else it keeps all).
+    other fields ``None``, no per-axis result); with gradients it also keeps the covariances
+    and the SVSF's a-posteriori innovations (the state after the last step is read off them).
     ``smoothing`` (``"gain"``: RTS, ``"projection"``: SVSS): the compiled loop also gives the
     one-step-lag smoothed moments (:func:`fused.forward`), without gradients only (else
     ``smoothed`` is ``None`` and the pass keeps all, for :func:`smooth_axes`).
@@ -313,8 +314,14 @@ def run_axes(
     if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
         inputs = (*raw, *prior)
         if torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma)):
-            out = Interleaved(*_CompiledAxes.apply(rule, velocity, (B, steps, m), gamma, *inputs))
+            # Less than the whole record: the steps' states (the state after the last step is
+            # read off them, differentiably), not the other fields; a smoother reads them all.
+            kept = "all" if keep == "all" or smoothing is not None else "state"
+            shape = (B, steps, m)
+            out = Interleaved(*_CompiledAxes.apply(rule, velocity, shape, kept, gamma, *inputs))
             last = _last(out)
+            if kept != "all":
+                return AxesPass(None, out, last, None)
             smoothed = None
         else:
             outputs, last, smoothed = fused.forward(
@@ -399,13 +406,16 @@ class _CompiledAxes(torch.autograd.Function):
         rule: str,
         velocity: bool,
         shape: tuple[int, int, int],
+        keep: str,
         gamma: Tensor,
         *inputs: Tensor,
     ) -> tuple[Tensor | None, ...]:
-        out, _, _ = fused.forward(rule, float(gamma), inputs[:11], inputs[11:], shape, velocity)
+        given, prior = inputs[:11], inputs[11:]
+        out, _, _ = fused.forward(rule, float(gamma), given, prior, shape, velocity, keep)
         ctx.settings = (rule, velocity, shape)
         ctx.save_for_backward(gamma, *inputs)
-        ctx.mark_non_differentiable(out[-1])
+        if out[-1] is not None:  # the observed mask (kept with the whole record)
+            ctx.mark_non_differentiable(out[-1])
         ctx.set_materialize_grads(False)
         return out
 
@@ -414,13 +424,13 @@ class _CompiledAxes(torch.autograd.Function):
     def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
         rule, velocity, shape = ctx.settings
         gamma, *inputs = ctx.saved_tensors
-        wanted = ctx.needs_input_grad[4:]
+        wanted = ctx.needs_input_grad[5:]
         given, prior = inputs[:11], inputs[11:]
         dgiven, dprior, dgamma = fused.adjoint(
             rule, float(gamma), given, prior, shape, velocity, grads[:9], wanted[:11]
         )
-        result: list[Tensor | None] = [None, None, None]
-        result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[3] else None)
+        result: list[Tensor | None] = [None, None, None, None]  # rule, velocity, shape, keep
+        result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[4] else None)
         result += _summed_to(given, dgiven)
         for x, dx, w in zip(prior, dprior, wanted[11:], strict=True):
             result.append(dx.reshape(x.shape) if w else None)

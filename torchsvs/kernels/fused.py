@@ -265,6 +265,12 @@ class Last(NamedTuple):
     post_innovation: Tensor | None  #: [B, m_z] (SVSF), else None
 
 
+#: The per-step outputs of :func:`forward` each ``keep`` writes, by index (mean, cov, predicted
+#: mean and cov, innovation, gain, S, a-posteriori innovation); ``"state"``: what a following
+#: step needs of every step (the means, covariances and the SVSF's a-posteriori innovations).
+KEPT = {"all": range(8), "moments": (0, 1), "mean": (0,), "state": (0, 1, 7)}
+
+
 def forward(
     rule: str,
     gamma: float,
@@ -283,19 +289,19 @@ def forward(
     ``[B, T, 2m]``, covariance, predicted mean and covariance, innovation ``[B, T, m_z]``, gain
     ``[B, T, 2m, m_z]``, ``S``, the a-posteriori innovation (SVSF, else ``None``), the
     log-likelihood ``[B]`` (Kalman, else ``None``) and the observed mask ``[B, T, m_z]`` (the
-    per-step outputs that ``keep`` (:data:`torchsvs.estimator.KEEP`) leaves out are ``None``,
-    never written), the state after the last step, and with ``smoothing`` (``"gain"``: the
-    RTS, ``"projection"``: the SVSS) the one-step-lag smoothed mean ``[B, T, 2m]`` and
-    covariance ``[B, T, 2m, 2m]``, computed in the same loop (what :func:`backward` with lag 1
-    gives from the whole record), else ``None``."""
+    per-step outputs that ``keep`` (:data:`torchsvs.estimator.KEEP` or ``"state"``,
+    :data:`KEPT`) leaves out are ``None``, never written), the state after the last step,
+    and with ``smoothing`` (``"gain"``: the RTS, ``"projection"``: the SVSS) the one-step-lag
+    smoothed mean ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]``, computed in the same loop
+    (what :func:`backward` with lag 1 gives from the whole record), else ``None``."""
     B, T, m = shape
     n, mz = 2 * m, 2 * m if velocity else m
     dtype = prior[0].dtype
     svsf = rule != "kalman"
-    kept = {"all": 10, "moments": 2, "mean": 1}[keep]
+    kept = KEPT[keep]
     shapes = ((n,), (n, n), (n,), (n, n), (mz,), (n, mz), (mz, mz), (mz,))
     per_step: list[Tensor | None] = [
-        fresh((B, T, *tail), dtype) if i < kept and (svsf or i < 7) else None
+        fresh((B, T, *tail), dtype) if i in kept and (svsf or i < 7) else None
         for i, tail in enumerate(shapes)
     ]
     loglik = None if svsf else torch.empty(B, dtype=dtype)
