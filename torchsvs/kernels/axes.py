@@ -442,6 +442,8 @@ def _summed_to(inputs: Sequence[Tensor], grads: Sequence[Tensor | None]) -> list
     ``[B, T, 1]``, ...), summed over their broadcast dimensions."""
     out: list[Tensor | None] = []
     for x, dx in zip(inputs, grads, strict=True):
+        if dx is not None and x.ndim == 3 and dx.shape[1] != x.shape[1]:
+            dx = dx.expand(x.shape)  # summed over the steps already: x is constant in time
         broadcast = x.shape if x.ndim == 3 else (1, 1, x.numel())
         out.append(None if dx is None else dx.sum_to_size(broadcast).reshape(x.shape))
     return out

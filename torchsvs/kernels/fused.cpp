@@ -765,9 +765,10 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads
     const R* g_ll = grads[8];
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         std::vector<State<R>> states(T + 1);
-        R g[kGiven], dg[kGiven];
+        R g[kGiven], dg[kGiven], summed[kGiven];
         for (int64_t bi = first; bi < last; ++bi) {
             for (int64_t j = 0; j < m; ++j) {
+                std::fill_n(summed, kGiven, R(0));
                 R start[5];  // the prior p, v, a, b, c; the memory starts at zero
                 for (int q = 0; q < 5; ++q) start[q] = view<R>(prior, prior_strides, q).at(bi, 0, j);
                 states[0] = {start[0], start[1], start[2], start[3], start[4], 0, 0};
@@ -813,9 +814,16 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads
                         dx.mem_p += vec(g_post, mz, j);
                     }
                     dx = step_adjoint<R, Rule>(states[t], g, gamma, s, dx, o, dg, dgam);
+                    // An input constant in time (Q, R of a fixed interval) gets its gradient
+                    // summed here, [B, 1, m]: no [B, T, m] buffer to write and sum afterwards.
                     for (int q = 0; q < kGiven; ++q)
-                        if (dgiven[q]) dgiven[q][rec * m + j] = dg[q];
+                        if (dgiven[q] && given[q].st == 0)
+                            summed[q] += dg[q];
+                        else if (dgiven[q])
+                            dgiven[q][rec * m + j] = dg[q];
                 }
+                for (int q = 0; q < kGiven; ++q)
+                    if (dgiven[q] && given[q].st == 0) dgiven[q][bi * m + j] = summed[q];
                 const R prior_adjoint[5] = {dx.p, dx.v, dx.a, dx.b, dx.c};
                 for (int q = 0; q < 5; ++q)
                     if (dprior[q]) dprior[q][bi * m + j] = prior_adjoint[q];

@@ -197,16 +197,19 @@ class _Arrays:
     """Pointers and ``[B, T, m]`` element strides of tensors, kept alive for a call."""
 
     def __init__(self, tensors: Sequence[Tensor], shape: tuple[int, int, int]) -> None:
-        views = []
-        for x in tensors:
-            if x.ndim == 2:  # per track [B, m]
-                x = x.unsqueeze(1)
-            elif x.ndim < 2:  # constant, or one value per axis [m]
-                x = x.reshape(1, 1, -1)
-            views.append(x.expand(shape))  # broadcast dimensions get stride 0
+        views = [self.view(x, shape) for x in tensors]
         self.tensors = views
         self.pointers = _pointers(views)
         self.strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
+
+    @staticmethod
+    def view(x: Tensor, shape: tuple[int, int, int]) -> Tensor:
+        """``x`` as ``[B, T, m]``; broadcast dimensions get stride 0."""
+        if x.ndim == 2:  # per track [B, m]
+            x = x.unsqueeze(1)
+        elif x.ndim < 2:  # constant, or one value per axis [m]
+            x = x.reshape(1, 1, -1)
+        return x.expand(shape)
 
 
 #: Most axes the compiled forward loop steps (``kLanes`` in fused.cpp); more take the tensor loops.
@@ -360,11 +363,15 @@ def adjoint(
 ) -> tuple[list[Tensor | None], list[Tensor], Tensor]:
     """The reverse mode of :func:`forward` (same arguments): ``grads`` the gradients of its
     first nine outputs (``None``: zero), ``wanted`` which of the 11 ``given`` need one.
-    Returns the ``given`` gradients ``[B, T, m]`` (``None`` where not wanted; the caller sums
-    them to each input's shape), the prior's ``[B, m]`` and ``γ``'s per lane ``[B, m]``."""
+    Returns the ``given`` gradients ``[B, T, m]``, or ``[B, 1, m]`` summed over the steps for
+    an input constant in time (``None`` where not wanted; the caller sums them to each input's
+    shape), the prior's ``[B, m]`` and ``γ``'s per lane ``[B, m]``."""
     B, T, m = shape
     dtype = prior[0].dtype
-    dgiven = [torch.empty(B, T, m, dtype=dtype) if w else None for w in wanted]
+    steps = [1 if _Arrays.view(x, shape).stride(1) == 0 else T for x in given]
+    dgiven = [
+        torch.empty(B, t, m, dtype=dtype) if w else None for w, t in zip(wanted, steps, strict=True)
+    ]
     dprior = [torch.empty(B, m, dtype=dtype) for _ in prior]
     dgamma = torch.empty(B, m, dtype=dtype)
     grads = [None if g is None else g.contiguous() for g in grads]
