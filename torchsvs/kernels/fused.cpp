@@ -141,6 +141,7 @@ enum Result {
     kResults
 };
 constexpr int64_t kLanes = 64;  // lanes (track axes) stepped together
+constexpr int64_t kAdjointLanes = 16;  // lanes the adjoint takes back in time together
 
 // The state a lane carries from step to step: mean, covariance [[a, b], [b, c]], SVSF memory.
 template <typename R>
@@ -763,24 +764,40 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads
     const R *g_mean = grads[0], *g_cov = grads[1], *g_pm = grads[2], *g_pc = grads[3];
     const R *g_e = grads[4], *g_K = grads[5], *g_S = grads[6], *g_post = grads[7];
     const R* g_ll = grads[8];
+    // Blocks of lanes (track axes) go back in time together, as the forward loop steps them:
+    // a lane's recursion is a chain of dependent operations, and independent lanes side by
+    // side keep the processor busy (and let the compiler vectorise where it can).
+    const int64_t block = std::max<int64_t>(1, kAdjointLanes / m);
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        std::vector<State<R>> states(T + 1);
-        R g[kGiven], dg[kGiven], summed[kGiven];
-        for (int64_t bi = first; bi < last; ++bi) {
-            for (int64_t j = 0; j < m; ++j) {
-                std::fill_n(summed, kGiven, R(0));
+        std::vector<State<R>> states((T + 1) * block * m);  // [t][lane]
+        std::vector<State<R>> dx(block * m);
+        std::vector<R> summed(block * m * kGiven), dgam(block * m);
+        for (int64_t b0 = first; b0 < last; b0 += block) {
+            const int64_t b1 = std::min(last, b0 + block), lanes = (b1 - b0) * m;
+            for (int64_t l = 0; l < lanes; ++l) {
+                const int64_t bi = b0 + l / m, j = l % m;
                 R start[5];  // the prior p, v, a, b, c; the memory starts at zero
                 for (int q = 0; q < 5; ++q) start[q] = view<R>(prior, prior_strides, q).at(bi, 0, j);
-                states[0] = {start[0], start[1], start[2], start[3], start[4], 0, 0};
-                for (int64_t t = 0; t < T; ++t) {
+                states[l] = {start[0], start[1], start[2], start[3], start[4], 0, 0};
+            }
+            for (int64_t t = 0; t < T; ++t)
+                for (int64_t l = 0; l < lanes; ++l) {
+                    const int64_t bi = b0 + l / m, j = l % m;
+                    R g[kGiven];
                     for (int q = 0; q < kGiven; ++q) g[q] = given[q].at(bi, t, j);
-                    states[t + 1] = predict_correct<R, Rule>(states[t], g, gamma).next;
+                    states[(t + 1) * lanes + l] =
+                        predict_correct<R, Rule>(states[t * lanes + l], g, gamma).next;
                 }
-                State<R> dx{0, 0, 0, 0, 0, 0, 0};  // the adjoint of the state after step t
-                R dgam = 0, dll = g_ll ? g_ll[bi] : R(0);
-                for (int64_t t = T - 1; t >= 0; --t) {
+            std::fill_n(dx.begin(), lanes, State<R>{0, 0, 0, 0, 0, 0, 0});
+            std::fill_n(summed.begin(), lanes * kGiven, R(0));
+            std::fill_n(dgam.begin(), lanes, R(0));
+            for (int64_t t = T - 1; t >= 0; --t)
+                for (int64_t l = 0; l < lanes; ++l) {
+                    const int64_t bi = b0 + l / m, j = l % m;
+                    R g[kGiven], dg[kGiven];
                     for (int q = 0; q < kGiven; ++q) g[q] = given[q].at(bi, t, j);
-                    const Step<R> s = predict_correct<R, Rule>(states[t], g, gamma);
+                    const State<R>& before = states[t * lanes + l];
+                    const Step<R> s = predict_correct<R, Rule>(before, g, gamma);
                     const int64_t rec = bi * T + t, p = 2 * j, v = 2 * j + 1;
                     // The outputs' gradients at this step, read from the general layout (an
                     // entry written twice, b of a symmetric block, gets both gradients).
@@ -793,41 +810,45 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads
                     auto sq = [&](const R* grad, int64_t size, int64_t row, int64_t col) {
                         return grad ? grad[rec * size * size + row * size + col] : R(0);
                     };
-                    dx.p += vec(g_mean, n, p), dx.v += vec(g_mean, n, v);
-                    dx.a += sq(g_cov, n, p, p), dx.c += sq(g_cov, n, v, v);
-                    dx.b += sq(g_cov, n, p, v) + sq(g_cov, n, v, p);
+                    State<R>& d = dx[l];
+                    d.p += vec(g_mean, n, p), d.v += vec(g_mean, n, v);
+                    d.a += sq(g_cov, n, p, p), d.c += sq(g_cov, n, v, v);
+                    d.b += sq(g_cov, n, p, v) + sq(g_cov, n, v, p);
                     Recorded<R> o{};
                     o.p_pred = vec(g_pm, n, p), o.v_pred = vec(g_pm, n, v);
                     o.a1 = sq(g_pc, n, p, p), o.c1 = sq(g_pc, n, v, v);
                     o.b1 = sq(g_pc, n, p, v) + sq(g_pc, n, v, p);
-                    o.ll = dll;
+                    o.ll = g_ll ? g_ll[bi] : R(0);
                     if (velocity) {
                         o.ep = vec(g_e, mz, p), o.ev = vec(g_e, mz, v);
                         o.kp = mat(g_K, n, p, p), o.kc = mat(g_K, n, v, p), o.kv = mat(g_K, n, v, v);
                         o.Sp = sq(g_S, n, p, p), o.Sv = sq(g_S, n, v, v);
                         o.Spv = sq(g_S, n, p, v) + sq(g_S, n, v, p);
-                        dx.mem_p += vec(g_post, mz, p), dx.mem_v += vec(g_post, mz, v);
+                        d.mem_p += vec(g_post, mz, p), d.mem_v += vec(g_post, mz, v);
                     } else {
                         o.ep = vec(g_e, mz, j);
                         o.kp = mat(g_K, m, p, j), o.kc = mat(g_K, m, v, j);
                         o.Sp = sq(g_S, m, j, j);
-                        dx.mem_p += vec(g_post, mz, j);
+                        d.mem_p += vec(g_post, mz, j);
                     }
-                    dx = step_adjoint<R, Rule>(states[t], g, gamma, s, dx, o, dg, dgam);
+                    d = step_adjoint<R, Rule>(before, g, gamma, s, d, o, dg, dgam[l]);
                     // An input constant in time (Q, R of a fixed interval) gets its gradient
                     // summed here, [B, 1, m]: no [B, T, m] buffer to write and sum afterwards.
                     for (int q = 0; q < kGiven; ++q)
                         if (dgiven[q] && given[q].st == 0)
-                            summed[q] += dg[q];
+                            summed[l * kGiven + q] += dg[q];
                         else if (dgiven[q])
                             dgiven[q][rec * m + j] = dg[q];
                 }
+            for (int64_t l = 0; l < lanes; ++l) {
+                const int64_t bi = b0 + l / m, j = l % m;
                 for (int q = 0; q < kGiven; ++q)
-                    if (dgiven[q] && given[q].st == 0) dgiven[q][bi * m + j] = summed[q];
-                const R prior_adjoint[5] = {dx.p, dx.v, dx.a, dx.b, dx.c};
+                    if (dgiven[q] && given[q].st == 0) dgiven[q][bi * m + j] = summed[l * kGiven + q];
+                const State<R>& d = dx[l];
+                const R prior_adjoint[5] = {d.p, d.v, d.a, d.b, d.c};
                 for (int q = 0; q < 5; ++q)
                     if (dprior[q]) dprior[q][bi * m + j] = prior_adjoint[q];
-                dgamma[bi * m + j] = dgam;
+                dgamma[bi * m + j] = dgam[l];
             }
         }
     });
