@@ -767,7 +767,10 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads
     // Blocks of lanes (track axes) go back in time together, as the forward loop steps them:
     // a lane's recursion is a chain of dependent operations, and independent lanes side by
     // side keep the processor busy (and let the compiler vectorise where it can).
-    const int64_t block = std::max<int64_t>(1, kAdjointLanes / m);
+    // The block's recomputed states stay in a core's L2 (half a MiB): long tracks take fewer
+    // lanes at a time (a block's states spilling to L3 cost more than the lanes gain).
+    const int64_t fits = (int64_t(1) << 19) / ((T + 1) * int64_t(sizeof(State<R>)));
+    const int64_t block = std::max<int64_t>(1, std::min(kAdjointLanes, fits) / m);
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         std::vector<State<R>> states((T + 1) * block * m);  // [t][lane]
         std::vector<State<R>> dx(block * m);
