@@ -32,7 +32,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 import torchsvs as ts
-from torchsvs.evaluation import markdown_table
+from torchsvs.evaluation import markdown_table, save_figure
 from torchsvs.scenarios import dme as dme_module
 
 #: Where `python -m` writes the report: the tracked results of the checkout.
@@ -404,10 +404,7 @@ def figures(res: Results, out_dir: Path) -> list[str]:
     names: list[str] = []
 
     def save(fig: Any, name: str) -> None:
-        fig.tight_layout()
-        fig.savefig(out_dir / name, dpi=100)
-        plt.close(fig)
-        names.append(name)
+        names.append(save_figure(fig, out_dir / name))
 
     ex1 = res.ex1
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)

@@ -28,7 +28,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 import torchsvs as ts
-from torchsvs.evaluation import markdown_table
+from torchsvs.evaluation import markdown_table, save_figure
 from torchsvs.filters.separate import DEFAULT_TRANSITION, online_fit
 from torchsvs.scenarios import RoadScenario
 
@@ -471,10 +471,7 @@ def figures(res: Results, out_dir: Path) -> list[str]:
     names: list[str] = []
 
     def save(fig: Any, name: str) -> None:
-        fig.tight_layout()
-        fig.savefig(out_dir / name, dpi=100)
-        plt.close(fig)
-        names.append(name)
+        names.append(save_figure(fig, out_dir / name))
 
     for name, out in res.scenarios.items():
         setting, sc = SETTINGS[name], out.sc

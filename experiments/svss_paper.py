@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 import torchsvs as ts
 from torchsvs.estimator import Estimator
-from torchsvs.evaluation import evaluate, markdown_table, psi_sweep
+from torchsvs.evaluation import evaluate, markdown_table, psi_sweep, save_figure
 from torchsvs.metrics import accumulative_rmse, rmse_over_time
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
 
@@ -231,10 +231,7 @@ def figures(res: Results, out: Path) -> list[str]:
     names = []
 
     def save(fig: plt.Figure, name: str) -> None:
-        fig.tight_layout()
-        fig.savefig(out / name, dpi=110)
-        plt.close(fig)
-        names.append(name)
+        names.append(save_figure(fig, out / name, dpi=110))
 
     tr = res.tracks["atc"]
     fig, ax = plt.subplots(figsize=(7, 5))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
 
 import torch
@@ -100,6 +101,16 @@ def evaluate(
         rmse = accumulative_rmse(mean, truth, scored)
         rows.append(Evaluation(name, rmse, 1e6 * seconds / (B * T), out.mean, out))
     return rows
+
+
+def save_figure(fig: Any, path: Path, dpi: int = 100) -> str:
+    """A report's matplotlib figure laid out, written to ``path`` and closed; its file name."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path.name
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:

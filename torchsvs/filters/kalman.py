@@ -221,6 +221,12 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     #: how the covariance is carried and updated (:mod:`torchsvs.filters.factored`)
     covariance_form: str = "joseph"
 
+    @property
+    def kernels_apply(self) -> bool:
+        """Whether the compiled and per-axis kernels can run this filter: they carry ``P`` in
+        the Joseph form and take the model's constant ``R`` (no factored form, no adaptive R)."""
+        return self.covariance_form == "joseph" and self.adaptive_noise is None
+
     def __init__(self, model: StateSpaceModel) -> None:
         super().__init__()
         if not isinstance(model, self.model_type):
@@ -382,8 +388,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         model = self.model
         return (
             self.dense_rule is not None
-            and self.adaptive_noise is None  # the compiled steps take one constant R
-            and self.covariance_form == "joseph"
+            and self.kernels_apply
             and isinstance(model, LinearModel)
             and history is None
             and model.state_dim <= fused.DENSE_MAX
@@ -508,7 +513,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         # up to rounding); anything else takes the one-step scan. Per call: checks, the step's
         # tensors and one library call (fused.OnlineStep); filterpy's predict + update costs
         # about 20 µs, so every µs here shows.
-        if not isinstance(state, FilterState) or self.covariance_form != "joseph":
+        if not isinstance(state, FilterState) or not self.kernels_apply:
             return None
         x, single, known = state.mean, state.single, state.constants
         if torch.is_grad_enabled() and psi is not None and psi.requires_grad:
@@ -740,12 +745,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         after its last step and the smoothed moments asked for (:func:`axes.run_axes`); else
         ``None``. Its compiled loop writes only what ``inputs.keep`` keeps."""
         model = self.model
-        if (
-            not AXIS_KERNEL["enabled"]
-            or self.axis_rule is None
-            or self.adaptive_noise is not None
-            or self.covariance_form != "joseph"
-        ):
+        if not AXIS_KERNEL["enabled"] or self.axis_rule is None or not self.kernels_apply:
             return None
         if not isinstance(model, ConstantVelocity):
             return None
