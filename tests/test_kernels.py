@@ -379,18 +379,41 @@ def test_lag_one_smoothing_in_the_forward_loop_on_threads(spy, on_two_threads):
 
 
 @needs_compiler
-def test_lag_one_smoothing_with_gradients_takes_the_backward_pass(spy):
-    """Training keeps the smoother's own compiled pass (it has a reverse mode): the fused one
-    runs without gradients only, and both give the same numbers."""
+@pytest.mark.parametrize("name", list(LAG_ONE))
+def test_lag_one_smoothing_with_gradients_runs_in_the_forward_loop(name, spy):
+    """Training a one-step-lag smoother runs the smoothing inside the compiled forward loop and
+    takes it back in that loop's adjoint (no smoother pass): the numbers are those without
+    gradients, and the gradients of every smoothed and filtered output equal those of the
+    smoother's own general recursion over the filter's whole record (its compiled reverse
+    mode, a separate implementation)."""
     z, dt, x0, P0 = _problem(seed=12, B=5, T=30)
-    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
-    svss = LAG_ONE["SVSS"](model).double()
-    trained = svss(z, x0, P0, dt=dt)
-    assert spy["backward"] == 1 and trained.mean.requires_grad  # the smoother's own pass
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0], learn_noise=True).double()
+    smoother = LAG_ONE[name](model).double()
+    params = [p for p in smoother.parameters() if p.requires_grad]
+
+    def grads(out):
+        weights = torch.linspace(-1.0, 1.0, out.cov.numel(), dtype=torch.float64)
+        loss = out.mean.square().sum() * 1e-2 + (out.cov * weights.reshape(out.cov.shape)).sum()
+        loss = loss + out.filtered.mean.sum() + out.filtered.cov.diagonal(0, -2, -1).sum()
+        return torch.autograd.grad(loss, [*params, zz, xx, PP])
+
+    zz, xx, PP = (x.clone().requires_grad_(True) for x in (z, x0, P0))
+    fused_run = smoother(zz, xx, PP, dt=dt)
+    assert (spy["forward"], spy["backward"]) == (1, 0) and fused_run.mean.requires_grad
+    fused_grads = grads(fused_run)
+    assert spy["adjoint"] == 1
+    general_run = smoother.smooth(smoother.filter(zz, xx, PP, dt=dt))
+    general_grads = grads(general_run)
+    assert (spy["backward"], spy["adjoint"]) == (1, 3)
+    assert_close(fused_run.mean, general_run.mean, atol=1e-12, rtol=0)
+    assert_close(fused_run.cov, general_run.cov, atol=1e-12, rtol=0)
+    for i, (a, b) in enumerate(zip(fused_grads, general_grads, strict=True)):
+        assert a.abs().sum() > 0, i
+        assert_close(a, b, atol=1e-10, rtol=1e-10, msg=f"gradient {i}")
     with torch.no_grad():
-        inferred = svss(z, x0, P0, dt=dt)
-    assert_close(trained.mean.detach(), inferred.mean, atol=1e-12, rtol=0)
-    assert_close(trained.cov.detach(), inferred.cov, atol=1e-12, rtol=0)
+        inferred = smoother(z, x0, P0, dt=dt)
+    assert_close(fused_run.mean.detach(), inferred.mean, atol=0, rtol=0)
+    assert_close(fused_run.cov.detach(), inferred.cov, atol=0, rtol=0)
 
 
 def _gradients(est, dtype, z, dt, x0, P0):
@@ -424,9 +447,10 @@ def test_compiled_gradients_equal_tensor_loop_gradients(name, dtype, spy):
     for p in est.parameters():
         p.requires_grad_(True)
     compiled = _gradients(est, dtype, z, dt, x0, P0)
-    # Every smoother trains through the general backward recursion and its reverse mode (the
-    # RTS fixed interval too: with Γ = K it is the RTS); the eager run calls neither.
-    smoother = isinstance(est, ts.RTSSmoother)
+    # Smoothers of lag 1 train inside the forward loop and its adjoint; the others through the
+    # general backward recursion and its reverse mode (the RTS fixed interval too: with Γ = K
+    # it is the RTS); the eager run calls neither.
+    smoother = isinstance(est, ts.RTSSmoother) and est.lag != 1
     assert (spy["forward"], spy["backward"], spy["adjoint"]) == (1, smoother, 1 + smoother)
     with eager_loops():
         eager = _gradients(est, dtype, z, dt, x0, P0)
@@ -474,10 +498,22 @@ def test_compiled_gradients_of_sums_equal_tensor_loop_gradients(name, spy):
 
 
 @needs_compiler
-@pytest.mark.parametrize("rule", ["kalman", "svsf", "svsf velocity"])
-def test_compiled_reverse_mode_passes_gradcheck(rule):
+@pytest.mark.parametrize(
+    ("rule", "keep", "smoothing"),
+    [
+        ("kalman", "all", None),
+        ("svsf", "all", None),
+        ("svsf velocity", "all", None),
+        ("kalman", "all", "gain"),
+        ("svsf", "mean", "gain"),
+        ("svsf velocity", "all", "projection"),
+        ("kalman", "moments", "projection"),
+    ],
+)
+def test_compiled_reverse_mode_passes_gradcheck(rule, keep, smoothing):
     """The compiled reverse mode against finite differences of the compiled forward (an
-    oracle that shares no code with it), every differentiable input and output: per-step
+    oracle that shares no code with it), every differentiable input and output (the state
+    after the last step, and the one-step-lag smoothed moments when smoothing): per-step
     intervals, noise and widths, per-axis q, missing components, memory γ."""
     from torchsvs.kernels.axes import _CompiledAxes
 
@@ -522,8 +558,8 @@ def test_compiled_reverse_mode_passes_gradcheck(rule):
     name = "kalman" if rule == "kalman" else "svsf"
 
     def run(gamma, *inputs):
-        out = _CompiledAxes.apply(name, velocity, (B, T, m), "all", gamma, *inputs)
-        return tuple(x for x in out[:-1] if x is not None)
+        out = _CompiledAxes.apply(name, velocity, (B, T, m), keep, smoothing, gamma, *inputs)
+        return tuple(x for i, x in enumerate(out) if x is not None and i != 9)  # 9: the mask
 
     assert torch.autograd.gradcheck(run, (gamma, *inputs), eps=1e-6, atol=1e-6, rtol=1e-5)
 

@@ -727,8 +727,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     ) -> tuple[FilterResult, tuple[Tensor, Tensor] | None]:
         """The pass a smoother consumes: the whole record (whatever the caller keeps), or,
         with ``smoothing`` (``"gain"``: RTS, ``"projection"``: SVSS) where the per-axis compiled
-        loop runs without gradients, the one-step-lag smoothed mean and covariance computed in
-        that loop beside a record that keeps what ``inputs.keep`` keeps."""
+        loop runs (with or without gradients), the one-step-lag smoothed mean and covariance
+        computed in that loop beside a record that keeps what ``inputs.keep`` keeps."""
         if smoothing is not None:
             by_axis = self._run_axes(inputs, smoothing)
             if by_axis is not None:  # without the fused smoothing the record is whole

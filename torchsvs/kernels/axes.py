@@ -10,11 +10,11 @@ which on a CPU cost far more per element than the arithmetic. Results are exactl
 path's (tested to 1e-9 in float64): the estimators pick this kernel by themselves. The forward
 loop runs compiled (:mod:`torchsvs.kernels.fused`, the same formulas in C++), with gradients
 through its compiled reverse mode (:class:`_CompiledAxes`); so does the smoother's general
-recursion (:class:`_CompiledSmoother`). Without gradients a one-step-lag smoother (the
-paper's KS, SVSTPS and SVSS) needs no pass of its own: the compiled forward loop smooths step
-``k`` as soon as step ``k + 1`` is done (:func:`run_axes` with ``smoothing``), so the filter's
-record need not be written and read back. The tensor loops below are the reference, the
-fallback without a compiler, and the path for higher derivatives.
+recursion (:class:`_CompiledSmoother`). A one-step-lag smoother (the paper's KS, SVSTPS and
+SVSS) needs no pass of its own: the compiled forward loop smooths step ``k`` as soon as step
+``k + 1`` is done (:func:`run_axes` with ``smoothing``; its adjoint takes the smoothing back
+too), so the filter's record need not be written and read back. The tensor loops below are
+the reference, the fallback without a compiler, and the path for higher derivatives.
 
 Every axis has a two-component corrector measurement :math:`y = (y_p, y_v)` with ``H = I``;
 position-only correctors (Kalman filter, the SVSF's ``H⁺`` mode) have :math:`y_v` always missing.
@@ -270,11 +270,11 @@ def run_axes(
     """The forward pass of every axis, per axis and in the general layout, and the state after
     its last step. ``keep`` (:data:`torchsvs.estimator.KEEP`): ``"all"``, or the compiled loop
     writes only the filtered moments (``"moments"``) or means (``"mean"``) of each step (the
-    other fields ``None``, no per-axis result); with gradients it also keeps the covariances
-    and the SVSF's a-posteriori innovations (the state after the last step is read off them).
-    ``smoothing`` (``"gain"``: RTS, ``"projection"``: SVSS): the compiled loop also gives the
-    one-step-lag smoothed moments (:func:`fused.forward`), without gradients only (else
-    ``smoothed`` is ``None`` and the pass keeps all, for :func:`smooth_axes`).
+    other fields ``None``, no per-axis result), with gradients too. ``smoothing`` (``"gain"``:
+    RTS, ``"projection"``: SVSS): the compiled loop also gives the one-step-lag smoothed
+    moments (:func:`fused.forward`, with gradients through its adjoint); where the compiled
+    loop does not run, ``smoothed`` is ``None`` and the pass keeps all, for
+    :func:`smooth_axes`.
 
     Args:
         y: the corrector's measurements per axis.
@@ -314,22 +314,20 @@ def run_axes(
     if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
         inputs = (*raw, *prior)
         if torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma)):
-            # Less than the whole record: the steps' states (the state after the last step is
-            # read off them, differentiably), not the other fields; a smoother reads them all.
-            kept = "all" if keep == "all" or smoothing is not None else "state"
+            # Only what is kept is written, as without gradients: the adjoint recomputes the
+            # steps' states, and the state after the last step is an output of its own.
             shape = (B, steps, m)
-            out = Interleaved(*_CompiledAxes.apply(rule, velocity, shape, kept, gamma, *inputs))
-            last = _last(out)
-            if kept != "all":
-                return AxesPass(None, out, last, None)
-            smoothed = None
+            parts = _CompiledAxes.apply(rule, velocity, shape, keep, smoothing, gamma, *inputs)
+            out = Interleaved(*parts[:10])
+            last = fused.Last(*parts[10:13])
+            smoothed = None if smoothing is None else (parts[13], parts[14])
         else:
             outputs, last, smoothed = fused.forward(
                 rule, float(gamma), raw, prior, (B, steps, m), velocity, keep, smoothing
             )
             out = Interleaved(*cast(Any, outputs))  # the fields not kept are None
-            if keep != "all":
-                return AxesPass(None, out, last, smoothed)
+        if keep != "all":
+            return AxesPass(None, out, last, smoothed)
         return AxesPass(per_axis(out, noise, T_all, velocity), out, last, smoothed)
     seen_p, seen_v = ~torch.isnan(y.position), ~torch.isnan(y.velocity)
     R_all = _masked_noise(y.noise, seen_p, seen_v)
@@ -397,8 +395,10 @@ class _CompiledAxes(torch.autograd.Function):
     """The compiled forward loop (:func:`fused.forward`) with its compiled reverse mode
     (:func:`fused.adjoint`): training runs the loop at inference speed. Inputs: the 11 given
     quantities and the 5 prior ones of :func:`run_axes`, in :func:`fused.forward`'s order;
-    outputs: the :class:`Interleaved` fields. First derivatives only (``create_graph`` needs
-    the tensor loops: :func:`torchsvs.kernels.eager_loops`)."""
+    outputs: the :class:`Interleaved` fields (those ``keep`` leaves out ``None``), the state
+    after the last step (:class:`fused.Last`) and, with ``smoothing``, the one-step-lag
+    smoothed mean and covariance (else ``None``), 15 in all. First derivatives only
+    (``create_graph`` needs the tensor loops: :func:`torchsvs.kernels.eager_loops`)."""
 
     @staticmethod
     def forward(
@@ -407,30 +407,36 @@ class _CompiledAxes(torch.autograd.Function):
         velocity: bool,
         shape: tuple[int, int, int],
         keep: str,
+        smoothing: str | None,
         gamma: Tensor,
         *inputs: Tensor,
     ) -> tuple[Tensor | None, ...]:
         given, prior = inputs[:11], inputs[11:]
-        out, _, _ = fused.forward(rule, float(gamma), given, prior, shape, velocity, keep)
-        ctx.settings = (rule, velocity, shape)
+        out, last, smoothed = fused.forward(
+            rule, float(gamma), given, prior, shape, velocity, keep, smoothing
+        )
+        ctx.settings = (rule, velocity, shape, smoothing)
         ctx.save_for_backward(gamma, *inputs)
         if out[-1] is not None:  # the observed mask (kept with the whole record)
             ctx.mark_non_differentiable(out[-1])
         ctx.set_materialize_grads(False)
-        return out
+        return (*out, *last, *(smoothed or (None, None)))
 
     @staticmethod
     @once_differentiable
     def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
-        rule, velocity, shape = ctx.settings
+        rule, velocity, shape, smoothing = ctx.settings
         gamma, *inputs = ctx.saved_tensors
-        wanted = ctx.needs_input_grad[5:]
+        wanted = ctx.needs_input_grad[6:]
         given, prior = inputs[:11], inputs[11:]
+        differentiable = (*grads[:9], *grads[10:])  # not the observed mask
         dgiven, dprior, dgamma = fused.adjoint(
-            rule, float(gamma), given, prior, shape, velocity, grads[:9], wanted[:11]
-        )
-        result: list[Tensor | None] = [None, None, None, None]  # rule, velocity, shape, keep
-        result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[4] else None)
+            rule, float(gamma), given, prior, shape, velocity, differentiable, wanted[:11],
+            smoothing,
+        )  # fmt: skip
+        # rule, velocity, shape, keep, smoothing
+        result: list[Tensor | None] = [None, None, None, None, None]
+        result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[5] else None)
         result += _summed_to(given, dgiven)
         for x, dx, w in zip(prior, dprior, wanted[11:], strict=True):
             result.append(dx.reshape(x.shape) if w else None)

@@ -40,11 +40,80 @@ View<R> view(const void* const* ptrs, const int64_t* strides, int i) {
                    strides[3 * i + 2]};
 }
 
-// svsf_gain_ratio (torchsvs/linalg.py): (|e| + γ|e_post|) / max(|e|, ψ), Eq. (23).
+// The smoother loops step W lanes (track axes) together: a lane's formulas above are
+// templates on R, and with R a vector of W lanes (GCC/Clang vector extensions, 32 bytes) the
+// same code runs W lanes at once, element by element, so each lane gets exactly the numbers
+// it gets alone. A block's lanes are gathered from the inputs and scattered to the outputs; a
+// short last block repeats its last lane.
 template <typename R>
-inline R gain_ratio(R e, R memory, R width, R gamma) {
-    R magnitude = std::fabs(e);
-    return (magnitude + gamma * std::fabs(memory)) / (magnitude > width ? magnitude : width);
+struct Wide;
+template <>
+struct Wide<float> {
+    typedef float type __attribute__((vector_size(32)));
+};
+template <>
+struct Wide<double> {
+    typedef double type __attribute__((vector_size(32)));
+};
+template <typename R>
+struct LaneBlock {
+    static constexpr int kWidth = sizeof(typename Wide<R>::type) / sizeof(R);
+    int64_t b[kWidth], j[kWidth];  // each lane's track and axis
+    int count;                     // lanes that are real (the rest repeat the last)
+
+    // The lanes [l, min(l + width, end)) of lane index track · m + axis.
+    LaneBlock(int64_t l, int64_t end, int64_t m)
+        : count(static_cast<int>(std::min<int64_t>(kWidth, end - l))) {
+        for (int w = 0; w < kWidth; ++w) {
+            const int64_t lane = l + std::min(w, count - 1);
+            b[w] = lane / m, j[w] = lane % m;
+        }
+    }
+    // The lanes' values of input `v` at step t.
+    typename Wide<R>::type at(const View<R>& v, int64_t t) const {
+        typename Wide<R>::type out;
+        for (int w = 0; w < kWidth; ++w) out[w] = v.at(b[w], t, j[w]);
+        return out;
+    }
+};
+
+// Lane values X: a scalar R, or a Wide vector of lanes that runs the same code lane by lane
+// (conditions are masks, `mask ? a : b` picks per lane; GCC/Clang vector extensions).
+template <typename X>
+struct Element {
+    typedef X type;
+};
+template <>
+struct Element<Wide<float>::type> {
+    typedef float type;
+};
+template <>
+struct Element<Wide<double>::type> {
+    typedef double type;
+};
+// The constant c as an X (every lane).
+template <typename X>
+inline X splat(double c) {
+    return X{} + static_cast<typename Element<X>::type>(c);
+}
+inline float magnitude_of(float x) { return std::fabs(x); }
+inline double magnitude_of(double x) { return std::fabs(x); }
+template <typename X>
+inline X magnitude_of(X x) {
+    return x < X{} ? -x : x;
+}
+// sign(x) as torch has it: −1, 0 or 1.
+template <typename X>
+inline X sign_of(X x) {
+    const X zero{}, one = zero + 1;
+    return (x > zero ? one : zero) - (x < zero ? one : zero);
+}
+
+// svsf_gain_ratio (torchsvs/linalg.py): (|e| + γ|e_post|) / max(|e|, ψ), Eq. (23).
+template <typename X>
+inline X gain_ratio(X e, X memory, X width, X gamma) {
+    X magnitude = magnitude_of(e);
+    return (magnitude + gamma * magnitude_of(memory)) / (magnitude > width ? magnitude : width);
 }
 
 // std::copy_n into a fresh output nobody reads soon: non-temporal stores write whole cache
@@ -141,64 +210,69 @@ enum Result {
     kResults
 };
 constexpr int64_t kLanes = 64;  // lanes (track axes) stepped together
-constexpr int64_t kAdjointLanes = 16;  // lanes the adjoint takes back in time together
+constexpr int64_t kAdjointVectors = 4;  // vectors of lanes the adjoint takes back together
 
 // The state a lane carries from step to step: mean, covariance [[a, b], [b, c]], SVSF memory.
-template <typename R>
+// X: one lane's scalar, or a vector of lanes (Wide).
+template <typename X>
 struct State {
-    R p, v, a, b, c, mem_p, mem_v;
+    X p, v, a, b, c, mem_p, mem_v;
 };
 
 // One step of a lane: the state after it and everything it records.
-template <typename R>
+template <typename X>
 struct Step {
-    State<R> next;
-    R fp, fv;           // 1 where the position / velocity is observed, else 0
-    R rp, rpv, rvv;     // R masked: an identity on missing components (axes._masked_noise)
-    R p_pred, v_pred, bT, a1, b1, c1;
-    R ep, ev, Sp, Spv, Sv;
-    R kp, kc, kv;       // the axis's gain [[kp, 0], [kc, kv]] (Kalman: kv = 0; SVSF: kc = 0)
-    R ll;               // the log-likelihood's term without log S (Kalman)
+    State<X> next;
+    X fp, fv;           // 1 where the position / velocity is observed, else 0
+    X rp, rpv, rvv;     // R masked: an identity on missing components (axes._masked_noise)
+    X p_pred, v_pred, bT, a1, b1, c1;
+    X ep, ev, Sp, Spv, Sv;
+    X kp, kc, kv;       // the axis's gain [[kp, 0], [kc, kv]] (Kalman: kv = 0; SVSF: kc = 0)
+    X ll;               // the log-likelihood's term without log S (Kalman)
 };
 
-// axes._forward_step for one lane: Rule 0 Kalman (position-only), 1 SVSF. g: the step's
-// inputs in Given's order.
-template <typename R, int Rule>
-inline Step<R> predict_correct(const State<R>& x, const R* g, R gamma) {
-    Step<R> s;
-    R dt = g[kT], yp = g[kYp], yv = g[kYv];
-    bool seen_p = yp == yp, seen_v = Rule == 1 && yv == yv;  // NaN: missing
-    s.fp = seen_p ? R(1) : R(0), s.fv = seen_v ? R(1) : R(0);
-    s.rp = seen_p ? g[kRp] : R(1);
+// axes._forward_step for one lane (or a vector of lanes): Rule 0 Kalman (position-only),
+// 1 SVSF. g: the step's inputs in Given's order. Branch-free: a missing measurement's lane
+// picks its values (NaN: missing).
+template <typename X, int Rule>
+inline Step<X> predict_correct(const State<X>& x, const X* g, X gamma) {
+    const X zero{}, one = zero + 1;
+    Step<X> s;
+    X dt = g[kT], yp = g[kYp], yv = g[kYv];
+    const auto seen_p = yp == yp;
+    s.fp = seen_p ? one : zero;
+    s.rp = seen_p ? g[kRp] : one;
     // Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
     s.p_pred = x.p + dt * x.v, s.v_pred = x.v;
     s.bT = x.b + dt * x.c;
     s.a1 = x.a + dt * (x.b + s.bT) + g[kQa];
     s.b1 = s.bT + g[kQb];
     s.c1 = x.c + g[kQc];
-    s.ep = seen_p ? yp - s.p_pred : R(0);
+    s.ep = seen_p ? yp - s.p_pred : zero;
     s.Sp = s.a1 * s.fp + s.rp;
-    State<R>& n = s.next;
+    State<X>& n = s.next;
     if (Rule == 0) {
-        s.rpv = 0, s.rvv = 1, s.ev = 0, s.Spv = 0, s.Sv = 1;
-        R kp = s.a1 * s.fp / s.Sp, kv_p = s.b1 * s.fp / s.Sp;
-        R one_k = 1 - kp;
+        s.fv = zero, s.rpv = zero, s.rvv = one, s.ev = zero, s.Spv = zero, s.Sv = one;
+        X kp = s.a1 * s.fp / s.Sp, kv_p = s.b1 * s.fp / s.Sp;
+        X one_k = 1 - kp;
         n.a = one_k * one_k * s.a1 + kp * kp * s.rp;  // Joseph form
         n.b = one_k * (s.b1 - kv_p * s.a1) + kp * kv_p * s.rp;
         n.c = s.c1 - 2 * kv_p * s.b1 + kv_p * kv_p * (s.a1 + s.rp);
         n.p = s.p_pred + kp * s.ep;
         n.v = s.v_pred + kv_p * s.ep;
         n.mem_p = x.mem_p, n.mem_v = x.mem_v;
-        s.kp = kp, s.kc = kv_p, s.kv = 0;
+        s.kp = kp, s.kc = kv_p, s.kv = zero;
         // log N(e; 0, S) over the observed positions (axes.run_axes), but log S.
-        s.ll = R(-0.5) * (s.ep * s.ep / s.Sp + s.fp * R(1.8378770664093453));
+        s.ll = splat<X>(-0.5) * (s.ep * s.ep / s.Sp + s.fp * splat<X>(1.8378770664093453));
     } else {
-        s.rpv = seen_p && seen_v ? g[kRpv] : R(0);
-        s.rvv = seen_v ? g[kRvv] : R(1);
-        s.ev = seen_v ? yv - s.v_pred : R(0);
-        R kp = gain_ratio(s.ep, x.mem_p, g[kWp], gamma) * s.fp;
-        R kv = gain_ratio(s.ev, x.mem_v, g[kWv], gamma) * s.fv;
-        R one_p = 1 - kp, one_v = 1 - kv;
+        const auto seen_v = yv == yv;
+        s.fv = seen_v ? one : zero;
+        s.rpv = (seen_p & seen_v) ? g[kRpv] : zero;
+        s.rvv = seen_v ? g[kRvv] : one;
+        s.ev = seen_v ? yv - s.v_pred : zero;
+        X kp = gain_ratio(s.ep, x.mem_p, g[kWp], gamma) * s.fp;
+        X kv = gain_ratio(s.ev, x.mem_v, g[kWv], gamma) * s.fv;
+        X one_p = 1 - kp, one_v = 1 - kv;
         n.a = one_p * one_p * s.a1 + kp * kp * s.rp;  // Joseph form, diagonal gain
         n.b = one_p * one_v * s.b1 + kp * kv * s.rpv;
         n.c = one_v * one_v * s.c1 + kv * kv * s.rvv;
@@ -206,9 +280,9 @@ inline Step<R> predict_correct(const State<R>& x, const R* g, R gamma) {
         // Eq. (24): the a-posteriori innovation, carried where missing.
         n.mem_p = seen_p ? yp - n.p : x.mem_p;
         n.mem_v = seen_v ? yv - n.v : x.mem_v;
-        s.kp = kp, s.kc = 0, s.kv = kv;
+        s.kp = kp, s.kc = zero, s.kv = kv;
         s.Spv = s.b1 * s.fp * s.fv + s.rpv, s.Sv = s.c1 * s.fv + s.rvv;
-        s.ll = 0;
+        s.ll = zero;
     }
     return s;
 }
@@ -639,400 +713,6 @@ void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, doub
         forward_axes<R, 1>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
 }
 
-// Reverse mode of the forward loop: the gradients of its inputs given those of its outputs,
-// for training (torchsvs.kernels.axes._CompiledAxes). Each lane recomputes its forward states,
-// then runs the adjoint of predict_correct backwards in time: every assignment of the step,
-// reversed. The derivatives follow torch's conventions where the step is not smooth
-// (d|x|/dx = 0 at 0; max(|e|, ψ) differentiates in |e| only when |e| > ψ).
-
-// Adjoints of what a step records besides the state (from the outputs' gradients).
-template <typename R>
-struct Recorded {
-    R p_pred, v_pred, a1, b1, c1, ep, ev, kp, kc, kv, Sp, Spv, Sv, ll;
-};
-
-// gain_ratio's adjoint: adds dk's contributions to those of e, the memory, ψ and γ.
-template <typename R>
-inline void gain_ratio_adjoint(R e, R memory, R width, R gamma, R dk, R& de, R& dmemory,
-                               R& dwidth, R& dgamma) {
-    R magnitude = std::fabs(e), held = std::fabs(memory);
-    bool saturated = magnitude > width;
-    R den = saturated ? magnitude : width, num = magnitude + gamma * held;
-    R sign_e = R((e > 0) - (e < 0)), sign_m = R((memory > 0) - (memory < 0));
-    R over = num / (den * den);
-    de += dk * (sign_e / den - (saturated ? over * sign_e : R(0)));
-    dmemory += dk * gamma * sign_m / den;
-    dwidth += saturated ? R(0) : -dk * over;
-    dgamma += dk * held / den;
-}
-
-// predict_correct's adjoint: from the adjoints of the state after the step (dn) and of its
-// records (o), those of the state before (returned), of the step's inputs (dg, Given's
-// order, overwritten) and of γ (added to dgamma).
-template <typename R, int Rule>
-inline State<R> step_adjoint(const State<R>& x, const R* g, R gamma, const Step<R>& s,
-                             const State<R>& dn, const Recorded<R>& o, R* dg, R& dgamma) {
-    const R dt = g[kT];
-    const bool seen_p = s.fp > 0, seen_v = s.fv > 0;
-    State<R> d{0, 0, 0, 0, 0, 0, 0};
-    R drp = 0, drpv = 0, drvv = 0, dyp = 0, dyv = 0;
-    R da1 = o.a1, db1 = o.b1, dc1 = o.c1, dep = o.ep, dev = o.ev;
-    R dpp = o.p_pred, dvp = o.v_pred, dkp = o.kp, dkc = o.kc, dkv = o.kv, dSp = o.Sp;
-    for (int q = 0; q < kGiven; ++q) dg[q] = 0;
-    if (Rule == 0) {
-        const R kp = s.kp, kvp = s.kc, one_k = 1 - kp;
-        // p' = p_pred + kp ep, v' = v_pred + kvp ep
-        dpp += dn.p, dvp += dn.v;
-        dkp += dn.p * s.ep, dkc += dn.v * s.ep, dep += dn.p * kp + dn.v * kvp;
-        // c' = c1 − 2 kvp b1 + kvp² (a1 + rp)
-        dc1 += dn.c, db1 -= 2 * kvp * dn.c, da1 += kvp * kvp * dn.c, drp += kvp * kvp * dn.c;
-        dkc += dn.c * (2 * kvp * (s.a1 + s.rp) - 2 * s.b1);
-        // b' = (1 − kp)(b1 − kvp a1) + kp kvp rp
-        R done = dn.b * (s.b1 - kvp * s.a1);
-        db1 += one_k * dn.b, da1 -= one_k * kvp * dn.b;
-        dkc += dn.b * (kp * s.rp - one_k * s.a1), dkp += dn.b * kvp * s.rp;
-        drp += dn.b * kp * kvp;
-        // a' = (1 − kp)² a1 + kp² rp
-        done += 2 * one_k * s.a1 * dn.a, da1 += one_k * one_k * dn.a;
-        dkp += 2 * kp * s.rp * dn.a, drp += kp * kp * dn.a;
-        dkp -= done;
-        // kp = a1 fp / Sp, kvp = b1 fp / Sp
-        da1 += s.fp / s.Sp * dkp, db1 += s.fp / s.Sp * dkc;
-        dSp -= (s.a1 * dkp + s.b1 * dkc) * s.fp / (s.Sp * s.Sp);
-        // ll = −(ep²/Sp + log Sp)/2 + const
-        dep -= o.ll * s.ep / s.Sp;
-        dSp += R(0.5) * o.ll * (s.ep * s.ep / (s.Sp * s.Sp) - 1 / s.Sp);
-        d.mem_p = dn.mem_p, d.mem_v = dn.mem_v;
-    } else {
-        const R kp = s.kp, kv = s.kv, one_p = 1 - kp, one_v = 1 - kv;
-        R dp = dn.p, dv = dn.v;
-        // mem' = y − x' where observed, else mem
-        if (seen_p) dyp += dn.mem_p, dp -= dn.mem_p; else d.mem_p += dn.mem_p;
-        if (seen_v) dyv += dn.mem_v, dv -= dn.mem_v; else d.mem_v += dn.mem_v;
-        // p' = p_pred + kp ep, v' = v_pred + kv ev
-        dpp += dp, dkp += dp * s.ep, dep += dp * kp;
-        dvp += dv, dkv += dv * s.ev, dev += dv * kv;
-        // c' = (1 − kv)² c1 + kv² rvv
-        R done_v = 2 * one_v * s.c1 * dn.c;
-        dc1 += one_v * one_v * dn.c, dkv += 2 * kv * s.rvv * dn.c, drvv += kv * kv * dn.c;
-        // b' = (1 − kp)(1 − kv) b1 + kp kv rpv
-        R done_p = one_v * s.b1 * dn.b;
-        done_v += one_p * s.b1 * dn.b, db1 += one_p * one_v * dn.b;
-        dkp += kv * s.rpv * dn.b, dkv += kp * s.rpv * dn.b, drpv += kp * kv * dn.b;
-        // a' = (1 − kp)² a1 + kp² rp
-        done_p += 2 * one_p * s.a1 * dn.a, da1 += one_p * one_p * dn.a;
-        dkp += 2 * kp * s.rp * dn.a, drp += kp * kp * dn.a;
-        dkp -= done_p, dkv -= done_v;
-        // k = gain_ratio(e, mem, ψ, γ) where observed, Eq. (23)
-        if (seen_p) gain_ratio_adjoint(s.ep, x.mem_p, g[kWp], gamma, dkp, dep, d.mem_p, dg[kWp], dgamma);
-        if (seen_v) gain_ratio_adjoint(s.ev, x.mem_v, g[kWv], gamma, dkv, dev, d.mem_v, dg[kWv], dgamma);
-        // Spv = b1 fp fv + rpv, Sv = c1 fv + rvv
-        db1 += s.fp * s.fv * o.Spv, drpv += o.Spv, dc1 += s.fv * o.Sv, drvv += o.Sv;
-        // ev = yv − v_pred where observed
-        if (seen_v) dyv += dev, dvp -= dev;
-    }
-    // Sp = a1 fp + rp; ep = yp − p_pred where observed
-    da1 += s.fp * dSp, drp += dSp;
-    if (seen_p) dyp += dep, dpp -= dep;
-    // The masked noise: the inputs count where observed only.
-    dg[kRp] = seen_p ? drp : R(0);
-    dg[kRpv] = seen_p && seen_v ? drpv : R(0);
-    dg[kRvv] = seen_v ? drvv : R(0);
-    dg[kYp] = dyp, dg[kYv] = dyv;
-    // c1 = c + Qc, b1 = bT + Qb, a1 = a + T (b + bT) + Qa, bT = b + T c
-    dg[kQa] = da1, dg[kQb] = db1, dg[kQc] = dc1;
-    R dbT = db1 + dt * da1;
-    d.a += da1, d.b += dt * da1 + dbT, d.c += dc1 + dt * dbT;
-    // p_pred = p + T v, v_pred = v
-    d.p += dpp, d.v += dt * dpp + dvp;
-    dg[kT] = (x.b + s.bT) * da1 + x.c * dbT + x.v * dpp;
-    return d;
-}
-
-// The forward loop's gradients. `grads`: the gradients of forward's outputs in Layout's order
-// (mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik; null: zero). Writes the
-// inputs' gradients: `dgiven` 11 contiguous [B, T, m] arrays (null: not wanted), `dprior` 5
-// [B, m] (p, v, a, b, c), and `dgamma` [B, m] (per lane, summed by the caller).
-template <typename R, int Rule>
-void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int threads,
-             const void* const* in, const int64_t* in_strides, const void* const* prior,
-             const int64_t* prior_strides, const R* const* grads, R* const* dgiven,
-             R* const* dprior, R* dgamma) {
-    View<R> given[kGiven];
-    for (int q = 0; q < kGiven; ++q) given[q] = view<R>(in, in_strides, q);
-    const int64_t n = 2 * m, mz = velocity ? n : m;
-    const R *g_mean = grads[0], *g_cov = grads[1], *g_pm = grads[2], *g_pc = grads[3];
-    const R *g_e = grads[4], *g_K = grads[5], *g_S = grads[6], *g_post = grads[7];
-    const R* g_ll = grads[8];
-    // Blocks of lanes (track axes) go back in time together, as the forward loop steps them:
-    // a lane's recursion is a chain of dependent operations, and independent lanes side by
-    // side keep the processor busy (and let the compiler vectorise where it can).
-    // The block's recomputed states stay in a core's L2 (half a MiB): long tracks take fewer
-    // lanes at a time (a block's states spilling to L3 cost more than the lanes gain).
-    const int64_t fits = (int64_t(1) << 19) / ((T + 1) * int64_t(sizeof(State<R>)));
-    const int64_t block = std::max<int64_t>(1, std::min(kAdjointLanes, fits) / m);
-    over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        std::vector<State<R>> states((T + 1) * block * m);  // [t][lane]
-        std::vector<State<R>> dx(block * m);
-        std::vector<R> summed(block * m * kGiven), dgam(block * m);
-        for (int64_t b0 = first; b0 < last; b0 += block) {
-            const int64_t b1 = std::min(last, b0 + block), lanes = (b1 - b0) * m;
-            for (int64_t l = 0; l < lanes; ++l) {
-                const int64_t bi = b0 + l / m, j = l % m;
-                R start[5];  // the prior p, v, a, b, c; the memory starts at zero
-                for (int q = 0; q < 5; ++q) start[q] = view<R>(prior, prior_strides, q).at(bi, 0, j);
-                states[l] = {start[0], start[1], start[2], start[3], start[4], 0, 0};
-            }
-            for (int64_t t = 0; t < T; ++t)
-                for (int64_t l = 0; l < lanes; ++l) {
-                    const int64_t bi = b0 + l / m, j = l % m;
-                    R g[kGiven];
-                    for (int q = 0; q < kGiven; ++q) g[q] = given[q].at(bi, t, j);
-                    states[(t + 1) * lanes + l] =
-                        predict_correct<R, Rule>(states[t * lanes + l], g, gamma).next;
-                }
-            std::fill_n(dx.begin(), lanes, State<R>{0, 0, 0, 0, 0, 0, 0});
-            std::fill_n(summed.begin(), lanes * kGiven, R(0));
-            std::fill_n(dgam.begin(), lanes, R(0));
-            for (int64_t t = T - 1; t >= 0; --t)
-                for (int64_t l = 0; l < lanes; ++l) {
-                    const int64_t bi = b0 + l / m, j = l % m;
-                    R g[kGiven], dg[kGiven];
-                    for (int q = 0; q < kGiven; ++q) g[q] = given[q].at(bi, t, j);
-                    const State<R>& before = states[t * lanes + l];
-                    const Step<R> s = predict_correct<R, Rule>(before, g, gamma);
-                    const int64_t rec = bi * T + t, p = 2 * j, v = 2 * j + 1;
-                    // The outputs' gradients at this step, read from the general layout (an
-                    // entry written twice, b of a symmetric block, gets both gradients).
-                    auto vec = [&](const R* grad, int64_t size, int64_t i) {
-                        return grad ? grad[rec * size + i] : R(0);
-                    };
-                    auto mat = [&](const R* grad, int64_t cols, int64_t row, int64_t col) {
-                        return grad ? grad[rec * n * cols + row * cols + col] : R(0);
-                    };
-                    auto sq = [&](const R* grad, int64_t size, int64_t row, int64_t col) {
-                        return grad ? grad[rec * size * size + row * size + col] : R(0);
-                    };
-                    State<R>& d = dx[l];
-                    d.p += vec(g_mean, n, p), d.v += vec(g_mean, n, v);
-                    d.a += sq(g_cov, n, p, p), d.c += sq(g_cov, n, v, v);
-                    d.b += sq(g_cov, n, p, v) + sq(g_cov, n, v, p);
-                    Recorded<R> o{};
-                    o.p_pred = vec(g_pm, n, p), o.v_pred = vec(g_pm, n, v);
-                    o.a1 = sq(g_pc, n, p, p), o.c1 = sq(g_pc, n, v, v);
-                    o.b1 = sq(g_pc, n, p, v) + sq(g_pc, n, v, p);
-                    o.ll = g_ll ? g_ll[bi] : R(0);
-                    if (velocity) {
-                        o.ep = vec(g_e, mz, p), o.ev = vec(g_e, mz, v);
-                        o.kp = mat(g_K, n, p, p), o.kc = mat(g_K, n, v, p), o.kv = mat(g_K, n, v, v);
-                        o.Sp = sq(g_S, n, p, p), o.Sv = sq(g_S, n, v, v);
-                        o.Spv = sq(g_S, n, p, v) + sq(g_S, n, v, p);
-                        d.mem_p += vec(g_post, mz, p), d.mem_v += vec(g_post, mz, v);
-                    } else {
-                        o.ep = vec(g_e, mz, j);
-                        o.kp = mat(g_K, m, p, j), o.kc = mat(g_K, m, v, j);
-                        o.Sp = sq(g_S, m, j, j);
-                        d.mem_p += vec(g_post, mz, j);
-                    }
-                    d = step_adjoint<R, Rule>(before, g, gamma, s, d, o, dg, dgam[l]);
-                    // An input constant in time (Q, R of a fixed interval) gets its gradient
-                    // summed here, [B, 1, m]: no [B, T, m] buffer to write and sum afterwards.
-                    for (int q = 0; q < kGiven; ++q)
-                        if (dgiven[q] && given[q].st == 0)
-                            summed[l * kGiven + q] += dg[q];
-                        else if (dgiven[q])
-                            dgiven[q][rec * m + j] = dg[q];
-                }
-            for (int64_t l = 0; l < lanes; ++l) {
-                const int64_t bi = b0 + l / m, j = l % m;
-                for (int q = 0; q < kGiven; ++q)
-                    if (dgiven[q] && given[q].st == 0) dgiven[q][bi * m + j] = summed[l * kGiven + q];
-                const State<R>& d = dx[l];
-                const R prior_adjoint[5] = {d.p, d.v, d.a, d.b, d.c};
-                for (int q = 0; q < 5; ++q)
-                    if (dprior[q]) dprior[q][bi * m + j] = prior_adjoint[q];
-                dgamma[bi * m + j] = dgam[l];
-            }
-        }
-    });
-}
-
-template <typename R>
-void adjoint_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, double gamma,
-                   int threads, const void* const* in, const int64_t* s, const void* const* prior,
-                   const int64_t* ps, void* const* grads, void* const* dgiven, void* const* dprior,
-                   void* dgamma) {
-    auto g = reinterpret_cast<const R* const*>(grads);
-    auto dg = reinterpret_cast<R* const*>(dgiven);
-    auto dp = reinterpret_cast<R* const*>(dprior);
-    R gm = static_cast<R>(gamma);
-    R* dgm = static_cast<R*>(dgamma);
-    if (rule == 0)
-        adjoint<R, 0>(B, T, m, velocity, gm, threads, in, s, prior, ps, g, dg, dp, dgm);
-    else
-        adjoint<R, 1>(B, T, m, velocity, gm, threads, in, s, prior, ps, g, dg, dp, dgm);
-}
-
-// axes._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
-// Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)).
-// Inputs (11): p, v, a, b, c (filtered), p_pred, v_pred, a1, b1, c1 (predicted), T.
-// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
-template <typename R>
-void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* const* in,
-                  const int64_t* in_strides, R* mean_out, R* cov_out) {
-    View<R> P = view<R>(in, in_strides, 0), V = view<R>(in, in_strides, 1),
-            A = view<R>(in, in_strides, 2), Bc = view<R>(in, in_strides, 3),
-            Cc = view<R>(in, in_strides, 4), Pp = view<R>(in, in_strides, 5),
-            Vp = view<R>(in, in_strides, 6), A1 = view<R>(in, in_strides, 7),
-            B1 = view<R>(in, in_strides, 8), C1 = view<R>(in, in_strides, 9),
-            Ts = view<R>(in, in_strides, 10);
-    const int64_t n = 2 * m;
-    auto write = [&](int64_t bi, int64_t k, int64_t j, R ps, R vs, R sa, R sb, R sc) {
-        int64_t idx = bi * T + k;
-        write_axis(mean_out + idx * n, cov_out + idx * n * n, n, j, ps, vs, sa, sb, sc);
-    };
-    over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        for (int64_t bi = first; bi < last; ++bi) {
-            for (int64_t j = 0; j < m; ++j) {
-                R ps = P.at(bi, T - 1, j), vs = V.at(bi, T - 1, j);
-                R sa = A.at(bi, T - 1, j), sb = Bc.at(bi, T - 1, j), sc = Cc.at(bi, T - 1, j);
-                write(bi, T - 1, j, ps, vs, sa, sb, sc);
-                for (int64_t k = T - 2; k >= 0; --k) {
-                    R dt = Ts.at(bi, k + 1, j);
-                    R a = A.at(bi, k, j), b = Bc.at(bi, k, j), c = Cc.at(bi, k, j);
-                    R pa = A1.at(bi, k + 1, j), pb = B1.at(bi, k + 1, j);
-                    R pc = C1.at(bi, k + 1, j);
-                    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (axes.inverse, axes.mm).
-                    R det = pa * pc - pb * pb;
-                    R ia = pc / det, ib = -pb / det, ic = pa / det;
-                    R xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
-                    R ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
-                    R cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
-                    R dp = ps - Pp.at(bi, k + 1, j), dv = vs - Vp.at(bi, k + 1, j);
-                    ps = P.at(bi, k, j) + (ca * dp + cb * dv);
-                    vs = V.at(bi, k, j) + (cc * dp + cd * dv);
-                    // axes.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
-                    R da = sa - pa, db = sb - pb, dd = sc - pc;
-                    R ma = ca * da + cb * db, mb = ca * db + cb * dd;
-                    R mc = cc * da + cd * db, md = cc * db + cd * dd;
-                    R ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
-                    R ec = mc * ca + md * cb, ed = mc * cc + md * cd;
-                    sa = a + ea;
-                    sb = b + 0.5 * (eb + ec);
-                    sc = c + ed;
-                    write(bi, k, j, ps, vs, sa, sb, sc);
-                }
-            }
-        }
-    });
-}
-
-// The smoother loops step W lanes (track axes) together: a lane's formulas above are
-// templates on R, and with R a vector of W lanes (GCC/Clang vector extensions, 32 bytes) the
-// same code runs W lanes at once, element by element, so each lane gets exactly the numbers
-// it gets alone. A block's lanes are gathered from the inputs and scattered to the outputs; a
-// short last block repeats its last lane.
-template <typename R>
-struct Wide;
-template <>
-struct Wide<float> {
-    typedef float type __attribute__((vector_size(32)));
-};
-template <>
-struct Wide<double> {
-    typedef double type __attribute__((vector_size(32)));
-};
-template <typename R>
-struct LaneBlock {
-    static constexpr int kWidth = sizeof(typename Wide<R>::type) / sizeof(R);
-    int64_t b[kWidth], j[kWidth];  // each lane's track and axis
-    int count;                     // lanes that are real (the rest repeat the last)
-
-    // The lanes [l, min(l + width, end)) of lane index track · m + axis.
-    LaneBlock(int64_t l, int64_t end, int64_t m)
-        : count(static_cast<int>(std::min<int64_t>(kWidth, end - l))) {
-        for (int w = 0; w < kWidth; ++w) {
-            const int64_t lane = l + std::min(w, count - 1);
-            b[w] = lane / m, j[w] = lane % m;
-        }
-    }
-    // The lanes' values of input `v` at step t.
-    typename Wide<R>::type at(const View<R>& v, int64_t t) const {
-        typename Wide<R>::type out;
-        for (int w = 0; w < kWidth; ++w) out[w] = v.at(b[w], t, j[w]);
-        return out;
-    }
-};
-
-// How many sweeps of `lane_recursion` a run of n steps with a successor takes: one from the
-// end (fixed interval, lag ≥ n) or `lag` from zero.
-inline int64_t sweeps_of(int64_t n, int64_t lag) { return lag >= n ? 1 : lag; }
-
-// The backward recursion of a lane over its terms (n indices), every state kept (the reverse
-// mode reads them): `states` holds (sweeps_of(n, lag) + 1) rows of n + 1, all zero to begin
-// with. Fixed interval (lag ≥ n): row 0, from zero at the end, states[k] = recurse(k,
-// states[k + 1]). Fixed lag: row s (s = 1..lag) applies one step to row s − 1 at every
-// index, states[s][k] = recurse(k, states[s − 1][k + 1]): after `lag` rows, the sum of `lag`
-// terms from zero at k + lag. Returns the results' row; its entry at n stays zero.
-template <typename R>
-inline const Backward<R>* lane_recursion(const R* terms, int64_t n, int64_t lag,
-                                         std::vector<Backward<R>>& states) {
-    if (lag >= n) {
-        for (int64_t k = n - 1; k >= 0; --k) states[k] = recurse(&terms[22 * k], states[k + 1]);
-        return states.data();
-    }
-    for (int64_t s = 1; s <= lag; ++s)
-        for (int64_t k = 0; k < n; ++k)
-            states[s * (n + 1) + k] = recurse(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1]);
-    return &states[lag * (n + 1)];
-}
-
-// A lane's terms (written to `terms`, n indices) and recursion (in `states`, see
-// lane_recursion), from its 20 inputs `at(i, step)`; returns the results' row.
-template <typename R, typename At>
-inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bool projection,
-                                        std::vector<R>& terms, std::vector<Backward<R>>& states) {
-    for (int64_t k = 0; k < n; ++k) terms_at(&terms[22 * k], projection, term_args<R>(at, k));
-    return lane_recursion(terms.data(), n, lag, states);
-}
-
-// axes.smooth_axes: the backward recursion from zero at the end (fixed interval) or, with a
-// lag L < T-1, L applications from zero at step k+L for each k (the fixed-lag form), then
-// axes._smoothed: x̂ˢ_k = x̂_k + g_k, Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k (symmetrised; the
-// last step as filtered).
-// Inputs (20, [B, T, m]): the filter's cov a, b, c; pred_cov a, b, c; gain a, b, c, d;
-// noise (unmasked) pp, pv, vv; observed p, v (0/1); T; innovation p, v; mean p, v.
-// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
-template <typename R>
-void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int threads,
-              const void* const* in, const int64_t* in_strides, R* mean_out, R* cov_out) {
-    using V = typename Wide<R>::type;
-    View<R> v[20];
-    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
-    const int64_t n = T - 1;  // steps with a successor
-    const int64_t width = 2 * m;
-    over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        // A block of lanes' terms, step by step (contiguous for the sweeps), and its states.
-        std::vector<V> terms(22 * (n > 0 ? n : 1));
-        std::vector<Backward<V>> states((sweeps_of(n, lag) + 1) * (n + 1), Backward<V>{});
-        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
-            const LaneBlock<R> lanes(l, last * m, m);
-            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
-            const Backward<V>* result =
-                lane_backward<V>(at, n, lag, projection != 0, terms, states);
-            for (int64_t k = 0; k <= n; ++k) {
-                V now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
-                if (k < n) smoothed(now, result[k]);  // the last step as filtered
-                for (int w = 0; w < lanes.count; ++w) {
-                    const int64_t idx = lanes.b[w] * T + k;
-                    write_axis(mean_out + idx * width, cov_out + idx * width * width, width,
-                               lanes.j[w], now[0][w], now[1][w], now[2][w], now[3][w], now[4][w]);
-                }
-            }
-        }
-    });
-}
-
 // Reverse mode of `backward`, for training (torchsvs.kernels.axes._CompiledSmoother): each
 // lane recomputes its terms and recursion, then runs their adjoints backwards (every matrix
 // product, inverse and transpose reversed: for Y = A B, dA = dY Bᵀ and dB = Aᵀ dY; for
@@ -1137,6 +817,483 @@ inline void recurse_adjoint(const R* w, const Backward<R>& s, const Backward<R>&
         R* o = dw + offsets[i];
         o[0] += blocks[i]->a, o[1] += blocks[i]->b, o[2] += blocks[i]->c, o[3] += blocks[i]->d;
     }
+}
+
+// Reverse mode of the forward loop, for training (torchsvs.kernels.axes._CompiledAxes).
+
+// Adjoints of what a step records besides the state (from the outputs' gradients).
+template <typename X>
+struct Recorded {
+    X p_pred, v_pred, a1, b1, c1, ep, ev, kp, kc, kv, Sp, Spv, Sv, ll;
+};
+
+// gain_ratio's adjoint: adds dk's contributions to those of e, the memory, ψ and γ.
+template <typename X>
+inline void gain_ratio_adjoint(X e, X memory, X width, X gamma, X dk, X& de, X& dmemory,
+                               X& dwidth, X& dgamma) {
+    const X zero{};
+    X magnitude = magnitude_of(e), held = magnitude_of(memory);
+    const auto saturated = magnitude > width;
+    X den = saturated ? magnitude : width, num = magnitude + gamma * held;
+    X sign_e = sign_of(e), sign_m = sign_of(memory);
+    X over = num / (den * den);
+    de += dk * (sign_e / den - (saturated ? over * sign_e : zero));
+    dmemory += dk * gamma * sign_m / den;
+    dwidth += saturated ? zero : -dk * over;
+    dgamma += dk * held / den;
+}
+
+// predict_correct's adjoint: from the adjoints of the state after the step (dn) and of its
+// records (o), those of the state before (returned), of the step's inputs (dg, Given's
+// order, overwritten) and of γ (added to dgamma). Branch-free, as predict_correct.
+template <typename X, int Rule>
+inline State<X> step_adjoint(const State<X>& x, const X* g, X gamma, const Step<X>& s,
+                             const State<X>& dn, const Recorded<X>& o, X* dg, X& dgamma) {
+    const X zero{};
+    const X dt = g[kT];
+    const auto seen_p = s.fp > zero, seen_v = s.fv > zero;
+    State<X> d{zero, zero, zero, zero, zero, zero, zero};
+    X drp = zero, drpv = zero, drvv = zero, dyp = zero, dyv = zero;
+    X da1 = o.a1, db1 = o.b1, dc1 = o.c1, dep = o.ep, dev = o.ev;
+    X dpp = o.p_pred, dvp = o.v_pred, dkp = o.kp, dkc = o.kc, dkv = o.kv, dSp = o.Sp;
+    for (int q = 0; q < kGiven; ++q) dg[q] = zero;
+    if (Rule == 0) {
+        const X kp = s.kp, kvp = s.kc, one_k = 1 - kp;
+        // p' = p_pred + kp ep, v' = v_pred + kvp ep
+        dpp += dn.p, dvp += dn.v;
+        dkp += dn.p * s.ep, dkc += dn.v * s.ep, dep += dn.p * kp + dn.v * kvp;
+        // c' = c1 − 2 kvp b1 + kvp² (a1 + rp)
+        dc1 += dn.c, db1 -= 2 * kvp * dn.c, da1 += kvp * kvp * dn.c, drp += kvp * kvp * dn.c;
+        dkc += dn.c * (2 * kvp * (s.a1 + s.rp) - 2 * s.b1);
+        // b' = (1 − kp)(b1 − kvp a1) + kp kvp rp
+        X done = dn.b * (s.b1 - kvp * s.a1);
+        db1 += one_k * dn.b, da1 -= one_k * kvp * dn.b;
+        dkc += dn.b * (kp * s.rp - one_k * s.a1), dkp += dn.b * kvp * s.rp;
+        drp += dn.b * kp * kvp;
+        // a' = (1 − kp)² a1 + kp² rp
+        done += 2 * one_k * s.a1 * dn.a, da1 += one_k * one_k * dn.a;
+        dkp += 2 * kp * s.rp * dn.a, drp += kp * kp * dn.a;
+        dkp -= done;
+        // kp = a1 fp / Sp, kvp = b1 fp / Sp
+        da1 += s.fp / s.Sp * dkp, db1 += s.fp / s.Sp * dkc;
+        dSp -= (s.a1 * dkp + s.b1 * dkc) * s.fp / (s.Sp * s.Sp);
+        // ll = −(ep²/Sp + log Sp)/2 + const
+        dep -= o.ll * s.ep / s.Sp;
+        dSp += splat<X>(0.5) * o.ll * (s.ep * s.ep / (s.Sp * s.Sp) - 1 / s.Sp);
+        d.mem_p = dn.mem_p, d.mem_v = dn.mem_v;
+    } else {
+        const X kp = s.kp, kv = s.kv, one_p = 1 - kp, one_v = 1 - kv;
+        X dp = dn.p, dv = dn.v;
+        // mem' = y − x' where observed, else mem
+        const X held_p = seen_p ? dn.mem_p : zero, held_v = seen_v ? dn.mem_v : zero;
+        dyp += held_p, dp -= held_p, d.mem_p += dn.mem_p - held_p;
+        dyv += held_v, dv -= held_v, d.mem_v += dn.mem_v - held_v;
+        // p' = p_pred + kp ep, v' = v_pred + kv ev
+        dpp += dp, dkp += dp * s.ep, dep += dp * kp;
+        dvp += dv, dkv += dv * s.ev, dev += dv * kv;
+        // c' = (1 − kv)² c1 + kv² rvv
+        X done_v = 2 * one_v * s.c1 * dn.c;
+        dc1 += one_v * one_v * dn.c, dkv += 2 * kv * s.rvv * dn.c, drvv += kv * kv * dn.c;
+        // b' = (1 − kp)(1 − kv) b1 + kp kv rpv
+        X done_p = one_v * s.b1 * dn.b;
+        done_v += one_p * s.b1 * dn.b, db1 += one_p * one_v * dn.b;
+        dkp += kv * s.rpv * dn.b, dkv += kp * s.rpv * dn.b, drpv += kp * kv * dn.b;
+        // a' = (1 − kp)² a1 + kp² rp
+        done_p += 2 * one_p * s.a1 * dn.a, da1 += one_p * one_p * dn.a;
+        dkp += 2 * kp * s.rp * dn.a, drp += kp * kp * dn.a;
+        dkp -= done_p, dkv -= done_v;
+        // k = gain_ratio(e, mem, ψ, γ) where observed (else 0), Eq. (23)
+        gain_ratio_adjoint(s.ep, x.mem_p, g[kWp], gamma, seen_p ? dkp : zero, dep, d.mem_p,
+                           dg[kWp], dgamma);
+        gain_ratio_adjoint(s.ev, x.mem_v, g[kWv], gamma, seen_v ? dkv : zero, dev, d.mem_v,
+                           dg[kWv], dgamma);
+        // Spv = b1 fp fv + rpv, Sv = c1 fv + rvv
+        db1 += s.fp * s.fv * o.Spv, drpv += o.Spv, dc1 += s.fv * o.Sv, drvv += o.Sv;
+        // ev = yv − v_pred where observed
+        const X seen_dev = seen_v ? dev : zero;
+        dyv += seen_dev, dvp -= seen_dev;
+    }
+    // Sp = a1 fp + rp; ep = yp − p_pred where observed
+    da1 += s.fp * dSp, drp += dSp;
+    const X seen_dep = seen_p ? dep : zero;
+    dyp += seen_dep, dpp -= seen_dep;
+    // The masked noise: the inputs count where observed only.
+    dg[kRp] = seen_p ? drp : zero;
+    dg[kRpv] = (seen_p & seen_v) ? drpv : zero;
+    dg[kRvv] = seen_v ? drvv : zero;
+    dg[kYp] = dyp, dg[kYv] = dyv;
+    // c1 = c + Qc, b1 = bT + Qb, a1 = a + T (b + bT) + Qa, bT = b + T c
+    dg[kQa] = da1, dg[kQb] = db1, dg[kQc] = dc1;
+    X dbT = db1 + dt * da1;
+    d.a += da1, d.b += dt * da1 + dbT, d.c += dc1 + dt * dbT;
+    // p_pred = p + T v, v_pred = v
+    d.p += dpp, d.v += dt * dpp + dvp;
+    dg[kT] = (x.b + s.bT) * da1 + x.c * dbT + x.v * dpp;
+    return d;
+}
+
+// smooth_lanes' adjoint at k = t − 1 for a lane (or a vector of lanes): from the adjoints ds
+// of its smoothed moments (p, v, a, b, c; b: both off-diagonal entries' summed), adds those of
+// the filtered moments before step t to dx, of step t's records to o, and returns those of its
+// masked noise (onto the unmasked inputs) and interval in Given's slots kT, kRp, kRpv, kRvv.
+template <typename X>
+struct SmoothedInputs {
+    X dt, rp, rpv, rvv;
+};
+template <typename X>
+inline SmoothedInputs<X> smooth_adjoint(bool projection, const State<X>& x, const X* g,
+                                        const Step<X>& s, const X* ds, State<X>& dx,
+                                        Recorded<X>& o) {
+    const X zero{};
+    const TermArgs<X> args = masked_args<X>(x.a, x.b, x.c, s.a1, s.b1, s.c1,
+                                            {s.kp, zero, s.kc, s.kv}, g[kRp], g[kRpv], g[kRvv],
+                                            s.fp, s.fv, g[kT], s.ep, s.ev);
+    X w[22];
+    terms_at(w, projection, args);
+    const Backward<X> none{zero, zero, {zero, zero, zero, zero}, {zero, zero, zero, zero}};
+    const Backward<X> r = recurse(w, none);
+    // x̂ˢ = x̂ + g, Pˢ = P − P Gᵀ − G P + Z, symmetrised (`smoothed`).
+    const M2<X> P{x.a, x.b, x.b, x.c};
+    const X half = splat<X>(0.5) * ds[3];
+    const M2<X> dY{ds[2], half, half, ds[4]};
+    const M2<X> dPGt = neg(plus(dY, tr(dY)));
+    const M2<X> dP = plus(dY, mul(dPGt, r.G));
+    const Backward<X> dr{ds[0], ds[1], mul(tr(dPGt), P), dY};
+    dx.p += ds[0], dx.v += ds[1];
+    symmetric_adjoint(dP, dx.a, dx.b, dx.c);
+    X dw[22];
+    for (X& v : dw) v = zero;
+    Backward<X> dnone = none;
+    recurse_adjoint(w, none, dr, dw, dnone);
+    const TermArgs<X> d = terms_adjoint(dw, projection, args);
+    dx.a += d.a, dx.b += d.b, dx.c += d.c;
+    o.a1 += d.a1, o.b1 += d.b1, o.c1 += d.c1;
+    o.kp += d.K.a, o.kc += d.K.c, o.kv += d.K.d;  // K.b is 0, not a record
+    o.ep += d.ep, o.ev += d.ev;
+    return {d.dt, d.rp * s.fp, d.rpv * s.fp * s.fv, d.rvv * s.fv};
+}
+
+// The forward loop's gradients. `grads`: the gradients of forward's outputs (null: zero) in
+// Layout's order: mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, then the
+// state after the last step (mean [B, n], cov [B, n, n], post [B, m_z]) and the one-step-lag
+// smoothed mean and cov (with `smoothing`: 1 RTS, 2 SVSS, as `forward`). Writes the inputs'
+// gradients: `dgiven` 11 contiguous [B, T, m] arrays, or [B, 1, m] summed over the steps for
+// an input constant in time (null: not wanted), `dprior` 5 [B, m] (p, v, a, b, c), and
+// `dgamma` [B, m] (per lane, summed by the caller).
+//
+// Vectors of W lanes (Wide) go back in time together, G of them side by side (independent
+// chains keep the processor busy): each recomputes its forward states, then runs the adjoint
+// of predict_correct (and of smooth_lanes) backwards in time, every assignment reversed. The
+// derivatives follow torch's conventions where the step is not smooth (d|x|/dx = 0 at 0;
+// max(|e|, ψ) differentiates in |e| only when |e| > ψ). The block's recomputed states stay in
+// a core's L2 (half a MiB): long tracks take fewer vectors at a time.
+template <typename R, int Rule>
+void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothing, int threads,
+             const void* const* in, const int64_t* in_strides, const void* const* prior,
+             const int64_t* prior_strides, const R* const* grads, R* const* dgiven,
+             R* const* dprior, R* dgamma) {
+    using V = typename Wide<R>::type;
+    using Lanes = LaneBlock<R>;
+    constexpr int W = Lanes::kWidth;
+    View<R> given[kGiven], start[5];
+    for (int q = 0; q < kGiven; ++q) given[q] = view<R>(in, in_strides, q);
+    for (int q = 0; q < 5; ++q) start[q] = view<R>(prior, prior_strides, q);
+    const int64_t n = 2 * m, mz = velocity ? n : m;
+    const R *g_mean = grads[0], *g_cov = grads[1], *g_pm = grads[2], *g_pc = grads[3];
+    const R *g_e = grads[4], *g_K = grads[5], *g_S = grads[6], *g_post = grads[7];
+    const R *g_ll = grads[8], *g_last_mean = grads[9], *g_last_cov = grads[10];
+    const R *g_last_post = grads[11], *g_smooth_mean = grads[12], *g_smooth_cov = grads[13];
+    const bool projection = smoothing == 2;
+    const V gam = splat<V>(gamma);
+    const int64_t fits = (int64_t(1) << 19) / ((T + 1) * int64_t(sizeof(State<V>)));
+    const int64_t G = std::max<int64_t>(1, std::min<int64_t>(kAdjointVectors, fits));
+    // Per lane: a mean's (p, v) entries, a covariance's (a, b, c) entries (b: both
+    // off-diagonal entries summed), the gradients' values at a record.
+    auto mean_at = [](const R* grad, int64_t size, int64_t at, int64_t i) {
+        return grad ? grad[at * size + i] : R(0);
+    };
+    auto sym_at = [n](const R* grad, int64_t at, int64_t p, int64_t v, R& a, R& b, R& c) {
+        if (!grad) return;
+        const R* x = grad + at * n * n;
+        a += x[p * n + p], b += x[p * n + v] + x[v * n + p], c += x[v * n + v];
+    };
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        const int64_t end = last * m;
+        std::vector<State<V>> states((T + 1) * G);  // [t][vector]
+        std::vector<Lanes> lanes;
+        std::vector<State<V>> dx(G);
+        std::vector<V> summed(G * kGiven), dgam(G);
+        for (int64_t l0 = first * m; l0 < end; l0 += G * W) {
+            lanes.clear();
+            for (int64_t l = l0; l < end && l < l0 + G * W; l += W) lanes.emplace_back(l, end, m);
+            const int64_t count = static_cast<int64_t>(lanes.size());
+            const V zero{};
+            for (int64_t v = 0; v < count; ++v)
+                states[v] = {lanes[v].at(start[0], 0), lanes[v].at(start[1], 0),
+                             lanes[v].at(start[2], 0), lanes[v].at(start[3], 0),
+                             lanes[v].at(start[4], 0), zero, zero};
+            for (int64_t t = 0; t < T; ++t)
+                for (int64_t v = 0; v < count; ++v) {
+                    V g[kGiven];
+                    for (int q = 0; q < kGiven; ++q) g[q] = lanes[v].at(given[q], t);
+                    states[(t + 1) * G + v] =
+                        predict_correct<V, Rule>(states[t * G + v], g, gam).next;
+                }
+            // The state after the last step: its own gradient and, smoothing, that of the
+            // last smoothed step (the last filtered one).
+            for (int64_t v = 0; v < count; ++v) {
+                State<V>& d = dx[v];
+                d = {zero, zero, zero, zero, zero, zero, zero};
+                for (int w = 0; w < W; ++w) {
+                    const int64_t bi = lanes[v].b[w], j = lanes[v].j[w], p = 2 * j, q = p + 1;
+                    R mp = 0, mv = 0, a = 0, b = 0, c = 0;
+                    for (const R* grad : {g_last_mean, g_smooth_mean})
+                        if (grad) {
+                            const int64_t at = grad == g_last_mean ? bi : bi * T + T - 1;
+                            mp += grad[at * n + p], mv += grad[at * n + q];
+                        }
+                    sym_at(g_last_cov, bi, p, q, a, b, c);
+                    sym_at(g_smooth_cov, bi * T + T - 1, p, q, a, b, c);
+                    d.p[w] = mp, d.v[w] = mv, d.a[w] = a, d.b[w] = b, d.c[w] = c;
+                    if (g_last_post) {
+                        d.mem_p[w] = g_last_post[bi * mz + (velocity ? p : j)];
+                        d.mem_v[w] = velocity ? g_last_post[bi * mz + q] : R(0);
+                    }
+                }
+            }
+            std::fill_n(summed.begin(), count * kGiven, zero);
+            std::fill_n(dgam.begin(), count, zero);
+            for (int64_t t = T - 1; t >= 0; --t)
+                for (int64_t v = 0; v < count; ++v) {
+                    const Lanes& at = lanes[v];
+                    V g[kGiven], dg[kGiven];
+                    for (int q = 0; q < kGiven; ++q) g[q] = at.at(given[q], t);
+                    const State<V>& before = states[t * G + v];
+                    const Step<V> s = predict_correct<V, Rule>(before, g, gam);
+                    // The outputs' gradients at this step, read from the general layout.
+                    State<V>& d = dx[v];
+                    Recorded<V> o{};
+                    V ds[5] = {zero, zero, zero, zero, zero};  // smoothed k = t − 1
+                    for (int w = 0; w < W; ++w) {
+                        const int64_t bi = at.b[w], j = at.j[w], rec = bi * T + t;
+                        const int64_t p = 2 * j, q = p + 1;
+                        R a = 0, b = 0, c = 0;
+                        d.p[w] += mean_at(g_mean, n, rec, p), d.v[w] += mean_at(g_mean, n, rec, q);
+                        sym_at(g_cov, rec, p, q, a, b, c);
+                        d.a[w] += a, d.b[w] += b, d.c[w] += c;
+                        o.p_pred[w] = mean_at(g_pm, n, rec, p);
+                        o.v_pred[w] = mean_at(g_pm, n, rec, q);
+                        a = b = c = 0;
+                        sym_at(g_pc, rec, p, q, a, b, c);
+                        o.a1[w] = a, o.b1[w] = b, o.c1[w] = c;
+                        o.ll[w] = g_ll ? g_ll[bi] : R(0);
+                        if (velocity) {
+                            o.ep[w] = mean_at(g_e, mz, rec, p), o.ev[w] = mean_at(g_e, mz, rec, q);
+                            if (g_K) {
+                                const R* K = g_K + rec * n * n;
+                                o.kp[w] = K[p * n + p], o.kc[w] = K[q * n + p];
+                                o.kv[w] = K[q * n + q];
+                            }
+                            if (g_S) {
+                                const R* S = g_S + rec * n * n;
+                                o.Sp[w] = S[p * n + p], o.Sv[w] = S[q * n + q];
+                                o.Spv[w] = S[p * n + q] + S[q * n + p];
+                            }
+                            d.mem_p[w] += mean_at(g_post, mz, rec, p);
+                            d.mem_v[w] += mean_at(g_post, mz, rec, q);
+                        } else {
+                            o.ep[w] = mean_at(g_e, mz, rec, j);
+                            if (g_K) {
+                                const R* K = g_K + rec * n * m;
+                                o.kp[w] = K[p * m + j], o.kc[w] = K[q * m + j];
+                            }
+                            o.Sp[w] = g_S ? g_S[rec * m * m + j * m + j] : R(0);
+                            d.mem_p[w] += mean_at(g_post, mz, rec, j);
+                        }
+                        if (smoothing && t > 0) {
+                            ds[0][w] = mean_at(g_smooth_mean, n, rec - 1, p);
+                            ds[1][w] = mean_at(g_smooth_mean, n, rec - 1, q);
+                            a = b = c = 0;
+                            sym_at(g_smooth_cov, rec - 1, p, q, a, b, c);
+                            ds[2][w] = a, ds[3][w] = b, ds[4][w] = c;
+                        }
+                    }
+                    State<V> dsmooth{zero, zero, zero, zero, zero, zero, zero};
+                    SmoothedInputs<V> extra{zero, zero, zero, zero};
+                    if (smoothing && t > 0)
+                        extra = smooth_adjoint(projection, before, g, s, ds, dsmooth, o);
+                    d = step_adjoint<V, Rule>(before, g, gam, s, d, o, dg, dgam[v]);
+                    d.p += dsmooth.p, d.v += dsmooth.v;
+                    d.a += dsmooth.a, d.b += dsmooth.b, d.c += dsmooth.c;
+                    dg[kT] += extra.dt, dg[kRp] += extra.rp;
+                    dg[kRpv] += extra.rpv, dg[kRvv] += extra.rvv;
+                    // An input constant in time (Q, R of a fixed interval) gets its gradient
+                    // summed here, [B, 1, m]: no [B, T, m] buffer to write and sum afterwards.
+                    for (int q = 0; q < kGiven; ++q) {
+                        if (!dgiven[q]) continue;
+                        if (given[q].st == 0) {
+                            summed[v * kGiven + q] += dg[q];
+                            continue;
+                        }
+                        for (int w = 0; w < at.count; ++w)
+                            dgiven[q][(at.b[w] * T + t) * m + at.j[w]] = dg[q][w];
+                    }
+                }
+            for (int64_t v = 0; v < count; ++v)
+                for (int w = 0; w < lanes[v].count; ++w) {
+                    const int64_t lane = lanes[v].b[w] * m + lanes[v].j[w];
+                    for (int q = 0; q < kGiven; ++q)
+                        if (dgiven[q] && given[q].st == 0)
+                            dgiven[q][lane] = summed[v * kGiven + q][w];
+                    const State<V>& d = dx[v];
+                    const V prior_adjoint[5] = {d.p, d.v, d.a, d.b, d.c};
+                    for (int q = 0; q < 5; ++q)
+                        if (dprior[q]) dprior[q][lane] = prior_adjoint[q][w];
+                    dgamma[lane] = dgam[v][w];
+                }
+        }
+    });
+}
+
+template <typename R>
+void adjoint_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, double gamma,
+                   int smoothing, int threads, const void* const* in, const int64_t* s,
+                   const void* const* prior, const int64_t* ps, void* const* grads,
+                   void* const* dgiven, void* const* dprior, void* dgamma) {
+    auto g = reinterpret_cast<const R* const*>(grads);
+    auto dg = reinterpret_cast<R* const*>(dgiven);
+    auto dp = reinterpret_cast<R* const*>(dprior);
+    R gm = static_cast<R>(gamma);
+    R* dgm = static_cast<R*>(dgamma);
+    if (rule == 0)
+        adjoint<R, 0>(B, T, m, velocity, gm, smoothing, threads, in, s, prior, ps, g, dg, dp,
+                      dgm);
+    else
+        adjoint<R, 1>(B, T, m, velocity, gm, smoothing, threads, in, s, prior, ps, g, dg, dp,
+                      dgm);
+}
+
+// axes._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
+// Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)).
+// Inputs (11): p, v, a, b, c (filtered), p_pred, v_pred, a1, b1, c1 (predicted), T.
+// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
+template <typename R>
+void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* const* in,
+                  const int64_t* in_strides, R* mean_out, R* cov_out) {
+    View<R> P = view<R>(in, in_strides, 0), V = view<R>(in, in_strides, 1),
+            A = view<R>(in, in_strides, 2), Bc = view<R>(in, in_strides, 3),
+            Cc = view<R>(in, in_strides, 4), Pp = view<R>(in, in_strides, 5),
+            Vp = view<R>(in, in_strides, 6), A1 = view<R>(in, in_strides, 7),
+            B1 = view<R>(in, in_strides, 8), C1 = view<R>(in, in_strides, 9),
+            Ts = view<R>(in, in_strides, 10);
+    const int64_t n = 2 * m;
+    auto write = [&](int64_t bi, int64_t k, int64_t j, R ps, R vs, R sa, R sb, R sc) {
+        int64_t idx = bi * T + k;
+        write_axis(mean_out + idx * n, cov_out + idx * n * n, n, j, ps, vs, sa, sb, sc);
+    };
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        for (int64_t bi = first; bi < last; ++bi) {
+            for (int64_t j = 0; j < m; ++j) {
+                R ps = P.at(bi, T - 1, j), vs = V.at(bi, T - 1, j);
+                R sa = A.at(bi, T - 1, j), sb = Bc.at(bi, T - 1, j), sc = Cc.at(bi, T - 1, j);
+                write(bi, T - 1, j, ps, vs, sa, sb, sc);
+                for (int64_t k = T - 2; k >= 0; --k) {
+                    R dt = Ts.at(bi, k + 1, j);
+                    R a = A.at(bi, k, j), b = Bc.at(bi, k, j), c = Cc.at(bi, k, j);
+                    R pa = A1.at(bi, k + 1, j), pb = B1.at(bi, k + 1, j);
+                    R pc = C1.at(bi, k + 1, j);
+                    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (axes.inverse, axes.mm).
+                    R det = pa * pc - pb * pb;
+                    R ia = pc / det, ib = -pb / det, ic = pa / det;
+                    R xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
+                    R ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
+                    R cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
+                    R dp = ps - Pp.at(bi, k + 1, j), dv = vs - Vp.at(bi, k + 1, j);
+                    ps = P.at(bi, k, j) + (ca * dp + cb * dv);
+                    vs = V.at(bi, k, j) + (cc * dp + cd * dv);
+                    // axes.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
+                    R da = sa - pa, db = sb - pb, dd = sc - pc;
+                    R ma = ca * da + cb * db, mb = ca * db + cb * dd;
+                    R mc = cc * da + cd * db, md = cc * db + cd * dd;
+                    R ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
+                    R ec = mc * ca + md * cb, ed = mc * cc + md * cd;
+                    sa = a + ea;
+                    sb = b + 0.5 * (eb + ec);
+                    sc = c + ed;
+                    write(bi, k, j, ps, vs, sa, sb, sc);
+                }
+            }
+        }
+    });
+}
+
+// How many sweeps of `lane_recursion` a run of n steps with a successor takes: one from the
+// end (fixed interval, lag ≥ n) or `lag` from zero.
+inline int64_t sweeps_of(int64_t n, int64_t lag) { return lag >= n ? 1 : lag; }
+
+// The backward recursion of a lane over its terms (n indices), every state kept (the reverse
+// mode reads them): `states` holds (sweeps_of(n, lag) + 1) rows of n + 1, all zero to begin
+// with. Fixed interval (lag ≥ n): row 0, from zero at the end, states[k] = recurse(k,
+// states[k + 1]). Fixed lag: row s (s = 1..lag) applies one step to row s − 1 at every
+// index, states[s][k] = recurse(k, states[s − 1][k + 1]): after `lag` rows, the sum of `lag`
+// terms from zero at k + lag. Returns the results' row; its entry at n stays zero.
+template <typename R>
+inline const Backward<R>* lane_recursion(const R* terms, int64_t n, int64_t lag,
+                                         std::vector<Backward<R>>& states) {
+    if (lag >= n) {
+        for (int64_t k = n - 1; k >= 0; --k) states[k] = recurse(&terms[22 * k], states[k + 1]);
+        return states.data();
+    }
+    for (int64_t s = 1; s <= lag; ++s)
+        for (int64_t k = 0; k < n; ++k)
+            states[s * (n + 1) + k] = recurse(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1]);
+    return &states[lag * (n + 1)];
+}
+
+// A lane's terms (written to `terms`, n indices) and recursion (in `states`, see
+// lane_recursion), from its 20 inputs `at(i, step)`; returns the results' row.
+template <typename R, typename At>
+inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bool projection,
+                                        std::vector<R>& terms, std::vector<Backward<R>>& states) {
+    for (int64_t k = 0; k < n; ++k) terms_at(&terms[22 * k], projection, term_args<R>(at, k));
+    return lane_recursion(terms.data(), n, lag, states);
+}
+
+// axes.smooth_axes: the backward recursion from zero at the end (fixed interval) or, with a
+// lag L < T-1, L applications from zero at step k+L for each k (the fixed-lag form), then
+// axes._smoothed: x̂ˢ_k = x̂_k + g_k, Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k (symmetrised; the
+// last step as filtered).
+// Inputs (20, [B, T, m]): the filter's cov a, b, c; pred_cov a, b, c; gain a, b, c, d;
+// noise (unmasked) pp, pv, vv; observed p, v (0/1); T; innovation p, v; mean p, v.
+// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
+template <typename R>
+void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int threads,
+              const void* const* in, const int64_t* in_strides, R* mean_out, R* cov_out) {
+    using V = typename Wide<R>::type;
+    View<R> v[20];
+    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
+    const int64_t n = T - 1;  // steps with a successor
+    const int64_t width = 2 * m;
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        // A block of lanes' terms, step by step (contiguous for the sweeps), and its states.
+        std::vector<V> terms(22 * (n > 0 ? n : 1));
+        std::vector<Backward<V>> states((sweeps_of(n, lag) + 1) * (n + 1), Backward<V>{});
+        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
+            const LaneBlock<R> lanes(l, last * m, m);
+            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
+            const Backward<V>* result =
+                lane_backward<V>(at, n, lag, projection != 0, terms, states);
+            for (int64_t k = 0; k <= n; ++k) {
+                V now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
+                if (k < n) smoothed(now, result[k]);  // the last step as filtered
+                for (int w = 0; w < lanes.count; ++w) {
+                    const int64_t idx = lanes.b[w] * T + k;
+                    write_axis(mean_out + idx * width, cov_out + idx * width * width, width,
+                               lanes.j[w], now[0][w], now[1][w], now[2][w], now[3][w], now[4][w]);
+                }
+            }
+        }
+    });
 }
 
 // backward's gradients: given those of its outputs (mean [B, T, 2m], cov [B, T, 2m, 2m];
@@ -1454,9 +1611,10 @@ extern "C" {
     void adjoint_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,            \
                           double gamma, int threads, const void* const* in, const int64_t* s, \
                           const void* const* prior, const int64_t* ps, void* const* grads,    \
-                          void* const* dgiven, void* const* dprior, void* dgamma) {           \
-        adjoint_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, grads,    \
-                         dgiven, dprior, dgamma);                                             \
+                          void* const* dgiven, void* const* dprior, void* dgamma,             \
+                          int smoothing) {                                                    \
+        adjoint_entry<R>(B, T, m, rule, velocity, gamma, smoothing, threads, in, s, prior, ps, \
+                         grads, dgiven, dprior, dgamma);                                      \
     }                                                                                         \
     void backward_adjoint_##suffix(int64_t B, int64_t T, int64_t m, int64_t lag,             \
                                    int projection, int threads, const void* const* in,        \

@@ -269,9 +269,11 @@ class Last(NamedTuple):
 
 
 #: The per-step outputs of :func:`forward` each ``keep`` writes, by index (mean, cov, predicted
-#: mean and cov, innovation, gain, S, a-posteriori innovation); ``"state"``: what a following
-#: step needs of every step (the means, covariances and the SVSF's a-posteriori innovations).
-KEPT = {"all": range(8), "moments": (0, 1), "mean": (0,), "state": (0, 1, 7)}
+#: mean and cov, innovation, gain, S, a-posteriori innovation).
+KEPT = {"all": range(8), "moments": (0, 1), "mean": (0,)}
+#: The compiled loops' codes of the one-step-lag smoothing (``"gain"``: RTS, ``"projection"``:
+#: SVSS).
+_SMOOTHING = {None: 0, "gain": 1, "projection": 2}
 
 
 def forward(
@@ -292,8 +294,8 @@ def forward(
     ``[B, T, 2m]``, covariance, predicted mean and covariance, innovation ``[B, T, m_z]``, gain
     ``[B, T, 2m, m_z]``, ``S``, the a-posteriori innovation (SVSF, else ``None``), the
     log-likelihood ``[B]`` (Kalman, else ``None``) and the observed mask ``[B, T, m_z]`` (the
-    per-step outputs that ``keep`` (:data:`torchsvs.estimator.KEEP` or ``"state"``,
-    :data:`KEPT`) leaves out are ``None``, never written), the state after the last step,
+    per-step outputs that ``keep`` (:data:`torchsvs.estimator.KEEP`, :data:`KEPT`) leaves
+    out are ``None``, never written), the state after the last step,
     and with ``smoothing`` (``"gain"``: the RTS, ``"projection"``: the SVSS) the one-step-lag
     smoothed mean ``[B, T, 2m]`` and covariance ``[B, T, 2m, 2m]``, computed in the same loop
     (what :func:`backward` with lag 1 gives from the whole record), else ``None``."""
@@ -318,7 +320,7 @@ def forward(
     if smoothing is not None:
         smoothed = fresh((B, T, n), dtype), fresh((B, T, n, n), dtype)
     outputs = (*per_step, loglik, mask, *last, *(smoothed or (None, None)))
-    mode = {None: 0, "gain": 1, "projection": 2}[smoothing]
+    mode = _SMOOTHING[smoothing]
     _forward_loop("forward", rule, gamma, given, prior, shape, velocity, _pointers(outputs), mode)
     return (*per_step, loglik, mask), last, smoothed
 
@@ -360,12 +362,15 @@ def adjoint(
     velocity: bool,
     grads: Sequence[Tensor | None],
     wanted: Sequence[bool],
+    smoothing: str | None = None,
 ) -> tuple[list[Tensor | None], list[Tensor], Tensor]:
     """The reverse mode of :func:`forward` (same arguments): ``grads`` the gradients of its
-    first nine outputs (``None``: zero), ``wanted`` which of the 11 ``given`` need one.
-    Returns the ``given`` gradients ``[B, T, m]``, or ``[B, 1, m]`` summed over the steps for
-    an input constant in time (``None`` where not wanted; the caller sums them to each input's
-    shape), the prior's ``[B, m]`` and ``γ``'s per lane ``[B, m]``."""
+    outputs (``None``: zero): the nine per-step ones and the log-likelihood, the state after
+    the last step (mean, cov, a-posteriori innovation) and the smoothed mean and cov (with
+    ``smoothing``), 14 in all; ``wanted`` which of the 11 ``given`` need one. Returns the
+    ``given`` gradients ``[B, T, m]``, or ``[B, 1, m]`` summed over the steps for an input
+    constant in time (``None`` where not wanted; the caller sums them to each input's shape),
+    the prior's ``[B, m]`` and ``γ``'s per lane ``[B, m]``."""
     B, T, m = shape
     dtype = prior[0].dtype
     steps = [1 if _Arrays.view(x, shape).stride(1) == 0 else T for x in given]
@@ -375,7 +380,8 @@ def adjoint(
     dprior = [torch.empty(B, m, dtype=dtype) for _ in prior]
     dgamma = torch.empty(B, m, dtype=dtype)
     grads = [None if g is None else g.contiguous() for g in grads]
-    buffers = (_pointers(grads), _pointers(dgiven), _pointers(dprior), dgamma.data_ptr())
+    mode = _SMOOTHING[smoothing]
+    buffers = (_pointers(grads), _pointers(dgiven), _pointers(dprior), dgamma.data_ptr(), mode)
     _forward_loop("adjoint", rule, gamma, given, prior, shape, velocity, *buffers)
     return dgiven, dprior, dgamma
 
