@@ -41,16 +41,28 @@ def _check(trimmed, whole, keep, tol):
 @pytest.mark.parametrize("name", list(_estimators(ts.models.ConstantVelocity())))
 def test_compiled_loops_write_what_is_kept(name, keep, spy):  # noqa: F811
     """The compiled forward loop, told to write the moments or the means only, gives exactly
-    those of the whole result (a misplaced record would show in the means), and the smoothers
-    over it still read their filter's whole record."""
+    those of the whole result (a misplaced record would show in the means); a smoother of a
+    lag other than 1 then runs its recursion in the filter's pass (fused.filter_smoother),
+    whose filtered moments are exactly those of the whole result and its smoothed ones equal
+    (the fixed-interval RTS by the general recursion, not Eq. (17)'s form: to 1e-9)."""
     z, dt, x0, P0 = _problem(seed=3, B=70, T=33)  # more tracks than a block of lanes
     model = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0]).double()
     est = _estimators(model)[name].double()
     with torch.no_grad():
         whole = est(z, x0, P0, dt=dt)
         trimmed = est(z, x0, P0, dt=dt, keep=keep)
-    assert spy["forward"] == 2
-    _check(trimmed, whole, keep, {"atol": 0.0, "rtol": 0.0})
+    together = isinstance(est, ts.RTSSmoother) and est.lag != 1
+    assert (spy["forward"], spy["together"]) == (2 - together, together)
+    exact = {"atol": 0.0, "rtol": 0.0}
+    if together:
+        _check(trimmed.filtered, whole.filtered, keep, exact)
+        assert_close(trimmed.mean, whole.mean, atol=1e-9, rtol=0.0)
+        if keep == "moments":
+            assert_close(trimmed.cov, whole.cov, atol=1e-9, rtol=0.0)
+        else:
+            assert trimmed.cov is None
+    else:
+        _check(trimmed, whole, keep, exact)
 
 
 def _others():

@@ -170,9 +170,10 @@ needs_compiler = pytest.mark.skipif(
 def spy(monkeypatch):
     """Counts the compiled loops' calls: the forward pass, the smoother passes together, and
     the dense linear steps."""
-    calls = {"forward": 0, "adjoint": 0, "backward": 0, "dense": 0}
+    calls = {"forward": 0, "adjoint": 0, "backward": 0, "dense": 0, "together": 0}
     for function, counter in (
         ("forward", "forward"),
+        ("filter_smoother", "together"),
         ("adjoint", "adjoint"),
         ("backward_adjoint", "adjoint"),
         ("backward", "backward"),
@@ -416,6 +417,50 @@ def test_lag_one_smoothing_with_gradients_runs_in_the_forward_loop(name, spy):
     assert_close(fused_run.cov.detach(), inferred.cov, atol=0, rtol=0)
 
 
+@needs_compiler
+@pytest.mark.parametrize("name", ["KS", "KS lag 2", "SVSS lag 2", "SVSS H+ lag 3", "SVSS interval"])
+@pytest.mark.parametrize("keep", ["mean", "moments"])
+def test_training_a_smoother_keeping_less_runs_filter_and_smoother_together(name, keep, spy):
+    """A smoother of another lag keeping less than all runs the filter and the smoother's
+    recursion in one compiled pass (fused.filter_smoother: no record written, no smoother
+    pass of its own), with or without gradients, and trains through its reverse mode: its
+    numbers and gradients equal those of the whole record's pass through the smoother's own
+    recursion and reverse mode."""
+    z, dt, x0, P0 = _problem(seed=13, B=4, T=30)
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0], learn_noise=True).double()
+    smoother = _estimators(model)[name].double()
+    params = [p for p in smoother.parameters() if p.requires_grad]
+    zz, xx, PP = (x.clone().requires_grad_(True) for x in (z, x0, P0))
+
+    def grads(out):
+        loss = out.mean.square().sum() * 1e-2 + out.filtered.mean.sum()
+        if keep == "moments":  # else the smoothed and filtered covariances are not kept
+            weights = torch.linspace(-1.0, 1.0, out.cov.numel(), dtype=torch.float64)
+            loss = loss + (out.cov * weights.reshape(out.cov.shape)).sum()
+            loss = loss + out.filtered.cov.diagonal(0, -2, -1).square().sum()
+        return torch.autograd.grad(loss, [*params, zz, xx, PP])
+
+    together = smoother(zz, xx, PP, dt=dt, keep=keep)
+    assert (spy["forward"], spy["backward"], spy["together"]) == (0, 0, 1)
+    assert (together.filtered.cov is None) == (keep == "mean")
+    fused_grads = grads(together)
+    assert spy["adjoint"] == 1
+    whole = smoother(zz, xx, PP, dt=dt)
+    assert (spy["forward"], spy["backward"]) == (1, 1)
+    whole_grads = grads(whole)
+    assert_close(together.mean, whole.mean, atol=1e-12, rtol=0)
+    if keep == "moments":
+        assert_close(together.cov, whole.cov, atol=1e-12, rtol=0)
+    for i, (a, b) in enumerate(zip(fused_grads, whole_grads, strict=True)):
+        assert a.abs().sum() > 0, i
+        assert_close(a, b, atol=1e-10, rtol=1e-10, msg=f"gradient {i}")
+    with torch.no_grad():
+        inferred = smoother(z, x0, P0, dt=dt, keep=keep)
+    assert (spy["forward"], spy["backward"], spy["together"]) == (1, 1, 2)
+    assert_close(inferred.mean, whole.mean.detach(), atol=1e-12, rtol=0)
+    assert_close(inferred.filtered.mean, whole.filtered.mean.detach(), atol=0, rtol=0)
+
+
 def _gradients(est, dtype, z, dt, x0, P0):
     """The gradients of a loss of every output field with respect to every learnable parameter
     and to ``z``, ``x0`` and ``P0``."""
@@ -508,13 +553,19 @@ def test_compiled_gradients_of_sums_equal_tensor_loop_gradients(name, spy):
         ("svsf", "mean", "gain"),
         ("svsf velocity", "all", "projection"),
         ("kalman", "moments", "projection"),
+        ("kalman", "mean", ("gain", None)),
+        ("svsf", "moments", ("projection", 2)),
+        ("svsf velocity", "mean", ("projection", None)),
+        ("svsf velocity", "moments", ("gain", 3)),
     ],
 )
 def test_compiled_reverse_mode_passes_gradcheck(rule, keep, smoothing):
     """The compiled reverse mode against finite differences of the compiled forward (an
     oracle that shares no code with it), every differentiable input and output (the state
-    after the last step, and the one-step-lag smoothed moments when smoothing): per-step
+    after the last step, and the smoothed moments when smoothing: lag 1 in the forward loop,
+    or (smoothing, lag) through the filter and the smoother's recursion together): per-step
     intervals, noise and widths, per-axis q, missing components, memory γ."""
+    smoothing, lag = smoothing if isinstance(smoothing, tuple) else (smoothing, 1)
     from torchsvs.kernels.axes import _CompiledAxes
 
     B, T, m = 2, 6, 2
@@ -558,7 +609,8 @@ def test_compiled_reverse_mode_passes_gradcheck(rule, keep, smoothing):
     name = "kalman" if rule == "kalman" else "svsf"
 
     def run(gamma, *inputs):
-        out = _CompiledAxes.apply(name, velocity, (B, T, m), keep, smoothing, gamma, *inputs)
+        shape = (B, T, m)
+        out = _CompiledAxes.apply(name, velocity, shape, keep, smoothing, lag, gamma, *inputs)
         return tuple(x for i, x in enumerate(out) if x is not None and i != 9)  # 9: the mask
 
     assert torch.autograd.gradcheck(run, (gamma, *inputs), eps=1e-6, atol=1e-6, rtol=1e-5)

@@ -723,21 +723,22 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         return result, steps[-1].factor
 
     def smoother_pass(
-        self, inputs: Inputs, smoothing: str | None = None
+        self, inputs: Inputs, smoothing: str | None = None, lag: int | None = 1
     ) -> tuple[FilterResult, tuple[Tensor, Tensor] | None]:
         """The pass a smoother consumes: the whole record (whatever the caller keeps), or,
         with ``smoothing`` (``"gain"``: RTS, ``"projection"``: SVSS) where the per-axis compiled
-        loop runs (with or without gradients), the one-step-lag smoothed mean and covariance
-        computed in that loop beside a record that keeps what ``inputs.keep`` keeps."""
+        loop runs, the smoothed mean and covariance of ``lag`` (``None``: the fixed interval)
+        computed in that loop (lag 1, or training any lag, see :func:`axes.run_axes`) beside a
+        record that keeps what ``inputs.keep`` keeps."""
         if smoothing is not None:
-            by_axis = self._run_axes(inputs, smoothing)
+            by_axis = self._run_axes(inputs, smoothing, lag)
             if by_axis is not None:  # without the fused smoothing the record is whole
                 result, _, smoothed = by_axis
                 return result, smoothed
         return self.run(replace(inputs, keep="all")), None
 
     def _run_axes(
-        self, inputs: Inputs, smoothing: str | None = None
+        self, inputs: Inputs, smoothing: str | None = None, lag: int | None = 1
     ) -> tuple[FilterResult, fused.Last, tuple[Tensor, Tensor] | None] | None:
         """The pass through the per-axis kernel when the problem decouples by axis (a
         :class:`~torchsvs.models.ConstantVelocity` with diagonal ``R``, a prior without cross-axis
@@ -782,6 +783,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             with_velocity,
             inputs.keep,
             smoothing,
+            lag,
         )
         if per_axis is None:  # only the kept moments were written
             none: dict[str, Any] = dict.fromkeys(("transition", "meas_matrix", "meas_cov"))

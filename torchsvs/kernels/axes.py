@@ -266,14 +266,16 @@ def run_axes(
     velocity: bool = False,
     keep: str = "all",
     smoothing: str | None = None,
+    lag: int | None = 1,
 ) -> AxesPass:
     """The forward pass of every axis, per axis and in the general layout, and the state after
     its last step. ``keep`` (:data:`torchsvs.estimator.KEEP`): ``"all"``, or the compiled loop
     writes only the filtered moments (``"moments"``) or means (``"mean"``) of each step (the
     other fields ``None``, no per-axis result), with gradients too. ``smoothing`` (``"gain"``:
-    RTS, ``"projection"``: SVSS): the compiled loop also gives the one-step-lag smoothed
-    moments (:func:`fused.forward`, with gradients through its adjoint); where the compiled
-    loop does not run, ``smoothed`` is ``None`` and the pass keeps all, for
+    RTS, ``"projection"``: SVSS) with ``lag`` (``None``: the fixed interval): the compiled
+    loop also gives the smoothed moments, of lag 1 as it steps (:func:`fused.forward`), and
+    of other lags when keeping less than all (:func:`fused.filter_smoother`), with gradients
+    through their adjoint; else ``smoothed`` is ``None`` and the pass keeps all, for
     :func:`smooth_axes`.
 
     Args:
@@ -313,18 +315,29 @@ def run_axes(
     raw = given(T_all, *Q_all, y.position, y.velocity, *y.noise, width_p, width_v)
     if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
         inputs = (*raw, *prior)
+        shape = (B, steps, m)
+        # A lag other than 1 smooths in the filter's pass where less than all is kept (and
+        # there is a step to smooth); else the smoother's own pass reads the whole record.
+        together = smoothing is not None and lag != 1 and keep != "all" and steps > 1
+        if smoothing is not None and lag != 1 and not together:
+            keep, smoothing = "all", None
+        smoothed: tuple[Tensor, Tensor] | None
         if torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma)):
             # Only what is kept is written, as without gradients: the adjoint recomputes the
             # steps' states, and the state after the last step is an output of its own.
-            shape = (B, steps, m)
-            parts = _CompiledAxes.apply(rule, velocity, shape, keep, smoothing, gamma, *inputs)
+            parts = _CompiledAxes.apply(
+                rule, velocity, shape, keep, smoothing, lag, gamma, *inputs
+            )  # fmt: skip
             out = Interleaved(*parts[:10])
             last = fused.Last(*parts[10:13])
             smoothed = None if smoothing is None else (parts[13], parts[14])
         else:
-            outputs, last, smoothed = fused.forward(
-                rule, float(gamma), raw, prior, (B, steps, m), velocity, keep, smoothing
-            )
+            settings = (rule, float(gamma), raw, prior, shape, velocity, keep)
+            if together:
+                assert smoothing is not None
+                outputs, last, smoothed = fused.filter_smoother(*settings, smoothing, lag)
+            else:
+                outputs, last, smoothed = fused.forward(*settings, smoothing)
             out = Interleaved(*cast(Any, outputs))  # the fields not kept are None
         if keep != "all":
             return AxesPass(None, out, last, smoothed)
@@ -396,9 +409,11 @@ class _CompiledAxes(torch.autograd.Function):
     (:func:`fused.adjoint`): training runs the loop at inference speed. Inputs: the 11 given
     quantities and the 5 prior ones of :func:`run_axes`, in :func:`fused.forward`'s order;
     outputs: the :class:`Interleaved` fields (those ``keep`` leaves out ``None``), the state
-    after the last step (:class:`fused.Last`) and, with ``smoothing``, the one-step-lag
-    smoothed mean and covariance (else ``None``), 15 in all. First derivatives only
-    (``create_graph`` needs the tensor loops: :func:`torchsvs.kernels.eager_loops`)."""
+    after the last step (:class:`fused.Last`) and, with ``smoothing``, the smoothed mean and
+    covariance (else ``None``), 15 in all: of lag 1 inside the forward loop, else (``keep``
+    ``"moments"`` or ``"mean"``) of ``lag`` by :func:`fused.filter_smoother`. First
+    derivatives only (``create_graph`` needs the tensor loops:
+    :func:`torchsvs.kernels.eager_loops`)."""
 
     @staticmethod
     def forward(
@@ -408,14 +423,18 @@ class _CompiledAxes(torch.autograd.Function):
         shape: tuple[int, int, int],
         keep: str,
         smoothing: str | None,
+        lag: int | None,
         gamma: Tensor,
         *inputs: Tensor,
     ) -> tuple[Tensor | None, ...]:
         given, prior = inputs[:11], inputs[11:]
-        out, last, smoothed = fused.forward(
-            rule, float(gamma), given, prior, shape, velocity, keep, smoothing
-        )
-        ctx.settings = (rule, velocity, shape, smoothing)
+        settings = (rule, float(gamma), given, prior, shape, velocity, keep)
+        smoothed: tuple[Tensor, Tensor] | None
+        if smoothing is not None and lag != 1:
+            out, last, smoothed = fused.filter_smoother(*settings, smoothing, lag)
+        else:
+            out, last, smoothed = fused.forward(*settings, smoothing)
+        ctx.settings = (rule, velocity, shape, smoothing, lag)
         ctx.save_for_backward(gamma, *inputs)
         if out[-1] is not None:  # the observed mask (kept with the whole record)
             ctx.mark_non_differentiable(out[-1])
@@ -425,18 +444,18 @@ class _CompiledAxes(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
-        rule, velocity, shape, smoothing = ctx.settings
+        rule, velocity, shape, smoothing, lag = ctx.settings
         gamma, *inputs = ctx.saved_tensors
-        wanted = ctx.needs_input_grad[6:]
+        wanted = ctx.needs_input_grad[7:]
         given, prior = inputs[:11], inputs[11:]
         differentiable = (*grads[:9], *grads[10:])  # not the observed mask
         dgiven, dprior, dgamma = fused.adjoint(
             rule, float(gamma), given, prior, shape, velocity, differentiable, wanted[:11],
-            smoothing,
+            smoothing, lag,
         )  # fmt: skip
-        # rule, velocity, shape, keep, smoothing
-        result: list[Tensor | None] = [None, None, None, None, None]
-        result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[5] else None)
+        # rule, velocity, shape, keep, smoothing, lag
+        result: list[Tensor | None] = [None] * 6
+        result.append(dgamma.sum().reshape(gamma.shape) if ctx.needs_input_grad[6] else None)
         result += _summed_to(given, dgiven)
         for x, dx, w in zip(prior, dprior, wanted[11:], strict=True):
             result.append(dx.reshape(x.shape) if w else None)

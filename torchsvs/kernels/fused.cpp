@@ -713,6 +713,246 @@ void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, doub
         forward_axes<R, 1>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
 }
 
+// axes._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
+// Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)).
+// Inputs (11): p, v, a, b, c (filtered), p_pred, v_pred, a1, b1, c1 (predicted), T.
+// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
+template <typename R>
+void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* const* in,
+                  const int64_t* in_strides, R* mean_out, R* cov_out) {
+    View<R> P = view<R>(in, in_strides, 0), V = view<R>(in, in_strides, 1),
+            A = view<R>(in, in_strides, 2), Bc = view<R>(in, in_strides, 3),
+            Cc = view<R>(in, in_strides, 4), Pp = view<R>(in, in_strides, 5),
+            Vp = view<R>(in, in_strides, 6), A1 = view<R>(in, in_strides, 7),
+            B1 = view<R>(in, in_strides, 8), C1 = view<R>(in, in_strides, 9),
+            Ts = view<R>(in, in_strides, 10);
+    const int64_t n = 2 * m;
+    auto write = [&](int64_t bi, int64_t k, int64_t j, R ps, R vs, R sa, R sb, R sc) {
+        int64_t idx = bi * T + k;
+        write_axis(mean_out + idx * n, cov_out + idx * n * n, n, j, ps, vs, sa, sb, sc);
+    };
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        for (int64_t bi = first; bi < last; ++bi) {
+            for (int64_t j = 0; j < m; ++j) {
+                R ps = P.at(bi, T - 1, j), vs = V.at(bi, T - 1, j);
+                R sa = A.at(bi, T - 1, j), sb = Bc.at(bi, T - 1, j), sc = Cc.at(bi, T - 1, j);
+                write(bi, T - 1, j, ps, vs, sa, sb, sc);
+                for (int64_t k = T - 2; k >= 0; --k) {
+                    R dt = Ts.at(bi, k + 1, j);
+                    R a = A.at(bi, k, j), b = Bc.at(bi, k, j), c = Cc.at(bi, k, j);
+                    R pa = A1.at(bi, k + 1, j), pb = B1.at(bi, k + 1, j);
+                    R pc = C1.at(bi, k + 1, j);
+                    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (axes.inverse, axes.mm).
+                    R det = pa * pc - pb * pb;
+                    R ia = pc / det, ib = -pb / det, ic = pa / det;
+                    R xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
+                    R ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
+                    R cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
+                    R dp = ps - Pp.at(bi, k + 1, j), dv = vs - Vp.at(bi, k + 1, j);
+                    ps = P.at(bi, k, j) + (ca * dp + cb * dv);
+                    vs = V.at(bi, k, j) + (cc * dp + cd * dv);
+                    // axes.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
+                    R da = sa - pa, db = sb - pb, dd = sc - pc;
+                    R ma = ca * da + cb * db, mb = ca * db + cb * dd;
+                    R mc = cc * da + cd * db, md = cc * db + cd * dd;
+                    R ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
+                    R ec = mc * ca + md * cb, ed = mc * cc + md * cd;
+                    sa = a + ea;
+                    sb = b + 0.5 * (eb + ec);
+                    sc = c + ed;
+                    write(bi, k, j, ps, vs, sa, sb, sc);
+                }
+            }
+        }
+    });
+}
+
+// How many sweeps of `lane_recursion` a run of n steps with a successor takes: one from the
+// end (fixed interval, lag ≥ n) or `lag` from zero.
+inline int64_t sweeps_of(int64_t n, int64_t lag) { return lag >= n ? 1 : lag; }
+
+// The backward recursion of a lane over its terms (n indices), every state kept (the reverse
+// mode reads them): `states` holds (sweeps_of(n, lag) + 1) rows of n + 1, all zero to begin
+// with. Fixed interval (lag ≥ n): row 0, from zero at the end, states[k] = recurse(k,
+// states[k + 1]). Fixed lag: row s (s = 1..lag) applies one step to row s − 1 at every
+// index, states[s][k] = recurse(k, states[s − 1][k + 1]): after `lag` rows, the sum of `lag`
+// terms from zero at k + lag. Returns the results' row; its entry at n stays zero.
+template <typename R>
+inline const Backward<R>* lane_recursion(const R* terms, int64_t n, int64_t lag,
+                                         std::vector<Backward<R>>& states) {
+    if (lag >= n) {
+        for (int64_t k = n - 1; k >= 0; --k) states[k] = recurse(&terms[22 * k], states[k + 1]);
+        return states.data();
+    }
+    for (int64_t s = 1; s <= lag; ++s)
+        for (int64_t k = 0; k < n; ++k)
+            states[s * (n + 1) + k] = recurse(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1]);
+    return &states[lag * (n + 1)];
+}
+
+// A lane's terms (written to `terms`, n indices) and recursion (in `states`, see
+// lane_recursion), from its 20 inputs `at(i, step)`; returns the results' row.
+template <typename R, typename At>
+inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bool projection,
+                                        std::vector<R>& terms, std::vector<Backward<R>>& states) {
+    for (int64_t k = 0; k < n; ++k) terms_at(&terms[22 * k], projection, term_args<R>(at, k));
+    return lane_recursion(terms.data(), n, lag, states);
+}
+
+// axes.smooth_axes: the backward recursion from zero at the end (fixed interval) or, with a
+// lag L < T-1, L applications from zero at step k+L for each k (the fixed-lag form), then
+// axes._smoothed: x̂ˢ_k = x̂_k + g_k, Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k (symmetrised; the
+// last step as filtered).
+// Inputs (20, [B, T, m]): the filter's cov a, b, c; pred_cov a, b, c; gain a, b, c, d;
+// noise (unmasked) pp, pv, vv; observed p, v (0/1); T; innovation p, v; mean p, v.
+// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
+template <typename R>
+void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int threads,
+              const void* const* in, const int64_t* in_strides, R* mean_out, R* cov_out) {
+    using V = typename Wide<R>::type;
+    View<R> v[20];
+    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
+    const int64_t n = T - 1;  // steps with a successor
+    const int64_t width = 2 * m;
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        // A block of lanes' terms, step by step (contiguous for the sweeps), and its states.
+        std::vector<V> terms(22 * (n > 0 ? n : 1));
+        std::vector<Backward<V>> states((sweeps_of(n, lag) + 1) * (n + 1), Backward<V>{});
+        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
+            const LaneBlock<R> lanes(l, last * m, m);
+            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
+            const Backward<V>* result =
+                lane_backward<V>(at, n, lag, projection != 0, terms, states);
+            for (int64_t k = 0; k <= n; ++k) {
+                V now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
+                if (k < n) smoothed(now, result[k]);  // the last step as filtered
+                for (int w = 0; w < lanes.count; ++w) {
+                    const int64_t idx = lanes.b[w] * T + k;
+                    write_axis(mean_out + idx * width, cov_out + idx * width * width, width,
+                               lanes.j[w], now[0][w], now[1][w], now[2][w], now[3][w], now[4][w]);
+                }
+            }
+        }
+    });
+}
+
+// The buffers of a vector of lanes' smoother pass and its reverse mode (n indices, `lag` as
+// backward takes it), reused from vector to vector.
+template <typename V>
+struct SmootherBuffers {
+    std::vector<V> terms, dterms, acc;
+    std::vector<Backward<V>> states, dres, dprev;
+    SmootherBuffers(int64_t T, int64_t lag)
+        : terms(22 * std::max<int64_t>(T - 1, 1)),
+          dterms(terms.size()),
+          acc(20 * T),
+          states((sweeps_of(T - 1, lag) + 1) * T, Backward<V>{}),
+          dres(T, Backward<V>{}),
+          dprev(T, Backward<V>{}) {}
+};
+
+// backward's reverse mode for a vector of lanes: from their 20 inputs `at(i, step)` and the
+// gradients of the smoothed mean and covariance (general layout, [B, T, 2m] and
+// [B, T, 2m, 2m]; null: zero), the inputs' adjoints in `buffers.acc` (input by input over the
+// steps, acc[i * T + t]; the masked noise's onto the unmasked, none for the masks).
+template <typename R, typename At>
+void lane_backward_adjoint(const LaneBlock<R>& lanes, const At& at, int64_t T, int64_t m,
+                           int64_t lag, bool projection, const R* g_mean, const R* g_cov,
+                           SmootherBuffers<typename Wide<R>::type>& buffers) {
+    using V = typename Wide<R>::type;
+    const Backward<V> zero{};
+    const int64_t n = T - 1, width = 2 * m;
+    auto& [terms, dterms, acc, states, dres, dprev] = buffers;
+    const Backward<V>* result = lane_backward<V>(at, n, lag, projection, terms, states);
+    auto add = [&acc, T](int input, int64_t step, V value) { acc[input * T + step] += value; };
+    std::fill(acc.begin(), acc.end(), V{});
+    std::fill(dterms.begin(), dterms.end(), V{});
+    // The smoothed moments' adjoints (axes._smoothed).
+    for (int64_t k = 0; k <= n; ++k) {
+        V dps{}, dvs{}, dsa{}, dsb{}, dsc{};
+        for (int w = 0; w < lanes.kWidth; ++w) {  // the lanes' output gradients
+            const int64_t idx = lanes.b[w] * T + k;
+            const int64_t p = 2 * lanes.j[w], q = p + 1;
+            if (g_mean) dps[w] = g_mean[idx * width + p], dvs[w] = g_mean[idx * width + q];
+            if (!g_cov) continue;
+            const R* gc = g_cov + idx * width * width;
+            dsa[w] = gc[p * width + p], dsc[w] = gc[q * width + q];
+            dsb[w] = gc[p * width + q] + gc[q * width + p];
+        }
+        add(18, k, dps), add(19, k, dvs);
+        if (k == n) {  // as filtered
+            add(0, k, dsa), add(1, k, dsb), add(2, k, dsc);
+            continue;
+        }
+        const Backward<V>& s = result[k];
+        M2<V> P{at(0, k), at(1, k), at(1, k), at(2, k)};
+        M2<V> dY{dsa, R(0.5) * dsb, R(0.5) * dsb, dsc};
+        // Y = P − P Gᵀ − G P + Z
+        M2<V> dPGt = neg(plus(dY, tr(dY)));
+        M2<V> dP = plus(dY, mul(dPGt, s.G));
+        Backward<V>& dr = dres[k];
+        dr = zero;
+        dr.g0 = dps, dr.g1 = dvs;
+        dr.G = mul(tr(dPGt), P);
+        dr.Z = dY;
+        V da{}, db{}, dc{};
+        symmetric_adjoint(dP, da, db, dc);
+        add(0, k, da), add(1, k, db), add(2, k, dc);
+    }
+    dres[n] = zero;
+    // The recursion's adjoint, in lane_recursion's layout of states.
+    if (lag >= n) {
+        for (int64_t k = 0; k < n; ++k)  // dres[k] is complete once k − 1 is done
+            recurse_adjoint(&terms[22 * k], states[k + 1], dres[k], &dterms[22 * k], dres[k + 1]);
+    } else {
+        for (int64_t s = lag; s >= 1; --s) {
+            std::fill(dprev.begin(), dprev.end(), zero);
+            for (int64_t k = 0; k < n; ++k)
+                recurse_adjoint(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1], dres[k],
+                                &dterms[22 * k], dprev[k + 1]);
+            std::swap(dres, dprev);
+        }
+    }
+    // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked).
+    for (int64_t k = 0; k < n; ++k) {
+        const int64_t t = k + 1;
+        const TermArgs<V> x = term_args<V>(at, k);
+        const TermArgs<V> d = terms_adjoint(&dterms[22 * k], projection, x);
+        add(0, k, d.a), add(1, k, d.b), add(2, k, d.c);
+        add(3, t, d.a1), add(4, t, d.b1), add(5, t, d.c1);
+        add(6, t, d.K.a), add(7, t, d.K.b), add(8, t, d.K.c), add(9, t, d.K.d);
+        add(10, t, d.rp * x.fp), add(11, t, d.rpv * x.fp * x.fv);
+        add(12, t, d.rvv * x.fv);
+        add(15, t, d.dt), add(16, t, d.ep), add(17, t, d.ev);
+    }
+}
+
+// backward's gradients: given those of its outputs (mean [B, T, 2m], cov [B, T, 2m, 2m];
+// null: zero), writes those of its 20 inputs (contiguous [B, T, m]; null: not wanted; the
+// observed masks get none).
+template <typename R>
+void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
+                      int threads, const void* const* in, const int64_t* in_strides,
+                      const R* g_mean, const R* g_cov, R* const* dgiven) {
+    using V = typename Wide<R>::type;
+    View<R> v[20];
+    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        SmootherBuffers<V> buffers(T, lag);
+        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
+            const LaneBlock<R> lanes(l, last * m, m);
+            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
+            lane_backward_adjoint(lanes, at, T, m, lag, projection != 0, g_mean, g_cov, buffers);
+            for (int i = 0; i < 20; ++i)
+                if (dgiven[i])
+                    for (int w = 0; w < lanes.count; ++w)
+                        for (int64_t t = 0; t < T; ++t)
+                            dgiven[i][(lanes.b[w] * T + t) * m + lanes.j[w]] =
+                                buffers.acc[i * T + t][w];
+        }
+    });
+}
+
 // Reverse mode of `backward`, for training (torchsvs.kernels.axes._CompiledSmoother): each
 // lane recomputes its terms and recursion, then runs their adjoints backwards (every matrix
 // product, inverse and transpose reversed: for Y = A B, dA = dY Bᵀ and dB = Aᵀ dY; for
@@ -817,6 +1057,119 @@ inline void recurse_adjoint(const R* w, const Backward<R>& s, const Backward<R>&
         R* o = dw + offsets[i];
         o[0] += blocks[i]->a, o[1] += blocks[i]->b, o[2] += blocks[i]->c, o[3] += blocks[i]->d;
     }
+}
+
+// The filter's steps for a vector of lanes with the record the smoother's recursion reads:
+// the states before and after every step (xs[0..T]) and backward's 20 inputs, step by step
+// (rec[i * T + t]: cov a, b, c; pred_cov a, b, c; gain a, b, c, d; noise pp, pv, vv
+// (unmasked); observed p, v; T; innovation p, v; mean p, v), and (Kalman, `logs` not null)
+// each lane's log-likelihood.
+template <typename R, int Rule>
+void filter_record(const LaneBlock<R>& lanes, const View<R>* given, const View<R>* start,
+                   int64_t T, typename Wide<R>::type gamma, State<typename Wide<R>::type>* xs,
+                   typename Wide<R>::type* rec, Likelihood* logs = nullptr) {
+    using V = typename Wide<R>::type;
+    const V zero{};
+    xs[0] = {lanes.at(start[0], 0), lanes.at(start[1], 0), lanes.at(start[2], 0),
+             lanes.at(start[3], 0), lanes.at(start[4], 0), zero, zero};
+    for (int64_t t = 0; t < T; ++t) {
+        V g[kGiven];
+        for (int q = 0; q < kGiven; ++q) g[q] = lanes.at(given[q], t);
+        const Step<V> s = predict_correct<V, Rule>(xs[t], g, gamma);
+        xs[t + 1] = s.next;
+        const V row[20] = {s.next.a, s.next.b, s.next.c, s.a1,    s.b1,    s.c1,    s.kp,
+                           zero,     s.kc,     s.kv,     g[kRp],  g[kRpv], g[kRvv], s.fp,
+                           s.fv,     g[kT],    s.ep,     s.ev,    s.next.p, s.next.v};
+        for (int i = 0; i < 20; ++i) rec[i * T + t] = row[i];
+        if (Rule == 0 && logs)
+            for (int w = 0; w < lanes.kWidth; ++w) logs[w].add(s.ll[w], s.Sp[w]);
+    }
+}
+
+// The filter and its smoother's general recursion (`backward`: fixed interval or lag) in one
+// pass, for a smoother of a lag other than 1 that keeps less than the filter's whole record
+// (torchsvs.kernels.axes.run_axes; training: _CompiledAxes): each
+// vector of lanes runs the filter keeping its record in a buffer of its own (filter_record),
+// then the recursion on it, and writes what `out` asks: the filter's mean and cov of every
+// step (null: not kept), its state after the last step, the smoothed mean and cov. The
+// filter's whole record never goes to memory; the reverse mode (`adjoint` with a lag)
+// recomputes it.
+template <typename R, int Rule>
+void filter_smoother(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int64_t lag,
+                     int projection, int threads, const void* const* in,
+                     const int64_t* in_strides, const void* const* prior,
+                     const int64_t* prior_strides, const Layout<R>& out) {
+    using V = typename Wide<R>::type;
+    View<R> given[kGiven], start[5];
+    for (int q = 0; q < kGiven; ++q) given[q] = view<R>(in, in_strides, q);
+    for (int q = 0; q < 5; ++q) start[q] = view<R>(prior, prior_strides, q);
+    const int64_t n = 2 * m, mz = velocity ? n : m;
+    const V gam = splat<V>(gamma);
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        std::vector<State<V>> xs(T + 1);
+        std::vector<V> rec(20 * T), terms(22 * std::max<int64_t>(T - 1, 1));
+        std::vector<Backward<V>> states((sweeps_of(T - 1, lag) + 1) * T, Backward<V>{});
+        std::vector<double> totals(last - first, 0.0);  // the tracks' log-likelihoods
+        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
+            const LaneBlock<R> lanes(l, last * m, m);
+            Likelihood logs[LaneBlock<R>::kWidth];
+            filter_record<R, Rule>(lanes, given, start, T, gam, xs.data(), rec.data(),
+                                   out.loglik ? logs : nullptr);
+            if (out.loglik)  // summed over each track's axes in order, as `forward` does
+                for (int w = 0; w < lanes.count; ++w) totals[lanes.b[w] - first] += logs[w].total();
+            auto at = [&](int i, int64_t t) { return rec[i * T + t]; };
+            const Backward<V>* result =
+                lane_backward<V>(at, T - 1, lag, projection != 0, terms, states);
+            for (int64_t k = 0; k < T; ++k) {
+                V now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
+                const State<V>& x = xs[k + 1];
+                if (k < T - 1) smoothed(now, result[k]);  // the last step as filtered
+                for (int w = 0; w < lanes.count; ++w) {
+                    const int64_t bi = lanes.b[w], j = lanes.j[w], idx = bi * T + k;
+                    write_axis(out.smooth_mean + idx * n, out.smooth_cov + idx * n * n, n, j,
+                               now[0][w], now[1][w], now[2][w], now[3][w], now[4][w]);
+                    if (out.mean) out.mean[idx * n + 2 * j] = x.p[w];
+                    if (out.mean) out.mean[idx * n + 2 * j + 1] = x.v[w];
+                    if (out.cov)
+                        block_rows(out.cov + idx * n * n, n, j, x.a[w], x.b[w], x.b[w], x.c[w]);
+                }
+            }
+            const State<V>& x = xs[T];
+            for (int w = 0; w < lanes.count; ++w) {
+                const int64_t bi = lanes.b[w], j = lanes.j[w];
+                write_axis(out.last_mean + bi * n, out.last_cov + bi * n * n, n, j, x.p[w],
+                           x.v[w], x.a[w], x.b[w], x.c[w]);
+                if (!out.last_post) continue;
+                R* post = out.last_post + bi * mz;
+                if (velocity)
+                    post[2 * j] = x.mem_p[w], post[2 * j + 1] = x.mem_v[w];
+                else
+                    post[j] = x.mem_p[w];
+            }
+        }
+        if (out.loglik)
+            for (int64_t bi = first; bi < last; ++bi) out.loglik[bi] = R(totals[bi - first]);
+    });
+}
+
+template <typename R>
+void filter_smoother_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity,
+                           double gamma, int threads, const void* const* in, const int64_t* s,
+                           const void* const* prior, const int64_t* ps, void* const* o,
+                           int64_t lag, int projection) {
+    Layout<R> out{static_cast<R*>(o[0]),  static_cast<R*>(o[1]),       static_cast<R*>(o[2]),
+                  static_cast<R*>(o[3]),  static_cast<R*>(o[4]),       static_cast<R*>(o[5]),
+                  static_cast<R*>(o[6]),  static_cast<R*>(o[7]),       static_cast<R*>(o[8]),
+                  static_cast<uint8_t*>(o[9]), static_cast<R*>(o[10]), static_cast<R*>(o[11]),
+                  static_cast<R*>(o[12]), static_cast<R*>(o[13]),      static_cast<R*>(o[14]),
+                  0};
+    R g = static_cast<R>(gamma);
+    if (rule == 0)
+        filter_smoother<R, 0>(B, T, m, velocity, g, lag, projection, threads, in, s, prior, ps,
+                              out);
+    else
+        filter_smoother<R, 1>(B, T, m, velocity, g, lag, projection, threads, in, s, prior, ps,
+                              out);
 }
 
 // Reverse mode of the forward loop, for training (torchsvs.kernels.axes._CompiledAxes).
@@ -975,9 +1328,10 @@ inline SmoothedInputs<X> smooth_adjoint(bool projection, const State<X>& x, cons
 
 // The forward loop's gradients. `grads`: the gradients of forward's outputs (null: zero) in
 // Layout's order: mean, cov, pred_mean, pred_cov, innovation, gain, S, post, loglik, then the
-// state after the last step (mean [B, n], cov [B, n, n], post [B, m_z]) and the one-step-lag
-// smoothed mean and cov (with `smoothing`: 1 RTS, 2 SVSS, as `forward`). Writes the inputs'
-// gradients: `dgiven` 11 contiguous [B, T, m] arrays, or [B, 1, m] summed over the steps for
+// state after the last step (mean [B, n], cov [B, n, n], post [B, m_z]) and the smoothed mean
+// and cov (with `smoothing`: 1 RTS, 2 SVSS; `lag` 0: the one-step-lag smoothing of
+// `forward`, else filter_smoother's recursion with that lag, as `backward` takes it). Writes
+// the inputs' gradients: `dgiven` 11 contiguous [B, T, m] arrays, or [B, 1, m] summed over the steps for
 // an input constant in time (null: not wanted), `dprior` 5 [B, m] (p, v, a, b, c), and
 // `dgamma` [B, m] (per lane, summed by the caller).
 //
@@ -988,7 +1342,8 @@ inline SmoothedInputs<X> smooth_adjoint(bool projection, const State<X>& x, cons
 // max(|e|, ψ) differentiates in |e| only when |e| > ψ). The block's recomputed states stay in
 // a core's L2 (half a MiB): long tracks take fewer vectors at a time.
 template <typename R, int Rule>
-void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothing, int threads,
+void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothing, int64_t lag,
+             int threads,
              const void* const* in, const int64_t* in_strides, const void* const* prior,
              const int64_t* prior_strides, const R* const* grads, R* const* dgiven,
              R* const* dprior, R* dgamma) {
@@ -1003,10 +1358,13 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
     const R *g_e = grads[4], *g_K = grads[5], *g_S = grads[6], *g_post = grads[7];
     const R *g_ll = grads[8], *g_last_mean = grads[9], *g_last_cov = grads[10];
     const R *g_last_post = grads[11], *g_smooth_mean = grads[12], *g_smooth_cov = grads[13];
-    const bool projection = smoothing == 2;
+    const bool projection = smoothing == 2, general = smoothing && lag > 0;
+    const bool in_loop = smoothing && !general;  // the one-step-lag smoothing of `forward`
     const V gam = splat<V>(gamma);
     const int64_t fits = (int64_t(1) << 19) / ((T + 1) * int64_t(sizeof(State<V>)));
-    const int64_t G = std::max<int64_t>(1, std::min<int64_t>(kAdjointVectors, fits));
+    // The general recursion's buffers hold a vector's whole record: one vector at a time.
+    const int64_t G =
+        general ? 1 : std::max<int64_t>(1, std::min<int64_t>(kAdjointVectors, fits));
     // Per lane: a mean's (p, v) entries, a covariance's (a, b, c) entries (b: both
     // off-diagonal entries summed), the gradients' values at a record.
     auto mean_at = [](const R* grad, int64_t size, int64_t at, int64_t i) {
@@ -1023,6 +1381,9 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
         std::vector<Lanes> lanes;
         std::vector<State<V>> dx(G);
         std::vector<V> summed(G * kGiven), dgam(G);
+        std::vector<V> rec(general ? 20 * T : 0);
+        SmootherBuffers<V> buffers(general ? T : 1, general ? lag : 1);
+        const std::vector<V>& acc = buffers.acc;
         for (int64_t l0 = first * m; l0 < end; l0 += G * W) {
             lanes.clear();
             for (int64_t l = l0; l < end && l < l0 + G * W; l += W) lanes.emplace_back(l, end, m);
@@ -1032,28 +1393,35 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                 states[v] = {lanes[v].at(start[0], 0), lanes[v].at(start[1], 0),
                              lanes[v].at(start[2], 0), lanes[v].at(start[3], 0),
                              lanes[v].at(start[4], 0), zero, zero};
-            for (int64_t t = 0; t < T; ++t)
-                for (int64_t v = 0; v < count; ++v) {
-                    V g[kGiven];
-                    for (int q = 0; q < kGiven; ++q) g[q] = lanes[v].at(given[q], t);
-                    states[(t + 1) * G + v] =
-                        predict_correct<V, Rule>(states[t * G + v], g, gam).next;
-                }
-            // The state after the last step: its own gradient and, smoothing, that of the
-            // last smoothed step (the last filtered one).
+            if (general) {  // the record, and the recursion's adjoints of its entries (acc)
+                filter_record<R, Rule>(lanes[0], given, start, T, gam, states.data(), rec.data());
+                auto at = [&](int i, int64_t t) { return rec[i * T + t]; };
+                lane_backward_adjoint(lanes[0], at, T, m, lag, projection, g_smooth_mean,
+                                      g_smooth_cov, buffers);
+            } else {
+                for (int64_t t = 0; t < T; ++t)
+                    for (int64_t v = 0; v < count; ++v) {
+                        V g[kGiven];
+                        for (int q = 0; q < kGiven; ++q) g[q] = lanes[v].at(given[q], t);
+                        states[(t + 1) * G + v] =
+                            predict_correct<V, Rule>(states[t * G + v], g, gam).next;
+                    }
+            }
+            // The state after the last step: its own gradient and, smoothing in the loop, that
+            // of the last smoothed step (the last filtered one; the recursion's is in acc).
             for (int64_t v = 0; v < count; ++v) {
                 State<V>& d = dx[v];
                 d = {zero, zero, zero, zero, zero, zero, zero};
                 for (int w = 0; w < W; ++w) {
                     const int64_t bi = lanes[v].b[w], j = lanes[v].j[w], p = 2 * j, q = p + 1;
                     R mp = 0, mv = 0, a = 0, b = 0, c = 0;
-                    for (const R* grad : {g_last_mean, g_smooth_mean})
+                    for (const R* grad : {g_last_mean, in_loop ? g_smooth_mean : nullptr})
                         if (grad) {
                             const int64_t at = grad == g_last_mean ? bi : bi * T + T - 1;
                             mp += grad[at * n + p], mv += grad[at * n + q];
                         }
                     sym_at(g_last_cov, bi, p, q, a, b, c);
-                    sym_at(g_smooth_cov, bi * T + T - 1, p, q, a, b, c);
+                    if (in_loop) sym_at(g_smooth_cov, bi * T + T - 1, p, q, a, b, c);
                     d.p[w] = mp, d.v[w] = mv, d.a[w] = a, d.b[w] = b, d.c[w] = c;
                     if (g_last_post) {
                         d.mem_p[w] = g_last_post[bi * mz + (velocity ? p : j)];
@@ -1110,7 +1478,7 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                             o.Sp[w] = g_S ? g_S[rec * m * m + j * m + j] : R(0);
                             d.mem_p[w] += mean_at(g_post, mz, rec, j);
                         }
-                        if (smoothing && t > 0) {
+                        if (in_loop && t > 0) {
                             ds[0][w] = mean_at(g_smooth_mean, n, rec - 1, p);
                             ds[1][w] = mean_at(g_smooth_mean, n, rec - 1, q);
                             a = b = c = 0;
@@ -1120,8 +1488,17 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                     }
                     State<V> dsmooth{zero, zero, zero, zero, zero, zero, zero};
                     SmoothedInputs<V> extra{zero, zero, zero, zero};
-                    if (smoothing && t > 0)
+                    if (in_loop && t > 0)
                         extra = smooth_adjoint(projection, before, g, s, ds, dsmooth, o);
+                    if (general) {  // the record's entries at t, read by the recursion
+                        auto entry = [&acc, T, t](int i) { return acc[i * T + t]; };
+                        d.a += entry(0), d.b += entry(1), d.c += entry(2);
+                        d.p += entry(18), d.v += entry(19);
+                        o.a1 += entry(3), o.b1 += entry(4), o.c1 += entry(5);
+                        o.kp += entry(6), o.kc += entry(8), o.kv += entry(9);  // K.b is 0
+                        o.ep += entry(16), o.ev += entry(17);
+                        extra = {entry(15), entry(10), entry(11), entry(12)};  // unmasked noise
+                    }
                     d = step_adjoint<V, Rule>(before, g, gam, s, d, o, dg, dgam[v]);
                     d.p += dsmooth.p, d.v += dsmooth.v;
                     d.a += dsmooth.a, d.b += dsmooth.b, d.c += dsmooth.c;
@@ -1157,7 +1534,7 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
 
 template <typename R>
 void adjoint_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, double gamma,
-                   int smoothing, int threads, const void* const* in, const int64_t* s,
+                   int smoothing, int64_t lag, int threads, const void* const* in, const int64_t* s,
                    const void* const* prior, const int64_t* ps, void* const* grads,
                    void* const* dgiven, void* const* dprior, void* dgamma) {
     auto g = reinterpret_cast<const R* const*>(grads);
@@ -1166,229 +1543,11 @@ void adjoint_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, doub
     R gm = static_cast<R>(gamma);
     R* dgm = static_cast<R*>(dgamma);
     if (rule == 0)
-        adjoint<R, 0>(B, T, m, velocity, gm, smoothing, threads, in, s, prior, ps, g, dg, dp,
+        adjoint<R, 0>(B, T, m, velocity, gm, smoothing, lag, threads, in, s, prior, ps, g, dg, dp,
                       dgm);
     else
-        adjoint<R, 1>(B, T, m, velocity, gm, smoothing, threads, in, s, prior, ps, g, dg, dp,
+        adjoint<R, 1>(B, T, m, velocity, gm, smoothing, lag, threads, in, s, prior, ps, g, dg, dp,
                       dgm);
-}
-
-// axes._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
-// Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)).
-// Inputs (11): p, v, a, b, c (filtered), p_pred, v_pred, a1, b1, c1 (predicted), T.
-// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
-template <typename R>
-void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* const* in,
-                  const int64_t* in_strides, R* mean_out, R* cov_out) {
-    View<R> P = view<R>(in, in_strides, 0), V = view<R>(in, in_strides, 1),
-            A = view<R>(in, in_strides, 2), Bc = view<R>(in, in_strides, 3),
-            Cc = view<R>(in, in_strides, 4), Pp = view<R>(in, in_strides, 5),
-            Vp = view<R>(in, in_strides, 6), A1 = view<R>(in, in_strides, 7),
-            B1 = view<R>(in, in_strides, 8), C1 = view<R>(in, in_strides, 9),
-            Ts = view<R>(in, in_strides, 10);
-    const int64_t n = 2 * m;
-    auto write = [&](int64_t bi, int64_t k, int64_t j, R ps, R vs, R sa, R sb, R sc) {
-        int64_t idx = bi * T + k;
-        write_axis(mean_out + idx * n, cov_out + idx * n * n, n, j, ps, vs, sa, sb, sc);
-    };
-    over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        for (int64_t bi = first; bi < last; ++bi) {
-            for (int64_t j = 0; j < m; ++j) {
-                R ps = P.at(bi, T - 1, j), vs = V.at(bi, T - 1, j);
-                R sa = A.at(bi, T - 1, j), sb = Bc.at(bi, T - 1, j), sc = Cc.at(bi, T - 1, j);
-                write(bi, T - 1, j, ps, vs, sa, sb, sc);
-                for (int64_t k = T - 2; k >= 0; --k) {
-                    R dt = Ts.at(bi, k + 1, j);
-                    R a = A.at(bi, k, j), b = Bc.at(bi, k, j), c = Cc.at(bi, k, j);
-                    R pa = A1.at(bi, k + 1, j), pb = B1.at(bi, k + 1, j);
-                    R pc = C1.at(bi, k + 1, j);
-                    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (axes.inverse, axes.mm).
-                    R det = pa * pc - pb * pb;
-                    R ia = pc / det, ib = -pb / det, ic = pa / det;
-                    R xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
-                    R ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
-                    R cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
-                    R dp = ps - Pp.at(bi, k + 1, j), dv = vs - Vp.at(bi, k + 1, j);
-                    ps = P.at(bi, k, j) + (ca * dp + cb * dv);
-                    vs = V.at(bi, k, j) + (cc * dp + cd * dv);
-                    // axes.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
-                    R da = sa - pa, db = sb - pb, dd = sc - pc;
-                    R ma = ca * da + cb * db, mb = ca * db + cb * dd;
-                    R mc = cc * da + cd * db, md = cc * db + cd * dd;
-                    R ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
-                    R ec = mc * ca + md * cb, ed = mc * cc + md * cd;
-                    sa = a + ea;
-                    sb = b + 0.5 * (eb + ec);
-                    sc = c + ed;
-                    write(bi, k, j, ps, vs, sa, sb, sc);
-                }
-            }
-        }
-    });
-}
-
-// How many sweeps of `lane_recursion` a run of n steps with a successor takes: one from the
-// end (fixed interval, lag ≥ n) or `lag` from zero.
-inline int64_t sweeps_of(int64_t n, int64_t lag) { return lag >= n ? 1 : lag; }
-
-// The backward recursion of a lane over its terms (n indices), every state kept (the reverse
-// mode reads them): `states` holds (sweeps_of(n, lag) + 1) rows of n + 1, all zero to begin
-// with. Fixed interval (lag ≥ n): row 0, from zero at the end, states[k] = recurse(k,
-// states[k + 1]). Fixed lag: row s (s = 1..lag) applies one step to row s − 1 at every
-// index, states[s][k] = recurse(k, states[s − 1][k + 1]): after `lag` rows, the sum of `lag`
-// terms from zero at k + lag. Returns the results' row; its entry at n stays zero.
-template <typename R>
-inline const Backward<R>* lane_recursion(const R* terms, int64_t n, int64_t lag,
-                                         std::vector<Backward<R>>& states) {
-    if (lag >= n) {
-        for (int64_t k = n - 1; k >= 0; --k) states[k] = recurse(&terms[22 * k], states[k + 1]);
-        return states.data();
-    }
-    for (int64_t s = 1; s <= lag; ++s)
-        for (int64_t k = 0; k < n; ++k)
-            states[s * (n + 1) + k] = recurse(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1]);
-    return &states[lag * (n + 1)];
-}
-
-// A lane's terms (written to `terms`, n indices) and recursion (in `states`, see
-// lane_recursion), from its 20 inputs `at(i, step)`; returns the results' row.
-template <typename R, typename At>
-inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bool projection,
-                                        std::vector<R>& terms, std::vector<Backward<R>>& states) {
-    for (int64_t k = 0; k < n; ++k) terms_at(&terms[22 * k], projection, term_args<R>(at, k));
-    return lane_recursion(terms.data(), n, lag, states);
-}
-
-// axes.smooth_axes: the backward recursion from zero at the end (fixed interval) or, with a
-// lag L < T-1, L applications from zero at step k+L for each k (the fixed-lag form), then
-// axes._smoothed: x̂ˢ_k = x̂_k + g_k, Pˢ_k = P_k − P_k G_kᵀ − G_k P_k + Z_k (symmetrised; the
-// last step as filtered).
-// Inputs (20, [B, T, m]): the filter's cov a, b, c; pred_cov a, b, c; gain a, b, c, d;
-// noise (unmasked) pp, pv, vv; observed p, v (0/1); T; innovation p, v; mean p, v.
-// Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
-template <typename R>
-void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int threads,
-              const void* const* in, const int64_t* in_strides, R* mean_out, R* cov_out) {
-    using V = typename Wide<R>::type;
-    View<R> v[20];
-    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
-    const int64_t n = T - 1;  // steps with a successor
-    const int64_t width = 2 * m;
-    over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        // A block of lanes' terms, step by step (contiguous for the sweeps), and its states.
-        std::vector<V> terms(22 * (n > 0 ? n : 1));
-        std::vector<Backward<V>> states((sweeps_of(n, lag) + 1) * (n + 1), Backward<V>{});
-        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
-            const LaneBlock<R> lanes(l, last * m, m);
-            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
-            const Backward<V>* result =
-                lane_backward<V>(at, n, lag, projection != 0, terms, states);
-            for (int64_t k = 0; k <= n; ++k) {
-                V now[5] = {at(18, k), at(19, k), at(0, k), at(1, k), at(2, k)};
-                if (k < n) smoothed(now, result[k]);  // the last step as filtered
-                for (int w = 0; w < lanes.count; ++w) {
-                    const int64_t idx = lanes.b[w] * T + k;
-                    write_axis(mean_out + idx * width, cov_out + idx * width * width, width,
-                               lanes.j[w], now[0][w], now[1][w], now[2][w], now[3][w], now[4][w]);
-                }
-            }
-        }
-    });
-}
-
-// backward's gradients: given those of its outputs (mean [B, T, 2m], cov [B, T, 2m, 2m];
-// null: zero), writes those of its 20 inputs (contiguous [B, T, m]; null: not wanted; the
-// observed masks get none).
-template <typename R>
-void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projection,
-                      int threads, const void* const* in, const int64_t* in_strides,
-                      const R* g_mean, const R* g_cov, R* const* dgiven) {
-    using V = typename Wide<R>::type;
-    View<R> v[20];
-    for (int i = 0; i < 20; ++i) v[i] = view<R>(in, in_strides, i);
-    const Backward<V> zero{};
-    const int64_t n = T - 1, width = 2 * m;
-    over_tracks(B, threads, [&](int64_t first, int64_t last) {
-        std::vector<V> terms(22 * (n > 0 ? n : 1)), dterms(22 * (n > 0 ? n : 1));
-        std::vector<Backward<V>> states((sweeps_of(n, lag) + 1) * (n + 1), zero);
-        std::vector<Backward<V>> dres(n + 1, zero), dprev(n + 1, zero);
-        std::vector<V> acc(20 * T);  // the inputs' adjoints, input by input over the steps
-        auto add = [&acc, T](int input, int64_t step, V value) { acc[input * T + step] += value; };
-        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
-            const LaneBlock<R> lanes(l, last * m, m);
-            auto at = [&](int i, int64_t t) { return lanes.at(v[i], t); };
-            const Backward<V>* result =
-                lane_backward<V>(at, n, lag, projection != 0, terms, states);
-            std::fill(acc.begin(), acc.end(), V{});
-            std::fill(dterms.begin(), dterms.end(), V{});
-            // The smoothed moments' adjoints (axes._smoothed).
-            for (int64_t k = 0; k <= n; ++k) {
-                V dps{}, dvs{}, dsa{}, dsb{}, dsc{};
-                for (int w = 0; w < lanes.kWidth; ++w) {  // the lanes' output gradients
-                    const int64_t idx = lanes.b[w] * T + k;
-                    const int64_t p = 2 * lanes.j[w], q = p + 1;
-                    if (g_mean)
-                        dps[w] = g_mean[idx * width + p], dvs[w] = g_mean[idx * width + q];
-                    if (!g_cov) continue;
-                    const R* gc = g_cov + idx * width * width;
-                    dsa[w] = gc[p * width + p], dsc[w] = gc[q * width + q];
-                    dsb[w] = gc[p * width + q] + gc[q * width + p];
-                }
-                add(18, k, dps), add(19, k, dvs);
-                if (k == n) {  // as filtered
-                    add(0, k, dsa), add(1, k, dsb), add(2, k, dsc);
-                    continue;
-                }
-                const Backward<V>& s = result[k];
-                M2<V> P{at(0, k), at(1, k), at(1, k), at(2, k)};
-                M2<V> dY{dsa, R(0.5) * dsb, R(0.5) * dsb, dsc};
-                // Y = P − P Gᵀ − G P + Z
-                M2<V> dPGt = neg(plus(dY, tr(dY)));
-                M2<V> dP = plus(dY, mul(dPGt, s.G));
-                Backward<V>& dr = dres[k];
-                dr = zero;
-                dr.g0 = dps, dr.g1 = dvs;
-                dr.G = mul(tr(dPGt), P);
-                dr.Z = dY;
-                V da{}, db{}, dc{};
-                symmetric_adjoint(dP, da, db, dc);
-                add(0, k, da), add(1, k, db), add(2, k, dc);
-            }
-            dres[n] = zero;
-            // The recursion's adjoint, in lane_recursion's layout of states.
-            if (lag >= n) {
-                for (int64_t k = 0; k < n; ++k)  // dres[k] is complete once k − 1 is done
-                    recurse_adjoint(&terms[22 * k], states[k + 1], dres[k], &dterms[22 * k],
-                                    dres[k + 1]);
-            } else {
-                for (int64_t s = lag; s >= 1; --s) {
-                    std::fill(dprev.begin(), dprev.end(), zero);
-                    for (int64_t k = 0; k < n; ++k)
-                        recurse_adjoint(&terms[22 * k], states[(s - 1) * (n + 1) + k + 1],
-                                        dres[k], &dterms[22 * k], dprev[k + 1]);
-                    std::swap(dres, dprev);
-                }
-            }
-            // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked).
-            for (int64_t k = 0; k < n; ++k) {
-                const int64_t t = k + 1;
-                const TermArgs<V> x = term_args<V>(at, k);
-                const TermArgs<V> d = terms_adjoint(&dterms[22 * k], projection != 0, x);
-                add(0, k, d.a), add(1, k, d.b), add(2, k, d.c);
-                add(3, t, d.a1), add(4, t, d.b1), add(5, t, d.c1);
-                add(6, t, d.K.a), add(7, t, d.K.b), add(8, t, d.K.c), add(9, t, d.K.d);
-                add(10, t, d.rp * x.fp), add(11, t, d.rpv * x.fp * x.fv);
-                add(12, t, d.rvv * x.fv);
-                add(15, t, d.dt), add(16, t, d.ep), add(17, t, d.ev);
-            }
-            for (int i = 0; i < 20; ++i)
-                if (dgiven[i])
-                    for (int w = 0; w < lanes.count; ++w)
-                        for (int64_t t = 0; t < T; ++t)
-                            dgiven[i][(lanes.b[w] * T + t) * m + lanes.j[w]] =
-                                acc[i * T + t][w];
-        }
-    });
 }
 
 // One predict-correct step of a dense linear-Gaussian filter for one track:
@@ -1612,9 +1771,17 @@ extern "C" {
                           double gamma, int threads, const void* const* in, const int64_t* s, \
                           const void* const* prior, const int64_t* ps, void* const* grads,    \
                           void* const* dgiven, void* const* dprior, void* dgamma,             \
-                          int smoothing) {                                                    \
-        adjoint_entry<R>(B, T, m, rule, velocity, gamma, smoothing, threads, in, s, prior, ps, \
-                         grads, dgiven, dprior, dgamma);                                      \
+                          int smoothing, int64_t lag) {                                       \
+        adjoint_entry<R>(B, T, m, rule, velocity, gamma, smoothing, lag, threads, in, s, prior, \
+                         ps, grads, dgiven, dprior, dgamma);                                  \
+    }                                                                                         \
+    void filter_smoother_##suffix(int64_t B, int64_t T, int64_t m, int rule, int velocity,    \
+                                  double gamma, int threads, const void* const* in,           \
+                                  const int64_t* s, const void* const* prior,                 \
+                                  const int64_t* ps, void* const* o, int64_t lag,             \
+                                  int projection) {                                           \
+        filter_smoother_entry<R>(B, T, m, rule, velocity, gamma, threads, in, s, prior, ps, o,  \
+                                 lag, projection);                                            \
     }                                                                                         \
     void backward_adjoint_##suffix(int64_t B, int64_t T, int64_t m, int64_t lag,             \
                                    int projection, int threads, const void* const* in,        \

@@ -151,7 +151,10 @@ def library() -> ctypes.CDLL | None:
         loop += [strides, pointers]  # the forward loop's arguments and its outputs (or grads)
         getattr(lib, f"forward_{suffix}").argtypes = [*loop, integer]  # and the smoothing
         adjoint = getattr(lib, f"adjoint_{suffix}")
-        adjoint.argtypes = [*loop, pointers, pointers, vp]
+        # the inputs' gradients, then the smoothing and the general recursion's lag (0: none)
+        adjoint.argtypes = [*loop, pointers, pointers, vp, integer, ctypes.c_int64]
+        smoother = getattr(lib, f"filter_smoother_{suffix}")
+        smoother.argtypes = [*loop, ctypes.c_int64, integer]  # the lag, projection
         rts = getattr(lib, f"rts_interval_{suffix}")
         rts.argtypes = [*size, integer, pointers, strides, vp, vp]
         backward = getattr(lib, f"backward_{suffix}")
@@ -325,6 +328,47 @@ def forward(
     return (*per_step, loglik, mask), last, smoothed
 
 
+def filter_smoother(
+    rule: str,
+    gamma: float,
+    given: Sequence[Tensor],
+    prior: Sequence[Tensor],
+    shape: tuple[int, int, int],
+    velocity: bool,
+    keep: str,
+    smoothing: str,
+    lag: int | None,
+) -> tuple[tuple[Tensor | None, ...], Last, tuple[Tensor, Tensor]]:
+    """:func:`forward` (same arguments, ``keep`` ``"moments"`` or ``"mean"``) and
+    :func:`backward` over its record in one compiled pass: the filter's record stays in the
+    loop's own buffers, a vector of lanes at a time, and is never written. Returns what
+    :func:`forward` does (the fields ``keep`` leaves out ``None``; no mask), the state after
+    the last step and the smoothed mean ``[B, T, 2m]`` and covariance
+    ``[B, T, 2m, 2m]``."""
+    if keep not in ("moments", "mean"):
+        raise ValueError(f"keep: expected 'moments' or 'mean', got {keep!r}")
+    B, T, m = shape
+    n, mz = 2 * m, 2 * m if velocity else m
+    dtype = prior[0].dtype
+    mean = fresh((B, T, n), dtype)
+    cov = fresh((B, T, n, n), dtype) if keep == "moments" else None
+    last = Last(
+        torch.empty(B, n, dtype=dtype),
+        torch.empty(B, n, n, dtype=dtype),
+        torch.empty(B, mz, dtype=dtype) if rule != "kalman" else None,
+    )
+    smoothed = fresh((B, T, n), dtype), fresh((B, T, n, n), dtype)
+    per_step = (mean, cov, *(None,) * 6)
+    loglik = torch.empty(B, dtype=dtype) if rule == "kalman" else None
+    outputs = (*per_step, loglik, None, *last, *smoothed)
+    sweeps, projection = _backward_settings(shape, lag, smoothing == "projection")
+    _forward_loop(
+        "filter_smoother", rule, gamma, given, prior, shape, velocity, _pointers(outputs),
+        sweeps, projection,
+    )  # fmt: skip
+    return (*per_step, loglik, None), last, smoothed
+
+
 def _forward_loop(
     name: str,
     rule: str,
@@ -363,11 +407,13 @@ def adjoint(
     grads: Sequence[Tensor | None],
     wanted: Sequence[bool],
     smoothing: str | None = None,
+    lag: int | None = 1,
 ) -> tuple[list[Tensor | None], list[Tensor], Tensor]:
-    """The reverse mode of :func:`forward` (same arguments): ``grads`` the gradients of its
-    outputs (``None``: zero): the nine per-step ones and the log-likelihood, the state after
-    the last step (mean, cov, a-posteriori innovation) and the smoothed mean and cov (with
-    ``smoothing``), 14 in all; ``wanted`` which of the 11 ``given`` need one. Returns the
+    """The reverse mode of :func:`forward` (same arguments), or with a ``lag`` other than 1
+    of :func:`filter_smoother`: ``grads`` the gradients of the outputs (``None``: zero): the
+    eight per-step ones and the log-likelihood, the state after the last step (mean, cov,
+    a-posteriori innovation) and the smoothed mean and cov (with ``smoothing``), 14 in all;
+    ``wanted`` which of the 11 ``given`` need one. Returns the
     ``given`` gradients ``[B, T, m]``, or ``[B, 1, m]`` summed over the steps for an input
     constant in time (``None`` where not wanted; the caller sums them to each input's shape),
     the prior's ``[B, m]`` and ``γ``'s per lane ``[B, m]``."""
@@ -381,8 +427,11 @@ def adjoint(
     dgamma = torch.empty(B, m, dtype=dtype)
     grads = [None if g is None else g.contiguous() for g in grads]
     mode = _SMOOTHING[smoothing]
-    buffers = (_pointers(grads), _pointers(dgiven), _pointers(dprior), dgamma.data_ptr(), mode)
-    _forward_loop("adjoint", rule, gamma, given, prior, shape, velocity, *buffers)
+    sweeps = 0  # the one-step-lag smoothing of the forward loop, if any
+    if smoothing is not None and lag != 1:
+        sweeps = _backward_settings(shape, lag, smoothing == "projection")[0]
+    buffers = (_pointers(grads), _pointers(dgiven), _pointers(dprior), dgamma.data_ptr())
+    _forward_loop("adjoint", rule, gamma, given, prior, shape, velocity, *buffers, mode, sweeps)
     return dgiven, dprior, dgamma
 
 

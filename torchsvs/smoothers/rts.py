@@ -139,12 +139,10 @@ class RTSSmoother(Estimator[SmootherResult]):
         return self.filter.model
 
     def run(self, inputs: Inputs) -> SmootherResult:
-        # Lag 1 may run inside the filter's compiled loop; else the smoother reads the filter's
-        # whole record, whatever the caller keeps of its own.
-        smoothing = None
-        if self.lag == 1:
-            smoothing = "projection" if self.projection_gain else "gain"
-        result, smoothed = self.filter.smoother_pass(inputs, smoothing)
+        # The filter's compiled loop may smooth as well (lag 1; training, any lag); else the
+        # smoother reads the filter's whole record, whatever the caller keeps of its own.
+        smoothing = "projection" if self.projection_gain else "gain"
+        result, smoothed = self.filter.smoother_pass(inputs, smoothing, self.lag)
         if smoothed is not None:
             return SmootherResult(*smoothed, result)
         return self.smooth(result)
