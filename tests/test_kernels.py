@@ -988,3 +988,35 @@ def test_compiled_training_pass_keeping_less_gives_the_same_gradients(kind):
     assert torch.equal(mean_all, mean_kept)
     for a, b in zip(grads_all, grads_kept, strict=True):
         assert_close(a, b, atol=1e-12, rtol=1e-10)
+
+
+@pytest.mark.parametrize("gaps", [False, True], ids=["no-gaps", "gaps"])
+def test_measurements_with_a_gradient_reach_the_finite_difference_velocities(gaps):
+    """The SVSF's finite-difference velocities differentiate in ``z`` (a track without gaps
+    takes the one-pass differences, which once wrote into a buffer autograd refuses), equal to
+    the tensor loops' gradients; without a gradient the in-place differences give the same
+    estimates."""
+    z, _, x0, P0 = _problem(seed=14, B=3, T=25, missing=0.2 if gaps else 0.0)
+    if not gaps:
+        z = z.nan_to_num(1.0)  # _problem's missing step
+    model = ts.models.ConstantVelocity(q=0.5, r=[4.0, 2.0]).double()
+    svsf = _estimators(model)["SVSF"].double()
+
+    def run(loops_only: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        zz = z.clone().requires_grad_(True)
+        if loops_only:
+            with eager_loops():
+                out = svsf(zz, x0, P0)
+        else:
+            out = svsf(zz, x0, P0)
+        (
+            out.mean * torch.linspace(-1.0, 1.0, out.mean.numel()).reshape(out.mean.shape)
+        ).sum().backward()
+        return out.mean.detach(), zz.grad
+
+    (mean, grad), (mean_loops, grad_loops) = run(False), run(True)
+    assert grad.abs().sum() > 0
+    assert_close(grad, grad_loops, atol=1e-10, rtol=1e-10)
+    with torch.no_grad():
+        assert_close(svsf(z, x0, P0).mean, mean, atol=0, rtol=0)
+    assert_close(mean, mean_loops, atol=1e-10, rtol=0)

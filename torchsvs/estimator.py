@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.kernels.compiled import outside_dynamo
+from torchsvs.linalg import holds_inf
 from torchsvs.models.base import StateSpaceModel
 
 
@@ -94,7 +95,7 @@ def prepare_inputs(
         raise TypeError(f"z: expected float32 or float64, got {z.dtype}")
     if z.ndim not in (2, 3) or z.shape[-1] != m or z.shape[-2] < 1:
         raise ValueError(f"z: expected shape [B, T, {m}] or [T, {m}] with T >= 1, got {_shape(z)}")
-    if bool(torch.isinf(z).any()):
+    if holds_inf(z):
         raise ValueError("z: contains inf; mark a missing measurement with NaN instead")
     dtype, single = z.dtype, z.ndim == 2
     zb = z.unsqueeze(0) if single else z

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchsvs.linalg import holds_nan
 from torchsvs.models.base import StateSpaceModel
 
 
@@ -118,15 +119,20 @@ class FiniteDifferenceVelocity:
         velocity differences against ``[B, T, m]`` (``1/Δ`` ``[1, 1, m]`` and ``None`` when every
         step has one interval)."""
         B, T, m = z.shape
-        observed = ~torch.isnan(z)
         step = torch.tensor(getattr(model, "dt", 1.0), dtype=z.dtype) if dt is None else dt
-        if step.ndim == 0 and bool(observed.all()):
+        if step.ndim == 0 and not holds_nan(z):
             # No gaps, one interval: adjacent differences (the same numbers as below, in one
-            # pass instead of a dozen over [B, T, m] index tensors).
-            velocity = torch.empty_like(z)
-            velocity[:, :1] = float("nan")
-            torch.div(z[:, 1:] - z[:, :-1], step, out=velocity[:, 1:])
+            # pass instead of a dozen over [B, T, m] index tensors; in place, without a
+            # gradient to carry: a temporary of z's size costs as much as the pass).
+            first = torch.full_like(z[:, :1], float("nan"))
+            if torch.is_grad_enabled() and (z.requires_grad or step.requires_grad):
+                velocity = torch.cat([first, (z[:, 1:] - z[:, :-1]) / step], dim=1)
+            else:
+                velocity = torch.empty_like(z)
+                velocity[:, :1] = first
+                torch.sub(z[:, 1:], z[:, :-1], out=velocity[:, 1:]).div_(step)
             return velocity, (1.0 / step).reshape(1, 1, 1).expand(1, 1, m), None
+        observed = ~torch.isnan(z)
         index = torch.arange(T).view(1, T, 1).expand(B, T, m)
         if self.bridge_gaps:
             seen = torch.where(observed, index, torch.full_like(index, -1)).cummax(dim=1).values
