@@ -316,13 +316,16 @@ def run_axes(
     if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
         inputs = (*raw, *prior)
         shape = (B, steps, m)
+        training = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma))
         # A lag other than 1 smooths in the filter's pass where less than all is kept (and
         # there is a step to smooth); else the smoother's own pass reads the whole record.
         together = smoothing is not None and lag != 1 and keep != "all" and steps > 1
+        if together and not training:  # where it pays: see _TOGETHER
+            together = B * m >= _TOGETHER["lanes"] and steps <= _TOGETHER["steps"]
         if smoothing is not None and lag != 1 and not together:
             keep, smoothing = "all", None
         smoothed: tuple[Tensor, Tensor] | None
-        if torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma)):
+        if training:
             # Only what is kept is written, as without gradients: the adjoint recomputes the
             # steps' states, and the state after the last step is an output of its own.
             parts = _CompiledAxes.apply(
@@ -396,6 +399,15 @@ def run_axes(
     )
     out = interleaved(res, velocity)
     return AxesPass(res, out, _last(out))
+
+
+#: Without gradients, the filter and a smoother of lag other than 1 run together
+#: (:func:`fused.filter_smoother`) from this many lanes (tracks × axes: a vector of float32
+#: lanes filled twice) and up to this many steps (a vector's record, ~2 kB a step, stays in
+#: cache); else the record is written and smoothed after (one track of 100,000 steps: 8×
+#: faster so, the RTS's own fixed-interval loop being lighter than the general recursion).
+#: With gradients they always run together: the whole record's reverse mode costs far more.
+_TOGETHER = {"lanes": 16, "steps": 4096}
 
 
 def _last(out: Interleaved) -> fused.Last:
