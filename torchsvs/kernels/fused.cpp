@@ -212,6 +212,38 @@ enum Result {
 constexpr int64_t kLanes = 64;  // lanes (track axes) stepped together
 constexpr int64_t kAdjointVectors = 4;  // vectors of lanes the adjoint takes back together
 
+// The given inputs of a vector of lanes, step by step: each lane's address taken once, and
+// an input constant in time (stride 0: a fixed interval, R, ψ) read once.
+template <typename R>
+struct LaneInputs {
+    typedef typename Wide<R>::type V;
+    static constexpr int kWidth = LaneBlock<R>::kWidth;
+    const R* base[kGiven][kWidth];
+    int64_t stride[kGiven];
+    V fixed[kGiven];
+    LaneInputs(const LaneBlock<R>& lanes, const View<R>* given) {
+        for (int q = 0; q < kGiven; ++q) {
+            stride[q] = given[q].st;
+            for (int w = 0; w < kWidth; ++w) {
+                base[q][w] = given[q].data + lanes.b[w] * given[q].sb + lanes.j[w] * given[q].sm;
+                fixed[q][w] = base[q][w][0];
+            }
+        }
+    }
+    // The inputs at step t, in Given's order.
+    void at(int64_t t, V* g) const {
+        for (int q = 0; q < kGiven; ++q) {
+            if (stride[q] == 0) {
+                g[q] = fixed[q];
+                continue;
+            }
+            V value{};
+            for (int w = 0; w < kWidth; ++w) value[w] = base[q][w][t * stride[q]];
+            g[q] = value;
+        }
+    }
+};
+
 // The state a lane carries from step to step: mean, covariance [[a, b], [b, c]], SVSF memory.
 // X: one lane's scalar, or a vector of lanes (Wide).
 template <typename X>
@@ -1072,9 +1104,10 @@ void filter_record(const LaneBlock<R>& lanes, const View<R>* given, const View<R
     const V zero{};
     xs[0] = {lanes.at(start[0], 0), lanes.at(start[1], 0), lanes.at(start[2], 0),
              lanes.at(start[3], 0), lanes.at(start[4], 0), zero, zero};
+    const LaneInputs<R> inputs(lanes, given);
     for (int64_t t = 0; t < T; ++t) {
         V g[kGiven];
-        for (int q = 0; q < kGiven; ++q) g[q] = lanes.at(given[q], t);
+        inputs.at(t, g);
         const Step<V> s = predict_correct<V, Rule>(xs[t], g, gamma);
         xs[t + 1] = s.next;
         const V row[20] = {s.next.a, s.next.b, s.next.c, s.a1,    s.b1,    s.c1,    s.kp,
@@ -1379,14 +1412,18 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
         const int64_t end = last * m;
         std::vector<State<V>> states((T + 1) * G);  // [t][vector]
         std::vector<Lanes> lanes;
+        std::vector<LaneInputs<R>> inputs;
         std::vector<State<V>> dx(G);
         std::vector<V> summed(G * kGiven), dgam(G);
         std::vector<V> rec(general ? 20 * T : 0);
         SmootherBuffers<V> buffers(general ? T : 1, general ? lag : 1);
         const std::vector<V>& acc = buffers.acc;
         for (int64_t l0 = first * m; l0 < end; l0 += G * W) {
-            lanes.clear();
-            for (int64_t l = l0; l < end && l < l0 + G * W; l += W) lanes.emplace_back(l, end, m);
+            lanes.clear(), inputs.clear();
+            for (int64_t l = l0; l < end && l < l0 + G * W; l += W) {
+                lanes.emplace_back(l, end, m);
+                inputs.emplace_back(lanes.back(), given);
+            }
             const int64_t count = static_cast<int64_t>(lanes.size());
             const V zero{};
             for (int64_t v = 0; v < count; ++v)
@@ -1402,7 +1439,7 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                 for (int64_t t = 0; t < T; ++t)
                     for (int64_t v = 0; v < count; ++v) {
                         V g[kGiven];
-                        for (int q = 0; q < kGiven; ++q) g[q] = lanes[v].at(given[q], t);
+                        inputs[v].at(t, g);
                         states[(t + 1) * G + v] =
                             predict_correct<V, Rule>(states[t * G + v], g, gam).next;
                     }
@@ -1435,7 +1472,7 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                 for (int64_t v = 0; v < count; ++v) {
                     const Lanes& at = lanes[v];
                     V g[kGiven], dg[kGiven];
-                    for (int q = 0; q < kGiven; ++q) g[q] = at.at(given[q], t);
+                    inputs[v].at(t, g);
                     const State<V>& before = states[t * G + v];
                     const Step<V> s = predict_correct<V, Rule>(before, g, gam);
                     // The outputs' gradients at this step, read from the general layout.
