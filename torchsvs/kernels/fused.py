@@ -270,6 +270,12 @@ class Last(NamedTuple):
     cov: Tensor  #: [B, n, n]
     post_innovation: Tensor | None  #: [B, m_z] (SVSF), else None
 
+    @staticmethod
+    def empty(B: int, n: int, mz: int | None, dtype: torch.dtype) -> Last:
+        """Buffers for a loop to write (``mz`` None: no a-posteriori innovation)."""
+        post = None if mz is None else torch.empty(B, mz, dtype=dtype)
+        return Last(torch.empty(B, n, dtype=dtype), torch.empty(B, n, n, dtype=dtype), post)
+
 
 #: The per-step outputs of :func:`forward` each ``keep`` writes, by index (mean, cov, predicted
 #: mean and cov, innovation, gain, S, a-posteriori innovation).
@@ -314,11 +320,7 @@ def forward(
     ]
     loglik = None if svsf else torch.empty(B, dtype=dtype)
     mask = fresh((B, T, mz), torch.bool) if keep == "all" else None
-    last = Last(
-        torch.empty(B, n, dtype=dtype),
-        torch.empty(B, n, n, dtype=dtype),
-        torch.empty(B, mz, dtype=dtype) if svsf else None,
-    )
+    last = Last.empty(B, n, mz if svsf else None, dtype)
     smoothed = None
     if smoothing is not None:
         smoothed = fresh((B, T, n), dtype), fresh((B, T, n, n), dtype)
@@ -352,11 +354,7 @@ def filter_smoother(
     dtype = prior[0].dtype
     mean = fresh((B, T, n), dtype)
     cov = fresh((B, T, n, n), dtype) if keep == "moments" else None
-    last = Last(
-        torch.empty(B, n, dtype=dtype),
-        torch.empty(B, n, n, dtype=dtype),
-        torch.empty(B, mz, dtype=dtype) if rule != "kalman" else None,
-    )
+    last = Last.empty(B, n, mz if rule != "kalman" else None, dtype)
     smoothed = fresh((B, T, n), dtype), fresh((B, T, n, n), dtype)
     per_step = (mean, cov, *(None,) * 6)
     loglik = torch.empty(B, dtype=dtype) if rule == "kalman" else None
