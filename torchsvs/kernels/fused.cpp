@@ -868,6 +868,112 @@ void backward(int64_t B, int64_t T, int64_t m, int64_t lag, int projection, int 
     });
 }
 
+// Reverse mode of `backward`, for training (torchsvs.kernels.axes._CompiledSmoother): each
+// lane recomputes its terms and recursion, then runs their adjoints backwards (every matrix
+// product, inverse and transpose reversed: for Y = A B, dA = dY Bᵀ and dB = Aᵀ dY; for
+// Y = A⁻¹, dA = −Yᵀ dY Yᵀ).
+
+// The adjoint of inverse(a, b, d) = Y given dY, added to a symmetric block's (a, b, d) (b
+// stands for both off-diagonal entries).
+template <typename R>
+inline void inverse_adjoint(const M2<R>& Y, const M2<R>& dY, R& da, R& db, R& dd) {
+    M2<R> E = neg(mul(mul(tr(Y), dY), tr(Y)));
+    da += E.a, db += E.b + E.c, dd += E.d;
+}
+
+// The adjoint of a symmetric block [[a, b], [b, c]] built from (a, b, c).
+template <typename R>
+inline void symmetric_adjoint(const M2<R>& dX, R& da, R& db, R& dc) {
+    da += dX.a, db += dX.b + dX.c, dc += dX.d;
+}
+
+// terms_at's adjoint: from dw (the adjoints of its 22 values) those of its inputs, as a
+// TermArgs of adjoints (dR: of the masked noise).
+template <typename R>
+inline TermArgs<R> terms_adjoint(const R* dw, bool projection, const TermArgs<R>& x) {
+    const Terms<R> t = terms(projection, x);
+    TermArgs<R> d{};
+    M2<R> dC{dw[0], dw[1], dw[2], dw[3]}, dGHF{dw[6], dw[7], dw[8], dw[9]};
+    M2<R> dGSG{dw[10], dw[11], dw[12], dw[13]}, dGX{dw[14], dw[15], dw[16], dw[17]};
+    M2<R> dAF{dw[18], dw[19], dw[20], dw[21]};
+    const R dd0 = dw[4], dd1 = dw[5];
+    // AF = A F
+    M2<R> dA = mul(dAF, tr(t.F)), dF = mul(tr(t.A), dAF);
+    // ΓX = Γ X
+    M2<R> dGamma = mul(dGX, tr(t.X)), dX = mul(tr(t.Gamma), dGX);
+    // ΓSΓᵀ
+    dGamma = plus(dGamma, plus(mul(mul(dGSG, t.Gamma), tr(t.S)), mul(mul(tr(dGSG), t.Gamma), t.S)));
+    M2<R> dS = mul(mul(tr(t.Gamma), dGSG), t.Gamma);
+    // ΓHF = Γ (H F)
+    dGamma = plus(dGamma, mul(dGHF, tr(t.HF)));
+    dF = plus(dF, mul(tr(t.H), mul(tr(t.Gamma), dGHF)));
+    // d = Γ e
+    dGamma.a += dd0 * x.ep, dGamma.b += dd0 * x.ev, dGamma.c += dd1 * x.ep, dGamma.d += dd1 * x.ev;
+    d.ep = t.Gamma.a * dd0 + t.Gamma.c * dd1, d.ev = t.Gamma.b * dd0 + t.Gamma.d * dd1;
+    // C = (Pp⁻¹ F P)ᵀ
+    M2<R> dM = tr(dC);
+    M2<R> dFP = mul(tr(t.Ppinv), dM);
+    dF = plus(dF, mul(dFP, tr(t.P)));
+    M2<R> dP = mul(tr(t.F), dFP);
+    inverse_adjoint(t.Ppinv, mul(dM, tr(t.FP)), d.a1, d.b1, d.c1);
+    // X = PHtᵀ Aᵀ − R Kᵀ
+    M2<R> dPHt = mul(tr(t.A), tr(dX));
+    dA = plus(dA, mul(tr(dX), tr(t.PHt)));
+    M2<R> dR = neg(mul(dX, x.K));
+    d.K = plus(neg(mul(tr(dX), t.R_)), neg(dA));  // and A = I − K
+    if (projection) {  // Γ = PHt S⁻¹
+        dPHt = plus(dPHt, mul(dGamma, tr(t.Sinv)));
+        inverse_adjoint(t.Sinv, mul(tr(t.PHt), dGamma), dS.a, dS.b, dS.d);
+    } else {
+        d.K = plus(d.K, dGamma);
+    }
+    // S = H PHt + R, PHt = Pp H
+    dPHt = plus(dPHt, mul(tr(t.H), dS));
+    dR = plus(dR, dS);
+    M2<R> dPp = mul(dPHt, tr(t.H));
+    symmetric_adjoint(dP, d.a, d.b, d.c);
+    symmetric_adjoint(dPp, d.a1, d.b1, d.c1);
+    symmetric_adjoint(dR, d.rp, d.rpv, d.rvv);
+    d.dt = dF.b;
+    return d;
+}
+
+// recurse's adjoint: from the adjoint of its result (dout) adds those of its terms to dw and
+// of its input state s to ds.
+template <typename R>
+inline void recurse_adjoint(const R* w, const Backward<R>& s, const Backward<R>& dout, R* dw,
+                            Backward<R>& ds) {
+    M2<R> C{w[0], w[1], w[2], w[3]}, GHF{w[6], w[7], w[8], w[9]};
+    M2<R> GSG{w[10], w[11], w[12], w[13]}, GX{w[14], w[15], w[16], w[17]};
+    M2<R> AF{w[18], w[19], w[20], w[21]};
+    M2<R> cross = mul(GX, tr(s.G));
+    R d0 = w[4] + s.g0, d1 = w[5] + s.g1;
+    M2<R> U = plus(GHF, mul(s.G, AF));
+    M2<R> inner = plus(plus(plus(GSG, cross), tr(cross)), s.Z);
+    // g = C (d + g)
+    M2<R> dC{dout.g0 * d0, dout.g0 * d1, dout.g1 * d0, dout.g1 * d1};
+    R dd0 = C.a * dout.g0 + C.c * dout.g1, dd1 = C.b * dout.g0 + C.d * dout.g1;
+    dw[4] += dd0, dw[5] += dd1, ds.g0 += dd0, ds.g1 += dd1;
+    // G = C (ΓHF + G AF)
+    dC = plus(dC, mul(dout.G, tr(U)));
+    M2<R> dU = mul(tr(C), dout.G);
+    ds.G = plus(ds.G, mul(dU, tr(AF)));
+    M2<R> dAF = mul(tr(s.G), dU);
+    // Z = C inner Cᵀ, inner = ΓSΓᵀ + X + Xᵀ + Z with X = ΓX Gᵀ
+    dC = plus(dC, plus(mul(mul(dout.Z, C), tr(inner)), mul(mul(tr(dout.Z), C), inner)));
+    M2<R> dinner = mul(mul(tr(C), dout.Z), C);
+    ds.Z = plus(ds.Z, dinner);
+    M2<R> dcross = plus(dinner, tr(dinner));
+    M2<R> dGX = mul(dcross, s.G);
+    ds.G = plus(ds.G, mul(tr(dcross), GX));
+    const M2<R>* blocks[5] = {&dC, &dU, &dinner, &dGX, &dAF};  // dΓHF = dU, dΓSΓᵀ = dinner
+    const int offsets[5] = {0, 6, 10, 14, 18};
+    for (int i = 0; i < 5; ++i) {
+        R* o = dw + offsets[i];
+        o[0] += blocks[i]->a, o[1] += blocks[i]->b, o[2] += blocks[i]->c, o[3] += blocks[i]->d;
+    }
+}
+
 // The buffers of a vector of lanes' smoother pass and its reverse mode (n indices, `lag` as
 // backward takes it), reused from vector to vector.
 template <typename V>
@@ -983,112 +1089,6 @@ void backward_adjoint(int64_t B, int64_t T, int64_t m, int64_t lag, int projecti
                                 buffers.acc[i * T + t][w];
         }
     });
-}
-
-// Reverse mode of `backward`, for training (torchsvs.kernels.axes._CompiledSmoother): each
-// lane recomputes its terms and recursion, then runs their adjoints backwards (every matrix
-// product, inverse and transpose reversed: for Y = A B, dA = dY Bᵀ and dB = Aᵀ dY; for
-// Y = A⁻¹, dA = −Yᵀ dY Yᵀ).
-
-// The adjoint of inverse(a, b, d) = Y given dY, added to a symmetric block's (a, b, d) (b
-// stands for both off-diagonal entries).
-template <typename R>
-inline void inverse_adjoint(const M2<R>& Y, const M2<R>& dY, R& da, R& db, R& dd) {
-    M2<R> E = neg(mul(mul(tr(Y), dY), tr(Y)));
-    da += E.a, db += E.b + E.c, dd += E.d;
-}
-
-// The adjoint of a symmetric block [[a, b], [b, c]] built from (a, b, c).
-template <typename R>
-inline void symmetric_adjoint(const M2<R>& dX, R& da, R& db, R& dc) {
-    da += dX.a, db += dX.b + dX.c, dc += dX.d;
-}
-
-// terms_at's adjoint: from dw (the adjoints of its 22 values) those of its inputs, as a
-// TermArgs of adjoints (dR: of the masked noise).
-template <typename R>
-inline TermArgs<R> terms_adjoint(const R* dw, bool projection, const TermArgs<R>& x) {
-    const Terms<R> t = terms(projection, x);
-    TermArgs<R> d{};
-    M2<R> dC{dw[0], dw[1], dw[2], dw[3]}, dGHF{dw[6], dw[7], dw[8], dw[9]};
-    M2<R> dGSG{dw[10], dw[11], dw[12], dw[13]}, dGX{dw[14], dw[15], dw[16], dw[17]};
-    M2<R> dAF{dw[18], dw[19], dw[20], dw[21]};
-    const R dd0 = dw[4], dd1 = dw[5];
-    // AF = A F
-    M2<R> dA = mul(dAF, tr(t.F)), dF = mul(tr(t.A), dAF);
-    // ΓX = Γ X
-    M2<R> dGamma = mul(dGX, tr(t.X)), dX = mul(tr(t.Gamma), dGX);
-    // ΓSΓᵀ
-    dGamma = plus(dGamma, plus(mul(mul(dGSG, t.Gamma), tr(t.S)), mul(mul(tr(dGSG), t.Gamma), t.S)));
-    M2<R> dS = mul(mul(tr(t.Gamma), dGSG), t.Gamma);
-    // ΓHF = Γ (H F)
-    dGamma = plus(dGamma, mul(dGHF, tr(t.HF)));
-    dF = plus(dF, mul(tr(t.H), mul(tr(t.Gamma), dGHF)));
-    // d = Γ e
-    dGamma.a += dd0 * x.ep, dGamma.b += dd0 * x.ev, dGamma.c += dd1 * x.ep, dGamma.d += dd1 * x.ev;
-    d.ep = t.Gamma.a * dd0 + t.Gamma.c * dd1, d.ev = t.Gamma.b * dd0 + t.Gamma.d * dd1;
-    // C = (Pp⁻¹ F P)ᵀ
-    M2<R> dM = tr(dC);
-    M2<R> dFP = mul(tr(t.Ppinv), dM);
-    dF = plus(dF, mul(dFP, tr(t.P)));
-    M2<R> dP = mul(tr(t.F), dFP);
-    inverse_adjoint(t.Ppinv, mul(dM, tr(t.FP)), d.a1, d.b1, d.c1);
-    // X = PHtᵀ Aᵀ − R Kᵀ
-    M2<R> dPHt = mul(tr(t.A), tr(dX));
-    dA = plus(dA, mul(tr(dX), tr(t.PHt)));
-    M2<R> dR = neg(mul(dX, x.K));
-    d.K = plus(neg(mul(tr(dX), t.R_)), neg(dA));  // and A = I − K
-    if (projection) {  // Γ = PHt S⁻¹
-        dPHt = plus(dPHt, mul(dGamma, tr(t.Sinv)));
-        inverse_adjoint(t.Sinv, mul(tr(t.PHt), dGamma), dS.a, dS.b, dS.d);
-    } else {
-        d.K = plus(d.K, dGamma);
-    }
-    // S = H PHt + R, PHt = Pp H
-    dPHt = plus(dPHt, mul(tr(t.H), dS));
-    dR = plus(dR, dS);
-    M2<R> dPp = mul(dPHt, tr(t.H));
-    symmetric_adjoint(dP, d.a, d.b, d.c);
-    symmetric_adjoint(dPp, d.a1, d.b1, d.c1);
-    symmetric_adjoint(dR, d.rp, d.rpv, d.rvv);
-    d.dt = dF.b;
-    return d;
-}
-
-// recurse's adjoint: from the adjoint of its result (dout) adds those of its terms to dw and
-// of its input state s to ds.
-template <typename R>
-inline void recurse_adjoint(const R* w, const Backward<R>& s, const Backward<R>& dout, R* dw,
-                            Backward<R>& ds) {
-    M2<R> C{w[0], w[1], w[2], w[3]}, GHF{w[6], w[7], w[8], w[9]};
-    M2<R> GSG{w[10], w[11], w[12], w[13]}, GX{w[14], w[15], w[16], w[17]};
-    M2<R> AF{w[18], w[19], w[20], w[21]};
-    M2<R> cross = mul(GX, tr(s.G));
-    R d0 = w[4] + s.g0, d1 = w[5] + s.g1;
-    M2<R> U = plus(GHF, mul(s.G, AF));
-    M2<R> inner = plus(plus(plus(GSG, cross), tr(cross)), s.Z);
-    // g = C (d + g)
-    M2<R> dC{dout.g0 * d0, dout.g0 * d1, dout.g1 * d0, dout.g1 * d1};
-    R dd0 = C.a * dout.g0 + C.c * dout.g1, dd1 = C.b * dout.g0 + C.d * dout.g1;
-    dw[4] += dd0, dw[5] += dd1, ds.g0 += dd0, ds.g1 += dd1;
-    // G = C (ΓHF + G AF)
-    dC = plus(dC, mul(dout.G, tr(U)));
-    M2<R> dU = mul(tr(C), dout.G);
-    ds.G = plus(ds.G, mul(dU, tr(AF)));
-    M2<R> dAF = mul(tr(s.G), dU);
-    // Z = C inner Cᵀ, inner = ΓSΓᵀ + X + Xᵀ + Z with X = ΓX Gᵀ
-    dC = plus(dC, plus(mul(mul(dout.Z, C), tr(inner)), mul(mul(tr(dout.Z), C), inner)));
-    M2<R> dinner = mul(mul(tr(C), dout.Z), C);
-    ds.Z = plus(ds.Z, dinner);
-    M2<R> dcross = plus(dinner, tr(dinner));
-    M2<R> dGX = mul(dcross, s.G);
-    ds.G = plus(ds.G, mul(tr(dcross), GX));
-    const M2<R>* blocks[5] = {&dC, &dU, &dinner, &dGX, &dAF};  // dΓHF = dU, dΓSΓᵀ = dinner
-    const int offsets[5] = {0, 6, 10, 14, 18};
-    for (int i = 0; i < 5; ++i) {
-        R* o = dw + offsets[i];
-        o[0] += blocks[i]->a, o[1] += blocks[i]->b, o[2] += blocks[i]->c, o[3] += blocks[i]->d;
-    }
 }
 
 // The filter's steps for a vector of lanes with the record the smoother's recursion reads:
