@@ -728,8 +728,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         """The pass a smoother consumes: the whole record (whatever the caller keeps), or,
         with ``smoothing`` (``"gain"``: RTS, ``"projection"``: SVSS) where the per-axis compiled
         loop runs, the smoothed mean and covariance of ``lag`` (``None``: the fixed interval)
-        computed in that loop (lag 1, or training any lag, see :func:`axes.run_axes`) beside a
-        record that keeps what ``inputs.keep`` keeps."""
+        computed with the filter (lag 1, and other lags where less than the whole record is
+        kept: :func:`axes.run_axes`) beside a record that keeps what ``inputs.keep`` keeps."""
         if smoothing is not None:
             by_axis = self._run_axes(inputs, smoothing, lag)
             if by_axis is not None:  # without the fused smoothing the record is whole

@@ -324,7 +324,6 @@ def run_axes(
             together = B * m >= _TOGETHER["lanes"] and steps <= _TOGETHER["steps"]
         if smoothing is not None and lag != 1 and not together:
             keep, smoothing = "all", None
-        smoothed: tuple[Tensor, Tensor] | None
         if training:
             # Only what is kept is written, as without gradients: the adjoint recomputes the
             # steps' states, and the state after the last step is an output of its own.
@@ -335,12 +334,9 @@ def run_axes(
             last = fused.Last(*parts[10:13])
             smoothed = None if smoothing is None else (parts[13], parts[14])
         else:
-            settings = (rule, float(gamma), raw, prior, shape, velocity, keep)
-            if together:
-                assert smoothing is not None
-                outputs, last, smoothed = fused.filter_smoother(*settings, smoothing, lag)
-            else:
-                outputs, last, smoothed = fused.forward(*settings, smoothing)
+            outputs, last, smoothed = fused.filter_pass(
+                rule, float(gamma), raw, prior, shape, velocity, keep, smoothing, lag
+            )
             out = Interleaved(*cast(Any, outputs))  # the fields not kept are None
         if keep != "all":
             return AxesPass(None, out, last, smoothed)
@@ -440,12 +436,9 @@ class _CompiledAxes(torch.autograd.Function):
         *inputs: Tensor,
     ) -> tuple[Tensor | None, ...]:
         given, prior = inputs[:11], inputs[11:]
-        settings = (rule, float(gamma), given, prior, shape, velocity, keep)
-        smoothed: tuple[Tensor, Tensor] | None
-        if smoothing is not None and lag != 1:
-            out, last, smoothed = fused.filter_smoother(*settings, smoothing, lag)
-        else:
-            out, last, smoothed = fused.forward(*settings, smoothing)
+        out, last, smoothed = fused.filter_pass(
+            rule, float(gamma), given, prior, shape, velocity, keep, smoothing, lag
+        )
         ctx.settings = (rule, velocity, shape, smoothing, lag)
         ctx.save_for_backward(gamma, *inputs)
         if out[-1] is not None:  # the observed mask (kept with the whole record)

@@ -1376,10 +1376,9 @@ inline SmoothedInputs<X> smooth_adjoint(bool projection, const State<X>& x, cons
 // a core's L2 (half a MiB): long tracks take fewer vectors at a time.
 template <typename R, int Rule>
 void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothing, int64_t lag,
-             int threads,
-             const void* const* in, const int64_t* in_strides, const void* const* prior,
-             const int64_t* prior_strides, const R* const* grads, R* const* dgiven,
-             R* const* dprior, R* dgamma) {
+             int threads, const void* const* in, const int64_t* in_strides,
+             const void* const* prior, const int64_t* prior_strides, const R* const* grads,
+             R* const* dgiven, R* const* dprior, R* dgamma) {
     using V = typename Wide<R>::type;
     using Lanes = LaneBlock<R>;
     constexpr int W = Lanes::kWidth;
@@ -1426,16 +1425,16 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
             }
             const int64_t count = static_cast<int64_t>(lanes.size());
             const V zero{};
-            for (int64_t v = 0; v < count; ++v)
-                states[v] = {lanes[v].at(start[0], 0), lanes[v].at(start[1], 0),
-                             lanes[v].at(start[2], 0), lanes[v].at(start[3], 0),
-                             lanes[v].at(start[4], 0), zero, zero};
             if (general) {  // the record, and the recursion's adjoints of its entries (acc)
                 filter_record<R, Rule>(lanes[0], given, start, T, gam, states.data(), rec.data());
                 auto at = [&](int i, int64_t t) { return rec[i * T + t]; };
                 lane_backward_adjoint(lanes[0], at, T, m, lag, projection, g_smooth_mean,
                                       g_smooth_cov, buffers);
-            } else {
+            } else {  // the states, the vectors side by side
+                for (int64_t v = 0; v < count; ++v)
+                    states[v] = {lanes[v].at(start[0], 0), lanes[v].at(start[1], 0),
+                                 lanes[v].at(start[2], 0), lanes[v].at(start[3], 0),
+                                 lanes[v].at(start[4], 0), zero, zero};
                 for (int64_t t = 0; t < T; ++t)
                     for (int64_t v = 0; v < count; ++v) {
                         V g[kGiven];
@@ -1451,14 +1450,15 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                 d = {zero, zero, zero, zero, zero, zero, zero};
                 for (int w = 0; w < W; ++w) {
                     const int64_t bi = lanes[v].b[w], j = lanes[v].j[w], p = 2 * j, q = p + 1;
-                    R mp = 0, mv = 0, a = 0, b = 0, c = 0;
-                    for (const R* grad : {g_last_mean, in_loop ? g_smooth_mean : nullptr})
-                        if (grad) {
-                            const int64_t at = grad == g_last_mean ? bi : bi * T + T - 1;
-                            mp += grad[at * n + p], mv += grad[at * n + q];
-                        }
+                    const int64_t end_step = bi * T + T - 1;
+                    R mp = mean_at(g_last_mean, n, bi, p), mv = mean_at(g_last_mean, n, bi, q);
+                    R a = 0, b = 0, c = 0;
                     sym_at(g_last_cov, bi, p, q, a, b, c);
-                    if (in_loop) sym_at(g_smooth_cov, bi * T + T - 1, p, q, a, b, c);
+                    if (in_loop) {
+                        mp += mean_at(g_smooth_mean, n, end_step, p);
+                        mv += mean_at(g_smooth_mean, n, end_step, q);
+                        sym_at(g_smooth_cov, end_step, p, q, a, b, c);
+                    }
                     d.p[w] = mp, d.v[w] = mv, d.a[w] = a, d.b[w] = b, d.c[w] = c;
                     if (g_last_post) {
                         d.mem_p[w] = g_last_post[bi * mz + (velocity ? p : j)];

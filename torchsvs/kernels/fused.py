@@ -280,8 +280,7 @@ class Last(NamedTuple):
 #: The per-step outputs of :func:`forward` each ``keep`` writes, by index (mean, cov, predicted
 #: mean and cov, innovation, gain, S, a-posteriori innovation).
 KEPT = {"all": range(8), "moments": (0, 1), "mean": (0,)}
-#: The compiled loops' codes of the one-step-lag smoothing (``"gain"``: RTS, ``"projection"``:
-#: SVSS).
+#: The compiled loops' codes of the smoother's gain (``"gain"``: RTS, ``"projection"``: SVSS).
 _SMOOTHING = {None: 0, "gain": 1, "projection": 2}
 
 
@@ -328,6 +327,25 @@ def forward(
     mode = _SMOOTHING[smoothing]
     _forward_loop("forward", rule, gamma, given, prior, shape, velocity, _pointers(outputs), mode)
     return (*per_step, loglik, mask), last, smoothed
+
+
+def filter_pass(
+    rule: str,
+    gamma: float,
+    given: Sequence[Tensor],
+    prior: Sequence[Tensor],
+    shape: tuple[int, int, int],
+    velocity: bool,
+    keep: str,
+    smoothing: str | None,
+    lag: int | None,
+) -> tuple[tuple[Tensor | None, ...], Last, tuple[Tensor, Tensor] | None]:
+    """The filter's compiled pass with the smoothing asked for: :func:`forward` (none, or lag
+    1 as it steps) or :func:`filter_smoother` (another lag)."""
+    settings = (rule, gamma, given, prior, shape, velocity, keep)
+    if smoothing is not None and lag != 1:
+        return filter_smoother(*settings, smoothing, lag)
+    return forward(*settings, smoothing)
 
 
 def filter_smoother(

@@ -139,8 +139,8 @@ class RTSSmoother(Estimator[SmootherResult]):
         return self.filter.model
 
     def run(self, inputs: Inputs) -> SmootherResult:
-        # The filter's compiled loop may smooth as well (lag 1; training, any lag); else the
-        # smoother reads the filter's whole record, whatever the caller keeps of its own.
+        # The filter's compiled pass may smooth as well (lag 1; other lags where less than the
+        # whole record is kept); else the smoother reads the filter's whole record.
         smoothing = "projection" if self.projection_gain else "gain"
         result, smoothed = self.filter.smoother_pass(inputs, smoothing, self.lag)
         if smoothed is not None:
