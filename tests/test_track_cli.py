@@ -101,7 +101,19 @@ def test_streaming_equals_reading_whole(tmp_path):
     pcsv.write_csv(table.take(pa.array(order)), source)
     whole, streamed = tmp_path / "whole.csv", tmp_path / "streamed.csv"
     # Settings left open are read off the first block, so give them all.
-    common = ["--id-col", "id", "--time-col", "t", "--meas-std", "30", "--q", "4", "--double"]
+    common = [
+        "--estimator",
+        "ks",
+        "--id-col",
+        "id",
+        "--time-col",
+        "t",
+        "--meas-std",
+        "30",
+        "--q",
+        "4",
+        "--double",
+    ]
     common += ["--psi", "80,20,80,20"]
     _run(str(source), "-o", str(whole), "--in-memory", *common)
     _run(str(source), "-o", str(streamed), "--stream", "--block-rows", "50", *common)

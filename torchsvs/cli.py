@@ -88,10 +88,10 @@ def track_parser() -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, help="the .csv or .parquet to write")
     parser.add_argument(
         "--estimator",
-        default="ks",
+        default="auto",
         choices=sorted(ESTIMATORS),
-        help="default ks: the steadiest on recorded flights at every noise level "
-        "(experiments/results/real_flights.md); svss/svstps win by a hair at moderate noise",
+        help="default auto: ks, svstps, svss (and imm on small files) each tuned on the file "
+        "without truth, the one of the lowest estimated error kept (its table is printed)",
     )
     parser.add_argument("--id-col", default="track_id", help="track id column (default track_id)")
     parser.add_argument("--time-col", default="time", help="time column (default time)")

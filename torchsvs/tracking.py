@@ -25,6 +25,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from torchsvs.accuracy import Accuracy, RiskTerms, RiskTotals, risk_terms
+from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import (
     Columns,
     EstimateWriter,
@@ -56,6 +58,8 @@ Item = TypeVar("Item")
 
 #: Estimator names of ``torchsvs track --estimator`` and what they are.
 ESTIMATORS = {
+    "auto": "the lowest estimated error of ks, svstps, svss (and imm on small files), each "
+    "tuned on the file without truth (torchsvs.training.selection)",
     "kf": "Kalman filter",
     "ks": "Kalman smoother (RTS; fixed interval unless --lag)",
     "svsf": "smooth variable structure filter",
@@ -74,6 +78,10 @@ DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
 PSI_IN_SIGMAS = 5.0
 #: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
 IMM_QUIET = 0.03
+#: Per-track error estimates a run keeps beyond this many tracks: the worst this many.
+TRACKS_KEPT = 10_000
+#: Seed offset of the truth-free error estimate's probes (apart from the particles' seeds).
+PROBE_SEED = 1 << 20
 #: The IMM's turn-rate scale in units of ``√(q/T) / v̄`` (:func:`turn_settings`).
 TURN_RATE_SCALE = 0.3
 
@@ -100,6 +108,13 @@ class Settings:
     turn_rate_q: float | None = None  #: IMM: the CT mode's turn-rate noise (rad²/s⁴)
     turn_rate_std: float | None = None  #: IMM: prior standard deviation of the turn rate (rad/s)
     switch_prob: float = 0.05  #: IMM: probability of a mode switch per step
+    #: where ``meas_var`` came from: "given", "data" (read off the tracks) or "fit" (learned by
+    #: likelihood); None until :func:`complete_settings`
+    noise: str | None = None
+    #: standard error of the noise standard deviation per axis, where it was read off the data
+    meas_std_se: list[float] | None = None
+    #: ``--estimator auto``: the candidates this estimator was chosen from
+    chosen_from: list[str] | None = None
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -166,6 +181,11 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
     """The estimator ``settings.estimator`` on ``model`` (the IMM's turn settings must be set;
     its turn noises are learnable when ``model``'s ``q`` is)."""
     name = settings.estimator
+    if name == "auto":
+        raise ValueError(
+            "estimator: 'auto' is a choice among estimators, made on data "
+            "(torchsvs.training.selection.choose_estimator), not an estimator to build"
+        )
     if name == "imm":
         if settings.turn_rate_q is None or settings.turn_rate_std is None:
             raise ValueError(
@@ -273,6 +293,8 @@ def turn_settings(
 def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     """Fills what the settings leave open from the data: noise levels and the typical interval
     (and the IMM's mode noises, :func:`turn_settings`)."""
+    source = settings.noise or ("given" if settings.meas_var is not None else "data")
+    meas_std_se = settings.meas_std_se
     interval = float(tracks.dt[tracks.mask].median()) if len(tracks) else 1.0
     meas_var, q = settings.meas_var, settings.q
     imm = settings.estimator == "imm"
@@ -289,7 +311,10 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
                 ) from err
             # Too little data to say: process noise worth the measurement noise over one step.
             noise = None
-        meas_var = meas_var if meas_var is not None else noise.meas_var.double().tolist()  # type: ignore[union-attr]
+        if meas_var is None:
+            assert noise is not None
+            meas_var = noise.meas_var.double().tolist()
+            meas_std_se = _noise_standard_error(noise)
         data_q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
         if q is None and not imm:
             q = data_q
@@ -322,15 +347,57 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     if psi is None and settings.estimator in ("svsf", "svss", "svstps", "spvsf"):
         psi = rule_of_thumb_psi(meas_var, interval, settings.velocity)
     assert q is not None  # (an open q sent the IMM through the data too)
+    if meas_std_se is not None and len(meas_std_se) == 1 and m > 1:
+        meas_std_se = list(meas_std_se) * m
     return replace(
         settings,
         meas_var=[float(v) for v in meas_var],
+        noise=source,
+        meas_std_se=meas_std_se,
         q=float(q),
         interval=interval,
         psi=psi,
         turn_q=turn_q,
         turn_rate_q=turn_rate_q,
         turn_rate_std=turn_rate_std,
+    )
+
+
+def _noise_standard_error(noise: Any) -> list[float] | None:
+    """The standard error of the noise standard deviation per axis that
+    :func:`~torchsvs.datasets.estimate_noise` reports, if it does."""
+    se = getattr(noise, "meas_std_se", None)
+    if se is None:
+        return None
+    return [float(v) for v in torch.as_tensor(se).reshape(-1)]
+
+
+def meas_var_range(settings: Settings) -> tuple[list[float], list[float]] | None:
+    """The measurement variance two standard errors below and above the settings' own, where
+    the noise was read off the data with a standard error (else None)."""
+    if settings.noise == "given" or settings.meas_var is None or settings.meas_std_se is None:
+        return None
+    std = [v**0.5 for v in settings.meas_var]
+    low = [max(s - 2 * e, 0.0) ** 2 for s, e in zip(std, settings.meas_std_se, strict=True)]
+    high = [(s + 2 * e) ** 2 for s, e in zip(std, settings.meas_std_se, strict=True)]
+    return low, high
+
+
+def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
+    """The truth-free error estimate (:mod:`torchsvs.accuracy`) of the estimator of complete
+    ``settings`` on padded ``tracks`` (run as ``torchsvs track`` runs it, in float64)."""
+    assert settings.meas_var is not None
+    estimator = make_estimator(settings, make_model(settings)).double()
+    moved, offset = centred(tracks.to(torch.float64))
+    batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
+    meas_std = torch.tensor(settings.meas_var, dtype=torch.float64).sqrt()
+    part = estimate_group(estimator, batch, meas_std, risk=True)
+    assert part.risk is not None
+    return accuracy_of(
+        part.risk,
+        settings.meas_var,
+        noise_estimated=settings.noise != "given",
+        meas_var_range=meas_var_range(settings),
     )
 
 
@@ -378,6 +445,8 @@ class StepEstimates(NamedTuple):
     cov: np.ndarray | None  #: [s, 2m, 2m], or None when not asked for
     never_observed: np.ndarray  #: [B, m] bool
     notes: dict[str, int]  #: :func:`~torchsvs.datasets.files.short_track_notes` of the group
+    #: SURE's sums (:mod:`torchsvs.accuracy`), chunks' ``track`` the block's track, or None
+    risk: RiskTerms | None = None
 
 
 def group_batch(
@@ -390,22 +459,39 @@ def group_batch(
 
 
 def estimate_group(
-    estimator: nn.Module, batch: GroupBatch, meas_std: Tensor, covariance: bool = False
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool = False,
+    risk: bool = True,
 ) -> StepEstimates:
     """Priors from ``meas_std [m]`` (:func:`~torchsvs.datasets.with_prior`), the estimator's
     run and the offsets added back. Random draws (particle filters) come from a generator
     seeded with the group's position, so a group's estimates do not depend on which groups ran
-    before it, nor in which process."""
+    before it, nor in which process. With ``risk``, a second run on probed measurements gives
+    the truth-free error estimate's terms (:func:`~torchsvs.accuracy.risk_terms`)."""
+
+    def positions(z: Tensor) -> tuple[Tensor, Tensor]:
+        tracks = with_prior(replace(batch.tracks, z=z), meas_std)
+        generator = torch.Generator().manual_seed(batch.position)
+        return run_estimator(estimator, tracks, generator)
+
     tracks = with_prior(batch.tracks, meas_std)
-    generator = torch.Generator().manual_seed(batch.position)
-    mean, cov = run_estimator(estimator, tracks, generator)
+    mean, cov = positions(batch.tracks.z)
+    terms = None
+    if risk:
+        probes = torch.Generator().manual_seed(PROBE_SEED + batch.position)
+        terms = risk_terms(
+            lambda z: positions(z)[0][..., 0::2], tracks.z, mean[..., 0::2], meas_std, probes
+        )
+        terms.track = batch.group[terms.track]
     mean = mean.double()
     mean[..., 0::2] += batch.offset.unsqueeze(1)
     target, values, covs = flat_steps(tracks, mean, cov if covariance else None)
     assert tracks.never_observed is not None
     never = tracks.never_observed.numpy()
     notes = short_track_notes(tracks)
-    return StepEstimates(batch.position, batch.group, target, values, covs, never, notes)
+    return StepEstimates(batch.position, batch.group, target, values, covs, never, notes, terms)
 
 
 @dataclass
@@ -417,6 +503,7 @@ class BlockEstimates:
     never_observed: np.ndarray  #: [K, m] bool
     notes: Counter[str] = field(default_factory=Counter)
     groups: set[int] = field(default_factory=set)  #: positions of the groups added
+    risk: list[RiskTerms] = field(default_factory=list)  #: the groups' SURE terms
 
     @classmethod
     def empty(cls, steps: TrackSteps, covariance: bool = False) -> BlockEstimates:
@@ -434,6 +521,8 @@ class BlockEstimates:
         self.never_observed[part.group] = part.never_observed
         self.notes.update(part.notes)
         self.groups.add(part.position)
+        if part.risk is not None:
+            self.risk.append(part.risk)
 
     def table(self, block: TrackBlock) -> Any:
         """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
@@ -453,14 +542,97 @@ class TrackRun:
     #: seconds spent reading, reading off settings (and fitting), estimating, ..., writing
     #: (rank 0's in a multi-process run, ``torchsvs.training.predict``)
     phases: dict[str, float] = field(default_factory=dict)
+    risk: RiskTotals | None = None  #: the truth-free error estimate's totals
+    #: estimated position RMSE per track: id → (metres, observed points); the worst
+    #: :data:`TRACKS_KEPT` when there are more tracks
+    track_errors: dict[str, tuple[float, int]] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)  #: what the user must know
+
+    @property
+    def accuracy(self) -> Accuracy | None:
+        """The truth-free error estimate of the whole run (:mod:`torchsvs.accuracy`)."""
+        if self.risk is None or self.settings is None or self.risk.points == 0:
+            return None
+        assert self.settings.meas_var is not None
+        return accuracy_of(
+            self.risk,
+            self.settings.meas_var,
+            noise_estimated=self.settings.noise != "given",
+            meas_var_range=meas_var_range(self.settings),
+        )
+
+    def add_track_errors(self, terms: Sequence[RiskTerms], ids: Sequence[str]) -> None:
+        """Adds a block's per-track error estimates (the worst :data:`TRACKS_KEPT` kept)."""
+        assert self.settings is not None and self.settings.meas_var is not None
+        m = len(self.settings.meas_var)
+        rmse, points = RiskTerms.concat(terms, m).per_track(self.settings.meas_var, len(ids))
+        for k in np.flatnonzero(points > 0):
+            self.track_errors[ids[int(k)]] = (float(rmse[k]), int(points[k]))
+        if len(self.track_errors) > 2 * TRACKS_KEPT:
+            worst = sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
+            self.track_errors = dict(worst)
+
+    def check(self) -> None:
+        """Warns where the estimate is not clearly better than the raw measurements."""
+        found = self.accuracy
+        if found is None or self.settings is None:
+            return
+        name = self.settings.estimator
+        if not found.clearly_better:
+            if self.settings.chosen_from is None:
+                better = "--estimator auto (tries the candidates, keeps the lowest estimated error)"
+                if name != "ks":
+                    better += " or --estimator ks"
+            else:
+                better = "--meas-std with the sensor's noise, if known (the noise may be misread)"
+            self.warnings.append(
+                f"{name}: estimated position error {found.estimated_rmse:.3g} m (up to "
+                f"{found.interval[1]:.3g} m) is not clearly below the measurements' "
+                f"{found.measurement_rmse:.3g} m; try {better}"
+            )
+
+    def summary_json(self) -> dict[str, Any]:
+        """The run's summary as written next to the output (``<output>.summary.json``)."""
+        found = self.accuracy
+        settings = asdict(self.settings) if self.settings is not None else None
+        out: dict[str, Any] = {
+            "estimator": None if self.settings is None else self.settings.estimator,
+            "settings": settings,
+            "rows": {"total": self.report.total, "placed": self.report.placed},
+            "seconds": round(self.seconds, 3),
+            "warnings": self.warnings,
+        }
+        if found is not None:
+            out.update(
+                estimated_position_rmse=found.estimated_rmse,
+                estimated_position_rmse_interval=list(found.interval),
+                estimated_position_rmse_standard_error=found.standard_error,
+                measurement_rmse=found.measurement_rmse,
+                meas_std=found.meas_std,
+                noise=None if self.settings is None else self.settings.noise,
+                points=found.points,
+                method="Stein's unbiased risk estimate (no truth), torchsvs.accuracy",
+            )
+        out["tracks"] = {
+            k: {"estimated_position_rmse": v[0], "points": v[1]}
+            for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])
+        }
+        if self.fit is not None:
+            out["fit"] = self.fit.summary()
+            table = getattr(self.fit, "candidates", None)
+            if table:
+                out["candidates"] = table
+        return out
 
     def summary(self) -> str:
         lines = [self.report.summary()]
         if self.settings is not None:
             shown = {k: v for k, v in asdict(self.settings).items() if v is not None}
             lines.append("settings: " + ", ".join(f"{k}={_short(v)}" for k, v in shown.items()))
-        if self.fit is not None:
-            lines.append(self.fit.summary())
+        found = self.accuracy
+        if found is not None:
+            lines.append(found.line())
+        lines.extend(f"warning: {w}" for w in self.warnings)
         steps = self.report.placed
         lines.append(
             f"{self.seconds:.1f} s in all, {self.estimate_seconds:.1f} s estimating "
@@ -499,6 +671,8 @@ def track_file(
     dtype: torch.dtype = torch.float32,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    accuracy: bool = True,
+    summary: bool = True,
 ) -> TrackRun:
     """Estimates every track of a file and writes one output row per input row.
 
@@ -526,6 +700,10 @@ def track_file(
             resolution on large coordinates).
         progress: show a progress bar (tqdm, on stderr).
         log: where to print what was read off the data (default: nowhere).
+        accuracy: estimate the position error without truth (:mod:`torchsvs.accuracy`: one
+            more estimator pass on probed measurements) and warn where it is not clearly
+            below the measurements'.
+        summary: write the run's summary as JSON next to the output (:func:`summary_path`).
     """
     from tqdm.auto import tqdm
 
@@ -549,19 +727,28 @@ def track_file(
                 run.phases["settings"] += time.perf_counter() - tick
                 estimator = estimator.to(dtype)
                 run.settings = settings
-                bar = tqdm(desc="tracks", unit=" tracks", disable=not progress, leave=False)
+                assert settings.meas_var is not None
+                run.risk = RiskTotals(len(settings.meas_var)) if accuracy else None
+                # disable=None: no bar where stderr is not a terminal (it would stay in a log)
+                bar = tqdm(
+                    desc="tracks", unit=" tracks", disable=None if progress else True, leave=False
+                )
             assert run.settings is not None and run.settings.meas_var is not None
             meas_std = torch.tensor(run.settings.meas_var, dtype=dtype).sqrt()
             found = BlockEstimates.empty(steps, covariance)
             tick, cpu = time.perf_counter(), time.process_time()
             for position, group in enumerate(steps.batches(max_cells)):
                 batch = group_batch(steps, group, position, dtype)
-                found.add(estimate_group(estimator, batch, meas_std, covariance))
+                found.add(estimate_group(estimator, batch, meas_std, covariance, accuracy))
                 bar.update(len(group))
             run.estimate_seconds += time.perf_counter() - tick
             run.estimate_cpu_seconds += time.process_time() - cpu
             run.report.add(steps.report)
             run.report.notes.update(found.notes)
+            if run.risk is not None:
+                for terms in found.risk:
+                    run.risk.add(terms)
+                run.add_track_errors(found.risk, steps.ids)
             tick = time.perf_counter()
             writer.write(found.table(block))
             run.phases["writing"] += time.perf_counter() - tick
@@ -569,8 +756,29 @@ def track_file(
     if bar is not None:
         bar.close()
     run.report.notes = +run.report.notes
+    run.check()
     run.seconds = time.perf_counter() - start
+    if summary:
+        write_summary(run, summary_path(target))
     return run
+
+
+def summary_path(target: str | Path) -> Path:
+    """Where ``torchsvs track`` writes its JSON summary: ``out.csv`` → ``out.summary.json``."""
+    return Path(target).with_suffix(".summary.json")
+
+
+def write_summary(run: TrackRun, path: Path) -> None:
+    """The run's summary (:meth:`TrackRun.summary_json`) as JSON."""
+    import json
+
+    path.write_text(json.dumps(run.summary_json(), indent=1, default=_json_default) + "\n")
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    raise TypeError(f"not JSON: {type(value).__name__}")
 
 
 def timed(items: Iterable[Item], phases: dict[str, float], name: str) -> Iterator[Item]:
@@ -623,14 +831,22 @@ def prepare_estimator(
     """
     say = say or (lambda _: None)
     sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
-    settings = complete_settings(settings, sample)
-    say(_settings_note(settings))
-    summary = None
-    if fit:
+    if settings.estimator != "auto":
+        settings = complete_settings(settings, sample)
+        say(_settings_note(settings))
+    summary: Any = None
+    options = dict(fit_options or {})
+    options.pop("tracks", None)
+    if settings.estimator == "auto":
+        from torchsvs.training.selection import choose_estimator
+
+        options.pop("known_noise", None)
+        summary = choose_estimator(settings, sample, say=say, **options)
+        settings = summary.settings
+        say(summary.summary())
+    elif fit:
         from torchsvs.training.tuning import self_tune
 
-        options = dict(fit_options or {})
-        options.pop("tracks", None)
         summary = self_tune(settings, sample, **options)
         settings = summary.settings
         say(summary.summary())

@@ -33,6 +33,7 @@ from lightning.pytorch.strategies import DDPStrategy
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
+from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
 from torchsvs.tracking import (
     BlockEstimates,
@@ -45,6 +46,8 @@ from torchsvs.tracking import (
     make_estimator,
     make_model,
     prepare_estimator,
+    summary_path,
+    write_summary,
 )
 
 
@@ -390,12 +393,20 @@ def predict_file(
     run.report.add(steps.report)
     run.report.notes.update(found.notes)
     run.report.notes = +run.report.notes
+    if found.risk:
+        assert module.settings.meas_var is not None
+        run.risk = RiskTotals(len(module.settings.meas_var))
+        for terms in found.risk:
+            run.risk.add(terms)
+        run.add_track_errors(found.risk, steps.ids)
+    run.check()
     assert data.block is not None
     with EstimateWriter(target) as writer:
         writer.write(found.table(data.block))
     run.estimate_seconds = gather.estimate_seconds
     run.estimate_cpu_seconds = gather.estimate_cpu_seconds
     run.seconds = time.perf_counter() - start
+    write_summary(run, summary_path(target))
     run.phases = {
         "start-up": data.setup_time - start,  # the trainer, the processes, the process group
         "reading": data.read_seconds,

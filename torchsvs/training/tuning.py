@@ -179,7 +179,7 @@ def self_tune(
         )
         meas_var = model.meas_cov().detach().diagonal().tolist()
         q = float(model.q().detach())
-        settings = replace(settings, meas_var=meas_var, q=q)
+        settings = replace(settings, meas_var=meas_var, q=q, noise="fit")
         std = ", ".join(f"{v**0.5:.4g}" for v in meas_var)
         result.stages.append(
             f"noise by innovation NLL: measurement std [{std}], q = {q:.4g} "

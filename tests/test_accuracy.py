@@ -1,0 +1,182 @@
+"""The truth-free error estimate (torchsvs.accuracy) and ``--estimator auto``: SURE's identities,
+its agreement with the true error within its own standard error, the run's JSON summary and
+its warning."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from torchsvs.accuracy import RiskTerms, RiskTotals, accuracy, risk_terms
+from torchsvs.datasets import Columns
+from torchsvs.tracking import Settings, summary_path, track_file
+
+
+def _measurements(B: int = 6, T: int = 100, m: int = 2, sigma: float = 3.0, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    truth = torch.cumsum(torch.randn(B, T, m, generator=gen, dtype=torch.float64), dim=1)
+    z = truth + sigma * torch.randn(B, T, m, generator=gen, dtype=torch.float64)
+    z[0, 5, 1] = math.nan  # a missing component is left out of every sum
+    return truth, z
+
+
+def test_identity_estimate_is_scored_as_the_measurements_exactly():
+    """f(z) = z: residual 0 and ∂f/∂z = 1 exactly, so SURE is r per component, whatever the
+    probe: the estimated RMSE is the measurements' own, √Σ r."""
+    _, z = _measurements()
+    std = torch.tensor([3.0, 5.0], dtype=torch.float64)
+    terms = risk_terms(lambda w: w, z, z, std, torch.Generator().manual_seed(1))
+    found = accuracy(terms, [9.0, 25.0])
+    assert found.estimated_rmse == pytest.approx(math.sqrt(34.0), rel=1e-12)
+    # Only the chunk missing a component differs from the mean (its axes weigh differently).
+    assert found.standard_error < 1e-3 * found.estimated_rmse
+    assert found.points == int((~torch.isnan(z[..., 0])).sum()) + 0  # component 0 all observed
+
+
+def test_constant_estimate_is_scored_by_its_residual_less_the_noise():
+    """f(z) = 0: no divergence, SURE = mean z² − r per axis (the classic unbiased estimate)."""
+    _, z = _measurements()
+    r = [9.0, 9.0]
+    terms = risk_terms(
+        lambda w: torch.zeros_like(w),
+        z,
+        torch.zeros_like(z),
+        torch.tensor([3.0, 3.0]),
+        torch.Generator(),
+    )
+    observed = ~torch.isnan(z)
+    expected = sum(float(z[..., j][observed[..., j]].square().mean()) - r[j] for j in range(2))
+    mse, _ = terms.mse(r)  # each axis over its own observations, summed
+    assert mse == pytest.approx(expected, rel=1e-12)
+
+
+def test_running_totals_equal_the_chunks():
+    """RiskTotals (sums and a Gram matrix) give RiskTerms.mse's estimate and standard error at
+    any noise level, in parts."""
+    gen = np.random.default_rng(0)
+    C, m = 50, 3
+    terms = RiskTerms(
+        gen.uniform(0, 10, (C, m)),
+        gen.normal(0, 3, (C, m)),
+        np.full((C, m), 32.0),
+        np.zeros(C, np.int64),
+    )
+    totals = RiskTotals(m)
+    totals.add(
+        RiskTerms(terms.residual[:20], terms.divergence[:20], terms.count[:20], terms.track[:20])
+    )
+    totals.add(
+        RiskTerms(terms.residual[20:], terms.divergence[20:], terms.count[20:], terms.track[20:])
+    )
+    for r in ([1.0, 2.0, 3.0], [0.5, 0.5, 0.5]):
+        assert totals.mse(r) == pytest.approx(terms.mse(r), rel=1e-10)
+
+
+def test_estimate_of_a_kalman_smoother_agrees_with_the_truth():
+    """On nearly-constant-velocity tracks with known noise the KS's estimated error is within
+    three of its own standard errors of the true error (the noise is exactly as stated, so SURE
+    is unbiased), and the true error is well below the measurements'."""
+    import torchsvs as ts
+    from torchsvs.datasets import with_prior
+    from torchsvs.datasets.tracks import RecordedTracks
+
+    gen = torch.Generator().manual_seed(3)
+    B, T, sigma, q, dt = 40, 200, 20.0, 0.5, 2.0
+    model = ts.models.ConstantVelocity(ndim=2, dt=dt, q=q, r=sigma**2)
+    x = torch.zeros(B, 4, dtype=torch.float64)
+    x[:, 1], x[:, 3] = 50.0, -20.0
+    F, Q = model.transition().double(), model.process_noise().double()
+    chol = torch.linalg.cholesky(Q)
+    states = []
+    for _ in range(T):
+        x = x @ F.mT + torch.randn(B, 4, generator=gen, dtype=torch.float64) @ chol.mT
+        states.append(x)
+    truth = torch.stack(states, 1)[..., [0, 2]]
+    z = truth + sigma * torch.randn(B, T, 2, generator=gen, dtype=torch.float64)
+    tracks = RecordedTracks(
+        z=z,
+        dt=torch.full((B, T), dt, dtype=torch.float64),
+        time=torch.arange(T, dtype=torch.float64).expand(B, T) * dt,
+        lengths=torch.full((B,), T),
+        ids=[str(b) for b in range(B)],
+    )
+    ks = ts.RTSSmoother(ts.KalmanFilter(model)).double()
+    std = torch.tensor([sigma, sigma], dtype=torch.float64)
+
+    def positions(w: torch.Tensor) -> torch.Tensor:
+        moved = with_prior(
+            RecordedTracks(w, tracks.dt, tracks.time, tracks.lengths, tracks.ids), std
+        )
+        return ks(moved.z, moved.x0, moved.P0, dt=moved.dt).mean[..., [0, 2]]
+
+    estimate = positions(z)
+    found = accuracy(
+        risk_terms(positions, z, estimate, std, torch.Generator().manual_seed(0)), [sigma**2] * 2
+    )
+    true_mse = float((estimate - truth).square().sum(-1).mean())
+    mse = found.estimated_rmse**2
+    se_mse = 2 * found.estimated_rmse * found.standard_error
+    assert abs(mse - true_mse) < 3 * se_mse, (mse, true_mse, se_mse)
+    assert found.clearly_better and found.ratio < 0.8
+
+
+def _turning_csv(path, sigma: float = 30.0, seed: int = 0) -> dict[tuple[str, float], np.ndarray]:
+    gen = np.random.default_rng(seed)
+    rows, truth = [], {}
+    for k in range(8):
+        t = np.cumsum(np.full(150, 4.0))
+        heading = np.cumsum(np.where((t > 200) & (t < 320), np.radians(4.0) * 4.0, 0.0))
+        velocity = 120.0 * np.stack([np.cos(heading), np.sin(heading)], 1)
+        pos = np.cumsum(velocity * 4.0, axis=0) + gen.normal(0, 1e3, 2)
+        for i in range(len(t)):
+            x, y = pos[i] + gen.normal(0, sigma, 2)
+            rows.append(f"trk{k},{t[i]:.1f},{x:.3f},{y:.3f}")
+            truth[(f"trk{k}", round(float(t[i]), 1))] = pos[i]
+    path.write_text("track_id,time,x,y\n" + "\n".join(rows) + "\n")
+    return truth
+
+
+def test_track_writes_the_summary_and_warns_where_no_better_than_the_measurements(tmp_path):
+    """A KS whose q is far too small for turning tracks lags the turns: its estimated error is
+    above the measurements', and the run says so and names a better choice; a sensible run
+    does not warn, and its estimate is near the true error."""
+    source = tmp_path / "in.csv"
+    truth = _turning_csv(source)
+    good, bad = tmp_path / "good.csv", tmp_path / "bad.csv"
+    known = {"meas_var": [900.0, 900.0]}
+    run = track_file(source, good, Settings("ks", **known), progress=False)
+    lagging = track_file(source, bad, Settings("ks", q=1e-6, **known), progress=False)
+    assert not run.warnings
+    assert lagging.warnings and "--estimator auto" in lagging.warnings[0]
+    for target, result in ((good, run), (bad, lagging)):
+        summary = json.loads(summary_path(target).read_text())
+        assert summary["warnings"] == result.warnings
+        assert summary["measurement_rmse"] == pytest.approx(30.0 * math.sqrt(2))
+        out = pd.read_csv(target, dtype={"track_id": str})
+        errors = [
+            np.sum((np.array([x, y]) - truth[(i, round(t, 1))]) ** 2)
+            for i, t, x, y in zip(out.track_id, out.time, out.x, out.y, strict=True)
+        ]
+        true_rmse = math.sqrt(np.mean(errors))
+        low, high = summary["estimated_position_rmse_interval"]
+        assert low <= true_rmse <= high, (low, true_rmse, high)
+        assert len(summary["tracks"]) == 8
+
+
+def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
+    source = tmp_path / "in.csv"
+    _turning_csv(source)
+    target = tmp_path / "out.csv"
+    run = track_file(source, target, Settings("auto"), columns=Columns(), progress=False)
+    summary = json.loads(summary_path(target).read_text())
+    rows = {r["estimator"]: r for r in summary["candidates"] if not r.get("skipped")}
+    assert {"ks", "svss", "svstps"} <= set(rows)
+    chosen = summary["estimator"]
+    assert chosen in rows and run.settings is not None and run.settings.chosen_from
+    score = {k: r["estimated_position_rmse"] + 2 * r["standard_error"] for k, r in rows.items()}
+    assert score[chosen] == min(score.values())

@@ -1,0 +1,243 @@
+r"""How good an estimate is, without truth: Stein's unbiased risk estimate of the position error.
+
+For measurements :math:`z = p + v` of positions :math:`p` with white Gaussian noise
+:math:`v \sim N(0, r_j)` on axis :math:`j`, and an estimate :math:`f(z)` of the positions that
+is weakly differentiable in :math:`z`, Stein (1981, Theorem 1 and Eq. (2.2)) gives, per observed
+component :math:`i` on axis :math:`j`,
+
+.. math::
+    E\,(f_i - p_i)^2 = E\,\big[(z_i - f_i)^2 - r_j + 2\,r_j\,\partial f_i/\partial z_i\big].
+
+The divergence is estimated with one Rademacher probe :math:`\varepsilon` and a finite
+difference, :math:`\partial f_i/\partial z_i \approx \varepsilon_i\,(f_i(z + h\sigma\varepsilon)
+- f_i(z))/(h\sigma_j)` (Ramani, Blu & Unser 2008, Eq. (9) and Theorem 2), which is unbiased for
+the sum over components up to the finite difference. So every run costs one more pass of the
+estimator, on the probed measurements (the same random draws for a particle filter, so that the
+difference measures the estimator and not its sampling).
+
+The terms are kept as sums per chunk of :data:`CHUNK` steps of every track and axis
+(:class:`RiskTerms`): the residual :math:`\sum (z - f)^2`, the divergence
+:math:`\sum \partial f/\partial z` and the count. The risk is linear in :math:`r`, so one pass
+serves any noise level (:meth:`RiskTerms.mse`): the interval of an estimated noise becomes an
+interval of the error. Chunks give the sampling uncertainty (batch means: the chunks' errors are
+nearly independent once a chunk is longer than the estimator's memory).
+
+Where the measurement noise is not white Gaussian of the stated variance, the estimate is
+biased by the difference; that is why the noise level and its uncertainty are reported beside
+it (``torchsvs track``).
+
+References:
+    Stein, "Estimation of the mean of a multivariate normal distribution", Ann. Statist. 9(6),
+    1981. doi:10.1214/aos/1176345632 · Ramani, Blu & Unser, "Monte-Carlo SURE: a black-box
+    optimization of regularization parameters for general denoising algorithms", IEEE Trans.
+    Image Process. 17(9), 2008. doi:10.1109/TIP.2008.2001404
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+#: Steps per chunk of the sampling uncertainty (longer than a smoother's memory on most tracks).
+CHUNK = 32
+#: Finite-difference step of the divergence, in noise standard deviations (as
+#: :func:`torchsvs.training.losses.stein_risk`: small enough for the SVSF's kinks to matter little).
+PROBE_STEP = 0.3
+
+
+@dataclass
+class RiskTerms:
+    """SURE's sums per chunk of steps: ``[C, m]`` arrays, and the track of each chunk."""
+
+    residual: np.ndarray  #: [C, m] Σ (z - f)² over the chunk's observed components (units²)
+    divergence: np.ndarray  #: [C, m] Σ ∂f/∂z (dimensionless)
+    count: np.ndarray  #: [C, m] observed components
+    track: np.ndarray  #: [C] int64 the chunk's track (an index the caller gives meaning to)
+
+    @classmethod
+    def empty(cls, m: int) -> RiskTerms:
+        zeros = np.zeros((0, m))
+        return cls(zeros, zeros.copy(), zeros.copy(), np.zeros(0, dtype=np.int64))
+
+    @classmethod
+    def concat(cls, parts: Sequence[RiskTerms], m: int) -> RiskTerms:
+        if not parts:
+            return cls.empty(m)
+        return cls(
+            np.concatenate([p.residual for p in parts]),
+            np.concatenate([p.divergence for p in parts]),
+            np.concatenate([p.count for p in parts]),
+            np.concatenate([p.track for p in parts]),
+        )
+
+    def mse(self, meas_var: Sequence[float]) -> tuple[float, float]:
+        """The position MSE per point (the axes' MSEs summed) and its standard error."""
+        totals = RiskTotals(self.residual.shape[1])
+        totals.add(self)
+        return totals.mse(meas_var)
+
+    @property
+    def points(self) -> int:
+        return int(round(self.count.mean(axis=1).sum())) if len(self.count) else 0
+
+    def per_track(self, meas_var: Sequence[float], tracks: int) -> tuple[np.ndarray, np.ndarray]:
+        """Each track's estimated position RMSE ``[tracks]`` (NaN without observations) and
+        its observed points."""
+        r = np.asarray(meas_var, dtype=np.float64)
+        error = self.residual + r * (2.0 * self.divergence - self.count)
+        axes = range(error.shape[1])
+        total = np.stack([np.bincount(self.track, error[:, j], tracks) for j in axes], 1)
+        count = np.stack([np.bincount(self.track, self.count[:, j], tracks) for j in axes], 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mse = (total / count).sum(axis=1)
+        return np.sqrt(np.clip(mse, 0.0, None)), count.mean(axis=1)
+
+
+def risk_terms(
+    rerun: Callable[[Tensor], Tensor],
+    z: Tensor,
+    estimate: Tensor,
+    meas_std: Tensor,
+    generator: torch.Generator,
+    chunk: int = CHUNK,
+    step: float = PROBE_STEP,
+) -> RiskTerms:
+    """SURE's sums for positions ``estimate [B, T, m]`` of measurements ``z [B, T, m]`` (NaN
+    where missing), ``rerun`` mapping probed measurements to their position estimate.
+
+    Chunk ``c`` of track ``b`` covers steps ``c·chunk ... (c+1)·chunk - 1``; its ``track`` is
+    ``b``. Chunks without an observation are left out.
+    """
+    with torch.no_grad():
+        observed = ~torch.isnan(z)
+        std = meas_std.to(z.dtype)
+        probe = torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1
+        probe = probe * observed
+        shifted = rerun(z + step * std * probe)
+        estimate = estimate.to(torch.float64)
+        zd = z.to(torch.float64)
+        residual = torch.where(observed, zd - estimate, 0.0).square()
+        divergence = torch.where(
+            observed, probe.double() * (shifted.double() - estimate) / (step * std.double()), 0.0
+        )
+    B, T, m = z.shape
+    pad = (-T) % chunk
+
+    def sums(x: Tensor) -> np.ndarray:
+        x = torch.nn.functional.pad(x, (0, 0, 0, pad))
+        return x.reshape(B, -1, chunk, m).sum(dim=2).reshape(-1, m).numpy()
+
+    count = sums(observed.double())
+    keep = count.sum(axis=1) > 0
+    track = np.repeat(np.arange(B), (T + pad) // chunk)
+    return RiskTerms(sums(residual)[keep], sums(divergence)[keep], count[keep], track[keep])
+
+
+class RiskTotals:
+    r"""Running totals of :class:`RiskTerms` over a whole run, in memory independent of its
+    size: the sums and the Gram matrix of each chunk's vector
+    :math:`u_c = (\Sigma(z-f)^2_j,\ \Sigma(2\,\partial f/\partial z - 1)_j,\ n_{c,j})`
+    over the axes :math:`j`, from which any noise level's estimate and its batch-means
+    variance follow (:meth:`mse`)."""
+
+    def __init__(self, m: int) -> None:
+        self.m = m
+        self.chunks = 0
+        self.first = np.zeros(3 * m)
+        self.gram = np.zeros((3 * m, 3 * m))
+
+    def add(self, terms: RiskTerms) -> None:
+        u = np.concatenate(
+            [terms.residual, 2.0 * terms.divergence - terms.count, terms.count], axis=1
+        )
+        self.chunks += len(u)
+        self.first += u.sum(axis=0)
+        self.gram += u.T @ u
+
+    def mse(self, meas_var: Sequence[float]) -> tuple[float, float]:
+        r"""The position MSE per point, :math:`\sum_j \sum_c e_{c,j} / N_j` with
+        :math:`e_{c,j} = \Sigma(z-f)^2 + r_j\,\Sigma(2\,\partial f/\partial z - 1)` (each axis
+        over its own observations), and its standard error: a ratio estimator over chunks,
+        :math:`\mathrm{Var} \approx \sum_c (e_c - \mathrm{mse}\,n_c)^2 / \bar N^2` with
+        :math:`e_c = \sum_j e_{c,j} \bar N / N_j` and :math:`n_c` the chunk's mean count."""
+        m = self.m
+        counts = self.first[2 * m :]
+        if not (counts > 0).all():
+            return math.nan, math.nan
+        mean_count = counts.mean()
+        scale = mean_count / counts  # each axis over its own observations
+        r = np.asarray(meas_var, dtype=np.float64)
+        w = np.concatenate([scale, r * scale, np.zeros(m)])
+        v = np.concatenate([np.zeros(2 * m), np.full(m, 1.0 / m)])
+        mse = float(w @ self.first / mean_count)
+        if self.chunks < 2:
+            return mse, math.inf
+        d = w - mse * v  # e_c − mse·n_c = d·u_c
+        spread = float(d @ self.gram @ d)
+        return mse, math.sqrt(max(spread, 0.0)) / mean_count
+
+    @property
+    def points(self) -> int:
+        return int(round(self.first[2 * self.m :].mean()))
+
+
+@dataclass
+class Accuracy:
+    """The truth-free error estimate of a run (position RMSE over the axes, metres)."""
+
+    estimated_rmse: float  #: position RMSE (root of the summed per-axis MSE), estimated
+    standard_error: float  #: its sampling standard error (chunks of steps)
+    measurement_rmse: float  #: the measurements' own RMSE, √Σ r_j
+    interval: tuple[float, float]  #: with the noise level's uncertainty and 2 standard errors
+    points: int  #: observed positions the estimate averages over
+    noise_estimated: bool  #: r was read off the data (not given)
+    meas_std: list[float]  #: the noise standard deviation per axis it assumes
+
+    @property
+    def ratio(self) -> float:
+        """Estimated error ÷ the measurements' (below 1: better than the raw measurements)."""
+        return self.estimated_rmse / self.measurement_rmse
+
+    @property
+    def clearly_better(self) -> bool:
+        """The upper end of the interval is below the measurements' RMSE."""
+        return self.interval[1] < self.measurement_rmse
+
+    def line(self) -> str:
+        low, high = self.interval
+        noise = "estimated from the data" if self.noise_estimated else "as given"
+        return (
+            f"estimated position error {self.estimated_rmse:.3g} m (range {low:.3g}-{high:.3g}), "
+            f"measurements {self.measurement_rmse:.3g} m (noise {noise}); "
+            f"{self.points} positions, no truth used"
+        )
+
+
+def accuracy(
+    terms: RiskTerms | RiskTotals,
+    meas_var: Sequence[float],
+    noise_estimated: bool = False,
+    meas_var_range: tuple[Sequence[float], Sequence[float]] | None = None,
+) -> Accuracy:
+    """The :class:`Accuracy` of summed terms at noise ``meas_var``; ``meas_var_range`` (low,
+    high) widens the interval by the noise level's own uncertainty."""
+    mse, se = terms.mse(meas_var)
+    ends = [mse - 2 * se, mse + 2 * se]
+    for variance in meas_var_range or ():
+        value, _ = terms.mse(variance)
+        ends += [value - 2 * se, value + 2 * se]
+    rmse = math.sqrt(max(mse, 0.0))
+    return Accuracy(
+        estimated_rmse=rmse,
+        standard_error=se / (2 * rmse) if rmse > 0 else se,
+        measurement_rmse=math.sqrt(sum(meas_var)),
+        interval=(math.sqrt(max(min(ends), 0.0)), math.sqrt(max(max(ends), 0.0))),
+        points=terms.points,
+        noise_estimated=noise_estimated,
+        meas_std=[math.sqrt(v) for v in meas_var],
+    )

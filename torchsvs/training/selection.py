@@ -1,0 +1,140 @@
+"""``torchsvs track --estimator auto``: fit the candidates without truth, keep the best.
+
+Each candidate (:data:`CANDIDATES`) is completed from the data (:func:`~torchsvs.tracking.
+complete_settings`, the noise read once and shared), tuned by SURE on windows of the sample
+(:func:`~torchsvs.training.tuning.self_tune`), then run on the whole sample, where Stein's
+unbiased risk estimate (:mod:`torchsvs.accuracy`) scores its position error. The candidate of
+the lowest estimated error (plus :data:`CAUTION` standard errors) wins; its settings are what
+``track`` then runs on the file. The candidates' table is printed and written to the run's JSON
+summary.
+
+The estimate each candidate is chosen by is unbiased for its error at fixed settings; choosing
+the least of a few adds a small optimism (the more candidates, the more), which the estimate's
+standard error, reported beside it, bounds in practice.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from torchsvs.datasets import RecordedTracks
+
+#: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
+CANDIDATES = ("ks", "svstps", "svss", "imm")
+#: The IMM costs ~100× the KS per point and its fit minutes: it is tried with the settings read
+#: off the data (not fitted), on samples of at most this many points.
+IMM_POINTS = 10_000
+#: Standard errors added to each candidate's estimated error before comparing: a candidate
+#: wins only where it is better by more than its estimate's own uncertainty (an estimator very
+#: sensitive to its input has an uncertain divergence term, and one probe can flatter it).
+CAUTION = 2.0
+
+
+@dataclass
+class Choice:
+    """What ``--estimator auto`` chose, and from what (the ``fit`` of a :class:`TrackRun`)."""
+
+    settings: Any  #: the winner's fitted :class:`~torchsvs.tracking.Settings`
+    seconds: float = 0.0
+    #: one row per candidate: estimator, estimated RMSE, its standard error, fit seconds,
+    #: what the fit learned (or why the candidate was skipped)
+    candidates: list[dict[str, Any]] = field(default_factory=list)
+    stages: list[str] = field(default_factory=list)
+
+    def table(self) -> str:
+        lines = ["candidate  estimated position error (m)   fit (s)  settings"]
+        for row in self.candidates:
+            if row.get("skipped"):
+                lines.append(f"{row['estimator']:<10} skipped: {row['skipped']}")
+                continue
+            mark = " <- chosen" if row["estimator"] == self.settings.estimator else ""
+            lines.append(
+                f"{row['estimator']:<10} {row['estimated_position_rmse']:8.3g} ± "
+                f"{row['standard_error']:<8.2g}            {row['seconds']:6.1f}  "
+                f"{row['learned']}{mark}"
+            )
+        return "\n".join(lines)
+
+    def summary(self) -> str:
+        return (
+            f"auto: {self.settings.estimator} chosen of {len(self.candidates)} candidates by "
+            f"estimated position error ({self.seconds:.1f} s)\n" + self.table()
+        )
+
+
+def choose_estimator(
+    settings: Any,
+    sample: RecordedTracks,
+    candidates: tuple[str, ...] = CANDIDATES,
+    say: Callable[[str], None] | None = None,
+    **fit_options: Any,
+) -> Choice:
+    """The candidate of the lowest truth-free error estimate on ``sample``, each tuned by SURE.
+
+    Args:
+        settings: what the user gave (``estimator`` is ignored; a given ``meas_var`` is the
+            sensor's noise, else it is read off the data once for every candidate).
+        sample: the tracks to fit and score on (float64).
+        candidates: estimator names of :data:`~torchsvs.tracking.ESTIMATORS`.
+        say: where to print progress.
+        fit_options: keyword arguments of :func:`~torchsvs.training.tuning.self_tune`.
+    """
+    from torchsvs.tracking import complete_settings, sample_accuracy
+    from torchsvs.training.tuning import self_tune
+
+    say = say or (lambda _: None)
+    start = time.perf_counter()
+    base = complete_settings(replace(settings, estimator="ks", psi=None), sample)
+    noise = {"meas_var": base.meas_var, "noise": base.noise, "meas_std_se": base.meas_std_se}
+    points = int((~sample.z[..., 0].isnan()).sum())
+    options = dict(fit_options)
+    options["known_noise"] = True  # read once above (or given): SURE in its units
+    rows: list[dict[str, Any]] = []
+    best, best_rmse = None, math.inf
+    for name in candidates:
+        if name == "imm" and (points > IMM_POINTS or sample.z.shape[-1] not in (2, 3)):
+            why = (
+                f"{points} points in the sample (tried up to {IMM_POINTS})"
+                if points > IMM_POINTS
+                else "turns need 2 or 3 position axes"
+            )
+            rows.append({"estimator": name, "skipped": why})
+            continue
+        tick = time.perf_counter()
+        open_settings = replace(
+            settings, estimator=name, psi=None, q=None, lag=None, chosen_from=None, **noise
+        )
+        candidate = complete_settings(open_settings, sample)
+        if name == "imm":
+            fitted, learned = candidate, "read off the data (not fitted: slow)"
+        else:
+            fit = self_tune(candidate, sample, **options)
+            fitted = fit.settings
+            learned = fit.stages[-1].split(": ", 1)[-1] if fit.stages else ""
+        found = sample_accuracy(fitted, sample)
+        seconds = time.perf_counter() - tick
+        rows.append(
+            {
+                "estimator": name,
+                "estimated_position_rmse": found.estimated_rmse,
+                "standard_error": found.standard_error,
+                "seconds": seconds,
+                "learned": learned,
+            }
+        )
+        say(f"auto: {name} estimated {found.estimated_rmse:.3g} m ({seconds:.1f} s)")
+        se = found.standard_error if math.isfinite(found.standard_error) else 0.0
+        score = found.estimated_rmse + CAUTION * se  # (one chunk: no standard error)
+        if score < best_rmse:
+            best, best_rmse = fitted, score
+    if best is None:
+        raise ValueError(
+            "tracks: no candidate of --estimator auto could be scored (too few observed "
+            "positions); choose an estimator (--estimator ks)"
+        )
+    chosen = replace(best, chosen_from=[r["estimator"] for r in rows if not r.get("skipped")])
+    return Choice(chosen, time.perf_counter() - start, rows)
