@@ -89,6 +89,7 @@ class Run:
     chosen: str = ""  #: the estimator the summary says was run (``auto``)
     error: str = ""  #: why the run gave nothing (the command's message)
     warnings: list[str] = field(default_factory=list)
+    code: str = ""  #: the commit the run ran on (``git log -1``)
 
     @property
     def ratio(self) -> float:
@@ -243,6 +244,7 @@ class Job:
     mode: str
     target: str
     via: str
+    code: str = ""  #: the commit it runs on
 
 
 def run_job(job: Job) -> Run:
@@ -258,6 +260,7 @@ def run_job(job: Job) -> Run:
     seconds, log, error, caught = run_command(argv, job.via)
     shown = ["torchsvs", "track", "IN", "-o", "OUT", *argv[3:]]
     result = Run(job.set, job.estimator, job.mode, shown, raw=job.raw, seconds=seconds)
+    result.code = job.code
     result.warnings = list(dict.fromkeys(caught))
     result.sigma_used = sigma_used(log)
     truth = pd.read_csv(job.truth)
@@ -295,6 +298,7 @@ def run_all(
     from tqdm.auto import tqdm
 
     work: list[Job] = []
+    code = _git_head()
     for bench in sets:
         source, truth = bench.write(workdir / "sets")
         raw = describe(bench).raw_rmse
@@ -314,6 +318,7 @@ def run_all(
                         mode,
                         str(target),
                         via,
+                        code,
                     )
                 )
     bar = tqdm(total=len(work), desc="runs", unit="run", disable=not progress)
@@ -365,8 +370,8 @@ def sets_section(sets: Sequence[BenchSet]) -> list[str]:
         "",
         "Measurements = truth + independent Gaussian noise σ on `x` and `y` (seeded); the input "
         "file holds `track_id,time,x,y` only. Intervals and speeds are the 10th/50th/90th "
-        "percentiles between successive rows of a track (speeds of the truth). Raw RMSE: 2-D "
-        "RMSE of the measurements (≈ σ√2).",
+        "percentiles between successive rows of a track (speeds of the truth; the longest "
+        "interval in brackets). Raw RMSE: 2-D RMSE of the measurements (≈ σ√2).",
         "",
     ]
     rows = []
@@ -379,7 +384,7 @@ def sets_section(sets: Sequence[BenchSet]) -> list[str]:
                 ", ".join(bench.truth.sources),
                 d.tracks,
                 f"{d.rows:,}",
-                " / ".join(f"{v:.3g}" for v in d.interval),
+                " / ".join(f"{v:.3g}" for v in d.interval[:3]) + f" (≤ {d.interval[3]:.3g})",
                 " / ".join(f"{v:.3g}" for v in d.speed),
                 f"{bench.sigma:g}",
                 _f(d.raw_rmse),
@@ -804,13 +809,54 @@ def heat_map(
 
 
 def _git_head() -> str:
+    """The last commit that changed ``torchsvs/`` in this checkout (what the runs ran), with a
+    mark when it has uncommitted changes there."""
     try:
-        done = subprocess.run(
-            ["git", "log", "-1", "--format=%h %s"], capture_output=True, text=True, cwd=ROOT
+        log = subprocess.run(
+            ["git", "log", "-1", "--format=%h %s", "--", "torchsvs"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
         )
-        return _short(done.stdout.strip(), 90) if done.returncode == 0 else "unknown"
+        status = subprocess.run(
+            ["git", "status", "--porcelain", "--", "torchsvs"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
     except OSError:
         return "unknown"
+    if log.returncode != 0:
+        return "unknown"
+    head = _short(log.stdout.strip(), 70)
+    return head + (" + uncommitted changes" if status.stdout.strip() else "")
+
+
+def tracks_figure(sets: Sequence[BenchSet], path: Path) -> None:
+    """One track of each kind: its truth and its measurements at the kind's lowest σ."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    first: dict[str, BenchSet] = {}
+    for bench in sorted(sets, key=lambda b: b.sigma):
+        first.setdefault(bench.kind.name, bench)
+    fig, axes = plt.subplots(1, len(first), figsize=(3.2 * len(first), 3.4), squeeze=False)
+    for ax, bench in zip(axes[0], first.values(), strict=True):
+        truth, measured = bench.truth.rows, bench.measurements
+        lengths = truth.groupby("track_id", sort=False).size()
+        track = lengths.idxmax()
+        mine = (truth["track_id"] == track).to_numpy()
+        ax.plot(measured["x"][mine], measured["y"][mine], ".", ms=2, color="0.6", label="measured")
+        ax.plot(truth["x"][mine], truth["y"][mine], "-", lw=1, color="C3", label="truth")
+        ax.set_title(f"{bench.name}\n{_short(str(track), 34)}", fontsize=7)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=6)
+    axes[0][0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def report(
@@ -820,23 +866,25 @@ def report(
     modes: Sequence[str],
     default: str,
     options: dict[str, Any],
-    seconds: float,
+    timing: str,
     figure: str,
 ) -> str:
     names = [b.name for b in sets]
     check = truth_check()
     failures = [r for r in runs if not r.ok]
     total_run = sum(r.seconds for r in runs if math.isfinite(r.seconds))
+    codes = ", ".join(f"`{c}`" for c in dict.fromkeys(r.code or "unknown" for r in runs))
     lines = [
         "# Recorded tracks of several kinds: `torchsvs track` as a user runs it",
         "",
         "Generated by `python -m experiments.recorded_tracks` (`make recorded`); every number "
         "below is printed by that run.",
         "",
-        f"Code: `{_git_head()}`. Options: "
+        f"Code: {codes}. Options: "
         + ", ".join(f"{k} {v}" for k, v in options.items())
         + f". {len(runs)} runs ({len(sets)} sets × {len(estimators)} estimators × {len(modes)} "
-        f"modes) in {seconds / 60:.1f} min ({total_run / 60:.1f} min inside the runs).",
+        f"modes) took {total_run / 60:.1f} min (the sum of their wall times, one at a time unless "
+        f"jobs > 1); {timing}.",
         "",
         "Each run is `torchsvs track IN -o OUT --estimator E` plus the mode's options: "
         + ", ".join(
@@ -889,6 +937,7 @@ def report(
     lines += issue_section(runs, sets)
     lines += [""]
     lines += sets_section(sets)
+    lines += ["", "![one track of each kind](recorded_tracks_examples.png)"]
     lines += [
         "",
         f"The re-timing is checked on simulated 1 s turns (3-6 deg/s, 100-250 m/s) with a white "
@@ -940,9 +989,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--workdir", default=None, help="keep the sets and outputs here")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the runs saved in OUT/recorded_tracks.json and replace those run now (e.g. "
+        "one kind or estimator after a fix)",
+    )
+    parser.add_argument(
         "--report-only",
         action="store_true",
-        help="rebuild the sets and write the report from the runs saved in OUT/recorded_tracks.json",
+        help="run nothing: the report of the runs saved in OUT/recorded_tracks.json",
     )
     args = parser.parse_args(argv)
     import torch
@@ -959,7 +1014,6 @@ def main(argv: list[str] | None = None) -> None:
     modes = [m for m in MODES if m in args.modes.split(",")]
     if not modes:
         raise SystemExit(f"modes: expected names among {list(MODES)}, got {args.modes!r}")
-    sets = build_sets(kinds, args.rows, args.seed, sigmas, progress=not args.quiet)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     saved = out / "recorded_tracks.json"
@@ -969,26 +1023,55 @@ def main(argv: list[str] | None = None) -> None:
         "via": args.via,
         "jobs": args.jobs,
     }
-    if args.report_only:
+    kept: list[Run] = []
+    if args.merge or args.report_only:
         record = json.loads(saved.read_text())
-        runs = [Run(**r) for r in record["runs"]]
-        seconds, options = record["seconds"], record["options"]
-        names = {b.name for b in sets}
-        runs = [r for r in runs if r.set in names and r.estimator in estimators and r.mode in modes]
-    else:
-        with contextlib.ExitStack() as stack:
-            if args.workdir:
-                workdir = Path(args.workdir)
-            else:
-                folder = tempfile.TemporaryDirectory(prefix="recorded_")
-                workdir = Path(stack.enter_context(folder))
-            runs = run_all(sets, estimators, modes, workdir, args.via, args.jobs, not args.quiet)
-        seconds = time.perf_counter() - start
-        record = {"options": options, "seconds": seconds, "runs": [asdict(r) for r in runs]}
+        if isinstance(record, list):  # the first runs wrote the runs alone
+            record = {"options": options, "runs": record}
+        kept = [Run(**r) for r in record["runs"]]
+        options = record.get("options", options)
+    run_kinds = [] if args.report_only else kinds
+    shown = {r.set.split(" σ")[0] for r in kept}
+    report_kinds = [k for k in KINDS if k in run_kinds or k in shown]
+    sets = build_sets(report_kinds, args.rows, args.seed, sigmas, progress=not args.quiet)
+    to_run = [b for b in sets if b.kind.name in run_kinds]
+    with contextlib.ExitStack() as stack:
+        if args.workdir:
+            workdir = Path(args.workdir)
+        else:
+            folder = tempfile.TemporaryDirectory(prefix="recorded_")
+            workdir = Path(stack.enter_context(folder))
+        new = run_all(to_run, estimators, modes, workdir, args.via, args.jobs, not args.quiet)
+    done = {(r.set, r.estimator, r.mode) for r in new}
+    runs = [r for r in kept if (r.set, r.estimator, r.mode) not in done] + new
+    # in the order of the sets, the command's estimators and the modes
+    set_order = {b.name: i for i, b in enumerate(sets)}
+    est_order = {e: i for i, e in enumerate(choices)}
+    mode_order = {m: i for i, m in enumerate(MODES)}
+    runs = sorted(
+        (
+            r
+            for r in runs
+            if r.set in set_order and r.estimator in est_order and r.mode in mode_order
+        ),
+        key=lambda r: (set_order[r.set], est_order[r.estimator], mode_order[r.mode]),
+    )
+    if new:
+        record = {"options": options, "runs": [asdict(r) for r in runs]}
         saved.write_text(json.dumps(record, indent=1) + "\n")
+    seconds = time.perf_counter() - start
+    timing = (
+        f"this invocation took {seconds / 60:.1f} min (building {len(sets)} sets"
+        + (f", {len(new)} runs" if new else "")
+        + (", merged with the saved runs" if kept and new else "")
+        + ", the report)"
+    )
+    shown_estimators = [e for e in choices if any(r.estimator == e for r in runs)]
+    shown_modes = [m for m in MODES if any(r.mode == m for r in runs)]
     figure = out / "recorded_tracks.png"
-    heat_map(runs, [b.name for b in sets], estimators, modes, figure)
-    text = report(sets, runs, estimators, modes, default, options, seconds, figure.name)
+    heat_map(runs, [b.name for b in sets], shown_estimators, shown_modes, figure)
+    tracks_figure(sets, out / "recorded_tracks_examples.png")
+    text = report(sets, runs, shown_estimators, shown_modes, default, options, timing, figure.name)
     (out / "recorded_tracks.md").write_text(text)
     print(text)
     print(f"\n(total {time.perf_counter() - start:.0f} s)")

@@ -178,5 +178,5 @@ def test_harness_end_to_end_on_a_tiny_set(tmp_path: Path) -> None:
     figure = tmp_path / "map.png"
     rt.heat_map([*runs, broken], [bench.name], ["ks"], ["default", "--meas-std σ"], figure)
     assert figure.stat().st_size > 0
-    text = rt.report([bench], [*runs, broken], ["ks"], ["default"], "ks", {}, 1.0, figure.name)
+    text = rt.report([bench], [*runs, broken], ["ks"], ["default"], "ks", {}, "1 s", figure.name)
     assert bench.name in text and "no `auto` yet" in text
