@@ -209,22 +209,25 @@ def summary_number(summary: dict[str, Any], key: str) -> float:
 def score(output: pd.DataFrame, truth: pd.DataFrame) -> tuple[float, int]:
     """2-D position RMSE of ``output``'s ``x, y`` against the truth over the rows with an
     estimate, and the number of truth rows without one (NaN, or no output row). Rows are
-    matched in order when the ids and times agree row by row, else by ``(track_id, time)``."""
-    keys = ["track_id", "time"]
-    same = (
-        len(output) == len(truth)
-        and (
-            output["track_id"].astype(str).to_numpy() == truth["track_id"].astype(str).to_numpy()
-        ).all()
-        and np.array_equal(output["time"].to_numpy(float), truth["time"].to_numpy(float))
-    )
-    if same:
+    matched in order when the ids and times agree row by row, else by ``(track_id, time)``
+    (times to the microsecond)."""
+
+    def keyed(table: pd.DataFrame) -> pd.DataFrame:
+        return pd.DataFrame(
+            {
+                "track_id": table["track_id"].astype(str).to_numpy(),
+                "time": table["time"].to_numpy(float).round(6),
+            }
+        )
+
+    mine, theirs = keyed(truth), keyed(output)
+    if len(output) == len(truth) and mine.equals(theirs):
         estimate = output[["x", "y"]].to_numpy(float)
     else:
-        left = truth[keys].assign(track_id=truth["track_id"].astype(str))
-        right = output[[*keys, "x", "y"]].assign(track_id=output["track_id"].astype(str))
-        right = right.drop_duplicates(keys)
-        estimate = left.merge(right, on=keys, how="left")[["x", "y"]].to_numpy(float)
+        found = theirs.assign(x=output["x"].to_numpy(float), y=output["y"].to_numpy(float))
+        found = found.drop_duplicates(["track_id", "time"])
+        merged = mine.merge(found, on=["track_id", "time"], how="left")
+        estimate = merged[["x", "y"]].to_numpy(float)
     error = estimate - truth[["x", "y"]].to_numpy(float)
     has = np.isfinite(error).all(axis=1)
     rmse = float(np.sqrt(np.mean((error[has] ** 2).sum(axis=1)))) if has.any() else math.nan
@@ -870,6 +873,7 @@ def report(
     figure: str,
 ) -> str:
     names = [b.name for b in sets]
+    offered, _ = estimator_choices()
     check = truth_check()
     failures = [r for r in runs if not r.ok]
     total_run = sum(r.seconds for r in runs if math.isfinite(r.seconds))
@@ -893,7 +897,7 @@ def report(
         )
         + " (σ: the set's noise level)"
         + f". The command's default estimator is `{default}`"
-        + (" and it offers `auto`." if "auto" in estimators else "; it offers no `auto` yet.")
+        + ("; it offers `auto`." if "auto" in offered else "; it offers no `auto` yet.")
         + " Position RMSE is 2-D (the root of the mean squared distance to the truth, m); "
         "× raw is its ratio to the measurements' own RMSE, **bold where not below it**; ✗: the "
         'command refused or failed (its message is in the set\'s table); "no est.": rows the '

@@ -116,13 +116,14 @@ def test_estimator_choices_follow_the_command_including_auto() -> None:
     from torchsvs.tracking import ESTIMATORS
 
     names, default = rt.estimator_choices()
-    assert set(names) >= set(ESTIMATORS)
+    assert set(names) >= set(ESTIMATORS) and default in names
     parser = track_parser()
     action = next(a for a in parser._actions if "--estimator" in a.option_strings)
-    action.choices = ["auto", *sorted(ESTIMATORS)]
+    action.choices = sorted({*ESTIMATORS, "auto", "new"})
     action.default = "auto"
     names, default = rt.estimator_choices(parser)
-    assert names == [*ESTIMATORS, "auto"]
+    extra = sorted({"auto", "new"} - set(ESTIMATORS))
+    assert names == [*ESTIMATORS, *extra]  # the table's order first, the others after
     assert default == "auto"
 
 
@@ -156,27 +157,31 @@ def test_harness_end_to_end_on_a_tiny_set(tmp_path: Path) -> None:
         assert run.ok and run.missing == 0 and run.rows == 400
         assert run.raw == raw and math.isfinite(run.rmse) and run.seconds > 0
     assert runs[1].argv[-2:] == ["--meas-std", "50"]
-    # the same command through a subprocess gives the same estimates
-    job = rt.Job(
-        bench.name,
-        bench.sigma,
-        raw,
-        str(tmp_path / "sets" / f"{bench.slug}.csv"),
-        str(tmp_path / "sets" / f"{bench.slug}.truth.csv"),
-        "ks",
-        "--meas-std σ",
-        str(tmp_path / "cli.csv"),
-        "cli",
-    )
-    assert rt.run_job(job).rmse == pytest.approx(runs[1].rmse, rel=1e-12)
     # a run that cannot run is kept with the command's message, every row counted as missing
     broken = rt.run_job(
-        rt.Job(bench.name, 50.0, raw, str(tmp_path / "nothing.csv"), job.truth, "ks",
-               "default", str(tmp_path / "x.csv"), "inprocess")
+        rt.Job(bench.name, 50.0, raw, str(tmp_path / "nothing.csv"), str(tmp_path / "sets" /
+               f"{bench.slug}.truth.csv"), "ks", "default", str(tmp_path / "x.csv"), "inprocess")
     )  # fmt: skip
     assert not broken.ok and broken.error and broken.missing == 400
     figure = tmp_path / "map.png"
     rt.heat_map([*runs, broken], [bench.name], ["ks"], ["default", "--meas-std σ"], figure)
     assert figure.stat().st_size > 0
     text = rt.report([bench], [*runs, broken], ["ks"], ["default"], "ks", {}, "1 s", figure.name)
-    assert bench.name in text and "no `auto` yet" in text
+    assert bench.name in text and "The command's default estimator is `" in text
+
+
+def test_the_command_line_gives_what_the_in_process_run_gives(tmp_path: Path) -> None:
+    bench = tiny_turning(rows=200)
+    source, truth = bench.write(tmp_path / "sets")
+    raw = rs.describe(bench).raw_rmse
+
+    def job(via: str) -> rt.Job:
+        target = str(tmp_path / f"{via}.csv")
+        return rt.Job(
+            bench.name, 50.0, raw, str(source), str(truth), "ks", "--meas-std σ", target, via
+        )
+
+    inprocess, cli = rt.run_job(job("inprocess")), rt.run_job(job("cli"))
+    assert inprocess.ok and cli.ok
+    assert cli.rmse == pytest.approx(inprocess.rmse, rel=1e-12)
+    assert cli.sigma_used == pytest.approx(inprocess.sigma_used)
