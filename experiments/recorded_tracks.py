@@ -30,6 +30,7 @@ import io
 import json
 import math
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -39,7 +40,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -83,6 +84,7 @@ class Run:
     missing: int = 0  #: rows without an estimate
     rows: int = 0
     seconds: float = math.nan  #: wall time of the run
+    cpu_seconds: float = math.nan  #: its CPU time (the wall time on an idle core)
     sigma_used: float = math.nan  #: the noise std the run used (read off its log; m per axis)
     estimated: float = math.nan  #: truth-free estimate of the position RMSE (summary file)
     measurement: float = math.nan  #: the summary's measurement RMSE
@@ -133,12 +135,21 @@ def summary_path(target: Path) -> Path:
     return target.with_name(target.stem + ".summary.json")
 
 
-def run_command(argv: list[str], via: str = "inprocess") -> tuple[float, str, str, list[str]]:
-    """``torchsvs track ARGV``: wall seconds, its standard error, the error message ("" when it
-    succeeded) and the warnings it raised (in-process; in a subprocess they are in the
-    standard error)."""
+class Command(NamedTuple):
+    """What one ``torchsvs track`` command did."""
+
+    seconds: float  #: wall time
+    cpu_seconds: float  #: CPU time (its process or subprocess): the wall time on an idle core
+    log: str  #: its standard error
+    error: str  #: its message when it failed or refused ("" when it succeeded)
+    warnings: list[str]  #: warnings (in-process: raised; in a subprocess: lines naming one)
+
+
+def run_command(argv: list[str], via: str = "inprocess") -> Command:
+    """``torchsvs track ARGV`` in this process (``torchsvs.cli.main``) or as a subprocess."""
     start = time.perf_counter()
     if via == "cli":
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         done = subprocess.run(
             [sys.executable, "-m", "torchsvs.cli", "track", *argv],
             capture_output=True,
@@ -146,16 +157,19 @@ def run_command(argv: list[str], via: str = "inprocess") -> tuple[float, str, st
             cwd=ROOT,
         )
         seconds = time.perf_counter() - start
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
         lines = [line for line in done.stderr.splitlines() if line.strip()]
         error = "" if done.returncode == 0 else (lines[-1] if lines else f"exit {done.returncode}")
         caught = [line.strip() for line in lines if "Warning" in line]
-        return seconds, done.stderr, error, caught
+        return Command(seconds, cpu, done.stderr, error, caught)
     if via != "inprocess":
         raise ValueError(f"via: expected 'inprocess' or 'cli', got {via!r}")
     from torchsvs import cli
 
     stream = io.StringIO()
     error = ""
+    cpu_start = time.process_time()
     with warnings.catch_warnings(record=True) as seen, contextlib.redirect_stderr(stream):
         warnings.simplefilter("always")  # every run shows its own warnings, not only the first
         try:
@@ -165,9 +179,9 @@ def run_command(argv: list[str], via: str = "inprocess") -> tuple[float, str, st
                 error = str(stop.code)
         except Exception as err:  # a crash is a result too: shown, not raised
             error = f"{type(err).__name__}: {err}"
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu_start
     messages = [f"{w.category.__name__}: {w.message}" for w in seen]
-    return seconds, stream.getvalue(), error, messages
+    return Command(seconds, cpu, stream.getvalue(), error, messages)
 
 
 _MEAS_VAR = re.compile(r"^settings: .*?meas_var=\[([^\]]*)\]", re.MULTILINE)
@@ -260,12 +274,14 @@ def run_job(job: Job) -> Run:
         old.unlink(missing_ok=True)  # a fresh output: track may refuse to replace a file
     argv = [job.source, "-o", str(target), "--estimator", job.estimator]
     argv += MODES[job.mode](job.sigma)
-    seconds, log, error, caught = run_command(argv, job.via)
+    done = run_command(argv, job.via)
+    error = done.error
     shown = ["torchsvs", "track", "IN", "-o", "OUT", *argv[3:]]
-    result = Run(job.set, job.estimator, job.mode, shown, raw=job.raw, seconds=seconds)
+    result = Run(job.set, job.estimator, job.mode, shown, raw=job.raw, seconds=done.seconds)
+    result.cpu_seconds = done.cpu_seconds
     result.code = job.code
-    result.warnings = list(dict.fromkeys(caught))
-    result.sigma_used = sigma_used(log)
+    result.warnings = list(dict.fromkeys(done.warnings))
+    result.sigma_used = sigma_used(done.log)
     truth = pd.read_csv(job.truth)
     result.rows = len(truth)
     if not error and not target.is_file():
@@ -738,6 +754,7 @@ def detail_section(runs: Sequence[Run], bench: BenchSet) -> list[str]:
                 estimate,
                 est_ratio,
                 _f(r.seconds),
+                _f(r.cpu_seconds),
                 "; ".join(note),
             ]
         )
@@ -752,6 +769,7 @@ def detail_section(runs: Sequence[Run], bench: BenchSet) -> list[str]:
             "est. RMSE m",
             "est. / true",
             "s",
+            "CPU s",
             "note",
         ],
         rows,
@@ -877,6 +895,7 @@ def report(
     check = truth_check()
     failures = [r for r in runs if not r.ok]
     total_run = sum(r.seconds for r in runs if math.isfinite(r.seconds))
+    total_cpu = sum(r.cpu_seconds for r in runs if math.isfinite(r.cpu_seconds))
     codes = ", ".join(f"`{c}`" for c in dict.fromkeys(r.code or "unknown" for r in runs))
     lines = [
         "# Recorded tracks of several kinds: `torchsvs track` as a user runs it",
@@ -887,8 +906,9 @@ def report(
         f"Code: {codes}. Options: "
         + ", ".join(f"{k} {v}" for k, v in options.items())
         + f". {len(runs)} runs ({len(sets)} sets × {len(estimators)} estimators × {len(modes)} "
-        f"modes) took {total_run / 60:.1f} min (the sum of their wall times, one at a time unless "
-        f"jobs > 1); {timing}.",
+        f"modes) took {total_run / 60:.1f} min (the sum of their wall times) and "
+        f"{total_cpu / 60:.1f} min of CPU (their wall time on an idle core; the machine is "
+        f"shared, so wall times are inflated); {timing}. Seconds in the tables are wall times.",
         "",
         "Each run is `torchsvs track IN -o OUT --estimator E` plus the mode's options: "
         + ", ".join(
