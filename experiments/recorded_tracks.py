@@ -863,8 +863,13 @@ def tracks_figure(sets: Sequence[BenchSet], path: Path) -> None:
     first: dict[str, BenchSet] = {}
     for bench in sorted(sets, key=lambda b: b.sigma):
         first.setdefault(bench.kind.name, bench)
-    fig, axes = plt.subplots(1, len(first), figsize=(3.2 * len(first), 3.4), squeeze=False)
-    for ax, bench in zip(axes[0], first.values(), strict=True):
+    columns = min(3, len(first))
+    lines = math.ceil(len(first) / columns)
+    fig, grid = plt.subplots(lines, columns, figsize=(3.4 * columns, 3.2 * lines), squeeze=False)
+    axes = list(grid.ravel())
+    for ax in axes[len(first) :]:
+        ax.set_axis_off()
+    for ax, bench in zip(axes, first.values(), strict=False):
         truth, measured = bench.truth.rows, bench.measurements
         lengths = truth.groupby("track_id", sort=False).size()
         track = lengths.idxmax()
@@ -874,7 +879,7 @@ def tracks_figure(sets: Sequence[BenchSet], path: Path) -> None:
         ax.set_title(f"{bench.name}\n{_short(str(track), 34)}", fontsize=7)
         ax.set_aspect("equal", adjustable="datalim")
         ax.tick_params(labelsize=6)
-    axes[0][0].legend(fontsize=6)
+    axes[0].legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
