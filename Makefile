@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road ksvd real real-imm learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road ksvd real real-imm recorded learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -45,6 +45,12 @@ bench-million: $(STAMP)
 
 real: $(STAMP)
 	$(PY) -m experiments.real_flights
+
+# Every estimator of `torchsvs track`, as a user runs it (no options, --fit, --meas-std σ, both),
+# on recorded tracks of several kinds (own report times, 10 s and 1 s scans, taxiing, irregular,
+# simulated turns; σ 10-100 m): experiments/results/recorded_tracks.md.
+recorded: $(STAMP)
+	$(PY) -m experiments.recorded_tracks
 
 # Only the IMM(CV, CT) rows and section of real_flights.md, merged into the recorded report.
 real-imm: $(STAMP)

@@ -1,0 +1,634 @@
+"""Benchmark sets of recorded tracks: a truth, and measurements = truth + seeded Gaussian noise.
+
+Each kind of track (:data:`KINDS`) is built reproducibly from the ADS-B samples of the
+``traffic`` wheel (read by :func:`torchsvs.datasets.flights.flight_steps`: one east-north frame
+per flight, flights split at gaps over 600 s, repeated positions read as missing) or from a
+seeded simulation, then measured at each noise level σ: ``x, y`` of every row get independent
+Gaussian noise of standard deviation σ (m). The truth stays beside the measurements and is never
+written into the input file.
+
+The truth is cleaned (:func:`recorded_pieces`, every count reported):
+
+* a flight with a move the loader flags as implausible (faster than
+  :data:`torchsvs.datasets.flights.MAX_SPEED` between two reports) is dropped whole;
+* the samples' positions are stamped with a time up to a fraction of a second off their
+  reception (OpenSky resamples to a 1 s grid): at 150 m/s a report lies ~25 m ahead of or behind
+  where the aircraft was at its time stamp, along its track, while across the track it is within
+  ~3 m (measured: :func:`roughness`). White truth errors that size are indistinguishable from
+  measurement noise at σ = 10 m, so where the record is dense (reports on both sides within
+  :data:`DEJITTER_WINDOW` s), each position is moved *along its direction of motion* to a
+  local-quadratic fit of the record in time (:func:`dejitter`); the path across the track is kept
+  as recorded, so turns stay as flown. Sparse records (10 s and longer) are kept as recorded;
+* pieces shorter than :data:`MIN_ROWS` rows are dropped; pieces longer than :data:`MAX_ROWS`
+  are cut, so that a sample of pieces covers many flights.
+
+A set is a seeded sample of pieces up to a row budget.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import zlib
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import pandas as pd
+
+from experiments.flight_data import _thin
+from torchsvs.datasets.adsb import sample_files
+from torchsvs.datasets.flights import MAX_SPEED, flight_steps
+
+#: Half-width (s) of the local-quadratic fit that re-times dense records (:func:`dejitter`).
+DEJITTER_WINDOW = 10.0
+#: Fewest reports on each side of a position, within the window, for it to be re-timed.
+DEJITTER_MIN_SIDE = 2
+#: Below this speed (m/s) a position is not re-timed (no direction of motion to move along).
+DEJITTER_MIN_SPEED = 1.0
+#: Fewest rows of a piece of track kept in a set.
+MIN_ROWS = 30
+#: Longest piece (rows); longer pieces are cut into pieces this long.
+MAX_ROWS = 400
+#: Taxiing: the reported ground speed above which a ground report is a take-off or landing
+#: roll, not taxiing (kt; 30 kt = 15.4 m/s).
+TAXI_MAX_KT = 30.0
+#: Taxiing: a piece's median speed must lie in this range (m/s): moving, not parked.
+TAXI_SPEED = (2.0, 15.0)
+#: Taxiing, 1 s scans: a piece is cut at a gap between reports longer than this (s).
+TAXI_MAX_GAP = 30.0
+SCAN1_MAX_GAP = 1.5
+
+
+@dataclass
+class Piece:
+    """A stretch of one recorded track: report times and truth positions (local frame, m)."""
+
+    track_id: str
+    time: np.ndarray  #: [n] s
+    position: np.ndarray  #: [n, 2] east, north (m)
+    groundspeed_kt: np.ndarray  #: [n] reported ground speed (kt), NaN where not reported
+    origin: str = ""  #: the recorded track it is cut from (default: ``track_id``)
+    source: str = ""  #: the sample file or folder it comes from (sampling is stratified by it)
+
+    def __post_init__(self) -> None:
+        self.origin = self.origin or self.track_id
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    def take(self, index: np.ndarray, suffix: str = "") -> Piece:
+        return Piece(
+            self.track_id + suffix,
+            self.time[index],
+            self.position[index],
+            self.groundspeed_kt[index],
+            self.origin,
+            self.source,
+        )
+
+
+@dataclass
+class Truth:
+    """The truth of one kind: rows ``track_id, time, x, y`` and how it was made."""
+
+    kind: str
+    rows: pd.DataFrame  #: track_id, time, x, y; sorted by track then time
+    sources: list[str]  #: files (folder/name) or "simulation"
+    counts: Counter[str] = field(default_factory=Counter)  #: what the cleaning did
+    roughness: dict[str, float] = field(default_factory=dict)  #: :func:`roughness` as recorded
+
+
+@dataclass(frozen=True)
+class Kind:
+    """A kind of track: where its truth comes from and the noise levels it is measured at."""
+
+    name: str
+    title: str
+    sigmas: tuple[float, ...]  #: default noise levels (m)
+    build: Callable[[int, int], Truth]  #: (rows, seed) → truth
+    note: str = ""
+
+
+# --- cleaning ----------------------------------------------------------------------------------
+
+
+def local_quadratic(
+    time: np.ndarray, position: np.ndarray, half_width: float, min_side: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local-quadratic regression of ``position [n, m]`` on ``time [n]`` (sorted), tricube
+    weights of half-width ``half_width`` (Cleveland 1979, doi:10.1080/01621459.1979.10481038).
+
+    Returns:
+        The fitted position ``[n, m]`` and velocity ``[n, m]`` at each time, and ``[n]`` whether
+        the fit is supported (at least ``min_side`` reports on each side within the window;
+        elsewhere both are NaN).
+    """
+    n = len(time)
+    lo = np.searchsorted(time, time - half_width, side="left")
+    hi = np.searchsorted(time, time + half_width, side="right")
+    width = int((hi - lo).max(initial=1))
+    index = lo[:, None] + np.arange(width)[None, :]
+    inside = index < hi[:, None]
+    index = np.minimum(index, n - 1)
+    offset = np.where(inside, time[index] - time[:, None], 0.0)
+    u = np.clip(np.abs(offset) / half_width, 0.0, 1.0)
+    weight = np.where(inside, (1.0 - u**3) ** 3, 0.0)
+    here = np.arange(n)[:, None]
+    used = inside & (weight > 0)
+    supported = ((used & (index < here)).sum(1) >= min_side) & (
+        (used & (index > here)).sum(1) >= min_side
+    )
+    basis = np.stack([np.ones_like(offset), offset, offset * offset], -1)  # [n, W, 3]
+    fitted = np.full((n, 3, position.shape[1]), np.nan)
+    if supported.any():
+        w, X, y = weight[supported], basis[supported], position[index[supported]]
+        gram = np.einsum("nw,nwi,nwj->nij", w, X, X)
+        moment = np.einsum("nw,nwi,nwk->nik", w, X, y)
+        fitted[supported] = np.linalg.solve(gram, moment)
+    return fitted[:, 0], fitted[:, 1], supported
+
+
+def dejitter(
+    time: np.ndarray, position: np.ndarray, half_width: float = DEJITTER_WINDOW
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions moved along their direction of motion to the local-quadratic fit of the record
+    (:func:`local_quadratic`): a time-stamp error moves a report along the track, so only that
+    component is corrected and the path across the track stays as recorded.
+
+    Returns:
+        The positions ``[n, 2]`` and ``[n]`` whether each was moved (supported fit, speed at
+        least :data:`DEJITTER_MIN_SPEED`).
+    """
+    fitted, velocity, moved = local_quadratic(time, position, half_width, DEJITTER_MIN_SIDE)
+    speed = np.linalg.norm(velocity, axis=1)
+    moved &= np.nan_to_num(speed) >= DEJITTER_MIN_SPEED
+    out = position.copy()
+    direction = velocity[moved] / speed[moved, None]
+    along = ((fitted[moved] - position[moved]) * direction).sum(1)
+    out[moved] = position[moved] + along[:, None] * direction
+    return out, moved
+
+
+def roughness(pieces: Sequence[Piece], max_interval: float = 1.5) -> dict[str, float]:
+    """Per-report white error of the positions, along and across the track (m, RMS).
+
+    At each report with neighbours at most ``max_interval`` s away on both sides, the
+    position's offset from the time-interpolation of its neighbours is ``e₁ − (w e₀ + (1−w) e₂)``
+    plus a motion term of ``a·Δt²/2`` (under 2 m at 3 m/s² and 1 s): for white errors of
+    standard deviation ``s`` its variance is ``s² (1 + w² + (1−w)²)`` (1.5 s² at equal
+    intervals), from which ``s`` is read. Sparse records give NaN.
+    """
+    along, across, factor = [], [], []
+    for piece in pieces:
+        t, p = piece.time, piece.position
+        if len(t) < 3:
+            continue
+        before, after = t[1:-1] - t[:-2], t[2:] - t[1:-1]
+        close = (before <= max_interval) & (after <= max_interval)
+        w = after / (before + after)  # weight of the earlier neighbour
+        middle = w[:, None] * p[:-2] + (1 - w)[:, None] * p[2:]
+        offset = p[1:-1] - middle
+        chord = p[2:] - p[:-2]
+        length = np.linalg.norm(chord, axis=1)
+        close &= length > 0
+        unit = chord[close] / length[close, None]
+        along.append((offset[close] * unit).sum(1))
+        across.append(offset[close, 0] * unit[:, 1] - offset[close, 1] * unit[:, 0])
+        factor.append(1 + w[close] ** 2 + (1 - w[close]) ** 2)
+    if not along or not sum(len(a) for a in along):
+        return {"along": math.nan, "across": math.nan, "reports": 0.0}
+    a, c, f = (np.concatenate(x) for x in (along, across, factor))
+    return {
+        "along": float(np.sqrt(np.mean(a**2 / f))),
+        "across": float(np.sqrt(np.mean(c**2 / f))),
+        "reports": float(len(a)),
+    }
+
+
+def step_speeds(piece: Piece) -> np.ndarray:
+    """[n-1] speed (m/s) between successive reports of a piece."""
+    elapsed = np.diff(piece.time)
+    return np.linalg.norm(np.diff(piece.position, axis=0), axis=1) / np.maximum(elapsed, 1e-9)
+
+
+def split_at(piece: Piece, cut: np.ndarray) -> list[Piece]:
+    """A piece cut before every report ``k`` where ``cut[k]`` (``cut [n]`` bool), suffixed
+    ``~1, ~2, ...`` when cut."""
+    starts = np.flatnonzero(cut[1:]) + 1
+    bounds = np.concatenate([[0], starts, [len(piece)]])
+    if len(bounds) == 2:
+        return [piece]
+    return [
+        piece.take(np.arange(a, b), f"~{i + 1}")
+        for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
+        if b > a
+    ]
+
+
+def recorded_pieces(
+    names: Sequence[str], ground: bool = False, counts: Counter[str] | None = None
+) -> tuple[list[Piece], list[Piece], list[str]]:
+    """The recorded tracks of sample files (``"folder/name"`` or folder names), cleaned.
+
+    Args:
+        names: sample files as ``"collections/quickstart.json.gz"``, or whole folders; each
+            piece's ``source`` is the entry it was read through.
+        ground: the reports the loader sets aside as on the ground (``on_ground``), instead of
+            the airborne ones.
+        counts: where to add the counts of what the cleaning did.
+
+    Returns:
+        The pieces as recorded (new positions only) and de-jittered (:func:`dejitter`), both
+        after dropping flights with implausible jumps, and the files read.
+    """
+    raw, clean, files, done = _read_pieces(tuple(names), ground)
+    if counts is not None:
+        counts.update(done)
+    return list(raw), list(clean), list(files)
+
+
+@functools.lru_cache(maxsize=8)
+def _read_pieces(
+    names: tuple[str, ...], ground: bool
+) -> tuple[tuple[Piece, ...], tuple[Piece, ...], tuple[str, ...], Counter[str]]:
+    counts: Counter[str] = Counter()
+    files = select_files(names)
+    source_of = {path.name.split(".")[0]: name for name, path in files}
+    paths = [path for _, path in files]
+    steps, _ = flight_steps(paths, airborne=True)
+    if ground:
+        every, _ = flight_steps(paths, airborne=False)
+        # The rows the airborne read sets aside and the full read places are on the ground.
+        row_ground = (steps.row_step < 0) & (every.row_step >= 0)
+        step_ground = np.zeros(len(every.time), dtype=bool)
+        step_ground[every.row_step[row_ground]] = True
+        steps = every
+    raw: list[Piece] = []
+    clean: list[Piece] = []
+    for k in range(steps.num_tracks):
+        first, length = steps.start[k], steps.length[k]
+        span = np.arange(first, first + length)
+        keep = np.isfinite(steps.position[span, :2]).all(axis=1)
+        if ground:
+            keep &= step_ground[span]
+        span = span[keep]
+        if len(span) < 2:
+            continue
+        track_id = steps.ids[k]
+        piece = Piece(
+            track_id,
+            steps.time[span],
+            steps.position[span, :2],
+            steps.extra["groundspeed_kt"][span],
+            source=source_of[track_id.split("/")[0]],
+        )
+        counts["flights read"] += 1
+        if (step_speeds(piece) > MAX_SPEED).any():
+            counts["flights dropped: implausible jump (loader's rule)"] += 1
+            continue
+        raw.append(piece)
+        position, moved = dejitter(piece.time, piece.position)
+        counts["reports"] += len(piece)
+        counts["reports re-timed along track"] += int(moved.sum())
+        clean.append(
+            Piece(track_id, piece.time, position, piece.groundspeed_kt, source=piece.source)
+        )
+    short = tuple(f"{path.parent.name}/{path.name}" for path in paths)
+    return tuple(raw), tuple(clean), short, counts
+
+
+def select_files(names: Sequence[str]) -> list[tuple[str, Path]]:
+    """Sample files by ``"folder/name"`` or by folder, each with the name it was chosen by."""
+    files = sample_files()
+    chosen = []
+    for name in names:
+        match = [p for p in files if f"{p.parent.name}/{p.name}" == name or p.parent.name == name]
+        if not match:
+            raise ValueError(f"names: no sample file or folder {name!r} in the traffic wheel")
+        chosen += [(name, path) for path in match]
+    return chosen
+
+
+def sample_pieces(
+    pieces: Sequence[Piece], rows: int, seed: int, counts: Counter[str]
+) -> list[Piece]:
+    """Pieces cut to at most :data:`MAX_ROWS` rows, those under :data:`MIN_ROWS` dropped, then a
+    seeded sample of them up to ``rows`` rows (the last one may cross it), drawn in turn from
+    each source so that every source has a share (a small one gives all it has)."""
+    cut: list[Piece] = []
+    for piece in pieces:
+        if len(piece) < MIN_ROWS:
+            counts[f"pieces dropped: fewer than {MIN_ROWS} rows"] += 1
+            continue
+        parts = math.ceil(len(piece) / MAX_ROWS)
+        if parts == 1:
+            cut.append(piece)
+            continue
+        bounds = np.linspace(0, len(piece), parts + 1).round().astype(int)
+        for i in range(parts):
+            cut.append(piece.take(np.arange(bounds[i], bounds[i + 1]), f"/{i + 1}"))
+    rng = np.random.default_rng(seed)
+    queues = {}
+    for source in sorted({p.source for p in cut}):
+        mine = [p for p in cut if p.source == source]
+        queues[source] = [mine[i] for i in rng.permutation(len(mine))]
+    taken = dict.fromkeys(queues, 0)
+    chosen: list[Piece] = []
+    total = 0
+    while total < rows and any(queues.values()):
+        # the source with the fewest rows so far gives its next piece
+        source = min((s for s in queues if queues[s]), key=lambda s: (taken[s], s))
+        piece = queues[source].pop()
+        chosen.append(piece)
+        taken[source] += len(piece)
+        total += len(piece)
+    counts["pieces available"] = len(cut)
+    counts["pieces chosen"] = len(chosen)
+    return sorted(chosen, key=lambda p: p.track_id)
+
+
+def truth_rows(pieces: Sequence[Piece]) -> pd.DataFrame:
+    """Rows ``track_id, time, x, y`` of pieces (in order)."""
+    if not pieces:
+        return pd.DataFrame({"track_id": [], "time": [], "x": [], "y": []})
+    return pd.DataFrame(
+        {
+            "track_id": np.concatenate([[p.track_id] * len(p) for p in pieces]),
+            "time": np.concatenate([p.time for p in pieces]),
+            "x": np.concatenate([p.position[:, 0] for p in pieces]),
+            "y": np.concatenate([p.position[:, 1] for p in pieces]),
+        }
+    )
+
+
+# --- kinds -------------------------------------------------------------------------------------
+
+
+def recorded_truth(
+    kind: str,
+    names: Sequence[str],
+    rows: int,
+    seed: int,
+    select: Callable[[Piece], list[Piece]] = lambda piece: [piece],
+    ground: bool = False,
+) -> Truth:
+    """The truth of a recorded kind: the cleaned pieces of ``names``
+    (:func:`recorded_pieces`), each turned into the kind's pieces by ``select``, sampled up to
+    ``rows`` rows (:func:`sample_pieces`); with the record's :func:`roughness` as recorded (of
+    the flights sampled)."""
+    counts: Counter[str] = Counter()
+    raw, clean, files = recorded_pieces(names, ground=ground, counts=counts)
+    pieces = [part for piece in clean for part in select(piece)]
+    chosen = sample_pieces(pieces, rows, seed, counts)
+    origins = {p.origin for p in chosen}
+    recorded = roughness([p for p in raw if p.origin in origins])
+    return Truth(kind, truth_rows(chosen), files, counts, recorded)
+
+
+def airliners_own(rows: int, seed: int) -> Truth:
+    """Airliners at their own report times, every report with a new position: OpenSky's 1 s
+    grid with its gaps (quickstart), decoded Mode S messages at their reception times (~0.5 s
+    apart, irregular: rs1090), a readsb trace (2-20 s)."""
+    names = ["collections/quickstart.json.gz", "rs1090", "readsb"]
+    return recorded_truth("own", names, rows, seed)
+
+
+def airliners_10s(rows: int, seed: int) -> Truth:
+    """Airliners on 10 s scans: the reports at least 10 s apart (greedy from the first)."""
+
+    def thin(piece: Piece) -> list[Piece]:
+        return [piece.take(_thin(piece.time, 10.0))]
+
+    return recorded_truth("scan10", ["collections/quickstart.json.gz"], rows, seed, thin)
+
+
+def one_second(rows: int, seed: int) -> Truth:
+    """1 s position reports: ambulance helicopters, calibration aircraft, military jets; cut at
+    gaps longer than 1.5 s."""
+
+    def runs(piece: Piece) -> list[Piece]:
+        gap = np.concatenate([[False], np.diff(piece.time) > SCAN1_MAX_GAP])
+        return split_at(piece, gap)
+
+    names = ["ambulances", "collections/savan.json.gz", "military"]
+    return recorded_truth("scan1", names, rows, seed, runs)
+
+
+def taxiing(rows: int, seed: int) -> Truth:
+    """Aircraft taxiing on the ground (the reports the loader sets aside as on the ground),
+    at their own report times: a stand-in for ships."""
+    counts: Counter[str] = Counter()
+
+    def taxi(piece: Piece) -> list[Piece]:
+        # A report faster than taxiing (take-off or landing roll) or a long stop cuts the piece.
+        fast = piece.groundspeed_kt > TAXI_MAX_KT
+        gap = np.concatenate([[False], np.diff(piece.time) > TAXI_MAX_GAP])
+        parts = split_at(piece, fast | gap)
+        kept = []
+        for part in parts:
+            slow = part.groundspeed_kt <= TAXI_MAX_KT
+            part = part.take(np.flatnonzero(slow | np.isnan(part.groundspeed_kt)))
+            if len(part) < 2:
+                continue
+            speed = float(np.median(step_speeds(part)))
+            if TAXI_SPEED[0] <= speed <= TAXI_SPEED[1]:
+                kept.append(part)
+            else:
+                counts["taxi pieces dropped: median speed outside 2-15 m/s"] += 1
+        return kept
+
+    names = [
+        "collections/quickstart.json.gz",
+        "collections/savan.json.gz",
+        "onground",
+        "readsb",
+        "rs1090",
+    ]
+    truth = recorded_truth("taxi", names, rows, seed, taxi, ground=True)
+    truth.counts.update(counts)
+    return truth
+
+
+def irregular(rows: int, seed: int) -> Truth:
+    """Other aircraft at their own irregular report times (3-60 s): FlightRadar24 dumps,
+    gliders, survey aircraft."""
+    return recorded_truth("irregular", ["fr24", "gliders", "surveys"], rows, seed)
+
+
+#: Simulated turns: speed range (m/s), turn rates (deg/s), scan (s), steps per track.
+TURN_SPEED = (100.0, 250.0)
+TURN_RATE_DEG = (3.0, 6.0)
+TURN_DT = 2.0
+TURN_STEPS = 200
+
+
+def turning(rows: int, seed: int) -> Truth:
+    """Simulated tracks alternating straight legs and coordinated turns of 3-6 deg/s
+    (:func:`torchsvs.scenarios.random_maneuvers`, 2 s scans)."""
+    import torch
+
+    from torchsvs.scenarios import ManeuverRanges, random_maneuvers
+
+    ranges = ManeuverRanges(
+        steps=TURN_STEPS,
+        dt=TURN_DT,
+        speed=TURN_SPEED,
+        segment_duration=(10.0, 60.0),
+        turn_rate_deg=TURN_RATE_DEG,
+        kind_weights=(0.35, 0.65, 0.0, 0.0),  # straight legs and constant-rate turns only
+    )
+    count = max(1, math.ceil(rows / TURN_STEPS))
+    batch = random_maneuvers(count, ranges, torch.Generator().manual_seed(seed))
+    truth = batch.truth.numpy()
+    pieces = [
+        Piece(
+            f"turn/{b:03d}",
+            TURN_DT * np.arange(1, TURN_STEPS + 1),
+            truth[b][:, [0, 2]],
+            np.full(TURN_STEPS, np.nan),
+        )
+        for b in range(count)
+    ]
+    counts = Counter({"tracks simulated": count})
+    return Truth("turning", truth_rows(pieces), ["simulation"], counts, {})
+
+
+KINDS: dict[str, Kind] = {
+    k.name: k
+    for k in (
+        Kind(
+            "own",
+            "airliners at their own report times",
+            (10.0, 50.0, 100.0),
+            airliners_own,
+            "rows with a new position, not a resampled grid",
+        ),
+        Kind("scan10", "airliners on 10 s scans", (50.0, 100.0), airliners_10s),
+        Kind(
+            "scan1",
+            "1 s scans: helicopters, calibration aircraft, military jets",
+            (10.0, 50.0),
+            one_second,
+        ),
+        Kind(
+            "taxi",
+            "aircraft taxiing on the ground (stand-in for ships)",
+            (10.0, 50.0),
+            taxiing,
+            "slow targets, 2-15 m/s, with stops and turns onto taxiways",
+        ),
+        Kind(
+            "irregular",
+            "other aircraft at irregular report times (FR24, gliders, surveys)",
+            (50.0,),
+            irregular,
+        ),
+        Kind("turning", "simulated hard turns (3-6 deg/s, 2 s scans)", (50.0,), turning),
+    )
+}
+
+
+# --- sets --------------------------------------------------------------------------------------
+
+
+@dataclass
+class BenchSet:
+    """One benchmark set: a kind's truth measured with noise σ."""
+
+    kind: Kind
+    sigma: float
+    truth: Truth
+    measurements: pd.DataFrame  #: track_id, time, x, y: the truth plus noise
+
+    @property
+    def name(self) -> str:
+        return f"{self.kind.name} σ{self.sigma:g}"
+
+    @property
+    def slug(self) -> str:
+        return f"{self.kind.name}_s{self.sigma:g}"
+
+    def write(self, folder: Path) -> tuple[Path, Path]:
+        """The input file (measurements only) and the truth beside it, as CSV."""
+        folder.mkdir(parents=True, exist_ok=True)
+        source, truth = folder / f"{self.slug}.csv", folder / f"{self.slug}.truth.csv"
+        self.measurements.to_csv(source, index=False)
+        self.truth.rows.to_csv(truth, index=False)
+        return source, truth
+
+
+def measure(truth: pd.DataFrame, sigma: float, seed: int) -> pd.DataFrame:
+    """The truth's rows with independent Gaussian noise of standard deviation ``sigma`` (m) on
+    ``x`` and ``y``, seeded."""
+    if not sigma > 0:
+        raise ValueError(f"sigma: expected a standard deviation > 0 (m), got {sigma!r}")
+    noise = np.random.default_rng(seed).normal(0.0, sigma, size=(len(truth), 2))
+    return truth.assign(x=truth["x"] + noise[:, 0], y=truth["y"] + noise[:, 1])
+
+
+def set_seed(seed: int, kind: str, sigma: float | None = None) -> int:
+    """A stable seed per kind (and noise level) from the run's seed."""
+    text = kind if sigma is None else f"{kind}/{sigma:g}"
+    return (seed * 1_000_003 + zlib.crc32(text.encode())) % (2**32)
+
+
+def build_sets(
+    kinds: Sequence[str] | None = None,
+    rows: int = 5000,
+    seed: int = 0,
+    sigmas: Sequence[float] | None = None,
+    progress: bool = False,
+) -> list[BenchSet]:
+    """The benchmark sets: every kind of ``kinds`` (default :data:`KINDS`) at its noise levels
+    (or at ``sigmas``), about ``rows`` rows each."""
+    from tqdm.auto import tqdm
+
+    names = list(KINDS) if kinds is None else list(kinds)
+    unknown = [k for k in names if k not in KINDS]
+    if unknown:
+        raise ValueError(f"kinds: expected names among {sorted(KINDS)}, got {unknown}")
+    sets = []
+    for name in tqdm(names, desc="sets", disable=not progress, leave=False):
+        kind = KINDS[name]
+        truth = kind.build(rows, set_seed(seed, name))
+        for sigma in sigmas or kind.sigmas:
+            noisy = measure(truth.rows, sigma, set_seed(seed, name, sigma))
+            sets.append(BenchSet(kind, float(sigma), truth, noisy))
+    return sets
+
+
+class SetStats(NamedTuple):
+    """What a set holds."""
+
+    tracks: int
+    rows: int
+    interval: np.ndarray  #: [4] 10th, 50th, 90th percentiles and the longest report interval (s)
+    speed: np.ndarray  #: [3] the same of the truth's speed between reports (m/s)
+    raw_rmse: float  #: 2-D RMSE of the measurements (m)
+
+
+def describe(bench: BenchSet) -> SetStats:
+    """Tracks, rows, report intervals and speeds (percentiles), raw RMSE of a set."""
+    rows = bench.truth.rows
+    ids = rows["track_id"].to_numpy()
+    same = ids[1:] == ids[:-1]
+    elapsed = np.diff(rows["time"].to_numpy())[same]
+    moved = np.hypot(np.diff(rows["x"].to_numpy()), np.diff(rows["y"].to_numpy()))[same]
+    speed = moved / np.maximum(elapsed, 1e-9)
+    error = bench.measurements[["x", "y"]].to_numpy() - rows[["x", "y"]].to_numpy()
+
+    def spread(values: np.ndarray) -> np.ndarray:
+        return np.percentile(values, [10, 50, 90]) if len(values) else np.full(3, np.nan)
+
+    longest = float(elapsed.max()) if len(elapsed) else math.nan
+    return SetStats(
+        int(rows["track_id"].nunique()),
+        len(rows),
+        np.append(spread(elapsed), longest),
+        spread(speed),
+        float(np.sqrt(np.mean((error**2).sum(axis=1)))),
+    )

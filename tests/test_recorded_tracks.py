@@ -1,0 +1,187 @@
+"""The recorded-tracks benchmark (experiments/recorded_tracks.py) end to end on a tiny set, and
+its parts against numbers that follow from their definitions."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from experiments import recorded_sets as rs
+from experiments import recorded_tracks as rt
+
+
+def tiny_turning(rows: int = 400, sigma: float = 50.0, seed: int = 0) -> rs.BenchSet:
+    kind = rs.KINDS["turning"]
+    truth = kind.build(rows, seed)
+    return rs.BenchSet(kind, sigma, truth, rs.measure(truth.rows, sigma, seed))
+
+
+def test_input_holds_measurements_only_with_the_noise_asked_for(tmp_path: Path) -> None:
+    bench = tiny_turning(rows=1000, sigma=50.0)
+    source, truth_file = bench.write(tmp_path)
+    measured, truth = pd.read_csv(source), pd.read_csv(truth_file)
+    assert list(measured.columns) == ["track_id", "time", "x", "y"]
+    assert len(measured) == len(truth) == 1000
+    assert (measured["track_id"] == truth["track_id"]).all()
+    noise = (measured[["x", "y"]] - truth[["x", "y"]]).to_numpy().ravel()
+    # 2000 N(0, σ²) draws: the variance ratio has standard deviation √(2/2000) ≈ 0.032.
+    assert abs(noise.var() / 50.0**2 - 1) < 5 * math.sqrt(2 / len(noise))
+    assert abs(noise.mean()) < 5 * 50.0 / math.sqrt(len(noise))
+    # 2-D raw RMSE ≈ σ√2
+    assert rs.describe(bench).raw_rmse == pytest.approx(
+        math.sqrt(2) * 50.0, rel=5 * math.sqrt(1 / 1000)
+    )
+    # the same seed gives the same set; another noise level other noise
+    again = tiny_turning(rows=1000, sigma=50.0)
+    assert np.array_equal(again.measurements[["x", "y"]], bench.measurements[["x", "y"]])
+    with pytest.raises(ValueError, match="^sigma"):
+        rs.measure(truth, 0.0, 0)
+
+
+def test_score_counts_rows_without_an_estimate_and_matches_rows_by_key() -> None:
+    truth = pd.DataFrame(
+        {"track_id": ["a"] * 4 + ["b"] * 3, "time": [0, 1, 2, 3, 0, 5, 9], "x": 1.0, "y": 2.0}
+    )
+    truth["x"] = np.arange(7, dtype=float)
+    output = truth.assign(x=truth["x"] + 3.0, y=truth["y"] + 4.0)  # every error 5 m
+    assert rt.score(output, truth) == (pytest.approx(5.0), 0)
+    holes = output.copy()
+    holes.loc[[1, 5], "x"] = np.nan
+    assert rt.score(holes, truth) == (pytest.approx(5.0), 2)
+    shuffled = holes.sample(frac=1.0, random_state=1).iloc[1:]  # another order, one row gone
+    rmse, missing = rt.score(shuffled, truth)
+    gone = holes.sample(frac=1.0, random_state=1).iloc[0]
+    assert rmse == pytest.approx(5.0)
+    assert missing == 2 + int(np.isfinite(gone["x"]))
+
+
+def test_dejitter_moves_positions_along_the_track_only_and_cuts_white_timing_error() -> None:
+    t = np.arange(0.0, 2000.0)
+    speed = 150.0
+    line = np.stack([speed * t, np.zeros_like(t)], 1)
+    s = 25.0
+    rng = np.random.default_rng(0)
+    recorded = line + np.stack([rng.normal(0, s, len(t)), np.zeros_like(t)], 1)
+    moved, done = rs.dejitter(t, recorded)
+    interior = (t >= rs.DEJITTER_WINDOW) & (t <= t[-1] - rs.DEJITTER_WINDOW)
+    assert done[interior].all()
+    # the track is a line along x: nothing moves across it
+    assert np.abs(moved[:, 1]).max() < 1e-6
+    # along it, the error left is the local fit's: Σ ℓ_j² of its equivalent kernel (probed with
+    # unit impulses) times s²
+    centre = 1000
+    weights = []
+    for j in range(centre - 12, centre + 13):
+        impulse = np.zeros((len(t), 1))
+        impulse[j] = 1.0
+        fitted, _, _ = rs.local_quadratic(t, impulse, rs.DEJITTER_WINDOW, 2)
+        weights.append(fitted[centre, 0])
+    expected = s * math.sqrt(sum(w * w for w in weights))
+    left = np.sqrt(np.mean((moved[interior, 0] - line[interior, 0]) ** 2))
+    # about 1950 interior errors correlated over ±10 steps: ~100 independent ones, so the RMS
+    # is within ~7% (1/√(2·100)); 25% is over three of those
+    assert left == pytest.approx(expected, rel=0.25)
+    assert expected < 0.6 * s
+
+    # a constant-speed turn sampled evenly: the fit's bias is radial, so nothing moves inside
+    omega = math.radians(6.0)
+    circle = 2500.0 * np.stack([np.cos(omega * t[:300]), np.sin(omega * t[:300])], 1)
+    moved, done = rs.dejitter(t[:300], circle)
+    inner = slice(11, 289)
+    assert done[inner].all()
+    assert np.abs(moved[inner] - circle[inner]).max() < 1e-6
+
+
+def test_roughness_reads_white_error_off_one_second_reports() -> None:
+    t = np.arange(0.0, 5000.0)
+    rng = np.random.default_rng(1)
+    along, across = 20.0, 3.0
+    path = np.stack([100.0 * t + rng.normal(0, along, len(t)), rng.normal(0, across, len(t))], 1)
+    piece = rs.Piece("a", t, path, np.full(len(t), np.nan))
+    found = rs.roughness([piece])
+    # 4998 offsets each; relative standard error of an RMS about 1/√(2n) = 1%
+    assert found["along"] == pytest.approx(along, rel=0.06)
+    assert found["across"] == pytest.approx(across, rel=0.06)
+    sparse = rs.Piece("b", 10.0 * t[:50], path[:50], np.full(50, np.nan))
+    assert math.isnan(rs.roughness([sparse])["along"])
+
+
+def test_estimator_choices_follow_the_command_including_auto() -> None:
+    from torchsvs.cli import track_parser
+    from torchsvs.tracking import ESTIMATORS
+
+    names, default = rt.estimator_choices()
+    assert set(names) >= set(ESTIMATORS) and default in names
+    parser = track_parser()
+    action = next(a for a in parser._actions if "--estimator" in a.option_strings)
+    action.choices = sorted({*ESTIMATORS, "auto", "new"})
+    action.default = "auto"
+    names, default = rt.estimator_choices(parser)
+    extra = sorted({"auto", "new"} - set(ESTIMATORS))
+    assert names == [*ESTIMATORS, *extra]  # the table's order first, the others after
+    assert default == "auto"
+
+
+def test_summary_beside_the_output_is_read_and_flagged(tmp_path: Path) -> None:
+    target = tmp_path / "out.csv"
+    assert rt.summary_path(target) == tmp_path / "out.summary.json"
+    assert rt.read_summary(target) == {}
+    rt.summary_path(target).write_text(
+        json.dumps({"estimated_position_rmse": 30.0, "measurement_rmse": 70.0})
+    )
+    summary = rt.read_summary(target)
+    assert rt.summary_number(summary, "estimated_position_rmse") == 30.0
+    assert rt.summary_number({"overall": summary}, "measurement_rmse") == 70.0
+    assert math.isnan(rt.summary_number(summary, "nothing"))
+    bench = tiny_turning(rows=200)
+    close = rt.Run(bench.name, "ks", "default", [], rmse=27.0, raw=70.0, estimated=30.0)
+    far = rt.Run(bench.name, "kf", "default", [], rmse=25.0, raw=70.0, estimated=30.0)
+    text = "\n".join(rt.detail_section([close, far], bench))
+    assert "| 1.11 |" in text  # 30 / 27: within 15%
+    assert "**1.20** ⚠" in text  # 30 / 25: flagged
+    lines = rt.estimate_section([close, far])
+    assert lines[0].startswith("2 runs wrote a truth-free estimate; 1 are more than 15% off")
+
+
+def test_harness_end_to_end_on_a_tiny_set(tmp_path: Path) -> None:
+    bench = tiny_turning(rows=400)
+    runs = rt.run_all([bench], ["ks"], ["default", "--meas-std σ"], tmp_path, progress=False)
+    assert [(r.estimator, r.mode) for r in runs] == [("ks", "default"), ("ks", "--meas-std σ")]
+    raw = rs.describe(bench).raw_rmse
+    for run in runs:
+        assert run.ok and run.missing == 0 and run.rows == 400
+        assert run.raw == raw and math.isfinite(run.rmse) and run.seconds > 0
+    assert runs[1].argv[-2:] == ["--meas-std", "50"]
+    # a run that cannot run is kept with the command's message, every row counted as missing
+    broken = rt.run_job(
+        rt.Job(bench.name, 50.0, raw, str(tmp_path / "nothing.csv"), str(tmp_path / "sets" /
+               f"{bench.slug}.truth.csv"), "ks", "default", str(tmp_path / "x.csv"), "inprocess")
+    )  # fmt: skip
+    assert not broken.ok and broken.error and broken.missing == 400
+    figure = tmp_path / "map.png"
+    rt.heat_map([*runs, broken], [bench.name], ["ks"], ["default", "--meas-std σ"], figure)
+    assert figure.stat().st_size > 0
+    text = rt.report([bench], [*runs, broken], ["ks"], ["default"], "ks", {}, "1 s", figure.name)
+    assert bench.name in text and "The command's default estimator is `" in text
+
+
+def test_the_command_line_gives_what_the_in_process_run_gives(tmp_path: Path) -> None:
+    bench = tiny_turning(rows=200)
+    source, truth = bench.write(tmp_path / "sets")
+    raw = rs.describe(bench).raw_rmse
+
+    def job(via: str) -> rt.Job:
+        target = str(tmp_path / f"{via}.csv")
+        return rt.Job(
+            bench.name, 50.0, raw, str(source), str(truth), "ks", "--meas-std σ", target, via
+        )
+
+    inprocess, cli = rt.run_job(job("inprocess")), rt.run_job(job("cli"))
+    assert inprocess.ok and cli.ok
+    assert cli.rmse == pytest.approx(inprocess.rmse, rel=1e-12)
+    assert cli.sigma_used == pytest.approx(inprocess.sigma_used)
