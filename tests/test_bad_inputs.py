@@ -293,6 +293,29 @@ def test_latitude_longitude_are_estimated_in_metres(tmp_path, capsys):
     )
 
 
+def test_latitude_longitude_streamed_equal_read_whole(tmp_path, capsys):
+    """Each track's frame is its own first position, whichever block its rows arrive in."""
+    header, rows, _ = _geodetic_rows(altitude=True)
+    source = _csv(tmp_path / "a.csv", header, rows)
+    outputs = []
+    for name, mode in (("w.csv", ["--in-memory"]), ("s.csv", ["--stream", "--block-rows", "7"])):
+        code, err = _track(
+            capsys,
+            source,
+            "-o",
+            tmp_path / name,
+            "--meas-std",
+            "30",
+            "--q",
+            "1",
+            "--covariance",
+            *mode,
+        )
+        assert code == 0, err
+        outputs.append((tmp_path / name).read_bytes())
+    assert outputs[0] == outputs[1]
+
+
 @pytest.mark.parametrize(
     "names", [("lat", "lon"), ("Latitude", "Longitude"), ("LAT", "lng"), ("lon", "lat")]
 )
@@ -544,6 +567,11 @@ def test_bad_settings_are_refused_naming_the_option(tmp_path, capsys, option, va
         ),
         ("c.csv", 'track_id,time,x,y\na,0,"1,5",1\na,1,"2,5",2\n', r"decimal commas are not read"),
         ("z.csv", "track_id,time,x,y,z\na,0,1,1,\na,1,2,2,\n", r"position: column 'z' is empty"),
+        (
+            "r.csv",
+            "track_id,time,x,y\na,0,1,1\na,1,2,2,7\n",
+            r"path: '.*r\.csv': CSV parse error: Expected 4 columns, got 5: a,1,2,2,7",
+        ),
     ],
 )
 def test_unreadable_inputs_get_a_clear_message(tmp_path, capsys, name, content, pattern):

@@ -132,7 +132,7 @@ def describe_input(
     the time unit (:func:`~torchsvs.datasets.rows.detect_time_unit`), a position column without
     numbers, a file without rows or without a row to place. Raises ``ValueError`` naming the
     column or the file; returns the resolved columns, a description and warnings."""
-    described, blocks = _open_blocks(path, columns, block_rows, name)
+    described, blocks = _open_blocks(path, columns, block_rows, name, thorough=True)
     close = getattr(blocks, "close", None)
     if close is not None:
         close()
@@ -195,10 +195,16 @@ def check_output(
 
 
 def _open_blocks(
-    path: str | Path, columns: Columns | None, block_rows: int, name: str = "path"
+    path: str | Path,
+    columns: Columns | None,
+    block_rows: int,
+    name: str = "path",
+    thorough: bool = False,
 ) -> tuple[InputDescription, Iterator[Any]]:
     """The file's description (:func:`describe_input`) and all its blocks (the first read
-    once)."""
+    once). Unless ``thorough``, the checks that group the first block's rows into tracks run
+    only where ``columns`` leaves the frame or the time unit open (``torchsvs track`` settles
+    them first, with ``thorough``)."""
     check_input(path, name)
     if Path(path).stat().st_size == 0:
         raise ValueError(f"{name}: {str(path)!r} is empty (no header, no rows)")
@@ -207,17 +213,18 @@ def _open_blocks(
     first = next(blocks, None)
     if first is None or len(first) == 0:
         raise ValueError(f"{name}: {str(path)!r} has a header but no rows")
-    described = _describe(path, first, cols, columns or Columns(), name)
+    described = _describe(path, first, cols, columns or Columns(), name, thorough)
     return described, itertools.chain([first], blocks)
 
 
 def _describe(
-    path: str | Path, table: Any, cols: Columns, asked: Columns, name: str
+    path: str | Path, table: Any, cols: Columns, asked: Columns, name: str, thorough: bool
 ) -> InputDescription:
     import pyarrow.compute as pc
 
     rows = len(table)
-    lines, notes = [], []
+    lines: list[str] = []
+    notes: list[str] = []
     if file_format(path) == "csv" and csv_delimiter(path) != ",":
         lines.append(f"separator {csv_delimiter(path)!r} (read from the header)")
     assert cols.position is not None
@@ -257,6 +264,8 @@ def _describe(
         found = f"numbers in units of {cols.seconds_per_unit:g} s (as given)"
     lines.append(f"time {cols.time!r}: {found}")
     assert cols.position is not None
+    if not (thorough or asked.frame == "auto" or asked.time_unit == "auto"):
+        return InputDescription(cols, lines, notes, [], rows)
     steps = group_rows(parse_block(table, cols))
     if steps.num_tracks == 0:
         raise ValueError(

@@ -298,7 +298,7 @@ def file_columns(path: str | Path) -> list[str]:
     except pa.ArrowInvalid as err:
         if "Empty CSV file" in str(err):
             raise ValueError(f"path: {str(path)!r} is empty (no header, no rows)") from err
-        raise
+        raise ValueError(f"path: {str(path)!r}: {err}") from err
 
 
 def _parse_options(path: str | Path) -> Any:
@@ -350,12 +350,15 @@ def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -
         include_columns=names,
         strings_can_be_null=True,
     )
-    with pcsv.open_csv(
-        path, read_options=read, parse_options=_parse_options(path), convert_options=convert
-    ) as reader:
-        for batch in reader:
-            for start in range(0, batch.num_rows, block_rows):
-                yield pa.Table.from_batches([batch.slice(start, block_rows)])
+    try:
+        with pcsv.open_csv(
+            path, read_options=read, parse_options=_parse_options(path), convert_options=convert
+        ) as reader:
+            for batch in reader:
+                for start in range(0, batch.num_rows, block_rows):
+                    yield pa.Table.from_batches([batch.slice(start, block_rows)])
+    except pa.ArrowInvalid as err:  # a row of more fields than the header, a bad quote, ...
+        raise ValueError(f"path: {str(path)!r}: {err}") from err
 
 
 @dataclass
