@@ -182,8 +182,8 @@ def track_parser() -> argparse.ArgumentParser:
         "--meas-std",
         type=_positive_floats,
         default=None,
-        help="measurement noise standard deviation, one value or one per axis (default: read off "
-        "the data; with --fit, learned)",
+        help="measurement noise standard deviation, one value or one per axis, in metres (also "
+        "for latitude, longitude: --frame) (default: read off the data; with --fit, learned)",
     )
     parser.add_argument(
         "--q",
