@@ -54,6 +54,7 @@ IMPORTS = {
 def track(source: Path, target: Path, options: list[str], record: list) -> None:
     """One ``torchsvs track`` run in a fresh interpreter; appends (wall seconds, phases)."""
     command = [sys.executable, "-m", "torchsvs.cli", "track", str(source), "-o", str(target)]
+    command += ["--force"]  # the rounds write the same files
     command += ["--meas-std", "50", *options]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     start = time.perf_counter()

@@ -78,7 +78,7 @@ def _call_cases(sc):
             ValueError,
             r"^psi: expected a per-step override of shape \[B, T, 2\]",
             (z, x0, P0),
-            {"psi": torch.ones(B, T, 3)},
+            {"psi": torch.ones(B, T, 3, dtype=z.dtype)},
         ),
         "psi override <= 0": (
             ValueError,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import importlib
+import math
 import os
 import socket
 import subprocess
@@ -62,6 +63,36 @@ def _floats(text: str) -> list[float]:
         ) from err
 
 
+def _positive_floats(text: str) -> list[float]:
+    """Numbers separated by commas, each finite and > 0 (noise levels, widths)."""
+    values = _floats(text)
+    if not all(math.isfinite(v) and v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected finite numbers > 0, got {text!r}")
+    return values
+
+
+def _positive(text: str) -> float:
+    """One finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    """A number in [0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1), got {text!r}")
+    return value
+
+
 def _at_least_one(text: str) -> int:
     try:
         value = int(text)
@@ -70,6 +101,21 @@ def _at_least_one(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
     return value
+
+
+def _time_unit(text: str) -> float | str:
+    """``auto``, a unit of :data:`~torchsvs.datasets.rows.TIME_UNITS` or seconds per unit."""
+    from torchsvs.datasets.rows import TIME_UNITS
+
+    if text == "auto" or text in TIME_UNITS:
+        return text
+    try:
+        return _positive(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected auto, {', '.join(TIME_UNITS)} or seconds per unit (a number > 0), "
+            f"got {text!r}"
+        ) from None
 
 
 def track_parser() -> argparse.ArgumentParser:
@@ -84,8 +130,21 @@ def track_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="estimators:\n" + "\n".join(f"  {k:<8} {v}" for k, v in ESTIMATORS.items()),
     )
-    parser.add_argument("input", help="a .csv or .parquet file of track rows")
-    parser.add_argument("-o", "--output", required=True, help="the .csv or .parquet to write")
+    parser.add_argument(
+        "input",
+        help="a .csv (.csv.gz, .tsv, .txt; separator , ; tab or | read from the header) or "
+        ".parquet file of track rows",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="the .csv or .parquet to write (never the input; an existing file only with "
+        "--force); written under a temporary name beside it and renamed when complete",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="replace an existing output (or --save) file"
+    )
     parser.add_argument(
         "--estimator",
         default="auto",
@@ -96,37 +155,57 @@ def track_parser() -> argparse.ArgumentParser:
     parser.add_argument("--id-col", default="track_id", help="track id column (default track_id)")
     parser.add_argument("--time-col", default="time", help="time column (default time)")
     parser.add_argument(
-        "--pos-cols", default=None, help="position columns, e.g. x,y or x,y,z (default: x, y[, z])"
+        "--pos-cols",
+        default=None,
+        help="position columns, e.g. x,y or x,y,z, or lat,lon[,alt] (default: x, y[, z], or "
+        "without them latitude/lat, longitude/lon/lng[, altitude/alt/height/elevation])",
     )
     parser.add_argument(
-        "--time-unit", type=float, default=1.0, help="seconds per unit of a numeric time (1e-3: ms)"
+        "--frame",
+        default="auto",
+        choices=("auto", "metric", "wgs84"),
+        help="what the positions are: metric (metres, estimated as read) or wgs84 (latitude, "
+        "longitude in degrees[, altitude in metres]: estimated in metres east, north[, up] of "
+        "each track's first position, written back as degrees, with velocities v_east, "
+        "v_north[, v_up] in m/s and covariances in metres); default auto: wgs84 when the "
+        "position columns are named as latitude and longitude (any case)",
+    )
+    parser.add_argument(
+        "--time-unit",
+        type=_time_unit,
+        default="auto",
+        help="unit of a numeric time: s, ms, us, ns or seconds per unit (0.001 = ms); default "
+        "auto: seconds, or ms/us/ns since 1970 when the values are that large (from 1e11, "
+        "1e14, 1e17); date-time texts (ISO 8601) and timestamps need none",
     )
     parser.add_argument(
         "--meas-std",
-        type=_floats,
+        type=_positive_floats,
         default=None,
-        help="measurement noise standard deviation, one value or one per axis (default: read off "
-        "the data; with --fit, learned)",
+        help="measurement noise standard deviation, one value or one per axis, in metres (also "
+        "for latitude, longitude: --frame) (default: read off the data; with --fit, learned)",
     )
     parser.add_argument(
         "--q",
-        type=float,
+        type=_positive,
         default=None,
         help="process noise of the CV model (imm: of its CV mode; default: read off the data, "
         "for imm 0.03 of it)",
     )
     parser.add_argument(
         "--psi",
-        type=_floats,
+        type=_positive_floats,
         default=None,
         help="SVSF boundary layer: one width, a position and a velocity width for every axis, "
         "or one per corrector component in state order (x, vx, y, vy, ...; positions only with "
         "--no-velocity); default: 5 noise standard deviations",
     )
-    parser.add_argument("--gamma", type=float, default=0.1, help="SVSF memory (default 0.1)")
+    parser.add_argument(
+        "--gamma", type=_fraction, default=0.1, help="SVSF memory in [0, 1) (default 0.1)"
+    )
     parser.add_argument(
         "--lag",
-        type=int,
+        type=_at_least_one,
         default=None,
         help="smoother lag (default: ks full interval, svss and svstps 5)",
     )
@@ -136,7 +215,9 @@ def track_parser() -> argparse.ArgumentParser:
         help="SVSF family in the paper's H⁺ mode (velocity never corrected) instead of "
         "finite-difference velocities",
     )
-    parser.add_argument("--particles", type=int, default=350, help="particles of pf and spvsf")
+    parser.add_argument(
+        "--particles", type=_at_least_one, default=350, help="particles of pf and spvsf"
+    )
     parser.add_argument(
         "--turn-q",
         type=float,
@@ -166,24 +247,40 @@ def track_parser() -> argparse.ArgumentParser:
         "--fit", action="store_true", help="tune the estimator on the input itself (no truth)"
     )
     parser.add_argument(
-        "--fit-tracks", type=int, default=2000, help="tracks the fit uses (default 2000)"
+        "--fit-tracks", type=_at_least_one, default=2000, help="tracks the fit uses (default 2000)"
     )
-    parser.add_argument("--fit-steps", type=int, default=None, help="optimiser steps of the fit")
+    parser.add_argument(
+        "--fit-steps", type=_at_least_one, default=None, help="optimiser steps of the fit"
+    )
     parser.add_argument(
         "--checkpoint",
         default=None,
         help="load parameters (a --save file or a Lightning checkpoint)",
     )
-    parser.add_argument("--save", default=None, help="save the settings and parameters used")
+    parser.add_argument(
+        "--save",
+        default=None,
+        help="save the settings and parameters used (never over the input or the output; an "
+        "existing file only with --force)",
+    )
     parser.add_argument("--covariance", action="store_true", help="also write the covariances")
     reading = parser.add_mutually_exclusive_group()
     reading.add_argument(
-        "--in-memory", action="store_true", help="read the whole file at once (any row order)"
+        "--in-memory",
+        action="store_true",
+        help="read the whole file at once: any row order (the default for files under 256 MiB)",
     )
     reading.add_argument(
-        "--stream", action="store_true", help="stream tracks (each track's rows contiguous)"
+        "--stream",
+        action="store_true",
+        help="stream the file track by track in bounded memory (the default for files of "
+        "256 MiB or more): each track's rows must be contiguous (any order within a track); a "
+        "track found again after other tracks stops the run with its id: sort the file by "
+        "track id or pass --in-memory",
     )
-    parser.add_argument("--block-rows", type=int, default=1 << 18, help="rows per streamed block")
+    parser.add_argument(
+        "--block-rows", type=_at_least_one, default=1 << 18, help="rows per streamed block"
+    )
     parser.add_argument(
         "--max-cells",
         type=_at_least_one,
@@ -194,15 +291,19 @@ def track_parser() -> argparse.ArgumentParser:
         "--processes",
         type=_at_least_one,
         default=1,
-        help="processes sharing the tracks (Lightning DDP on CPU, gloo; each reads the whole "
-        "file and runs --threads threads; rank 0 fits once and writes the same file as one "
+        help="processes sharing the tracks (Lightning DDP on CPU, gloo; each runs --threads "
+        "threads): rank 0 alone reads the whole file (into memory, any row order; not with "
+        "--stream), reads the settings off it (and fits) once, sends the others their tracks' "
+        "steps and the settings, gathers the estimates and writes the same file as one "
         "process; only the estimating is shared, so it pays only where that dominates, see "
-        "benchmarks/ddp_predict.md); default 1",
+        "benchmarks/ddp_predict.md; default 1",
     )
     parser.add_argument(
         "--double", action="store_true", help="compute in float64 (default float32)"
     )
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument(
+        "--threads", type=_at_least_one, default=1, help="torch threads (default 1)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return parser
 
@@ -210,11 +311,64 @@ def track_parser() -> argparse.ArgumentParser:
 def track(argv: list[str]) -> None:
     """``torchsvs track``: see :func:`track_parser`."""
     args = track_parser().parse_args(argv)
+    if os.environ.get("LOCAL_RANK", "0") == "0":  # ranks 1..N-1 of --processes read no file
+        try:
+            args.columns = checked_columns(args)
+        except (ValueError, TypeError, FileNotFoundError) as err:
+            raise SystemExit(f"torchsvs track: {err}") from err
     if args.processes > 1 and not args.stream and "LOCAL_RANK" not in os.environ:
         with OtherRanks(argv, args.processes, args.threads):
             _track(args)
     else:
         _track(args)
+
+
+def _columns(args: argparse.Namespace) -> Any:
+    from torchsvs.datasets import Columns
+
+    pos = tuple(args.pos_cols.split(",")) if args.pos_cols else None
+    return Columns(args.id_col, args.time_col, pos, time_unit=args.time_unit, frame=args.frame)
+
+
+def checked_columns(args: argparse.Namespace) -> Any:
+    """Checks the paths of ``torchsvs track`` before anything runs (the input readable, the
+    output and ``--save`` never an input, an existing file only with ``--force``), settles the
+    input's columns on its first block (:func:`~torchsvs.datasets.files.describe_input`: the
+    frame, the time unit) and prints what was found (unless ``--quiet``) and any warning.
+
+    Returns:
+        The resolved :class:`~torchsvs.datasets.Columns`.
+    """
+    from torchsvs.datasets.files import check_input, check_output, describe_input
+    from torchsvs.datasets.rows import file_format
+
+    check_input(args.input, "input")
+    check_output(args.output, "output", inputs=(args.input, args.checkpoint), force=args.force)
+    try:
+        file_format(args.output)
+    except ValueError:
+        raise ValueError(
+            f"output: expected a .csv or .parquet file name, got {args.output!r}"
+        ) from None
+    if args.save is not None:
+        if Path(args.save).resolve() == Path(args.output).resolve():
+            raise ValueError(f"save: {args.save!r} is the output file; name another file")
+        check_output(args.save, "save", inputs=(args.input,), force=args.force)
+    if args.checkpoint is not None and not Path(args.checkpoint).is_file():
+        raise FileNotFoundError(f"checkpoint: {args.checkpoint!r}: no such file")
+    described = describe_input(args.input, _columns(args), block_rows=args.block_rows, name="input")
+    if described.constant and args.checkpoint is None and None in (args.meas_std, args.q):
+        raise ValueError(
+            f"position: {described.constant} do not change within any track of the first "
+            f"{described.rows} rows: no noise can be read off them; give --meas-std (one value "
+            "per axis) and --q, or leave such a column out with --pos-cols"
+        )
+    if not args.quiet:
+        for line in described.lines:
+            print(f"reading {args.input}: {line}", file=sys.stderr)
+    for text in described.warnings:
+        print(f"torchsvs track: warning: {text}", file=sys.stderr)
+    return described.columns
 
 
 class OtherRanks:
@@ -287,12 +441,10 @@ class OtherRanks:
 def _track(args: argparse.Namespace) -> None:
     import torch
 
-    from torchsvs.datasets import Columns
     from torchsvs.tracking import Settings, saved_settings, track_file
 
     torch.set_num_threads(args.threads)
-    pos = tuple(args.pos_cols.split(",")) if args.pos_cols else None
-    columns = Columns(args.id_col, args.time_col, pos, time_unit=args.time_unit)
+    columns = getattr(args, "columns", None) or _columns(args)
     try:
         if args.checkpoint is not None and Path(args.checkpoint).is_file():
             try:
@@ -379,6 +531,19 @@ def usage() -> str:
     )
 
 
+def reproduce_usage() -> str:
+    """What ``torchsvs reproduce`` (alone or with ``--help``) prints: the reproductions."""
+    lines = [
+        f"  torchsvs {k:<16} {v[1]}" for k, v in COMMANDS.items() if k.startswith("reproduce ")
+    ]
+    return (
+        "usage: torchsvs reproduce NAME [options]\n\nreproductions (reports in "
+        f"./{REPRODUCE_OUT}/NAME unless --out says otherwise):\n"
+        + "\n".join(lines)
+        + "\n\n`torchsvs reproduce NAME --help` lists its options."
+    )
+
+
 def main(argv: list[str] | None = None) -> None:
     """Dispatches ``torchsvs COMMAND [options]`` to the experiment's own ``main``."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -396,6 +561,9 @@ def main(argv: list[str] | None = None) -> None:
     if args[:1] == ["track"]:
         track(args[1:])
         return
+    if args[:1] == ["reproduce"] and args[1:2] in ([], ["-h"], ["--help"], ["help"]):
+        print(reproduce_usage())  # what there is to reproduce: standard output, success
+        return
     for words in sorted(COMMANDS, key=len, reverse=True):
         size = len(words.split())
         if args[:size] == words.split():
@@ -406,6 +574,9 @@ def main(argv: list[str] | None = None) -> None:
             else:
                 run(args[size:], prog=f"torchsvs {words}")
             return
+    if args[:1] == ["reproduce"]:
+        print(f"torchsvs: unknown reproduction {args[1]!r}\n\n{reproduce_usage()}", file=sys.stderr)
+        raise SystemExit(2)
     print(f"torchsvs: unknown command {' '.join(args[:2])!r}\n\n{usage()}", file=sys.stderr)
     raise SystemExit(2)
 

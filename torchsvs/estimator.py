@@ -70,6 +70,18 @@ def _as_float_tensor(value: Any, name: str, dtype: torch.dtype) -> Tensor:
         raise TypeError(f"{name}: expected a tensor, got {type(value).__name__}") from err
 
 
+def _check_dtype(value: Any, name: str, dtype: torch.dtype) -> None:
+    """Refuses a floating tensor of another dtype than ``z``'s: converting it silently would
+    round a float64 prior (or lose nothing, and hide which precision ran). Numbers, lists and
+    arrays are converted; integer tensors too. Checked after the shape and values, so those
+    errors come first."""
+    if isinstance(value, Tensor) and value.is_floating_point() and value.dtype != dtype:
+        raise TypeError(
+            f"{name}: dtype {value.dtype} differs from z's dtype {dtype}; the computation runs "
+            f"in z's dtype: pass {name}.to({dtype}) (or z in {value.dtype})"
+        )
+
+
 def prepare_inputs(
     model: StateSpaceModel,
     z: Any,
@@ -110,7 +122,10 @@ def prepare_inputs(
             )
         x0, P0 = x0.to(dtype).expand(B, -1), P0.to(dtype)
     else:
+        given = (x0, P0)
         x0, P0 = _check_prior(model, x0, P0, B, single, dtype)
+        _check_dtype(given[0], "x0", dtype)
+        _check_dtype(given[1], "P0", dtype)
 
     u_t = None
     if u is not None:
@@ -125,7 +140,9 @@ def prepare_inputs(
             raise ValueError(f"u: expected shape {want}, got {_shape(u)}")
         if not bool(torch.isfinite(u_t).all()):
             raise ValueError("u: contains NaN or inf")
+        _check_dtype(u, "u", dtype)
     dt_t = _check_dt(model, dt, B, T, single, dtype)
+    _check_dtype(dt, "dt", dtype)
     psi_t = None
     if psi is not None:
         psi_t = _as_float_tensor(psi, "psi", dtype)
@@ -138,6 +155,7 @@ def prepare_inputs(
             )
         if not bool(torch.isfinite(psi_t).all()) or bool((psi_t <= 0).any()):
             raise ValueError("psi: expected finite boundary layer widths > 0")
+        _check_dtype(psi, "psi", dtype)
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
     check_keep(keep)
@@ -198,6 +216,11 @@ def prepare_prior(model: StateSpaceModel, x0: Any, P0: Any) -> tuple[Tensor, Ten
     if B == 0:
         raise ValueError(f"x0: expected at least one track, got shape {_shape(x0)}")
     x0b, P0b = _check_prior(model, x0, P0, B, single, x0.dtype)
+    if isinstance(P0, Tensor) and P0.is_floating_point() and P0.dtype != x0.dtype:
+        raise TypeError(
+            f"P0: dtype {P0.dtype} differs from x0's dtype {x0.dtype} (the state's dtype); "
+            f"pass P0.to({x0.dtype})"
+        )
     if single:
         x0b, P0b = x0b.reshape(1, n), P0b.reshape(1, n, n)
     return x0b, P0b, single
@@ -355,9 +378,12 @@ class Estimator(nn.Module, Generic[Result]):
             A :class:`~torchsvs.types.FilterResult`, :class:`~torchsvs.types.SmootherResult` or
             :class:`~torchsvs.filters.particle.ParticleResult`.
 
-        The computation runs in ``z``'s dtype (float32 or float64): the other inputs and the
-        module's parameters are cast to it, so a float64 module given float32 ``z`` computes in
-        float32 (pass float64 ``z`` for float64 results). Gradients still reach the parameters.
+        The computation runs in ``z``'s dtype (float32 or float64). ``x0``, ``P0``, ``u``,
+        ``dt`` and ``psi`` given as floating tensors must have that dtype (``TypeError`` naming
+        the argument and both dtypes otherwise); numbers, lists and NumPy arrays are converted
+        to it. The module's parameters are cast to it, so a float64 module given float32 ``z``
+        computes in float32 (pass float64 ``z`` for float64 results). Gradients still reach
+        the parameters.
         """
         self.check_psi(psi)
         inputs = prepare_inputs(

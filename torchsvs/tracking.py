@@ -39,7 +39,7 @@ from torchsvs.datasets import (
     track_blocks,
     with_prior,
 )
-from torchsvs.datasets.files import flat_steps, short_track_notes
+from torchsvs.datasets.files import check_output, flat_steps, short_track_notes
 from torchsvs.estimator import Estimator
 from torchsvs.filters import (
     SPVSF,
@@ -709,6 +709,7 @@ def track_file(
 
     start = time.perf_counter()
     say = log or (lambda _: None)
+    check_output(target, "target", inputs=(source,), force=True)  # never over the input
     if whole is None:
         whole = Path(source).stat().st_size < 256 << 20
     run = TrackRun()

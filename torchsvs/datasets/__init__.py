@@ -8,7 +8,10 @@ measurements, ids and times) and a :class:`RowReport` saying what happened to ev
 
 from torchsvs.datasets.files import (
     EstimateWriter,
+    InputDescription,
     TrackBlock,
+    check_output,
+    describe_input,
     estimate_table,
     meas_variance,
     read_tracks,
@@ -18,20 +21,25 @@ from torchsvs.datasets.files import (
     write_estimates,
 )
 from torchsvs.datasets.priors import NoiseEstimate, Prior, estimate_noise, two_point_prior
-from torchsvs.datasets.rows import NOTES, SET_ASIDE, Columns, RowReport
+from torchsvs.datasets.rows import NOTES, SET_ASIDE, TIME_UNITS, Columns, InputWarning, RowReport
 from torchsvs.datasets.tracks import RecordedTracks, TrackSteps, group_rows
 
 __all__ = [
     "NOTES",
     "SET_ASIDE",
+    "TIME_UNITS",
     "Columns",
     "EstimateWriter",
+    "InputDescription",
+    "InputWarning",
     "NoiseEstimate",
     "Prior",
     "RecordedTracks",
     "RowReport",
     "TrackBlock",
     "TrackSteps",
+    "check_output",
+    "describe_input",
     "estimate_noise",
     "estimate_table",
     "group_rows",

@@ -123,3 +123,73 @@ def rotate_enu(
     return np.einsum(
         "...ij,...j->...i", _rotation(np.asarray(lat0, float), np.asarray(lon0, float)), ecef
     )
+
+
+def to_local(
+    lat: np.ndarray, lon: np.ndarray, lat0: np.ndarray | float, lon0: np.ndarray | float
+) -> np.ndarray:
+    """East and north ``[..., 2]`` (m) of the points below ``(lat, lon)`` on the ellipsoid, in
+    the tangent plane at ``(lat0, lon0)`` (the local frame of a track file read in degrees).
+
+    The plane's east and north are exact at the reference and shrink radially by the cosine of
+    the angle from it (0.05% at 200 km, 1.2% at 1,000 km); :func:`from_local` inverts them
+    exactly, and :func:`local_axes` maps velocities back to the east and north at each point.
+    Heights are kept apart (a track's third axis is its altitude, not the plane's "up", which
+    drops by ``d²/2R`` away from the reference: 3 km at 200 km)."""
+    lat, lon = np.asarray(lat, float), np.asarray(lon, float)
+    zero = np.zeros_like(lat)
+    return geodetic_to_enu(lat, lon, zero, lat0, lon0, 0.0)[..., :2]
+
+
+def from_local(
+    en: np.ndarray,
+    lat0: np.ndarray | float,
+    lon0: np.ndarray | float,
+    iterations: int = 8,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Latitude and longitude (degrees) of tangent-plane points ``[..., 2]`` (inverse of
+    :func:`to_local`): the point of the ellipsoid whose (east, north) in the plane at
+    ``(lat0, lon0)`` these are. Newton's method on the plane's "up" ``u``: a point at height
+    ``h`` above the ellipsoid moves to it along the plane's normal by ``h / cos`` of the angle
+    between the normals; from ``u = 0`` it converges to well below a micrometre in three to
+    four steps for points within 80° of the reference."""
+    en = np.asarray(en, float)
+    lat0 = np.broadcast_to(np.asarray(lat0, float), en.shape[:-1])
+    lon0 = np.broadcast_to(np.asarray(lon0, float), en.shape[:-1])
+    up = np.zeros(en.shape[:-1])
+    lat = lon = up
+    for _ in range(iterations):
+        lat, lon, h = enu_to_geodetic(np.stack([en[..., 0], en[..., 1], up], -1), lat0, lon0, 0.0)
+        cos = local_axes(lat, lon, lat0, lon0, full=True)[..., 2, 2]
+        step = h / cos
+        up = up - step
+        if not np.any(np.abs(step) > 1e-7):  # NaN in, NaN out (compares False)
+            break
+    lat, lon, _ = enu_to_geodetic(np.stack([en[..., 0], en[..., 1], up], -1), lat0, lon0, 0.0)
+    return lat, lon
+
+
+def local_axes(
+    lat: np.ndarray,
+    lon: np.ndarray,
+    lat0: np.ndarray | float,
+    lon0: np.ndarray | float,
+    full: bool = False,
+) -> np.ndarray:
+    """``J [..., 2, 2]``: a horizontal vector (east, north) at ``(lat, lon)`` in the axes of the
+    tangent plane at ``(lat0, lon0)`` is ``J @ v`` (the derivative of :func:`to_local` along the
+    ellipsoid). ``J⁻¹`` takes a velocity estimated in the plane back to the east and north at
+    the point. ``full``: the whole rotation ``[..., 3, 3]`` between the two ENU frames."""
+    rotation = _rotation(np.asarray(lat0, float), np.asarray(lon0, float)) @ np.swapaxes(
+        _rotation(np.asarray(lat, float), np.asarray(lon, float)), -1, -2
+    )
+    return rotation if full else rotation[..., :2, :2]
+
+
+def arc_degrees(
+    lat: np.ndarray, lon: np.ndarray, lat0: np.ndarray | float, lon0: np.ndarray | float
+) -> np.ndarray:
+    """The angle (degrees) between the ellipsoid normals at two points: how far a point is from
+    a tangent plane's reference (about 1° per 111 km)."""
+    cos = local_axes(lat, lon, lat0, lon0, full=True)[..., 2, 2]
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

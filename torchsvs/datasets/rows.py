@@ -13,6 +13,12 @@ exactly one of three fates, counted by :class:`RowReport`:
 Fix-ups applied to placed rows are counted too (``RowReport.notes``): non-numeric values read
 as missing, rows sorted into time order, rows sharing a time merged into one measurement.
 Nothing is dropped silently.
+
+Positions are metres as read, or WGS 84 latitude and longitude (degrees; columns named
+``latitude``/``lat`` and ``longitude``/``lon``/``lng``, any case, or ``Columns(frame="wgs84")``)
+with an optional altitude (metres), estimated in a local metric frame per track (see
+:class:`Columns`). Numeric times are seconds, or milliseconds, microseconds or nanoseconds since
+1970 when their size says so (:func:`detect_time_unit`); texts are date-times.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import math
 import warnings
 from collections import Counter
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +56,33 @@ NOTES = {
     "is 0 with a wide variance (torchsvs.datasets.priors)",
     "tracks_axis_never_observed": "tracks (not rows) never observing an axis: their estimates "
     "there are NaN",
+    "invalid_coordinate": "a latitude outside ±90° or a longitude outside -180° to 360°, read as "
+    "missing",
 }
+
+#: Seconds per unit of the names ``Columns.time_unit`` (and ``--time-unit``) takes.
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+#: Smallest typical size of epoch times in each unit (1e11 s is the year 5138; 1e11 ms is 1973).
+EPOCH_SIZE = {"ns": 1e17, "us": 1e14, "ms": 1e11}
+#: Column names (compared in lower case) read as WGS 84 latitude, longitude, altitude.
+LATITUDE_NAMES = ("latitude", "lat")
+LONGITUDE_NAMES = ("longitude", "lon", "lng", "long")
+ALTITUDE_NAMES = ("altitude", "alt", "height", "elevation")
+#: ``Columns.frame``: what the position columns hold.
+FRAMES = {
+    "auto": "WGS 84 when the columns are named as latitude and longitude, else metric",
+    "metric": "metres (any Cartesian frame), estimated as read",
+    "wgs84": "WGS 84 latitude, longitude (degrees) [, altitude (m)], estimated in a local "
+    "east-north[-up] frame in metres at each track's first position",
+}
+#: Farthest a track may reach from its first position in the local frame (degrees of arc):
+#: the tangent plane folds over at 90°.
+MAX_ARC = 80.0
+
+
+class InputWarning(UserWarning):
+    """Input that is read, but may not be what the user meant (degrees taken for metres, times
+    in milliseconds taken for seconds)."""
 
 
 @dataclass
@@ -110,34 +142,136 @@ class Columns:
         position: the position components, two or three; ``None`` takes ``x, y`` and ``z`` when
             the file has a ``z`` column.
         extra: further numeric columns carried per step (e.g. a reported speed).
-        time_unit: seconds per unit of a numeric time (``1.0`` for seconds, ``1e-3`` for
-            milliseconds).
+        time_unit: of a numeric time: ``"auto"`` (seconds, or milliseconds, microseconds,
+            nanoseconds since 1970 when the values are that large: :func:`detect_time_unit`),
+            a name of :data:`TIME_UNITS` (``"s"``, ``"ms"``, ``"us"``, ``"ns"``) or seconds
+            per unit (``1e-3`` for milliseconds).
+        frame: what the positions are (:data:`FRAMES`). ``"wgs84"``: latitude and longitude in
+            degrees and an optional altitude in metres (the third column). Each track is
+            estimated in the tangent plane of the WGS 84 ellipsoid at its first position in
+            time (:func:`~torchsvs.datasets.geodesy.to_local`: east, north in metres) with its
+            altitude as the third axis; estimates are written back as latitude, longitude
+            (degrees) and altitude, velocities as ``v_east, v_north[, v_up]`` (m/s, in the
+            east and north at the estimate) and covariances in metres, named by ``east,
+            north, up``. ``"auto"`` takes ``"wgs84"`` when two position columns are named as
+            :data:`LATITUDE_NAMES` and :data:`LONGITUDE_NAMES` (any case), and when
+            ``position`` is not given and the file has no ``x, y`` but such columns (with an
+            :data:`ALTITUDE_NAMES` column if there is one).
     """
 
     track_id: str = "track_id"
     time: str = "time"
     position: tuple[str, ...] | None = None
     extra: tuple[str, ...] = ()
-    time_unit: float = 1.0
+    time_unit: float | str = "auto"
+    frame: str = "auto"
 
     def resolve(self, available: Sequence[str]) -> Columns:
-        """These columns with ``position`` filled in, checked against the file's columns."""
-        position = self.position
+        """These columns with ``position`` and ``frame`` filled in (a WGS 84 frame's positions
+        in the order latitude, longitude[, altitude]), checked against the file's columns;
+        ``time_unit`` stays ``"auto"`` (it needs the values: :func:`detect_time_unit`)."""
+        if self.frame not in FRAMES:
+            raise ValueError(f"frame: expected one of {sorted(FRAMES)}, got {self.frame!r}")
+        unit = self.time_unit
+        if isinstance(unit, str):
+            if unit != "auto" and unit not in TIME_UNITS:
+                raise ValueError(
+                    f"time_unit: expected 'auto', one of {sorted(TIME_UNITS)} or seconds per "
+                    f"unit > 0, got {unit!r}"
+                )
+        elif isinstance(unit, bool) or not (
+            isinstance(unit, (int, float)) and unit > 0 and math.isfinite(unit)
+        ):
+            raise ValueError(f"time_unit: expected seconds per unit > 0, got {unit!r}")
+        position, frame = self.position, self.frame
         if position is None:
-            position = ("x", "y", "z") if "z" in available else ("x", "y")
+            position, frame = _default_position(available, frame)
+        track_id, time = _named(self.track_id, available), _named(self.time, available)
+        position = tuple(_named(p, available) for p in position)
         if len(position) not in (1, 2, 3):
             raise ValueError(f"position: expected 1 to 3 columns, got {list(position)}")
-        missing = [
-            c for c in (self.track_id, self.time, *position, *self.extra) if c not in available
-        ]
+        if len(set(position)) != len(position):
+            raise ValueError(f"position: a column named twice, got {list(position)}")
+        if frame != "metric":
+            geodetic = _geodetic_order(position)
+            if geodetic is not None:
+                position, frame = geodetic, "wgs84"
+            elif frame == "wgs84":
+                if len(position) not in (2, 3):
+                    raise ValueError(
+                        "position: expected latitude, longitude[, altitude] columns with "
+                        f"frame 'wgs84', got {list(position)}"
+                    )
+            else:
+                frame = "metric"
+        flags = {track_id: "--id-col", time: "--time-col", **dict.fromkeys(position, "--pos-cols")}
+        missing = [c for c in (track_id, time, *position, *self.extra) if c not in available]
         if missing:
+            hint = ", ".join(sorted({flags.get(c, "Columns(extra=...)") for c in missing}))
             raise ValueError(
                 f"columns: {missing} not in the file (its columns: {list(available)}); "
-                "name yours with --id-col/--time-col/--pos-cols (torchsvs track) or Columns(...)"
+                f"name yours with {hint} (torchsvs track) or Columns(...)"
             )
-        if not (self.time_unit > 0 and math.isfinite(self.time_unit)):
-            raise ValueError(f"time_unit: expected seconds per unit > 0, got {self.time_unit!r}")
-        return Columns(self.track_id, self.time, tuple(position), tuple(self.extra), self.time_unit)
+        return replace(
+            self,
+            track_id=track_id,
+            time=time,
+            position=position,
+            extra=tuple(self.extra),
+            frame=frame,
+        )
+
+    @property
+    def seconds_per_unit(self) -> float:
+        """``time_unit`` in seconds (``"auto"`` not yet resolved: an error)."""
+        unit = self.time_unit
+        if unit == "auto":
+            raise ValueError("time_unit: 'auto' is resolved on the data first (detect_time_unit)")
+        return TIME_UNITS[unit] if isinstance(unit, str) else float(unit)
+
+    @property
+    def geodetic(self) -> bool:
+        """Whether the positions are WGS 84 latitude, longitude[, altitude]."""
+        return self.frame == "wgs84"
+
+
+def _named(name: str, available: Sequence[str]) -> str:
+    """``name``, or the one column of ``available`` that differs from it only in case."""
+    if name in available:
+        return name
+    same = [c for c in available if c.lower() == name.lower()]
+    return same[0] if len(same) == 1 else name
+
+
+def _default_position(available: Sequence[str], frame: str) -> tuple[tuple[str, ...], str]:
+    """The position columns of a file whose positions were not named: ``x, y[, z]`` or, without
+    them, latitude, longitude[, altitude] (WGS 84 unless the frame is metric)."""
+    if frame != "wgs84" and "x" in available and "y" in available:
+        return (("x", "y", "z") if "z" in available else ("x", "y")), "metric"
+    lower = {name.lower(): name for name in reversed(list(available))}
+    lat = next((lower[n] for n in LATITUDE_NAMES if n in lower), None)
+    lon = next((lower[n] for n in LONGITUDE_NAMES if n in lower), None)
+    if lat is not None and lon is not None:
+        alt = next((lower[n] for n in ALTITUDE_NAMES if n in lower), None)
+        found = (lat, lon) if alt is None else (lat, lon, alt)
+        return found, "metric" if frame == "metric" else "wgs84"
+    raise ValueError(
+        f"position: the file has no x, y columns and no latitude, longitude columns (its "
+        f"columns: {list(available)}); name the position columns with --pos-cols "
+        "(torchsvs track) or Columns(position=...)"
+    )
+
+
+def _geodetic_order(position: Sequence[str]) -> tuple[str, ...] | None:
+    """``position`` as latitude, longitude[, the other] when two of its names are a latitude's
+    and a longitude's (:data:`LATITUDE_NAMES`, :data:`LONGITUDE_NAMES`), else ``None``."""
+    lower = [name.lower() for name in position]
+    lat = [i for i, n in enumerate(lower) if n in LATITUDE_NAMES]
+    lon = [i for i, n in enumerate(lower) if n in LONGITUDE_NAMES]
+    if len(lat) != 1 or len(lon) != 1:
+        return None
+    rest = [p for i, p in enumerate(position) if i not in (lat[0], lon[0])]
+    return (position[lat[0]], position[lon[0]], *rest)
 
 
 def file_format(path: str | Path) -> str:
@@ -152,19 +286,44 @@ def file_format(path: str | Path) -> str:
 
 def file_columns(path: str | Path) -> list[str]:
     """The column names of a CSV or Parquet file (reads only the header or schema)."""
+    import pyarrow as pa
     import pyarrow.csv as pcsv
     import pyarrow.parquet as pq
 
     if file_format(path) == "parquet":
         return list(pq.ParquetFile(path).schema_arrow.names)
-    with pcsv.open_csv(path, parse_options=_parse_options(path)) as reader:
-        return list(reader.schema.names)
+    try:
+        with pcsv.open_csv(path, parse_options=_parse_options(path)) as reader:
+            return list(reader.schema.names)
+    except pa.ArrowInvalid as err:
+        if "Empty CSV file" in str(err):
+            raise ValueError(f"path: {str(path)!r} is empty (no header, no rows)") from err
+        raise ValueError(f"path: {str(path)!r}: {err}") from err
 
 
 def _parse_options(path: str | Path) -> Any:
     import pyarrow.csv as pcsv
 
-    return pcsv.ParseOptions(delimiter="\t" if str(path).lower().endswith(".tsv") else ",")
+    return pcsv.ParseOptions(delimiter=csv_delimiter(path))
+
+
+#: Separators a CSV file's header is checked for (the most frequent one is taken).
+DELIMITERS = (",", ";", "\t", "|")
+
+
+def csv_delimiter(path: str | Path) -> str:
+    """The separator of a CSV file: the one of :data:`DELIMITERS` found most often in its
+    header (``,`` when none is, or on a tie; a ``.tsv`` file's is a tab unless its header
+    says otherwise)."""
+    import pyarrow as pa
+
+    with pa.input_stream(str(path), compression="detect") as stream:
+        head = stream.read(1 << 16)
+    line = head.split(b"\n", 1)[0].decode("utf-8", errors="replace")
+    counts = {d: line.count(d) for d in DELIMITERS}
+    default = "\t" if str(path).lower().endswith(".tsv") else ","
+    best = max(DELIMITERS, key=lambda d: (counts[d], d == default))
+    return best if counts[best] > counts[default] else default
 
 
 def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -> Iterator[Any]:
@@ -191,12 +350,15 @@ def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -
         include_columns=names,
         strings_can_be_null=True,
     )
-    with pcsv.open_csv(
-        path, read_options=read, parse_options=_parse_options(path), convert_options=convert
-    ) as reader:
-        for batch in reader:
-            for start in range(0, batch.num_rows, block_rows):
-                yield pa.Table.from_batches([batch.slice(start, block_rows)])
+    try:
+        with pcsv.open_csv(
+            path, read_options=read, parse_options=_parse_options(path), convert_options=convert
+        ) as reader:
+            for batch in reader:
+                for start in range(0, batch.num_rows, block_rows):
+                    yield pa.Table.from_batches([batch.slice(start, block_rows)])
+    except pa.ArrowInvalid as err:  # a row of more fields than the header, a bad quote, ...
+        raise ValueError(f"path: {str(path)!r}: {err}") from err
 
 
 @dataclass
@@ -206,9 +368,13 @@ class ParsedRows:
     track_code: np.ndarray  #: [R] int64, -1 where the id is empty
     track_ids: list[str]  #: id text of each code
     time: np.ndarray  #: [R] float64 seconds, NaN where unusable
-    position: np.ndarray  #: [R, m] float64, NaN where missing
+    position: np.ndarray  #: [R, m] float64, NaN where missing (metres: WGS 84 rows projected)
     extra: dict[str, np.ndarray]  #: [R] float64 each
     non_numeric: np.ndarray  #: [R] bool: some position value was text or not finite
+    #: [codes, 2] latitude, longitude (degrees) of each track's local frame (``Columns(frame=
+    #: "wgs84")``; NaN for a track without a position), or None for metric positions
+    reference: np.ndarray | None = None
+    invalid: np.ndarray | None = None  #: [R] bool: a coordinate out of range (WGS 84)
 
 
 def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -240,7 +406,7 @@ def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def to_seconds(column: Any, unit: float) -> np.ndarray:
     """A time column as float64 seconds (NaN where unusable): numbers times ``unit``, date-time
-    texts and timestamps as seconds since 1970-01-01 UTC."""
+    texts and timestamps as seconds since 1970-01-01 UTC (texts without a zone read as UTC)."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
@@ -262,8 +428,39 @@ def to_seconds(column: Any, unit: float) -> np.ndarray:
     return values
 
 
+def detect_time_unit(column: Any) -> tuple[float, str]:
+    """Seconds per unit of a time column's numbers, and what was found (for a person).
+
+    Timestamps and date-time texts carry their unit. Numbers are seconds unless their median
+    size is that of times since 1970 in a finer unit (:data:`EPOCH_SIZE`: from 1e11 milli-,
+    1e14 micro-, 1e17 nanoseconds; 1e11 s would be the year 5138). Small numbers in a finer
+    unit (milliseconds from 0) cannot be told from seconds by their size: give the unit.
+    """
+    import pyarrow as pa
+
+    if pa.types.is_timestamp(column.type) or pa.types.is_date(column.type):
+        return 1.0, f"timestamps ({column.type})"
+    values, text = to_float(column)
+    numbers = values[np.isfinite(values)]
+    if len(numbers) < text.sum():
+        return 1.0, "date-time texts (ISO 8601 and the like; UTC unless a zone is given)"
+    if len(numbers) == 0:
+        return 1.0, "no usable times"
+    size = float(np.median(np.abs(numbers)))
+    for name, threshold in EPOCH_SIZE.items():
+        if size >= threshold:
+            long = {"ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}[name]
+            return TIME_UNITS[name], (
+                f"numbers around {size:.3g}: {long} since 1970 (detected; --time-unit s "
+                "reads them as seconds)"
+            )
+    return 1.0, "numbers, read as seconds (--time-unit ms, us, ns for other units)"
+
+
 def parse_block(table: Any, columns: Columns) -> ParsedRows:
-    """Parses a block read by :func:`read_blocks` (columns already resolved)."""
+    """Parses a block read by :func:`read_blocks` (columns already resolved; a time unit still
+    ``"auto"`` is detected on this block). WGS 84 positions are projected to each track's local
+    frame (:func:`project_rows`)."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
@@ -274,13 +471,57 @@ def parse_block(table: Any, columns: Columns) -> ParsedRows:
     encoded = pc.dictionary_encode(ids).combine_chunks()
     codes = pc.fill_null(encoded.indices, -1).to_numpy(zero_copy_only=False).astype(np.int64)
     track_ids = [str(v) for v in encoded.dictionary.to_pylist()]
-    time = to_seconds(table.column(columns.time), columns.time_unit)
+    column = table.column(columns.time)
+    unit = detect_time_unit(column)[0] if columns.time_unit == "auto" else columns.seconds_per_unit
+    time = to_seconds(column, unit)
     assert columns.position is not None
     parts = [to_float(table.column(name)) for name in columns.position]
     position = np.stack([p[0] for p in parts], axis=1)
     non_numeric = np.any(np.stack([p[1] for p in parts], axis=1), axis=1)
     extra = {name: to_float(table.column(name))[0] for name in columns.extra}
-    return ParsedRows(codes, track_ids, time, position, extra, non_numeric)
+    rows = ParsedRows(codes, track_ids, time, position, extra, non_numeric)
+    return project_rows(rows) if columns.geodetic else rows
+
+
+def project_rows(rows: ParsedRows) -> ParsedRows:
+    """Rows of latitude, longitude (degrees)[, altitude (m)] in each track's local frame: east,
+    north (m) in the tangent plane at the track's first position in time
+    (:func:`~torchsvs.datasets.geodesy.to_local`), the altitude as it is. Coordinates out of
+    range are read as missing (``invalid``); a track reaching farther than :data:`MAX_ARC`
+    from its first position raises ``ValueError``."""
+    from torchsvs.datasets import geodesy
+
+    lat, lon = rows.position[:, 0].copy(), rows.position[:, 1].copy()
+    with np.errstate(invalid="ignore"):
+        invalid = (np.abs(lat) > 90.0) | (lon < -180.0) | (lon > 360.0)
+    lat[invalid] = lon[invalid] = np.nan
+    code = rows.track_code
+    usable = np.flatnonzero((code >= 0) & np.isfinite(rows.time) & np.isfinite(lat + lon))
+    first = usable[np.lexsort((rows.time[usable], code[usable]))]
+    if len(first):
+        first = first[np.r_[True, code[first][1:] != code[first][:-1]]]
+    reference = np.full((len(rows.track_ids), 2), np.nan)
+    reference[code[first]] = np.stack([lat[first], lon[first]], axis=1)
+    ref = reference[np.maximum(code, 0)]
+    with np.errstate(invalid="ignore"):
+        far = geodesy.arc_degrees(lat, lon, ref[:, 0], ref[:, 1]) > MAX_ARC
+    if far.any():
+        k = code[np.flatnonzero(far)[0]]
+        raise ValueError(
+            f"track {rows.track_ids[k]!r}: reaches more than {MAX_ARC:.0f}° of arc (about "
+            f"{MAX_ARC * 111:.0f} km) from its first position; the local east-north frame of a "
+            "track covers less (split the track into shorter ones)"
+        )
+    position = rows.position.copy()
+    with np.errstate(invalid="ignore"):
+        position[:, :2] = geodesy.to_local(
+            np.nan_to_num(lat),
+            np.nan_to_num(lon),
+            np.nan_to_num(ref[:, 0]),
+            np.nan_to_num(ref[:, 1]),
+        )
+    position[~np.isfinite(lat + lon) | (code < 0), :2] = np.nan
+    return replace(rows, position=position, reference=reference, invalid=invalid)
 
 
 def slice_rows(rows: ParsedRows, start: int, stop: int) -> ParsedRows:
@@ -293,4 +534,6 @@ def slice_rows(rows: ParsedRows, start: int, stop: int) -> ParsedRows:
         rows.position[part],
         {k: v[part] for k, v in rows.extra.items()},
         rows.non_numeric[part],
+        rows.reference,
+        None if rows.invalid is None else rows.invalid[part],
     )

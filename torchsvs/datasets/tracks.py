@@ -35,6 +35,9 @@ class TrackSteps:
     extra: dict[str, np.ndarray]  #: [S] float64 each, mean over the step's rows
     row_step: np.ndarray  #: [R] int64 step of each row read, -1 where set aside
     report: RowReport
+    #: [K, 2] latitude, longitude (degrees) of each track's local frame where the file's
+    #: positions are WGS 84 (positions are then east, north (m)[, altitude]), else None
+    reference: np.ndarray | None = None
 
     @property
     def num_tracks(self) -> int:
@@ -115,6 +118,8 @@ def group_rows(rows: ParsedRows, contiguous: bool = False) -> TrackSteps:
     report.set_aside["no_track_id"] += int((~has_id).sum())
     report.set_aside["no_time"] += int((has_id & ~has_time).sum())
     report.notes["non_numeric_value"] += int(rows.non_numeric.sum())
+    if rows.invalid is not None:
+        report.notes["invalid_coordinate"] += int(rows.invalid.sum())
     if contiguous:
         check_contiguous(code, rows.track_ids)
 
@@ -184,6 +189,7 @@ def group_rows(rows: ParsedRows, contiguous: bool = False) -> TrackSteps:
         extra=extra,
         row_step=row_step,
         report=report,
+        reference=None if rows.reference is None else rows.reference[kept_codes],
     )
 
 
