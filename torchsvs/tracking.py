@@ -804,11 +804,15 @@ def _sample_tracks(steps: Any, fit_options: dict[str, Any] | None) -> np.ndarray
     return np.unique(np.linspace(0, count - 1, limit).round().astype(np.int64))
 
 
-def _settings_note(settings: Settings) -> str:
+def settings_note(settings: Settings) -> str:
+    """One line on the model's noise levels and where the measurement noise came from."""
     assert settings.meas_var is not None
     std = ", ".join(f"{v**0.5:.4g}" for v in settings.meas_var)
+    source = {"given": "as given", "fit": "learned"}.get(settings.noise or "", "read off the data")
+    if settings.noise == "data" and settings.meas_std_se is not None:
+        source += " ± " + ", ".join(f"{e:.2g}" for e in settings.meas_std_se)
     return (
-        f"model: measurement noise std [{std}], q = {settings.q:.4g}, "
+        f"model: measurement noise std [{std}] ({source}), q = {settings.q:.4g}, "
         f"typical interval {settings.interval:.4g} s"
     )
 
@@ -834,7 +838,7 @@ def prepare_estimator(
     sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
     if settings.estimator != "auto":
         settings = complete_settings(settings, sample)
-        say(_settings_note(settings))
+        say(settings_note(settings))
     summary: Any = None
     options = dict(fit_options or {})
     options.pop("tracks", None)

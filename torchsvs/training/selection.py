@@ -83,12 +83,13 @@ def choose_estimator(
         say: where to print progress.
         fit_options: keyword arguments of :func:`~torchsvs.training.tuning.self_tune`.
     """
-    from torchsvs.tracking import complete_settings, sample_accuracy
+    from torchsvs.tracking import complete_settings, sample_accuracy, settings_note
     from torchsvs.training.tuning import self_tune
 
     say = say or (lambda _: None)
     start = time.perf_counter()
     base = complete_settings(replace(settings, estimator="ks", psi=None), sample)
+    say(settings_note(base))
     noise = {"meas_var": base.meas_var, "noise": base.noise, "meas_std_se": base.meas_std_se}
     points = int((~sample.z[..., 0].isnan()).sum())
     options = dict(fit_options)
@@ -105,9 +106,8 @@ def choose_estimator(
             rows.append({"estimator": name, "skipped": why})
             continue
         tick = time.perf_counter()
-        open_settings = replace(
-            settings, estimator=name, psi=None, q=None, lag=None, chosen_from=None, **noise
-        )
+        # What the user gave (q, ψ, lag) is each candidate's start; the rest is read off the data.
+        open_settings = replace(settings, estimator=name, chosen_from=None, **noise)
         candidate = complete_settings(open_settings, sample)
         if name == "imm":
             fitted, learned = candidate, "read off the data (not fitted: slow)"

@@ -207,7 +207,9 @@ def self_tune(
     curve = _minimise(
         estimator, batches, "sure", steps, lr, meas_cov=meas_cov, seed=seed, optimizer=optimizer
     )
-    learned: dict[str, Any] = {"q": float(model.q().detach())}
+    # A still target drives q to 0 (log q → −∞): floor it where it no longer matters.
+    floor = Q_FLOOR * sum(settings.meas_var) / len(settings.meas_var) / settings.interval**3
+    learned: dict[str, Any] = {"q": max(float(model.q().detach()), floor)}
     if isinstance(estimator, TurnIMM):
         learned["turn_q"] = float(estimator.turn_q.detach())
         learned["turn_rate_q"] = float(estimator.turn_rate_q.detach())
@@ -247,6 +249,8 @@ def self_tune(
 #: (the SURE surface of an SVSS has a valley of narrow boundary layers, where the SVSF follows its
 #: pseudo-measurements and the smoother does the work, and one of wide ones).
 START_Q = (0.3, 1.0, 3.0)
+#: The least q a fit returns, in units of r / T³ (a still target's q goes to 0).
+Q_FLOOR = 1e-12
 #: Seed offset of the probes that check a fit's result (apart from the descent's).
 VALIDATION_SEED = 7919
 START_PSI = (0.03, 0.2, 1.0)
