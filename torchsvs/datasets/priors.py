@@ -17,6 +17,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchsvs.estimator import threads_for
+
 #: Default factor on the two-point covariance (see :func:`two_point_prior`).
 PRIOR_INFLATION = 4.0
 
@@ -312,87 +314,129 @@ def _touching(spans: _Spans, far: Tensor) -> Tensor:
 
 
 class _Fit(NamedTuple):
-    r: Tensor  #: [G, m]
-    q: Tensor  #: [G]
-    #: [G, K] mean of u²/(κ v) over each order's kept residuals: 1 where the model fits it
+    """A trimmed Gaussian fit (:func:`_trimmed_fit`), or its jackknife's ``G`` refits."""
+
+    r: Tensor  #: [m] (jackknife: [G, m])
+    q: Tensor  #: [] (jackknife: [G])
+    #: [K] mean of u²/(κ v) over each order's kept residuals: 1 where the model fits the order
+    #: ([G, K])
     orders: Tensor
 
 
-def _kept(
-    spans: _Spans, u2: Tensor, v: Tensor, weight: Tensor, cutoff: float, maneuver: float
-) -> Tensor:
-    """``[G, N]`` the residuals a fit of variances ``v [G, N]`` keeps: within ``cutoff``
-    standard deviations, and sharing no step with one beyond ``maneuver``."""
-    far = (u2 > maneuver**2 * v) & (weight > 0)
-    return (u2 <= cutoff**2 * v) & (weight > 0) & ~_touching(spans, far)
+class _Design(NamedTuple):
+    """The regression of :func:`_trimmed_fit`: ``u²/κ`` on one column per axis (and ``b`` when
+    white acceleration is fitted)."""
+
+    y: Tensor  #: [N] u²/κ
+    cols: Tensor  #: [N, p]
+    products: Tensor  #: [N, p²] the columns' outer products
+    b_scale: float  #: the ``b`` column is ``b / b_scale``
+    white: bool
+
+
+def _design(res: Residuals, m: int, white: bool, cutoff: float) -> _Design:
+    b_scale = float(res.b.median().clamp_min(1e-300))
+    cols = torch.nn.functional.one_hot(res.axis, m).double()
+    if white:
+        cols = torch.cat([cols, (res.b / b_scale)[:, None]], 1)
+    products = (cols.unsqueeze(-1) * cols.unsqueeze(-2)).flatten(1)
+    y = res.u.square() / truncated_second_moment(cutoff)
+    return _Design(y, cols, products, b_scale, white)
+
+
+def _kept(spans: _Spans, u2: Tensor, v: Tensor, cutoff: float, maneuver: float) -> Tensor:
+    """``[N]`` the residuals a fit of variances ``v [N]`` keeps: within ``cutoff`` standard
+    deviations, and sharing no step with one beyond ``maneuver``."""
+    far = (u2 > maneuver**2 * v).unsqueeze(0)
+    return (u2 <= cutoff**2 * v) & ~_touching(spans, far)[0]
+
+
+def _scoring_step(d: _Design, A: Tensor, rhs: Tensor, m: int) -> tuple[Tensor, Tensor]:
+    """``(r [G, m], q [G])`` solving the weighted normal equations ``A [G, p, p]``,
+    ``rhs [G, p]``, with ``q ≥ 0`` (a negative ``q`` refits the axes alone)."""
+    sol = _solve(A, rhs)
+    q = torch.zeros(A.shape[0], dtype=torch.float64)
+    if d.white:
+        negative = sol[:, m] < 0
+        if bool(negative.any()):
+            sol[negative, :m] = _solve(A[negative, :m, :m], rhs[negative, :m])
+        q = (sol[:, m] / d.b_scale).clamp_min(0.0)
+    return sol[:, :m], q
+
+
+def _per_order(res: Residuals, ratio: Tensor, kept: Tensor) -> Tensor:
+    """``[..., K]`` the mean of ``ratio [..., N]`` over each order's ``kept`` residuals."""
+    return torch.stack(
+        [
+            (ratio * (res.order == k)).sum(-1) / (kept * (res.order == k)).sum(-1).clamp_min(1)
+            for k in res.order.unique()
+        ],
+        -1,
+    )
 
 
 def _trimmed_fit(
     res: Residuals,
     m: int,
-    weight: Tensor,
-    white: bool,
+    d: _Design,
     cutoff: float,
     maneuver: float,
     spans: _Spans,
-    start: tuple[Tensor, Tensor] | None = None,
     iterations: int = 30,
-) -> _Fit:
-    """The trimmed Gaussian fit of :func:`estimate_noise` for each row of ``weight [G, N]``
-    (0 or 1: the jackknife's groups), with white acceleration (``q``) or noise alone, from
-    ``start`` (``[G, m], [G]``) or from the robust start."""
-    G = weight.shape[0]
+) -> tuple[_Fit, Tensor]:
+    """The trimmed Gaussian fit of :func:`estimate_noise` (white acceleration or noise alone
+    by the design ``d``) from the robust start, and the residuals it keeps ``[N]``."""
     u2 = res.u.square()
-    y = u2 / truncated_second_moment(cutoff)
-    if start is None:
-        top = res.order == res.order.max()
-        r = torch.empty(G, m, dtype=torch.float64)
-        for g in range(G):
-            for j in range(m):
-                r[g, j] = u2[top & (res.axis == j) & (weight[g] > 0)].median() / CHI2_MEDIAN
-        r = r.clamp_min(float(u2[u2 > 0].min()))  # (half the residuals exactly 0: quantised)
-        q = torch.zeros(G, dtype=torch.float64)
-    else:
-        r, q = start[0].clone(), start[1].clone()
-    b_scale = float(res.b.median().clamp_min(1e-300))
-    cols = torch.nn.functional.one_hot(res.axis, m).double()
-    if white:
-        cols = torch.cat([cols, (res.b / b_scale)[:, None]], 1)
-    p = cols.shape[1]
-    products = (cols.unsqueeze(-1) * cols.unsqueeze(-2)).flatten(1)  # [N, p²]
+    top = res.order == res.order.max()
+    r = torch.stack([u2[top & (res.axis == j)].median() / CHI2_MEDIAN for j in range(m)])
+    r = r.clamp_min(float(u2[u2 > 0].min()))  # (half the residuals exactly 0: quantised)
+    q = torch.zeros((), dtype=torch.float64)
+    p = d.cols.shape[1]
     for _ in range(iterations):
-        v = r[:, res.axis] + res.b * q[:, None]  # [G, N]
-        w = _kept(spans, u2, v, weight, cutoff, maneuver) / v.square()
-        A = (w @ products).reshape(G, p, p)
-        rhs = (w * y) @ cols
-        sol = _solve(A, rhs)
-        new_q = torch.zeros(G, dtype=torch.float64)
-        if white:
-            negative = sol[:, m] < 0
-            if bool(negative.any()):
-                sol[negative, :m] = _solve(A[negative, :m, :m], rhs[negative, :m])
-            new_q = (sol[:, m] / b_scale).clamp_min(0.0)
-        new_r = torch.where(sol[:, :m] > 0, sol[:, :m], r)  # (an axis with nothing kept: as was)
+        v = r[res.axis] + res.b * q
+        w = _kept(spans, u2, v, cutoff, maneuver) / v.square()
+        A, rhs = (w @ d.products).view(1, p, p), ((w * d.y) @ d.cols).view(1, p)
+        new_r, new_q = _scoring_step(d, A, rhs, m)
+        new_r = torch.where(new_r[0] > 0, new_r[0], r)  # (an axis with nothing kept: as was)
         change = max(
             float(((new_r - r).abs() / r).amax()),
-            float(((new_q - q).abs() * res.b.amax() / r.amin(1)).amax()),
+            float((new_q[0] - q).abs() * res.b.amax() / r.amin()),
         )
-        r, q = new_r, new_q
+        r, q = new_r, new_q[0]
         if change < TOLERANCE:
             break
-    v = r[:, res.axis] + res.b * q[:, None]
-    kept = _kept(spans, u2, v, weight, cutoff, maneuver)
-    ratio = kept * y / v
-    per_order = [
-        (ratio * (res.order == k)).sum(1) / (kept * (res.order == k)).sum(1).clamp_min(1)
-        for k in res.order.unique()
-    ]
-    return _Fit(r, q, torch.stack(per_order, 1))
+    v = r[res.axis] + res.b * q
+    kept = _kept(spans, u2, v, cutoff, maneuver)
+    return _Fit(r, q, _per_order(res, kept * d.y / v, kept)), kept
+
+
+def _jackknife(
+    res: Residuals, m: int, d: _Design, fit: _Fit, kept: Tensor, group: Tensor, groups: int
+) -> _Fit:
+    """The fit without each of the ``groups`` groups (``group [N]``), by one scoring step from
+    the full fit with its weights and kept residuals: the linearised delete-a-group jackknife,
+    exact to first order for a smooth fixed point (the weighted normal equations, summed per
+    group, less each group's share)."""
+    p = d.cols.shape[1]
+    v = fit.r[res.axis] + res.b * fit.q
+    w = kept / v.square()
+    A_part = torch.zeros(groups, p * p, dtype=torch.float64).index_add_(
+        0, group, w[:, None] * d.products
+    )
+    rhs_part = torch.zeros(groups, p, dtype=torch.float64).index_add_(
+        0, group, (w * d.y)[:, None] * d.cols
+    )
+    A = (A_part.sum(0) - A_part).view(groups, p, p)
+    r, q = _scoring_step(d, A, rhs_part.sum(0) - rhs_part, m)
+    r = torch.where(r > 0, r, fit.r)
+    left = kept & (group != torch.arange(groups)[:, None])  # [G, N]
+    ratio = left * d.y / (r[:, res.axis] + res.b * q[:, None])
+    return _Fit(r, q, _per_order(res, ratio, left))
 
 
 def _solve(A: Tensor, rhs: Tensor) -> Tensor:
     """Least-squares solutions of ``A [G, p, p] x = rhs [G, p]`` (a singular ``A``: an axis
-    whose residuals were all set aside in a jackknife group)."""
+    whose residuals were all left out by a jackknife group)."""
     return torch.linalg.lstsq(A, rhs.unsqueeze(-1), driver="gelsd").solution.squeeze(-1)
 
 
@@ -406,7 +450,6 @@ def _jackknife_se(values: Tensor) -> Tensor:
 def estimate_noise(
     z: Tensor,
     dt: Tensor,
-    scales: tuple[int, ...] | None = None,
     orders: tuple[int, ...] = ORDERS,
     cutoff: float = CUTOFF,
     maneuver: float = MANEUVER,
@@ -450,7 +493,6 @@ def estimate_noise(
     Args:
         z: measurements ``[B, T, m]``, NaN where missing.
         dt: intervals ``[B, T]``.
-        scales: ignored (the spacings of the former three-point estimator; kept for callers).
         orders: orders of the divided differences.
         cutoff: residuals beyond this many standard deviations of the fit are set aside.
         maneuver: a residual beyond this many standard deviations sets aside its neighbours.
@@ -471,6 +513,20 @@ def estimate_noise(
         raise ValueError(
             f"z, dt: expected [B, T, m] and [B, T], got {tuple(z.shape)}, {tuple(dt.shape)}"
         )
+    if not orders or any(isinstance(k, bool) or not isinstance(k, int) or k < 2 for k in orders):
+        raise ValueError(f"orders: expected integers >= 2, got {orders!r}")
+    if not 0 < cutoff <= maneuver:
+        raise ValueError(
+            f"cutoff, maneuver: expected 0 < cutoff <= maneuver, got {cutoff!r}, {maneuver!r}"
+        )
+    with threads_for(1, 1):  # a chain of small vector operations: one intra-op thread
+        return _estimate(z, dt, orders, cutoff, maneuver)
+
+
+def _estimate(
+    z: Tensor, dt: Tensor, orders: tuple[int, ...], cutoff: float, maneuver: float
+) -> NoiseEstimate:
+    """:func:`estimate_noise` on checked arguments."""
     m, T = z.shape[-1], z.shape[1]
     res = difference_residuals(z, dt, orders)
     per_axis = torch.bincount(res.axis[res.order == max(orders)], minlength=m)
@@ -479,10 +535,11 @@ def estimate_noise(
             "z: too few observed positions in a row to estimate the noise; "
             "give the measurement noise (meas_std) and q explicitly"
         )
-    if not bool((res.u != 0).any()):
+    scale = float(z[torch.isfinite(z)].abs().max())
+    if float(res.u[res.order == max(orders)].abs().median()) <= 1e-9 * scale:
         raise ValueError(
-            "z: the positions lie exactly on straight lines, there is no noise to read; "
-            "give the measurement noise (meas_std) and q explicitly"
+            "z: most positions lie exactly on smooth paths (noise-free or interpolated data), "
+            "there is no measurement noise to read; give it (meas_std) and q explicitly"
         )
     # Blocks of successive steps of a track: the jackknife's units, and the sample's.
     _, block = torch.unique(res.track * (T + 1) + res.first // JACKKNIFE_BLOCK, return_inverse=True)
@@ -493,26 +550,28 @@ def estimate_noise(
         res = Residuals(*(field[keep] for field in res))
         shuffled = shuffled[keep]
     groups = min(JACKKNIFE_GROUPS, int(shuffled.unique().numel()))
+    group = shuffled % groups
     spans = _spans(res)
-    everything = torch.ones(1, res.u.numel(), dtype=torch.float64)
-    left_out = (shuffled % groups != torch.arange(groups)[:, None]).double()
     fits: dict[bool, tuple[_Fit, _Fit]] = {}
     for white in (False, True):
-        full = _trimmed_fit(res, m, everything, white, cutoff, maneuver, spans)
-        start = (full.r.expand(groups, m), full.q.expand(groups))
-        fits[white] = full, _trimmed_fit(res, m, left_out, white, cutoff, maneuver, spans, start)
+        d = _design(res, m, white, cutoff)
+        full, kept = _trimmed_fit(res, m, d, cutoff, maneuver, spans)
+        fits[white] = full, _jackknife(res, m, d, full, kept, group, groups)
     (alone, alone_jack), (white, white_jack) = fits[False], fits[True]
     use_white = False
     if groups >= 2:
         # σ (the mean over the axes) of both fits, and its difference, paired by group.
-        sigma_alone, sigma_white = alone.r.sqrt().mean(1), white.r.sqrt().mean(1)
+        sigma_alone, sigma_white = alone.r.sqrt().mean(), white.r.sqrt().mean()
         jack_alone, jack_white = alone_jack.r.sqrt().mean(1), white_jack.r.sqrt().mean(1)
-        lower = float(sigma_alone - sigma_white) / float(_jackknife_se(jack_alone - jack_white))
-        cost = float(_jackknife_se(jack_white)) / float(_jackknife_se(jack_alone))
-        misfit = ((white.orders[0] - 1.0).abs() / _jackknife_se(white_jack.orders)).amax()
-        use_white = lower > WHITE_Z and cost <= WHITE_SE_FACTOR and float(misfit) <= WHITE_Z
+        spread = float(_jackknife_se(jack_alone - jack_white))
+        lower = float(sigma_alone - sigma_white) > WHITE_Z * spread
+        cost = float(_jackknife_se(jack_white)) <= WHITE_SE_FACTOR * float(
+            _jackknife_se(jack_alone)
+        )
+        misfit = (white.orders - 1.0).abs() > WHITE_Z * _jackknife_se(white_jack.orders)
+        use_white = lower and cost and not bool(misfit.any())
     chosen, jack = (white, white_jack) if use_white else (alone, alone_jack)
     se = _jackknife_se(jack.r.sqrt()) if groups >= 2 else torch.full((m,), math.nan)
     h = float(dt[:, 1:][torch.isfinite(dt[:, 1:])].median()) if T > 1 else 1.0
-    q = max(float(white.q[0]), 1e-3 * float(chosen.r.mean()) / h**3)
-    return NoiseEstimate(chosen.r[0].to(z.dtype), q, int(res.u.numel()), se.to(z.dtype), use_white)
+    q = max(float(white.q), 1e-3 * float(chosen.r.mean()) / h**3)
+    return NoiseEstimate(chosen.r.to(z.dtype), q, int(res.u.numel()), se.to(z.dtype), use_white)

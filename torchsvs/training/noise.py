@@ -12,12 +12,14 @@ maximising the Kalman filter's innovation likelihood.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
+from torchsvs.estimator import threads_for
 from torchsvs.filters import KalmanFilter
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import RTSSmoother
@@ -161,7 +163,21 @@ def smoother_q(
                     cache[log_q] = float(risk[counted].mean())
         return cache[log_q]
 
-    grid = [math.log(unit * g) for g in GRID]
+    with threads_for(1, 1):  # windows of a few small matrices: one intra-op thread
+        x = _golden_search(value, [math.log(unit * g) for g in GRID])
+        log_se = math.nan
+        if criterion == "nll":
+            step = 0.05
+            curvature = (value(x + step) - 2.0 * value(x) + value(x - step)) / step**2
+            curvature *= float(counted.sum())  # the NLL is a mean per observed component
+            log_se = 1.0 / math.sqrt(curvature) if curvature > 0 else math.inf
+        best = value(x)
+    return QEstimate(math.exp(x), best, log_se, len(cache), int(scored.sum()))
+
+
+def _golden_search(value: Callable[[float], float], grid: list[float]) -> float:
+    """The minimum of ``value`` bracketed by the grid's best point and its neighbours, narrowed
+    by golden section to :data:`LOG_TOLERANCE`."""
     values = [value(x) for x in grid]
     best = min(range(len(grid)), key=values.__getitem__)
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
@@ -174,11 +190,4 @@ def smoother_q(
         else:
             lo, a = a, b
             b = lo + golden * (hi - lo)
-    x = 0.5 * (lo + hi)
-    log_se = math.nan
-    if criterion == "nll":
-        step = 0.05
-        curvature = (value(x + step) - 2.0 * value(x) + value(x - step)) / step**2
-        curvature *= float(counted.sum())  # the NLL is a mean per observed component
-        log_se = 1.0 / math.sqrt(curvature) if curvature > 0 else math.inf
-    return QEstimate(math.exp(x), value(x), log_se, len(cache), int(scored.sum()))
+    return 0.5 * (lo + hi)
