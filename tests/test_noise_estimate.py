@@ -100,17 +100,18 @@ def test_standard_error_is_calibrated():
 
 def test_white_acceleration_is_fitted_where_the_data_show_it():
     """Tracks of the CV model itself with q h³ ~ r: only the fit with white acceleration is
-    unbiased (the noise-alone fit reads r + b q, 10% high in σ here), and it is chosen; on
-    turning tracks the noise-alone fit is kept."""
+    unbiased (the noise-alone fit reads r + b q, 10% high in σ here), and it is chosen
+    (8,000 rows show it by about ten standard errors); on turning tracks the noise-alone fit is
+    kept."""
     gen = torch.Generator().manual_seed(5)
     B, T, q, r = 20, 400, 2.0, 25.0
     dt = 1.0 + 4.0 * torch.rand(B, T, generator=gen, dtype=torch.float64)
     _, z = simulate_cv(dt, q, r, gen)
     noise = estimate_noise(z, dt)
-    assert noise.white_acceleration
+    assert noise.white_acceleration == 1.0
     assert_close(noise.meas_var.sqrt(), torch.full((2,), math.sqrt(r)), rtol=0.05)
     sim = simulate(small("turns 10 s"), 50.0, seed=7)
-    assert not estimate_noise(sim.z, sim.dt).white_acceleration
+    assert estimate_noise(sim.z, sim.dt).white_acceleration == 0.0
 
 
 def test_difference_residuals_annihilate_polynomials_and_give_the_white_acceleration_variance():

@@ -159,9 +159,9 @@ class NoiseEstimate(NamedTuple):
     triplets: int  #: how many residuals it fitted (difference stencils of every order and axis)
     #: [m] standard error of the measurement noise standard deviation ``meas_var.sqrt()``
     meas_std_se: Tensor | None = None
-    #: whether ``meas_var`` is the fit with white acceleration (the data showed it, and it fit
-    #: every order) rather than the one of noise alone
-    white_acceleration: bool = False
+    #: the share (0 to 1) of the fit with white acceleration in ``meas_var`` (the rest: the fit
+    #: of noise alone); 1 where the data show white acceleration and it fits every order
+    white_acceleration: float = 0.0
 
 
 #: Orders of the divided differences the measurement noise is read from (:func:`estimate_noise`).
@@ -177,6 +177,10 @@ CHI2_MEDIAN = 0.4549364231195724
 #: Relative change of the variances at which the fit stops (the set of residuals it keeps can
 #: flip one residual back and forth: a change far below the standard error).
 TOLERANCE = 1e-4
+#: Scoring iterations of a fit at most (it converges by a factor of about 10 an iteration).
+ITERATIONS = 30
+#: Scoring iterations of each jackknife refit, from the full fit.
+JACKKNIFE_STEPS = 3
 #: Groups of the delete-a-group jackknife behind the standard errors (:func:`estimate_noise`).
 JACKKNIFE_GROUPS = 20
 #: Steps per block of the jackknife's groups (successive residuals are correlated over a
@@ -185,10 +189,15 @@ JACKKNIFE_BLOCK = 16
 #: At most this many residuals are fitted (whole blocks drawn at random, seeded): 20,000 rows of
 #: two axes, a standard error near 0.5% of σ.
 MAX_RESIDUALS = 120_000
-#: Standard errors of the tests that choose the white-acceleration fit (:func:`estimate_noise`).
-WHITE_Z = 3.0
-#: The white-acceleration fit may cost at most this factor on the standard error of σ.
-WHITE_SE_FACTOR = 2.0
+#: The white-acceleration fit's share in :func:`estimate_noise` (:func:`_white_weight`) grows
+#: from 0 to 1 as σ̂ falls below the noise-alone fit's by these many standard errors of the
+#: difference: on tracks that maneuver all the time the two differ by 4 or so on a few hundred
+#: rows, with the white fit a quarter low, while tracks of the CV model show 10 and more.
+WHITE_LOWER = (5.0, 8.0)
+#: ... as its standard error falls from these many times the noise-alone fit's ...
+WHITE_COST = (3.0, 2.0)
+#: ... and as the worst order's mean of u²/(κ v) comes within these many standard errors of 1.
+WHITE_MISFIT = (4.0, 2.0)
 
 
 class Residuals(NamedTuple):
@@ -314,13 +323,14 @@ def _touching(spans: _Spans, far: Tensor) -> Tensor:
 
 
 class _Fit(NamedTuple):
-    """A trimmed Gaussian fit (:func:`_trimmed_fit`), or its jackknife's ``G`` refits."""
+    """Trimmed Gaussian fits: the full fit (``G = 1``) or the jackknife's refits."""
 
-    r: Tensor  #: [m] (jackknife: [G, m])
-    q: Tensor  #: [] (jackknife: [G])
-    #: [K] mean of u²/(κ v) over each order's kept residuals: 1 where the model fits the order
-    #: ([G, K])
+    r: Tensor  #: [G, m]
+    q: Tensor  #: [G]
+    #: [G, K] mean of u²/(κ v) over each order's kept residuals: 1 where the model fits it
     orders: Tensor
+    #: [G] the fit put an axis's variance at or below 0 (white acceleration explaining it all)
+    boundary: Tensor
 
 
 class _Design(NamedTuple):
@@ -344,11 +354,14 @@ def _design(res: Residuals, m: int, white: bool, cutoff: float) -> _Design:
     return _Design(y, cols, products, b_scale, white)
 
 
-def _kept(spans: _Spans, u2: Tensor, v: Tensor, cutoff: float, maneuver: float) -> Tensor:
-    """``[N]`` the residuals a fit of variances ``v [N]`` keeps: within ``cutoff`` standard
-    deviations, and sharing no step with one beyond ``maneuver``."""
-    far = (u2 > maneuver**2 * v).unsqueeze(0)
-    return (u2 <= cutoff**2 * v) & ~_touching(spans, far)[0]
+def _kept(
+    spans: _Spans, u2: Tensor, v: Tensor, include: Tensor, cutoff: float, maneuver: float
+) -> Tensor:
+    """``[G, N]`` the residuals (of those in ``include [G, N]``) a fit of variances
+    ``v [G, N]`` keeps: within ``cutoff`` standard deviations, and sharing no step with one
+    beyond ``maneuver``."""
+    far = (u2 > maneuver**2 * v) & include
+    return (u2 <= cutoff**2 * v) & include & ~_touching(spans, far)
 
 
 def _scoring_step(d: _Design, A: Tensor, rhs: Tensor, m: int) -> tuple[Tensor, Tensor]:
@@ -365,7 +378,7 @@ def _scoring_step(d: _Design, A: Tensor, rhs: Tensor, m: int) -> tuple[Tensor, T
 
 
 def _per_order(res: Residuals, ratio: Tensor, kept: Tensor) -> Tensor:
-    """``[..., K]`` the mean of ``ratio [..., N]`` over each order's ``kept`` residuals."""
+    """``[G, K]`` the mean of ``ratio [G, N]`` over each order's ``kept`` residuals."""
     return torch.stack(
         [
             (ratio * (res.order == k)).sum(-1) / (kept * (res.order == k)).sum(-1).clamp_min(1)
@@ -375,63 +388,78 @@ def _per_order(res: Residuals, ratio: Tensor, kept: Tensor) -> Tensor:
     )
 
 
-def _trimmed_fit(
+def _iterate(
     res: Residuals,
     m: int,
     d: _Design,
+    start: tuple[Tensor, Tensor],
+    include: Tensor,
+    spans: _Spans,
     cutoff: float,
     maneuver: float,
-    spans: _Spans,
-    iterations: int = 30,
-) -> tuple[_Fit, Tensor]:
+    iterations: int,
+) -> _Fit:
+    """Scoring iterations of the trimmed Gaussian fit from ``start`` (``r [G, m], q [G]``) on
+    the residuals of each row of ``include [G, N]``, until the variances change by less than
+    :data:`TOLERANCE` or ``iterations`` are done."""
+    u2 = res.u.square()
+    r, q = start
+    G, p = include.shape[0], d.cols.shape[1]
+    boundary = torch.zeros(G, dtype=torch.bool)
+    for _ in range(iterations):
+        v = r[:, res.axis] + res.b * q[:, None]
+        w = _kept(spans, u2, v, include, cutoff, maneuver) / v.square()
+        A = (w @ d.products).view(G, p, p)
+        new_r, new_q = _scoring_step(d, A, (w * d.y) @ d.cols, m)
+        # An axis with nothing kept stays as it was; one whose variance the fit puts at or below
+        # 0 (q explains it all) stays too, and the fit is flagged: not a solution.
+        inside = new_r > 0
+        boundary = (~inside & (A.diagonal(dim1=-2, dim2=-1)[:, :m] > 0)).any(-1)
+        new_r = torch.where(inside, new_r, r)
+        change = max(
+            float(((new_r - r).abs() / r).amax()),
+            float(((new_q - q).abs() * res.b.amax() / r.amin(-1)).amax()),
+        )
+        r, q = new_r, new_q
+        if change < TOLERANCE:
+            break
+    v = r[:, res.axis] + res.b * q[:, None]
+    kept = _kept(spans, u2, v, include, cutoff, maneuver)
+    return _Fit(r, q, _per_order(res, kept * d.y / v, kept), boundary)
+
+
+def _trimmed_fit(
+    res: Residuals, m: int, d: _Design, cutoff: float, maneuver: float, spans: _Spans
+) -> _Fit:
     """The trimmed Gaussian fit of :func:`estimate_noise` (white acceleration or noise alone
-    by the design ``d``) from the robust start, and the residuals it keeps ``[N]``."""
+    by the design ``d``) from the robust start: the median of the highest order's ``u²`` over
+    the χ²₁ median, ``q = 0``."""
     u2 = res.u.square()
     top = res.order == res.order.max()
     r = torch.stack([u2[top & (res.axis == j)].median() / CHI2_MEDIAN for j in range(m)])
     r = r.clamp_min(float(u2[u2 > 0].min()))  # (half the residuals exactly 0: quantised)
-    q = torch.zeros((), dtype=torch.float64)
-    p = d.cols.shape[1]
-    for _ in range(iterations):
-        v = r[res.axis] + res.b * q
-        w = _kept(spans, u2, v, cutoff, maneuver) / v.square()
-        A, rhs = (w @ d.products).view(1, p, p), ((w * d.y) @ d.cols).view(1, p)
-        new_r, new_q = _scoring_step(d, A, rhs, m)
-        new_r = torch.where(new_r[0] > 0, new_r[0], r)  # (an axis with nothing kept: as was)
-        change = max(
-            float(((new_r - r).abs() / r).amax()),
-            float((new_q[0] - q).abs() * res.b.amax() / r.amin()),
-        )
-        r, q = new_r, new_q[0]
-        if change < TOLERANCE:
-            break
-    v = r[res.axis] + res.b * q
-    kept = _kept(spans, u2, v, cutoff, maneuver)
-    return _Fit(r, q, _per_order(res, kept * d.y / v, kept)), kept
+    start = (r.view(1, m), torch.zeros(1, dtype=torch.float64))
+    everything = torch.ones(1, res.u.numel(), dtype=torch.bool)
+    return _iterate(res, m, d, start, everything, spans, cutoff, maneuver, ITERATIONS)
 
 
 def _jackknife(
-    res: Residuals, m: int, d: _Design, fit: _Fit, kept: Tensor, group: Tensor, groups: int
+    res: Residuals,
+    m: int,
+    d: _Design,
+    fit: _Fit,
+    group: Tensor,
+    groups: int,
+    spans: _Spans,
+    cutoff: float,
+    maneuver: float,
 ) -> _Fit:
-    """The fit without each of the ``groups`` groups (``group [N]``), by one scoring step from
-    the full fit with its weights and kept residuals: the linearised delete-a-group jackknife,
-    exact to first order for a smooth fixed point (the weighted normal equations, summed per
-    group, less each group's share)."""
-    p = d.cols.shape[1]
-    v = fit.r[res.axis] + res.b * fit.q
-    w = kept / v.square()
-    A_part = torch.zeros(groups, p * p, dtype=torch.float64).index_add_(
-        0, group, w[:, None] * d.products
-    )
-    rhs_part = torch.zeros(groups, p, dtype=torch.float64).index_add_(
-        0, group, (w * d.y)[:, None] * d.cols
-    )
-    A = (A_part.sum(0) - A_part).view(groups, p, p)
-    r, q = _scoring_step(d, A, rhs_part.sum(0) - rhs_part, m)
-    r = torch.where(r > 0, r, fit.r)
-    left = kept & (group != torch.arange(groups)[:, None])  # [G, N]
-    ratio = left * d.y / (r[:, res.axis] + res.b * q[:, None])
-    return _Fit(r, q, _per_order(res, ratio, left))
+    """The fit without each of the ``groups`` groups (``group [N]``): :data:`JACKKNIFE_STEPS`
+    scoring iterations from the full fit (which converges by a factor of about 10 an
+    iteration, so the refits are within a thousandth of their own fixed points)."""
+    include = group != torch.arange(groups)[:, None]  # [G, N]
+    start = (fit.r.expand(groups, m), fit.q.expand(groups))
+    return _iterate(res, m, d, start, include, spans, cutoff, maneuver, JACKKNIFE_STEPS)
 
 
 def _solve(A: Tensor, rhs: Tensor) -> Tensor:
@@ -478,17 +506,22 @@ def estimate_noise(
     and the intervals' different ``b``). A maneuver that is smooth but not small at the lower
     orders looks like white acceleration there, and the second fit then extrapolates ``r``
     below the truth (to a quarter of it on tracks that maneuver all the time), while the first
-    only errs upwards, by what motion the orders leave. So the white-acceleration fit is taken
-    only when the data show it: ``σ`` lower than the first fit's by more than :data:`WHITE_Z`
-    standard errors of the difference, a standard error at most :data:`WHITE_SE_FACTOR` times
-    the first fit's, and every order fitted (the mean of :math:`u^2/(\kappa v)` over its kept
-    residuals within :data:`WHITE_Z` standard errors of 1).
+    only errs upwards, by what motion the orders leave (``b q`` under white acceleration: 10%
+    on σ where the acceleration moves the target more than the noise in one step). So the
+    estimate is the first fit, moved towards the second (in log σ) only as far as the data
+    show white acceleration (:func:`_white_weight`): σ clearly below the first fit's in units
+    of the paired jackknife's standard error of the difference, a standard error not much
+    above the first fit's, and every order fitted (the mean of :math:`u^2/(\kappa v)` over its
+    kept residuals within a few standard errors of 1). The share moves continuously, so that
+    dropping a few rows never switches fits.
 
     **The standard errors** come from a delete-a-group jackknife (Efron & Stein 1981) over
     :data:`JACKKNIFE_GROUPS` groups of blocks of :data:`JACKKNIFE_BLOCK` steps (successive
     residuals are correlated over a stencil's width); they are the statistical error, not a
     bound on what a maneuver the fit cannot tell from noise adds. Larger data are fitted on
-    :data:`MAX_RESIDUALS` residuals in whole blocks drawn at random (seeded).
+    :data:`MAX_RESIDUALS` residuals in whole blocks drawn at random (seeded). The jackknife's
+    refits are :data:`JACKKNIFE_STEPS` scoring iterations from the full fit (it converges by a
+    factor of about ten an iteration).
 
     Args:
         z: measurements ``[B, T, m]``, NaN where missing.
@@ -555,23 +588,40 @@ def _estimate(
     fits: dict[bool, tuple[_Fit, _Fit]] = {}
     for white in (False, True):
         d = _design(res, m, white, cutoff)
-        full, kept = _trimmed_fit(res, m, d, cutoff, maneuver, spans)
-        fits[white] = full, _jackknife(res, m, d, full, kept, group, groups)
+        full = _trimmed_fit(res, m, d, cutoff, maneuver, spans)
+        jack = _jackknife(res, m, d, full, group, groups, spans, cutoff, maneuver)
+        fits[white] = full, jack
     (alone, alone_jack), (white, white_jack) = fits[False], fits[True]
-    use_white = False
-    if groups >= 2:
-        # σ (the mean over the axes) of both fits, and its difference, paired by group.
-        sigma_alone, sigma_white = alone.r.sqrt().mean(), white.r.sqrt().mean()
-        jack_alone, jack_white = alone_jack.r.sqrt().mean(1), white_jack.r.sqrt().mean(1)
-        spread = float(_jackknife_se(jack_alone - jack_white))
-        lower = float(sigma_alone - sigma_white) > WHITE_Z * spread
-        cost = float(_jackknife_se(jack_white)) <= WHITE_SE_FACTOR * float(
-            _jackknife_se(jack_alone)
-        )
-        misfit = (white.orders - 1.0).abs() > WHITE_Z * _jackknife_se(white_jack.orders)
-        use_white = lower and cost and not bool(misfit.any())
-    chosen, jack = (white, white_jack) if use_white else (alone, alone_jack)
-    se = _jackknife_se(jack.r.sqrt()) if groups >= 2 else torch.full((m,), math.nan)
+    weight = 0.0
+    if groups >= 2 and not bool(white.boundary.any() or white_jack.boundary.any()):
+        weight = _white_weight(alone, alone_jack, white, white_jack)
+    # log σ of each axis and of each jackknife refit, the two fits blended by the weight
+    log_sigma = (1 - weight) * alone.r.log() / 2 + weight * white.r.clamp_min(1e-300).log() / 2
+    log_jack = (1 - weight) * alone_jack.r.log() / 2 + weight * white_jack.r.clamp_min(
+        1e-300
+    ).log() / 2
+    sigma = log_sigma.exp()[0]
+    se = _jackknife_se(log_jack.exp()) if groups >= 2 else torch.full((m,), math.nan)
     h = float(dt[:, 1:][torch.isfinite(dt[:, 1:])].median()) if T > 1 else 1.0
-    q = max(float(white.q), 1e-3 * float(chosen.r.mean()) / h**3)
-    return NoiseEstimate(chosen.r.to(z.dtype), q, int(res.u.numel()), se.to(z.dtype), use_white)
+    q = max(float(white.q[0]), 1e-3 * float(sigma.square().mean()) / h**3)
+    return NoiseEstimate(sigma.square().to(z.dtype), q, int(res.u.numel()), se.to(z.dtype), weight)
+
+
+def _ramp(x: float, zero: float, one: float) -> float:
+    """0 at ``zero``, 1 at ``one``, linear between (either order)."""
+    return min(max((x - zero) / (one - zero), 0.0), 1.0)
+
+
+def _white_weight(alone: _Fit, alone_jack: _Fit, white: _Fit, white_jack: _Fit) -> float:
+    """The share of the white-acceleration fit in :func:`estimate_noise`: the product of ramps
+    (:data:`WHITE_LOWER`, :data:`WHITE_COST`, :data:`WHITE_MISFIT`), a continuous choice, so
+    that a few rows more or less never switch the estimate from one fit to the other."""
+    # σ (the mean over the axes) of both fits, and its difference, paired by group.
+    jack_alone, jack_white = alone_jack.r.sqrt().mean(1), white_jack.r.sqrt().mean(1)
+    spread = float(_jackknife_se(jack_alone - jack_white))
+    lower = float(alone.r.sqrt().mean() - white.r.sqrt().mean()) / max(spread, 1e-300)
+    cost = float(_jackknife_se(jack_white)) / max(float(_jackknife_se(jack_alone)), 1e-300)
+    misfit = float(((white.orders - 1.0).abs() / _jackknife_se(white_jack.orders)).amax())
+    if not math.isfinite(misfit):
+        return 0.0
+    return _ramp(lower, *WHITE_LOWER) * _ramp(cost, *WHITE_COST) * _ramp(misfit, *WHITE_MISFIT)
