@@ -1,0 +1,230 @@
+"""The noise levels read off the data: ``estimate_noise`` (measurement noise, robust to
+maneuvers, with a standard error) and ``smoother_q`` (the Kalman smoother's q).
+
+Tracks come from ``experiments/noise_estimate.py`` (seeded simulations: coordinated turns, ships,
+fast aircraft at long scans, irregular times, the project's random maneuvers, the CV model).
+Statistical bounds: any estimator of σ from ``n`` Gaussian samples per axis has a standard error
+of at least ``σ/√(2n)`` (Cramér-Rao, known mean); the bounds below are checked to be several of
+the estimator's own standard errors wide, so a failure is not chance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from experiments.noise_estimate import (
+    KINDS,
+    Simulated,
+    best_grid_q,
+    drop_rows,
+    ks_rmse,
+    raw_rmse,
+    simulate,
+)
+from tests.conftest import assert_close, simulate_cv
+from torchsvs.datasets import estimate_noise, priors
+from torchsvs.datasets.priors import difference_residuals
+from torchsvs.training.noise import smoother_q
+
+#: The specification: within 20% of the true σ.
+WITHIN = 0.2
+#: ... and that bound at least this many standard errors wide (not a chance failure).
+SE_MARGIN = 4.0
+
+
+def small(name: str, tracks: int = 4) -> object:
+    return replace(KINDS[name], tracks=tracks)
+
+
+@pytest.mark.parametrize(
+    "name, sigma",
+    [
+        ("turns 10 s", 10.0),  # the former estimator: 108 m
+        ("turns 10 s", 50.0),  # former: 118 m
+        ("turns irregular", 10.0),  # former: 41 m
+        ("turns 1 s", 200.0),
+        ("fast 60 s", 50.0),  # former: 294 m
+        ("ships 9 s", 10.0),
+        ("ships 9 s", 200.0),
+        ("maneuvers 5 s", 50.0),  # former: 166 m
+        ("CV q=0.05, 1-10 s", 50.0),
+    ],
+)
+def test_measurement_noise_within_20_percent(name, sigma):
+    sim = simulate(small(name), sigma, seed=7)
+    noise = estimate_noise(sim.z, sim.dt)
+    ratio = noise.meas_var.sqrt() / sigma
+    assert noise.meas_std_se is not None
+    se = noise.meas_std_se / sigma
+    assert bool((se * SE_MARGIN <= WITHIN).all()), f"standard error {se.tolist()} too wide"
+    assert bool(((ratio - 1).abs() <= WITHIN).all()), f"σ̂/σ = {ratio.tolist()}"
+
+
+@pytest.mark.parametrize("name", ["turns 10 s", "maneuvers 5 s"])
+def test_dropping_one_percent_of_rows_barely_moves_it(name):
+    """Dropping 1% of the rows re-forms about 4% of the residuals (each row is in k + 1
+    stencils of each order), which moves σ̂ by about √(2·0.04) ≈ 0.3 of its standard error
+    (≤ 2.5% here): 3% is over three times that."""
+    sim = simulate(small(name, tracks=8), 50.0, seed=3)
+    base = float(estimate_noise(sim.z, sim.dt).meas_var.sqrt().mean())
+    for seed in range(3):
+        fewer = drop_rows(sim, 0.01, seed)
+        moved = float(estimate_noise(fewer.z, fewer.dt).meas_var.sqrt().mean()) / base - 1
+        assert abs(moved) <= 0.03, f"dropping 1% of the rows moved σ̂ by {100 * moved:.1f}%"
+
+
+def test_standard_error_is_calibrated():
+    """Over 12 seeds, ±2 jackknife standard errors (20 groups: t with 19 degrees of freedom,
+    94%) cover σ at least 9 times (a calibrated error fails this with probability 0.6%), and the
+    mean standard error is within a factor 2 of the seeds' spread (a sample standard deviation
+    of 12 values is within 0.6-1.4 of the truth 98% of the time)."""
+    kind = replace(KINDS["turns irregular"], tracks=3, duration=1500.0)
+    sigma = 50.0
+    estimates, errors = [], []
+    for seed in range(12):
+        sim = simulate(kind, sigma, seed=100 + seed)
+        noise = estimate_noise(sim.z, sim.dt)
+        assert noise.meas_std_se is not None
+        estimates.append(float(noise.meas_var[0].sqrt()))
+        errors.append(float(noise.meas_std_se[0]))
+    est, err = torch.tensor(estimates), torch.tensor(errors)
+    covered = int(((est - sigma).abs() <= 2 * err).sum())
+    assert covered >= 9, f"±2 se covered σ in {covered} of 12 seeds"
+    ratio = float(err.mean() / est.std())
+    assert 0.5 <= ratio <= 2.0, f"mean se / spread of the estimates = {ratio:.2f}"
+
+
+def test_white_acceleration_is_fitted_where_the_data_show_it():
+    """Tracks of the CV model itself with q h³ ~ r: only the fit with white acceleration is
+    unbiased (the noise-alone fit reads r + b q, 10% high in σ here), and it is chosen
+    (8,000 rows show it by about ten standard errors); on turning tracks the noise-alone fit is
+    kept."""
+    gen = torch.Generator().manual_seed(5)
+    B, T, q, r = 20, 400, 2.0, 25.0
+    dt = 1.0 + 4.0 * torch.rand(B, T, generator=gen, dtype=torch.float64)
+    _, z = simulate_cv(dt, q, r, gen)
+    noise = estimate_noise(z, dt)
+    assert noise.white_acceleration == 1.0
+    assert_close(noise.meas_var.sqrt(), torch.full((2,), math.sqrt(r)), rtol=0.05)
+    sim = simulate(small("turns 10 s"), 50.0, seed=7)
+    assert estimate_noise(sim.z, sim.dt).white_acceleration == 0.0
+
+
+def test_difference_residuals_annihilate_polynomials_and_give_the_white_acceleration_variance():
+    """A path of degree below the order leaves no residual; white acceleration of density q
+    gives each residual the variance b·q, checked against the covariance of the integrated
+    Wiener process, Cov(X_s, X_t) = q (s³/3 + (t - s) s²/2) for s ≤ t."""
+    gen = torch.Generator().manual_seed(0)
+    dt = 0.5 + 3.0 * torch.rand(1, 12, generator=gen, dtype=torch.float64)
+    t = torch.cumsum(dt, 1)[0]
+    for k in (2, 3, 4):
+        coeffs = torch.randn(k, generator=gen, dtype=torch.float64)
+        path = sum(c * t**j for j, c in enumerate(coeffs))
+        res = difference_residuals(path.view(1, -1, 1) * 1e3, dt, (k,))
+        assert float(res.u.abs().max()) < 1e-6 * float(path.abs().max() * 1e3)
+    # The residual's coefficients: u is linear in z, so read them off unit vectors.
+    T = t.numel()
+    s, u = t.view(-1, 1), t.view(1, -1)
+    lo, hi = torch.minimum(s, u), torch.maximum(s, u)
+    cov = lo**3 / 3 + (hi - lo) * lo**2 / 2
+    for k in (2, 3, 4):
+        basis = torch.eye(T, dtype=torch.float64).view(T, T, 1)  # T tracks, each one unit z
+        coeff = difference_residuals(basis, dt.expand(T, T), (k,))
+        C = torch.zeros(T - k, T, dtype=torch.float64)
+        # Residual i of track j is coefficient j of stencil i (first step i).
+        C[coeff.first, coeff.track] = coeff.u
+        b = difference_residuals(torch.zeros(1, T, 1, dtype=torch.float64), dt, (k,)).b
+        assert_close((C.square().sum(1)), torch.ones(T - k), rtol=1e-12)  # unit noise gain
+        assert_close(torch.einsum("ij,jk,ik->i", C, cov, C), b, rtol=1e-9)
+
+
+def test_three_point_residual_is_the_gasser_sroka_jennen_steinmetz_one():
+    dt = torch.tensor([[1.0, 2.0, 5.0, 0.5]], dtype=torch.float64)
+    z = torch.tensor([[[0.0], [3.0], [1.0], [7.0]]], dtype=torch.float64)
+    res = difference_residuals(z, dt, (2,))
+    t = torch.cumsum(dt[0], 0)
+    for i in range(2):
+        h1, h2 = t[i + 1] - t[i], t[i + 2] - t[i + 1]
+        H = h1 + h2
+        rho = z[0, i + 1, 0] - (h2 * z[0, i, 0] + h1 * z[0, i + 2, 0]) / H
+        a = 1 + (h1 / H) ** 2 + (h2 / H) ** 2
+        assert float(res.u[i].abs()) == pytest.approx(float(rho.abs() / a.sqrt()))
+        assert float(res.b[i]) == pytest.approx(float(h1**2 * h2**2 / (3 * H) / a))
+
+
+def test_large_data_are_fitted_on_a_sample_of_blocks(monkeypatch):
+    sim = simulate(small("turns 1 s"), 50.0, seed=1)
+    monkeypatch.setattr(priors, "MAX_RESIDUALS", 4000)
+    noise = estimate_noise(sim.z, sim.dt)
+    assert noise.triplets <= 4000 * 1.05
+    assert bool(((noise.meas_var.sqrt() / 50.0 - 1).abs() <= WITHIN).all())
+
+
+def test_bad_inputs_are_named():
+    z = torch.zeros(1, 2, 2, dtype=torch.float64)
+    with pytest.raises(ValueError, match="^z: too few"):
+        estimate_noise(z, torch.ones(1, 2, dtype=torch.float64))
+    line = torch.arange(20.0, dtype=torch.float64).view(1, 20, 1).expand(1, 20, 2)
+    with pytest.raises(ValueError, match="^z: most positions lie exactly"):
+        estimate_noise(line, torch.ones(1, 20, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^z, dt:"):
+        estimate_noise(line, torch.ones(1, 19, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^orders:"):
+        estimate_noise(line, torch.ones(1, 20, dtype=torch.float64), orders=(1, 2))
+    with pytest.raises(ValueError, match="^criterion:"):
+        smoother_q(line, torch.ones(1, 20, dtype=torch.float64), 1.0, criterion="mse")
+    with pytest.raises(ValueError, match="^meas_var:"):
+        smoother_q(line, torch.ones(1, 20, dtype=torch.float64), -1.0)
+
+
+def test_likelihood_q_recovers_the_true_q_within_its_standard_error():
+    """Tracks of the CV model itself: the innovation likelihood's q is the maximum-likelihood
+    estimate, within three of its standard errors of the truth."""
+    gen = torch.Generator().manual_seed(2)
+    q, r = 0.5, 100.0
+    dt = torch.full((8, 300), 2.0, dtype=torch.float64)
+    _, z = simulate_cv(dt, q, r, gen, speed=20.0)
+    fit = smoother_q(z, dt, r, criterion="nll")
+    assert 0 < fit.log_se < 0.3
+    assert abs(math.log(fit.q / q)) <= 3 * fit.log_se
+
+
+@pytest.mark.parametrize(
+    "name, sigma",
+    [
+        ("turns 1 s", 50.0),  # the likelihood's q: 1.09 of the best; the former: 1.11
+        ("ships 9 s", 50.0),
+        ("CV q=1, 1 s", 50.0),
+    ],
+)
+def test_sure_q_is_near_the_best_of_a_grid_scanned_with_the_truth(name, sigma):
+    """The smoother with the estimated noise and the SURE q is within 5% of the best RMSE of a
+    grid of q scanned with the truth and the true noise (the RMSE is flat near its optimum:
+    SURE's statistical error on q costs about 1% here), and below the raw measurements."""
+    sim = simulate(small(name), sigma, seed=11)
+    noise = estimate_noise(sim.z, sim.dt)
+    fit = smoother_q(sim.z, sim.dt, noise.meas_var)
+    rmse = ks_rmse(sim, float(noise.meas_var.mean()), fit.q)
+    _, best = best_grid_q(sim, sigma**2, points=19)
+    assert rmse <= 1.05 * best, f"KS RMSE {rmse:.2f} m, grid's best {best:.2f} m"
+    assert rmse < raw_rmse(sim)
+
+
+def test_sure_q_never_worse_than_the_measurements_when_nothing_can_be_smoothed():
+    """Fast turns at 60 s scans (30-90° per scan): smoothing cannot help; SURE's q lets the
+    smoother follow the measurements instead of cutting the corners."""
+    sim = simulate(small("fast 60 s"), 10.0, seed=0)
+    noise = estimate_noise(sim.z, sim.dt)
+    fit = smoother_q(sim.z, sim.dt, noise.meas_var)
+    assert ks_rmse(sim, float(noise.meas_var.mean()), fit.q) <= 1.02 * raw_rmse(sim)
+
+
+def test_smoother_q_uses_a_sample_of_large_data():
+    sim = simulate(small("ships 9 s", tracks=2), 50.0, seed=0)
+    fit = smoother_q(sim.z, sim.dt, 2500.0, max_steps=512, window=256)
+    assert fit.steps <= 512
+    assert isinstance(sim, Simulated)

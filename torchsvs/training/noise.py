@@ -1,0 +1,193 @@
+"""The process noise ``q`` a Kalman smoother works well with, read off the data.
+
+:func:`~torchsvs.datasets.estimate_noise` reads the measurement noise from short-scale
+differences; the white-acceleration ``q`` it also gives is only what those short scales see
+once the maneuvers are set aside (for a slow target at long scans the noise swamps it there).
+The smoother's ``q`` decides how much of the wander and the turns it follows: :func:`smoother_q`
+picks it by a one-dimensional search over ``q`` with the measurement noise fixed at its robust
+estimate, minimising Stein's unbiased estimate of the smoother's position error (default) or
+maximising the Kalman filter's innovation likelihood.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsvs.datasets import two_point_prior
+from torchsvs.estimator import threads_for
+from torchsvs.filters import KalmanFilter
+from torchsvs.models import ConstantVelocity
+from torchsvs.smoothers import RTSSmoother
+from torchsvs.training.losses import innovation_nll
+
+#: Steps (all windows together) the criterion is computed on: a sample of larger data.
+MAX_STEPS = 20_000
+#: Steps per window the tracks are cut into (each window starts from its own two-point prior).
+WINDOW = 512
+#: The coarse grid of :func:`smoother_q`: ``q`` in units of ``r / h³`` (``h`` the median
+#: interval), a factor of 10 apart. A still target wants the low end; at 60 s scans an airliner
+#: that turns 1 deg/s wants ``10⁴ r/h³``.
+GRID = tuple(10.0**k for k in range(-8, 9))
+#: The golden-section search stops when the bracket of ``log q`` is this narrow.
+LOG_TOLERANCE = 0.01
+#: Criteria of :func:`smoother_q`.
+CRITERIA = ("sure", "nll")
+
+
+class QEstimate(NamedTuple):
+    """The ``q`` of :func:`smoother_q`."""
+
+    q: float  #: white-acceleration power spectral density (units²/s³)
+    value: float  #: the criterion at ``q`` (SURE: mean squared position error per component)
+    #: standard error of ``log q`` from the likelihood's curvature ("nll"; NaN for "sure")
+    log_se: float
+    evaluations: int  #: smoother or filter passes
+    steps: int  #: steps the criterion was computed on
+
+
+def _windows(z: Tensor, dt: Tensor, window: int, max_steps: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The tracks cut into windows of ``window`` steps, at most ``max_steps`` steps spread evenly
+    over them: ``z [N, W, m]`` (each window moved to start near 0), ``dt [N, W]`` and the steps
+    scored ``[N, W]`` (from the third observed one of a window on: the first two make its
+    prior)."""
+    B, T, m = z.shape
+    W = min(window, T)
+    count = -(-T // W)
+    pad = count * W - T
+    zp = torch.cat([z, z.new_full((B, pad, m), math.nan)], 1).reshape(B * count, W, m)
+    dtp = torch.cat([dt, dt[:, -1:].expand(B, pad)], 1).reshape(B * count, W)
+    seen = (~torch.isnan(zp)).any(-1)
+    scored = seen & (seen.cumsum(1) >= 3)
+    useful = scored.any(1)
+    zp, dtp, scored = zp[useful], dtp[useful], scored[useful]
+    keep = max(1, max_steps // W)
+    if len(zp) > keep:
+        pick = torch.linspace(0, len(zp) - 1, keep).round().long().unique()
+        zp, dtp, scored = zp[pick], dtp[pick], scored[pick]
+    first = (~torch.isnan(zp)).to(torch.int64).argmax(1, keepdim=True)
+    zp = zp - zp.nan_to_num(0.0).gather(1, first)
+    return zp, dtp, scored
+
+
+def smoother_q(
+    z: Tensor,
+    dt: Tensor,
+    meas_var: Tensor | float,
+    criterion: str = "sure",
+    max_steps: int = MAX_STEPS,
+    window: int = WINDOW,
+) -> QEstimate:
+    r"""The ``q`` of a nearly-constant-velocity Kalman smoother (RTS) for these tracks, with the
+    measurement noise ``meas_var`` fixed.
+
+    ``"sure"`` minimises Stein's unbiased risk estimate (Stein 1981) of the smoothed position's
+    mean squared error, per observed component :math:`i` of step :math:`t`,
+
+    .. math::
+        \mathrm{SURE} = (z_{ti} - \hat z_{ti})^2 - r_i + 2\,(P_{t|T})_{ii},
+
+    where :math:`\hat z = H\hat x_{t|T}`. The divergence term is exact and needs no probes: for
+    ``z = Hx + v``, ``v ~ N(0, R)`` independent of ``x``, the smoothed fit is
+    :math:`\hat z = E[z - v \mid z] = z - R\Sigma_z^{-1}(z - Ez)`, so its hat matrix is
+    :math:`I - R\Sigma_z^{-1}`; and :math:`H P H^\top = \mathrm{Cov}(v \mid z) = R - R
+    \Sigma_z^{-1} R`, so :math:`I - R\Sigma_z^{-1} = H P H^\top R^{-1}`, whose diagonal at
+    ``t`` is :math:`H P_{t|T} H^\top R^{-1}` (the two-point prior reads only a window's first
+    two positions, which are not scored). SURE is unbiased whatever the true path (turns
+    included) as long as the noise is white Gaussian of variance :math:`r`, so its minimiser is
+    the ``q`` that serves the smoother, not the ``q`` of a model the path does not follow; as
+    ``q`` grows the smoother tends to the measurements and SURE to ``r``: the pick is never
+    expected to be worse than the raw measurements.
+
+    ``"nll"`` maximises the likelihood of the Kalman filter's innovations
+    (:func:`~torchsvs.training.losses.innovation_nll`; Harvey 1989, Sec. 3.4), efficient when
+    the tracks follow the model, and gives the standard error of :math:`\log q` from the
+    observed information.
+
+    The criterion is computed on windows of ``window`` steps (at most ``max_steps`` in all),
+    each from its own two-point prior (:func:`~torchsvs.datasets.two_point_prior`) and scored
+    from its third observed step on. A grid of ``q`` (:data:`GRID`, in units of ``r/h³`` for
+    the median interval ``h``) brackets the minimum, which a golden-section search on
+    :math:`\log q` narrows to :data:`LOG_TOLERANCE`.
+
+    Args:
+        z: measurements ``[B, T, m]``, NaN where missing.
+        dt: intervals ``[B, T]``.
+        meas_var: measurement noise variance, a number or one per axis ``[m]``.
+        criterion: ``"sure"`` or ``"nll"``.
+        max_steps: at most this many steps are used (windows spread evenly over the data).
+        window: steps per window.
+
+    References:
+        Stein, "Estimation of the mean of a multivariate normal distribution", Ann. Statist.
+        9(6):1135-1151, 1981. doi:10.1214/aos/1176345632
+
+        Harvey, "Forecasting, Structural Time Series Models and the Kalman Filter", Cambridge
+        University Press, 1989. doi:10.1017/CBO9781107049994
+    """
+    if z.ndim != 3 or dt.shape != z.shape[:2]:
+        raise ValueError(
+            f"z, dt: expected [B, T, m] and [B, T], got {tuple(z.shape)}, {tuple(dt.shape)}"
+        )
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
+    m = z.shape[-1]
+    r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
+    if r.numel() != m or not bool(((r > 0) & torch.isfinite(r)).all()):
+        raise ValueError(f"meas_var: expected one or {m} finite variances > 0, got {r.tolist()}")
+    zw, dtw, scored = _windows(z.to(torch.float64), dt.to(torch.float64), window, max_steps)
+    if not bool(scored.any()):
+        raise ValueError("z: too few observed positions in a row to read q off the data")
+    prior = two_point_prior(zw, dtw, r)
+    counted = ~torch.isnan(zw) & scored.unsqueeze(-1)
+    h = float(dtw[~torch.isnan(zw).all(-1)].median())
+    unit = float(r.mean()) / h**3
+    cache: dict[float, float] = {}
+
+    def value(log_q: float) -> float:
+        if log_q not in cache:
+            model = ConstantVelocity(ndim=m, q=math.exp(log_q), r=r.tolist()).double()
+            kf = KalmanFilter(model)
+            with torch.no_grad():
+                if criterion == "nll":
+                    cache[log_q] = float(innovation_nll(kf(zw, prior.x0, prior.P0, dt=dtw), scored))
+                else:
+                    out = RTSSmoother(kf)(zw, prior.x0, prior.P0, dt=dtw, keep="moments")
+                    fitted = out.mean[..., 0::2]
+                    leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+                    risk = (zw - fitted).square() - r + 2.0 * leverage
+                    cache[log_q] = float(risk[counted].mean())
+        return cache[log_q]
+
+    with threads_for(1, 1):  # windows of a few small matrices: one intra-op thread
+        x = _golden_search(value, [math.log(unit * g) for g in GRID])
+        log_se = math.nan
+        if criterion == "nll":
+            step = 0.05
+            curvature = (value(x + step) - 2.0 * value(x) + value(x - step)) / step**2
+            curvature *= float(counted.sum())  # the NLL is a mean per observed component
+            log_se = 1.0 / math.sqrt(curvature) if curvature > 0 else math.inf
+        best = value(x)
+    return QEstimate(math.exp(x), best, log_se, len(cache), int(scored.sum()))
+
+
+def _golden_search(value: Callable[[float], float], grid: list[float]) -> float:
+    """The minimum of ``value`` bracketed by the grid's best point and its neighbours, narrowed
+    by golden section to :data:`LOG_TOLERANCE`."""
+    values = [value(x) for x in grid]
+    best = min(range(len(grid)), key=values.__getitem__)
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
+    golden = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = hi - golden * (hi - lo), lo + golden * (hi - lo)
+    while hi - lo > LOG_TOLERANCE:
+        if value(a) < value(b):
+            hi, b = b, a
+            a = hi - golden * (hi - lo)
+        else:
+            lo, a = a, b
+            b = lo + golden * (hi - lo)
+    return 0.5 * (lo + hi)
