@@ -299,7 +299,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     meas_var, q = settings.meas_var, settings.q
     imm = settings.estimator == "imm"
     turn_open = imm and None in (settings.turn_q, settings.turn_rate_q, settings.turn_rate_std)
-    data_q = None
+    data_q, noise = None, None
     if meas_var is None or q is None or turn_open:
         try:
             noise = estimate_noise(tracks.z, tracks.dt)
@@ -316,8 +316,6 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
             meas_var = noise.meas_var.double().tolist()
             meas_std_se = _noise_standard_error(noise)
         data_q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
-        if q is None and not imm:
-            q = data_q
         if imm and noise is not None and tracks.z.shape[-1] > 2:
             # The turn is horizontal: its scale is the horizontal axes' maneuvering (a calm
             # height would dilute the q shared by all three axes).
@@ -327,6 +325,8 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
         meas_var = list(meas_var) * m
     if len(meas_var) != m:
         raise ValueError(f"meas_std: expected one value or one per axis ({m}), got {len(meas_var)}")
+    if q is None and not imm:
+        q = data_q if noise is None else _smoother_q(tracks, meas_var)
     turn_q, turn_rate_q, turn_rate_std = (
         settings.turn_q,
         settings.turn_rate_q,
@@ -361,6 +361,15 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
         turn_rate_q=turn_rate_q,
         turn_rate_std=turn_rate_std,
     )
+
+
+def _smoother_q(tracks: RecordedTracks, meas_var: Sequence[float]) -> float:
+    """The q a Kalman smoother serves these tracks with (:func:`torchsvs.training.noise.
+    smoother_q`: its exact SURE, the noise fixed): the motion that short differences show
+    (``estimate_noise``'s q) is no guide at long scans or for slow targets."""
+    from torchsvs.training.noise import smoother_q
+
+    return smoother_q(tracks.z, tracks.dt, torch.tensor(meas_var, dtype=torch.float64)).q
 
 
 def _noise_standard_error(noise: Any) -> list[float] | None:
