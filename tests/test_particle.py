@@ -23,7 +23,7 @@ import torch
 from scipy import stats  # installed with the dev extras (filterpy, pykalman)
 
 import torchsvs as ts
-from tests.conftest import System, assert_close, random_system
+from tests.conftest import System, assert_close, random_system, simulate_cv
 from tests.test_nonlinear import _ballistic_run
 
 #: One-sided confidence of every ordering claim (its false-pass probability).
@@ -66,21 +66,36 @@ def _ratio_bounds(
     return float(r - k * se), float(r + k * se)
 
 
-def _replicas(est: ts.ParticleFilter, system: System, runs: int):
+def _replicas(est: ts.ParticleFilter, system: System | tuple, runs: int):
     """``runs`` independent runs of ``est`` on each track of ``system`` (the measurements repeated
     in one batch, one generator: every row draws its own particles) and the KF of the tracks:
-    the particle means' errors in KF standard deviations ``[B, runs, T, n]``, the result, the KF."""
-    z, x0, P0 = system.tensors()
-    kf = ts.KalmanFilter(system.model())(z, x0, P0)
+    the particle means' errors in KF standard deviations ``[B, runs, T, n]``, the result, the KF.
+    ``system``: a :class:`System`, or ``(model, z, x0 [B, n], P0, dt [B, T] or None)``."""
+    if isinstance(system, System):
+        model, (z, x0, P0), dt = system.model(), system.tensors(), None
+    else:
+        model, z, x0, P0, dt = system
+    kf = ts.KalmanFilter(model)(z, x0, P0, dt=dt)
+    many = {}
+    if dt is not None:
+        many["dt"] = dt.repeat_interleave(runs, 0)
+    if x0.ndim == 2:
+        x0 = x0.repeat_interleave(runs, 0)
     with torch.no_grad():
-        out = est(z.repeat_interleave(runs, 0), x0, P0, generator=torch.Generator().manual_seed(0))
+        out = est(
+            z.repeat_interleave(runs, 0),
+            x0,
+            P0,
+            generator=torch.Generator().manual_seed(0),
+            **many,
+        )
     B, T, n = kf.mean.shape
     std = kf.cov.diagonal(dim1=-2, dim2=-1).sqrt().unsqueeze(1)
     err = (out.mean.reshape(B, runs, T, n) - kf.mean.unsqueeze(1)) / std
     return err, out, kf
 
 
-def _assert_exact_filter(est: ts.ParticleFilter, system: System, runs: int) -> None:
+def _assert_exact_filter(est: ts.ParticleFilter, system: System | tuple, runs: int) -> None:
     """``est`` against the Kalman filter on ``system`` (module docstring): the particle mean
     (``B·T·n`` entries), the weighted covariance in products of KF standard deviations (its
     ``B·T·n(n+1)/2`` distinct entries) and the marginal likelihood estimate, whose ratio to the
@@ -394,3 +409,398 @@ def test_eha_modulus_claims_of_the_three_spvsf_readings():
     )
     low, _ = _ratio_bounds(rmse["PF"], rmse["SVSF"])
     assert low > 5, f"PF over SVSF: {low:.1f}"
+
+
+# --- The optimal proposal, regularisation and the degeneracy helper. ---
+
+
+class _Opaque(ts.models.StateSpaceModel):
+    """A linear model that does not say so (not a ``LinearModel``): the filters treat its ``h``
+    as nonlinear and linearise it (exactly), which exercises that path against the KF."""
+
+    uses_dt = True
+
+    def __init__(self, inner: ts.models.ConstantVelocity) -> None:
+        super().__init__()
+        self.inner = inner
+        self.state_dim, self.meas_dim = inner.state_dim, inner.meas_dim
+
+    def f(self, x, dt=None, u=None):
+        return self.inner.f(x, dt)
+
+    def h(self, x):
+        return self.inner.h(x)
+
+    def h_jacobian(self, x):
+        return self.inner.h_jacobian(x)
+
+    def process_noise(self, dt=None):
+        return self.inner.process_noise(dt)
+
+    def meas_cov(self):
+        return self.inner.meas_cov()
+
+
+def _cv_with_gaps(seed: int = 3):
+    """Two nearly-constant-velocity tracks at irregular intervals ``dt [2, 12]`` (0.5 to 10 s;
+    ``Q`` up to 13 times ``R`` in position, where the bootstrap degenerates), with a missing
+    step, a missing component and the second track padded with NaN after step 9:
+    ``(model, z, x0, P0, dt)``."""
+    gen = torch.Generator().manual_seed(seed)
+    dt = 0.5 + 9.5 * torch.rand(2, 12, generator=gen, dtype=torch.float64)
+    _, z = simulate_cv(dt, q=1.0, r=25.0, generator=gen, speed=3.0)
+    z[0, 3] = float("nan")
+    z[1, 5, 1] = float("nan")
+    z[1, 10:] = float("nan")
+    model = ts.models.ConstantVelocity(q=1.0, r=25.0).double()
+    P0 = torch.diag(torch.tensor([100.0, 9.0, 100.0, 9.0], dtype=torch.float64))
+    return model, z, torch.zeros(2, 4, dtype=torch.float64), P0, dt
+
+
+def test_optimal_proposal_is_an_exact_filter_with_gaps_and_intervals():
+    """The optimal proposal targets the exact posterior: against the KF oracle
+    (:func:`_assert_exact_filter`, 50 runs of 2000 particles per track), on tracks with per-step
+    intervals, a missing step, a missing component and padding; its weight is the closed-form
+    ``N(z; H f(xᵢ), S)`` and its estimate averages the proposal means."""
+    model, z, x0, P0, dt = _cv_with_gaps()
+    pf = ts.ParticleFilter(model, 2000, proposal="optimal")
+    _assert_exact_filter(pf, (model, z, x0, P0, dt), runs=50)
+
+
+def test_linearised_optimal_proposal_is_the_closed_form_for_a_linear_h():
+    """For a nonlinear ``h`` the proposal linearises it at each particle and weighs with the full
+    importance weight ``p(z | x) p(x | x') / q(x)``. For an ``h`` that is linear (a model that does
+    not say so), ``q`` is the optimal proposal and that weight equals ``N(z; H f(x'), S)``
+    whatever was drawn: without resampling, the same particles, log-weights and likelihood as the
+    closed form, draw for draw, on tracks with gaps, padding and per-step intervals."""
+    model, z, x0, P0, dt = _cv_with_gaps()
+    runs = {}
+    for name, m in (("closed", model), ("linearised", _Opaque(model))):
+        pf = ts.ParticleFilter(m, 64, resample_threshold=0.0, proposal="optimal")
+        runs[name] = pf(z, x0, P0, dt=dt, generator=torch.Generator().manual_seed(1))
+    closed, linearised = runs["closed"], runs["linearised"]
+    assert_close(linearised.particles, closed.particles)
+    assert_close(linearised.log_weights, closed.log_weights, rtol=1e-7, atol=1e-9)
+    assert_close(linearised.log_likelihood, closed.log_likelihood)
+
+
+def test_optimal_proposal_against_numpy():
+    """One step of the optimal proposal on a random linear-Gaussian model, track 1 with only its
+    first component observed: each particle's proposal mean ``f(x) + K (z − H f(x))``, its
+    covariance ``(I − K H) Q`` (``K = Q Hᵀ S⁻¹``, ``S = H Q Hᵀ + R`` over the observed
+    components) and the log-weight ``log N(z; H f(x), S)``, against NumPy."""
+    from torchsvs.estimator import Inputs
+
+    system = random_system(3, 2, T=3, B=2, seed=7)
+    z_np = system.z.copy()
+    z_np[1, 0, 1] = np.nan
+    z = torch.from_numpy(z_np)
+    x0 = torch.from_numpy(system.x0).expand(2, 3).clone()
+    pf = ts.ParticleFilter(system.model(), num_particles=5, proposal="optimal")
+    gen = torch.Generator().manual_seed(0)
+    inputs = Inputs(z, x0, torch.eye(3, dtype=z.dtype)[None], None, None, None, gen, False)
+    particles = x0.unsqueeze(1) + torch.randn(2, 5, 3, generator=gen, dtype=z.dtype)
+    state = pf.begin(inputs, None, None)
+    drawn, state, log_w = pf.propose(0, particles, state, inputs, gen)
+    F, H, Q, R = system.F, system.H, system.Q, system.R
+    for b in range(2):
+        seen = ~np.isnan(z_np[b, 0])
+        Hs = H[seen]
+        S = Hs @ Q @ Hs.T + R[np.ix_(seen, seen)]
+        K = Q @ Hs.T @ np.linalg.inv(S)
+        assert_close(state.Sigma[b, 0], torch.from_numpy((np.eye(3) - K @ Hs) @ Q))
+        for i in range(5):
+            pred = F @ particles[b, i].numpy()
+            r = z_np[b, 0][seen] - Hs @ pred
+            assert_close(state.mu[b, i], torch.from_numpy(pred + K @ r))
+            expected = -0.5 * (r @ np.linalg.solve(S, r) + np.log(np.linalg.det(2 * np.pi * S)))
+            assert_close(log_w[b, i], torch.tensor(expected, dtype=torch.float64))
+    assert bool(torch.isfinite(drawn).all())
+
+
+def _reference_sir(model, z, x0, P0, N, threshold, gen):
+    """The SIR filter of Gadsden et al. 2012, Eqs. (5)-(10), written out: draws from the prior,
+    the transition with ``Q``, likelihood weights over the observed components, systematic
+    resampling when ``N_eff < threshold · N``. Means ``[B, T, n]`` and ESS ``[B, T]``."""
+    B, T, m = z.shape
+    n = x0.shape[-1]
+    Q, R, H = model.process_noise(), model.meas_cov(), model.meas_matrix()
+    x = (
+        x0[:, None]
+        + torch.randn(B, N, n, generator=gen, dtype=z.dtype) @ torch.linalg.cholesky(P0).mT
+    )
+    log_w = torch.full((B, N), -np.log(N), dtype=z.dtype)
+    means, esss = [], []
+    for t in range(T):
+        moved = model.f(x.reshape(B * N, n)).reshape(B, N, n)
+        eps = torch.randn(B, N, n, generator=gen, dtype=z.dtype)
+        x = moved + eps @ torch.linalg.cholesky(Q).mT
+        for b in range(B):
+            seen = ~torch.isnan(z[b, t])
+            if seen.any():
+                r = z[b, t, seen] - x[b] @ H[seen].mT
+                S = R[seen][:, seen]
+                log_w[b] += -0.5 * (r @ torch.linalg.inv(S) * r).sum(-1)
+        log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
+        w = log_w.exp()
+        means.append(torch.einsum("bn,bni->bi", w, x))
+        ess = 1.0 / w.square().sum(-1)
+        esss.append(ess)
+        low = ess < threshold * N
+        if low.any():
+            u = torch.rand(B, 1, generator=gen, dtype=z.dtype)
+            cdf = torch.cumsum(w, -1)
+            cdf = cdf / cdf[:, -1:]
+            index = torch.searchsorted(cdf, (torch.arange(N) + u) / N, right=True).clamp(max=N - 1)
+            picked = x.gather(1, index.unsqueeze(-1).expand(-1, -1, n))
+            x = torch.where(low[:, None, None], picked, x)
+            log_w = torch.where(low[:, None], -np.log(N), log_w)
+    return torch.stack(means, 1), torch.stack(esss, 1)
+
+
+def test_bootstrap_is_the_plain_sir_filter():
+    """The default proposal is the bootstrap SIR filter the paper reproductions use, unchanged by
+    the optimal proposal and the regularisation: the same numbers as the filter written out
+    (:func:`_reference_sir`, the same draws from one seed), with a missing step and component."""
+    system = random_system(3, 2, T=15, B=3, seed=2)
+    z, x0, P0 = system.tensors()
+    z = z.clone()
+    z[0, 4] = float("nan")
+    z[2, 6, 0] = float("nan")
+    x0 = x0.expand(3, 3)
+    pf = ts.ParticleFilter(system.model(), num_particles=40, resample_threshold=0.8)
+    out = pf(z, x0, P0, generator=torch.Generator().manual_seed(11))
+    mean, ess = _reference_sir(
+        system.model(),
+        z,
+        x0,
+        torch.from_numpy(system.P0),
+        40,
+        0.8,
+        torch.Generator().manual_seed(11),
+    )
+    assert_close(out.mean, mean)
+    assert_close(out.ess, ess)
+
+
+@pytest.mark.parametrize("proposal", ["bootstrap", "optimal"])
+def test_ess_is_that_of_the_normalised_weights(proposal):
+    """``ess`` is ``1 / Σ wᵢ²`` of the step's normalised weights before resampling (Eq. (10)):
+    without resampling, the last step's equals that of the final log-weights; every ESS lies in
+    ``[1, N]``; at a step without a measurement the weights do not change, so its ESS is that of
+    the step before (or ``N`` after a resampling)."""
+    model, z, x0, P0, dt = _cv_with_gaps()
+    kept = ts.ParticleFilter(model, 50, resample_threshold=0.0, proposal=proposal)
+    out = kept(z, x0, P0, dt=dt, generator=torch.Generator().manual_seed(0))
+    assert_close(out.ess[:, -1], 1.0 / out.log_weights.exp().square().sum(-1))
+    assert bool((out.ess >= 1.0 - 1e-9).all()) and bool((out.ess <= 50.0 + 1e-9).all())
+    pf = ts.ParticleFilter(model, 50, proposal=proposal)
+    out = pf(z, x0, P0, dt=dt, generator=torch.Generator().manual_seed(0))
+    before = out.ess[0, 2]
+    assert_close(out.ess[0, 3], before if before >= 25 else torch.tensor(50.0, dtype=before.dtype))
+
+
+def test_degenerate_share():
+    """The share of a track's measured steps whose ESS fell below ``N/10``: counted by hand on a
+    result with a missing step and padding (neither counts), over all steps without ``z``, for
+    one track's result, and bad input named."""
+    from torchsvs.filters.particle import ParticleResult, degenerate_share
+
+    N = 20
+    ess = torch.tensor([[1.0, 19.0, 1.9, 2.0, 5.0], [20.0, 1.0, 1.0, 3.0, 3.0]])
+    z = torch.zeros(2, 5, 2)
+    z[0, 2] = float("nan")  # ESS 1.9 < 2 at a step without a measurement: not counted
+    z[1, 3:] = float("nan")  # padding
+    result = ParticleResult(ess, ess, ess, ess, torch.zeros(2, N, 4), torch.zeros(2, N))
+    assert_close(degenerate_share(result, z), torch.tensor([1 / 4, 2 / 3]))
+    assert_close(degenerate_share(result), torch.tensor([2 / 5, 2 / 5]))
+    assert_close(degenerate_share(result, z, share=0.2), torch.tensor([2 / 4, 2 / 3]))
+    assert_close(degenerate_share(result, z, share=0.3), torch.tensor([3 / 4, 2 / 3]))
+    single = ParticleResult(ess[0], ess[0], ess[0], ess[0], torch.zeros(N, 4), torch.zeros(N))
+    assert_close(degenerate_share(single, z[0]), torch.tensor(1 / 4))
+    none = torch.full((1, 5, 2), float("nan"))
+    assert_close(degenerate_share(result._replace(ess=ess[:1]), none), torch.tensor([0.0]))
+    with pytest.raises(ValueError, match="^share: expected a value in"):
+        degenerate_share(result, z, share=0.0)
+    with pytest.raises(ValueError, match="^z: expected the run's measurements"):
+        degenerate_share(result, z[:, :4])
+    with pytest.raises(ValueError, match="^result: holds no ess"):
+        degenerate_share(result._replace(ess=None))
+
+
+def test_gaussian_posterior_against_numpy():
+    """The regularisation's Gaussian posterior: the weighted moments of the particles' prediction
+    plus ``Q``, Kalman-updated with the observed components, against NumPy; a measurement beyond
+    the χ² gate (``α = 0.01``; 2 components: 9.21) first scales the predicted covariance by
+    ``ν/m``, one within it leaves it as it is."""
+    from torchsvs.estimator import Inputs
+
+    system = random_system(3, 2, T=1, B=2, seed=5)
+    model = system.model()
+    gen = torch.Generator().manual_seed(1)
+    particles = torch.randn(2, 30, 3, generator=gen, dtype=torch.float64)
+    log_w = torch.log_softmax(torch.randn(2, 30, generator=gen, dtype=torch.float64), -1)
+    F, H, Q, R = system.F, system.H, system.Q, system.R
+    moved = particles.numpy() @ F.T
+    w = log_w.exp().numpy()
+    m = np.einsum("bn,bni->bi", w, moved)
+    d = moved - m[:, None]
+    C = np.einsum("bn,bni,bnj->bij", w, d, d) + Q
+    S = H @ C @ H.T + R
+    near = H @ m[0] + np.linalg.cholesky(S[0]) @ np.array([0.5, -0.3])  # ν = 0.34
+    far = H @ m[1] + np.linalg.cholesky(S[1]) @ np.array([3.0, 2.0])  # ν = 13 > 9.21
+    z = torch.from_numpy(np.stack([near, far]))[:, None]
+    pf = ts.ParticleFilter(model, 30, proposal="optimal", regularize=True)
+    inputs = Inputs(
+        z, particles[:, 0], torch.eye(3, dtype=z.dtype)[None], None, None, None, gen, False
+    )
+    x, P = pf.gaussian_posterior(0, particles, log_w, inputs)
+    for b, scale in ((0, 1.0), (1, 13.0 / 2)):
+        Cb = scale * C[b]
+        Sb = H @ Cb @ H.T + R
+        K = Cb @ H.T @ np.linalg.inv(Sb)
+        assert_close(x[b], torch.from_numpy(m[b] + K @ (z[b, 0].numpy() - H @ m[b])))
+        assert_close(P[b], torch.from_numpy(Cb - K @ Sb @ K.T))
+
+
+def test_regularized_particles_cover_the_gaussian_posterior():
+    """After resampling, a regularised set whose weighted covariance ``C`` falls short of the
+    Gaussian posterior ``N(x, P)`` gets ``N(0, (P − C)₊)`` added (track 0, ``C = 0``: one
+    ancestor; mean the ancestor, covariance ``P``); a degenerate step's set (track 1) is redrawn
+    from ``N(x, P)``. Sample means and covariances of 20,000 particles within
+    ``k`` of their standard errors (``k`` for a joint false failure of ``1e-6``)."""
+    from torchsvs.estimator import Inputs
+
+    system = random_system(3, 2, T=1, B=2, seed=6)
+    model, (z, _, _) = system.model(), system.tensors()
+    gen = torch.Generator().manual_seed(2)
+    N = 20_000
+    before = (
+        torch.randn(2, N, 3, generator=gen, dtype=torch.float64),
+        torch.full((2, N), -np.log(N), dtype=torch.float64),
+    )
+    inputs = Inputs(
+        z[:2, :1], before[0][:, 0], torch.eye(3, dtype=z.dtype)[None], None, None, None, gen, False
+    )
+    pf = ts.ParticleFilter(model, N, proposal="optimal", regularize=True)
+    x, P = pf.gaussian_posterior(0, *before, inputs)
+    ancestor = torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64).expand(2, 3)
+    picked = ancestor.unsqueeze(1).expand(2, N, 3).clone()
+    degenerate = torch.tensor([False, True])
+    out = pf.regularized(picked, degenerate, torch.zeros(2, 3, 3, dtype=torch.float64), (x, P), gen)
+    centre = torch.stack([ancestor[0], x[1]])  # track 0 moved around its ancestor, 1 redrawn
+    k = _two_sided_k(ORACLE_ALPHA, N, 2 * 9)
+    for b in range(2):
+        mean, cov = out[b].mean(0), torch.cov(out[b].T)
+        se_mean = (P[b].diagonal() / N).sqrt()
+        se_cov = ((P[b].diagonal()[:, None] * P[b].diagonal()[None] + P[b] ** 2) / N).sqrt()
+        assert bool(((mean - centre[b]).abs() < k * se_mean).all()), (b, mean, centre[b])
+        assert bool(((cov - P[b]).abs() < k * se_cov).all()), (b, cov, P[b])
+
+
+def test_degenerate_step_estimate_is_the_gaussian_posterior():
+    """Regularised, a degenerate step (``N_eff < N/10``: here a measurement 12 predicted standard
+    deviations off on one track) reports the Gaussian posterior of its prediction
+    (:meth:`~torchsvs.ParticleFilter.gaussian_posterior` of the particles before it), a step that
+    is not (the other track) its weighted particles' moments, as without regularisation."""
+    system = random_system(2, 1, T=1, B=2, seed=4)
+    model, (z, x0, P0) = system.model(), system.tensors()
+    x0 = x0.expand(2, 2)
+    S = ts.KalmanFilter(model)(z, x0, P0).innovation_cov[0, 0, 0, 0]
+    z = z.clone()
+    z[0, 0] += 12.0 * float(S) ** 0.5
+    results = {}
+    for regularize in (False, True):
+        pf = ts.ParticleFilter(model, 200, proposal="optimal", regularize=regularize)
+        gen = torch.Generator().manual_seed(0)
+        start = pf.init(x0, P0, generator=gen)
+        _, results[regularize] = pf.scan(start, z, generator=gen)
+    out = results[True]
+    assert float(out.ess[0, 0]) < 20 <= float(out.ess[1, 0])
+    from torchsvs.estimator import prepare_inputs
+
+    inputs = prepare_inputs(model, z, x0, P0)
+    x, P = pf.gaussian_posterior(0, start.particles, start.log_weights, inputs)
+    assert_close(out.mean[0, 0], x[0])
+    assert_close(out.cov[0, 0], P[0])
+    assert_close(out.mean[1], results[False].mean[1])
+    assert_close(out.cov[1], results[False].cov[1])
+
+
+def test_regularized_filter_follows_maneuvers_its_q_misses():
+    """The ATC scenario of Chen et al. 2020 (Sec. 4.1: 3°/s and 1°/s turns between straight legs,
+    T = 1 s) measured with σ = 50 m, filtered as ``torchsvs track`` would: a nearly-constant-
+    velocity model with the measurement noise and ``q`` read off the data (``q`` 2.6, from the
+    straight legs, misses the turns: the KF's normalised innovation reaches 20 in them). Over the
+    first 200 s (the 3°/s turn and 45 s after it) the optimal proposal alone collapses in the turn
+    and loses the track (position RMSE 1060-1250 m on four runs, against 71 m for the raw
+    measurements); regularised, it follows (42-46 m; the KF 66 m). Claimed over the 4 runs at
+    one-sided 99.9% confidence (t quantile, 3 degrees of freedom): the regularised filter's mean
+    RMSE below the raw measurements', the unregularised one's above."""
+    from torchsvs.datasets import estimate_noise
+
+    sc = ts.scenarios.atc_scenario(4, torch.Generator().manual_seed(3))
+    truth = sc.truth[:, :200]
+    gen = torch.Generator().manual_seed(4)
+    z = truth[..., [0, 2]] + 50.0 * torch.randn(
+        4, truth.shape[1], 2, generator=gen, dtype=torch.float64
+    )
+    dt = torch.ones(z.shape[:2], dtype=torch.float64)
+    noise = estimate_noise(z, dt)
+    model = ts.models.ConstantVelocity(q=noise.q, r=noise.meas_var.tolist()).double()
+    prior = ts.datasets.two_point_prior(z, dt, noise.meas_var)
+
+    def rmse(est):
+        with torch.no_grad():
+            out = est(z, prior.x0, prior.P0, dt=dt, generator=torch.Generator().manual_seed(0))
+        return (out.mean - truth)[..., [0, 2]].square().sum(-1).mean(-1).sqrt()
+
+    raw = float((z - truth[..., [0, 2]]).square().sum(-1).mean().sqrt())
+    lost = rmse(ts.ParticleFilter(model, 350, proposal="optimal"))
+    kept = rmse(ts.ParticleFilter(model, 350, proposal="optimal", regularize=True))
+    assert _upper(kept) < raw, f"regularised: {float(kept.mean()):.0f} m, raw {raw:.0f} m"
+    assert -_upper(-lost) > raw, f"unregularised: {float(lost.mean()):.0f} m, raw {raw:.0f} m"
+
+
+def test_bad_pf_proposal_and_regularize():
+    model = ts.models.BallisticReentry()
+    with pytest.raises(ValueError, match=r"^proposal: expected one of \('bootstrap', 'optimal'\)"):
+        ts.ParticleFilter(model, proposal="adapted")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^regularize: expected True or False"):
+        ts.ParticleFilter(model, regularize=0.5)  # type: ignore[arg-type]
+
+
+def test_track_runs_the_regularised_optimal_filter(tmp_path):
+    """``torchsvs track --estimator pf`` builds the optimal proposal, regularised, with 350
+    particles, and on maneuvering tracks (two runs of the ATC scenario's first 200 s with
+    σ = 50 m noise, the measurement noise and ``q`` read off the file, float32) its position
+    RMSE is below the raw measurements' (42 m against 72 m; the bootstrap it replaced: over a
+    kilometre, see :func:`test_regularized_filter_follows_maneuvers_its_q_misses`)."""
+    import pandas as pd
+
+    from torchsvs.tracking import Settings, make_estimator, make_model, track_file
+
+    settings = Settings(estimator="pf", meas_var=[2500.0, 2500.0], q=1.0)
+    pf = make_estimator(settings, make_model(settings))
+    assert isinstance(pf, ts.ParticleFilter)
+    assert (pf.proposal, pf.regularize, pf.num_particles) == ("optimal", True, 350)
+    truth = ts.scenarios.atc_scenario(2, torch.Generator().manual_seed(3)).truth[:, :200]
+    gen = torch.Generator().manual_seed(4)
+    noise = 50.0 * torch.randn(2, 200, 2, generator=gen, dtype=torch.float64).numpy()
+    z = truth[..., [0, 2]].numpy() + noise
+    rows = pd.DataFrame(
+        {
+            "track_id": np.repeat(["a", "b"], 200),
+            "time": np.tile(np.arange(200.0), 2),
+            "x": z[..., 0].ravel(),
+            "y": z[..., 1].ravel(),
+        }
+    )
+    source, target = tmp_path / "in.csv", tmp_path / "out.csv"
+    rows.to_csv(source, index=False)
+    track_file(source, target, Settings(estimator="pf"), progress=False)
+    out = pd.read_csv(target).sort_values(["track_id", "time"])
+    error = out[["x", "y"]].to_numpy() - truth[..., [0, 2]].reshape(-1, 2).numpy()
+    rmse = float(np.sqrt((error**2).sum(-1).mean()))
+    raw = float(np.sqrt((noise**2).sum(-1).mean()))
+    assert rmse < raw, f"pf {rmse:.0f} m, raw {raw:.0f} m"

@@ -214,7 +214,11 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
     if name == "rstkf":
         return RobustStudentTKalmanFilter(model)
     if name == "pf":
-        return ParticleFilter(model, num_particles=settings.particles)
+        # The optimal proposal, regularised: the bootstrap loses tracks at long scan intervals
+        # and in maneuvers the data's q misses (ParticleFilter's docstring).
+        return ParticleFilter(
+            model, num_particles=settings.particles, proposal="optimal", regularize=True
+        )
     assert settings.meas_var is not None
     psi = settings.psi or rule_of_thumb_psi(settings.meas_var, settings.interval, settings.velocity)
     if settings.velocity and len(psi) == 2:
