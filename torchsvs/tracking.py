@@ -50,6 +50,7 @@ from torchsvs.filters import (
     RobustStudentTKalmanFilter,
     UnscentedKalmanFilter,
 )
+from torchsvs.filters.particle import DEGENERATE_SHARE, degenerate_share
 from torchsvs.filters.turn_imm import TurnIMM
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import SVSS, RTSSmoother
@@ -78,6 +79,8 @@ DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
 PSI_IN_SIGMAS = 5.0
 #: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
 IMM_QUIET = 0.03
+#: Share of a particle filter's steps with a degenerate sample above which a run warns.
+DEGENERATE_WARNING = 0.3
 #: Per-track error estimates a run keeps beyond this many tracks: the worst this many.
 TRACKS_KEPT = 10_000
 #: Seed offset of the truth-free error estimate's probes (apart from the particles' seeds).
@@ -423,10 +426,10 @@ def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:
     return replace(tracks, z=tracks.z - offset.unsqueeze(1)), offset
 
 
-def run_estimator(
+def run_result(
     estimator: nn.Module, tracks: RecordedTracks, generator: torch.Generator | None = None
-) -> tuple[Tensor, Tensor]:
-    """Mean ``[B, T, 2m]`` and covariance of an estimator on tracks with priors (no gradients)."""
+) -> Any:
+    """An estimator's whole result on tracks with priors (no gradients)."""
     assert tracks.x0 is not None and tracks.P0 is not None
     kwargs: dict[str, Any] = {"dt": tracks.dt}
     if isinstance(estimator, ParticleFilter):
@@ -434,7 +437,14 @@ def run_estimator(
             generator if generator is not None else torch.Generator().manual_seed(0)
         )
     with torch.no_grad():
-        out = estimator(tracks.z, tracks.x0, tracks.P0, **kwargs)
+        return estimator(tracks.z, tracks.x0, tracks.P0, **kwargs)
+
+
+def run_estimator(
+    estimator: nn.Module, tracks: RecordedTracks, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor]:
+    """Mean ``[B, T, 2m]`` and covariance of an estimator on tracks with priors (no gradients)."""
+    out = run_result(estimator, tracks, generator)
     return out.mean, out.cov
 
 
@@ -484,18 +494,24 @@ def estimate_group(
     before it, nor in which process. With ``risk``, a second run on probed measurements gives
     the truth-free error estimate's terms (:func:`~torchsvs.accuracy.risk_terms`)."""
 
-    def positions(z: Tensor) -> tuple[Tensor, Tensor]:
+    def positions(z: Tensor) -> Any:
         tracks = with_prior(replace(batch.tracks, z=z), meas_std)
         generator = torch.Generator().manual_seed(batch.position)
-        return run_estimator(estimator, tracks, generator)
+        return run_result(estimator, tracks, generator)
 
     tracks = with_prior(batch.tracks, meas_std)
-    mean, cov = positions(batch.tracks.z)
+    out = positions(batch.tracks.z)
+    mean, cov = out.mean, out.cov
+    notes = short_track_notes(tracks)
+    if getattr(out, "ess", None) is not None:  # a particle filter: how often it degenerated
+        notes["particle_steps"] = int((~torch.isnan(tracks.z)).any(-1).sum())
+        low = degenerate_share(out, tracks.z) * (~torch.isnan(tracks.z)).any(-1).sum(-1)
+        notes["particle_steps_degenerate"] = int(low.sum().round())
     terms = None
     if risk:
         probes = torch.Generator().manual_seed(PROBE_SEED + batch.position)
         terms = risk_terms(
-            lambda z: positions(z)[0][..., 0::2], tracks.z, mean[..., 0::2], meas_std, probes
+            lambda z: positions(z).mean[..., 0::2], tracks.z, mean[..., 0::2], meas_std, probes
         )
         terms.track = batch.group[terms.track]
     mean = mean.double()
@@ -503,7 +519,6 @@ def estimate_group(
     target, values, covs = flat_steps(tracks, mean, cov if covariance else None)
     assert tracks.never_observed is not None
     never = tracks.never_observed.numpy()
-    notes = short_track_notes(tracks)
     return StepEstimates(batch.position, batch.group, target, values, covs, never, notes, terms)
 
 
@@ -591,6 +606,15 @@ class TrackRun:
         if found is None or self.settings is None:
             return
         name = self.settings.estimator
+        steps = self.report.notes.get("particle_steps", 0)
+        low = self.report.notes.get("particle_steps_degenerate", 0)
+        if steps and low > DEGENERATE_WARNING * steps:
+            self.warnings.append(
+                f"{name}: the particles degenerated (effective sample size below "
+                f"{DEGENERATE_SHARE:.0%} of them) at {low / steps:.0%} of the steps; there the "
+                "estimate rests on a few particles or the regularised Gaussian; try more "
+                "--particles or --estimator ks"
+            )
         if not found.clearly_better:
             if self.settings.chosen_from is None:
                 better = "--estimator auto (tries the candidates, keeps the lowest estimated error)"

@@ -54,6 +54,9 @@ NOTES = {
     "(spoofing, a time-stamp jump); kept, the estimators see a maneuver",
     "tracks_single_point_axis": "tracks (not rows) observing an axis once: its velocity prior "
     "is 0 with a wide variance (torchsvs.datasets.priors)",
+    "particle_steps": "steps a particle filter weighed a measurement at",
+    "particle_steps_degenerate": "of those, steps whose effective sample size fell below a tenth "
+    "of the particles (torchsvs.filters.particle.degenerate_share)",
     "tracks_axis_never_observed": "tracks (not rows) never observing an axis: their estimates "
     "there are NaN",
     "invalid_coordinate": "a latitude outside ±90° or a longitude outside -180° to 360°, read as "
