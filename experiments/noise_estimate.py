@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -230,7 +232,7 @@ def best_grid_q(sim: Simulated, meas_var: float, points: int = 29) -> tuple[floa
     return float(fine[j]), float(rmse_f[j])
 
 
-def old_estimator():  # type: ignore[no-untyped-def]
+def old_estimator() -> Callable[[Tensor, Tensor], Any]:
     """``estimate_noise`` as it was before the robust estimator (commit cf1845e)."""
     import subprocess
 
@@ -241,12 +243,14 @@ def old_estimator():  # type: ignore[no-untyped-def]
         capture_output=True,
         text=True,
     ).stdout
-    namespace: dict = {"__name__": "old_priors"}
+    namespace: dict[str, Any] = {"__name__": "old_priors"}
     exec(compile(source, "old_priors.py", "exec"), namespace)
     return namespace["estimate_noise"]
 
 
-def dropped_change(estimate, sim: Simulated, drops: int = 5) -> float:  # type: ignore[no-untyped-def]
+def dropped_change(
+    estimate: Callable[[Tensor, Tensor], Any], sim: Simulated, drops: int = 5
+) -> float:
     """The largest relative change of σ̂ over ``drops`` draws of 1% of the rows removed."""
     base = float(estimate(sim.z, sim.dt).meas_var.sqrt().mean())
     changes = []
@@ -281,6 +285,7 @@ def kind_rows(sigmas: tuple[float, ...], seed: int = 0) -> tuple[list[list[objec
             ks_old = ks_rmse(sim, r_old, before.q)
             ks_new = ks_rmse(sim, r_new, sure.q)
             ks_nll = ks_rmse(sim, r_new, nll.q)
+            assert noise.meas_std_se is not None
             rows.append(
                 [
                     name,
@@ -313,10 +318,13 @@ def seed_rows(sigma: float, seeds: int) -> list[list[object]]:
     old = old_estimator()
     rows: list[list[object]] = []
     for name, kind in KINDS.items():
-        ratio, se, old_ratio = [], [], []
+        ratio: list[float] = []
+        se: list[float] = []
+        old_ratio: list[float] = []
         for seed in range(100, 100 + seeds):
             sim = simulate(kind, sigma, seed)
             noise = estimate_noise(sim.z, sim.dt)
+            assert noise.meas_std_se is not None
             ratio += (noise.meas_var.sqrt() / sigma).tolist()
             se += (noise.meas_std_se / sigma).tolist()
             old_ratio += (old(sim.z, sim.dt).meas_var.sqrt() / sigma).tolist()

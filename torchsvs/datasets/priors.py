@@ -2,11 +2,11 @@
 
 * :func:`two_point_prior`: the estimators' prior ``x0, P0`` from each track's first two observed
   positions (two-point differencing).
-* :func:`estimate_noise`: the measurement noise variance per axis and a nearly-constant-velocity
-  process noise ``q`` from the spread of the positions around straight lines (method of moments).
+* :func:`estimate_noise`: the measurement noise variance per axis, with its standard error, from
+  divided differences of the positions (:func:`difference_residuals`), robust to maneuvers.
 
-Both work on padded batches ``z [B, T, m]`` with per-step intervals ``dt [B, T]`` and return the
-layout of :class:`~torchsvs.models.ConstantVelocity` (position, velocity per axis).
+Both work on padded batches ``z [B, T, m]`` with per-step intervals ``dt [B, T]``; the prior is
+in the layout of :class:`~torchsvs.models.ConstantVelocity` (position, velocity per axis).
 """
 
 from __future__ import annotations
@@ -586,11 +586,10 @@ def _estimate(
     group = shuffled % groups
     spans = _spans(res)
     fits: dict[bool, tuple[_Fit, _Fit]] = {}
-    for white in (False, True):
-        d = _design(res, m, white, cutoff)
+    for with_q in (False, True):
+        d = _design(res, m, with_q, cutoff)
         full = _trimmed_fit(res, m, d, cutoff, maneuver, spans)
-        jack = _jackknife(res, m, d, full, group, groups, spans, cutoff, maneuver)
-        fits[white] = full, jack
+        fits[with_q] = full, _jackknife(res, m, d, full, group, groups, spans, cutoff, maneuver)
     (alone, alone_jack), (white, white_jack) = fits[False], fits[True]
     weight = 0.0
     if groups >= 2 and not bool(white.boundary.any() or white_jack.boundary.any()):
