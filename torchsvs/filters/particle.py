@@ -12,7 +12,7 @@ from torch import Tensor
 from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
 from torchsvs.filters.kalman import Observation, Prepared, _at, step_input, step_interval
-from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
+from torchsvs.filters.svsf import SVSF, ArtificialMeasurement, VariableBoundarySVSF
 from torchsvs.linalg import cholesky, gaussian_log_density, joseph_update, mask_covariance
 from torchsvs.models.base import StateSpaceModel, gaussian_noise
 from torchsvs.resampling import SCHEMES, Scheme
@@ -359,7 +359,10 @@ class SPVSF(ParticleFilter):
 
     Args:
         model: any :class:`~torchsvs.models.StateSpaceModel`.
-        psi, gamma, learn, artificial: as for :class:`SVSF`.
+        psi, gamma, learn, artificial, psi_units: as for :class:`SVSF`.
+        variable_boundary: the SVSF part is a
+            :class:`~torchsvs.filters.VariableBoundarySVSF` (the Kalman gain inside its layer,
+            ψ its limit in innovation standard deviations; ``artificial`` must be ``None``).
         num_particles: particles per track (350 in the paper).
         resample_threshold: resample when ``N_eff < threshold · N`` (the paper's 0.8).
         resampling: ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
@@ -385,12 +388,26 @@ class SPVSF(ParticleFilter):
         artificial: ArtificialMeasurement | str | None = "auto",
         proposal: Proposal = "adapted",
         soft_resampling: float | None = None,
+        variable_boundary: bool = False,
+        psi_units: str = "absolute",
     ) -> None:
         super().__init__(model, num_particles, resample_threshold, resampling, soft_resampling)
         if proposal not in PROPOSALS:
             raise ValueError(f"proposal: expected one of {PROPOSALS}, got {proposal!r}")
         self.proposal = proposal
-        self.svsf = SVSF(model, psi=psi, gamma=gamma, learn=learn, artificial=artificial)
+        self.svsf: SVSF
+        if variable_boundary:
+            if artificial is not None or psi_units != "absolute":
+                raise ValueError(
+                    "variable_boundary: its limit is in innovation standard deviations, with the "
+                    f"model's own measurement: expected artificial=None and psi_units='absolute', "
+                    f"got {artificial!r} and {psi_units!r}"
+                )
+            self.svsf = VariableBoundarySVSF(model, psi=psi, gamma=gamma, learn=learn)
+        else:
+            self.svsf = SVSF(
+                model, psi=psi, gamma=gamma, learn=learn, artificial=artificial, psi_units=psi_units
+            )
 
     class _State(NamedTuple):
         x: Tensor  # [B, n] the estimate the next SVSF step starts from
