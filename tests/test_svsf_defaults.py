@@ -204,6 +204,29 @@ def test_variable_boundary_without_limit_is_the_kalman_filter_and_smoother(infla
         assert_close(out.cov, reference.cov, atol=1e-9, rtol=1e-9)
 
 
+@pytest.mark.parametrize("inflation", ["innovation", "gain"])
+@pytest.mark.parametrize("smoother", [None, "SVSS lag 3", "RTS"])
+def test_variable_boundary_per_axis_loop_equals_the_general_path(inflation, smoother):
+    """The per-axis tensor loop (one λ per track over its axes) against the general step, with
+    missing components, irregular intervals and a jump that inflates the prior."""
+    z, dt, x0, P0, model = _vbl_problem()
+    vbl = ts.VariableBoundarySVSF(model, psi=[2.5, 2.0], gamma=0.2, inflation=inflation)
+    est = {None: vbl, "SVSS lag 3": ts.SVSS(vbl, lag=3), "RTS": ts.RTSSmoother(vbl)}[smoother]
+    est = est.double()
+    with torch.no_grad():
+        fast = est(z, x0, P0, dt=dt)
+        with general_path():
+            slow = est(z, x0, P0, dt=dt)
+    fast_f, slow_f = (fast, slow) if smoother is None else (fast.filtered, slow.filtered)
+    assert fast_f.axes is not None and slow_f.axes is None
+    assert_close(fast.mean, slow.mean, atol=1e-10, rtol=1e-10)
+    assert_close(fast.cov, slow.cov, atol=1e-10, rtol=1e-10)
+    for key in (*FIELDS, "log_likelihood"):
+        a, b = getattr(fast_f, key), getattr(slow_f, key)
+        assert_close(a, b, atol=1e-10, rtol=1e-10, msg=key)
+    assert float(fast_f.pred_cov[1].diagonal(dim1=-2, dim2=-1).max()) > 100 * float(P0.max())
+
+
 def test_variable_boundary_inflation_of_one_step_by_hand():
     """One axis, one step beyond the limit: λ, the gain and the covariance from the formulas
     written out with scalars."""

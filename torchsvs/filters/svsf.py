@@ -25,6 +25,8 @@ from torchsvs.filters.kalman import (
 from torchsvs.kernels import fused
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
 from torchsvs.linalg import (
+    INFLATIONS,
+    boundary_inflation,
     cholesky,
     gaussian_log_density,
     has_orthonormal_rows,
@@ -44,8 +46,6 @@ ArtificialMeasurement = Callable[
 #: How an :class:`SVSF` reads ψ: in the measurement's own units, or in standard deviations of
 #: each step's own corrector-measurement noise.
 PSI_UNITS = ("absolute", "noise")
-#: How :class:`VariableBoundarySVSF` inflates its prior beyond the limit.
-INFLATIONS = ("innovation", "gain")
 
 
 def auto_artificial(model: StateSpaceModel) -> ArtificialMeasurement | None:
@@ -432,7 +432,6 @@ class VariableBoundarySVSF(SVSF):
         Mehra, "Approaches to adaptive filtering", IEEE Trans. Autom. Control 17(5), 1972.
     """
 
-    axis_rule: str | None = None  # the general step (no compiled rule yet)
     #: the largest gain of a measured component: a gain of 1 would take an infinite prior
     max_gain = 0.999
 
@@ -455,6 +454,11 @@ class VariableBoundarySVSF(SVSF):
     @property
     def dense_rule(self) -> str | None:  # type: ignore[override]
         return None
+
+    @property
+    def axis_rule(self) -> str | None:  # type: ignore[override]
+        """The per-axis kernel's rule (its tensor loop: no compiled one yet)."""
+        return f"vbl-{self.inflation}"
 
     def filter_step(
         self,
@@ -499,24 +503,17 @@ class VariableBoundarySVSF(SVSF):
         PHt = P_pred @ H_used.mT
         HPHt = H_used @ PHt
         memory = carried if carried is not None else torch.zeros_like(e)
-        bar_e = e.abs() + gains.gamma * memory.abs()
-        a = HPHt.diagonal(dim1=-2, dim2=-1)
-        r = R.diagonal(dim1=-2, dim2=-1)
-        seen = a > 0  # (a missing component's row of H is zero: it asks for nothing)
-        a = torch.where(seen, a, torch.ones_like(a))
-        most = r * self.max_gain / ((1.0 - self.max_gain) * a)  # the λ of the largest gain
-        if self.inflation == "innovation":  # Ē_i² = ψ_i² (λ a_i + r_i)
-            each = ((bar_e / limit).square() - r) / a
-        else:  # g_i = k_i max(1, Ē_i / max(k_i |e_i|, ψ_i √S_ii)), Gadsden & Habibi's
-            S = symmetrize(HPHt + R)
-            K_kf = torch.cholesky_solve(PHt.mT, cholesky(S)).mT  # the Kalman gain, Eq. (14)
-            k = (H_used @ K_kf).diagonal(dim1=-2, dim2=-1)
-            spread = S.diagonal(dim1=-2, dim2=-1).sqrt()
-            wanted = k * torch.clamp_min(bar_e / torch.maximum(k * e.abs(), limit * spread), 1.0)
-            wanted = wanted.clamp_max(self.max_gain)
-            each = r * wanted / ((1.0 - wanted) * a)
-        each = torch.minimum(each, most)
-        inflation = torch.where(seen, each, torch.zeros_like(each)).amax(-1).clamp_min(1.0)
+        seen = obs.mask if obs.mask is not None else torch.ones_like(e, dtype=torch.bool)
+        inflation = boundary_inflation(
+            e.abs() + gains.gamma * memory.abs(),
+            e.abs(),
+            limit,
+            HPHt.diagonal(dim1=-2, dim2=-1),
+            R.diagonal(dim1=-2, dim2=-1),
+            seen,
+            self.inflation,
+            self.max_gain,
+        )
         grown = inflation[..., None, None]
         S = symmetrize(grown * HPHt + R)
         L = cholesky(S)
