@@ -156,7 +156,7 @@ def test_save_then_checkpoint_reproduces_the_output(tmp_path):
         "--meas-std",
         "30",
         "--psi",
-        "80,20",
+        "2,3",
         "--save",
         str(saved),
         *common,
@@ -201,7 +201,7 @@ def test_fit_tunes_on_the_file_itself(tmp_path):
         (["--estimator", "nope"], "invalid choice"),
         (["--lag", "0"], "lag: expected an integer >= 1"),
         (["--meas-std", "1,2,3"], "meas_std: expected one value or one per axis"),
-        (["--estimator", "svss", "--psi", "1,2,3"], "psi: expected 4 boundary layer widths"),
+        (["--estimator", "svss", "--psi", "1,2,3"], "psi: expected 2 boundary layer widths"),
         (["--id-col", "missing"], r"columns: \['missing'\] not in the file"),
     ],
 )
@@ -232,7 +232,7 @@ def test_lightning_checkpoint_loads_into_the_command_line_estimator(tmp_path):
     from torchsvs.tracking import Settings, load_parameters, make_estimator, make_model
     from torchsvs.training import EstimatorModule
 
-    settings = Settings(estimator="svss", meas_var=[900.0, 900.0], q=4.0, psi=[80.0, 20.0] * 2)
+    settings = Settings(estimator="svss", meas_var=[900.0, 900.0], q=4.0, psi=[2.0, 3.0])
     trained = make_estimator(settings, make_model(settings))
     with torch.no_grad():
         trained.filter.boundary_layer.raw.add_(0.3)

@@ -26,6 +26,7 @@ from torchsvs.filters import (
     SlidingInnovationFilter,
     TurnIMM,
     UnscentedKalmanFilter,
+    VariableBoundarySVSF,
 )
 from torchsvs.smoothers import SVSS, IMMSmoother, IMMSmootherResult, RTSSmoother
 from torchsvs.types import FilterResult, FilterState, SmootherResult
@@ -55,6 +56,7 @@ __all__ = [
     "SlidingInnovationFilter",
     "SmootherResult",
     "TurnIMM",
+    "VariableBoundarySVSF",
     "datasets",
     "metrics",
     "models",

@@ -152,6 +152,48 @@ def svsf_gain_ratio(e_prior: Tensor, e_post_prev: Tensor, psi: Tensor, gamma: Te
     return (magnitude + gamma * e_post_prev.abs()) / torch.maximum(magnitude, psi)
 
 
+#: How the variable boundary layer inflates its prior beyond the limit
+#: (:func:`boundary_inflation`).
+INFLATIONS = ("innovation", "gain")
+
+
+def boundary_inflation(
+    excess: Tensor,
+    error: Tensor,
+    limit: Tensor,
+    a: Tensor,
+    r: Tensor,
+    seen: Tensor,
+    inflation: str = "innovation",
+    max_gain: float = 0.999,
+) -> Tensor:
+    """The prior's inflation ``λ ≥ 1`` of the variable boundary layer
+    (:class:`~torchsvs.filters.VariableBoundarySVSF`), ``[...]`` from ``[..., m]`` components:
+    1 while every ``Ē_i ≤ ψ_i √(a_i + r_i)``, else the least ``λ`` that puts every
+    component's innovation on the layer's edge (``"innovation"``: ``Ē_i² = ψ_i² (λ a_i + r_i)``)
+    or gives it Gadsden & Habibi's gain beyond the limit (``"gain"``:
+    ``g_i = k_i max(1, Ē_i / max(k_i |e_i|, ψ_i √(a_i + r_i)))``, ``k_i = a_i / (a_i + r_i)``,
+    reached by ``λ = r_i g_i / ((1 − g_i) a_i)``); a gain above ``max_gain`` is not asked for.
+
+    Args:
+        excess: ``Ē = |e_{k+1|k}| + γ|e_{k|k}|``; error: ``|e_{k+1|k}|``.
+        limit: ψ in innovation standard deviations, broadcastable.
+        a: ``(H P Hᵀ)_ii`` of the prior; r: ``R_ii``.
+        seen: the observed components (the others ask for nothing).
+    """
+    a = torch.where(seen, a, torch.ones_like(a))
+    most = r * max_gain / ((1.0 - max_gain) * a)  # the λ of the largest gain
+    if inflation == "innovation":
+        each = ((excess / limit).square() - r) / a
+    else:
+        k = a / (a + r)
+        ratio = excess / torch.maximum(k * error, limit * (a + r).sqrt())
+        wanted = (k * torch.clamp_min(ratio, 1.0)).clamp_max(max_gain)
+        each = r * wanted / ((1.0 - wanted) * a)
+    each = torch.where(seen, torch.minimum(each, most), torch.zeros_like(each))
+    return each.amax(-1).clamp_min(1.0)
+
+
 def has_orthonormal_rows(H: Tensor) -> bool:
     """Whether ``H [m, n]`` has ``H Hᵀ = I`` exactly (a selection of state components, or the
     identity of a full-state artificial measurement)."""

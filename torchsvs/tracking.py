@@ -49,6 +49,7 @@ from torchsvs.filters import (
     ParticleFilter,
     RobustStudentTKalmanFilter,
     UnscentedKalmanFilter,
+    VariableBoundarySVSF,
 )
 from torchsvs.filters.particle import DEGENERATE_SHARE, degenerate_share
 from torchsvs.filters.turn_imm import TurnIMM
@@ -75,8 +76,12 @@ ESTIMATORS = {
 }
 #: Lag of each smoother when none is given (``None``: fixed interval).
 DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
-#: Boundary layer of the rule of thumb, in noise standard deviations of each component.
+#: Boundary layer of the rule of thumb in the ``H⁺`` mode (``--no-velocity``), in standard
+#: deviations of each step's own measurement noise (Chen et al. 2020: 4-5).
 PSI_IN_SIGMAS = 5.0
+#: The variable boundary layer's limit of the rule of thumb, in standard deviations of each
+#: step's own innovation (:class:`~torchsvs.filters.VariableBoundarySVSF`).
+PSI_LIMIT_IN_SIGMAS = 2.5
 #: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
 IMM_QUIET = 0.03
 #: Share of a particle filter's steps with a degenerate sample above which a run warns.
@@ -149,19 +154,18 @@ class Settings:
 def rule_of_thumb_psi(
     meas_var: Sequence[float], interval: float, velocity: bool = True
 ) -> list[float]:
-    """ψ of :data:`PSI_IN_SIGMAS` noise standard deviations per corrector component.
+    """ψ of the SVSF family of ``track``, one per axis, in units of each step's own noise (so
+    neither the noise level nor ``interval`` changes it; both stay arguments for callers):
 
-    Chen et al. 2020 use ψ = 800 m for 200 m noise (Sec. 4.1) and 500 m / 600 m/s for 100 m
-    noise with finite-difference velocities (Sec. 4.2, whose noise is √2·100 m/s at T = 1 s):
-    four to five standard deviations. A velocity from two positions ``interval`` apart has
-    standard deviation ``√(2 r)/interval``.
+    * ``velocity`` (default): the limit of the variable boundary layer
+      (:class:`~torchsvs.filters.VariableBoundarySVSF`), :data:`PSI_LIMIT_IN_SIGMAS` innovation
+      standard deviations: the Kalman gain inside, the SVSF's beyond.
+    * the ``H⁺`` mode: :data:`PSI_IN_SIGMAS` measurement noise standard deviations
+      (``psi_units="noise"``). Chen et al. 2020 use ψ = 800 m for 200 m noise (Sec. 4.1) and
+      500 m / 600 m/s for 100 m noise with finite-difference velocities (Sec. 4.2, whose noise
+      is √2·100 m/s at T = 1 s): four to five standard deviations.
     """
-    widths = []
-    for r in meas_var:
-        widths.append(PSI_IN_SIGMAS * float(r) ** 0.5)
-        if velocity:
-            widths.append(PSI_IN_SIGMAS * (2.0 * float(r)) ** 0.5 / interval)
-    return widths
+    return [PSI_LIMIT_IN_SIGMAS if velocity else PSI_IN_SIGMAS] * len(meas_var)
 
 
 def make_model(
@@ -223,19 +227,23 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
             model, num_particles=settings.particles, proposal="optimal", regularize=True
         )
     assert settings.meas_var is not None
+    # ψ in units of each step's own noise (rule_of_thumb_psi), one per axis.
     psi = settings.psi or rule_of_thumb_psi(settings.meas_var, settings.interval, settings.velocity)
-    if settings.velocity and len(psi) == 2:
-        psi = list(psi) * len(settings.meas_var)  # (position, velocity) widths for every axis
-    artificial = "auto" if settings.velocity else None
     if name == "spvsf":
         return SPVSF(
             model,
             psi=psi,
             gamma=settings.gamma,
             num_particles=settings.particles,
-            artificial=artificial,
+            artificial=None,
+            variable_boundary=settings.velocity,
+            psi_units="absolute" if settings.velocity else "noise",
         )
-    svsf = SVSF(model, psi=psi, gamma=settings.gamma, artificial=artificial)
+    svsf: SVSF
+    if settings.velocity:
+        svsf = VariableBoundarySVSF(model, psi=psi, gamma=settings.gamma)
+    else:
+        svsf = SVSF(model, psi=psi, gamma=settings.gamma, artificial=None, psi_units="noise")
     if name == "svsf":
         return svsf
     if name == "svss":

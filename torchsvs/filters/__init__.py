@@ -13,7 +13,7 @@ from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
 from torchsvs.filters.separate import SeparateModelingResult, SeparateModelingTracker
 from torchsvs.filters.sif import SlidingInnovationFilter
-from torchsvs.filters.svsf import SVSF, ArtificialKalmanFilter
+from torchsvs.filters.svsf import SVSF, ArtificialKalmanFilter, VariableBoundarySVSF
 from torchsvs.filters.turn_imm import TurnIMM
 
 __all__ = [
@@ -38,4 +38,5 @@ __all__ = [
     "SeparateModelingTracker",
     "SlidingInnovationFilter",
     "TurnIMM",
+    "VariableBoundarySVSF",
 ]

@@ -42,9 +42,11 @@ class FiniteDifferenceVelocity:
     is missing, so it keeps the prior's (``torchsvs.datasets`` starts it from two-point
     differencing).
 
-    Noise model (stated, as the paper leaves it open): with position noise ``R`` independent
-    between steps, ``Cov(z_i, z_j) = R_ij``, ``Cov(z_i, v_j) = R_ij/Δ_j`` and
-    ``Cov(v_i, v_j) = R_ij (1 + [k'_i = k'_j])/(Δ_i Δ_j)`` (``2R/T²`` for equal steps). The
+    Noise model (stated, as the paper leaves it open): with position noise ``R_k`` independent
+    between steps, ``Cov(z_i, z_j) = R_{k,ij}``, ``Cov(z_i, v_j) = R_{k,ij}/Δ_j`` and
+    ``Cov(v_i, v_j) = (R_{k,ij} + [k'_i = k'_j] R_{k',ij})/(Δ_i Δ_j)`` (``2R/T²`` for equal
+    steps): each step's own noise, from the two positions it differences and their actual time
+    gap, so a velocity across a gap of missing positions is as precise as its gap makes it. The
     correlation between successive velocities (``−R/T²``) is ignored, as the filter assumes white
     measurement noise.
 
@@ -56,7 +58,7 @@ class FiniteDifferenceVelocity:
 
     A call may pass ``meas_cov`` (``[m, m]`` or per step ``[B, T, m, m]``, e.g. the adaptive
     ``R_k`` of :class:`~torchsvs.filters.AdaptiveNoise`) to stand for the model's ``R``; a
-    velocity's variance then takes ``R_k`` of its own step for both of its positions.
+    velocity's variance then takes ``R_k`` of each of its two positions' steps.
     """
 
     def __init__(self, correlated: bool = True, bridge_gaps: bool = True) -> None:
@@ -82,7 +84,8 @@ class FiniteDifferenceVelocity:
         cross = R * inv.unsqueeze(-2)  # Cov(z_i, v_j) = R_ij / Δ_j
         if not self.correlated:
             cross = torch.zeros_like(cross)
-        vv = R * (1.0 + same.to(z.dtype)) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
+        earlier = _earlier_noise(R, previous)  # R_{k'} of the position each velocity differences
+        vv = (R + same.to(z.dtype) * earlier) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
         # Built in (positions, velocities) order, then permuted to state order at once.
         order = torch.tensor(pos + vel).argsort()  # state component -> its place in (p, v)
         y = torch.cat([z, velocity], dim=-1).index_select(-1, order)
@@ -156,6 +159,19 @@ class FiniteDifferenceVelocity:
         if not bool(unknown[:, 1:].any()) and step.ndim == 0:  # one interval everywhere
             return velocity, (1.0 / step).reshape(1, 1, 1).expand(1, 1, m), None
         return velocity, 1.0 / elapsed, previous
+
+
+def _earlier_noise(R: Tensor, previous: Tensor | None) -> Tensor:
+    """``R_{k'}``: the noise ``[m, m]`` or ``[B, T, m, m]`` of the earlier position row ``i``'s
+    velocity differences against (``previous [B, T, m]``; ``None``: the step before). A
+    constant ``R`` is its own."""
+    if R.ndim < 4:
+        return R
+    B, T, m, _ = R.shape
+    if previous is None:  # the step before (the first step's velocity is missing anyway)
+        return torch.cat([R[:, :1], R[:, :-1]], dim=1)
+    index = previous.unsqueeze(-1).expand(B, T, m, m)
+    return R.gather(1, index)  # [b, t, i, j] = R[b, previous[b, t, i], i, j]
 
 
 def _positions_and_velocities(model: StateSpaceModel, m: int) -> tuple[list[int], list[int]]:

@@ -21,7 +21,7 @@ from torchsvs.filters.kalman import (
     step_input,
     step_interval,
 )
-from torchsvs.filters.svsf import SVSF, ArtificialMeasurement
+from torchsvs.filters.svsf import SVSF, ArtificialMeasurement, VariableBoundarySVSF
 from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
@@ -585,7 +585,10 @@ class SPVSF(ParticleFilter):
 
     Args:
         model: any :class:`~torchsvs.models.StateSpaceModel`.
-        psi, gamma, learn, artificial: as for :class:`SVSF`.
+        psi, gamma, learn, artificial, psi_units: as for :class:`SVSF`.
+        variable_boundary: the SVSF part is a
+            :class:`~torchsvs.filters.VariableBoundarySVSF` (the Kalman gain inside its layer,
+            ψ its limit in innovation standard deviations; ``artificial`` must be ``None``).
         num_particles: particles per track (350 in the paper).
         resample_threshold: resample when ``N_eff < threshold · N`` (the paper's 0.8).
         resampling: ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
@@ -612,6 +615,8 @@ class SPVSF(ParticleFilter):
         proposal: Proposal = "adapted",
         soft_resampling: float | None = None,
         regularize: bool = False,
+        variable_boundary: bool = False,
+        psi_units: str = "absolute",
     ) -> None:
         super().__init__(
             model,
@@ -624,7 +629,19 @@ class SPVSF(ParticleFilter):
         if proposal not in PROPOSALS:
             raise ValueError(f"proposal: expected one of {PROPOSALS}, got {proposal!r}")
         self.proposal = proposal
-        self.svsf = SVSF(model, psi=psi, gamma=gamma, learn=learn, artificial=artificial)
+        self.svsf: SVSF
+        if variable_boundary:
+            if artificial is not None or psi_units != "absolute":
+                raise ValueError(
+                    "variable_boundary: its limit is in innovation standard deviations, with the "
+                    f"model's own measurement: expected artificial=None and psi_units='absolute', "
+                    f"got {artificial!r} and {psi_units!r}"
+                )
+            self.svsf = VariableBoundarySVSF(model, psi=psi, gamma=gamma, learn=learn)
+        else:
+            self.svsf = SVSF(
+                model, psi=psi, gamma=gamma, learn=learn, artificial=artificial, psi_units=psi_units
+            )
 
     class _State(NamedTuple):
         x: Tensor  # [B, n] the estimate the next SVSF step starts from

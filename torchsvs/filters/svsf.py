@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, NamedTuple, cast
 
 import torch
@@ -24,18 +25,27 @@ from torchsvs.filters.kalman import (
 from torchsvs.kernels import fused
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
 from torchsvs.linalg import (
+    INFLATIONS,
+    boundary_inflation,
+    cholesky,
+    gaussian_log_density,
     has_orthonormal_rows,
     joseph_update,
     mask_covariance,
+    mask_measurement,
     masked_pinv,
     matvec,
     svsf_gain_ratio,
+    symmetrize,
 )
 from torchsvs.models.base import StateSpaceModel
 
 ArtificialMeasurement = Callable[
     [Tensor, StateSpaceModel, "Tensor | None", "Tensor | None"], tuple[Tensor, Tensor, Tensor]
 ]
+#: How an :class:`SVSF` reads ψ: in the measurement's own units, or in standard deviations of
+#: each step's own corrector-measurement noise.
+PSI_UNITS = ("absolute", "noise")
 
 
 def auto_artificial(model: StateSpaceModel) -> ArtificialMeasurement | None:
@@ -112,9 +122,16 @@ class SVSF(GaussianFilter):
             :mod:`torchsvs.filters.factored`), or ``"conventional"``: the right side
             ``(I − KH)P`` as printed, which for the SVSF's gain is *not* the covariance of its
             estimate (the estimates are unchanged: the SVSF's gain does not read ``P``).
+        psi_units: ``"absolute"`` (default): ψ in the units of the corrector's measurement
+            (m, m/s), as in the papers; ``"noise"``: in standard deviations of each step's own
+            noise of that measurement, ``ψ_k = ψ ⊙ √diag(R_k)``, with ``R_k`` the step's own:
+            for :class:`~torchsvs.filters.FiniteDifferenceVelocity` the noise of the velocity
+            differenced over the step's actual interval (``√2 σ/Δ_k``, longer across missing
+            positions), so one ψ (the rule of thumb's 4-5, Sec. 4.1-4.2, Chen et al. 2020) fits
+            1 s and 10 s steps and irregular times alike, where one ψ in m/s fits one interval.
 
     A per-step ``psi=`` of shape ``[B, T, m]`` passed at call time replaces ψ (for an upstream
-    network that drives the boundary layer).
+    network that drives the boundary layer), in the same units.
 
     References:
         Habibi, "The smooth variable structure filter", Proc. IEEE 95(5), 2007.
@@ -133,9 +150,13 @@ class SVSF(GaussianFilter):
         artificial: ArtificialMeasurement | str | None = "auto",
         adaptive_noise: AdaptiveNoise | None = None,
         covariance_form: str = "joseph",
+        psi_units: str = "absolute",
     ) -> None:
         super().__init__(model)
         self.covariance_form = factored.check_form(covariance_form)
+        if psi_units not in PSI_UNITS:
+            raise ValueError(f"psi_units: expected one of {PSI_UNITS}, got {psi_units!r}")
+        self.psi_units = psi_units
         if artificial == "auto":
             artificial = auto_artificial(model)
         self.adaptive_noise = check_adaptive_noise(adaptive_noise)
@@ -184,12 +205,27 @@ class SVSF(GaussianFilter):
         widths = inputs.psi if inputs.psi is not None else self.psi.to(dtype)
         m = self.model.meas_dim
         if widths.ndim == 0:
-            return widths.expand(2, m), self.gamma.to(dtype)
-        if self.artificial is None:  # H⁺ mode: positions only (velocity widths unused)
+            widths = widths.expand(2, m)
+        elif self.artificial is None:  # H⁺ mode: positions only (velocity widths unused)
             widths = torch.stack([widths, torch.ones_like(widths)], dim=-2)
         else:  # finite-difference velocity: state order p1, v1, p2, v2, ...
             widths = widths.unflatten(-1, (m, 2)).transpose(-1, -2)
+        if self.psi_units == "noise":  # each step's own noise per axis, [2, m] or [B, T, 2, m]
+            widths = widths * torch.stack(self._axis_noise_std(inputs), dim=-2)
         return widths, self.gamma.to(dtype)
+
+    def _axis_noise_std(self, inputs: Inputs) -> tuple[Tensor, Tensor]:
+        """Standard deviations of the corrector's position and velocity measurement per axis
+        (``[m]`` or ``[B, T, m]`` each; ones for the velocity of the ``H⁺`` mode)."""
+        dtype = inputs.z.dtype
+        r = self.model.meas_cov().to(dtype).diagonal()
+        parts = None
+        if isinstance(self.artificial, FiniteDifferenceVelocity):
+            parts = self.artificial.per_axis(inputs.z, self.model, inputs.dt)
+        if parts is None:
+            return r.sqrt(), torch.ones_like(r)
+        var_p, _, var_v = parts[1]
+        return tuple(x.sqrt() for x in torch.broadcast_tensors(var_p, var_v))  # type: ignore[return-value]
 
     def measurements(
         self, inputs: Inputs, history: Any = None
@@ -257,6 +293,8 @@ class SVSF(GaussianFilter):
         z, mask, R = obs.z, obs.mask, obs.R
         gains: _Gains = obs.settings  # run_settings, formed once by prepare
         psi = inputs.psi[:, obs.t] if inputs.psi is not None else gains.psi
+        if self.psi_units == "noise":  # this step's own noise
+            psi = psi * R.diagonal(dim1=-2, dim2=-1).sqrt()
         fitted, H = obs.linearize(x_pred)  # nonlinear h: Eqs. (13)-(21), Gadsden et al. 2012
         e = z - fitted  # Eq. (4); Eq. (14) of Gadsden et al. 2012
         if mask is not None:
@@ -293,8 +331,23 @@ class SVSF(GaussianFilter):
         gains = self.run_settings(dtype, H)
         if not gains.orthonormal or not fused.usable(gains.psi, gains.gamma):
             return None
-        widths = gains.psi
-        return float(gains.gamma), widths.expand(H.shape[0]) if widths.ndim == 0 else widths
+        widths = gains.psi.expand(H.shape[0])
+        if self.psi_units == "noise":  # (the dense steps run the model's constant R)
+            widths = widths * self._model_noise_std(dtype)
+        return float(gains.gamma), widths
+
+    def _model_noise_std(self, dtype: torch.dtype) -> Tensor:
+        return self.model.meas_cov().to(dtype).diagonal().sqrt()
+
+    def _dense_scan(self, state: Any, inputs: Inputs) -> Any:
+        if self.psi_units == "noise" and inputs.psi is not None:  # a per-step ψ in noise units
+            inputs = replace(inputs, psi=inputs.psi * self._model_noise_std(inputs.z.dtype))
+        return super()._dense_scan(state, inputs)
+
+    def step_shortcut(self, state: Any, z: Tensor, psi: Tensor | None, keep: str) -> Any:
+        if self.psi_units == "noise" and psi is not None:
+            psi = psi * self._model_noise_std(z.dtype)
+        return super().step_shortcut(state, z, psi, keep)
 
     def run_settings(self, dtype: torch.dtype, H: Tensor | None) -> _Gains:
         orthonormal = None if H is None or H.ndim != 2 else has_orthonormal_rows(H)
@@ -306,6 +359,179 @@ class SVSF(GaussianFilter):
         missing component."""
         e_post = obs.z - obs.fitted(x)
         return e_post if obs.mask is None else torch.where(obs.mask, e_post, memory)
+
+
+class VariableBoundarySVSF(SVSF):
+    r"""The SVSF with a variable boundary layer (VBL): the Kalman gain inside the layer and a
+    correction that saturates towards the measurement beyond it, carried out as the Kalman gain
+    of an inflated prior so that its covariance and its smoothers stay consistent.
+
+    Inside its boundary layer the SVSF gain of Eq. (23) is ``H⁺ Ē ψ̄⁻¹`` with
+    ``Ē = diag(|e_{k+1|k}| + γ|e_{k|k}|)``. Gadsden & Habibi (2013) derive the width that
+    minimises the trace of the a-posteriori covariance (Eq. (28)) each step from the a-priori
+    covariance and ``R``; per measured component ``i`` (the diagonal reading of
+    ``ψ̄ = (Ē⁻¹ H P Hᵀ S⁻¹)⁻¹``)
+
+    .. math::
+        \psi_{VBL,i} = \bar E_i / k_i,\qquad k_i = (H P_{k+1|k} H^T S_{k+1}^{-1})_{ii},
+        \qquad S_{k+1} = H P_{k+1|k} H^T + R,
+
+    with which the gain is the Kalman gain; where the layer would grow past a limit (an error
+    the model does not explain: a maneuver, a fault, too small a ``Q``) the SVSF's saturating
+    correction takes over. Here the limit is ψ in standard deviations of each step's own
+    innovation, a test free of units, sampling interval and target speed: the step is inside
+    where every ``Ē_i ≤ ψ_i √S_ii``. Beyond it the prior is inflated, ``P̃ = λ P_{k+1|k}``, with
+    the least ``λ ≥ 1`` that puts every component's innovation back on the layer's edge
+    (``inflation="innovation"``, default: covariance matching, Mehra 1972),
+
+    .. math::
+        \lambda = \max\Big(1,\ \max_i \frac{\bar E_i^2/\psi_i^2 - R_{ii}}
+                  {(H P_{k+1|k} H^T)_{ii}}\Big),
+
+    or the least ``λ`` that gives every component at least Gadsden & Habibi's own gain beyond
+    the limit, ``g_i = Ē_i / max(|e_i|, ψ_lim,i)`` with ``ψ_lim,i = ψ_i √S_ii / k_i``
+    (``inflation="gain"``: ``λ = maxᵢ R_ii g_i / ((1 − g_i)(H P Hᵀ)_ii)``). Either way the gain
+    is the Kalman gain of the inflated prior,
+
+    .. math::
+        K = \tilde P H^T (H \tilde P H^T + R)^{-1},\qquad
+        P_{k+1|k+1} = (I - KH)\tilde P (I - KH)^T + K R K^T,
+
+    which rises with the innovation from ``k_i`` at the layer's edge towards 1 (for one
+    component alone, ``1 − ψ² R/Ē²`` under covariance matching): the SVSF's saturation, read as
+    an adaptive Kalman filter (Spiller & Söffker 2020). Unmeasured components (velocities) move
+    as the Kalman gain moves them, where ``H⁺`` would leave them alone. A component's gain is
+    at most :attr:`max_gain` (a gain of 1 would take an infinite prior). The result's
+    ``pred_cov`` is ``P̃``, the prior the gain is optimal for, so a smoother over this filter
+    does not smooth across a step where the model failed (its gain ``P F^T P̃⁻¹`` is small
+    there), where over the uninflated prior it would drag the failure into its neighbours.
+    Inside the layer ``λ = 1`` and this filter *is* the Kalman filter, and :class:`SVSS` and
+    the RTS smoother over it are the Kalman smoother; as ``ψ → ∞`` they equal them for any
+    data. The result carries the innovations' log-likelihood under ``H P̃ Hᵀ + R``.
+
+    The measurement is the model's own (no artificial measurement: the Kalman gain already
+    corrects what is not measured). Missing components get no correction and keep their memory.
+
+    Args:
+        model: a :class:`~torchsvs.models.StateSpaceModel` (a nonlinear ``h`` is linearised at
+            the prediction, as for :class:`SVSF`).
+        psi: the limit ψ > 0 in innovation standard deviations, a scalar or one per measured
+            component (learnable).
+        gamma: memory γ in ``[0, 1)`` (learnable).
+        learn, adaptive_noise: as for :class:`SVSF`.
+        inflation: ``"innovation"`` (default) or ``"gain"``, the inflation beyond the limit
+            (above).
+
+    A per-step ``psi=`` of shape ``[B, T, m]`` passed at call time replaces the limit.
+
+    References:
+        Gadsden, Habibi, "A new robust filtering strategy for linear systems", J. Dyn. Sys.,
+        Meas., Control 135(1):014503, 2013. doi:10.1115/1.4006628 ·
+        Spiller, Söffker, "On the relation between smooth variable structure and adaptive Kalman
+        filter", Front. Appl. Math. Stat. 6, 2020. doi:10.3389/fams.2020.585439 ·
+        Mehra, "Approaches to adaptive filtering", IEEE Trans. Autom. Control 17(5), 1972.
+    """
+
+    #: the largest gain of a measured component: a gain of 1 would take an infinite prior
+    max_gain = 0.999
+
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        psi: ArrayLike,
+        gamma: float | torch.Tensor = 0.1,
+        learn: bool = True,
+        adaptive_noise: AdaptiveNoise | None = None,
+        inflation: str = "innovation",
+    ) -> None:
+        super().__init__(
+            model, psi, gamma, learn=learn, artificial=None, adaptive_noise=adaptive_noise
+        )
+        if inflation not in INFLATIONS:
+            raise ValueError(f"inflation: expected one of {INFLATIONS}, got {inflation!r}")
+        self.inflation = inflation
+
+    @property
+    def dense_rule(self) -> str | None:  # type: ignore[override]
+        return None
+
+    @property
+    def axis_rule(self) -> str | None:  # type: ignore[override]
+        """The per-axis kernel's rule (its tensor loop: no compiled one yet)."""
+        return f"vbl-{self.inflation}"
+
+    def filter_step(
+        self,
+        t: int,
+        x: Tensor,
+        P: Tensor,
+        carried: Tensor | None,
+        prep: Any,
+        inputs: Inputs,
+    ) -> tuple[Tensor, Tensor, Tensor, Step]:
+        """The step of :class:`GaussianFilter`, recording the inflated prior ``P̃``."""
+        x_pred, P_pred, F_t = self.predict(t, x, P, prep, inputs)
+        step, inflation = self._correct(x_pred, P_pred, prep.observation(t), carried, inputs)
+        return x_pred, P_pred * inflation[..., None, None], F_t, step
+
+    def correct(
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
+    ) -> Step:
+        return self._correct(x_pred, P_pred, obs, carried, inputs)[0]
+
+    def _correct(
+        self,
+        x_pred: Tensor,
+        P_pred: Tensor,
+        obs: Observation,
+        carried: Tensor | None,
+        inputs: Inputs,
+    ) -> tuple[Step, Tensor]:
+        """The step and its inflation ``λ [B]``."""
+        gains: _Gains = obs.settings
+        limit = inputs.psi[:, obs.t] if inputs.psi is not None else gains.psi
+        fitted, H = obs.linearize(x_pred)
+        e, H_used, R = obs.z - fitted, H, obs.R
+        if obs.mask is not None:  # missing rows dropped (zero gain columns), as the KF does
+            H_used, R = mask_measurement(H, R, obs.mask)
+            e = e * obs.mask
+        PHt = P_pred @ H_used.mT
+        HPHt = H_used @ PHt
+        memory = carried if carried is not None else torch.zeros_like(e)
+        seen = obs.mask if obs.mask is not None else torch.ones_like(e, dtype=torch.bool)
+        inflation = boundary_inflation(
+            e.abs() + gains.gamma * memory.abs(),
+            e.abs(),
+            limit,
+            HPHt.diagonal(dim1=-2, dim2=-1),
+            R.diagonal(dim1=-2, dim2=-1),
+            seen,
+            self.inflation,
+            self.max_gain,
+        )
+        grown = inflation[..., None, None]
+        S = symmetrize(grown * HPHt + R)
+        L = cholesky(S)
+        K = torch.cholesky_solve((grown * PHt).mT, L).mT
+        x = x_pred + matvec(K, e)
+        P = joseph_update(grown * P_pred, K, H_used, R)  # Eq. (28), left side, on P̃
+        observed = e.shape[-1] if obs.mask is None else obs.mask.sum(-1).to(e.dtype)
+        step = Step(
+            x,
+            P,
+            e,
+            K,
+            post_innovation=self.memory_after(x, obs, memory),
+            innovation_cov=S,
+            log_likelihood=gaussian_log_density(e, L, observed),
+            meas_matrix=H if obs.H is None else None,
+        )
+        return step, inflation
 
 
 class ArtificialKalmanFilter(KalmanFilter):

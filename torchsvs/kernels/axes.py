@@ -33,7 +33,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from torchsvs.kernels import fused
-from torchsvs.linalg import svsf_gain_ratio
+from torchsvs.linalg import boundary_inflation, svsf_gain_ratio
 
 
 class Sym2(NamedTuple):
@@ -187,7 +187,12 @@ def _forward_step(
     b1 = bT + Qb
     c1 = c + Qc
     ep = (yp - p_pred) * fp
-    if rule == "kalman":
+    if rule.startswith("vbl-"):  # the variable boundary layer: the Kalman rule on λ P
+        excess = ep.abs() + gamma * memory_p.abs()
+        inflation = boundary_inflation(excess, ep.abs(), wp, a1, rp, fp > 0, rule[4:])
+        grown = inflation.unsqueeze(-1)  # one λ per track, for all its axes
+        a1, b1, c1 = grown * a1, grown * b1, grown * c1
+    if rule == "kalman" or rule.startswith("vbl-"):
         S = a1 * fp + rp  # 1 where missing (the masked identity)
         kp, kv_p = a1 * fp / S, b1 * fp / S  # K = [kp, kv_p]ᵀ for H = [1, 0]
         one_k = 1 - kp
@@ -197,6 +202,8 @@ def _forward_step(
         p, v = p_pred + kp * ep, v_pred + kv_p * ep
         zero = torch.zeros_like(kp)
         ev, gain = zero, (kp, zero, kv_p, zero)
+        if rule != "kalman":  # Eq. (24): the a-posteriori innovation, carried where missing
+            memory_p = torch.where(fp > 0, yp - p, memory_p)
     else:
         ev = (yv - v_pred) * fv
         kp = svsf_gain_ratio(ep, memory_p, wp, gamma) * fp
@@ -294,7 +301,7 @@ def run_axes(
     dtype = y.position.dtype
     T_all = interval.unsqueeze(-1) if interval.ndim == 2 else interval
     Q_all = process_noise(q, T_all)
-    if rule == "svsf":
+    if rule != "kalman":
         assert psi is not None and gamma is not None
         width_p, width_v = psi[..., 0, :], psi[..., 1, :]
     else:
@@ -313,7 +320,8 @@ def run_axes(
     noise = Sym2(*(per_step(x) for x in y.noise))
     prior = (x0[0], x0[1], P0.a, P0.b, P0.c)
     raw = given(T_all, *Q_all, y.position, y.velocity, *y.noise, width_p, width_v)
-    if m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
+    compiled = rule in ("kalman", "svsf")  # (the variable boundary layer: tensor loops)
+    if compiled and m <= fused.MAX_AXES and fused.usable(*raw, *prior, gamma, differentiable=True):
         inputs = (*raw, *prior)
         shape = (B, steps, m)
         training = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma))
@@ -376,7 +384,7 @@ def run_axes(
     (p, v, a, b, c, pp, a1, b1, c1, ep, ev, ka, kb, kc, kd, mp, mv) = stepped
     vp = torch.cat([x0[1].unsqueeze(1), v[:, :-1]], dim=1)
     loglik = None
-    if rule == "kalman":  # log N(e; 0, S) over the observed positions, Eq. (16)'s S
+    if rule != "svsf":  # log N(e; 0, S) over the observed positions, Eq. (16)'s S
         fp = seen_p.to(dtype)
         S = a1 * fp + per_step(R_all.a)
         loglik = (-0.5 * (ep * ep / S + S.log() + fp * math.log(2 * math.pi))).sum((-2, -1))
@@ -390,7 +398,7 @@ def run_axes(
         observed=(seen_p, seen_v),
         noise=noise,
         interval=T_all,
-        post_innovation=(mp, mv) if rule == "svsf" else None,
+        post_innovation=None if rule == "kalman" else (mp, mv),
         log_likelihood=loglik,
     )
     out = interleaved(res, velocity)
