@@ -225,7 +225,7 @@ class SVSF(GaussianFilter):
         if parts is None:
             return r.sqrt(), torch.ones_like(r)
         var_p, _, var_v = parts[1]
-        return tuple(x.sqrt() for x in torch.broadcast_tensors(var_p, var_v))  # type: ignore[return-value]
+        return tuple(x.sqrt() for x in torch.broadcast_tensors(var_p, var_v))
 
     def measurements(
         self, inputs: Inputs, history: Any = None
