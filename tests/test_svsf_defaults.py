@@ -332,13 +332,16 @@ def _simulate(kind: str, seed: int, B: int = 6, T: int = 100):
         left = torch.where(new, drawn, left) - 1
         d, w = dt[:, t], torch.where(omega == 0, torch.ones_like(omega), omega)
         straight = torch.stack([torch.cos(heading), torch.sin(heading)], -1) * (v * d)[:, None]
-        arc = torch.stack(
-            [
-                torch.sin(heading + w * d) - torch.sin(heading),
-                torch.cos(heading) - torch.cos(heading + w * d),
-            ],
-            -1,
-        ) * (v / w)[:, None]
+        arc = (
+            torch.stack(
+                [
+                    torch.sin(heading + w * d) - torch.sin(heading),
+                    torch.cos(heading) - torch.cos(heading + w * d),
+                ],
+                -1,
+            )
+            * (v / w)[:, None]
+        )
         x = x + torch.where((omega == 0)[:, None], straight, arc)
         heading = heading + omega * d
         path.append(x)
