@@ -224,8 +224,8 @@ class SVSF(GaussianFilter):
             parts = self.artificial.per_axis(inputs.z, self.model, inputs.dt)
         if parts is None:
             return r.sqrt(), torch.ones_like(r)
-        var_p, _, var_v = parts[1]
-        return tuple(x.sqrt() for x in torch.broadcast_tensors(var_p, var_v))
+        var_p, var_v = torch.broadcast_tensors(parts[1][0], parts[1][2])
+        return var_p.sqrt(), var_v.sqrt()
 
     def measurements(
         self, inputs: Inputs, history: Any = None
