@@ -247,7 +247,11 @@ class SVSF(GaussianFilter):
         if self.artificial is None:
             return super().carried_history(history, inputs)
         adaptive = self.adaptive_noise
-        return _rows_to_keep(history, inputs, 1 if adaptive is None else adaptive.rows_needed)
+        if adaptive is None:
+            return _rows_to_keep(history, inputs)
+        # A velocity's noise reads R_k at both of its positions: the earlier one's segment too.
+        needed = adaptive.rows_needed
+        return _rows_to_keep(history, inputs, needed, reach_back=needed)
 
     def axis_measurements(self, inputs: Inputs) -> AxisMeasurements | None:
         """Finite-difference velocities axis by axis (``R_y`` never assembled)."""
@@ -605,21 +609,22 @@ def _artificial_measurements(
     return z[:, kept:], H, R[:, kept:] if R.ndim == 4 else R
 
 
-def _rows_to_keep(history: Any, inputs: Inputs, at_least: int = 1) -> _Rows:
+def _rows_to_keep(history: Any, inputs: Inputs, at_least: int = 1, reach_back: int = 0) -> _Rows:
     """The raw rows an artificial measurement may still look back to: from the earliest step at
     which some track last observed some component (finite differences bridge gaps back to it),
-    and at least the last ``at_least`` rows (a step's previous row)."""
+    and ``reach_back`` rows before it (the segments of its adaptive ``R_k``), and at least the
+    last ``at_least`` rows (a step's previous row)."""
     window = _window(history, inputs)
     T = window.z.shape[1]
     least = max(0, T - at_least)
     if not bool(torch.isnan(window.z[:, -1]).any()):  # every component seen last step
-        return _window_rows(window, least)
+        return _window_rows(window, max(0, min(T - 1 - reach_back, least)))
     seen = ~torch.isnan(window.z)
     index = torch.arange(T).view(1, T, 1).expand_as(seen)
     last = torch.where(seen, index, torch.full_like(index, -1)).amax(dim=1)  # [B, m]
     observed = last[last >= 0]
     start = min(T - 1, int(observed.min())) if observed.numel() else T - 1
-    return _window_rows(window, min(start, least))
+    return _window_rows(window, max(0, min(start - reach_back, least)))
 
 
 class _Gains(NamedTuple):
