@@ -211,6 +211,7 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
             gamma=settings.gamma,
             num_particles=settings.particles,
             artificial=artificial,
+            regularize=True,
         )
     svsf = SVSF(model, psi=psi, gamma=settings.gamma, artificial=artificial)
     if name == "svsf":
