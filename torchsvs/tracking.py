@@ -242,6 +242,7 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
             artificial=None,
             variable_boundary=settings.velocity,
             psi_units="absolute" if settings.velocity else "noise",
+            regularize=True,
         )
     svsf: SVSF
     if settings.velocity:
