@@ -92,6 +92,7 @@ class Run:
     error: str = ""  #: why the run gave nothing (the command's message)
     warnings: list[str] = field(default_factory=list)
     code: str = ""  #: the commit the run ran on (``git log -1``)
+    via: str = "inprocess"  #: in this process or through a subprocess
 
     @property
     def ratio(self) -> float:
@@ -279,7 +280,7 @@ def run_job(job: Job) -> Run:
     shown = ["torchsvs", "track", "IN", "-o", "OUT", *argv[3:]]
     result = Run(job.set, job.estimator, job.mode, shown, raw=job.raw, seconds=done.seconds)
     result.cpu_seconds = done.cpu_seconds
-    result.code = job.code
+    result.code, result.via = job.code, job.via
     result.warnings = list(dict.fromkeys(done.warnings))
     result.sigma_used = sigma_used(done.log)
     truth = pd.read_csv(job.truth)
@@ -313,16 +314,33 @@ def run_all(
     jobs: int = 1,
     progress: bool = True,
 ) -> list[Run]:
-    """Every estimator × mode on every set (``jobs`` worker processes; 1: in this one)."""
+    """Every estimator × mode on every set (``jobs`` worker processes; 1: in this one).
+
+    Each result is appended to ``workdir/runs.jsonl`` as it comes; a run already there (same
+    set, estimator, mode, code and way of running) is taken from it instead of run again, so an
+    interrupted benchmark resumes where it stopped when given the same work folder."""
     from tqdm.auto import tqdm
 
-    work: list[Job] = []
+    workdir.mkdir(parents=True, exist_ok=True)
+    journal = workdir / "runs.jsonl"
     code = _git_head()
+    done: dict[tuple[str, str, str], Run] = {}
+    if journal.is_file():
+        for line in journal.read_text().splitlines():
+            try:
+                run = Run(**json.loads(line))
+            except (ValueError, TypeError):
+                continue  # a line cut short by the interruption
+            if run.code == code and run.via == via:
+                done[(run.set, run.estimator, run.mode)] = run
+    work: list[Job] = []
     for bench in sets:
         source, truth = bench.write(workdir / "sets")
         raw = describe(bench).raw_rmse
         for estimator in estimators:
             for mode in modes:
+                if (bench.name, estimator, mode) in done:
+                    continue
                 slug = re.sub(r"[^a-z0-9]+", "_", f"{estimator} {mode}".lower()).strip("_")
                 target = workdir / "out" / bench.slug / f"{slug}.csv"
                 target.parent.mkdir(parents=True, exist_ok=True)
@@ -341,19 +359,30 @@ def run_all(
                     )
                 )
     bar = tqdm(total=len(work), desc="runs", unit="run", disable=not progress)
-    results: list[Run] = []
-    if jobs <= 1:
-        for job in work:
-            bar.set_postfix_str(f"{job.set} {job.estimator} {job.mode}")
-            results.append(run_job(job))
+    with open(journal, "a") as log:
+
+        def keep(result: Run) -> None:
+            done[(result.set, result.estimator, result.mode)] = result
+            log.write(json.dumps(asdict(result)) + "\n")
+            log.flush()
             bar.update()
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            for result in pool.map(run_job, work):
-                results.append(result)
-                bar.update()
+
+        if jobs <= 1:
+            for job in work:
+                bar.set_postfix_str(f"{job.set} {job.estimator} {job.mode}")
+                keep(run_job(job))
+        else:
+            with ProcessPoolExecutor(max_workers=jobs) as pool:
+                for result in pool.map(run_job, work):
+                    keep(result)
     bar.close()
-    return results
+    return [
+        done[(b.name, e, m)]
+        for b in sets
+        for e in estimators
+        for m in modes
+        if (b.name, e, m) in done
+    ]
 
 
 # --- the report --------------------------------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +158,9 @@ def test_harness_end_to_end_on_a_tiny_set(tmp_path: Path) -> None:
         assert run.ok and run.missing == 0 and run.rows == 400
         assert run.raw == raw and math.isfinite(run.rmse) and run.seconds > 0
     assert runs[1].argv[-2:] == ["--meas-std", "50"]
+    # the work folder's journal resumes an interrupted benchmark: nothing runs again
+    again = rt.run_all([bench], ["ks"], ["default", "--meas-std σ"], tmp_path, progress=False)
+    assert [json.dumps(asdict(r)) for r in again] == [json.dumps(asdict(r)) for r in runs]
     # a run that cannot run is kept with the command's message, every row counted as missing
     broken = rt.run_job(
         rt.Job(bench.name, 50.0, raw, str(tmp_path / "nothing.csv"), str(tmp_path / "sets" /
