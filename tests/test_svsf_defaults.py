@@ -365,19 +365,22 @@ def _track_default(name: str, z, dt, sigma):
     return mean[..., [0, 2]] + offset.unsqueeze(1)
 
 
-#: Position RMSE ÷ raw RMSE of the defaults, mean + 3 standard deviations over seeds 0-19 of
-#: _simulate (B = 6, T = 100; the estimate of q from the data as complete_settings reads it),
-#: so a seed is above it with odds of about 1 in 700 for a normal spread; each measured
-#: maximum over the 20 seeds is below it. Measured means (svsf; svss = svstps): slow 0.65;
-#: 0.38, airliner 0.976; 0.81, drone 0.76; 0.47, irregular 0.87; 0.57, turning 0.80; 0.48.
-#: The airliner's filter is barely below the measurements: between 10 s scans of a turning
-#: airliner a filter has little to add (the Kalman filter is at 0.98 there too).
+#: Position RMSE ÷ raw RMSE of the defaults: mean + 3 standard deviations over seeds 0-19 of
+#: _simulate (B = 6, T = 100), the larger of two readings of q off the data (complete_settings
+#: as of this test's writing, and the RTS smoother's SURE q that main adopted meanwhile), and
+#: for the filter at most 1, the claim itself. A seed lies above mean + 3 sd with odds of about
+#: 1 in 700 for a normal spread; each maximum over the 20 seeds is below its bound. Measured
+#: means (svsf; svss = svstps), the two q readings: slow 0.66, 0.63; 0.41, 0.38 · airliner
+#: 0.977, 0.966; 0.82, 0.77 · drone 0.74, 0.71; 0.48, 0.43 · irregular 0.87, 0.86; 0.59, 0.58 ·
+#: turning 0.79, 0.78; 0.49, 0.49. The airliner's filter is barely below the measurements
+#: (seed 0: 0.980, 0.987): between 10 s scans of a turning airliner a filter has little to add
+#: (the Kalman filter of those q readings is at 0.98 and 1.07).
 BOUNDS = {
-    "slow": {"svsf": 0.87, "svss": 0.49, "svstps": 0.49},
-    "airliner": {"svsf": 0.99, "svss": 0.87, "svstps": 0.87},
-    "drone": {"svsf": 0.98, "svss": 0.69, "svstps": 0.69},
+    "slow": {"svsf": 0.82, "svss": 0.50, "svstps": 0.50},
+    "airliner": {"svsf": 1.0, "svss": 0.87, "svstps": 0.87},
+    "drone": {"svsf": 0.85, "svss": 0.63, "svstps": 0.63},
     "irregular": {"svsf": 0.94, "svss": 0.69, "svstps": 0.69},
-    "turning": {"svsf": 0.89, "svss": 0.61, "svstps": 0.61},
+    "turning": {"svsf": 0.84, "svss": 0.59, "svstps": 0.59},
 }
 
 
