@@ -61,6 +61,7 @@ from torchsvs.tracking import (
     complete_settings,
     make_estimator,
     make_model,
+    rule_of_thumb_psi,
     run_estimator,
     turn_settings,
     typical_speed,
@@ -106,8 +107,9 @@ def rule_of_thumb(name: str, train: RecordedTracks, sigma: float, **kw: Any) -> 
 
 
 Q_GRID = [10.0, 20.0, 40.0, 60.0, 80.0, 100.0, 130.0, 160.0, 200.0, 250.0, 320.0, 400.0, 600.0]
-PSI_POS = [5.0, 10.0, 20.0, 40.0, 80.0, 150.0, 300.0, 600.0]
-PSI_VEL = [1.0, 3.0, 10.0, 30.0, 100.0]
+#: Limits of the SVSF family's variable boundary layer (``track``'s default since it replaced
+#: the classic gain), in innovation standard deviations, shared by the axes.
+PSI_LIMITS = [1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 10.0]
 SVSS_Q = [60.0, 120.0, 250.0]
 
 
@@ -116,36 +118,14 @@ def grid_ks(base: Settings, tracks: RecordedTracks) -> dict[float, float]:
     return {q: evaluate(replace(base, q=q), tracks)["position"] for q in Q_GRID}
 
 
-def grid_svss(base: Settings, tracks: RecordedTracks) -> dict[tuple[float, float, float], float]:
-    """Position RMSE for every (q, ψ_position, ψ_velocity) (γ as in ``base``), ψ shared by the
-    axes; each q runs its whole ψ grid as one batch through per-step ψ overrides."""
-    assert base.meas_var is not None
-    moved, offset = centred(tracks)
-    moved = with_prior(moved, torch.tensor(base.meas_var, dtype=torch.float64).sqrt())
-    B, T = moved.z.shape[:2]
-    pairs = [(p, v) for p in PSI_POS for v in PSI_VEL]
-    scores: dict[tuple[float, float, float], float] = {}
-    for q in SVSS_Q:
-        settings = replace(base, q=q, psi=[1.0] * 4)
-        est = make_estimator(settings, make_model(settings)).double()
-        for start in range(0, len(pairs), 8):
-            part = pairs[start : start + 8]
-            psi = torch.tensor([[p, v, p, v] for p, v in part], dtype=torch.float64)
-            psi = psi.repeat_interleave(B, 0)[:, None, :].expand(-1, T, -1)
-            count = len(part)
-            with torch.no_grad():
-                out = est(
-                    moved.z.repeat(count, 1, 1),
-                    moved.x0.repeat(count, 1),  # type: ignore[union-attr]
-                    moved.P0.repeat(count, 1, 1),  # type: ignore[union-attr]
-                    dt=moved.dt.repeat(count, 1),
-                    psi=psi,
-                )
-            for i, (p, v) in enumerate(part):
-                mean = out.mean[i * B : (i + 1) * B].clone()
-                mean[..., 0::2] += offset.unsqueeze(1)
-                scores[(q, p, v)] = score(mean, tracks)["position"]
-    return scores
+def grid_svss(base: Settings, tracks: RecordedTracks) -> dict[tuple[float, float], float]:
+    """Position RMSE for every (q, ψ limit) (γ as in ``base``), the limit shared by the axes."""
+    m = len(base.meas_var or [])
+    return {
+        (q, limit): evaluate(replace(base, q=q, psi=[limit] * m), tracks)["position"]
+        for q in SVSS_Q
+        for limit in PSI_LIMITS
+    }
 
 
 # ------------------------------------------------------------------------------------------
@@ -177,7 +157,8 @@ def train_on_simulation(name: str, sigma: float, lag: int, seconds: float) -> Se
         q=50.0,
         lag=lag,
         interval=interval,
-        psi=None if name == "ks" else [5.0 * sigma, 5.0 * sigma * math.sqrt(2) / interval] * 2,
+        # The SVSF family's rule of thumb (ψ per axis, in the units make_estimator reads).
+        psi=None if name == "ks" else rule_of_thumb_psi([sigma**2] * 2, interval),
     )
     model = make_model(settings, learn_q=True)
     est = make_estimator(settings, model)
@@ -500,8 +481,8 @@ def main_table(
     sv_train = grid_svss(svss_base, train) if not quick else {}
     sv_test = grid_svss(svss_base, test) if not quick else {}
     if sv_train:
-        q, p, v = min(sv_train, key=sv_train.get)  # type: ignore[arg-type]
-        chosen = replace(svss_base, q=q, psi=[p, v, p, v])
+        q, limit = min(sv_train, key=sv_train.get)  # type: ignore[arg-type]
+        chosen = replace(svss_base, q=q, psi=[limit, limit])
         add(f"SVSS lag {lag}", "grid (training)", chosen, evaluate(chosen, test))
 
     # Learned without truth on the training flights.
@@ -625,7 +606,7 @@ def main_table(
 def fit_section(
     fits: dict[str, Any],
     ks_test: dict[float, float],
-    sv_test: dict[tuple[float, float, float], float],
+    sv_test: dict[tuple[float, float], float],
     results: dict[str, dict[str, float]],
     lag: int,
 ) -> list[str]:
@@ -648,7 +629,7 @@ def fit_section(
         f"Best grid on the held-out flights themselves (needs their truth): KS {ks_best:.2f} m at "
         f"q = {min(ks_test, key=ks_test.get):.0f}"  # type: ignore[arg-type]
         + (
-            f"; SVSS lag {lag} {min(sv_test.values()):.2f} m at (q, ψ_p, ψ_v) = "
+            f"; SVSS lag {lag} {min(sv_test.values()):.2f} m at (q, ψ limit) = "
             f"{min(sv_test, key=sv_test.get)}"  # type: ignore[arg-type]
             if sv_test
             else ""

@@ -196,9 +196,9 @@ def track_parser() -> argparse.ArgumentParser:
         "--psi",
         type=_positive_floats,
         default=None,
-        help="SVSF boundary layer: one width, a position and a velocity width for every axis, "
-        "or one per corrector component in state order (x, vx, y, vy, ...; positions only with "
-        "--no-velocity); default: 5 noise standard deviations",
+        help="SVSF family's boundary layer, one value or one per axis: the variable boundary "
+        "layer's limit in innovation standard deviations (default 2); with --no-velocity the "
+        "width in measurement noise standard deviations (default 5)",
     )
     parser.add_argument(
         "--gamma", type=_fraction, default=0.1, help="SVSF memory in [0, 1) (default 0.1)"

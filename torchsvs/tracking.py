@@ -110,9 +110,10 @@ class Settings:
     estimator: str = "ks"
     meas_var: list[float] | None = None  #: measurement noise variance per axis
     q: float | None = None  #: process noise spectral density of the CV model
-    #: SVSF boundary layer, one width per corrector component (x, vx, y, vy, ...; with
-    #: finite-difference velocities two values are the position and velocity widths of every
-    #: axis); None: :func:`rule_of_thumb_psi`
+    #: SVSF family's boundary layer, one value per axis (or one for all): the variable
+    #: boundary layer's limit in innovation standard deviations; with ``velocity=False`` (the
+    #: H⁺ mode) the width in measurement noise standard deviations. None:
+    #: :func:`rule_of_thumb_psi`
     psi: list[float] | None = None
     gamma: float = 0.1  #: SVSF memory
     lag: int | None = None  #: smoother lag; None: :data:`DEFAULT_LAG`
