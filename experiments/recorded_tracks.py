@@ -302,6 +302,9 @@ def run_job(job: Job) -> Run:
     result.measurement = summary_number(summary, "measurement_rmse")
     chosen = summary.get("estimator")
     result.chosen = chosen if isinstance(chosen, str) and chosen != job.estimator else ""
+    told = summary.get("warnings")
+    if isinstance(told, list):  # what the run warned about, as its summary says
+        result.warnings = list(dict.fromkeys([*result.warnings, *map(str, told)]))
     return result
 
 
@@ -949,7 +952,7 @@ def report(
             f"`{m}`" + (" (no option: the noise is read off the data)" if not MODES[m](1.0) else "")
             for m in modes
         )
-        + " (σ: the set's noise level)"
+        + (" (σ: the set's noise level)" if any("σ" in m for m in modes) else "")
         + f". The command's default estimator is `{default}`"
         + ("; it offers `auto`." if "auto" in offered else "; it offers no `auto` yet.")
         + " Position RMSE is 2-D (the root of the mean squared distance to the truth, m); "
