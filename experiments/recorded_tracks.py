@@ -1027,6 +1027,13 @@ def report(
     return "\n".join(lines).rstrip() + "\n"
 
 
+def save_runs(path: Path, options: dict[str, Any], runs: Sequence[Run]) -> None:
+    """The runs as JSON, one run a line (``--merge`` and ``--report-only`` read it back)."""
+    lines = ",\n".join(json.dumps(asdict(r), ensure_ascii=False) for r in runs)
+    head = json.dumps(options, ensure_ascii=False)
+    path.write_text(f'{{"options": {head},\n"runs": [\n{lines}\n]}}\n')
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--kinds", default=",".join(KINDS), help="kinds of track (comma-separated)")
@@ -1118,8 +1125,7 @@ def main(argv: list[str] | None = None) -> None:
         key=lambda r: (set_order[r.set], est_order[r.estimator], mode_order[r.mode]),
     )
     if new:
-        record = {"options": options, "runs": [asdict(r) for r in runs]}
-        saved.write_text(json.dumps(record, indent=1) + "\n")
+        save_runs(saved, options, runs)
     seconds = time.perf_counter() - start
     timing = (
         f"this invocation took {seconds / 60:.1f} min (building {len(sets)} sets"
