@@ -415,6 +415,18 @@ def table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> list[str]:
     return lines
 
 
+def sources_text(files: Sequence[str]) -> str:
+    """Sample files (``folder/name``) in short: a folder's count when it gives several."""
+    folders: dict[str, list[str]] = {}
+    for name in files:
+        folder, _, _ = name.rpartition("/")
+        folders.setdefault(folder, []).append(name)
+    return ", ".join(
+        names[0] if len(names) == 1 else f"{folder}/ ({len(names)} files)"
+        for folder, names in folders.items()
+    )
+
+
 def sets_section(sets: Sequence[BenchSet]) -> list[str]:
     lines = [
         "## The sets",
@@ -432,7 +444,7 @@ def sets_section(sets: Sequence[BenchSet]) -> list[str]:
             [
                 bench.name,
                 bench.kind.title,
-                ", ".join(bench.truth.sources),
+                sources_text(bench.truth.sources),
                 d.tracks,
                 f"{d.rows:,}",
                 " / ".join(f"{v:.3g}" for v in d.interval[:3]) + f" (≤ {d.interval[3]:.3g})",
@@ -849,6 +861,7 @@ def heat_map(
                 va="center",
                 fontsize=6,
                 fontweight="bold" if worse else "normal",
+                color="white" if math.isfinite(v) and abs(v) > 1.5 else "black",
             )
     ax.set_xticks(range(len(sets)), sets, rotation=45, ha="right", fontsize=7)
     ax.set_yticks(range(len(labels)), labels, fontsize=6)
@@ -934,6 +947,12 @@ def report(
     total_run = sum(r.seconds for r in runs if math.isfinite(r.seconds))
     total_cpu = sum(r.cpu_seconds for r in runs if math.isfinite(r.cpu_seconds))
     codes = ", ".join(f"`{c}`" for c in dict.fromkeys(r.code or "unknown" for r in runs))
+    cost: dict[str, float] = {}
+    for r in runs:
+        if math.isfinite(r.cpu_seconds):
+            key = f"`{r.estimator}` {r.mode}"
+            cost[key] = cost.get(key, 0.0) + r.cpu_seconds
+    costliest = sorted(cost.items(), key=lambda kv: -kv[1])[:4]
     lines = [
         "# Recorded tracks of several kinds: `torchsvs track` as a user runs it",
         "",
@@ -945,7 +964,10 @@ def report(
         + f". {len(runs)} runs ({len(sets)} sets × {len(estimators)} estimators × {len(modes)} "
         f"modes) took {total_run / 60:.1f} min (the sum of their wall times) and "
         f"{total_cpu / 60:.1f} min of CPU (their wall time on an idle core; the machine is "
-        f"shared, so wall times are inflated); {timing}. Seconds in the tables are wall times.",
+        f"shared, so wall times are inflated); {timing}. Seconds in the tables are wall times. "
+        "The costliest, in CPU minutes over all sets: "
+        + ", ".join(f"{k} {v / 60:.1f}" for k, v in costliest)
+        + ".",
         "",
         "Each run is `torchsvs track IN -o OUT --estimator E` plus the mode's options: "
         + ", ".join(
@@ -989,10 +1011,12 @@ def report(
     lines += estimate_section(runs)
     lines += ["", "## Issue 28's table, on these sets", ""]
     lines += [
-        "The issue's rows beside the run on the matching set here (the issue's recorded ships "
-        "and drone are not held: the taxiing aircraft and the 1 s scans stand in for them; its "
-        'simulated rows are per-axis RMSE, scaled by √2 to 2-D here). "same side of raw": '
-        "both worse than raw or both below.",
+        "The issue's rows beside the run on the matching set here. The issue's sets are not "
+        "these (its recorded ships and drone are not held: the taxiing aircraft and the 1 s "
+        "scans stand in for them; its simulated turns are its own; its simulated rows are "
+        "per-axis RMSE, scaled by √2 to 2-D here), so the numbers differ; what compares is "
+        'whether a run is worse than raw. "same side of raw": both worse than raw or both '
+        "below.",
         "",
     ]
     lines += issue_section(runs, sets)
@@ -1127,12 +1151,13 @@ def main(argv: list[str] | None = None) -> None:
     if new:
         save_runs(saved, options, runs)
     seconds = time.perf_counter() - start
-    timing = (
-        f"this invocation took {seconds / 60:.1f} min (building {len(sets)} sets"
-        + (f", {len(new)} runs" if new else "")
-        + (", merged with the saved runs" if kept and new else "")
-        + ", the report)"
-    )
+    if new:
+        timing = (
+            f"this invocation took {seconds / 60:.1f} min (building {len(sets)} sets, "
+            f"{len(new)} runs{', merged with the saved runs' if kept else ''}, the report)"
+        )
+    else:
+        timing = "the report was written from the saved runs (`--report-only`)"
     shown_estimators = [e for e in choices if any(r.estimator == e for r in runs)]
     shown_modes = [m for m in MODES if any(r.mode == m for r in runs)]
     figure = out / "recorded_tracks.png"
