@@ -17,7 +17,8 @@ kept with its message. When ``track`` writes a summary beside its output
 (``<output stem>.summary.json`` with ``estimated_position_rmse``), its truth-free estimate is
 set beside the true RMSE and flagged where more than 15% off.
 
-Writes ``experiments/results/recorded_tracks.md`` (+ ``.png``, ``.json``).
+Writes ``experiments/results/recorded_tracks.md`` (+ ``.png``, ``_examples.png``, ``.json``;
+another stem with ``--name``).
 
     python -m experiments.recorded_tracks [--kinds own,taxi] [--rows 5000] [--via cli]
 """
@@ -1022,7 +1023,8 @@ def report(
     lines += issue_section(runs, sets)
     lines += [""]
     lines += sets_section(sets)
-    lines += ["", "![one track of each kind](recorded_tracks_examples.png)"]
+    examples = Path(figure).stem + "_examples.png"
+    lines += ["", f"![one track of each kind]({examples})"]
     lines += [
         "",
         f"The re-timing is checked on simulated 1 s turns (3-6 deg/s, 100-250 m/s) with a white "
@@ -1078,18 +1080,21 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     parser.add_argument("--out", default=str(RESULTS), help="folder of the report")
+    parser.add_argument(
+        "--name", default="recorded_tracks", help="stem of the report's files (NAME.md, ...)"
+    )
     parser.add_argument("--workdir", default=None, help="keep the sets and outputs here")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument(
         "--merge",
         action="store_true",
-        help="keep the runs saved in OUT/recorded_tracks.json and replace those run now (e.g. "
+        help="keep the runs saved in OUT/NAME.json and replace those run now (e.g. "
         "one kind or estimator after a fix)",
     )
     parser.add_argument(
         "--report-only",
         action="store_true",
-        help="run nothing: the report of the runs saved in OUT/recorded_tracks.json",
+        help="run nothing: the report of the runs saved in OUT/NAME.json",
     )
     args = parser.parse_args(argv)
     import torch
@@ -1108,7 +1113,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"modes: expected names among {list(MODES)}, got {args.modes!r}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    saved = out / "recorded_tracks.json"
+    saved = out / f"{args.name}.json"
     options: dict[str, Any] = {
         "rows": f"~{args.rows:,} per set",
         "seed": args.seed,
@@ -1160,11 +1165,11 @@ def main(argv: list[str] | None = None) -> None:
         timing = "the report was written from the saved runs (`--report-only`)"
     shown_estimators = [e for e in choices if any(r.estimator == e for r in runs)]
     shown_modes = [m for m in MODES if any(r.mode == m for r in runs)]
-    figure = out / "recorded_tracks.png"
+    figure = out / f"{args.name}.png"
     heat_map(runs, [b.name for b in sets], shown_estimators, shown_modes, figure)
-    tracks_figure(sets, out / "recorded_tracks_examples.png")
+    tracks_figure(sets, out / f"{args.name}_examples.png")
     text = report(sets, runs, shown_estimators, shown_modes, default, options, timing, figure.name)
-    (out / "recorded_tracks.md").write_text(text)
+    (out / f"{args.name}.md").write_text(text)
     print(text)
     print(f"\n(total {time.perf_counter() - start:.0f} s)")
 
