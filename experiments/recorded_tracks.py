@@ -17,7 +17,8 @@ kept with its message. When ``track`` writes a summary beside its output
 (``<output stem>.summary.json`` with ``estimated_position_rmse``), its truth-free estimate is
 set beside the true RMSE and flagged where more than 15% off.
 
-Writes ``experiments/results/recorded_tracks.md`` (+ ``.png``, ``.json``).
+Writes ``experiments/results/recorded_tracks.md`` (+ ``.png``, ``_examples.png``, ``.json``;
+another stem with ``--name``).
 
     python -m experiments.recorded_tracks [--kinds own,taxi] [--rows 5000] [--via cli]
 """
@@ -302,6 +303,9 @@ def run_job(job: Job) -> Run:
     result.measurement = summary_number(summary, "measurement_rmse")
     chosen = summary.get("estimator")
     result.chosen = chosen if isinstance(chosen, str) and chosen != job.estimator else ""
+    told = summary.get("warnings")
+    if isinstance(told, list):  # what the run warned about, as its summary says
+        result.warnings = list(dict.fromkeys([*result.warnings, *map(str, told)]))
     return result
 
 
@@ -412,6 +416,18 @@ def table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> list[str]:
     return lines
 
 
+def sources_text(files: Sequence[str]) -> str:
+    """Sample files (``folder/name``) in short: a folder's count when it gives several."""
+    folders: dict[str, list[str]] = {}
+    for name in files:
+        folder, _, _ = name.rpartition("/")
+        folders.setdefault(folder, []).append(name)
+    return ", ".join(
+        names[0] if len(names) == 1 else f"{folder}/ ({len(names)} files)"
+        for folder, names in folders.items()
+    )
+
+
 def sets_section(sets: Sequence[BenchSet]) -> list[str]:
     lines = [
         "## The sets",
@@ -429,7 +445,7 @@ def sets_section(sets: Sequence[BenchSet]) -> list[str]:
             [
                 bench.name,
                 bench.kind.title,
-                ", ".join(bench.truth.sources),
+                sources_text(bench.truth.sources),
                 d.tracks,
                 f"{d.rows:,}",
                 " / ".join(f"{v:.3g}" for v in d.interval[:3]) + f" (≤ {d.interval[3]:.3g})",
@@ -846,6 +862,7 @@ def heat_map(
                 va="center",
                 fontsize=6,
                 fontweight="bold" if worse else "normal",
+                color="white" if math.isfinite(v) and abs(v) > 1.5 else "black",
             )
     ax.set_xticks(range(len(sets)), sets, rotation=45, ha="right", fontsize=7)
     ax.set_yticks(range(len(labels)), labels, fontsize=6)
@@ -931,6 +948,12 @@ def report(
     total_run = sum(r.seconds for r in runs if math.isfinite(r.seconds))
     total_cpu = sum(r.cpu_seconds for r in runs if math.isfinite(r.cpu_seconds))
     codes = ", ".join(f"`{c}`" for c in dict.fromkeys(r.code or "unknown" for r in runs))
+    cost: dict[str, float] = {}
+    for r in runs:
+        if math.isfinite(r.cpu_seconds):
+            key = f"`{r.estimator}` {r.mode}"
+            cost[key] = cost.get(key, 0.0) + r.cpu_seconds
+    costliest = sorted(cost.items(), key=lambda kv: -kv[1])[:4]
     lines = [
         "# Recorded tracks of several kinds: `torchsvs track` as a user runs it",
         "",
@@ -942,14 +965,17 @@ def report(
         + f". {len(runs)} runs ({len(sets)} sets × {len(estimators)} estimators × {len(modes)} "
         f"modes) took {total_run / 60:.1f} min (the sum of their wall times) and "
         f"{total_cpu / 60:.1f} min of CPU (their wall time on an idle core; the machine is "
-        f"shared, so wall times are inflated); {timing}. Seconds in the tables are wall times.",
+        f"shared, so wall times are inflated); {timing}. Seconds in the tables are wall times. "
+        "The costliest, in CPU minutes over all sets: "
+        + ", ".join(f"{k} {v / 60:.1f}" for k, v in costliest)
+        + ".",
         "",
         "Each run is `torchsvs track IN -o OUT --estimator E` plus the mode's options: "
         + ", ".join(
             f"`{m}`" + (" (no option: the noise is read off the data)" if not MODES[m](1.0) else "")
             for m in modes
         )
-        + " (σ: the set's noise level)"
+        + (" (σ: the set's noise level)" if any("σ" in m for m in modes) else "")
         + f". The command's default estimator is `{default}`"
         + ("; it offers `auto`." if "auto" in offered else "; it offers no `auto` yet.")
         + " Position RMSE is 2-D (the root of the mean squared distance to the truth, m); "
@@ -986,16 +1012,19 @@ def report(
     lines += estimate_section(runs)
     lines += ["", "## Issue 28's table, on these sets", ""]
     lines += [
-        "The issue's rows beside the run on the matching set here (the issue's recorded ships "
-        "and drone are not held: the taxiing aircraft and the 1 s scans stand in for them; its "
-        'simulated rows are per-axis RMSE, scaled by √2 to 2-D here). "same side of raw": '
-        "both worse than raw or both below.",
+        "The issue's rows beside the run on the matching set here. The issue's sets are not "
+        "these (its recorded ships and drone are not held: the taxiing aircraft and the 1 s "
+        "scans stand in for them; its simulated turns are its own; its simulated rows are "
+        "per-axis RMSE, scaled by √2 to 2-D here), so the numbers differ; what compares is "
+        'whether a run is worse than raw. "same side of raw": both worse than raw or both '
+        "below.",
         "",
     ]
     lines += issue_section(runs, sets)
     lines += [""]
     lines += sets_section(sets)
-    lines += ["", "![one track of each kind](recorded_tracks_examples.png)"]
+    examples = Path(figure).stem + "_examples.png"
+    lines += ["", f"![one track of each kind]({examples})"]
     lines += [
         "",
         f"The re-timing is checked on simulated 1 s turns (3-6 deg/s, 100-250 m/s) with a white "
@@ -1024,6 +1053,13 @@ def report(
     return "\n".join(lines).rstrip() + "\n"
 
 
+def save_runs(path: Path, options: dict[str, Any], runs: Sequence[Run]) -> None:
+    """The runs as JSON, one run a line (``--merge`` and ``--report-only`` read it back)."""
+    lines = ",\n".join(json.dumps(asdict(r), ensure_ascii=False) for r in runs)
+    head = json.dumps(options, ensure_ascii=False)
+    path.write_text(f'{{"options": {head},\n"runs": [\n{lines}\n]}}\n')
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--kinds", default=",".join(KINDS), help="kinds of track (comma-separated)")
@@ -1044,18 +1080,21 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     parser.add_argument("--out", default=str(RESULTS), help="folder of the report")
+    parser.add_argument(
+        "--name", default="recorded_tracks", help="stem of the report's files (NAME.md, ...)"
+    )
     parser.add_argument("--workdir", default=None, help="keep the sets and outputs here")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument(
         "--merge",
         action="store_true",
-        help="keep the runs saved in OUT/recorded_tracks.json and replace those run now (e.g. "
+        help="keep the runs saved in OUT/NAME.json and replace those run now (e.g. "
         "one kind or estimator after a fix)",
     )
     parser.add_argument(
         "--report-only",
         action="store_true",
-        help="run nothing: the report of the runs saved in OUT/recorded_tracks.json",
+        help="run nothing: the report of the runs saved in OUT/NAME.json",
     )
     args = parser.parse_args(argv)
     import torch
@@ -1074,7 +1113,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"modes: expected names among {list(MODES)}, got {args.modes!r}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    saved = out / "recorded_tracks.json"
+    saved = out / f"{args.name}.json"
     options: dict[str, Any] = {
         "rows": f"~{args.rows:,} per set",
         "seed": args.seed,
@@ -1115,22 +1154,22 @@ def main(argv: list[str] | None = None) -> None:
         key=lambda r: (set_order[r.set], est_order[r.estimator], mode_order[r.mode]),
     )
     if new:
-        record = {"options": options, "runs": [asdict(r) for r in runs]}
-        saved.write_text(json.dumps(record, indent=1) + "\n")
+        save_runs(saved, options, runs)
     seconds = time.perf_counter() - start
-    timing = (
-        f"this invocation took {seconds / 60:.1f} min (building {len(sets)} sets"
-        + (f", {len(new)} runs" if new else "")
-        + (", merged with the saved runs" if kept and new else "")
-        + ", the report)"
-    )
+    if new:
+        timing = (
+            f"this invocation took {seconds / 60:.1f} min (building {len(sets)} sets, "
+            f"{len(new)} runs{', merged with the saved runs' if kept else ''}, the report)"
+        )
+    else:
+        timing = "the report was written from the saved runs (`--report-only`)"
     shown_estimators = [e for e in choices if any(r.estimator == e for r in runs)]
     shown_modes = [m for m in MODES if any(r.mode == m for r in runs)]
-    figure = out / "recorded_tracks.png"
+    figure = out / f"{args.name}.png"
     heat_map(runs, [b.name for b in sets], shown_estimators, shown_modes, figure)
-    tracks_figure(sets, out / "recorded_tracks_examples.png")
+    tracks_figure(sets, out / f"{args.name}_examples.png")
     text = report(sets, runs, shown_estimators, shown_modes, default, options, timing, figure.name)
-    (out / "recorded_tracks.md").write_text(text)
+    (out / f"{args.name}.md").write_text(text)
     print(text)
     print(f"\n(total {time.perf_counter() - start:.0f} s)")
 
