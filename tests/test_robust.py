@@ -50,13 +50,18 @@ def test_iterations_and_batches_are_consistent():
     assert (one.mean - est(sc.z[:, :60], sc.x0, sc.P0).mean).abs().max() > 1e-3
 
 
-def test_all_missing_step_is_a_prediction():
+@pytest.mark.parametrize("shapes", ["derived", "swapped"])
+def test_all_missing_step_is_a_prediction(shapes):
     sc = atc_batch(2, seed=3)
     z = sc.z[:, :20].clone()
     z[:, 5] = float("nan")
     z[0, 9, 1] = float("nan")
-    out = ts.RobustStudentTKalmanFilter(sc.model)(z, sc.x0, sc.P0)
+    z[1, 12:] = float("nan")  # a short track padded in the batch: predictions only
+    out = ts.RobustStudentTKalmanFilter(sc.model, scale_shapes=shapes)(z, sc.x0, sc.P0)
     assert_close(out.mean[:, 5], out.pred_mean[:, 5])
+    assert_close(out.cov[:, 5], out.pred_cov[:, 5])
+    # Swapped shapes once shrank E[ξ] at every empty step and P grew to inf.
+    assert bool(torch.isfinite(out.cov).all())
     assert bool(torch.isfinite(out.mean).all())
 
 

@@ -228,7 +228,9 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
     if name == "ukf":
         return UnscentedKalmanFilter(model)
     if name == "rstkf":
-        return RobustStudentTKalmanFilter(model)
+        # Swapped shapes: the derived ones take a turn's innovations for measurement outliers
+        # and lose the target (7x raw on airliners at their own report times; robust.py).
+        return RobustStudentTKalmanFilter(model, scale_shapes="swapped")
     if name == "pf":
         # The optimal proposal, regularised: the bootstrap loses tracks at long scan intervals
         # and in maneuvers the data's q misses (ParticleFilter's docstring).

@@ -154,5 +154,11 @@ class RobustStudentTKalmanFilter(GaussianFilter):
             P_tilde = U / (inv_sigma_scale * E_xi[..., None, None])
             R_tilde = R / E_lambda[..., None, None]
             x, P, K, _, _ = kalman_update(x_pred, P_tilde, e_pred, H, R_tilde)
+        if mask is not None:
+            # Nothing measured: the prediction stands. The VB scales would otherwise come from
+            # the prior alone and, with swapped shapes, inflate P at every empty step.
+            empty = m_obs == 0
+            x = torch.where(empty[..., None], x_pred, x)
+            P = torch.where(empty[..., None, None], P_pred, P)
         S = innovation_covariance(H, P_pred @ H.mT, R)  # the nominal one, before reweighting
         return Step(x, P, e_pred, K, innovation_cov=S)
