@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import lightning as L
 import pytest
 import torch
@@ -90,11 +92,19 @@ def test_fit_of_an_svss_lowers_its_true_error():
     assert len(fit.settings.psi) == 2 and fit.settings.psi[0] == fit.settings.psi[1]  # tied axes
 
 
-def test_particle_filters_are_not_fitted():
-    tracks = _cv_tracks(B=2, T=20)
-    start = complete_settings(Settings(estimator="pf", meas_var=[400.0, 400.0]), tracks)
-    with pytest.raises(ValueError, match="^estimator: --fit tunes"):
-        self_tune(start, tracks)
+@pytest.mark.parametrize("estimator", ["pf", "spvsf"])
+def test_particle_filters_take_the_kalman_filters_q(estimator):
+    tracks = _cv_tracks(q=4.0, r=400.0, B=4, T=60)
+    start = complete_settings(
+        Settings(estimator=estimator, meas_var=[400.0, 400.0], q=0.01, particles=64), tracks
+    )
+    fit = self_tune(start, tracks, steps=8)
+    twin = self_tune(replace(start, estimator="kf"), tracks, steps=8)
+    assert fit.settings.estimator == estimator and fit.settings.particles == 64
+    assert fit.settings.q == twin.settings.q != start.q
+    assert "from the kf's fit" in fit.stages[-1]
+    with pytest.raises(ValueError, match="^estimator: --fit tunes .*; got 'auto'"):
+        self_tune(replace(start, estimator="auto"), tracks)
 
 
 def test_lightning_fits_recorded_tracks_without_truth(tmp_path):

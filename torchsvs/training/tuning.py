@@ -37,8 +37,11 @@ from torchsvs.filters import SVSF, TurnIMM
 from torchsvs.training.data import TrackBatch, recorded_batches
 from torchsvs.training.module import batch_loss
 
-#: Estimators whose parameters ``self_tune`` fits (particle filters' losses are random).
+#: Estimators whose parameters ``self_tune`` fits by their own SURE.
 TUNABLE = ("kf", "ks", "ekf", "ukf", "rstkf", "svsf", "svss", "svstps", "imm")
+#: Particle filters: their SURE is random (the particles), so their q is the Kalman filter's on
+#: the same motion model (a filter, as they are); their other settings stay as given.
+TWINS = {"pf": "kf", "spvsf": "kf"}
 
 
 @dataclass
@@ -145,10 +148,35 @@ def self_tune(
     """
     from torchsvs.tracking import make_estimator, make_model, rule_of_thumb_psi
 
+    if settings.estimator in TWINS:
+        twin = TWINS[settings.estimator]
+        result = self_tune(
+            replace(settings, estimator=twin),
+            tracks,
+            known_noise,
+            steps,
+            noise_steps,
+            lr,
+            window,
+            burn_in,
+            max_windows,
+            seed,
+            optimizer,
+            tie_axes,
+        )
+        fitted = result.settings
+        result.settings = replace(
+            settings, q=fitted.q, meas_var=fitted.meas_var, noise=fitted.noise
+        )
+        result.stages.append(
+            f"{settings.estimator}: q = {_fmt(fitted.q)} from the {twin}'s fit (a particle "
+            "filter's own loss is random)"
+        )
+        return result
     if settings.estimator not in TUNABLE:
         raise ValueError(
-            f"estimator: --fit tunes {', '.join(TUNABLE)}; {settings.estimator!r} has a random "
-            "loss (particles), so pass its settings instead"
+            f"estimator: --fit tunes {', '.join(TUNABLE + tuple(TWINS))}; got "
+            f"{settings.estimator!r}"
         )
     start = time.perf_counter()
     result = FitResult(settings)
