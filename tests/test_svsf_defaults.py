@@ -410,3 +410,15 @@ def test_rule_of_thumb_is_in_units_of_each_steps_own_noise():
     assert classic.filter.artificial is None
     spvsf = make_estimator(replace(settings, estimator="spvsf"), make_model(settings))
     assert isinstance(spvsf.svsf, ts.VariableBoundarySVSF)
+
+
+@pytest.mark.parametrize("estimator", ["svss", "spvsf"])
+def test_one_psi_value_serves_every_axis(estimator):
+    """``--psi 1.5`` means 1.5 on every axis (the help's "one value or one per axis")."""
+    z, dt, _, _ = _irregular(seed=3)
+    lengths = torch.full((z.shape[0],), z.shape[1])
+    tracks = RecordedTracks(z=z, dt=dt, time=dt.cumsum(1), lengths=lengths, ids=list("abc"))
+    one = complete_settings(Settings(estimator=estimator, meas_var=[16.0, 16.0], psi=[1.5]), tracks)
+    assert one.psi == [1.5, 1.5]
+    each = complete_settings(replace(one, psi=[1.5, 1.5]), tracks)
+    assert one == each

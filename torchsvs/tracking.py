@@ -373,6 +373,8 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     psi = settings.psi
     if psi is None and settings.estimator in ("svsf", "svss", "svstps", "spvsf"):
         psi = rule_of_thumb_psi(meas_var, interval, settings.velocity)
+    elif psi is not None and len(psi) == 1 and m > 1:
+        psi = list(psi) * m  # one value for every axis, as --psi's help says
     assert q is not None  # (an open q sent the IMM through the data too)
     if meas_std_se is not None and len(meas_std_se) == 1 and m > 1:
         meas_std_se = list(meas_std_se) * m
