@@ -422,3 +422,24 @@ def test_one_psi_value_serves_every_axis(estimator):
     assert one.psi == [1.5, 1.5]
     each = complete_settings(replace(one, psi=[1.5, 1.5]), tracks)
     assert one == each
+
+
+def test_svss_and_svstps_are_one_estimator_over_the_variable_layer():
+    """The variable layer's gain is the Kalman gain of its inflated prior, so the SVSS's
+    innovation gain B_N equals it (``--estimator auto`` tries only one of the two): equal to
+    1e-9 with a narrow limit that saturates at many steps."""
+    z, dt, _, _ = _irregular(seed=5)
+    z[1, 20:] += torch.tensor([60.0, -40.0], dtype=torch.float64)  # a jump: saturated steps
+    lengths = torch.full((z.shape[0],), z.shape[1])
+    tracks = RecordedTracks(z=z, dt=dt, time=dt.cumsum(1), lengths=lengths, ids=list("abc"))
+    means = []
+    for name in ("svss", "svstps"):
+        settings = complete_settings(
+            Settings(estimator=name, meas_var=[16.0, 16.0], psi=[0.5], lag=3), tracks
+        )
+        estimator = make_estimator(settings, make_model(settings)).double()
+        moved, _ = centred(tracks)
+        means.append(
+            run_estimator(estimator, with_prior(moved, torch.tensor([4.0, 4.0]).double()))[0]
+        )
+    assert_close(means[0], means[1], atol=1e-9, rtol=0)

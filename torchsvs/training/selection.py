@@ -105,6 +105,11 @@ def choose_estimator(
             )
             rows.append({"estimator": name, "skipped": why})
             continue
+        if name == "svstps" and base.velocity and "svss" in candidates:
+            # The variable boundary layer's gain is the Kalman gain of its inflated prior, so
+            # the SVSS's innovation gain equals it and both smoothers are the same estimator.
+            rows.append({"estimator": name, "skipped": "the same estimator as svss here"})
+            continue
         tick = time.perf_counter()
         # What the user gave (q, ψ, lag) is each candidate's start; the rest is read off the data.
         open_settings = replace(settings, estimator=name, chosen_from=None, **noise)
