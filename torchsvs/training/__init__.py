@@ -12,23 +12,63 @@
   :func:`config_path` gives its file).
 """
 
-from torchsvs.training.configs import config_path, shipped_configs
-from torchsvs.training.data import (
-    ManeuverDataset,
-    ManeuveringTargetDataModule,
-    RecordedTracksDataModule,
-    TrackBatch,
-    recorded_batches,
-)
-from torchsvs.training.losses import (
-    LOSSES,
-    innovation_nll,
-    prediction_error,
-    stein_risk,
-    supervised_mse,
-)
-from torchsvs.training.module import EstimatorModule, batch_loss, boundary_layer_modules
-from torchsvs.training.tuning import FitResult, self_tune
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+# Names resolved on first use (PEP 562), so that importing a Lightning-free part, e.g.
+# ``torchsvs.training.noise`` on every ``torchsvs track`` run, does not import Lightning (~2 s).
+_HOMES = {
+    "config_path": "configs",
+    "shipped_configs": "configs",
+    "ManeuverDataset": "data",
+    "ManeuveringTargetDataModule": "data",
+    "RecordedTracksDataModule": "data",
+    "TrackBatch": "batches",
+    "recorded_batches": "batches",
+    "LOSSES": "losses",
+    "innovation_nll": "losses",
+    "prediction_error": "losses",
+    "stein_risk": "losses",
+    "supervised_mse": "losses",
+    "EstimatorModule": "module",
+    "batch_loss": "batches",
+    "boundary_layer_modules": "module",
+    "FitResult": "tuning",
+    "self_tune": "tuning",
+}
+
+if TYPE_CHECKING:
+    from torchsvs.training.batches import TrackBatch, batch_loss, recorded_batches
+    from torchsvs.training.configs import config_path, shipped_configs
+    from torchsvs.training.data import (
+        ManeuverDataset,
+        ManeuveringTargetDataModule,
+        RecordedTracksDataModule,
+    )
+    from torchsvs.training.losses import (
+        LOSSES,
+        innovation_nll,
+        prediction_error,
+        stein_risk,
+        supervised_mse,
+    )
+    from torchsvs.training.module import EstimatorModule, boundary_layer_modules
+    from torchsvs.training.tuning import FitResult, self_tune
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOMES:
+        raise AttributeError(f"module 'torchsvs.training' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"torchsvs.training.{_HOMES[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOMES))
+
 
 __all__ = [
     "LOSSES",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import asdict
-from typing import Any, NamedTuple
+from typing import Any
 
 import lightning as L
 import torch
@@ -14,20 +14,7 @@ from torch.utils.data import DataLoader, Dataset
 from torchsvs.datasets.tracks import RecordedTracks
 from torchsvs.scenarios.maneuver import ManeuverRanges
 from torchsvs.scenarios.paper import random_scenario
-
-
-class TrackBatch(NamedTuple):
-    """One training batch: measurements, the filters' prior, and truth where there is any."""
-
-    z: Tensor  #: [B, T, m], NaN where missing
-    truth: Tensor | None  #: [B, T, n] (simulated tracks), None for recorded ones
-    x0: Tensor  #: [B, n] (simulated: drawn from N(true initial state, P0))
-    P0: Tensor  #: [n, n] or [B, n, n]
-    dt: Tensor | None = None  #: [B, T] per-step intervals (recorded tracks)
-    scored: Tensor | None = None  #: [B, T] steps the losses count (default: all)
-    #: [m] measurement variance the priors were built from: when set, ``x0, P0`` are two-point
-    #: priors of ``z`` and are rebuilt from any perturbed ``z`` (SURE's second pass)
-    prior_var: Tensor | None = None
+from torchsvs.training.batches import TrackBatch, recorded_batches
 
 
 class ManeuverDataset(Dataset[TrackBatch]):
@@ -174,55 +161,6 @@ class ManeuveringTargetDataModule(L.LightningDataModule):
 
 def _identity(batch: Any) -> Any:
     return batch
-
-
-def recorded_batches(
-    tracks: RecordedTracks,
-    meas_var: Tensor,
-    window: int | None = 128,
-    burn_in: int = 16,
-    batch_size: int | None = None,
-    dtype: torch.dtype = torch.float64,
-) -> list[TrackBatch]:
-    """Recorded tracks as training batches: cut into windows (:func:`~torchsvs.datasets.tracks.
-    windows`; ``window=None`` keeps whole tracks), each moved to start near 0, with two-point
-    priors rebuilt from its own measurements (``prior_var``), in batches of ``batch_size``
-    windows (``None``: one batch)."""
-    from torchsvs.datasets import two_point_prior
-    from torchsvs.datasets.tracks import windows as cut_windows
-
-    if window is not None:
-        pieces, scored = cut_windows(tracks, window, burn_in)
-    else:
-        pieces, scored = tracks, tracks.mask
-    z = pieces.z.to(dtype)
-    observed = ~torch.isnan(z)
-    first = observed.to(torch.int64).argmax(dim=1, keepdim=True)
-    offset = z.nan_to_num(0.0).gather(1, first)  # [N, 1, m]
-    z = z - offset
-    truth = pieces.truth
-    if truth is not None:
-        truth = truth.to(dtype).clone()
-        truth[..., 0::2] -= offset
-    dt = pieces.dt.to(dtype)
-    var = meas_var.to(dtype)
-    size = batch_size or len(pieces)
-    batches = []
-    for start in range(0, len(pieces), size):
-        part = slice(start, start + size)
-        prior = two_point_prior(z[part], dt[part], var)
-        batches.append(
-            TrackBatch(
-                z=z[part],
-                truth=None if truth is None else truth[part],
-                x0=prior.x0,
-                P0=prior.P0,
-                dt=dt[part],
-                scored=scored[part],
-                prior_var=var,
-            )
-        )
-    return batches
 
 
 class RecordedTracksDataModule(L.LightningDataModule):

@@ -12,86 +12,15 @@ from torch import Tensor, nn
 from torchsvs.estimator import Estimator, threads_for
 from torchsvs.filters.svsf import SVSF
 from torchsvs.metrics import pooled_rmse
-from torchsvs.models.base import LinearModel
-from torchsvs.training.data import TrackBatch
+from torchsvs.training.batches import TrackBatch, batch_loss, known_meas_cov
 from torchsvs.training.losses import (
     LOSSES,
-    innovation_nll,
-    prediction_error,
-    stein_risk,
-    supervised_mse,
 )
-from torchsvs.types import FilterResult, SmootherResult
 
 
 def boundary_layer_modules(module: nn.Module) -> list[SVSF]:
     """The SVSFs inside ``module`` (to log their ψ and γ)."""
     return [m for m in module.modules() if isinstance(m, SVSF)]
-
-
-def known_meas_cov(estimator: nn.Module, meas_cov: Tensor | None, dtype: torch.dtype) -> Tensor:
-    """The sensor's measurement covariance SURE measures risk in: ``meas_cov`` if given, else the
-    model's ``R`` when it is fixed. A learnable ``R`` is refused: the fit could lower the risk
-    estimate by inflating it."""
-    if meas_cov is not None:
-        return meas_cov.to(dtype)
-    R = estimator.model.meas_cov()  # type: ignore[union-attr, operator]
-    if R.requires_grad:
-        raise ValueError(
-            "meas_cov: loss 'sure' needs the sensor's known measurement covariance, and the "
-            "model's R is being learned; pass meas_cov=... (or fix R, or use loss='nll')"
-        )
-    return R.detach().to(dtype)
-
-
-def batch_loss(
-    estimator: nn.Module,
-    batch: TrackBatch,
-    loss: str,
-    components: list[int] | None = None,
-    meas_cov: Tensor | None = None,
-    generator: torch.Generator | None = None,
-) -> tuple[Tensor, Any]:
-    """The estimator's result on a batch and its ``loss`` (one of :data:`LOSSES`).
-
-    Priors built from the data (``batch.prior_var`` set) are rebuilt from every ``z`` the loss
-    evaluates, so SURE's divergence includes their dependence on the measurements. Only
-    ``"supervised"`` reads ``batch.truth``.
-    """
-    from torchsvs.datasets.priors import two_point_prior
-
-    def run(z: Tensor) -> Any:
-        x0, P0 = batch.x0, batch.P0
-        if batch.prior_var is not None:
-            assert batch.dt is not None
-            prior = two_point_prior(z, batch.dt, batch.prior_var)
-            x0, P0 = prior.x0, prior.P0
-        kwargs = {} if batch.dt is None else {"dt": batch.dt}
-        return estimator(z, x0, P0, **kwargs)
-
-    out = run(batch.z)
-    if loss in ("nll", "prediction") and not isinstance(out, (FilterResult, SmootherResult)):
-        raise ValueError(
-            f"loss: {loss!r} scores a Gaussian filter's innovations, which "
-            f"{type(estimator).__name__} does not form; use 'supervised' or 'sure'"
-        )
-    if loss == "supervised":
-        if batch.truth is None:
-            raise ValueError(
-                "loss: 'supervised' needs truth and this batch has none (recorded tracks); "
-                "use a truth-free loss ('sure', 'nll', 'prediction')"
-            )
-        return supervised_mse(out, batch.truth, components or [0, 2], batch.scored), out
-    if loss == "nll":
-        return innovation_nll(out, batch.scored), out
-    if loss == "prediction":
-        return prediction_error(out, batch.scored), out
-    if loss != "sure":
-        raise ValueError(f"loss: expected one of {sorted(LOSSES)}, got {loss!r}")
-    model: LinearModel = estimator.model  # type: ignore[assignment]
-    H = model.meas_matrix().to(batch.z.dtype)
-    R = known_meas_cov(estimator, meas_cov, batch.z.dtype)
-    return stein_risk(run, out, batch.z, H, R, generator, scored=batch.scored), out
 
 
 class EstimatorModule(L.LightningModule):

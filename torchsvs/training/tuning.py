@@ -34,8 +34,7 @@ from torch.nn.utils import parametrize
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimator import threads_for
 from torchsvs.filters import SVSF, TurnIMM
-from torchsvs.training.data import TrackBatch, recorded_batches
-from torchsvs.training.module import batch_loss
+from torchsvs.training.batches import TrackBatch, batch_loss, recorded_batches
 
 #: Estimators whose parameters ``self_tune`` fits by their own SURE.
 TUNABLE = ("kf", "ks", "ekf", "ukf", "rstkf", "svsf", "svss", "svstps", "imm")
