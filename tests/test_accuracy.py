@@ -125,10 +125,13 @@ def test_estimate_of_a_kalman_smoother_agrees_with_the_truth():
     assert found.clearly_better and found.ratio < 0.8
 
 
-def _turning_csv(path, sigma: float = 30.0, seed: int = 0) -> dict[tuple[str, float], np.ndarray]:
+def _turning_csv(
+    path, sigma: float = 30.0, seed: int = 0, sigmas: list[float] | None = None
+) -> dict[tuple[str, float], np.ndarray]:
     gen = np.random.default_rng(seed)
     rows, truth = [], {}
     for k in range(8):
+        sigma = sigmas[k] if sigmas is not None else sigma
         t = np.cumsum(np.full(150, 4.0))
         heading = np.cumsum(np.where((t > 200) & (t < 320), np.radians(4.0) * 4.0, 0.0))
         velocity = 120.0 * np.stack([np.cos(heading), np.sin(heading)], 1)
@@ -182,3 +185,21 @@ def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
     assert chosen in rows and run.settings is not None and run.settings.chosen_from
     score = {k: r["estimated_position_rmse"] + 2 * r["standard_error"] for k, r in rows.items()}
     assert score[chosen] == min(score.values())
+
+
+def test_track_warns_where_one_noise_level_does_not_fit_every_track(tmp_path):
+    """Half the tracks measured with σ 15 m, half with 60 m: the noise read off the data is
+    one level for all, its range widened by the between-track spread, and the run says so;
+    one sensor gives neither."""
+    mixed, same = tmp_path / "mixed.csv", tmp_path / "same.csv"
+    _turning_csv(mixed, sigmas=[15.0] * 4 + [60.0] * 4)
+    _turning_csv(same, sigma=30.0)
+    runs = {}
+    for source in (mixed, same):
+        target = tmp_path / f"out_{source.name}"
+        runs[source] = track_file(source, target, Settings("ks"), progress=False)
+    spread, one = runs[mixed].settings, runs[same].settings
+    assert spread.noise_spread > 0.5 and one.noise_spread < 0.1
+    assert spread.meas_std_se[0] > spread.noise_spread * spread.meas_var[0] ** 0.5 * 0.99
+    assert any("one noise level does not fit every track" in w for w in runs[mixed].warnings)
+    assert not any("noise level" in w for w in runs[same].warnings)

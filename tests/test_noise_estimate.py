@@ -228,3 +228,23 @@ def test_smoother_q_uses_a_sample_of_large_data():
     fit = smoother_q(sim.z, sim.dt, 2500.0, max_steps=512, window=256)
     assert fit.steps <= 512
     assert isinstance(sim, Simulated)
+
+
+def test_noise_spread_tells_one_sensor_from_two():
+    """Between-track spread of the per-track noise reading: near 0 for one sensor (its excess
+    over the tracks' own standard errors), near the log-ratio's half-width for two sensors of
+    σ 20 and 60 (log 3 / 2 = 0.55), None with fewer than 4 usable tracks."""
+    gen = torch.Generator().manual_seed(4)
+    dt = 1.0 + 9.0 * torch.rand(12, 120, generator=gen, dtype=torch.float64)
+    _, z = simulate_cv(dt, q=0.5, r=40.0**2, generator=gen, speed=30.0)
+    one = priors.noise_spread(z, dt)
+    assert one is not None and one < 0.08
+    _, z20 = simulate_cv(dt[:6], q=0.5, r=20.0**2, generator=gen, speed=30.0)
+    _, z60 = simulate_cv(dt[6:], q=0.5, r=60.0**2, generator=gen, speed=30.0)
+    mixed = torch.cat([z20, z60])
+    two = priors.noise_spread(mixed, dt)
+    assert two is not None and 0.4 < two < 0.7
+    assert priors.noise_spread(z[:3], dt[:3]) is None
+    short = z.clone()
+    short[:, priors.SPREAD_POINTS - 1 :] = float("nan")  # no track has enough points
+    assert priors.noise_spread(short, dt) is None

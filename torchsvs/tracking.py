@@ -40,6 +40,7 @@ from torchsvs.datasets import (
     TrackSteps,
     estimate_noise,
     estimate_table,
+    noise_spread,
     track_blocks,
     with_prior,
 )
@@ -94,6 +95,10 @@ PSI_LIMIT_IN_SIGMAS = 2.0
 IMM_QUIET = 0.03
 #: Share of a particle filter's steps with a degenerate sample above which a run warns.
 DEGENERATE_WARNING = 0.3
+#: Between-track spread of the noise read off the data (relative) above which a run warns:
+#: 0.27 on gliders and survey aircraft at 6-33 s reports, at most 0.12 on the benchmark's other
+#: recorded kinds (``experiments/results/recorded_tracks.md``).
+NOISE_SPREAD_WARNING = 0.2
 #: Per-track error estimates a run keeps beyond this many tracks: the worst this many.
 TRACKS_KEPT = 10_000
 #: Seed offset of the truth-free error estimate's probes (apart from the particles' seeds).
@@ -130,6 +135,10 @@ class Settings:
     noise: str | None = None
     #: standard error of the noise standard deviation per axis, where it was read off the data
     meas_std_se: list[float] | None = None
+    #: where the noise was read off the data: how much the reading differs between tracks
+    #: beyond their own uncertainty (a relative spread, :func:`~torchsvs.datasets.noise_spread`;
+    #: also in ``meas_std_se``)
+    noise_spread: float | None = None
     #: ``--estimator auto``: the candidates this estimator was chosen from
     chosen_from: list[str] | None = None
 
@@ -321,7 +330,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     """Fills what the settings leave open from the data: noise levels and the typical interval
     (and the IMM's mode noises, :func:`turn_settings`)."""
     source = settings.noise or ("given" if settings.meas_var is not None else "data")
-    meas_std_se = settings.meas_std_se
+    meas_std_se, spread = settings.meas_std_se, settings.noise_spread
     interval = float(tracks.dt[tracks.mask].median()) if len(tracks) else 1.0
     meas_var, q = settings.meas_var, settings.q
     imm = settings.estimator == "imm"
@@ -341,7 +350,8 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
         if meas_var is None:
             assert noise is not None
             meas_var = noise.meas_var.double().tolist()
-            meas_std_se = _noise_standard_error(noise)
+            spread = noise_spread(tracks.z, tracks.dt)
+            meas_std_se = _noise_standard_error(noise, meas_var, spread)
         data_q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
         if imm and noise is not None and tracks.z.shape[-1] > 2:
             # The turn is horizontal: its scale is the horizontal axes' maneuvering (a calm
@@ -383,6 +393,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
         meas_var=[float(v) for v in meas_var],
         noise=source,
         meas_std_se=meas_std_se,
+        noise_spread=spread,
         q=float(q),
         interval=interval,
         psi=psi,
@@ -401,13 +412,20 @@ def _smoother_q(tracks: RecordedTracks, meas_var: Sequence[float]) -> float:
     return smoother_q(tracks.z, tracks.dt, torch.tensor(meas_var, dtype=torch.float64)).q
 
 
-def _noise_standard_error(noise: Any) -> list[float] | None:
+def _noise_standard_error(
+    noise: Any, meas_var: Sequence[float], spread: float | None
+) -> list[float] | None:
     """The standard error of the noise standard deviation per axis that
-    :func:`~torchsvs.datasets.estimate_noise` reports, if it does."""
+    :func:`~torchsvs.datasets.estimate_noise` reports, if it does, with the between-track
+    spread (:func:`~torchsvs.datasets.noise_spread`) added in quadrature: where one noise level
+    does not fit every track, the pooled reading is that uncertain, whatever its jackknife."""
     se = getattr(noise, "meas_std_se", None)
     if se is None:
         return None
-    return [float(v) for v in torch.as_tensor(se).reshape(-1)]
+    extra = [(spread or 0.0) * v**0.5 for v in meas_var]
+    return [
+        math.hypot(float(v), e) for v, e in zip(torch.as_tensor(se).reshape(-1), extra, strict=True)
+    ]
 
 
 def meas_var_range(settings: Settings) -> tuple[list[float], list[float]] | None:
@@ -636,6 +654,15 @@ class TrackRun:
                 f"{DEGENERATE_SHARE:.0%} of them) at {low / steps:.0%} of the steps; there the "
                 "estimate rests on a few particles or the regularised Gaussian; try more "
                 "--particles or --estimator ks"
+            )
+        spread = self.settings.noise_spread
+        if self.settings.noise == "data" and spread is not None and spread > NOISE_SPREAD_WARNING:
+            self.warnings.append(
+                f"measurement noise: read off each track alone it differs between tracks by "
+                f"about {spread:.0%}, more than their own uncertainty: one noise level does not "
+                "fit every track (different sensors, or motion the model does not follow at "
+                "these report times), and the error estimate rests on it; give --meas-std with "
+                "the sensor's noise if known"
             )
         if not found.clearly_better:
             if self.settings.chosen_from is None:

@@ -20,7 +20,13 @@ from torchsvs.datasets.files import (
     with_prior,
     write_estimates,
 )
-from torchsvs.datasets.priors import NoiseEstimate, Prior, estimate_noise, two_point_prior
+from torchsvs.datasets.priors import (
+    NoiseEstimate,
+    Prior,
+    estimate_noise,
+    noise_spread,
+    two_point_prior,
+)
 from torchsvs.datasets.rows import NOTES, SET_ASIDE, TIME_UNITS, Columns, InputWarning, RowReport
 from torchsvs.datasets.tracks import RecordedTracks, TrackSteps, group_rows
 
@@ -41,6 +47,7 @@ __all__ = [
     "check_output",
     "describe_input",
     "estimate_noise",
+    "noise_spread",
     "estimate_table",
     "group_rows",
     "meas_variance",

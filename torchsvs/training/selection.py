@@ -90,7 +90,12 @@ def choose_estimator(
     start = time.perf_counter()
     base = complete_settings(replace(settings, estimator="ks", psi=None), sample)
     say(settings_note(base))
-    noise = {"meas_var": base.meas_var, "noise": base.noise, "meas_std_se": base.meas_std_se}
+    noise = {
+        "meas_var": base.meas_var,
+        "noise": base.noise,
+        "meas_std_se": base.meas_std_se,
+        "noise_spread": base.noise_spread,
+    }
     points = int((~sample.z[..., 0].isnan()).sum())
     options = dict(fit_options)
     options["known_noise"] = True  # read once above (or given): SURE in its units
