@@ -183,7 +183,11 @@ def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
     assert skipped["svstps"] == "the same estimator as svss here"  # the variable layer
     chosen = summary["estimator"]
     assert chosen in rows and run.settings is not None and run.settings.chosen_from
-    score = {k: r["estimated_position_rmse"] + 2 * r["standard_error"] for k, r in rows.items()}
+    score = {
+        k: r["estimated_position_rmse"]
+        * (1 + 2 * (r["standard_error"] / r["estimated_position_rmse"]) ** 2)
+        for k, r in rows.items()
+    }
     assert score[chosen] == min(score.values())
 
 
