@@ -16,6 +16,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+import torchsvs as ts
 from experiments.noise_estimate import (
     KINDS,
     Simulated,
@@ -26,7 +27,7 @@ from experiments.noise_estimate import (
     simulate,
 )
 from tests.conftest import assert_close, simulate_cv
-from torchsvs.datasets import estimate_noise, priors
+from torchsvs.datasets import estimate_noise, priors, two_point_prior
 from torchsvs.datasets.priors import difference_residuals
 from torchsvs.training.noise import smoother_q
 
@@ -248,3 +249,42 @@ def test_noise_spread_tells_one_sensor_from_two():
     short = z.clone()
     short[:, priors.SPREAD_POINTS - 1 :] = float("nan")  # no track has enough points
     assert priors.noise_spread(short, dt) is None
+
+
+def test_filter_sure_leverage_is_the_filters_own_derivative():
+    """smoothed=False scores H x̂_{t|t} with the leverage H P_{t|t} Hᵀ / r: it is the filter's
+    derivative in z_t (central differences of the float64 filter, exact for a linear map)."""
+    gen = torch.Generator().manual_seed(2)
+    dt = 1.0 + 4.0 * torch.rand(1, 30, generator=gen, dtype=torch.float64)
+    _, z = simulate_cv(dt, q=2.0, r=25.0, generator=gen, speed=10.0)
+    model = ts.models.ConstantVelocity(q=2.0, r=25.0).double()
+    kf = ts.KalmanFilter(model)
+    x0 = torch.tensor([[z[0, 0, 0], 0.0, z[0, 0, 1], 0.0]], dtype=torch.float64)
+    P0 = torch.diag(torch.tensor([25.0, 100.0, 25.0, 100.0], dtype=torch.float64))
+    out = kf(z, x0, P0, dt=dt)
+    for t, axis in ((5, 0), (17, 1), (29, 0)):
+        up, down = z.clone(), z.clone()
+        up[0, t, axis] += 1e-3
+        down[0, t, axis] -= 1e-3
+        slope = (kf(up, x0, P0, dt=dt).mean - kf(down, x0, P0, dt=dt).mean)[0, t, 2 * axis] / 2e-3
+        assert_close(slope, out.cov[0, t, 2 * axis, 2 * axis] / 25.0, atol=1e-9, rtol=1e-7)
+
+
+def test_filter_q_serves_a_filter_on_turns():
+    """On hard turns a Kalman filter with the smoother's q cuts corners (it cannot look ahead):
+    the filter's own SURE q is larger, and its filter is below the raw measurements."""
+    sim = simulate(small("turns 10 s"), 50.0, seed=3)
+    smoother_fit = smoother_q(sim.z, sim.dt, 2500.0)
+    filter_fit = smoother_q(sim.z, sim.dt, 2500.0, smoothed=False)
+    assert filter_fit.q > smoother_fit.q
+
+    def kf_rmse(q: float) -> float:
+        model = ts.models.ConstantVelocity(ndim=2, q=q, r=2500.0).double()
+        prior = two_point_prior(sim.z, sim.dt, 2500.0)
+        with torch.no_grad():
+            out = ts.KalmanFilter(model)(sim.z, prior.x0, prior.P0, dt=sim.dt, keep="mean")
+        ok = ~torch.isnan(sim.z[..., 0])
+        return float((out.mean[..., [0, 2]] - sim.truth)[ok].square().sum(-1).mean().sqrt())
+
+    assert kf_rmse(filter_fit.q) < kf_rmse(smoother_fit.q)
+    assert kf_rmse(filter_fit.q) < raw_rmse(sim)

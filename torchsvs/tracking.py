@@ -363,7 +363,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     if len(meas_var) != m:
         raise ValueError(f"meas_std: expected one value or one per axis ({m}), got {len(meas_var)}")
     if q is None and not imm:
-        q = data_q if noise is None else _smoother_q(tracks, meas_var)
+        q = data_q if noise is None else _smoother_q(tracks, meas_var, settings.estimator)
     turn_q, turn_rate_q, turn_rate_std = (
         settings.turn_q,
         settings.turn_rate_q,
@@ -403,13 +403,20 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     )
 
 
-def _smoother_q(tracks: RecordedTracks, meas_var: Sequence[float]) -> float:
-    """The q a Kalman smoother serves these tracks with (:func:`torchsvs.training.noise.
-    smoother_q`: its exact SURE, the noise fixed): the motion that short differences show
-    (``estimate_noise``'s q) is no guide at long scans or for slow targets."""
+#: Estimators whose output is a filter's (each step from the past alone): their q is the
+#: Kalman filter's, the others' the Kalman smoother's (:func:`_smoother_q`).
+FILTERS = ("kf", "ekf", "ukf", "rstkf", "pf", "spvsf", "svsf")
+
+
+def _smoother_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:
+    """The q a Kalman smoother (or, for :data:`FILTERS`, a Kalman filter) serves these tracks
+    with (:func:`torchsvs.training.noise.smoother_q`: its exact SURE, the noise fixed): the
+    motion that short differences show (``estimate_noise``'s q) is no guide at long scans or
+    for slow targets."""
     from torchsvs.training.noise import smoother_q
 
-    return smoother_q(tracks.z, tracks.dt, torch.tensor(meas_var, dtype=torch.float64)).q
+    r = torch.tensor(meas_var, dtype=torch.float64)
+    return smoother_q(tracks.z, tracks.dt, r, smoothed=estimator not in FILTERS).q
 
 
 def _noise_standard_error(
