@@ -149,8 +149,9 @@ def track_parser() -> argparse.ArgumentParser:
         "--estimator",
         default="auto",
         choices=sorted(ESTIMATORS),
-        help="default auto: ks, svstps, svss (and imm on small files) each tuned on the file "
-        "without truth, the one of the lowest estimated error kept (its table is printed)",
+        help="default auto: ks, svss (svstps too with --no-velocity) and, on small files, imm, "
+        "each tuned on the file without truth, the one of the lowest estimated error kept (its "
+        "table is printed)",
     )
     parser.add_argument("--id-col", default="track_id", help="track id column (default track_id)")
     parser.add_argument("--time-col", default="time", help="time column (default time)")

@@ -65,8 +65,8 @@ Item = TypeVar("Item")
 
 #: Estimator names of ``torchsvs track --estimator`` and what they are.
 ESTIMATORS = {
-    "auto": "the lowest estimated error of ks, svstps, svss (and imm on small files), each "
-    "tuned on the file without truth (torchsvs.training.selection)",
+    "auto": "the lowest estimated error of ks, svss (svstps with --no-velocity), imm (small "
+    "files), each tuned on the file without truth (torchsvs.training.selection)",
     "kf": "Kalman filter",
     "ks": "Kalman smoother (RTS; fixed interval unless --lag)",
     "svsf": "smooth variable structure filter",
