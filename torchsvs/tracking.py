@@ -362,14 +362,14 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
             # 10-30 s as a quiet CV target and left the IMM at 1.9x raw. The turn is
             # horizontal: its scale is the horizontal axes' (a calm height would dilute it).
             horizontal = replace(tracks, z=tracks.z[..., :2])
-            data_q = _smoother_q(horizontal, list(meas_var)[:2], "kf")
+            data_q = _sure_q(horizontal, list(meas_var)[:2], "kf")
     m = tracks.z.shape[-1]
     if len(meas_var) == 1 and m > 1:
         meas_var = list(meas_var) * m
     if len(meas_var) != m:
         raise ValueError(f"meas_std: expected one value or one per axis ({m}), got {len(meas_var)}")
     if q is None and not imm:
-        q = data_q if noise is None else _smoother_q(tracks, meas_var, settings.estimator)
+        q = data_q if noise is None else _sure_q(tracks, meas_var, settings.estimator)
     turn_q, turn_rate_q, turn_rate_std = (
         settings.turn_q,
         settings.turn_rate_q,
@@ -410,11 +410,11 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
 
 
 #: Estimators whose output is a filter's (each step from the past alone): their q is the
-#: Kalman filter's, the others' the Kalman smoother's (:func:`_smoother_q`).
+#: Kalman filter's, the others' the Kalman smoother's (:func:`_sure_q`).
 FILTERS = ("kf", "ekf", "ukf", "rstkf", "pf", "spvsf", "svsf")
 
 
-def _smoother_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:
+def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:
     """The q a Kalman smoother (or, for :data:`FILTERS`, a Kalman filter) serves these tracks
     with (:func:`torchsvs.training.noise.smoother_q`: its exact SURE, the noise fixed): the
     motion that short differences show (``estimate_noise``'s q) is no guide at long scans or
