@@ -5,8 +5,9 @@ Every estimator runs on a nearly-constant-velocity model (:class:`~torchsvs.mode
 ConstantVelocity`) of the file's axes; the IMM (``imm``) mixes it with a coordinated turn
 (:class:`~torchsvs.filters.TurnIMM`) and writes the same constant-velocity state. What the model
 needs and the user did not give comes from the data: the measurement noise (and its standard
-error) from :func:`~torchsvs.datasets.estimate_noise`, ``q`` as the Kalman smoother's by its
-exact SURE (:func:`torchsvs.training.noise.smoother_q`), the priors from two-point differencing,
+error) from :func:`~torchsvs.datasets.estimate_noise`, ``q`` as the Kalman smoother's (for a
+filter, the Kalman filter's) by its exact SURE (:func:`torchsvs.training.noise.smoother_q`),
+the priors from two-point differencing,
 the SVSF's boundary layer from the rule of thumb :func:`rule_of_thumb_psi`, and the IMM's mode
 noises from :func:`turn_settings`. ``--fit`` then tunes them on the file itself
 (:func:`torchsvs.training.tuning.self_tune`); ``auto`` fits several and keeps the one of the
