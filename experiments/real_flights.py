@@ -48,7 +48,7 @@ from tqdm.auto import tqdm
 
 from experiments import traffic_baseline
 from experiments.flight_data import load_flights, noisy, score, split
-from torchsvs.datasets import RecordedTracks, estimate_noise, with_prior
+from torchsvs.datasets import RecordedTracks, with_prior
 from torchsvs.datasets.flights import flight_steps
 from torchsvs.evaluation import markdown_table
 from torchsvs.kernels import eager_loops, fused
@@ -59,6 +59,7 @@ from torchsvs.tracking import (
     Settings,
     centred,
     complete_settings,
+    imm_base_q,
     make_estimator,
     make_model,
     rule_of_thumb_psi,
@@ -940,7 +941,8 @@ def imm_part(
         "an IMM with a switch probability of 0.05 per scan. Its rows in the held-out table: "
         "`rules of thumb` are the settings `torchsvs track` reads off the data "
         "(`tracking.turn_settings`, here off the training flights: the CV mode at "
-        f"{IMM_QUIET:g} of the data's q, the turn mode's acceleration noise the data's q per "
+        f"{IMM_QUIET:g} of the data's q (the Kalman filter's SURE q, `tracking.imm_base_q`), "
+        "the turn mode's acceleration noise the data's q per "
         f"scan, a turn-rate scale of {TURN_RATE_SCALE:g} √(q/T)/v̄ as prior and per-scan "
         "change); `learned, SURE (σ known)` tunes the three process noises on the training "
         f"flights (`--fit`: {fit.summary()[5:]}).",
@@ -975,7 +977,7 @@ def imm_defaults_study(flights: RecordedTracks, quick: bool, progress: bool) -> 
         train, _ = split(noisy(flights, sigma, seed=0))
         header += [f"σ = {sigma:.0f}: position (m)", "velocity vs motion (m/s)"]
         base = rule_of_thumb("imm", train, sigma)
-        q = estimate_noise(train.z, train.dt).q
+        q = imm_base_q(train, [sigma**2] * 2)
         speed = typical_speed(train)
         scores = {}
         for a, b in table:

@@ -283,6 +283,16 @@ def typical_speed(tracks: RecordedTracks) -> float:
     return float(step.median()) if step.numel() else 0.0
 
 
+def imm_base_q(tracks: RecordedTracks, meas_var: Sequence[float]) -> float:
+    """The ``q`` the IMM's mode noises are derived from (:func:`turn_settings`): the Kalman
+    filter's SURE ``q`` of the horizontal axes. Short differences
+    (:func:`~torchsvs.datasets.estimate_noise`'s ``q``) read circling gliders at 10-30 s as a
+    quiet CV target and left the IMM at 1.9× raw; the turn is horizontal, and a calm height
+    would dilute its scale."""
+    horizontal = replace(tracks, z=tracks.z[..., :2])
+    return _sure_q(horizontal, list(meas_var)[:2], "kf")
+
+
 def turn_settings(
     q: float,
     meas_var: Sequence[float],
@@ -359,11 +369,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
             meas_std_se = _noise_standard_error(noise, meas_var, spread)
         data_q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
         if imm and noise is not None:
-            # The Kalman filter's SURE q: short differences (noise.q) read circling gliders at
-            # 10-30 s as a quiet CV target and left the IMM at 1.9x raw. The turn is
-            # horizontal: its scale is the horizontal axes' (a calm height would dilute it).
-            horizontal = replace(tracks, z=tracks.z[..., :2])
-            data_q = _sure_q(horizontal, list(meas_var)[:2], "kf")
+            data_q = imm_base_q(tracks, meas_var)
     m = tracks.z.shape[-1]
     if len(meas_var) == 1 and m > 1:
         meas_var = list(meas_var) * m
