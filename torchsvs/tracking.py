@@ -321,14 +321,12 @@ def turn_settings(
     (:math:`\sqrt{2r}/T`), so still or slow targets get a finite, small turn rate. The factors
     were chosen on the training half of the recorded calibration flights at σ = 50, 100 and
     200 m (``experiments/results/real_flights.md``, IMM section: a grid of CV shares 0.01-1
-    and turn-rate scales 0.1-1), with the ``q`` of short differences
-    (:func:`~torchsvs.datasets.estimate_noise`) as the base then: the defaults were within 0.4%
-    of the grid's best position RMSE at every level (the filter's SURE ``q`` that replaced that
-    base moves the recorded-tracks benchmark's IMM by -2% to +2%, except on irregular reports
-    where the old base failed), and a quieter CV mode is better down to 0.03 there (and on simulated
-    turns); a turn-rate scale of 1 let the turn mode's turn rate wander to aliasing values
-    (ωT of several radians between scans) on some flights, with velocity errors of thousands
-    of m/s.
+    and turn-rate scales 0.1-1). With :func:`imm_base_q` as the base (the study first ran on
+    the ``q`` of short differences, to the same choice) the defaults are within 0.5% of the
+    grid's best position RMSE at every level, and a quieter CV mode is better down to 0.03
+    there (and on simulated turns); a turn-rate scale of 1 let the turn mode's turn rate
+    wander to aliasing values (ωT of several radians between scans) on some flights, with
+    velocity errors of thousands of m/s.
     """
     r = sum(meas_var[:2]) / len(meas_var[:2])
     speed = max(speed, math.sqrt(2.0 * r) / interval)
