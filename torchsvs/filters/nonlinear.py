@@ -100,17 +100,22 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         spread = L.mT  # rows are the columns of L
         return torch.cat([x.unsqueeze(1), x.unsqueeze(1) + spread, x.unsqueeze(1) - spread], dim=1)
 
-    def _moments(self, points: Tensor, image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Weighted mean of ``image``, its covariance and the cross-covariance with ``points``."""
-        wm, wc = self.wm.to(image.dtype), self.wc.to(image.dtype)
-        # Weighted sums of offsets from the central point, not of the points themselves: a
-        # track 700 km out in float32 otherwise loses the spread to rounding in Σ W χ (the
-        # weights have mixed signs) and its covariance turns indefinite.
+    def _deviations(self, points: Tensor, image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Weighted mean of ``image`` and the deviations of ``points`` and ``image`` from
+        their weighted means. The sums are of offsets from the central point, not of the
+        points themselves: a track 700 km out in float32 otherwise loses the spread to rounding
+        in Σ W χ (the weights have mixed signs) and its covariance turns indefinite."""
+        wm = self.wm.to(image.dtype)
         off_img, off_pts = image - image[:, :1], points - points[:, :1]
         shift_img = torch.einsum("s,bsi->bi", wm, off_img)
-        mean = image[:, 0] + shift_img
         d_img = off_img - shift_img.unsqueeze(1)
         d_pts = off_pts - torch.einsum("s,bsi->bi", wm, off_pts).unsqueeze(1)
+        return image[:, 0] + shift_img, d_pts, d_img
+
+    def _moments(self, points: Tensor, image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Weighted mean of ``image``, its covariance and the cross-covariance with ``points``."""
+        mean, d_pts, d_img = self._deviations(points, image)
+        wc = self.wc.to(image.dtype)
         cov = torch.einsum("s,bsi,bsj->bij", wc, d_img, d_img)
         cross = torch.einsum("s,bsi,bsj->bij", wc, d_pts, d_img)
         return mean, cov, cross
@@ -141,15 +146,13 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         B, n = x_pred.shape
         points = self.sigma_points(x_pred, P_pred)
         image = self.model.h(points.reshape(-1, n)).reshape(B, points.shape[1], -1)
-        z_pred, _, cross = self._moments(points, image)
+        z_pred, d_pts, d_img = self._deviations(points, image)
+        wc = self.wc.to(image.dtype)
+        cross = torch.einsum("s,bsi,bsj->bij", wc, d_pts, d_img)
         H_t = psd_solve(P_pred.expand(B, n, n), cross).mT  # P_xzᵀ P⁻¹
         # R' = R + S_h − H P Hᵀ, the second term as the weighted scatter of what the linear
         # fit leaves, Σ Wc (Δh − H Δχ)(·)ᵀ (the same sum, as H P = P_xzᵀ): the difference of
         # S_h and H P Hᵀ cancels catastrophically in float32 after a long gap (P ~ 1e6).
-        wm, wc = self.wm.to(image.dtype), self.wc.to(image.dtype)
-        d_pts = points - torch.einsum("s,bsi->bi", wm, points - points[:, :1]).unsqueeze(1)
-        d_pts = d_pts - points[:, :1]
-        d_img = image - z_pred.unsqueeze(1)
         left = d_img - d_pts @ H_t.mT
         R_eff = symmetrize(obs.R + torch.einsum("s,bsi,bsj->bij", wc, left, left))
         step = self.kalman_correct(x_pred, P_pred, obs.z - z_pred, obs.mask, H_t, R_eff)
