@@ -199,6 +199,33 @@ def kalman_update(
     return x_pred + matvec(K, e), joseph_update(P_pred, K, H, R), K, S, L
 
 
+def kalman_correct(
+    x_pred: Tensor,
+    P_pred: Tensor,
+    e: Tensor,
+    mask: Tensor | None,
+    H: Tensor,
+    R: Tensor,
+    factor: Any = None,
+) -> Step:
+    """The Kalman correction with innovation ``e``; missing components are dropped.
+    ``factor``: ``P_pred`` in a factored covariance form, whose update then gives the gain
+    and the posterior (:mod:`.factored`)."""
+    if mask is not None:
+        H, R = mask_measurement(H, R, mask)
+        e = e * mask
+    if factor is None:
+        x, P, K, S, L = kalman_update(x_pred, P_pred, e, H, R)
+    else:
+        S = innovation_covariance(H, P_pred @ H.mT, R)
+        L = cholesky(S)
+        K, factor = factor.kalman_update(H, R, S)
+        x, P = x_pred + matvec(K, e), factor.full()
+    observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)
+    loglik = gaussian_log_density(e, L, observed)
+    return Step(x, P, e, K, innovation_cov=S, log_likelihood=loglik, factor=factor)
+
+
 def innovation_covariance(H: Tensor, PHt: Tensor, R: Tensor) -> Tensor:
     """``S = H P Hᵀ + R`` (with ``PHt = P Hᵀ``), symmetrised: the covariance of the a-priori
     innovation that every Gaussian filter records (the NLL loss and the smoothers read it)."""
@@ -899,32 +926,5 @@ class KalmanFilter(GaussianFilter):
     ) -> Step:
         fitted, H = obs.linearize(x_pred)  # Eq. (4) of Gadsden et al. 2012 for a nonlinear h
         e = obs.z - fitted
-        step = self.kalman_correct(x_pred, P_pred, e, obs.mask, H, obs.R, obs.factor)
+        step = kalman_correct(x_pred, P_pred, e, obs.mask, H, obs.R, obs.factor)
         return step if obs.H is not None else step._replace(meas_matrix=H)
-
-    def kalman_correct(
-        self,
-        x_pred: Tensor,
-        P_pred: Tensor,
-        e: Tensor,
-        mask: Tensor | None,
-        H: Tensor,
-        R: Tensor,
-        factor: Any = None,
-    ) -> Step:
-        """The Kalman correction with innovation ``e``; missing components are dropped.
-        ``factor``: ``P_pred`` in a factored covariance form, whose update then gives the gain
-        and the posterior (:mod:`.factored`)."""
-        if mask is not None:
-            H, R = mask_measurement(H, R, mask)
-            e = e * mask
-        if factor is None:
-            x, P, K, S, L = kalman_update(x_pred, P_pred, e, H, R)
-        else:
-            S = innovation_covariance(H, P_pred @ H.mT, R)
-            L = cholesky(S)
-            K, factor = factor.kalman_update(H, R, S)
-            x, P = x_pred + matvec(K, e), factor.full()
-        observed = e.shape[-1] if mask is None else mask.sum(-1).to(e.dtype)
-        loglik = gaussian_log_density(e, L, observed)
-        return Step(x, P, e, K, innovation_cov=S, log_likelihood=loglik, factor=factor)

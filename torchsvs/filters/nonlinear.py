@@ -12,6 +12,7 @@ from torchsvs.filters.kalman import (
     Prepared,
     Step,
     _at,
+    kalman_correct,
     step_input,
     step_interval,
 )
@@ -155,5 +156,5 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         # S_h and H P Hᵀ cancels catastrophically in float32 after a long gap (P ~ 1e6).
         left = d_img - d_pts @ H_t.mT
         R_eff = symmetrize(obs.R + torch.einsum("s,bsi,bsj->bij", wc, left, left))
-        step = self.kalman_correct(x_pred, P_pred, obs.z - z_pred, obs.mask, H_t, R_eff)
+        step = kalman_correct(x_pred, P_pred, obs.z - z_pred, obs.mask, H_t, R_eff)
         return step._replace(meas_matrix=H_t)

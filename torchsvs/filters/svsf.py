@@ -21,22 +21,19 @@ from torchsvs.filters.kalman import (
     Observation,
     Step,
     innovation_covariance,
+    kalman_correct,
 )
 from torchsvs.kernels import fused
 from torchsvs.kernels.axes import AxisMeasurements, Sym2
 from torchsvs.linalg import (
     INFLATIONS,
     boundary_inflation,
-    cholesky,
-    gaussian_log_density,
     has_orthonormal_rows,
     joseph_update,
     mask_covariance,
-    mask_measurement,
     masked_pinv,
     matvec,
     svsf_gain_ratio,
-    symmetrize,
 )
 from torchsvs.models.base import StateSpaceModel
 
@@ -500,39 +497,24 @@ class VariableBoundarySVSF(SVSF):
         gains: _Gains = obs.settings
         limit = inputs.psi[:, obs.t] if inputs.psi is not None else gains.psi
         fitted, H = obs.linearize(x_pred)
-        e, H_used, R = obs.z - fitted, H, obs.R
-        if obs.mask is not None:  # missing rows dropped (zero gain columns), as the KF does
-            H_used, R = mask_measurement(H, R, obs.mask)
-            e = e * obs.mask
-        PHt = P_pred @ H_used.mT
-        HPHt = H_used @ PHt
+        e = obs.z - fitted
         memory = carried if carried is not None else torch.zeros_like(e)
         seen = obs.mask if obs.mask is not None else torch.ones_like(e, dtype=torch.bool)
+        error = (e * seen).abs()  # (the missing components ask for nothing)
         inflation = boundary_inflation(
-            e.abs() + gains.gamma * memory.abs(),
-            e.abs(),
+            error + gains.gamma * memory.abs(),
+            error,
             limit,
-            HPHt.diagonal(dim1=-2, dim2=-1),
-            R.diagonal(dim1=-2, dim2=-1),
+            (H @ P_pred @ H.mT).diagonal(dim1=-2, dim2=-1),
+            obs.R.diagonal(dim1=-2, dim2=-1),
             seen,
             self.inflation,
             self.max_gain,
         )
-        grown = inflation[..., None, None]
-        S = symmetrize(grown * HPHt + R)
-        L = cholesky(S)
-        K = torch.cholesky_solve((grown * PHt).mT, L).mT
-        x = x_pred + matvec(K, e)
-        P = joseph_update(grown * P_pred, K, H_used, R)  # Eq. (28), left side, on P̃
-        observed = e.shape[-1] if obs.mask is None else obs.mask.sum(-1).to(e.dtype)
-        step = Step(
-            x,
-            P,
-            e,
-            K,
-            post_innovation=self.memory_after(x, obs, memory),
-            innovation_cov=S,
-            log_likelihood=gaussian_log_density(e, L, observed),
+        # The Kalman correction of the inflated prior P̃ = λ P (Eq. (28), left side, on P̃).
+        step = kalman_correct(x_pred, inflation[..., None, None] * P_pred, e, obs.mask, H, obs.R)
+        step = step._replace(
+            post_innovation=self.memory_after(step.mean, obs, memory),
             meas_matrix=H if obs.H is None else None,
         )
         return step, inflation
