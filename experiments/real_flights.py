@@ -159,7 +159,7 @@ def train_on_simulation(name: str, sigma: float, lag: int, seconds: float) -> Se
         lag=lag,
         interval=interval,
         # The SVSF family's rule of thumb (ψ per axis, in the units make_estimator reads).
-        psi=None if name == "ks" else rule_of_thumb_psi([sigma**2] * 2, interval),
+        psi=None if name == "ks" else rule_of_thumb_psi(2),
     )
     model = make_model(settings, learn_q=True)
     est = make_estimator(settings, model)

@@ -15,6 +15,7 @@ import torch
 from torchsvs.accuracy import RiskTerms, RiskTotals, accuracy, risk_terms
 from torchsvs.datasets import Columns
 from torchsvs.tracking import Settings, summary_path, track_file
+from torchsvs.training.selection import caution_score
 
 
 def _measurements(B: int = 6, T: int = 100, m: int = 2, sigma: float = 3.0, seed: int = 0):
@@ -184,11 +185,21 @@ def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
     chosen = summary["estimator"]
     assert chosen in rows and run.settings is not None and run.settings.chosen_from
     score = {
-        k: r["estimated_position_rmse"]
-        * (1 + 2 * (r["standard_error"] / r["estimated_position_rmse"]) ** 2)
-        for k, r in rows.items()
+        k: caution_score(r["estimated_position_rmse"], r["standard_error"]) for k, r in rows.items()
     }
     assert score[chosen] == min(score.values())
+
+
+def test_auto_score_prefers_the_lower_of_close_estimates_and_distrusts_a_vague_one():
+    """The rule's two cases as met on recorded tracks: of two close estimates the lower wins
+    whatever their standard errors (own σ100: ks 56.6 ± 4.0 against svss 58.2 ± 2.9, true 52.4
+    and 54.4; a penalty of 2 se chose svss), and an estimate as uncertain as itself counts
+    three times over (17 ± 17, claimed against a true 83, loses to 50 ± 2). A missing standard
+    error (one chunk) counts as none."""
+    assert caution_score(56.6, 4.0) < caution_score(58.2, 2.9)
+    assert caution_score(17.0, 17.0) > caution_score(50.0, 2.0)
+    assert caution_score(50.0, math.nan) == 50.0
+    assert caution_score(0.0, 3.0) == 0.0
 
 
 def test_track_warns_where_one_noise_level_does_not_fit_every_track(tmp_path):

@@ -394,13 +394,12 @@ def test_defaults_are_below_the_raw_measurements_on_every_kind(kind):
 
 
 def test_rule_of_thumb_is_in_units_of_each_steps_own_noise():
-    """Neither the noise level nor the interval changes ψ; the default SVSF family is the
-    variable boundary layer, the H⁺ mode the SVSF with ψ in noise units."""
-    for meas_var, interval in (([100.0, 100.0], 1.0), ([1e4, 4e4, 9.0], 10.0)):
-        assert rule_of_thumb_psi(meas_var, interval) == [PSI_LIMIT_IN_SIGMAS] * len(meas_var)
-        assert rule_of_thumb_psi(meas_var, interval, velocity=False) == [PSI_IN_SIGMAS] * len(
-            meas_var
-        )
+    """ψ is one value per axis in units of each step's own noise (no noise level or interval
+    enters it); the default SVSF family is the variable boundary layer, the H⁺ mode the SVSF
+    with ψ in noise units."""
+    for axes in (2, 3):
+        assert rule_of_thumb_psi(axes) == [PSI_LIMIT_IN_SIGMAS] * axes
+        assert rule_of_thumb_psi(axes, velocity=False) == [PSI_IN_SIGMAS] * axes
     settings = Settings(estimator="svss", meas_var=[2500.0] * 2, q=1.0, interval=5.0)
     svss = make_estimator(settings, make_model(settings))
     assert isinstance(svss.filter, ts.VariableBoundarySVSF)

@@ -170,11 +170,9 @@ class Settings:
         return self.lag if self.lag is not None else DEFAULT_LAG.get(self.estimator)
 
 
-def rule_of_thumb_psi(
-    meas_var: Sequence[float], interval: float, velocity: bool = True
-) -> list[float]:
+def rule_of_thumb_psi(axes: int, velocity: bool = True) -> list[float]:
     """ψ of the SVSF family of ``track``, one per axis, in units of each step's own noise (so
-    neither the noise level nor ``interval`` changes it; both stay arguments for callers):
+    neither the noise level nor the interval enters it):
 
     * ``velocity`` (default): the limit of the variable boundary layer
       (:class:`~torchsvs.filters.VariableBoundarySVSF`), :data:`PSI_LIMIT_IN_SIGMAS` innovation
@@ -184,7 +182,7 @@ def rule_of_thumb_psi(
       500 m / 600 m/s for 100 m noise with finite-difference velocities (Sec. 4.2, whose noise
       is √2·100 m/s at T = 1 s): four to five standard deviations.
     """
-    return [PSI_LIMIT_IN_SIGMAS if velocity else PSI_IN_SIGMAS] * len(meas_var)
+    return [PSI_LIMIT_IN_SIGMAS if velocity else PSI_IN_SIGMAS] * axes
 
 
 def make_model(
@@ -249,7 +247,7 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
         )
     assert settings.meas_var is not None
     # ψ in units of each step's own noise (rule_of_thumb_psi), one per axis.
-    psi = settings.psi or rule_of_thumb_psi(settings.meas_var, settings.interval, settings.velocity)
+    psi = settings.psi or rule_of_thumb_psi(len(settings.meas_var), settings.velocity)
     if name == "spvsf":
         return SPVSF(
             model,
@@ -348,33 +346,34 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     meas_var, q = settings.meas_var, settings.q
     imm = settings.estimator == "imm"
     turn_open = imm and None in (settings.turn_q, settings.turn_rate_q, settings.turn_rate_std)
-    data_q, noise = None, None
-    if meas_var is None or q is None or turn_open:
+    if meas_var is None:
         try:
             noise = estimate_noise(tracks.z, tracks.dt)
         except ValueError as err:
-            if meas_var is None:
-                raise ValueError(
-                    "meas_std: too few observed positions to read the measurement noise off the "
-                    "data; give it (--meas-std) and the process noise (--q)"
-                ) from err
-            # Too little data to say: process noise worth the measurement noise over one step.
-            noise = None
-        if meas_var is None:
-            assert noise is not None
-            meas_var = noise.meas_var.double().tolist()
-            spread = noise_spread(tracks.z, tracks.dt)
-            meas_std_se = _noise_standard_error(noise, meas_var, spread)
-        data_q = noise.q if noise is not None else sum(meas_var) / len(meas_var) / interval**3
-        if imm and noise is not None:
-            data_q = imm_base_q(tracks, meas_var)
+            raise ValueError(
+                "meas_std: too few observed positions to read the measurement noise off the "
+                "data; give it (--meas-std) and the process noise (--q)"
+            ) from err
+        meas_var = noise.meas_var.double().tolist()
+        spread = noise_spread(tracks.z, tracks.dt)
+        meas_std_se = _noise_standard_error(noise, meas_var, spread)
     m = tracks.z.shape[-1]
     if len(meas_var) == 1 and m > 1:
         meas_var = list(meas_var) * m
     if len(meas_var) != m:
         raise ValueError(f"meas_std: expected one value or one per axis ({m}), got {len(meas_var)}")
+    data_q = None
+    if q is None or turn_open:
+        try:
+            data_q = (
+                imm_base_q(tracks, meas_var)
+                if imm
+                else _sure_q(tracks, meas_var, settings.estimator)
+            )
+        except ValueError:  # too little data to say: the measurement noise over one step
+            data_q = sum(meas_var) / len(meas_var) / interval**3
     if q is None and not imm:
-        q = data_q if noise is None else _sure_q(tracks, meas_var, settings.estimator)
+        q = data_q
     turn_q, turn_rate_q, turn_rate_std = (
         settings.turn_q,
         settings.turn_rate_q,
@@ -393,7 +392,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
             turn_rate_std = turn_rate_std or derived["turn_rate_std"]
     psi = settings.psi
     if psi is None and settings.estimator in ("svsf", "svss", "svstps", "spvsf"):
-        psi = rule_of_thumb_psi(meas_var, interval, settings.velocity)
+        psi = rule_of_thumb_psi(m, settings.velocity)
     elif psi is not None and len(psi) == 1 and m > 1:
         psi = list(psi) * m  # one value for every axis, as --psi's help says
     assert q is not None  # (an open q sent the IMM through the data too)
@@ -562,8 +561,9 @@ def estimate_group(
     mean, cov = out.mean, out.cov
     notes = short_track_notes(tracks)
     if getattr(out, "ess", None) is not None:  # a particle filter: how often it degenerated
-        notes["particle_steps"] = int((~torch.isnan(tracks.z)).any(-1).sum())
-        low = degenerate_share(out, tracks.z) * (~torch.isnan(tracks.z)).any(-1).sum(-1)
+        measured = (~torch.isnan(tracks.z)).any(-1).sum(-1)  # [B] steps with a measurement
+        notes["particle_steps"] = int(measured.sum())
+        low = degenerate_share(out, tracks.z) * measured
         notes["particle_steps_degenerate"] = int(low.sum().round())
     terms = None
     if risk:
