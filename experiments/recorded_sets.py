@@ -18,7 +18,9 @@ The truth is cleaned (:func:`recorded_pieces`, every count reported):
   measurement noise at σ = 10 m, so where the record is dense (reports on both sides within
   :data:`DEJITTER_WINDOW` s), each position is moved *along its direction of motion* to a
   local-quadratic fit of the record in time (:func:`dejitter`); the path across the track is kept
-  as recorded, so turns stay as flown. Sparse records (10 s and longer) are kept as recorded;
+  as recorded, so turns stay as flown. Sparse records (10 s and longer) are kept as recorded,
+  but for a report stamped seconds off its time (:func:`timing_glitches`: a readsb trace holds
+  one 12 s off, 2.9 km along the track at 241 m/s), which is dropped;
 * pieces shorter than :data:`MIN_ROWS` rows are dropped; pieces longer than :data:`MAX_ROWS`
   are cut, so that a sample of pieces covers many flights.
 
@@ -49,6 +51,14 @@ DEJITTER_WINDOW = 10.0
 DEJITTER_MIN_SIDE = 2
 #: Below this speed (m/s) a position is not re-timed (no direction of motion to move along).
 DEJITTER_MIN_SPEED = 1.0
+#: A report whose position along the straight path between its neighbours is this many seconds
+#: off its time stamp is a time-stamp glitch and dropped (:func:`timing_glitches`) ...
+GLITCH_SECONDS = 5.0
+#: ... where the path is straight (the report this far across it at most, relative to along) ...
+GLITCH_STRAIGHT = 0.25
+#: ... and the target keeps its speed: the speeds into the neighbours and across the report agree
+#: within this fraction.
+GLITCH_STEADY = 0.1
 #: Fewest rows of a piece of track kept in a set.
 MIN_ROWS = 30
 #: Longest piece (rows); longer pieces are cut into pieces this long.
@@ -173,6 +183,48 @@ def dejitter(
     return out, moved
 
 
+def timing_glitches(time: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """``[n]`` bool: reports stamped at the wrong time (a glitch of the record, not motion).
+
+    A report ``i`` whose neighbours ``i-1, i+1`` span a straight, steady stretch: it lies
+    near the chord between them (its offset across the chord at most :data:`GLITCH_STRAIGHT`
+    of its offset along), and the speeds ``i-2 → i-1`` and ``i+1 → i+2`` agree with the speed
+    across it within :data:`GLITCH_STEADY`. On such a stretch the target passes the report's
+    position at the time its fraction of the chord gives; more than :data:`GLITCH_SECONDS` from
+    its time stamp, the stamp is wrong. A turn or a speed change between the neighbours fails
+    the conditions, so only glitches on straight flight are found (the ones a filter can tell
+    from the path, and would be scored against).
+    """
+    n = len(time)
+    found = np.zeros(n, dtype=bool)
+    if n < 5:
+        return found
+    i = np.arange(2, n - 2)
+    chord = position[i + 1] - position[i - 1]
+    length = np.linalg.norm(chord, axis=1)
+    span = time[i + 1] - time[i - 1]
+    ok = (length > 0) & (span > 0)
+    unit = chord / np.where(length > 0, length, 1.0)[:, None]
+    offset = position[i] - position[i - 1]
+    along = (offset * unit).sum(1)
+    across = np.abs(offset[:, 0] * unit[:, 1] - offset[:, 1] * unit[:, 0])
+    speed = np.where(ok, length / np.where(span > 0, span, 1.0), np.nan)
+    # how far along the chord the report is, against how far its time stamp puts it
+    shift = np.abs(along - (time[i] - time[i - 1]) * speed)
+    before = np.linalg.norm(position[i - 1] - position[i - 2], axis=1) / np.maximum(
+        time[i - 1] - time[i - 2], 1e-9
+    )
+    after = np.linalg.norm(position[i + 2] - position[i + 1], axis=1) / np.maximum(
+        time[i + 2] - time[i + 1], 1e-9
+    )
+    steady = (np.abs(before / speed - 1) <= GLITCH_STEADY) & (
+        np.abs(after / speed - 1) <= GLITCH_STEADY
+    )
+    straight = across <= GLITCH_STRAIGHT * shift
+    found[i] = ok & steady & straight & (shift > GLITCH_SECONDS * speed)
+    return found
+
+
 def roughness(pieces: Sequence[Piece], max_interval: float = 1.5) -> dict[str, float]:
     """Per-report white error of the positions, along and across the track (m, RMS).
 
@@ -291,8 +343,14 @@ def _read_pieces(
             counts["flights dropped: implausible jump (loader's rule)"] += 1
             continue
         raw.append(piece)
-        position, moved = dejitter(piece.time, piece.position)
         counts["reports"] += len(piece)
+        glitch = timing_glitches(piece.time, piece.position)
+        if glitch.any():
+            counts[f"reports dropped: time stamp over {GLITCH_SECONDS:g} s off (glitch)"] += int(
+                glitch.sum()
+            )
+            piece = piece.take(np.flatnonzero(~glitch))
+        position, moved = dejitter(piece.time, piece.position)
         counts["reports re-timed along track"] += int(moved.sum())
         clean.append(
             Piece(track_id, piece.time, position, piece.groundspeed_kt, source=piece.source)

@@ -98,6 +98,26 @@ def test_dejitter_moves_positions_along_the_track_only_and_cuts_white_timing_err
     assert np.abs(moved[inner] - circle[inner]).max() < 1e-6
 
 
+def test_timing_glitches_find_a_report_stamped_seconds_off_on_straight_flight_only() -> None:
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(10.0, 30.0, 60))  # sparse, irregular reports
+    line = np.stack([240.0 * t, 0.5 * t], 1)
+    stamped = t.copy()
+    stamped[20] += 9.0  # the report at step 20 carries a time stamp 9 s late
+    found = rs.timing_glitches(stamped, line)
+    assert found.tolist() == [k == 20 for k in range(60)]
+    # 4 s off is within the rule
+    stamped = t.copy()
+    stamped[20] += 0.8 * rs.GLITCH_SECONDS
+    assert not rs.timing_glitches(stamped, line).any()
+    # motion, not glitches: a 3 deg/s turn, and a speed change, sampled the same way
+    omega = math.radians(3.0)
+    turn = 4000.0 * np.stack([np.cos(omega * t), np.sin(omega * t)], 1)
+    assert not rs.timing_glitches(t, turn).any()
+    speeding = np.stack([150.0 * t + 0.05 * t**2, np.zeros_like(t)], 1)
+    assert not rs.timing_glitches(t, speeding).any()
+
+
 def test_roughness_reads_white_error_off_one_second_reports() -> None:
     t = np.arange(0.0, 5000.0)
     rng = np.random.default_rng(1)
