@@ -29,7 +29,7 @@ from experiments.noise_estimate import (
 from tests.conftest import assert_close, simulate_cv
 from torchsvs.datasets import estimate_noise, priors, two_point_prior
 from torchsvs.datasets.priors import difference_residuals
-from torchsvs.training.noise import smoother_q
+from torchsvs.training.noise import Q_FACTORS, q_curves, smoother_q, track_q_factors
 
 #: The specification: within 20% of the true σ.
 WITHIN = 0.2
@@ -288,3 +288,53 @@ def test_filter_q_serves_a_filter_on_turns():
 
     assert kf_rmse(filter_fit.q) < kf_rmse(smoother_fit.q)
     assert kf_rmse(filter_fit.q) < raw_rmse(sim)
+
+
+def _two_kinds(
+    tracks: int = 6, steps: int = 300
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Tracks of the CV model, half quiet (q 0.01) and half maneuvering (q 10), σ 20 m, 2 s
+    scans: truth positions, measurements, intervals."""
+    gen = torch.Generator().manual_seed(5)
+    dt = torch.full((tracks, steps), 2.0, dtype=torch.float64)
+    half = tracks // 2
+    quiet, zq = simulate_cv(dt[:half], q=0.01, r=400.0, generator=gen, speed=10.0)
+    busy, zb = simulate_cv(dt[half:], q=10.0, r=400.0, generator=gen, speed=10.0)
+    return torch.cat([quiet, busy])[..., [0, 2]], torch.cat([zq, zb]), dt
+
+
+def test_q_curves_pooled_value_is_smoother_q_sure():
+    """The pooled curve at factor 1 is the SURE smoother_q minimised (whole tracks shorter than
+    its window are its windows)."""
+    _, z, dt = _two_kinds(steps=200)
+    fit = smoother_q(z, dt, 400.0)
+    curves = q_curves(z, dt, 400.0, fit.q)
+    assert curves.pooled()[Q_FACTORS.index(1.0)] == pytest.approx(fit.value, rel=1e-9)
+    assert curves.counts.tolist() == [2.0 * 198] * 6
+
+
+def test_track_q_factors_split_quiet_from_maneuvering_tracks_and_beat_one_q():
+    """Each track's own q: the quiet half below the file's, the maneuvering half above, and the
+    smoother's RMSE against the truth lower than with one q for all; without shrinkage room
+    (shrink → ∞) every track keeps the file's."""
+    truth, z, dt = _two_kinds()
+    q = smoother_q(z, dt, 400.0).q
+    curves = q_curves(z, dt, 400.0, q)
+    factors = track_q_factors(curves, curves.pooled())
+    assert (factors[:3] < 1).all() and (factors[3:] > 1).all(), factors.tolist()
+    assert (track_q_factors(curves, curves.pooled(), shrink=1e12) == 1).all()
+
+    def rmse(per_track_q: torch.Tensor) -> float:
+        prior = two_point_prior(z, dt, 400.0)
+        errors = []
+        for b in range(len(z)):
+            model = ts.models.ConstantVelocity(q=float(per_track_q[b]), r=400.0).double()
+            ks = ts.RTSSmoother(ts.KalmanFilter(model))
+            with torch.no_grad():
+                out = ks(z[b : b + 1], prior.x0[b : b + 1], prior.P0[b : b + 1], dt=dt[b : b + 1])
+            errors.append((out.mean[0][:, [0, 2]] - truth[b]).square().sum(-1))
+        return float(torch.cat(errors).mean().sqrt())
+
+    assert rmse(q * factors) < 0.95 * rmse(torch.full((6,), q))
+    with pytest.raises(ValueError, match="^pooled, curves:"):
+        track_q_factors(curves, curves.pooled()[:3])

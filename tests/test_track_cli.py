@@ -262,3 +262,59 @@ def test_geodetic_free_estimates_keep_large_coordinates_exact(tmp_path):
     assert np.abs(out.column("x").to_numpy() - x).max() < 0.05
     assert np.abs(out.column("vx").to_numpy() - 100.0).max() < 0.05
     assert not math.isnan(out.column("y").to_numpy()[0])
+
+
+def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
+    """The default picks a q per track (quiet tracks below the file's q, maneuvering ones
+    above): each track's estimates are those of a run of that track alone with its q given, the
+    estimator's q is left as it was, and --shared-q runs one q for all."""
+    import json
+
+    from tests.test_noise_estimate import _two_kinds
+    from torchsvs.tracking import Settings, track_file
+    from torchsvs.training.noise import q_curves, track_q_factors
+
+    _, z, dt = _two_kinds(steps=150)
+    t = torch.cumsum(dt, 1)
+    lines = [
+        f"k{b},{t[b, i]:.1f},{z[b, i, 0]:.6f},{z[b, i, 1]:.6f}"
+        for b in range(len(z))
+        for i in range(z.shape[1])
+    ]
+    source = tmp_path / "in.csv"
+    source.write_text("track_id,time,x,y\n" + "\n".join(lines) + "\n")
+    given = Settings(estimator="ks", meas_var=[400.0, 400.0])
+    run = track_file(source, tmp_path / "out.csv", given, dtype=torch.float64, progress=False)
+    settings = run.settings
+    assert settings is not None and settings.q is not None and settings.q_curve is not None
+    summary = json.loads((tmp_path / "out.summary.json").read_text())
+    assert "q_per_track" in summary
+    factors = track_q_factors(q_curves(z, dt, 400.0, settings.q), settings.q_curve)
+    assert (factors[:3] < 1).all() and (factors[3:] > 1).all(), factors.tolist()
+    joint = pcsv.read_csv(tmp_path / "out.csv")
+    for b in (0, 4):
+        alone = tmp_path / f"k{b}.csv"
+        alone.write_text("track_id,time,x,y\n" + "\n".join(lines[b * 150 : (b + 1) * 150]) + "\n")
+        fixed = Settings(estimator="ks", meas_var=[400.0, 400.0], q=settings.q * float(factors[b]))
+        track_file(alone, tmp_path / f"k{b}.out.csv", fixed, dtype=torch.float64, progress=False)
+        mine = pcsv.read_csv(tmp_path / f"k{b}.out.csv")
+        rows = slice(b * 150, (b + 1) * 150)
+        for name in ("x", "vx", "y", "vy"):
+            assert_close(
+                joint.column(name).to_numpy()[rows], mine.column(name).to_numpy(), atol=1e-6
+            )
+    shared = Settings(estimator="ks", meas_var=[400.0, 400.0], track_q=False)
+    one = track_file(source, tmp_path / "one.csv", shared, dtype=torch.float64, progress=False)
+    assert one.settings is not None and one.settings.q_curve is None and not one.q_factors
+    assert one.settings.q == pytest.approx(settings.q)
+
+
+def test_scaled_q_scales_inside_and_restores_exactly():
+    from torchsvs.tracking import Settings, make_estimator, make_model, scaled_q
+
+    settings = Settings(estimator="svss", meas_var=[100.0, 100.0], q=0.3, psi=[2.0, 2.0])
+    estimator = make_estimator(settings, make_model(settings))
+    before = estimator.model.q().clone()
+    with scaled_q(estimator, 10 ** (-3 / 4)):
+        assert float(estimator.model.q()) == pytest.approx(0.3 * 10 ** (-3 / 4), rel=1e-6)
+    assert torch.equal(estimator.model.q(), before)

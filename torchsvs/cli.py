@@ -194,6 +194,12 @@ def track_parser() -> argparse.ArgumentParser:
         "for imm 0.03 of it)",
     )
     parser.add_argument(
+        "--shared-q",
+        action="store_true",
+        help="one q for every track (default: each track its own, picked by its SURE and "
+        "shrunk toward the file's; not for imm, nor where --q is given)",
+    )
+    parser.add_argument(
         "--psi",
         type=_positive_floats,
         default=None,
@@ -467,6 +473,7 @@ def _track(args: argparse.Namespace) -> None:
             turn_rate_q=args.turn_rate_q,
             turn_rate_std=args.turn_rate_std,
             switch_prob=args.switch_prob,
+            track_q=not args.shared_q,
         )
         fit_options: dict[str, object] = {
             "tracks": args.fit_tracks,

@@ -18,6 +18,7 @@ measurements'.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections import Counter
@@ -142,6 +143,13 @@ class Settings:
     noise_spread: float | None = None
     #: ``--estimator auto``: the candidates this estimator was chosen from
     chosen_from: list[str] | None = None
+    #: each track its own ``q`` (the file's times a factor its SURE picks, shrunk toward the
+    #: file's: :func:`~torchsvs.training.noise.track_q_factors`), where ``q`` is not given
+    track_q: bool = True
+    #: the file's SURE curve the tracks' own ``q`` are chosen against (of the Kalman smoother,
+    #: or for :data:`FILTERS` the filter, at ``q`` times
+    #: :data:`~torchsvs.training.noise.Q_FACTORS`); None: one ``q`` for every track
+    q_curve: list[float] | None = None
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -527,6 +535,30 @@ class StepEstimates(NamedTuple):
     notes: dict[str, int]  #: :func:`~torchsvs.datasets.files.short_track_notes` of the group
     #: SURE's sums (:mod:`torchsvs.accuracy`), chunks' ``track`` the block's track, or None
     risk: RiskTerms | None = None
+    #: [B] each track's factor on the settings' ``q`` (:func:`track_q_factors`), or None
+    q_factor: np.ndarray | None = None
+
+    @classmethod
+    def merge(cls, parts: Sequence[StepEstimates], m: int) -> StepEstimates:
+        """One group's estimates from those of parts of its tracks (same position)."""
+        if len(parts) == 1:
+            return parts[0]
+        notes: Counter[str] = Counter()
+        for part in parts:
+            notes.update(part.notes)
+        covs = [p.cov for p in parts]
+        risks = [p.risk for p in parts if p.risk is not None]
+        return cls(
+            parts[0].position,
+            np.concatenate([p.group for p in parts]),
+            np.concatenate([p.steps for p in parts]),
+            np.concatenate([p.mean for p in parts]),
+            None if any(c is None for c in covs) else np.concatenate(covs),  # type: ignore[arg-type]
+            np.concatenate([p.never_observed for p in parts]),
+            dict(notes),
+            RiskTerms.concat(risks, m) if len(risks) == len(parts) else None,
+            np.concatenate([p.q_factor for p in parts if p.q_factor is not None]),
+        )
 
 
 def group_batch(
@@ -544,12 +576,76 @@ def estimate_group(
     meas_std: Tensor,
     covariance: bool = False,
     risk: bool = True,
+    settings: Settings | None = None,
 ) -> StepEstimates:
     """Priors from ``meas_std [m]`` (:func:`~torchsvs.datasets.with_prior`), the estimator's
     run and the offsets added back. Random draws (particle filters) come from a generator
     seeded with the group's position, so a group's estimates do not depend on which groups ran
     before it, nor in which process. With ``risk``, a second run on probed measurements gives
-    the truth-free error estimate's terms (:func:`~torchsvs.accuracy.risk_terms`)."""
+    the truth-free error estimate's terms (:func:`~torchsvs.accuracy.risk_terms`).
+
+    Where ``settings`` carry the file's SURE curve (``q_curve``), each track runs with its own
+    ``q`` (:func:`track_q_factors`): the tracks of one factor together, ``estimator``'s ``q``
+    scaled by it for the call (:func:`scaled_q`)."""
+    if settings is None or settings.q_curve is None:
+        return _estimate_part(estimator, batch, meas_std, covariance, risk)
+    factors = track_q_factors(settings, batch.tracks)
+    parts = []
+    for factor in torch.unique(factors).tolist():
+        index = torch.nonzero(factors == factor).flatten()
+        part = GroupBatch(
+            batch.position,
+            batch.group[index.numpy()],
+            batch.tracks.subset(index),
+            batch.offset[index],
+        )
+        with scaled_q(estimator, factor):
+            found = _estimate_part(estimator, part, meas_std, covariance, risk)
+        parts.append(found._replace(q_factor=np.full(len(index), factor)))
+    return StepEstimates.merge(parts, len(meas_std))
+
+
+def track_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
+    """``[B]`` each track's factor on ``settings.q`` (:func:`torchsvs.training.noise.
+    track_q_factors` against the file's curve ``settings.q_curve``)."""
+    from torchsvs.training import noise
+
+    assert settings.q_curve is not None and settings.meas_var is not None
+    assert settings.q is not None
+    curves = noise.q_curves(
+        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
+    )
+    return noise.track_q_factors(curves, settings.q_curve)
+
+
+@contextlib.contextmanager
+def scaled_q(estimator: nn.Module, factor: float) -> Iterator[nn.Module]:
+    """The estimator with its motion model's ``q`` times ``factor`` inside the block (then
+    restored exactly)."""
+    if factor == 1.0:
+        yield estimator
+        return
+    model = estimator.model
+    assert isinstance(model, ConstantVelocity), "scaled_q: a constant-velocity model's q"
+    raw = model.q.raw  # q is stored as its log (constraints.Positive)
+    kept = raw.detach().clone()
+    with torch.no_grad():
+        raw.add_(math.log(factor))
+    try:
+        yield estimator
+    finally:
+        with torch.no_grad():
+            raw.copy_(kept)
+
+
+def _estimate_part(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool = False,
+    risk: bool = True,
+) -> StepEstimates:
+    """:func:`estimate_group` with the estimator as it is."""
 
     def positions(z: Tensor) -> Any:
         tracks = with_prior(replace(batch.tracks, z=z), meas_std)
@@ -590,6 +686,7 @@ class BlockEstimates:
     notes: Counter[str] = field(default_factory=Counter)
     groups: set[int] = field(default_factory=set)  #: positions of the groups added
     risk: list[RiskTerms] = field(default_factory=list)  #: the groups' SURE terms
+    q_factors: list[np.ndarray] = field(default_factory=list)  #: the groups' tracks' q factors
 
     @classmethod
     def empty(cls, steps: TrackSteps, covariance: bool = False) -> BlockEstimates:
@@ -609,6 +706,8 @@ class BlockEstimates:
         self.groups.add(part.position)
         if part.risk is not None:
             self.risk.append(part.risk)
+        if part.q_factor is not None:
+            self.q_factors.append(part.q_factor)
 
     def table(self, block: TrackBlock) -> Any:
         """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
@@ -633,6 +732,8 @@ class TrackRun:
     #: :data:`TRACKS_KEPT` when there are more tracks
     track_errors: dict[str, tuple[float, int]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)  #: what the user must know
+    #: tracks per factor on the settings' ``q`` where each track ran with its own
+    q_factors: Counter[float] = field(default_factory=Counter)
 
     @property
     def accuracy(self) -> Accuracy | None:
@@ -721,6 +822,11 @@ class TrackRun:
             k: {"estimated_position_rmse": v[0], "points": v[1]}
             for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])
         }
+        if self.q_factors:
+            out["q_per_track"] = {
+                "line": self.q_factor_line(),
+                "tracks_per_factor": {f"{k:.6g}": v for k, v in sorted(self.q_factors.items())},
+            }
         if self.fit is not None:
             out["fit"] = self.fit.summary()
             table = getattr(self.fit, "candidates", None)
@@ -728,11 +834,24 @@ class TrackRun:
                 out["candidates"] = table
         return out
 
+    def q_factor_line(self) -> str:
+        """How the tracks' own ``q`` spread around the file's."""
+        factors = np.array(sorted(self.q_factors.elements()))
+        own = int((factors != 1.0).sum())
+        return (
+            f"q per track: {own} of {len(factors)} tracks with their own, "
+            f"{factors.min():.3g}-{factors.max():.3g}× the file's (median "
+            f"{float(np.median(factors)):.3g}); --shared-q for one q"
+        )
+
     def summary(self) -> str:
         lines = [self.report.summary()]
         if self.settings is not None:
             shown = {k: v for k, v in asdict(self.settings).items() if v is not None}
+            shown.pop("q_curve", None)  # thirteen numbers: the summary file has them
             lines.append("settings: " + ", ".join(f"{k}={_short(v)}" for k, v in shown.items()))
+        if self.q_factors:
+            lines.append(self.q_factor_line())
         found = self.accuracy
         if found is not None:
             lines.append(found.line())
@@ -844,12 +963,16 @@ def track_file(
             tick, cpu = time.perf_counter(), time.process_time()
             for position, group in enumerate(steps.batches(max_cells)):
                 batch = group_batch(steps, group, position, dtype)
-                found.add(estimate_group(estimator, batch, meas_std, covariance, accuracy))
+                found.add(
+                    estimate_group(estimator, batch, meas_std, covariance, accuracy, run.settings)
+                )
                 bar.update(len(group))
             run.estimate_seconds += time.perf_counter() - tick
             run.estimate_cpu_seconds += time.process_time() - cpu
             run.report.add(steps.report)
             run.report.notes.update(found.notes)
+            for factors in found.q_factors:
+                run.q_factors.update(factors.tolist())
             if run.risk is not None:
                 for terms in found.risk:
                     run.risk.add(terms)
@@ -940,6 +1063,7 @@ def prepare_estimator(
     """
     say = say or (lambda _: None)
     sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
+    open_q = settings.q is None
     if settings.estimator != "auto":
         settings = complete_settings(settings, sample)
         say(settings_note(settings))
@@ -959,12 +1083,31 @@ def prepare_estimator(
         summary = self_tune(settings, sample, **options)
         settings = summary.settings
         say(summary.summary())
+    if open_q and checkpoint is None:
+        settings = with_q_curve(settings, sample)
     estimator = make_estimator(settings, make_model(settings))
     if checkpoint is not None:
         load_parameters(estimator, checkpoint)
     if save is not None:
         torch.save({"settings": asdict(settings), "state_dict": estimator.state_dict()}, save)
     return estimator, settings, summary
+
+
+def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
+    """The settings with the file's SURE curve of ``q`` (``q_curve``, read off ``tracks``), so
+    that each track runs with its own ``q``; unchanged where ``settings.track_q`` is off, for
+    the IMM (its modes' noises are one design) and where the tracks give nothing to score."""
+    from torchsvs.training import noise
+
+    if not settings.track_q or settings.estimator in ("imm", "auto"):
+        return settings
+    assert settings.meas_var is not None and settings.q is not None
+    curves = noise.q_curves(
+        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
+    )
+    if float(curves.counts.sum()) == 0:
+        return settings
+    return replace(settings, q_curve=curves.pooled())
 
 
 def load_parameters(estimator: nn.Module, path: str | Path) -> None:

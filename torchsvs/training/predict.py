@@ -246,7 +246,9 @@ class TrackPredictor(L.LightningModule):
         assert self.estimator is not None and self.meas_std is not None
         if batch is None:
             return None
-        return estimate_group(self.estimator, batch, self.meas_std, self.covariance)
+        return estimate_group(
+            self.estimator, batch, self.meas_std, self.covariance, settings=self.settings
+        )
 
 
 class GatherEstimates(BasePredictionWriter):
