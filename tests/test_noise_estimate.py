@@ -314,14 +314,14 @@ def test_q_curves_pooled_value_is_smoother_q_sure():
 
 
 def test_track_q_factors_split_quiet_from_maneuvering_tracks_and_beat_one_q():
-    """Each track's own q: the quiet half below the file's, the maneuvering half above, and the
+    """Each track's own q: the quiet half below the file's and below the maneuvering half's, the
     smoother's RMSE against the truth lower than with one q for all; without shrinkage room
     (shrink → ∞) every track keeps the file's."""
     truth, z, dt = _two_kinds()
     q = smoother_q(z, dt, 400.0).q
     curves = q_curves(z, dt, 400.0, q)
     factors = track_q_factors(curves, curves.pooled())
-    assert (factors[:3] < 1).all() and (factors[3:] > 1).all(), factors.tolist()
+    assert factors[:3].max() < 1 and factors[:3].max() < factors[3:].min(), factors.tolist()
     assert (track_q_factors(curves, curves.pooled(), shrink=1e12) == 1).all()
 
     def rmse(per_track_q: torch.Tensor) -> float:

@@ -265,8 +265,8 @@ def test_geodetic_free_estimates_keep_large_coordinates_exact(tmp_path):
 
 
 def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
-    """The default picks a q per track (quiet tracks below the file's q, maneuvering ones
-    above): each track's estimates are those of a run of that track alone with its q given, the
+    """The default picks a q per track (quiet tracks below the file's q and the maneuvering
+    ones'): each track's estimates are those of a run of that track alone with its q given, the
     estimator's q is left as it was, and --shared-q runs one q for all."""
     import json
 
@@ -290,7 +290,7 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     summary = json.loads((tmp_path / "out.summary.json").read_text())
     assert "q_per_track" in summary
     factors = track_q_factors(q_curves(z, dt, 400.0, settings.q), settings.q_curve)
-    assert (factors[:3] < 1).all() and (factors[3:] > 1).all(), factors.tolist()
+    assert factors[:3].max() < 1 and factors[:3].max() < factors[3:].min(), factors.tolist()
     joint = pcsv.read_csv(tmp_path / "out.csv")
     for b in (0, 4):
         alone = tmp_path / f"k{b}.csv"
