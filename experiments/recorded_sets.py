@@ -20,7 +20,8 @@ The truth is cleaned (:func:`recorded_pieces`, every count reported):
   local-quadratic fit of the record in time (:func:`dejitter`); the path across the track is kept
   as recorded, so turns stay as flown. Sparse records (10 s and longer) are kept as recorded,
   but for a report stamped seconds off its time (:func:`timing_glitches`: a readsb trace holds
-  one 12 s off, 2.9 km along the track at 241 m/s), which is dropped;
+  one 12 s off, 2.9 km along the track at 241 m/s), which is dropped; a piece is split where
+  its record jumps further than its target flies (:func:`isolated_jumps`);
 * pieces shorter than :data:`MIN_ROWS` rows are dropped; pieces longer than :data:`MAX_ROWS`
   are cut, so that a sample of pieces covers many flights.
 
@@ -59,6 +60,12 @@ GLITCH_STRAIGHT = 0.25
 #: ... and the target keeps its speed: the speeds into the neighbours and across the report agree
 #: within this fraction.
 GLITCH_STEADY = 0.1
+#: A step this many times faster than the piece's 90th-percentile step speed (and over
+#: :data:`JUMP_MIN_SPEED`), between steps no faster than twice it, is a jump no target of the
+#: piece flies: the record joins two tracks (a glider's id reused 2.7 km away); the piece is
+#: split there (:func:`isolated_jumps`).
+JUMP_FACTOR = 4.0
+JUMP_MIN_SPEED = 50.0
 #: Fewest rows of a piece of track kept in a set.
 MIN_ROWS = 30
 #: Longest piece (rows); longer pieces are cut into pieces this long.
@@ -225,6 +232,23 @@ def timing_glitches(time: np.ndarray, position: np.ndarray) -> np.ndarray:
     return found
 
 
+def isolated_jumps(piece: Piece) -> np.ndarray:
+    """``[n]`` bool: the reports a piece jumps to (:data:`JUMP_FACTOR` times its 90th-percentile
+    step speed, over :data:`JUMP_MIN_SPEED`) from a normal step and leaves by one (at most twice
+    that speed): the record of two targets joined, not a maneuver (a take-off roll's speeds
+    grow over many steps)."""
+    speed = step_speeds(piece)
+    found = np.zeros(len(piece), dtype=bool)
+    if len(speed) < 3:
+        return found
+    usual = np.percentile(speed, 90)
+    jump = (speed > JUMP_FACTOR * usual) & (speed > JUMP_MIN_SPEED)
+    calm = speed <= 2.0 * usual
+    inner = np.arange(1, len(speed) - 1)
+    found[inner + 1] = jump[inner] & calm[inner - 1] & calm[inner + 1]
+    return found
+
+
 def roughness(pieces: Sequence[Piece], max_interval: float = 1.5) -> dict[str, float]:
     """Per-report white error of the positions, along and across the track (m, RMS).
 
@@ -352,9 +376,11 @@ def _read_pieces(
             piece = piece.take(np.flatnonzero(~glitch))
         position, moved = dejitter(piece.time, piece.position)
         counts["reports re-timed along track"] += int(moved.sum())
-        clean.append(
-            Piece(track_id, piece.time, position, piece.groundspeed_kt, source=piece.source)
-        )
+        whole = Piece(track_id, piece.time, position, piece.groundspeed_kt, source=piece.source)
+        jumps = isolated_jumps(whole)
+        if jumps.any():
+            counts["pieces split where the record jumps (two tracks joined)"] += int(jumps.sum())
+        clean.extend(split_at(whole, jumps))
     short = tuple(f"{path.parent.name}/{path.name}" for path in paths)
     return tuple(raw), tuple(clean), short, counts
 

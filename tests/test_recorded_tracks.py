@@ -118,6 +118,20 @@ def test_timing_glitches_find_a_report_stamped_seconds_off_on_straight_flight_on
     assert not rs.timing_glitches(t, speeding).any()
 
 
+def test_isolated_jumps_split_two_tracks_joined_but_not_a_take_off_roll() -> None:
+    t = np.arange(0.0, 400.0, 8.0)
+    path = np.stack([30.0 * t, 5.0 * t], 1)
+    path[25:] += [2700.0, 0.0]  # the record jumps 2.7 km in 8 s and goes on from there
+    piece = rs.Piece("g", t, path, np.full(len(t), np.nan))
+    assert rs.isolated_jumps(piece).tolist() == [k == 25 for k in range(len(t))]
+    assert [len(p) for p in rs.split_at(piece, rs.isolated_jumps(piece))] == [25, len(t) - 25]
+    # a take-off roll: 5 to 80 m/s at 3 m/s² over many steps, at the end of a taxi piece
+    speed = np.concatenate([np.full(40, 5.0), 5.0 + 3.0 * np.arange(1, 26)])
+    roll = np.stack([np.cumsum(speed), np.zeros_like(speed)], 1)
+    taxi = rs.Piece("r", np.arange(len(speed), dtype=float), roll, np.full(len(speed), np.nan))
+    assert not rs.isolated_jumps(taxi).any()
+
+
 def test_roughness_reads_white_error_off_one_second_reports() -> None:
     t = np.arange(0.0, 5000.0)
     rng = np.random.default_rng(1)
