@@ -69,7 +69,7 @@ def _batch(B: int, T: int, dtype: torch.dtype, recorded: bool) -> tuple[TrackBat
 
 
 def _svss(dtype: torch.dtype) -> torch.nn.Module:
-    from torchsvs.tracking import Settings, make_estimator, make_model
+    from torchsvs.recipes import Settings, make_estimator, make_model
 
     settings = Settings(estimator="svss", meas_var=[SIGMA**2] * 2, q=1.0, lag=5, interval=5.0)
     return make_estimator(settings, make_model(settings)).to(dtype)

@@ -83,7 +83,7 @@ def recorded_flights(sigma: float = 100.0, seed: int = 0) -> str:
     half of them, scored on the other half (a short form of ``experiments/real_flights.py``)."""
     from experiments.flight_data import load_flights, noisy, split
     from experiments.real_flights import evaluate, rule_of_thumb
-    from torchsvs.training import self_tune
+    from torchsvs.fitting.tuning import self_tune
 
     try:
         flights = load_flights()

@@ -9,7 +9,7 @@ one after the other) at 1, 5 and 10 s. For each kind and noise level: the measur
 by the former estimator (three-point residuals, least squares; commit cf1845e) and by
 :func:`torchsvs.datasets.estimate_noise`, with its standard error and how much dropping 1% of the
 rows moves each; then the position RMSE of a Kalman smoother (RTS) with the former noise and q,
-with the new noise and the SURE q of :func:`torchsvs.training.noise.smoother_q` (and its
+with the new noise and the SURE q of :func:`torchsvs.fitting.noise.smoother_q` (and its
 likelihood q), with the best q of a grid scanned with the truth (and the true noise), and of the
 raw measurements.
 
@@ -263,7 +263,7 @@ def dropped_change(
 def kind_rows(sigmas: tuple[float, ...], seed: int = 0) -> tuple[list[list[object]], list[str]]:
     """One row per kind and noise level (see the module's docstring), and the timings."""
     from torchsvs.datasets import estimate_noise
-    from torchsvs.training.noise import smoother_q
+    from torchsvs.fitting.noise import smoother_q
 
     old = old_estimator()
     rows: list[list[object]] = []

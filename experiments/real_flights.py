@@ -50,24 +50,20 @@ from experiments import traffic_baseline
 from experiments.flight_data import load_flights, noisy, score, split
 from torchsvs.datasets import RecordedTracks, with_prior
 from torchsvs.datasets.flights import flight_steps
+from torchsvs.estimating import centred, run_estimator
 from torchsvs.evaluation import markdown_table
-from torchsvs.kernels import eager_loops, fused
-from torchsvs.metrics import pooled_rmse
-from torchsvs.tracking import (
+from torchsvs.fitting.defaults import (
     IMM_QUIET,
     TURN_RATE_SCALE,
-    Settings,
-    centred,
     complete_settings,
     imm_base_q,
-    make_estimator,
-    make_model,
-    rule_of_thumb_psi,
-    run_estimator,
     turn_settings,
     typical_speed,
 )
-from torchsvs.training.tuning import self_tune
+from torchsvs.fitting.tuning import self_tune
+from torchsvs.kernels import eager_loops, fused
+from torchsvs.metrics import pooled_rmse
+from torchsvs.recipes import Settings, make_estimator, make_model, rule_of_thumb_psi
 
 RESULTS = Path(__file__).parent / "results"
 #: The IMM's rows in the held-out table start with this label.
@@ -904,7 +900,7 @@ def _spread(values: list[float]) -> str:
 # ------------------------------------------------------------------------------------------
 # the IMM of a CV and a coordinated-turn mode
 
-#: The study of the IMM's defaults (:func:`torchsvs.tracking.turn_settings`) on the training
+#: The study of the IMM's defaults (:func:`torchsvs.fitting.defaults.turn_settings`) on the training
 #: flights: the CV mode's share of the data's q, and the turn-rate scale.
 IMM_QUIET_GRID = (0.01, 0.03, 0.1, 0.3, 1.0)
 IMM_RATE_GRID = (0.1, 0.3, 1.0)
@@ -940,8 +936,8 @@ def imm_part(
         "coordinated turn with unknown turn rate (the CV state nested in the turn's), mixed by "
         "an IMM with a switch probability of 0.05 per scan. Its rows in the held-out table: "
         "`rules of thumb` are the settings `torchsvs track` reads off the data "
-        "(`tracking.turn_settings`, here off the training flights: the CV mode at "
-        f"{IMM_QUIET:g} of the data's q (the Kalman filter's SURE q, `tracking.imm_base_q`), "
+        "(`fitting.defaults.turn_settings`, here off the training flights: the CV mode at "
+        f"{IMM_QUIET:g} of the data's q (the Kalman filter's SURE q, `fitting.defaults.imm_base_q`), "
         "the turn mode's acceleration noise the data's q per "
         f"scan, a turn-rate scale of {TURN_RATE_SCALE:g} √(q/T)/v̄ as prior and per-scan "
         "change); `learned, SURE (σ known)` tunes the three process noises on the training "
@@ -965,7 +961,7 @@ def imm_part(
 def imm_defaults_study(flights: RecordedTracks, quick: bool, progress: bool) -> list[str]:
     """Position RMSE and velocity RMSE against the motion on the training flights (the training
     half of each noise level's seed-0 draw, as in :func:`noise_table`) over the two factors of
-    :func:`torchsvs.tracking.turn_settings`."""
+    :func:`torchsvs.fitting.defaults.turn_settings`."""
     quiet_grid = IMM_QUIET_GRID if not quick else (IMM_QUIET, 1.0)
     rate_grid = IMM_RATE_GRID if not quick else (0.3,)
     header = ["CV mode's share of q", "turn-rate scale"]

@@ -117,10 +117,10 @@ class Run:
 
 def estimator_choices(parser: argparse.ArgumentParser | None = None) -> tuple[list[str], str]:
     """The ``--estimator`` choices of ``torchsvs track`` (those of
-    :data:`torchsvs.tracking.ESTIMATORS` first, in its order, then any other, such as ``auto``)
+    :data:`torchsvs.recipes.ESTIMATORS` first, in its order, then any other, such as ``auto``)
     and its default."""
     from torchsvs.cli import track_parser
-    from torchsvs.tracking import ESTIMATORS
+    from torchsvs.recipes import ESTIMATORS
 
     parser = parser or track_parser()
     action = next(a for a in parser._actions if "--estimator" in a.option_strings)

@@ -14,8 +14,9 @@ import torch
 
 from torchsvs.accuracy import RiskTerms, RiskTotals, accuracy, risk_terms
 from torchsvs.datasets import Columns
-from torchsvs.tracking import Settings, summary_path, track_file
-from torchsvs.training.selection import caution_score
+from torchsvs.fitting.selection import caution_score
+from torchsvs.recipes import Settings
+from torchsvs.tracking import summary_path, track_file
 
 
 def _measurements(B: int = 6, T: int = 100, m: int = 2, sigma: float = 3.0, seed: int = 0):

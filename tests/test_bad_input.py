@@ -267,8 +267,8 @@ def test_psi_reaches_the_svsf_and_its_smoothers(atc):
 
 
 def test_innovation_losses_on_a_particle_filter_name_the_problem(atc):
+    from torchsvs.fitting.losses import innovation_nll, prediction_error
     from torchsvs.training.data import TrackBatch
-    from torchsvs.training.losses import innovation_nll, prediction_error
     from torchsvs.training.module import batch_loss
 
     pf = ts.ParticleFilter(atc.model, num_particles=10).to(atc.z.dtype)

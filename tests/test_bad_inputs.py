@@ -179,7 +179,8 @@ def test_estimate_writer_renames_only_a_complete_file(tmp_path):
 
 
 def test_python_api_never_writes_over_the_file_it_read(tmp_path):
-    from torchsvs.tracking import Settings, track_file
+    from torchsvs.recipes import Settings
+    from torchsvs.tracking import track_file
 
     source = _metric_file(tmp_path / "a.csv")
     before = source.read_bytes()

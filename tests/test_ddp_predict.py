@@ -17,7 +17,7 @@ import pytest
 from tests.test_track_cli import _simulated_csv
 from torchsvs.cli import main
 from torchsvs.datasets import Columns, track_blocks
-from torchsvs.tracking import Settings
+from torchsvs.recipes import Settings
 from torchsvs.training.predict import predict_file
 
 # Lightning 2.6 on torch 2.13, at every run of a Trainer in this process.

@@ -9,7 +9,9 @@ import torch
 from torchsvs.datasets import with_prior
 from torchsvs.datasets.adsb import sample_files, samples_dir
 from torchsvs.datasets.flights import flight_steps
-from torchsvs.tracking import Settings, centred, complete_settings, make_estimator, make_model
+from torchsvs.estimating import centred
+from torchsvs.fitting.defaults import complete_settings
+from torchsvs.recipes import Settings, make_estimator, make_model
 
 try:
     samples_dir()

@@ -29,7 +29,7 @@ from experiments.noise_estimate import (
 from tests.conftest import assert_close, simulate_cv
 from torchsvs.datasets import estimate_noise, priors, two_point_prior
 from torchsvs.datasets.priors import difference_residuals
-from torchsvs.training.noise import Q_FACTORS, q_curves, smoother_q, track_q_factors
+from torchsvs.fitting.noise import Q_FACTORS, q_curves, smoother_q, track_q_factors
 
 #: The specification: within 20% of the true σ.
 WITHIN = 0.2

@@ -778,7 +778,8 @@ def test_track_runs_the_regularised_optimal_filter(tmp_path):
     kilometre, see :func:`test_regularized_filter_follows_maneuvers_its_q_misses`)."""
     import pandas as pd
 
-    from torchsvs.tracking import Settings, make_estimator, make_model, track_file
+    from torchsvs.recipes import Settings, make_estimator, make_model
+    from torchsvs.tracking import track_file
 
     settings = Settings(estimator="pf", meas_var=[2500.0, 2500.0], q=1.0)
     pf = make_estimator(settings, make_model(settings))

@@ -13,17 +13,16 @@ import torch
 import torchsvs as ts
 from tests.conftest import assert_close
 from torchsvs.datasets import RecordedTracks, with_prior
+from torchsvs.estimating import centred, run_estimator
+from torchsvs.fitting.defaults import complete_settings
 from torchsvs.kernels import eager_loops, general_path
-from torchsvs.tracking import (
+from torchsvs.recipes import (
     PSI_IN_SIGMAS,
     PSI_LIMIT_IN_SIGMAS,
     Settings,
-    centred,
-    complete_settings,
     make_estimator,
     make_model,
     rule_of_thumb_psi,
-    run_estimator,
 )
 
 FIELDS = ("mean", "cov", "pred_cov", "innovation", "gain", "post_innovation", "innovation_cov")

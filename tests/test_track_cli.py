@@ -229,7 +229,8 @@ def test_bad_arguments_name_what_is_wrong(tmp_path, capsys, args, message):
 
 
 def test_lightning_checkpoint_loads_into_the_command_line_estimator(tmp_path):
-    from torchsvs.tracking import Settings, load_parameters, make_estimator, make_model
+    from torchsvs.recipes import Settings, make_estimator, make_model
+    from torchsvs.tracking import load_parameters
     from torchsvs.training import EstimatorModule
 
     settings = Settings(estimator="svss", meas_var=[900.0, 900.0], q=4.0, psi=[2.0, 3.0])
@@ -271,8 +272,9 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     import json
 
     from tests.test_noise_estimate import _two_kinds
-    from torchsvs.tracking import Settings, track_file
-    from torchsvs.training.noise import q_curves, track_q_factors
+    from torchsvs.fitting.noise import q_curves, track_q_factors
+    from torchsvs.recipes import Settings
+    from torchsvs.tracking import track_file
 
     _, z, dt = _two_kinds(steps=150)
     t = torch.cumsum(dt, 1)
@@ -310,7 +312,8 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
 
 
 def test_scaled_q_scales_inside_and_restores_exactly():
-    from torchsvs.tracking import Settings, make_estimator, make_model, scaled_q
+    from torchsvs.estimating import scaled_q
+    from torchsvs.recipes import Settings, make_estimator, make_model
 
     settings = Settings(estimator="svss", meas_var=[100.0, 100.0], q=0.3, psi=[2.0, 2.0])
     estimator = make_estimator(settings, make_model(settings))

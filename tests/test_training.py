@@ -13,14 +13,14 @@ import torch
 
 import torchsvs as ts
 from tests.conftest import assert_close
+from torchsvs.fitting.batches import batch_loss
+from torchsvs.fitting.losses import stein_risk
 from torchsvs.scenarios import ManeuverRanges
 from torchsvs.training import (
     EstimatorModule,
     ManeuveringTargetDataModule,
-    batch_loss,
     config_path,
     shipped_configs,
-    stein_risk,
 )
 from torchsvs.training.cli import main as cli_main
 

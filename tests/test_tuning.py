@@ -12,8 +12,11 @@ import torchsvs as ts
 from tests.conftest import assert_close, simulate_cv
 from torchsvs.datasets import RecordedTracks, with_prior
 from torchsvs.datasets.tracks import windows
-from torchsvs.tracking import Settings, centred, complete_settings, make_estimator, make_model
-from torchsvs.training import EstimatorModule, RecordedTracksDataModule, self_tune
+from torchsvs.estimating import centred
+from torchsvs.fitting.defaults import complete_settings
+from torchsvs.fitting.tuning import self_tune
+from torchsvs.recipes import Settings, make_estimator, make_model
+from torchsvs.training import EstimatorModule, RecordedTracksDataModule
 
 pytestmark = pytest.mark.filterwarnings(
     "ignore:.*does not have many workers.*", "ignore:.*LeafSpec.*", "ignore:.*litlogger.*"

@@ -47,7 +47,7 @@ from torch import Tensor
 CHUNK = 32
 #: Finite-difference step of the divergence, in noise standard deviations. The variable
 #: boundary layer's inflation bends within a fraction of σ, and a step of 0.3 (the training
-#: loss's, :func:`torchsvs.training.losses.stein_risk`) overstated the SVSS's error by 17% on
+#: loss's, :func:`torchsvs.fitting.losses.stein_risk`) overstated the SVSS's error by 17% on
 #: slow targets (taxiing aircraft, σ 50), 8-10% elsewhere; 0.1 by 11% and 2-7%; 0.03 by 8%. A
 #: Kalman smoother is linear: any step gives its estimate. Smaller steps lose digits in float32.
 PROBE_STEP = 0.1

@@ -119,7 +119,7 @@ def _time_unit(text: str) -> float | str:
 
 
 def track_parser() -> argparse.ArgumentParser:
-    from torchsvs.tracking import ESTIMATORS
+    from torchsvs.recipes import ESTIMATORS
 
     parser = argparse.ArgumentParser(
         prog="torchsvs track",
@@ -448,7 +448,8 @@ class OtherRanks:
 def _track(args: argparse.Namespace) -> None:
     import torch
 
-    from torchsvs.tracking import Settings, saved_settings, track_file
+    from torchsvs.recipes import Settings
+    from torchsvs.tracking import saved_settings, track_file
 
     torch.set_num_threads(args.threads)
     columns = getattr(args, "columns", None) or _columns(args)

@@ -154,7 +154,7 @@ class NoiseEstimate(NamedTuple):
     meas_var: Tensor  #: [m] measurement noise variance per axis
     #: power spectral density of a nearly-constant-velocity model (units²/s³) that the
     #: short-scale differences show, maneuvers included: a starting point, not the smoother's
-    #: (:func:`torchsvs.training.noise.smoother_q`)
+    #: (:func:`torchsvs.fitting.noise.smoother_q`)
     q: float
     triplets: int  #: how many residuals it fitted (difference stencils of every order and axis)
     #: [m] standard error of the measurement noise standard deviation ``meas_var.sqrt()``
@@ -533,7 +533,7 @@ def estimate_noise(
     Returns:
         :class:`NoiseEstimate`; its ``q`` is the white-acceleration fit's (at least a
         thousandth of the noise over a median interval), a starting point: the smoother's
-        ``q`` is :func:`torchsvs.training.noise.smoother_q`'s.
+        ``q`` is :func:`torchsvs.fitting.noise.smoother_q`'s.
 
     References:
         Rousseeuw, Croux, "Alternatives to the median absolute deviation", JASA 88(424):

@@ -54,8 +54,8 @@ class TurnIMM(Estimator[IMMResult]):
     than the data support lets it wander, on noisy tracks with long gaps, to values whose turn
     over one interval is several radians, where the linearisation means nothing and the turn
     mode's velocity diverges (measured on recorded flights, ``experiments/results/
-    real_flights.md``); :func:`torchsvs.tracking.turn_settings` derives a safe scale from the
-    data.
+    real_flights.md``); :func:`torchsvs.fitting.defaults.turn_settings` derives a safe scale
+    from the data.
 
     Args:
         model: the CV mode's :class:`~torchsvs.models.ConstantVelocity`, 2 or 3 axes.

@@ -2,7 +2,8 @@
 
 * :class:`ManeuveringTargetDataModule`: random maneuvering tracks, seeded splits.
 * :class:`RecordedTracksDataModule`: a fixed set of recorded tracks (no truth needed).
-* :func:`self_tune`: the fast truth-free fit behind ``torchsvs track --fit``.
+* :func:`self_tune`: the fast truth-free fit behind ``torchsvs track --fit`` (it, the losses and
+  the batches live in the Lightning-free :mod:`torchsvs.fitting`; named here too).
 * :mod:`torchsvs.training.predict`: ``torchsvs track --processes N``, a track file estimated by
   ``Trainer.predict`` with DDP on CPU (:func:`~torchsvs.training.predict.predict_file`).
 * :class:`EstimatorModule`: any torchsvs estimator as a LightningModule, with supervised and
@@ -18,50 +19,51 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 # Names resolved on first use (PEP 562), so that importing a Lightning-free part, e.g.
-# ``torchsvs.training.noise`` on every ``torchsvs track`` run, does not import Lightning (~2 s).
+# ``torchsvs.training.configs``, does not import Lightning (~2 s); the truth-free fits live in
+# :mod:`torchsvs.fitting` (Lightning-free).
 _HOMES = {
-    "config_path": "configs",
-    "shipped_configs": "configs",
-    "ManeuverDataset": "data",
-    "ManeuveringTargetDataModule": "data",
-    "RecordedTracksDataModule": "data",
-    "TrackBatch": "batches",
-    "recorded_batches": "batches",
-    "LOSSES": "losses",
-    "innovation_nll": "losses",
-    "prediction_error": "losses",
-    "stein_risk": "losses",
-    "supervised_mse": "losses",
-    "EstimatorModule": "module",
-    "batch_loss": "batches",
-    "boundary_layer_modules": "module",
-    "FitResult": "tuning",
-    "self_tune": "tuning",
+    "config_path": "torchsvs.training.configs",
+    "shipped_configs": "torchsvs.training.configs",
+    "ManeuverDataset": "torchsvs.training.data",
+    "ManeuveringTargetDataModule": "torchsvs.training.data",
+    "RecordedTracksDataModule": "torchsvs.training.data",
+    "TrackBatch": "torchsvs.fitting.batches",
+    "recorded_batches": "torchsvs.fitting.batches",
+    "LOSSES": "torchsvs.fitting.losses",
+    "innovation_nll": "torchsvs.fitting.losses",
+    "prediction_error": "torchsvs.fitting.losses",
+    "stein_risk": "torchsvs.fitting.losses",
+    "supervised_mse": "torchsvs.fitting.losses",
+    "EstimatorModule": "torchsvs.training.module",
+    "batch_loss": "torchsvs.fitting.batches",
+    "boundary_layer_modules": "torchsvs.training.module",
+    "FitResult": "torchsvs.fitting.tuning",
+    "self_tune": "torchsvs.fitting.tuning",
 }
 
 if TYPE_CHECKING:
-    from torchsvs.training.batches import TrackBatch, batch_loss, recorded_batches
-    from torchsvs.training.configs import config_path, shipped_configs
-    from torchsvs.training.data import (
-        ManeuverDataset,
-        ManeuveringTargetDataModule,
-        RecordedTracksDataModule,
-    )
-    from torchsvs.training.losses import (
+    from torchsvs.fitting.batches import TrackBatch, batch_loss, recorded_batches
+    from torchsvs.fitting.losses import (
         LOSSES,
         innovation_nll,
         prediction_error,
         stein_risk,
         supervised_mse,
     )
+    from torchsvs.fitting.tuning import FitResult, self_tune
+    from torchsvs.training.configs import config_path, shipped_configs
+    from torchsvs.training.data import (
+        ManeuverDataset,
+        ManeuveringTargetDataModule,
+        RecordedTracksDataModule,
+    )
     from torchsvs.training.module import EstimatorModule, boundary_layer_modules
-    from torchsvs.training.tuning import FitResult, self_tune
 
 
 def __getattr__(name: str) -> Any:
     if name not in _HOMES:
         raise AttributeError(f"module 'torchsvs.training' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"torchsvs.training.{_HOMES[name]}"), name)
+    value = getattr(importlib.import_module(_HOMES[name]), name)
     globals()[name] = value
     return value
 

@@ -12,9 +12,9 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from torchsvs.datasets.tracks import RecordedTracks
+from torchsvs.fitting.batches import TrackBatch, recorded_batches
 from torchsvs.scenarios.maneuver import ManeuverRanges
 from torchsvs.scenarios.paper import random_scenario
-from torchsvs.training.batches import TrackBatch, recorded_batches
 
 
 class ManeuverDataset(Dataset[TrackBatch]):

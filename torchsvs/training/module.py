@@ -11,11 +11,11 @@ from torch import Tensor, nn
 
 from torchsvs.estimator import Estimator, threads_for
 from torchsvs.filters.svsf import SVSF
-from torchsvs.metrics import pooled_rmse
-from torchsvs.training.batches import TrackBatch, batch_loss, known_meas_cov
-from torchsvs.training.losses import (
+from torchsvs.fitting.batches import TrackBatch, batch_loss, known_meas_cov
+from torchsvs.fitting.losses import (
     LOSSES,
 )
+from torchsvs.metrics import pooled_rmse
 
 
 def boundary_layer_modules(module: nn.Module) -> list[SVSF]:

@@ -35,16 +35,11 @@ from torch.utils.data import DataLoader, Dataset
 
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
+from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
+from torchsvs.recipes import Settings, make_estimator, make_model
 from torchsvs.tracking import (
     BlockEstimates,
-    GroupBatch,
-    Settings,
-    StepEstimates,
     TrackRun,
-    estimate_group,
-    group_batch,
-    make_estimator,
-    make_model,
     prepare_estimator,
     summary_path,
     write_summary,
@@ -53,7 +48,7 @@ from torchsvs.tracking import (
 
 class TrackGroups(Dataset["GroupBatch | None"]):
     """The groups of a block's tracks (:meth:`~torchsvs.datasets.TrackSteps.batches`), each
-    item one estimator call: the group padded and centred (:func:`~torchsvs.tracking.
+    item one estimator call: the group padded and centred (:func:`~torchsvs.estimating.
     group_batch`), ``z [B, T, m]`` in ``dtype``. Items past the last group (up to ``length``)
     are ``None``: Lightning's distributed sampler needs an item for every process."""
 
@@ -178,7 +173,7 @@ def _only(items: list[GroupBatch | None]) -> GroupBatch | None:
 class TrackPredictor(L.LightningModule):
     """The estimator of ``torchsvs track`` for ``Trainer.predict`` on a
     :class:`TrackFileDataModule`; :meth:`predict_step` gives a group's
-    :class:`~torchsvs.tracking.StepEstimates`.
+    :class:`~torchsvs.estimating.StepEstimates`.
 
     The estimator is built in :meth:`setup`, once the file is read: rank 0 completes the
     settings from the data, fits (``fit``: :func:`~torchsvs.training.self_tune`, on rank 0
@@ -252,7 +247,7 @@ class TrackPredictor(L.LightningModule):
 
 
 class GatherEstimates(BasePredictionWriter):
-    """Collects every process's :class:`~torchsvs.tracking.StepEstimates` on rank 0 at the
+    """Collects every process's :class:`~torchsvs.estimating.StepEstimates` on rank 0 at the
     end of the predict epoch (``parts``; empty on the other ranks), and times the epoch."""
 
     def __init__(self) -> None:

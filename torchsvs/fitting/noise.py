@@ -21,9 +21,9 @@ from torch import Tensor
 from torchsvs.datasets import two_point_prior
 from torchsvs.estimator import threads_for
 from torchsvs.filters import KalmanFilter
+from torchsvs.fitting.losses import innovation_nll
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import RTSSmoother
-from torchsvs.training.losses import innovation_nll
 
 #: Steps (all windows together) the criterion is computed on: a sample of larger data.
 MAX_STEPS = 20_000
@@ -124,7 +124,7 @@ def smoother_q(
     hard turns (1.02×).
 
     ``"nll"`` maximises the likelihood of the Kalman filter's innovations
-    (:func:`~torchsvs.training.losses.innovation_nll`; Harvey 1989, Sec. 3.4), efficient when
+    (:func:`~torchsvs.fitting.losses.innovation_nll`; Harvey 1989, Sec. 3.4), efficient when
     the tracks follow the model, and gives the standard error of :math:`\log q` from the
     observed information.
 

@@ -1,8 +1,8 @@
 """``torchsvs track --estimator auto``: fit the candidates without truth, keep the best.
 
-Each candidate (:data:`CANDIDATES`) is completed from the data (:func:`~torchsvs.tracking.
+Each candidate (:data:`CANDIDATES`) is completed from the data (:func:`~torchsvs.fitting.defaults.
 complete_settings`, the noise read once and shared), tuned by SURE on windows of the sample
-(:func:`~torchsvs.training.tuning.self_tune`), then run on the whole sample, where Stein's
+(:func:`~torchsvs.fitting.tuning.self_tune`), then run on the whole sample, where Stein's
 unbiased risk estimate (:mod:`torchsvs.accuracy`) scores its position error. The candidate of
 the lowest estimated error (penalised by its relative uncertainty, :data:`CAUTION`) wins; its
 settings are what ``track`` then runs on the file. The candidates' table is printed and
@@ -22,6 +22,10 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from torchsvs.datasets import RecordedTracks
+from torchsvs.estimating import sample_accuracy
+from torchsvs.fitting.defaults import complete_settings, settings_note
+from torchsvs.fitting.tuning import self_tune
+from torchsvs.recipes import Settings
 
 #: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
 CANDIDATES = ("ks", "svstps", "svss", "imm")
@@ -49,7 +53,7 @@ def caution_score(estimate: float, standard_error: float) -> float:
 class Choice:
     """What ``--estimator auto`` chose, and from what (the ``fit`` of a :class:`TrackRun`)."""
 
-    settings: Any  #: the winner's fitted :class:`~torchsvs.tracking.Settings`
+    settings: Settings  #: the winner's fitted settings
     seconds: float = 0.0
     #: one row per candidate: estimator, estimated RMSE, its standard error, fit seconds,
     #: what the fit learned (or why the candidate was skipped)
@@ -78,7 +82,7 @@ class Choice:
 
 
 def choose_estimator(
-    settings: Any,
+    settings: Settings,
     sample: RecordedTracks,
     candidates: tuple[str, ...] = CANDIDATES,
     say: Callable[[str], None] | None = None,
@@ -90,18 +94,15 @@ def choose_estimator(
         settings: what the user gave (``estimator`` is ignored; a given ``meas_var`` is the
             sensor's noise, else it is read off the data once for every candidate).
         sample: the tracks to fit and score on (float64).
-        candidates: estimator names of :data:`~torchsvs.tracking.ESTIMATORS`.
+        candidates: estimator names of :data:`~torchsvs.recipes.ESTIMATORS`.
         say: where to print progress.
-        fit_options: keyword arguments of :func:`~torchsvs.training.tuning.self_tune`.
+        fit_options: keyword arguments of :func:`~torchsvs.fitting.tuning.self_tune`.
     """
-    from torchsvs.tracking import complete_settings, sample_accuracy, settings_note
-    from torchsvs.training.tuning import self_tune
-
     say = say or (lambda _: None)
     start = time.perf_counter()
     base = complete_settings(replace(settings, estimator="ks", psi=None), sample)
     say(settings_note(base))
-    noise = {
+    noise: dict[str, Any] = {
         "meas_var": base.meas_var,
         "noise": base.noise,
         "meas_std_se": base.meas_std_se,

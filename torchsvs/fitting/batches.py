@@ -1,5 +1,5 @@
 """Training batches and their losses, without Lightning: what the truth-free fit
-(:func:`~torchsvs.training.tuning.self_tune`, ``torchsvs track --fit`` and ``--estimator auto``)
+(:func:`~torchsvs.fitting.tuning.self_tune`, ``torchsvs track --fit`` and ``--estimator auto``)
 needs, kept apart from the LightningModules so that those commands do not import Lightning."""
 
 from __future__ import annotations
@@ -10,14 +10,14 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.datasets.tracks import RecordedTracks
-from torchsvs.models.base import LinearModel
-from torchsvs.training.losses import (
+from torchsvs.fitting.losses import (
     LOSSES,
     innovation_nll,
     prediction_error,
     stein_risk,
     supervised_mse,
 )
+from torchsvs.models.base import LinearModel
 from torchsvs.types import FilterResult, SmootherResult
 
 

@@ -2,14 +2,14 @@
 
 Two stages, each a short L-BFGS run on (at most 64) windows of 128 steps cut from the tracks
 (:func:`~torchsvs.training.data.recorded_batches`), with the losses of
-:mod:`torchsvs.training.losses`:
+:mod:`torchsvs.fitting.losses`:
 
 1. **The sensor's noise, when it is not given**: a Kalman filter on the same nearly-constant
    velocity model learns ``q`` and ``R`` by maximum likelihood (innovation NLL). ``R`` is then
    taken as known.
 2. **The estimator's own parameters** (``q``; the SVSF's ψ and γ; the IMM's turn-mode noises
    ``turn_q`` and ``turn_rate_q`` beside its CV mode's ``q``) by Stein's unbiased risk
-   estimate of the position MSE with that ``R`` (:func:`~torchsvs.training.losses.stein_risk`):
+   estimate of the position MSE with that ``R`` (:func:`~torchsvs.fitting.losses.stein_risk`):
    the loss that targets the error users care about, while the NLL only scores one-step
    predictions.
 
@@ -34,7 +34,8 @@ from torch.nn.utils import parametrize
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimator import threads_for
 from torchsvs.filters import SVSF, TurnIMM
-from torchsvs.training.batches import TrackBatch, batch_loss, recorded_batches
+from torchsvs.fitting.batches import TrackBatch, batch_loss, recorded_batches
+from torchsvs.recipes import Settings, make_estimator, make_model, rule_of_thumb_psi
 
 #: Estimators whose parameters ``self_tune`` fits by their own SURE.
 TUNABLE = ("kf", "ks", "ekf", "ukf", "rstkf", "svsf", "svss", "svstps", "imm")
@@ -47,7 +48,7 @@ TWINS = {"pf": "kf", "spvsf": "kf"}
 class FitResult:
     """What a fit learned and what it cost."""
 
-    settings: Any  #: :class:`~torchsvs.tracking.Settings` with the learned values
+    settings: Settings  #: the learned values
     seconds: float = 0.0
     stages: list[str] = field(default_factory=list)  #: one line per stage
     curve: list[float] = field(default_factory=list)  #: the last stage's loss per step
@@ -113,7 +114,7 @@ def _minimise(
 
 
 def self_tune(
-    settings: Any,
+    settings: Settings,
     tracks: RecordedTracks,
     known_noise: bool = True,
     steps: int = 20,
@@ -126,10 +127,10 @@ def self_tune(
     optimizer: str = "lbfgs",
     tie_axes: bool = True,
 ) -> FitResult:
-    """Tunes an estimator of :mod:`torchsvs.tracking` on recorded tracks, without truth.
+    """Tunes an estimator of :mod:`torchsvs.recipes` on recorded tracks, without truth.
 
     Args:
-        settings: complete :class:`~torchsvs.tracking.Settings` (noise levels filled in).
+        settings: complete :class:`~torchsvs.recipes.Settings` (noise levels filled in).
         tracks: the tracks to tune on (float64 is used inside).
         known_noise: the settings' measurement noise is the sensor's (SURE uses it as is);
             ``False`` learns it first (stage 1).
@@ -145,8 +146,6 @@ def self_tune(
     Returns:
         A :class:`FitResult` whose ``settings`` hold the learned values.
     """
-    from torchsvs.tracking import make_estimator, make_model, rule_of_thumb_psi
-
     if settings.estimator in TWINS:
         twin = TWINS[settings.estimator]
         result = self_tune(
@@ -192,6 +191,7 @@ def self_tune(
         return [TrackBatch(*(_rows(field, pick) for field in all_windows))]
 
     if not known_noise:
+        assert settings.meas_var is not None
         kf_settings = replace(settings, estimator="kf")
         model = make_model(kf_settings, learn_q=True, learn_r=True).double()
         kf = make_estimator(kf_settings, model)
@@ -235,6 +235,7 @@ def self_tune(
         estimator, batches, "sure", steps, lr, meas_cov=meas_cov, seed=seed, optimizer=optimizer
     )
     # A still target drives q to 0 (log q → −∞): floor it where it no longer matters.
+    assert settings.meas_var is not None
     floor = Q_FLOOR * sum(settings.meas_var) / len(settings.meas_var) / settings.interval**3
     learned: dict[str, Any] = {"q": max(float(model.q().detach()), floor)}
     if isinstance(estimator, TurnIMM):
@@ -283,10 +284,11 @@ VALIDATION_SEED = 7919
 START_PSI = (0.03, 0.2, 1.0)
 
 
-def _best_start(settings: Any, batches: list[TrackBatch], meas_cov: Tensor, seed: int) -> Any:
+def _best_start(
+    settings: Settings, batches: list[TrackBatch], meas_cov: Tensor, seed: int
+) -> Settings:
     """The candidate start with the lowest SURE (forward passes only, same probes)."""
-    from torchsvs.tracking import make_estimator, make_model
-
+    assert settings.q is not None
     widths = START_PSI if settings.psi is not None else (1.0,)
     best, best_risk = settings, math.inf
     for q_factor in START_Q:

@@ -1,0 +1,154 @@
+"""The layers of tracking import each other one way only: recipes ← fitting, estimating ←
+tracking ← training (issue 29, item 7). Read off the source (every ``import`` of ``torchsvs.*``,
+at module level or inside a function), so a loop hidden in a function is caught too."""
+
+from __future__ import annotations
+
+import ast
+import os
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+import torchsvs
+
+#: The modules whose imports must form no loop (a name ending in ``.`` is a package's modules).
+LAYERS = ("torchsvs.recipes", "torchsvs.estimating", "torchsvs.fitting", "torchsvs.tracking")
+LAYER_PACKAGES = ("torchsvs.fitting.", "torchsvs.training.")
+
+
+def _modules(root: Path) -> dict[str, Path]:
+    """Every module of the package at ``root`` (a package's ``__init__`` under its own name)."""
+    found = {"torchsvs": root / "__init__.py"}
+    folders = [(root, "torchsvs")]
+    while folders:  # pkgutil.walk_packages would import the packages (of this checkout)
+        folder, prefix = folders.pop()
+        for info in pkgutil.iter_modules([str(folder)]):
+            name = f"{prefix}.{info.name}"
+            if info.ispkg:
+                found[name] = folder / info.name / "__init__.py"
+                folders.append((folder / info.name, name))
+            else:
+                found[name] = folder / f"{info.name}.py"
+    return found
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _imports(path: Path, name: str, modules: dict[str, Path]) -> set[str]:
+    """The torchsvs modules ``name`` imports when it runs: every import statement, at any depth,
+    but those under ``if TYPE_CHECKING:`` (never run); ``from a import b`` is ``a.b`` where that
+    is a module, and a module's package counts as imported with it."""
+    tree = ast.parse(path.read_text(), str(path))
+    skipped = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and _is_type_checking(node)
+        for statement in node.body
+        for inner in ast.walk(statement)
+    }
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    targets: set[str] = set()
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.Import):
+            targets.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
+            targets.add(base)
+            targets.update(f"{base}.{a.name}" for a in node.names)
+    edges = set()
+    for target in targets:
+        # importing a.b.c runs a.b's __init__ too (the root package aside: everything is in it)
+        while target.count("."):
+            if target in modules and target != name:
+                edges.add(target)
+            target = target.rpartition(".")[0]
+    return edges
+
+
+def _in_layers(name: str) -> bool:
+    return name in LAYERS or name.startswith(LAYER_PACKAGES) or name == "torchsvs.training"
+
+
+def find_cycle(root: Path) -> list[str] | None:
+    """A loop of imports through a layer module of the package at ``root``, or None."""
+    modules = _modules(root)
+    graph = {name: _imports(path, name, modules) for name, path in modules.items()}
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                loop = path[path.index(nxt) :] + [nxt]
+                if any(_in_layers(n) for n in loop):
+                    return loop
+            elif nxt not in state:
+                found = visit(nxt)
+                if found:
+                    return found
+        path.pop()
+        state[node] = 2
+        return None
+
+    for start in sorted(graph):
+        if start not in state:
+            found = visit(start)
+            if found:
+                return found
+    return None
+
+
+def test_the_tracking_layers_import_one_way():
+    # TORCHSVS_LAYERS_ROOT: check another tree's package (e.g. another checkout's torchsvs/)
+    root = Path(os.environ.get("TORCHSVS_LAYERS_ROOT", Path(torchsvs.__file__).parent))
+    cycle = find_cycle(root)
+    assert cycle is None, "import loop: " + " -> ".join(cycle or [])
+
+
+def test_a_loop_inside_a_function_is_found(tmp_path):
+    """The check can fail: a function-level import back up the layers is a loop."""
+    package = tmp_path / "torchsvs"
+    (package / "fitting").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "fitting" / "__init__.py").write_text('"""lazy"""\n')
+    (package / "recipes.py").write_text("X = 1\n")
+    (package / "fitting" / "tuning.py").write_text(
+        "from torchsvs.recipes import X\n\ndef f():\n    from torchsvs.tracking import Y\n"
+    )
+    (package / "tracking.py").write_text("from torchsvs.fitting import tuning\nY = 2\n")
+    assert find_cycle(package) == ["torchsvs.fitting.tuning", "torchsvs.tracking"] + [
+        "torchsvs.fitting.tuning"
+    ]
+    (package / "fitting" / "tuning.py").write_text("from torchsvs.recipes import X\n")
+    assert find_cycle(package) is None
+
+
+def test_fitting_needs_no_lightning():
+    """``torchsvs.fitting`` imports none of its parts eagerly and none of them Lightning: the
+    truth-free fit of ``torchsvs track`` runs without it (~2 s of imports)."""
+    code = (
+        "import sys, torchsvs.fitting.noise; "
+        "print('lightning' in sys.modules, 'torchsvs.fitting.tuning' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(torchsvs.__file__).parents[1],
+    )
+    assert out.stdout.split() == ["False", "False"]

@@ -1,0 +1,246 @@
+"""Estimating: an estimator run over padded groups of tracks, with the truth-free error terms.
+
+Each call of ``torchsvs track`` is one group of a block's tracks of similar length
+(:class:`GroupBatch`, :func:`group_batch`), centred so float32 keeps its resolution;
+:func:`estimate_group` runs the estimator on it (each track with its own ``q`` where the settings
+carry the file's SURE curve, :func:`track_q_factors`) and, with ``risk``, once more on probed
+measurements for Stein's unbiased risk estimate (:mod:`torchsvs.accuracy`), and hands back the
+estimates at the block's flat steps (:class:`StepEstimates`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections import Counter
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from torchsvs.accuracy import Accuracy, RiskTerms, risk_terms
+from torchsvs.accuracy import accuracy as accuracy_of
+from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
+from torchsvs.datasets.files import flat_steps, short_track_notes
+from torchsvs.filters import ParticleFilter
+from torchsvs.filters.particle import degenerate_share
+from torchsvs.fitting import noise
+from torchsvs.fitting.defaults import meas_var_range
+from torchsvs.models import ConstantVelocity
+from torchsvs.recipes import FILTERS, Settings, make_estimator, make_model
+
+#: Seed offset of the truth-free error estimate's probes (apart from the particles' seeds).
+PROBE_SEED = 1 << 20
+
+
+def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
+    """The truth-free error estimate (:mod:`torchsvs.accuracy`) of the estimator of complete
+    ``settings`` on padded ``tracks`` (run as ``torchsvs track`` runs it, in float64)."""
+    assert settings.meas_var is not None
+    estimator = make_estimator(settings, make_model(settings)).double()
+    moved, offset = centred(tracks.to(torch.float64))
+    batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
+    meas_std = torch.tensor(settings.meas_var, dtype=torch.float64).sqrt()
+    part = estimate_group(estimator, batch, meas_std, risk=True)
+    assert part.risk is not None
+    return accuracy_of(
+        part.risk,
+        settings.meas_var,
+        noise_estimated=settings.noise != "given",
+        meas_var_range=meas_var_range(settings),
+    )
+
+
+def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:
+    """The tracks moved so each starts near 0 (float32 keeps its resolution on large
+    coordinates), and the offsets ``[B, m]`` to add back."""
+    observed = ~torch.isnan(tracks.z)
+    first = observed.to(torch.int64).argmax(dim=1, keepdim=True)  # [B, 1, m]
+    offset = tracks.z.nan_to_num(0.0).gather(1, first).squeeze(1)
+    return replace(tracks, z=tracks.z - offset.unsqueeze(1)), offset
+
+
+def run_result(
+    estimator: nn.Module, tracks: RecordedTracks, generator: torch.Generator | None = None
+) -> Any:
+    """An estimator's whole result on tracks with priors (no gradients)."""
+    assert tracks.x0 is not None and tracks.P0 is not None
+    kwargs: dict[str, Any] = {"dt": tracks.dt}
+    if isinstance(estimator, ParticleFilter):
+        kwargs["generator"] = (
+            generator if generator is not None else torch.Generator().manual_seed(0)
+        )
+    with torch.no_grad():
+        return estimator(tracks.z, tracks.x0, tracks.P0, **kwargs)
+
+
+def run_estimator(
+    estimator: nn.Module, tracks: RecordedTracks, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor]:
+    """Mean ``[B, T, 2m]`` and covariance of an estimator on tracks with priors (no gradients)."""
+    out = run_result(estimator, tracks, generator)
+    return out.mean, out.cov
+
+
+class GroupBatch(NamedTuple):
+    """One estimator call of ``torchsvs track``: a group of a block's tracks
+    (:meth:`~torchsvs.datasets.TrackSteps.batches`), padded and moved to start near 0."""
+
+    position: int  #: the group's position among the block's groups (seeds its random draws)
+    group: np.ndarray  #: [B] int64 the group's tracks among the block's
+    tracks: RecordedTracks  #: z [B, T, m] in the computation's dtype, priors not yet set
+    offset: Tensor  #: [B, m] float64 what :func:`centred` took off, to add back
+
+
+class StepEstimates(NamedTuple):
+    """A group's estimates at the block's flat steps, in float64: what a process hands back."""
+
+    position: int  #: the group's position among the block's groups
+    group: np.ndarray  #: [B] int64 the group's tracks among the block's
+    steps: np.ndarray  #: [s] int64 the block's flat step of each estimate
+    mean: np.ndarray  #: [s, 2m]
+    cov: np.ndarray | None  #: [s, 2m, 2m], or None when not asked for
+    never_observed: np.ndarray  #: [B, m] bool
+    notes: dict[str, int]  #: :func:`~torchsvs.datasets.files.short_track_notes` of the group
+    #: SURE's sums (:mod:`torchsvs.accuracy`), chunks' ``track`` the block's track, or None
+    risk: RiskTerms | None = None
+    #: [B] each track's factor on the settings' ``q`` (:func:`track_q_factors`), or None
+    q_factor: np.ndarray | None = None
+
+    @classmethod
+    def merge(cls, parts: Sequence[StepEstimates], m: int) -> StepEstimates:
+        """One group's estimates from those of parts of its tracks (same position)."""
+        if len(parts) == 1:
+            return parts[0]
+        notes: Counter[str] = Counter()
+        for part in parts:
+            notes.update(part.notes)
+        covs = [p.cov for p in parts]
+        risks = [p.risk for p in parts if p.risk is not None]
+        return cls(
+            parts[0].position,
+            np.concatenate([p.group for p in parts]),
+            np.concatenate([p.steps for p in parts]),
+            np.concatenate([p.mean for p in parts]),
+            None if any(c is None for c in covs) else np.concatenate(covs),  # type: ignore[arg-type]
+            np.concatenate([p.never_observed for p in parts]),
+            dict(notes),
+            RiskTerms.concat(risks, m) if len(risks) == len(parts) else None,
+            np.concatenate([p.q_factor for p in parts if p.q_factor is not None]),
+        )
+
+
+def group_batch(
+    steps: TrackSteps, group: np.ndarray, position: int, dtype: torch.dtype
+) -> GroupBatch:
+    """The tracks ``group`` (the block's group number ``position``) padded (float64, so the
+    offsets are exact), centred, then cast to ``dtype``."""
+    tracks, offset = centred(steps.pad(group, torch.float64))
+    return GroupBatch(position, group, tracks.to(dtype), offset)
+
+
+def estimate_group(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool = False,
+    risk: bool = True,
+    settings: Settings | None = None,
+) -> StepEstimates:
+    """Priors from ``meas_std [m]`` (:func:`~torchsvs.datasets.with_prior`), the estimator's
+    run and the offsets added back. Random draws (particle filters) come from a generator
+    seeded with the group's position, so a group's estimates do not depend on which groups ran
+    before it, nor in which process. With ``risk``, a second run on probed measurements gives
+    the truth-free error estimate's terms (:func:`~torchsvs.accuracy.risk_terms`).
+
+    Where ``settings`` carry the file's SURE curve (``q_curve``), each track runs with its own
+    ``q`` (:func:`track_q_factors`): the tracks of one factor together, ``estimator``'s ``q``
+    scaled by it for the call (:func:`scaled_q`)."""
+    if settings is None or settings.q_curve is None:
+        return _estimate_part(estimator, batch, meas_std, covariance, risk)
+    factors = track_q_factors(settings, batch.tracks)
+    parts = []
+    for factor in torch.unique(factors).tolist():
+        index = torch.nonzero(factors == factor).flatten()
+        part = GroupBatch(
+            batch.position,
+            batch.group[index.numpy()],
+            batch.tracks.subset(index),
+            batch.offset[index],
+        )
+        with scaled_q(estimator, factor):
+            found = _estimate_part(estimator, part, meas_std, covariance, risk)
+        parts.append(found._replace(q_factor=np.full(len(index), factor)))
+    return StepEstimates.merge(parts, len(meas_std))
+
+
+def track_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
+    """``[B]`` each track's factor on ``settings.q`` (:func:`torchsvs.fitting.noise.
+    track_q_factors` against the file's curve ``settings.q_curve``)."""
+    assert settings.q_curve is not None and settings.meas_var is not None
+    assert settings.q is not None
+    curves = noise.q_curves(
+        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
+    )
+    return noise.track_q_factors(curves, settings.q_curve)
+
+
+@contextlib.contextmanager
+def scaled_q(estimator: nn.Module, factor: float) -> Iterator[nn.Module]:
+    """The estimator with its motion model's ``q`` times ``factor`` inside the block (then
+    restored exactly)."""
+    if factor == 1.0:
+        yield estimator
+        return
+    model = estimator.model
+    assert isinstance(model, ConstantVelocity), "scaled_q: a constant-velocity model's q"
+    raw = model.q.raw  # q is stored as its log (constraints.Positive)
+    kept = raw.detach().clone()
+    with torch.no_grad():
+        raw.add_(math.log(factor))
+    try:
+        yield estimator
+    finally:
+        with torch.no_grad():
+            raw.copy_(kept)
+
+
+def _estimate_part(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool = False,
+    risk: bool = True,
+) -> StepEstimates:
+    """:func:`estimate_group` with the estimator as it is."""
+
+    def positions(z: Tensor) -> Any:
+        tracks = with_prior(replace(batch.tracks, z=z), meas_std)
+        generator = torch.Generator().manual_seed(batch.position)
+        return run_result(estimator, tracks, generator)
+
+    tracks = with_prior(batch.tracks, meas_std)
+    out = positions(batch.tracks.z)
+    mean, cov = out.mean, out.cov
+    notes = short_track_notes(tracks)
+    if getattr(out, "ess", None) is not None:  # a particle filter: how often it degenerated
+        measured = (~torch.isnan(tracks.z)).any(-1).sum(-1)  # [B] steps with a measurement
+        notes["particle_steps"] = int(measured.sum())
+        low = degenerate_share(out, tracks.z) * measured
+        notes["particle_steps_degenerate"] = int(low.sum().round())
+    terms = None
+    if risk:
+        probes = torch.Generator().manual_seed(PROBE_SEED + batch.position)
+        terms = risk_terms(
+            lambda z: positions(z).mean[..., 0::2], tracks.z, mean[..., 0::2], meas_std, probes
+        )
+        terms.track = batch.group[terms.track]
+    mean = mean.double()
+    mean[..., 0::2] += batch.offset.unsqueeze(1)
+    target, values, covs = flat_steps(tracks, mean, cov if covariance else None)
+    assert tracks.never_observed is not None
+    never = tracks.never_observed.numpy()
+    return StepEstimates(batch.position, batch.group, target, values, covs, never, notes, terms)

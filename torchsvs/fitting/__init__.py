@@ -1,0 +1,14 @@
+"""Fitting estimators on recorded tracks without truth, and without Lightning.
+
+* :mod:`~torchsvs.fitting.losses`: the losses (innovation NLL, Stein's unbiased risk estimate,
+  ...) and :mod:`~torchsvs.fitting.batches`: recorded tracks cut into windows with priors.
+* :mod:`~torchsvs.fitting.noise`: ``q`` by the Kalman smoother's exact SURE, per file and per
+  track.
+* :mod:`~torchsvs.fitting.defaults`: the settings ``torchsvs track`` reads off the data.
+* :mod:`~torchsvs.fitting.tuning`: :func:`~torchsvs.fitting.tuning.self_tune`, ``--fit``.
+* :mod:`~torchsvs.fitting.selection`: ``--estimator auto``.
+
+Nothing is imported here, so that importing one part (e.g. ``torchsvs.fitting.noise``) does not
+import the others: :mod:`~torchsvs.fitting.tuning` and :mod:`~torchsvs.fitting.selection` sit
+above :mod:`torchsvs.estimating`, which uses :mod:`~torchsvs.fitting.noise`.
+"""

@@ -1,0 +1,233 @@
+"""Settings from the data: what ``torchsvs track`` fills in where the user left it open.
+
+The measurement noise (and its standard error) from :func:`~torchsvs.datasets.estimate_noise`,
+``q`` as the Kalman smoother's (for a filter, the Kalman filter's) by its exact SURE
+(:func:`torchsvs.fitting.noise.smoother_q`), the SVSF's boundary layer from the rule of thumb
+(:func:`~torchsvs.recipes.rule_of_thumb_psi`), the IMM's mode noises from :func:`turn_settings`
+(:func:`complete_settings`), and the file's SURE curve of ``q`` each track's own ``q`` is
+chosen against (:func:`with_q_curve`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any
+
+import torch
+
+from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
+from torchsvs.fitting.noise import q_curves, smoother_q
+from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
+
+#: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
+IMM_QUIET = 0.03
+#: The IMM's turn-rate scale in units of ``√(q/T) / v̄`` (:func:`turn_settings`).
+TURN_RATE_SCALE = 0.3
+
+
+def typical_speed(tracks: RecordedTracks) -> float:
+    """The median horizontal speed of the tracks (their first two axes) between successive
+    observed positions (noise included), or 0 where no two successive positions are
+    observed."""
+    z = tracks.z[..., :2].to(torch.float64)
+    step = (z[:, 1:] - z[:, :-1]).norm(dim=-1) / tracks.dt[:, 1:].to(torch.float64)
+    step = step[torch.isfinite(step)]
+    return float(step.median()) if step.numel() else 0.0
+
+
+def imm_base_q(tracks: RecordedTracks, meas_var: Sequence[float]) -> float:
+    """The ``q`` the IMM's mode noises are derived from (:func:`turn_settings`): the Kalman
+    filter's SURE ``q`` of the horizontal axes. Short differences
+    (:func:`~torchsvs.datasets.estimate_noise`'s ``q``) read circling gliders at 10-30 s as a
+    quiet CV target and left the IMM at 1.9× raw; the turn is horizontal, and a calm height
+    would dilute its scale."""
+    horizontal = replace(tracks, z=tracks.z[..., :2])
+    return _sure_q(horizontal, list(meas_var)[:2], "kf")
+
+
+def turn_settings(
+    q: float,
+    meas_var: Sequence[float],
+    interval: float,
+    speed: float,
+    quiet: float = IMM_QUIET,
+    rate_scale: float = TURN_RATE_SCALE,
+) -> dict[str, float]:
+    r"""The IMM's mode noises from the data's ``q`` (the spectral density of a single CV model,
+    which counts the maneuvers as noise: :func:`complete_settings` passes the Kalman filter's
+    SURE ``q``), the measurement noise, the typical interval ``T``
+    and the typical horizontal speed :math:`\bar v` (:func:`typical_speed`):
+
+    * CV mode: ``q_CV = quiet · q`` (:data:`IMM_QUIET`): quiet, the turns go to the CT mode;
+    * CT mode: white acceleration variance ``turn_q = q / T`` (the velocity noise per step of
+      the single CV model) and a turn-rate scale :math:`\omega_s = s\,\sqrt{q/T}/\bar v`
+      with ``s = rate_scale`` (:data:`TURN_RATE_SCALE`): :math:`\sqrt{q/T}/\bar v` is the
+      turn rate whose centripetal acceleration at the typical speed is the CV model's
+      acceleration noise over a step. :math:`\omega_s` is the prior standard deviation of
+      the turn rate and its standard deviation of change per typical step
+      (``turn_rate_q = (ω_s / T)²``).
+
+    For a three-axis file ``q`` is read off the horizontal axes (the turn is horizontal; a calm
+    height would dilute the one ``q`` of all three). The speed is floored at the speed the
+    measurement noise alone shows between two steps
+    (:math:`\sqrt{2r}/T`), so still or slow targets get a finite, small turn rate. The factors
+    were chosen on the training half of the recorded calibration flights at σ = 50, 100 and
+    200 m (``experiments/results/real_flights.md``, IMM section: a grid of CV shares 0.01-1
+    and turn-rate scales 0.1-1). With :func:`imm_base_q` as the base (the study first ran on
+    the ``q`` of short differences, to the same choice) the defaults are within 0.5% of the
+    grid's best position RMSE at every level, and a quieter CV mode is better down to 0.03
+    there (and on simulated turns); a turn-rate scale of 1 let the turn mode's turn rate
+    wander to aliasing values (ωT of several radians between scans) on some flights, with
+    velocity errors of thousands of m/s.
+    """
+    r = sum(meas_var[:2]) / len(meas_var[:2])
+    speed = max(speed, math.sqrt(2.0 * r) / interval)
+    scale = rate_scale * math.sqrt(q / interval) / speed
+    return {
+        "q": quiet * q,
+        "turn_q": q / interval,
+        "turn_rate_q": (scale / interval) ** 2,
+        "turn_rate_std": scale,
+    }
+
+
+def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
+    """Fills what the settings leave open from the data: noise levels and the typical interval
+    (and the IMM's mode noises, :func:`turn_settings`)."""
+    source = settings.noise or ("given" if settings.meas_var is not None else "data")
+    meas_std_se, spread = settings.meas_std_se, settings.noise_spread
+    interval = float(tracks.dt[tracks.mask].median()) if len(tracks) else 1.0
+    meas_var, q = settings.meas_var, settings.q
+    imm = settings.estimator == "imm"
+    turn_open = imm and None in (settings.turn_q, settings.turn_rate_q, settings.turn_rate_std)
+    if meas_var is None:
+        try:
+            noise = estimate_noise(tracks.z, tracks.dt)
+        except ValueError as err:
+            raise ValueError(
+                "meas_std: too few observed positions to read the measurement noise off the "
+                "data; give it (--meas-std) and the process noise (--q)"
+            ) from err
+        meas_var = noise.meas_var.double().tolist()
+        spread = noise_spread(tracks.z, tracks.dt)
+        meas_std_se = _noise_standard_error(noise, meas_var, spread)
+    m = tracks.z.shape[-1]
+    if len(meas_var) == 1 and m > 1:
+        meas_var = list(meas_var) * m
+    if len(meas_var) != m:
+        raise ValueError(f"meas_std: expected one value or one per axis ({m}), got {len(meas_var)}")
+    data_q = None
+    if q is None or turn_open:
+        try:
+            data_q = (
+                imm_base_q(tracks, meas_var)
+                if imm
+                else _sure_q(tracks, meas_var, settings.estimator)
+            )
+        except ValueError:  # too little data to say: the measurement noise over one step
+            data_q = sum(meas_var) / len(meas_var) / interval**3
+    if q is None and not imm:
+        q = data_q
+    turn_q, turn_rate_q, turn_rate_std = (
+        settings.turn_q,
+        settings.turn_rate_q,
+        settings.turn_rate_std,
+    )
+    if imm:
+        if m not in (2, 3):
+            raise ValueError(
+                f"estimator: imm turns in the horizontal plane of 2 or 3 position axes, got {m}"
+            )
+        if data_q is not None:
+            derived = turn_settings(data_q, meas_var, interval, typical_speed(tracks))
+            q = derived["q"] if q is None else q
+            turn_q = turn_q or derived["turn_q"]
+            turn_rate_q = turn_rate_q or derived["turn_rate_q"]
+            turn_rate_std = turn_rate_std or derived["turn_rate_std"]
+    psi = settings.psi
+    if psi is None and settings.estimator in ("svsf", "svss", "svstps", "spvsf"):
+        psi = rule_of_thumb_psi(m, settings.velocity)
+    elif psi is not None and len(psi) == 1 and m > 1:
+        psi = list(psi) * m  # one value for every axis, as --psi's help says
+    assert q is not None  # (an open q sent the IMM through the data too)
+    if meas_std_se is not None and len(meas_std_se) == 1 and m > 1:
+        meas_std_se = list(meas_std_se) * m
+    return replace(
+        settings,
+        meas_var=[float(v) for v in meas_var],
+        noise=source,
+        meas_std_se=meas_std_se,
+        noise_spread=spread,
+        q=float(q),
+        interval=interval,
+        psi=psi,
+        turn_q=turn_q,
+        turn_rate_q=turn_rate_q,
+        turn_rate_std=turn_rate_std,
+    )
+
+
+def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:
+    """The q a Kalman smoother (or, for :data:`~torchsvs.recipes.FILTERS`, a Kalman filter)
+    serves these tracks with (:func:`torchsvs.fitting.noise.smoother_q`: its exact SURE, the
+    noise fixed): the motion that short differences show (``estimate_noise``'s q) is no guide
+    at long scans or for slow targets."""
+    r = torch.tensor(meas_var, dtype=torch.float64)
+    return smoother_q(tracks.z, tracks.dt, r, smoothed=estimator not in FILTERS).q
+
+
+def _noise_standard_error(
+    noise: Any, meas_var: Sequence[float], spread: float | None
+) -> list[float] | None:
+    """The standard error of the noise standard deviation per axis that
+    :func:`~torchsvs.datasets.estimate_noise` reports, if it does, with the between-track
+    spread (:func:`~torchsvs.datasets.noise_spread`) added in quadrature: where one noise level
+    does not fit every track, the pooled reading is that uncertain, whatever its jackknife."""
+    se = getattr(noise, "meas_std_se", None)
+    if se is None:
+        return None
+    extra = [(spread or 0.0) * v**0.5 for v in meas_var]
+    return [
+        math.hypot(float(v), e) for v, e in zip(torch.as_tensor(se).reshape(-1), extra, strict=True)
+    ]
+
+
+def meas_var_range(settings: Settings) -> tuple[list[float], list[float]] | None:
+    """The measurement variance two standard errors below and above the settings' own, where
+    the noise was read off the data with a standard error (else None)."""
+    if settings.noise == "given" or settings.meas_var is None or settings.meas_std_se is None:
+        return None
+    std = [v**0.5 for v in settings.meas_var]
+    low = [max(s - 2 * e, 0.0) ** 2 for s, e in zip(std, settings.meas_std_se, strict=True)]
+    high = [(s + 2 * e) ** 2 for s, e in zip(std, settings.meas_std_se, strict=True)]
+    return low, high
+
+
+def settings_note(settings: Settings) -> str:
+    """One line on the model's noise levels and where the measurement noise came from."""
+    assert settings.meas_var is not None
+    std = ", ".join(f"{v**0.5:.4g}" for v in settings.meas_var)
+    source = {"given": "as given", "fit": "learned"}.get(settings.noise or "", "read off the data")
+    if settings.noise == "data" and settings.meas_std_se is not None:
+        source += " ± " + ", ".join(f"{e:.2g}" for e in settings.meas_std_se)
+    return (
+        f"model: measurement noise std [{std}] ({source}), q = {settings.q:.4g}, "
+        f"typical interval {settings.interval:.4g} s"
+    )
+
+
+def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
+    """The settings with the file's SURE curve of ``q`` (``q_curve``, read off ``tracks``), so
+    that each track runs with its own ``q``; unchanged where ``settings.track_q`` is off, for
+    the IMM (its modes' noises are one design) and where the tracks give nothing to score."""
+    if not settings.track_q or settings.estimator in ("imm", "auto"):
+        return settings
+    assert settings.meas_var is not None and settings.q is not None
+    curves = q_curves(
+        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
+    )
+    if float(curves.counts.sum()) == 0:
+        return settings
+    return replace(settings, q_curve=curves.pooled())

@@ -1,0 +1,230 @@
+"""Recipes: what an estimator of ``torchsvs track`` is built from, by name.
+
+:data:`ESTIMATORS` names them; :class:`Settings` holds what one is built from (noise levels,
+``q``, the SVSF family's boundary layer, the IMM's mode noises, ...); :func:`make_model` and
+:func:`make_estimator` build it. Filling open settings from the data is
+:mod:`torchsvs.fitting.defaults`' work, running the estimator over a file
+:mod:`torchsvs.estimating`'s and :mod:`torchsvs.tracking`'s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torchsvs.estimator import Estimator
+from torchsvs.filters import (
+    SPVSF,
+    SVSF,
+    ExtendedKalmanFilter,
+    KalmanFilter,
+    ParticleFilter,
+    RobustStudentTKalmanFilter,
+    UnscentedKalmanFilter,
+    VariableBoundarySVSF,
+)
+from torchsvs.filters.turn_imm import TurnIMM
+from torchsvs.models import ConstantVelocity
+from torchsvs.smoothers import SVSS, RTSSmoother
+
+#: Estimator names of ``torchsvs track --estimator`` and what they are.
+ESTIMATORS = {
+    "auto": "the lowest estimated error of ks, svss (svstps with --no-velocity), imm (small "
+    "files), each tuned on the file without truth (torchsvs.fitting.selection)",
+    "kf": "Kalman filter",
+    "ks": "Kalman smoother (RTS; fixed interval unless --lag)",
+    "svsf": "smooth variable structure filter",
+    "svss": "smooth variable structure smoother (fixed lag)",
+    "svstps": "two-pass smoother: RTS over the SVSF (fixed lag)",
+    "ekf": "extended Kalman filter (the KF on this linear model)",
+    "ukf": "unscented Kalman filter (the KF on this linear model)",
+    "rstkf": "robust Student's t Kalman filter",
+    "pf": "SIR particle filter",
+    "spvsf": "smooth particle variable structure filter",
+    "imm": "IMM of a KF on constant velocity and an EKF on a coordinated turn (horizontal)",
+}
+#: Lag of each smoother when none is given (``None``: fixed interval).
+DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
+#: Boundary layer of the rule of thumb in the ``H⁺`` mode (``--no-velocity``), in standard
+#: deviations of each step's own measurement noise (Chen et al. 2020: 4-5).
+PSI_IN_SIGMAS = 5.0
+#: The variable boundary layer's limit of the rule of thumb, in standard deviations of each
+#: step's own innovation (:class:`~torchsvs.filters.VariableBoundarySVSF`). Chosen on simulated
+#: ships, airliners, drones, irregular times and hard turns and on recorded flights: at 2 the
+#: filter stays below the raw measurements also where ``q`` suits a smoother and is too small
+#: for a filter in turns (10 s airliner scans); wider limits (3-4) bring the smoothers 2-10%
+#: closer to the Kalman smoother on simulated tracks and lift the filter to the raw error there.
+PSI_LIMIT_IN_SIGMAS = 2.0
+#: Estimators whose output is a filter's (each step from the past alone): their q is the
+#: Kalman filter's, the others' the Kalman smoother's
+#: (:func:`~torchsvs.fitting.defaults._sure_q`).
+FILTERS = ("kf", "ekf", "ukf", "rstkf", "pf", "spvsf", "svsf")
+
+
+@dataclass
+class Settings:
+    """What an estimator of :data:`ESTIMATORS` is built from (per-axis lists for an ``m``-axis
+    file; the SVSF's ``psi`` has one width per corrector component, in state order)."""
+
+    estimator: str = "ks"
+    meas_var: list[float] | None = None  #: measurement noise variance per axis
+    q: float | None = None  #: process noise spectral density of the CV model
+    #: SVSF family's boundary layer, one value per axis (or one for all): the variable
+    #: boundary layer's limit in innovation standard deviations; with ``velocity=False`` (the
+    #: H⁺ mode) the width in measurement noise standard deviations. None:
+    #: :func:`rule_of_thumb_psi`
+    psi: list[float] | None = None
+    gamma: float = 0.1  #: SVSF memory
+    lag: int | None = None  #: smoother lag; None: :data:`DEFAULT_LAG`
+    velocity: bool = True  #: SVSF corrects velocity (finite differences); False: the H⁺ mode
+    particles: int = 350  #: particles of the PF and SPVSF
+    interval: float = 1.0  #: typical sampling interval of the data (s), for the rule of thumb
+    #: IMM: the CT mode's white acceleration variance per horizontal axis (m²/s⁴)
+    turn_q: float | None = None
+    turn_rate_q: float | None = None  #: IMM: the CT mode's turn-rate noise (rad²/s⁴)
+    turn_rate_std: float | None = None  #: IMM: prior standard deviation of the turn rate (rad/s)
+    switch_prob: float = 0.05  #: IMM: probability of a mode switch per step
+    #: where ``meas_var`` came from: "given", "data" (read off the tracks) or "fit" (learned by
+    #: likelihood); None until :func:`~torchsvs.fitting.defaults.complete_settings`
+    noise: str | None = None
+    #: standard error of the noise standard deviation per axis, where it was read off the data
+    meas_std_se: list[float] | None = None
+    #: where the noise was read off the data: how much the reading differs between tracks
+    #: beyond their own uncertainty (a relative spread, :func:`~torchsvs.datasets.noise_spread`;
+    #: also in ``meas_std_se``)
+    noise_spread: float | None = None
+    #: ``--estimator auto``: the candidates this estimator was chosen from
+    chosen_from: list[str] | None = None
+    #: each track its own ``q`` (the file's times a factor its SURE picks, shrunk toward the
+    #: file's: :func:`~torchsvs.fitting.noise.track_q_factors`), where ``q`` is not given
+    track_q: bool = True
+    #: the file's SURE curve the tracks' own ``q`` are chosen against (of the Kalman smoother,
+    #: or for :data:`FILTERS` the filter, at ``q`` times
+    #: :data:`~torchsvs.fitting.noise.Q_FACTORS`); None: one ``q`` for every track
+    q_curve: list[float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(
+                f"estimator: expected one of {sorted(ESTIMATORS)}, got {self.estimator!r}"
+            )
+        if self.lag is not None and (
+            isinstance(self.lag, bool) or not isinstance(self.lag, int) or self.lag < 1
+        ):
+            raise ValueError(f"lag: expected an integer >= 1, got {self.lag!r}")
+        if not 0.0 <= self.gamma < 1.0:
+            raise ValueError(f"gamma: expected a value in [0, 1), got {self.gamma!r}")
+        if self.q is not None and not self.q > 0:
+            raise ValueError(f"q: expected a number > 0, got {self.q!r}")
+        if self.psi is not None and not all(p > 0 for p in self.psi):
+            raise ValueError(f"psi: expected widths > 0, got {self.psi!r}")
+        for name in ("turn_q", "turn_rate_q", "turn_rate_std"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name}: expected a number > 0, got {value!r}")
+        if not 0.0 <= self.switch_prob < 1.0:
+            raise ValueError(f"switch_prob: expected a value in [0, 1), got {self.switch_prob!r}")
+
+    @property
+    def smoother_lag(self) -> int | None:
+        return self.lag if self.lag is not None else DEFAULT_LAG.get(self.estimator)
+
+
+def rule_of_thumb_psi(axes: int, velocity: bool = True) -> list[float]:
+    """ψ of the SVSF family of ``track``, one per axis, in units of each step's own noise (so
+    neither the noise level nor the interval enters it):
+
+    * ``velocity`` (default): the limit of the variable boundary layer
+      (:class:`~torchsvs.filters.VariableBoundarySVSF`), :data:`PSI_LIMIT_IN_SIGMAS` innovation
+      standard deviations: the Kalman gain inside, the SVSF's beyond.
+    * the ``H⁺`` mode: :data:`PSI_IN_SIGMAS` measurement noise standard deviations
+      (``psi_units="noise"``). Chen et al. 2020 use ψ = 800 m for 200 m noise (Sec. 4.1) and
+      500 m / 600 m/s for 100 m noise with finite-difference velocities (Sec. 4.2, whose noise
+      is √2·100 m/s at T = 1 s): four to five standard deviations.
+    """
+    return [PSI_LIMIT_IN_SIGMAS if velocity else PSI_IN_SIGMAS] * axes
+
+
+def make_model(
+    settings: Settings, learn_q: bool = False, learn_r: bool = False
+) -> ConstantVelocity:
+    """The nearly-constant-velocity model of the settings (``meas_var`` and ``q`` must be set)."""
+    if settings.meas_var is None or settings.q is None:
+        raise ValueError("settings: meas_var and q must be known before the model is built")
+    return ConstantVelocity(
+        ndim=len(settings.meas_var),
+        dt=settings.interval,
+        q=settings.q,
+        r=list(settings.meas_var),
+        learn_q=learn_q,
+        learn_r=learn_r,
+    )
+
+
+def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
+    """The estimator ``settings.estimator`` on ``model`` (the IMM's turn settings must be set;
+    its turn noises are learnable when ``model``'s ``q`` is)."""
+    name = settings.estimator
+    if name == "auto":
+        raise ValueError(
+            "estimator: 'auto' is a choice among estimators, made on data "
+            "(torchsvs.fitting.selection.choose_estimator), not an estimator to build"
+        )
+    if name == "imm":
+        if settings.turn_rate_q is None or settings.turn_rate_std is None:
+            raise ValueError(
+                "settings: turn_rate_q and turn_rate_std must be known before the IMM is built"
+            )
+        if model.ndim not in (2, 3):
+            raise ValueError(
+                f"estimator: imm turns in the horizontal plane of 2 or 3 position axes, got "
+                f"{model.ndim}"
+            )
+        p = settings.switch_prob
+        return TurnIMM(
+            model,
+            turn_q=settings.turn_q,
+            turn_rate_q=settings.turn_rate_q,
+            turn_rate_std=settings.turn_rate_std,
+            transition=[[1.0 - p, p], [p, 1.0 - p]],
+        )
+    if name in ("kf", "ks"):
+        kf = KalmanFilter(model)
+        return kf if name == "kf" else RTSSmoother(kf, lag=settings.smoother_lag)
+    if name == "ekf":
+        return ExtendedKalmanFilter(model)
+    if name == "ukf":
+        return UnscentedKalmanFilter(model)
+    if name == "rstkf":
+        # Swapped shapes: the derived ones take a turn's innovations for measurement outliers
+        # and lose the target (7x raw on airliners at their own report times; robust.py).
+        return RobustStudentTKalmanFilter(model, scale_shapes="swapped")
+    if name == "pf":
+        # The optimal proposal, regularised: the bootstrap loses tracks at long scan intervals
+        # and in maneuvers the data's q misses (ParticleFilter's docstring).
+        return ParticleFilter(
+            model, num_particles=settings.particles, proposal="optimal", regularize=True
+        )
+    assert settings.meas_var is not None
+    # ψ in units of each step's own noise (rule_of_thumb_psi), one per axis.
+    psi = settings.psi or rule_of_thumb_psi(len(settings.meas_var), settings.velocity)
+    if name == "spvsf":
+        return SPVSF(
+            model,
+            psi=psi,
+            gamma=settings.gamma,
+            num_particles=settings.particles,
+            artificial=None,
+            variable_boundary=settings.velocity,
+            psi_units="absolute" if settings.velocity else "noise",
+            regularize=True,
+        )
+    svsf: SVSF
+    if settings.velocity:
+        svsf = VariableBoundarySVSF(model, psi=psi, gamma=settings.gamma)
+    else:
+        svsf = SVSF(model, psi=psi, gamma=settings.gamma, artificial=None, psi_units="noise")
+    if name == "svsf":
+        return svsf
+    if name == "svss":
+        return SVSS(svsf, lag=settings.smoother_lag)
+    return RTSSmoother(svsf, lag=settings.smoother_lag)
