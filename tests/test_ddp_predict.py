@@ -7,6 +7,7 @@ start ``python -m torchsvs.cli`` in a subprocess.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from tests.test_track_cli import _simulated_csv
 from torchsvs.cli import main
 from torchsvs.datasets import Columns, track_blocks
 from torchsvs.recipes import Settings
+from torchsvs.tracking import summary_path
 from torchsvs.training.predict import predict_file
 
 # Lightning 2.6 on torch 2.13, at every run of a Trainer in this process.
@@ -69,6 +71,9 @@ def test_lightning_predict_in_one_process_writes_what_track_writes(tmp_path, est
     )
     assert run is not None and run.report.total > 0
     assert lightning.read_bytes() == today.read_bytes()
+    # the summary counts the same per-track q as the loop's
+    ours = json.loads(summary_path(today).read_text())
+    assert run.summary_json()["q_per_track"] == ours["q_per_track"]
 
 
 def test_two_processes_write_the_same_file_as_one(tmp_path):

@@ -293,6 +293,9 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     assert "q_per_track" in summary
     factors = track_q_factors(q_curves(z, dt, 400.0, settings.q), settings.q_curve)
     assert factors[:3].max() < 1 and factors[:3].max() < factors[3:].min(), factors.tolist()
+    written = [summary["tracks"][f"k{b}"]["q_factor"] for b in range(len(z))]
+    assert written == pytest.approx(factors.tolist(), rel=1e-12)
+    assert sum(summary["q_per_track"]["tracks_per_factor"].values()) == len(z)
     joint = pcsv.read_csv(tmp_path / "out.csv")
     for b in (0, 4):
         alone = tmp_path / f"k{b}.csv"

@@ -142,7 +142,8 @@ class BlockEstimates:
     notes: Counter[str] = field(default_factory=Counter)
     groups: set[int] = field(default_factory=set)  #: positions of the groups added
     risk: list[RiskTerms] = field(default_factory=list)  #: the groups' SURE terms
-    q_factors: list[np.ndarray] = field(default_factory=list)  #: the groups' tracks' q factors
+    #: [K] each track's factor on the settings' ``q`` (NaN: one ``q`` for all, or not estimated)
+    q_factor: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @classmethod
     def empty(cls, steps: TrackSteps, covariance: bool = False) -> BlockEstimates:
@@ -151,6 +152,7 @@ class BlockEstimates:
             np.full((S, 2 * m), np.nan),
             np.full((S, 2 * m, 2 * m), np.nan) if covariance else None,
             np.zeros((steps.num_tracks, m), dtype=bool),
+            q_factor=np.full(steps.num_tracks, np.nan),
         )
 
     def add(self, part: StepEstimates) -> None:
@@ -163,7 +165,7 @@ class BlockEstimates:
         if part.risk is not None:
             self.risk.append(part.risk)
         if part.q_factor is not None:
-            self.q_factors.append(part.q_factor)
+            self.q_factor[part.group] = part.q_factor
 
     def table(self, block: TrackBlock) -> Any:
         """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
@@ -190,6 +192,8 @@ class TrackRun:
     warnings: list[str] = field(default_factory=list)  #: what the user must know
     #: tracks per factor on the settings' ``q`` where each track ran with its own
     q_factors: Counter[float] = field(default_factory=Counter)
+    #: the factor of the tracks in :attr:`track_errors` (id → factor)
+    track_q: dict[str, float] = field(default_factory=dict)
 
     @property
     def accuracy(self) -> Accuracy | None:
@@ -204,16 +208,33 @@ class TrackRun:
             meas_var_range=meas_var_range(self.settings),
         )
 
-    def add_track_errors(self, terms: Sequence[RiskTerms], ids: Sequence[str]) -> None:
-        """Adds a block's per-track error estimates (the worst :data:`TRACKS_KEPT` kept)."""
+    def add_block(self, found: BlockEstimates, steps: TrackSteps) -> None:
+        """Counts a block's estimates: its notes, tracks' q factors, error estimate's terms."""
+        self.report.add(steps.report)
+        self.report.notes.update(found.notes)
+        own = np.isfinite(found.q_factor)
+        self.q_factors.update(found.q_factor[own].tolist())
+        if self.risk is not None:
+            for terms in found.risk:
+                self.risk.add(terms)
+            self.add_track_errors(found.risk, steps.ids, found.q_factor)
+
+    def add_track_errors(
+        self, terms: Sequence[RiskTerms], ids: Sequence[str], q_factor: np.ndarray | None = None
+    ) -> None:
+        """Adds a block's per-track error estimates (the worst :data:`TRACKS_KEPT` kept), and
+        the kept tracks' q factors (``[K]``, NaN where none)."""
         assert self.settings is not None and self.settings.meas_var is not None
         m = len(self.settings.meas_var)
         rmse, points = RiskTerms.concat(terms, m).per_track(self.settings.meas_var, len(ids))
         for k in np.flatnonzero(points > 0):
             self.track_errors[ids[int(k)]] = (float(rmse[k]), int(points[k]))
+            if q_factor is not None and np.isfinite(q_factor[k]):
+                self.track_q[ids[int(k)]] = float(q_factor[k])
         if len(self.track_errors) > 2 * TRACKS_KEPT:
             worst = sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
             self.track_errors = dict(worst)
+            self.track_q = {k: v for k, v in self.track_q.items() if k in self.track_errors}
 
     def check(self) -> None:
         """Warns where the estimate is not clearly better than the raw measurements."""
@@ -276,6 +297,7 @@ class TrackRun:
             )
         out["tracks"] = {
             k: {"estimated_position_rmse": v[0], "points": v[1]}
+            | ({"q_factor": self.track_q[k]} if k in self.track_q else {})
             for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])
         }
         if self.q_factors:
@@ -426,14 +448,7 @@ def track_file(
                 bar.update(len(group))
             run.estimate_seconds += time.perf_counter() - tick
             run.estimate_cpu_seconds += time.process_time() - cpu
-            run.report.add(steps.report)
-            run.report.notes.update(found.notes)
-            for factors in found.q_factors:
-                run.q_factors.update(factors.tolist())
-            if run.risk is not None:
-                for terms in found.risk:
-                    run.risk.add(terms)
-                run.add_track_errors(found.risk, steps.ids)
+            run.add_block(found, steps)
             tick = time.perf_counter()
             writer.write(found.table(block))
             run.phases["writing"] += time.perf_counter() - tick

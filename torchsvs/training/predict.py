@@ -387,15 +387,11 @@ def predict_file(
     if len(found.groups) != len(data.groups):
         raise RuntimeError(f"estimated {len(found.groups)} of {len(data.groups)} groups of tracks")
     run = TrackRun(settings=module.settings, fit=module.fit_summary)
-    run.report.add(steps.report)
-    run.report.notes.update(found.notes)
-    run.report.notes = +run.report.notes
     if found.risk:
         assert module.settings.meas_var is not None
         run.risk = RiskTotals(len(module.settings.meas_var))
-        for terms in found.risk:
-            run.risk.add(terms)
-        run.add_track_errors(found.risk, steps.ids)
+    run.add_block(found, steps)
+    run.report.notes = +run.report.notes
     run.check()
     assert data.block is not None
     with EstimateWriter(target) as writer:
