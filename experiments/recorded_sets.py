@@ -35,7 +35,7 @@ import math
 import zlib
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -621,20 +621,21 @@ KINDS: dict[str, Kind] = {
 
 @dataclass
 class BenchSet:
-    """One benchmark set: a kind's truth measured with noise σ."""
+    """One benchmark set: a kind's truth measured with noise σ (and :func:`add_faults`)."""
 
     kind: Kind
     sigma: float
     truth: Truth
     measurements: pd.DataFrame  #: track_id, time, x, y: the truth plus noise
+    faults: bool = False  #: measured with :func:`add_faults`
 
     @property
     def name(self) -> str:
-        return f"{self.kind.name} σ{self.sigma:g}"
+        return f"{self.kind.name} σ{self.sigma:g}" + (" faults" if self.faults else "")
 
     @property
     def slug(self) -> str:
-        return f"{self.kind.name}_s{self.sigma:g}"
+        return f"{self.kind.name}_s{self.sigma:g}" + ("_faults" if self.faults else "")
 
     def write(self, folder: Path) -> tuple[Path, Path]:
         """The input file (measurements only) and the truth beside it, as CSV."""
@@ -654,6 +655,69 @@ def measure(truth: pd.DataFrame, sigma: float, seed: int) -> pd.DataFrame:
     return truth.assign(x=truth["x"] + noise[:, 0], y=truth["y"] + noise[:, 1])
 
 
+#: Faults (:func:`add_faults`): this share of positions off by :data:`OUTLIER_SIGMAS` σ ...
+OUTLIER_SHARE = 0.01
+OUTLIER_SIGMAS = 10.0
+#: ... this share of rows lost, in runs of :data:`DROPOUT_RUN` rows on average ...
+DROPOUT_SHARE = 0.05
+DROPOUT_RUN = 5.0
+#: ... time stamps off by this standard deviation (s; within 0.4 of the intervals beside) ...
+JITTER_STD = 0.1
+#: ... and a sensor bias of :data:`BIAS_SIGMAS` σ in one direction over one stretch of this
+#: share of each track's rows (it comes and goes).
+BIAS_SHARE = 0.2
+BIAS_SIGMAS = 3.0
+#: Fewest rows a track keeps through the dropouts.
+FAULT_MIN_ROWS = 10
+
+
+def add_faults(
+    truth: pd.DataFrame, measured: pd.DataFrame, sigma: float, seed: int
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Realistic faults on measured rows (issue 29, item 6), seeded: outliers, dropouts, time
+    jitter and a bias that comes and goes (the constants above). Rows lost are dropped from
+    both frames; the truth keeps each row's true position under its reported time, so the
+    jitter's displacement along the track is error no estimator can remove.
+
+    Returns:
+        The truth and the measurements, row for row (same order, same ``track_id, time``).
+    """
+    rng = np.random.default_rng(seed)
+    n = len(measured)
+    xy = measured[["x", "y"]].to_numpy(copy=True)
+    time = measured["time"].to_numpy(dtype=float, copy=True)
+    ids = measured["track_id"].to_numpy()
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    ends = np.r_[starts[1:], n]
+
+    def direction(size: int) -> np.ndarray:
+        angle = rng.uniform(0.0, 2.0 * np.pi, size)
+        return np.stack([np.cos(angle), np.sin(angle)], 1)
+
+    keep = np.ones(n, dtype=bool)
+    for a, b in zip(starts, ends, strict=True):
+        # bias over one stretch of the track
+        length = max(1, int(round(BIAS_SHARE * (b - a))))
+        first = a + int(rng.integers(0, b - a - length + 1))
+        xy[first : first + length] += BIAS_SIGMAS * sigma * direction(1)
+        # dropouts: runs that start at random, geometric lengths
+        lost = np.zeros(b - a, dtype=bool)
+        for k in np.flatnonzero(rng.random(b - a) < DROPOUT_SHARE / DROPOUT_RUN):
+            lost[k : k + int(rng.geometric(1.0 / DROPOUT_RUN))] = True
+        if (~lost).sum() >= FAULT_MIN_ROWS:
+            keep[a:b] = ~lost
+        # jitter: within 0.4 of the intervals on either side, so the order stays
+        gaps = np.diff(time[a:b])
+        room = 0.4 * np.minimum(np.r_[np.inf, gaps], np.r_[gaps, np.inf])
+        shift = np.clip(rng.normal(0.0, JITTER_STD, b - a), -room, room)
+        time[a:b] += shift
+    outliers = rng.random(n) < OUTLIER_SHARE
+    xy[outliers] += OUTLIER_SIGMAS * sigma * direction(int(outliers.sum()))
+    measured = measured.assign(time=time, x=xy[:, 0], y=xy[:, 1])
+    truth = truth.assign(time=time)
+    return truth[keep].reset_index(drop=True), measured[keep].reset_index(drop=True)
+
+
 def set_seed(seed: int, kind: str, sigma: float | None = None) -> int:
     """A stable seed per kind (and noise level) from the run's seed."""
     text = kind if sigma is None else f"{kind}/{sigma:g}"
@@ -666,9 +730,11 @@ def build_sets(
     seed: int = 0,
     sigmas: Sequence[float] | None = None,
     progress: bool = False,
+    faults: bool = False,
 ) -> list[BenchSet]:
     """The benchmark sets: every kind of ``kinds`` (default :data:`KINDS`) at its noise levels
-    (or at ``sigmas``), about ``rows`` rows each."""
+    (or at ``sigmas``), about ``rows`` rows each; with ``faults``, measured with
+    :func:`add_faults` too."""
     from tqdm.auto import tqdm
 
     names = list(KINDS) if kinds is None else list(kinds)
@@ -681,7 +747,12 @@ def build_sets(
         truth = kind.build(rows, set_seed(seed, name))
         for sigma in sigmas or kind.sigmas:
             noisy = measure(truth.rows, sigma, set_seed(seed, name, sigma))
-            sets.append(BenchSet(kind, float(sigma), truth, noisy))
+            if faults:
+                rows, noisy = add_faults(truth.rows, noisy, sigma, set_seed(seed, name, -sigma))
+                faulty = replace(truth, rows=rows)
+                sets.append(BenchSet(kind, float(sigma), faulty, noisy, faults=True))
+            else:
+                sets.append(BenchSet(kind, float(sigma), truth, noisy))
     return sets
 
 

@@ -1081,10 +1081,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     parser.add_argument("--out", default=str(RESULTS), help="folder of the report")
     parser.add_argument(
-        "--name", default="recorded_tracks", help="stem of the report's files (NAME.md, ...)"
+        "--name",
+        default=None,
+        help="stem of the report's files (NAME.md, ...; default recorded_tracks)",
     )
     parser.add_argument("--workdir", default=None, help="keep the sets and outputs here")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "--faults",
+        action="store_true",
+        help="measure with faults (recorded_sets.add_faults: outliers, dropouts, time jitter, "
+        "a bias that comes and goes); the report is NAME (default recorded_faults)",
+    )
     parser.add_argument(
         "--merge",
         action="store_true",
@@ -1097,6 +1105,7 @@ def main(argv: list[str] | None = None) -> None:
         help="run nothing: the report of the runs saved in OUT/NAME.json",
     )
     args = parser.parse_args(argv)
+    args.name = args.name or ("recorded_faults" if args.faults else "recorded_tracks")
     import torch
 
     torch.set_num_threads(1)
@@ -1130,7 +1139,9 @@ def main(argv: list[str] | None = None) -> None:
     run_kinds = [] if args.report_only else kinds
     shown = {r.set.split(" σ")[0] for r in kept}
     report_kinds = [k for k in KINDS if k in run_kinds or k in shown]
-    sets = build_sets(report_kinds, args.rows, args.seed, sigmas, progress=not args.quiet)
+    sets = build_sets(
+        report_kinds, args.rows, args.seed, sigmas, progress=not args.quiet, faults=args.faults
+    )
     to_run = [b for b in sets if b.kind.name in run_kinds]
     with contextlib.ExitStack() as stack:
         if args.workdir:

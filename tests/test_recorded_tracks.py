@@ -132,6 +132,35 @@ def test_isolated_jumps_split_two_tracks_joined_but_not_a_take_off_roll() -> Non
     assert not rs.isolated_jumps(taxi).any()
 
 
+def test_add_faults_keeps_rows_aligned_and_gives_each_fault_its_share() -> None:
+    t = np.arange(0.0, 4000.0, 2.0)
+    truth = pd.concat(
+        [
+            pd.DataFrame({"track_id": k, "time": t, "x": 100.0 * t, "y": 0.0 * t})
+            for k in ("a", "b", "c", "d", "e")
+        ],
+        ignore_index=True,
+    )
+    sigma = 10.0
+    measured = rs.measure(truth, sigma, seed=1)
+    faulty_truth, faulty = rs.add_faults(truth, measured, sigma, seed=2)
+    # row for row, same keys, times still increasing within each track
+    assert faulty_truth[["track_id", "time"]].equals(faulty[["track_id", "time"]])
+    assert faulty.groupby("track_id")["time"].apply(lambda s: s.is_monotonic_increasing).all()
+    lost = 1 - len(faulty) / len(truth)
+    assert 0.5 * rs.DROPOUT_SHARE < lost < 2 * rs.DROPOUT_SHARE
+    # the truth keeps its positions; the stamps moved by the jitter only
+    shift = faulty_truth["time"] - faulty_truth["x"] / 100.0
+    assert 0.5 * rs.JITTER_STD < shift.std() < 1.5 * rs.JITTER_STD
+    error = np.hypot(faulty["x"] - faulty_truth["x"], faulty["y"] - faulty_truth["y"]) / sigma
+    # outliers: 10σ off (noise alone passes 7σ with probability e^-24.5)
+    far = error > 7
+    assert 0.5 * rs.OUTLIER_SHARE < far.mean() < 2 * rs.OUTLIER_SHARE
+    # elsewhere the squared error is the noise's (2σ², two axes) plus the bias's on its share
+    expected = 2.0 + rs.BIAS_SHARE * rs.BIAS_SIGMAS**2
+    assert (error[~far] ** 2).mean() == pytest.approx(expected, rel=0.1)
+
+
 def test_roughness_reads_white_error_off_one_second_reports() -> None:
     t = np.arange(0.0, 5000.0)
     rng = np.random.default_rng(1)
