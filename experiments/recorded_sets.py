@@ -748,8 +748,8 @@ def build_sets(
         for sigma in sigmas or kind.sigmas:
             noisy = measure(truth.rows, sigma, set_seed(seed, name, sigma))
             if faults:
-                rows, noisy = add_faults(truth.rows, noisy, sigma, set_seed(seed, name, -sigma))
-                faulty = replace(truth, rows=rows)
+                kept, noisy = add_faults(truth.rows, noisy, sigma, set_seed(seed, name, -sigma))
+                faulty = replace(truth, rows=kept)
                 sets.append(BenchSet(kind, float(sigma), faulty, noisy, faults=True))
             else:
                 sets.append(BenchSet(kind, float(sigma), truth, noisy))
