@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road ksvd real real-imm recorded learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road ksvd real real-imm recorded recorded-faults learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -51,6 +51,12 @@ real: $(STAMP)
 # simulated turns; σ 10-100 m): experiments/results/recorded_tracks.md.
 recorded: $(STAMP)
 	$(PY) -m experiments.recorded_tracks
+
+# The same with realistic faults (outliers, lost rows, time jitter, a bias that comes and goes):
+# KS, RSTKF, SVSS and auto at σ 50, experiments/results/recorded_faults.md.
+recorded-faults: $(STAMP)
+	$(PY) -m experiments.recorded_tracks --faults --kinds own,scan10,taxi,turning --sigmas 50 \
+		--estimators ks,rstkf,svss,auto --modes default,--fit --jobs 2
 
 # Only the IMM(CV, CT) rows and section of real_flights.md, merged into the recorded report.
 real-imm: $(STAMP)
