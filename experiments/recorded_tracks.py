@@ -65,7 +65,13 @@ MODES: dict[str, Callable[[float], list[str]]] = {
     "--fit": lambda sigma: ["--fit"],
     "--meas-std σ": lambda sigma: ["--meas-std", f"{sigma:g}"],
     "--meas-std σ --fit": lambda sigma: ["--meas-std", f"{sigma:g}", "--fit"],
+    "--no-velocity": lambda sigma: ["--no-velocity"],
+    "--no-velocity --fit": lambda sigma: ["--no-velocity", "--fit"],
 }
+#: Modes run by default (``--modes``): the others are asked for by name. ``--no-velocity`` is the
+#: SVSF family's H⁺ mode (the papers' SVSS, no velocity pseudo-measurement), beside the variable
+#: boundary layer that ``track`` runs by default.
+DEFAULT_MODES = ("default", "--fit", "--meas-std σ", "--meas-std σ --fit")
 #: A truth-free estimate further than this from the true RMSE (relative) is flagged.
 ESTIMATE_TOLERANCE = 0.15
 #: ``auto`` is compared with the best single estimator: this ratio or less is "within".
@@ -1071,7 +1077,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--estimators", default=None, help="estimators (default: every choice of --estimator)"
     )
-    parser.add_argument("--modes", default=",".join(MODES), help="modes (comma-separated)")
+    parser.add_argument(
+        "--modes",
+        default=",".join(DEFAULT_MODES),
+        help=f"modes (comma-separated; default {','.join(DEFAULT_MODES)}; also: "
+        f"{', '.join(m for m in MODES if m not in DEFAULT_MODES)})",
+    )
     parser.add_argument(
         "--via",
         choices=("inprocess", "cli"),
