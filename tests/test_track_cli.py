@@ -203,6 +203,7 @@ def test_fit_tunes_on_the_file_itself(tmp_path):
         (["--meas-std", "1,2,3"], "meas_std: expected one value or one per axis"),
         (["--estimator", "svss", "--psi", "1,2,3"], "psi: expected 2 boundary layer widths"),
         (["--id-col", "missing"], r"columns: \['missing'\] not in the file"),
+        (["--estimator", "svstps", "--no-velocity"], "svstps with --no-velocity"),
     ],
 )
 def test_bad_arguments_name_what_is_wrong(tmp_path, capsys, args, message):
@@ -324,3 +325,46 @@ def test_scaled_q_scales_inside_and_restores_exactly():
     with scaled_q(estimator, 10 ** (-3 / 4)):
         assert float(estimator.model.q()) == pytest.approx(0.3 * 10 ** (-3 / 4), rel=1e-6)
     assert torch.equal(estimator.model.q(), before)
+
+
+def test_hplus_svss_defaults_to_lag_one_and_stays_below_the_measurements(tmp_path):
+    """The H⁺ mode never corrects the velocity: a backward pass longer than one step carries the
+    two-point prior's velocity error into the positions (26x raw at lag 5 on recorded
+    airliners); its SVSS defaults to lag 1, below the raw measurements."""
+    from torchsvs.recipes import Settings
+
+    assert Settings(estimator="svss", velocity=False).smoother_lag == 1
+    assert Settings(estimator="svss").smoother_lag == 5
+    assert Settings(estimator="svss", velocity=False, lag=3).smoother_lag == 3
+    source, target = tmp_path / "in.csv", tmp_path / "out.csv"
+    truth = _simulated_csv(source, tracks=12, steps=80)
+    errors = {}
+    for lag in ([], ["--lag", "5"]):
+        _run(
+            str(source),
+            "-o",
+            str(target),
+            "--id-col",
+            "id",
+            "--time-col",
+            "t",
+            "--estimator",
+            "svss",
+            "--no-velocity",
+            "--force",
+            *lag,
+        )
+        inp = pcsv.read_csv(source, convert_options=TEXT)
+        out = pcsv.read_csv(target, convert_options=TEXT)
+        keys = list(zip(inp.column("id").to_pylist(), inp.column("t").to_pylist(), strict=True))
+        true = np.stack([truth[k] for k in keys])
+        est = np.stack([out.column("x").to_numpy(), out.column("y").to_numpy()], 1)
+        raw = np.stack([inp.column("x").to_numpy(), inp.column("y").to_numpy()], 1).astype(float)
+        ok = np.isfinite(raw).all(1)
+        errors[bool(lag)] = (
+            np.sqrt(np.mean((est[ok] - true[ok]) ** 2)),
+            np.sqrt(np.mean((raw[ok] - true[ok]) ** 2)),
+        )
+    assert errors[False][0] < errors[False][1], errors
+    # and why the default is 1: at lag 5 the prior's velocity error reaches the positions
+    assert errors[True][0] > 3 * errors[True][1], errors
