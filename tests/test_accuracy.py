@@ -189,6 +189,11 @@ def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
         k: caution_score(r["estimated_position_rmse"], r["standard_error"]) for k, r in rows.items()
     }
     assert score[chosen] == min(score.values())
+    # in the H⁺ mode svstps diverges (track refuses it there): auto skips it too
+    hplus = Settings("auto", velocity=False)
+    track_file(source, tmp_path / "h.csv", hplus, columns=Columns(), progress=False)
+    table = json.loads(summary_path(tmp_path / "h.csv").read_text())["candidates"]
+    assert {r["estimator"]: r.get("skipped") for r in table}["svstps"] == "diverges in the H⁺ mode"
 
 
 def test_auto_score_prefers_the_lower_of_close_estimates_and_distrusts_a_vague_one():

@@ -149,7 +149,7 @@ def track_parser() -> argparse.ArgumentParser:
         "--estimator",
         default="auto",
         choices=sorted(ESTIMATORS),
-        help="default auto: ks, svss (svstps too with --no-velocity) and, on small files, imm, "
+        help="default auto: ks, svss and, on small files, imm, "
         "each tuned on the file without truth, the one of the lowest estimated error kept (its "
         "table is printed)",
     )

@@ -28,7 +28,7 @@ from torchsvs.smoothers import SVSS, RTSSmoother
 
 #: Estimator names of ``torchsvs track --estimator`` and what they are.
 ESTIMATORS = {
-    "auto": "the lowest estimated error of ks, svss (svstps with --no-velocity), imm (small "
+    "auto": "the lowest estimated error of ks, svss, imm (small "
     "files), each tuned on the file without truth (torchsvs.fitting.selection)",
     "kf": "Kalman filter",
     "ks": "Kalman smoother (RTS; fixed interval unless --lag)",

@@ -127,6 +127,11 @@ def choose_estimator(
             # the SVSS's innovation gain equals it and both smoothers are the same estimator.
             rows.append({"estimator": name, "skipped": "the same estimator as svss here"})
             continue
+        if name == "svstps" and not base.velocity:
+            # The H⁺ mode never corrects the velocity, and the RTS pass carries its error into
+            # the positions (track refuses svstps --no-velocity: recipes.HPLUS_LAG).
+            rows.append({"estimator": name, "skipped": "diverges in the H⁺ mode"})
+            continue
         tick = time.perf_counter()
         # What the user gave (q, ψ, lag) is each candidate's start; the rest is read off the data.
         open_settings = replace(settings, estimator=name, chosen_from=None, **noise)
