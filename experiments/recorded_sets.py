@@ -218,12 +218,8 @@ def timing_glitches(time: np.ndarray, position: np.ndarray) -> np.ndarray:
     speed = np.where(ok, length / np.where(span > 0, span, 1.0), np.nan)
     # how far along the chord the report is, against how far its time stamp puts it
     shift = np.abs(along - (time[i] - time[i - 1]) * speed)
-    before = np.linalg.norm(position[i - 1] - position[i - 2], axis=1) / np.maximum(
-        time[i - 1] - time[i - 2], 1e-9
-    )
-    after = np.linalg.norm(position[i + 2] - position[i + 1], axis=1) / np.maximum(
-        time[i + 2] - time[i + 1], 1e-9
-    )
+    steps = speeds(time, position)  # steps[k]: from report k to k + 1
+    before, after = steps[i - 2], steps[i + 1]
     steady = (np.abs(before / speed - 1) <= GLITCH_STEADY) & (
         np.abs(after / speed - 1) <= GLITCH_STEADY
     )
@@ -285,10 +281,15 @@ def roughness(pieces: Sequence[Piece], max_interval: float = 1.5) -> dict[str, f
     }
 
 
+def speeds(time: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """[n-1] speed (m/s) between successive reports."""
+    elapsed = np.diff(time)
+    return np.linalg.norm(np.diff(position, axis=0), axis=1) / np.maximum(elapsed, 1e-9)
+
+
 def step_speeds(piece: Piece) -> np.ndarray:
     """[n-1] speed (m/s) between successive reports of a piece."""
-    elapsed = np.diff(piece.time)
-    return np.linalg.norm(np.diff(piece.position, axis=0), axis=1) / np.maximum(elapsed, 1e-9)
+    return speeds(piece.time, piece.position)
 
 
 def split_at(piece: Piece, cut: np.ndarray) -> list[Piece]:

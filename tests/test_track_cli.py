@@ -43,6 +43,22 @@ def _simulated_csv(
     return truth
 
 
+def _errors(source, target, truth) -> tuple[float, float]:
+    """RMS error per axis of the estimates in ``target`` and of the measurements in ``source``
+    against ``truth`` (:func:`_simulated_csv`'s), over the rows with a measured position."""
+    inp = pcsv.read_csv(source, convert_options=TEXT)
+    out = pcsv.read_csv(target, convert_options=TEXT)
+    keys = zip(inp.column("id").to_pylist(), inp.column("t").to_pylist(), strict=True)
+    true = np.stack([truth[k] for k in keys])
+    est = np.stack([out.column("x").to_numpy(), out.column("y").to_numpy()], 1)
+    raw = np.stack([inp.column("x").to_numpy(), inp.column("y").to_numpy()], 1).astype(float)
+    ok = np.isfinite(raw).all(1)
+    return (
+        float(np.sqrt(np.mean((est[ok] - true[ok]) ** 2))),
+        float(np.sqrt(np.mean((raw[ok] - true[ok]) ** 2))),
+    )
+
+
 def _run(*args: str) -> None:
     main(["track", *args, "--quiet"])
 
@@ -61,15 +77,8 @@ def test_every_row_comes_back_with_its_id_and_time(tmp_path):
     assert out.column_names == ["id", "t", "x", "vx", "y", "vy"]
     est = np.stack([out.column("x").to_numpy(), out.column("y").to_numpy()], 1)
     assert np.isfinite(est).all()
-    true = np.stack(
-        [
-            truth[(i, t)]
-            for i, t in zip(inp.column("id").to_pylist(), inp.column("t").to_pylist(), strict=True)
-        ]
-    )
-    raw = np.stack([inp.column("x").to_numpy(), inp.column("y").to_numpy()], 1).astype(float)
-    raw_error = np.sqrt(np.nanmean((raw - true) ** 2))
-    assert np.sqrt(np.mean((est - true) ** 2)) < 0.8 * raw_error
+    est_error, raw_error = _errors(source, target, truth)
+    assert est_error < 0.8 * raw_error
 
 
 @pytest.mark.parametrize("estimator", ["kf", "ks", "svsf", "svss", "svstps", "ukf", "rstkf"])
@@ -354,17 +363,7 @@ def test_hplus_svss_defaults_to_lag_one_and_stays_below_the_measurements(tmp_pat
             "--force",
             *lag,
         )
-        inp = pcsv.read_csv(source, convert_options=TEXT)
-        out = pcsv.read_csv(target, convert_options=TEXT)
-        keys = list(zip(inp.column("id").to_pylist(), inp.column("t").to_pylist(), strict=True))
-        true = np.stack([truth[k] for k in keys])
-        est = np.stack([out.column("x").to_numpy(), out.column("y").to_numpy()], 1)
-        raw = np.stack([inp.column("x").to_numpy(), inp.column("y").to_numpy()], 1).astype(float)
-        ok = np.isfinite(raw).all(1)
-        errors[bool(lag)] = (
-            np.sqrt(np.mean((est[ok] - true[ok]) ** 2)),
-            np.sqrt(np.mean((raw[ok] - true[ok]) ** 2)),
-        )
+        errors[bool(lag)] = _errors(source, target, truth)
     assert errors[False][0] < errors[False][1], errors
     # and why the default is 1: at lag 5 the prior's velocity error reaches the positions
     assert errors[True][0] > 3 * errors[True][1], errors

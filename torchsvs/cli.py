@@ -351,15 +351,6 @@ def checked_columns(args: argparse.Namespace) -> Any:
 
     check_input(args.input, "input")
     check_output(args.output, "output", inputs=(args.input, args.checkpoint), force=args.force)
-    if args.no_velocity and args.estimator == "svstps":
-        # The H⁺ mode never corrects the velocity; the RTS pass over it carries the prior's
-        # velocity error into the positions at any lag (6.8x the raw measurements at lag 1 on
-        # recorded airliners, experiments.recorded_tracks); the SVSS at lag 1 stays below them.
-        raise ValueError(
-            "estimator: svstps with --no-velocity (the H⁺ mode, which never corrects the "
-            "velocity) diverges on position-only tracks; use svstps without --no-velocity, or "
-            "svss --no-velocity (lag 1)"
-        )
     try:
         file_format(args.output)
     except ValueError:

@@ -3,7 +3,7 @@
 Each call of ``torchsvs track`` is one group of a block's tracks of similar length
 (:class:`GroupBatch`, :func:`group_batch`), centred so float32 keeps its resolution;
 :func:`estimate_group` runs the estimator on it (each track with its own ``q`` where the settings
-carry the file's SURE curve, :func:`track_q_factors`) and, with ``risk``, once more on probed
+carry the file's SURE curve, :func:`settings_q_factors`) and, with ``risk``, once more on probed
 measurements for Stein's unbiased risk estimate (:mod:`torchsvs.accuracy`), and hands back the
 estimates at the block's flat steps (:class:`StepEstimates`).
 """
@@ -107,7 +107,7 @@ class StepEstimates(NamedTuple):
     notes: dict[str, int]  #: :func:`~torchsvs.datasets.files.short_track_notes` of the group
     #: SURE's sums (:mod:`torchsvs.accuracy`), chunks' ``track`` the block's track, or None
     risk: RiskTerms | None = None
-    #: [B] each track's factor on the settings' ``q`` (:func:`track_q_factors`), or None
+    #: [B] each track's factor on the settings' ``q`` (:func:`settings_q_factors`), or None
     q_factor: np.ndarray | None = None
 
     @classmethod
@@ -157,11 +157,11 @@ def estimate_group(
     the truth-free error estimate's terms (:func:`~torchsvs.accuracy.risk_terms`).
 
     Where ``settings`` carry the file's SURE curve (``q_curve``), each track runs with its own
-    ``q`` (:func:`track_q_factors`): the tracks of one factor together, ``estimator``'s ``q``
+    ``q`` (:func:`settings_q_factors`): the tracks of one factor together, ``estimator``'s ``q``
     scaled by it for the call (:func:`scaled_q`)."""
     if settings is None or settings.q_curve is None:
         return _estimate_part(estimator, batch, meas_std, covariance, risk)
-    factors = track_q_factors(settings, batch.tracks)
+    factors = settings_q_factors(settings, batch.tracks)
     parts = []
     for factor in torch.unique(factors).tolist():
         index = torch.nonzero(factors == factor).flatten()
@@ -177,7 +177,7 @@ def estimate_group(
     return StepEstimates.merge(parts, len(meas_std))
 
 
-def track_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
+def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
     """``[B]`` each track's factor on ``settings.q`` (:func:`torchsvs.fitting.noise.
     track_q_factors` against the file's curve ``settings.q_curve``)."""
     assert settings.q_curve is not None and settings.meas_var is not None

@@ -127,6 +127,16 @@ class Settings:
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ValueError(f"{name}: expected a number > 0, got {value!r}")
+        if self.estimator == "svstps" and not self.velocity:
+            # The H⁺ mode never corrects the velocity; the RTS pass over it carries the prior's
+            # velocity error into the positions at any lag (6.8x the raw measurements at lag 1
+            # on recorded airliners, experiments.recorded_tracks); the SVSS at lag 1 stays
+            # below them (HPLUS_LAG).
+            raise ValueError(
+                "estimator: svstps with velocity=False (--no-velocity: the H⁺ mode, which never "
+                "corrects the velocity) diverges on position-only tracks; use svstps without "
+                "--no-velocity, or svss --no-velocity (lag 1)"
+            )
         if not 0.0 <= self.switch_prob < 1.0:
             raise ValueError(f"switch_prob: expected a value in [0, 1), got {self.switch_prob!r}")
 

@@ -46,7 +46,7 @@ from torchsvs.estimating import (
     run_result,
     sample_accuracy,
     scaled_q,
-    track_q_factors,
+    settings_q_factors,
 )
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import (
@@ -113,7 +113,7 @@ __all__ = [
     "summary_path",
     "timed",
     "track_file",
-    "track_q_factors",
+    "settings_q_factors",
     "turn_settings",
     "typical_speed",
     "with_q_curve",

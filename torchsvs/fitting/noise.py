@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -73,8 +73,7 @@ def _windows(z: Tensor, dt: Tensor, window: int, max_steps: int) -> tuple[Tensor
     pad = count * W - T
     zp = torch.cat([z, z.new_full((B, pad, m), math.nan)], 1).reshape(B * count, W, m)
     dtp = torch.cat([dt, dt[:, -1:].expand(B, pad)], 1).reshape(B * count, W)
-    seen = (~torch.isnan(zp)).any(-1)
-    scored = seen & (seen.cumsum(1) >= 3)
+    scored = _scored(zp)
     useful = scored.any(1)
     zp, dtp, scored = zp[useful], dtp[useful], scored[useful]
     keep = max(1, max_steps // W)
@@ -84,6 +83,25 @@ def _windows(z: Tensor, dt: Tensor, window: int, max_steps: int) -> tuple[Tensor
     first = (~torch.isnan(zp)).to(torch.int64).argmax(1, keepdim=True)
     zp = zp - zp.nan_to_num(0.0).gather(1, first)
     return zp, dtp, scored
+
+
+def _scored(z: Tensor) -> Tensor:
+    """``[B, T]`` the steps SURE scores: from a track's third observed step on (the first two
+    make its two-point prior)."""
+    seen = (~torch.isnan(z)).any(-1)
+    return seen & (seen.cumsum(1) >= 3)
+
+
+def _sure(z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool) -> Tensor:
+    """``[B, T, m]`` the exact SURE per position component of the nearly-constant-velocity
+    Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64."""
+    m = z.shape[-1]
+    kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
+    estimator = RTSSmoother(kf) if smoothed else kf
+    with torch.no_grad():
+        out = estimator(z, prior.x0, prior.P0, dt=dt, keep="moments")
+    leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+    return (z - out.mean[..., 0::2]).square() - r + 2.0 * leverage
 
 
 def smoother_q(
@@ -171,18 +189,14 @@ def smoother_q(
 
     def value(log_q: float) -> float:
         if log_q not in cache:
-            model = ConstantVelocity(ndim=m, q=math.exp(log_q), r=r.tolist()).double()
-            kf = KalmanFilter(model)
-            with torch.no_grad():
-                if criterion == "nll":
-                    cache[log_q] = float(innovation_nll(kf(zw, prior.x0, prior.P0, dt=dtw), scored))
-                else:
-                    estimator = RTSSmoother(kf) if smoothed else kf
-                    out = estimator(zw, prior.x0, prior.P0, dt=dtw, keep="moments")
-                    fitted = out.mean[..., 0::2]
-                    leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-                    risk = (zw - fitted).square() - r + 2.0 * leverage
-                    cache[log_q] = float(risk[counted].mean())
+            if criterion == "nll":
+                model = ConstantVelocity(ndim=m, q=math.exp(log_q), r=r.tolist()).double()
+                with torch.no_grad():
+                    out = KalmanFilter(model)(zw, prior.x0, prior.P0, dt=dtw)
+                cache[log_q] = float(innovation_nll(out, scored))
+            else:
+                risk = _sure(zw, dtw, prior, r, math.exp(log_q), smoothed)
+                cache[log_q] = float(risk[counted].mean())
         return cache[log_q]
 
     with threads_for(1, 1):  # windows of a few small matrices: one intra-op thread
@@ -222,18 +236,12 @@ def q_curves(
     m = z.shape[-1]
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
-    seen = (~torch.isnan(z64)).any(-1)
-    counted = ~torch.isnan(z64) & (seen & (seen.cumsum(1) >= 3)).unsqueeze(-1)
+    counted = ~torch.isnan(z64) & _scored(z64).unsqueeze(-1)
     prior = two_point_prior(z64, dt64, r)
     risks = []
-    with threads_for(1, 1), torch.no_grad():
+    with threads_for(1, 1):
         for factor in factors:
-            model = ConstantVelocity(ndim=m, q=q * factor, r=r.tolist()).double()
-            kf = KalmanFilter(model)
-            estimator = RTSSmoother(kf) if smoothed else kf
-            out = estimator(z64, prior.x0, prior.P0, dt=dt64, keep="moments")
-            leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-            risk = (z64 - out.mean[..., 0::2]).square() - r + 2.0 * leverage
+            risk = _sure(z64, dt64, prior, r, q * factor, smoothed)
             risks.append(torch.where(counted, risk, 0.0).sum((1, 2)))
     return QCurves(torch.stack(risks), counted.sum((1, 2)).to(torch.float64))
 

@@ -129,7 +129,7 @@ def choose_estimator(
             continue
         if name == "svstps" and not base.velocity:
             # The H⁺ mode never corrects the velocity, and the RTS pass carries its error into
-            # the positions (track refuses svstps --no-velocity: recipes.HPLUS_LAG).
+            # the positions (Settings refuse svstps without velocity).
             rows.append({"estimator": name, "skipped": "diverges in the H⁺ mode"})
             continue
         tick = time.perf_counter()
