@@ -251,22 +251,27 @@ def test_noise_spread_tells_one_sensor_from_two():
     assert priors.noise_spread(short, dt) is None
 
 
-def test_filter_sure_leverage_is_the_filters_own_derivative():
-    """smoothed=False scores H x̂_{t|t} with the leverage H P_{t|t} Hᵀ / r: it is the filter's
-    derivative in z_t (central differences of the float64 filter, exact for a linear map)."""
+@pytest.mark.parametrize("smoothed", [False, True])
+def test_filter_sure_leverage_is_the_filters_own_derivative(smoothed):
+    """SURE scores H x̂_{t|t} (smoothed=False) or H x̂_{t|T} with the leverage H P Hᵀ / r of the
+    same pass: it is the estimate's derivative in z_t (central differences of the float64
+    filter or RTS smoother, exact for a linear map)."""
     gen = torch.Generator().manual_seed(2)
     dt = 1.0 + 4.0 * torch.rand(1, 30, generator=gen, dtype=torch.float64)
     _, z = simulate_cv(dt, q=2.0, r=25.0, generator=gen, speed=10.0)
     model = ts.models.ConstantVelocity(q=2.0, r=25.0).double()
     kf = ts.KalmanFilter(model)
+    estimator = ts.RTSSmoother(kf) if smoothed else kf
     x0 = torch.tensor([[z[0, 0, 0], 0.0, z[0, 0, 1], 0.0]], dtype=torch.float64)
     P0 = torch.diag(torch.tensor([25.0, 100.0, 25.0, 100.0], dtype=torch.float64))
-    out = kf(z, x0, P0, dt=dt)
+    out = estimator(z, x0, P0, dt=dt)
     for t, axis in ((5, 0), (17, 1), (29, 0)):
         up, down = z.clone(), z.clone()
         up[0, t, axis] += 1e-3
         down[0, t, axis] -= 1e-3
-        slope = (kf(up, x0, P0, dt=dt).mean - kf(down, x0, P0, dt=dt).mean)[0, t, 2 * axis] / 2e-3
+        slope = (estimator(up, x0, P0, dt=dt).mean - estimator(down, x0, P0, dt=dt).mean)[
+            0, t, 2 * axis
+        ] / 2e-3
         assert_close(slope, out.cov[0, t, 2 * axis, 2 * axis] / 25.0, atol=1e-9, rtol=1e-7)
 
 
