@@ -212,7 +212,7 @@ def test_fit_tunes_on_the_file_itself(tmp_path):
         (["--meas-std", "1,2,3"], "meas_std: expected one value or one per axis"),
         (["--estimator", "svss", "--psi", "1,2,3"], "psi: expected 2 boundary layer widths"),
         (["--id-col", "missing"], r"columns: \['missing'\] not in the file"),
-        (["--estimator", "svstps", "--no-velocity"], "svstps with --no-velocity"),
+        (["--estimator", "svstps", "--no-velocity"], r"svstps with velocity=False \(--no-velocity"),
     ],
 )
 def test_bad_arguments_name_what_is_wrong(tmp_path, capsys, args, message):
