@@ -74,7 +74,7 @@ def test_every_row_comes_back_with_its_id_and_time(tmp_path):
     assert out.num_rows == inp.num_rows
     assert out.column("id").to_pylist() == inp.column("id").to_pylist()
     assert out.column("t").to_pylist() == inp.column("t").to_pylist()
-    assert out.column_names == ["id", "t", "x", "vx", "y", "vy"]
+    assert out.column_names == ["id", "t", "x", "vx", "y", "vy", "outlier"]
     est = np.stack([out.column("x").to_numpy(), out.column("y").to_numpy()], 1)
     assert np.isfinite(est).all()
     est_error, raw_error = _errors(source, target, truth)

@@ -79,8 +79,9 @@ def test_track_imm_writes_a_row_per_input_row_and_beats_the_kf_on_turns(tmp_path
         _track(str(source), "-o", str(target), "--estimator", name, "--meas-std", "30")
         out = pcsv.read_csv(target)
         assert out.num_rows == pcsv.read_csv(source).num_rows == 4 * 150
-        assert out.column_names[-2 * ndim :] == [
-            c for axis in ["x", "y", "z"][:ndim] for c in (axis, f"v{axis}")
+        assert out.column_names[-2 * ndim - 1 :] == [
+            *(c for axis in ["x", "y", "z"][:ndim] for c in (axis, f"v{axis}")),
+            "outlier",
         ]
         est = _positions(target, ndim)
         assert np.isfinite(est).all()

@@ -200,6 +200,13 @@ def track_parser() -> argparse.ArgumentParser:
         "shrunk toward the file's; not for imm, nor where --q is given)",
     )
     parser.add_argument(
+        "--keep-outliers",
+        action="store_true",
+        help="use every position (default: a position far off the path its neighbours agree "
+        "on, at a chance below one in a million for the noise, is set aside as missing and "
+        "flagged in the output's outlier column)",
+    )
+    parser.add_argument(
         "--psi",
         type=_positive_floats,
         default=None,
@@ -475,6 +482,7 @@ def _track(args: argparse.Namespace) -> None:
             turn_rate_std=args.turn_rate_std,
             switch_prob=args.switch_prob,
             track_q=not args.shared_q,
+            outliers=not args.keep_outliers,
         )
         fit_options: dict[str, object] = {
             "tracks": args.fit_tracks,

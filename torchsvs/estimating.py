@@ -29,6 +29,7 @@ from torchsvs.filters import ParticleFilter
 from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise
 from torchsvs.fitting.defaults import meas_var_range
+from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
 from torchsvs.recipes import FILTERS, Settings, make_estimator, make_model
 
@@ -109,6 +110,9 @@ class StepEstimates(NamedTuple):
     risk: RiskTerms | None = None
     #: [B] each track's factor on the settings' ``q`` (:func:`settings_q_factors`), or None
     q_factor: np.ndarray | None = None
+    #: [o] int64 the block's flat steps set aside as outliers (:func:`screen_group`), or None
+    #: where no screen ran
+    outliers: np.ndarray | None = None
 
     @classmethod
     def merge(cls, parts: Sequence[StepEstimates], m: int) -> StepEstimates:
@@ -130,6 +134,9 @@ class StepEstimates(NamedTuple):
             dict(notes),
             RiskTerms.concat(risks, m) if len(risks) == len(parts) else None,
             np.concatenate([p.q_factor for p in parts if p.q_factor is not None]),
+            None
+            if all(p.outliers is None for p in parts)
+            else np.concatenate([p.outliers for p in parts if p.outliers is not None]),
         )
 
 
@@ -158,7 +165,45 @@ def estimate_group(
 
     Where ``settings`` carry the file's SURE curve (``q_curve``), each track runs with its own
     ``q`` (:func:`settings_q_factors`): the tracks of one factor together, ``estimator``'s ``q``
-    scaled by it for the call (:func:`scaled_q`)."""
+    scaled by it for the call (:func:`scaled_q`).
+
+    Where ``settings`` screen for outliers (``outliers`` and ``outlier_q``), the group's
+    isolated outliers are set aside first (:func:`screen_group`): missing to the estimator and
+    to the error estimate, listed in the result's ``outliers``."""
+    outliers = None
+    if settings is not None and settings.screens:
+        batch, outliers = screen_group(batch, settings)
+    found = _estimate_factors(estimator, batch, meas_std, covariance, risk, settings)
+    if outliers is None:
+        return found
+    notes = dict(found.notes)
+    notes["outliers"] = notes.get("outliers", 0) + len(outliers)
+    return found._replace(outliers=outliers, notes=notes)
+
+
+def screen_group(batch: GroupBatch, settings: Settings) -> tuple[GroupBatch, np.ndarray]:
+    """The group with its isolated outliers' positions missing
+    (:func:`~torchsvs.fitting.outliers.screen_outliers` with the settings' noise and
+    ``outlier_q``), and the block's flat steps of those rows (``[o]`` int64)."""
+    assert settings.meas_var is not None and settings.outlier_q is not None
+    tracks = batch.tracks
+    flagged = screen_outliers(tracks.z, tracks.dt, settings.meas_var, settings.outlier_q)
+    assert tracks.steps is not None
+    steps = tracks.steps[flagged & (tracks.steps >= 0)].numpy()
+    z = tracks.z.masked_fill(flagged.unsqueeze(-1), math.nan)
+    return batch._replace(tracks=replace(tracks, z=z)), steps
+
+
+def _estimate_factors(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool,
+    risk: bool,
+    settings: Settings | None,
+) -> StepEstimates:
+    """:func:`estimate_group` after the screen: each track with its own ``q`` where the
+    settings carry the file's curve."""
     if settings is None or settings.q_curve is None:
         return _estimate_part(estimator, batch, meas_std, covariance, risk)
     factors = settings_q_factors(settings, batch.tracks)

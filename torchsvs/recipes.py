@@ -107,6 +107,12 @@ class Settings:
     #: or for :data:`FILTERS` the filter, at ``q`` times
     #: :data:`~torchsvs.fitting.noise.Q_FACTORS`); None: one ``q`` for every track
     q_curve: list[float] | None = None
+    #: set isolated outliers aside before estimating (treated as missing, flagged in the
+    #: output's ``outlier`` column): :mod:`torchsvs.fitting.outliers`
+    outliers: bool = True
+    #: the ``q`` of the Kalman smoother that judges outliers (read off the data with them set
+    #: aside); None until :func:`~torchsvs.fitting.defaults.screened`
+    outlier_q: float | None = None
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -121,6 +127,8 @@ class Settings:
             raise ValueError(f"gamma: expected a value in [0, 1), got {self.gamma!r}")
         if self.q is not None and not self.q > 0:
             raise ValueError(f"q: expected a number > 0, got {self.q!r}")
+        if self.outlier_q is not None and not self.outlier_q > 0:
+            raise ValueError(f"outlier_q: expected a number > 0, got {self.outlier_q!r}")
         if self.psi is not None and not all(p > 0 for p in self.psi):
             raise ValueError(f"psi: expected widths > 0, got {self.psi!r}")
         for name in ("turn_q", "turn_rate_q", "turn_rate_std"):
@@ -139,6 +147,12 @@ class Settings:
             )
         if not 0.0 <= self.switch_prob < 1.0:
             raise ValueError(f"switch_prob: expected a value in [0, 1), got {self.switch_prob!r}")
+
+    @property
+    def screens(self) -> bool:
+        """Whether isolated outliers are set aside before estimating (``outliers``, with the
+        ``outlier_q`` read off the data): :func:`~torchsvs.estimating.estimate_group`."""
+        return self.outliers and self.outlier_q is not None
 
     @property
     def smoother_lag(self) -> int | None:

@@ -55,6 +55,7 @@ from torchsvs.fitting.defaults import (
     complete_settings,
     imm_base_q,
     meas_var_range,
+    screened,
     settings_note,
     turn_settings,
     typical_speed,
@@ -144,15 +145,23 @@ class BlockEstimates:
     risk: list[RiskTerms] = field(default_factory=list)  #: the groups' SURE terms
     #: [K] each track's factor on the settings' ``q`` (NaN: one ``q`` for all, or not estimated)
     q_factor: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: [S] bool steps set aside as outliers (:func:`~torchsvs.estimating.screen_group`), or
+    #: None where the groups are not screened
+    outlier: np.ndarray | None = None
 
     @classmethod
-    def empty(cls, steps: TrackSteps, covariance: bool = False) -> BlockEstimates:
+    def empty(
+        cls, steps: TrackSteps, covariance: bool = False, screened: bool = False
+    ) -> BlockEstimates:
+        """Nothing estimated yet; ``screened``: the groups will be screened for outliers (the
+        output gets its ``outlier`` column, in every block alike)."""
         S, m = steps.position.shape
         return cls(
             np.full((S, 2 * m), np.nan),
             np.full((S, 2 * m, 2 * m), np.nan) if covariance else None,
             np.zeros((steps.num_tracks, m), dtype=bool),
             q_factor=np.full(steps.num_tracks, np.nan),
+            outlier=np.zeros(S, dtype=bool) if screened else None,
         )
 
     def add(self, part: StepEstimates) -> None:
@@ -166,10 +175,13 @@ class BlockEstimates:
             self.risk.append(part.risk)
         if part.q_factor is not None:
             self.q_factor[part.group] = part.q_factor
+        if part.outliers is not None:
+            assert self.outlier is not None, "BlockEstimates.empty(..., screened=True)"
+            self.outlier[part.outliers] = True
 
     def table(self, block: TrackBlock) -> Any:
         """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
-        return estimate_table(block, self.mean, self.cov, self.never_observed)
+        return estimate_table(block, self.mean, self.cov, self.never_observed, self.outlier)
 
 
 @dataclass
@@ -280,7 +292,12 @@ class TrackRun:
         out: dict[str, Any] = {
             "estimator": None if self.settings is None else self.settings.estimator,
             "settings": settings,
-            "rows": {"total": self.report.total, "placed": self.report.placed},
+            "rows": {"total": self.report.total, "placed": self.report.placed}
+            | (
+                {"outliers": self.report.notes.get("outliers", 0)}
+                if self.settings is not None and self.settings.screens
+                else {}
+            ),
             "seconds": round(self.seconds, 3),
             "warnings": self.warnings,
         }
@@ -438,7 +455,7 @@ def track_file(
                 )
             assert run.settings is not None and run.settings.meas_var is not None
             meas_std = torch.tensor(run.settings.meas_var, dtype=dtype).sqrt()
-            found = BlockEstimates.empty(steps, covariance)
+            found = BlockEstimates.empty(steps, covariance, run.settings.screens)
             tick, cpu = time.perf_counter(), time.process_time()
             for position, group in enumerate(steps.batches(max_cells)):
                 batch = group_batch(steps, group, position, dtype)
@@ -514,7 +531,8 @@ def prepare_estimator(
 ) -> tuple[nn.Module, Settings, Any]:
     """The estimator of ``torchsvs track`` for a block's tracks: the settings left open read
     off them (:func:`~torchsvs.fitting.defaults.complete_settings`, on up to
-    ``fit_options["tracks"]`` tracks spread over the block), then fitted, loaded from
+    ``fit_options["tracks"]`` tracks spread over the block, their isolated outliers set aside
+    first: :func:`~torchsvs.fitting.defaults.screened`), then fitted, loaded from
     ``checkpoint``, saved to ``save``, as asked.
 
     Returns:
@@ -524,6 +542,8 @@ def prepare_estimator(
     say = say or (lambda _: None)
     sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
     open_q = settings.q is None
+    # everything below is read off the sample without its outliers
+    settings, sample, _ = screened(settings, sample)
     if settings.estimator != "auto":
         settings = complete_settings(settings, sample)
         say(settings_note(settings))

@@ -492,6 +492,7 @@ def estimate_table(
     mean: np.ndarray,
     cov: np.ndarray | None = None,
     never_observed: np.ndarray | None = None,
+    outlier: np.ndarray | None = None,
 ) -> Any:
     """The output rows of a block: ``track_id, time`` as read, then the estimates.
 
@@ -500,6 +501,8 @@ def estimate_table(
         mean: ``[S, 2m]`` estimate at each of the block's steps (NaN where not estimated).
         cov: ``[S, 2m, 2m]`` covariances, or ``None``.
         never_observed: ``[K, m]`` axes a track never observes (their estimates become NaN).
+        outlier: ``[S]`` bool steps whose position was set aside as an outlier, written as a
+            last column ``outlier`` (rows not placed: false); None: no such column.
 
     Returns:
         A ``pyarrow.Table`` with one row per input row: the id and time columns as read,
@@ -545,6 +548,9 @@ def estimate_table(
         for a in range(2 * m):
             for b in range(a, 2 * m):
                 out[f"cov_{cov_names[a]}_{cov_names[b]}"] = per_row(cov[:, a, b])
+    if outlier is not None:
+        flags = outlier[index] if len(outlier) else np.zeros(len(row_step), dtype=bool)
+        out["outlier"] = pa.array(placed & flags, type=pa.bool_())
     return pa.table(out)
 
 

@@ -54,6 +54,9 @@ NOTES = {
     "(spoofing, a time-stamp jump); kept, the estimators see a maneuver",
     "tracks_single_point_axis": "tracks (not rows) observing an axis once: its velocity prior "
     "is 0 with a wide variance (torchsvs.datasets.priors)",
+    "outliers": "a position far off the path its neighbours agree on (a chance below one in a "
+    "million for the noise), set aside as missing: estimated from the rest, flagged in the "
+    "output's outlier column (torchsvs.fitting.outliers; --keep-outliers to use them)",
     "particle_steps": "steps a particle filter weighed a measurement at",
     "particle_steps_degenerate": "of those, steps whose effective sample size fell below a tenth "
     "of the particles (torchsvs.filters.particle.degenerate_share)",

@@ -13,12 +13,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
+from torch import Tensor
 
 from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
 from torchsvs.fitting.noise import q_curves, smoother_q
+from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
 
 #: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
@@ -167,6 +169,38 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
         turn_rate_q=turn_rate_q,
         turn_rate_std=turn_rate_std,
     )
+
+
+class Screened(NamedTuple):
+    """What :func:`screened` found."""
+
+    settings: Settings  #: with ``outlier_q`` (unchanged where the screen is off)
+    tracks: RecordedTracks  #: the tracks with the outliers' positions missing
+    flagged: Tensor  #: [B, T] bool the rows set aside
+
+
+def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
+    """The tracks with their isolated outliers set aside (:mod:`torchsvs.fitting.outliers`),
+    and the ``q`` that judges them (``outlier_q``) for the rest of the file: the Kalman
+    smoother's SURE ``q`` (:func:`_sure_q`) read first with the outliers in (they raise it,
+    which makes the first screen lenient), then twice more, each time without the outliers
+    the screen before found. The
+    measurement noise is the settings' where given, else read off the data
+    (:func:`~torchsvs.datasets.estimate_noise`, robust to isolated outliers)."""
+    if not settings.outliers:
+        return Screened(settings, tracks, torch.zeros(tracks.z.shape[:2], dtype=torch.bool))
+    first = complete_settings(Settings("ks", meas_var=settings.meas_var), tracks)
+    assert first.meas_var is not None and first.q is not None
+    q = settings.outlier_q or first.q
+    for _ in range(1 if settings.outlier_q else 2):
+        flagged = screen_outliers(tracks.z, tracks.dt, first.meas_var, q)
+        clean = replace(tracks, z=tracks.z.masked_fill(flagged.unsqueeze(-1), math.nan))
+        if settings.outlier_q is None:
+            try:
+                q = _sure_q(clean, first.meas_var, "ks")
+            except ValueError:
+                break
+    return Screened(replace(settings, outlier_q=q), clean, flagged)
 
 
 def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:

@@ -380,7 +380,7 @@ def predict_file(
         return None
     tick = time.perf_counter()
     steps = data.steps
-    found = BlockEstimates.empty(steps, covariance)
+    found = BlockEstimates.empty(steps, covariance, module.settings.screens)
     for part in gather.parts:
         if part.position not in found.groups:  # a sampler that evens out ranks repeats groups
             found.add(part)

@@ -1,0 +1,152 @@
+"""Isolated outliers (``torchsvs.fitting.outliers``): the studentized residual against its
+leave-one-out definition, what is flagged and what is not, and ``torchsvs track``'s handling."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pyarrow.csv as pcsv
+import pytest
+import torch
+
+from torchsvs.cli import main
+from torchsvs.datasets import two_point_prior
+from torchsvs.filters import KalmanFilter
+from torchsvs.fitting.outliers import outlier_distances, screen_outliers
+from torchsvs.models import ConstantVelocity
+from torchsvs.smoothers import RTSSmoother
+
+SIGMA = 20.0
+
+
+def _tracks(
+    tracks: int = 8, steps: int = 300, seed: int = 0, dt: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Nearly-constant-velocity tracks (q = 1) with Gaussian noise ``SIGMA``: z, dt, truth."""
+    gen = torch.Generator().manual_seed(seed)
+    velocity = 50.0 + torch.cumsum(torch.randn(tracks, steps, 2, generator=gen), 1) * dt**0.5
+    truth = torch.cumsum(velocity * dt, 1)
+    z = truth + SIGMA * torch.randn(tracks, steps, 2, generator=gen)
+    return z.double(), torch.full((tracks, steps), dt, dtype=torch.float64), truth.double()
+
+
+def test_distance_is_the_leave_one_out_predictive_test():
+    """d² = Σ (z - ẑ₋ₜ)² / (r + H P₋ₜ Hᵀ): the row against the smoother that never saw it, for
+    every row checked, from a separate smoother pass with the row missing (same prior)."""
+    z, dt, _ = _tracks(tracks=2, steps=40)
+    r, q = SIGMA**2, 1.0
+    d2 = outlier_distances(z, dt, [r, r], q)
+    prior = two_point_prior(z, dt, torch.tensor([r, r], dtype=torch.float64), inflation=1e6)
+    smoother = RTSSmoother(KalmanFilter(ConstantVelocity(ndim=2, q=q, r=[r, r]).double()))
+    for b, t in [(0, 5), (0, 20), (1, 33), (1, 37)]:
+        left = z.clone()
+        left[b, t] = math.nan
+        with torch.no_grad():
+            out = smoother(left, prior.x0, prior.P0, dt=dt)
+        mean, var = out.mean[b, t, 0::2], out.cov[b, t].diagonal()[0::2]
+        expected = float(((z[b, t] - mean).square() / (r + var)).sum())
+        assert d2[b, t].item() == pytest.approx(expected, rel=1e-7)
+
+
+def test_injected_outliers_are_found_and_clean_rows_kept():
+    """10σ outliers at 1 s reports are all found; on 2,400 clean rows nothing is flagged (the
+    chance per row is 1e-6)."""
+    z, dt, _ = _tracks()
+    assert not screen_outliers(z, dt, [SIGMA**2] * 2, 1.0).any()
+    gen = torch.Generator().manual_seed(5)
+    rows = torch.stack([torch.arange(8), torch.randint(10, 290, (8,), generator=gen)], 1)
+    angle = torch.rand(8, generator=gen, dtype=torch.float64) * 2 * math.pi
+    bad = z.clone()
+    bad[rows[:, 0], rows[:, 1]] += 10 * SIGMA * torch.stack([angle.cos(), angle.sin()], 1)
+    found = screen_outliers(bad, dt, [SIGMA**2] * 2, 1.0)
+    expected = torch.zeros_like(found)
+    expected[rows[:, 0], rows[:, 1]] = True
+    assert torch.equal(found, expected)
+
+
+def test_two_rows_off_together_are_a_maneuver_not_outliers():
+    """Two neighbours displaced alike (the target went there) stay; either alone is flagged."""
+    z, dt, _ = _tracks(tracks=1)
+    jump = torch.tensor([10 * SIGMA, 0.0], dtype=torch.float64)
+    pair = z.clone()
+    pair[0, 150:152] += jump
+    assert not screen_outliers(pair, dt, [SIGMA**2] * 2, 1.0).any()
+    single = z.clone()
+    single[0, 150] += jump
+    assert screen_outliers(single, dt, [SIGMA**2] * 2, 1.0)[0].nonzero().flatten().tolist() == [150]
+
+
+def test_rows_near_the_ends_or_across_long_gaps_are_not_judged():
+    """A row with fewer than two rows on a side, or an interval to a neighbour over twice the
+    track's median, is not judged however far off."""
+    z, dt, _ = _tracks(tracks=1)
+    jump = torch.tensor([0.0, 20 * SIGMA], dtype=torch.float64)
+    for row in (0, 1, 298, 299):
+        ends = z.clone()
+        ends[0, row] += jump
+        assert not screen_outliers(ends, dt, [SIGMA**2] * 2, 1.0).any(), row
+    gap = z.clone()
+    gap[0, 100:110] = math.nan  # 11 s around row 110 (median 1 s)
+    gap[0, 110] += jump
+    assert not screen_outliers(gap, dt, [SIGMA**2] * 2, 1.0).any()
+
+
+def test_bad_probability_is_refused():
+    z, dt, _ = _tracks(tracks=1, steps=10)
+    with pytest.raises(ValueError, match="p_false"):
+        screen_outliers(z, dt, [1.0, 1.0], 1.0, p_false=0.0)
+
+
+def _write(path, z: torch.Tensor, dt: float = 1.0) -> None:
+    lines = ["track_id,time,x,y"]
+    for b in range(z.shape[0]):
+        for t in range(z.shape[1]):
+            lines.append(f"k{b},{t * dt:.1f},{z[b, t, 0]:.4f},{z[b, t, 1]:.4f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_track_sets_outliers_aside_flags_and_counts_them(tmp_path, capsys):
+    """``track`` (KS, noise read off the data) flags the injected outliers in the ``outlier``
+    column, counts them in the summary, keeps the error estimate honest, and is closer to the
+    truth than with ``--keep-outliers`` (which writes no such column)."""
+    z, _, truth = _tracks(tracks=6, steps=200, seed=3)
+    bad = z.clone()
+    rows = [(b, 20 + 30 * b) for b in range(6)] + [(b, 150) for b in range(6)]
+    for b, t in rows:
+        bad[b, t, 0] += 12 * SIGMA
+    src = tmp_path / "in.csv"
+    _write(src, bad)
+    errors = {}
+    for mode in ("screened", "kept"):
+        out = tmp_path / f"{mode}.csv"
+        extra = ["--keep-outliers"] if mode == "kept" else []
+        main(["track", str(src), "-o", str(out), "--estimator", "ks", *extra])
+        table = pcsv.read_csv(out)
+        est = np.stack([table.column("x").to_numpy(), table.column("y").to_numpy()], 1)
+        true = truth.reshape(-1, 2).numpy()
+        errors[mode] = float(np.sqrt(np.mean(np.sum((est - true) ** 2, 1))))
+        summary = json.loads(out.with_suffix(".summary.json").read_text())
+        if mode == "screened":
+            flags = table.column("outlier").to_numpy(zero_copy_only=False).reshape(6, 200)
+            assert sorted(map(tuple, np.argwhere(flags).tolist())) == sorted(rows)
+            assert summary["rows"]["outliers"] == len(rows)
+            assert summary["points"] == 6 * 200 - len(rows)
+            true_rmse = errors[mode]
+            assert summary["estimated_position_rmse"] == pytest.approx(true_rmse, rel=0.25)
+        else:
+            assert "outlier" not in table.column_names
+            assert "outliers" not in summary["rows"]
+    assert errors["screened"] < 0.9 * errors["kept"]
+    assert "note, outliers: 12 (" in capsys.readouterr().err
+
+
+def test_rows_among_others_as_far_off_are_not_isolated():
+    """A stretch where every row is 6σ-noisy (a sensor in a bad patch, or motion the model
+    cannot follow) is judged against its own level (``LOCAL``), not flagged row by row."""
+    z, dt, _ = _tracks(tracks=4, seed=2)
+    gen = torch.Generator().manual_seed(9)
+    noisy = z.clone()
+    noisy[:, 100:140] += 6 * SIGMA * torch.randn(4, 40, 2, generator=gen, dtype=torch.float64)
+    assert not screen_outliers(noisy, dt, [SIGMA**2] * 2, 1.0).any()
