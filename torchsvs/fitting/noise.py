@@ -92,16 +92,20 @@ def _scored(z: Tensor) -> Tensor:
     return seen & (seen.cumsum(1) >= 3)
 
 
-def _sure(z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool) -> Tensor:
+def _sure(
+    z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool, clip: float = math.inf
+) -> Tensor:
     """``[B, T, m]`` the exact SURE per position component of the nearly-constant-velocity
-    Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64."""
+    Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
+    ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
+    outliers do not drive, as their terms stay at the clip whatever ``q``)."""
     m = z.shape[-1]
     kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
     estimator = RTSSmoother(kf) if smoothed else kf
     with torch.no_grad():
         out = estimator(z, prior.x0, prior.P0, dt=dt, keep="moments")
     leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-    return (z - out.mean[..., 0::2]).square() - r + 2.0 * leverage
+    return ((z - out.mean[..., 0::2]).square() - r + 2.0 * leverage).clamp_max(clip * r)
 
 
 def smoother_q(
@@ -112,6 +116,7 @@ def smoother_q(
     max_steps: int = MAX_STEPS,
     window: int = WINDOW,
     smoothed: bool = True,
+    clip: float = math.inf,
 ) -> QEstimate:
     r"""The ``q`` of a nearly-constant-velocity Kalman smoother (RTS) for these tracks, with the
     measurement noise ``meas_var`` fixed; with ``smoothed=False`` the Kalman filter's.
@@ -160,6 +165,9 @@ def smoother_q(
         max_steps: at most this many steps are used (windows spread evenly over the data).
         window: steps per window.
         smoothed: the smoother's ``q`` (default), or the filter's.
+        clip: ``"sure"`` with each component's term at most ``clip`` times ``r``: a 10σ outlier
+            otherwise drives the choice toward following it (5× the ``q`` on hard turns with
+            1% of them, 30× with the noise given).
 
     References:
         Stein, "Estimation of the mean of a multivariate normal distribution", Ann. Statist.
@@ -195,7 +203,7 @@ def smoother_q(
                     out = KalmanFilter(model)(zw, prior.x0, prior.P0, dt=dtw)
                 cache[log_q] = float(innovation_nll(out, scored))
             else:
-                risk = _sure(zw, dtw, prior, r, math.exp(log_q), smoothed)
+                risk = _sure(zw, dtw, prior, r, math.exp(log_q), smoothed, clip)
                 cache[log_q] = float(risk[counted].mean())
         return cache[log_q]
 

@@ -178,7 +178,6 @@ def _inside(seen: Tensor, k: int) -> Tensor:
 def _short_gaps(time: Tensor, seen: Tensor, before: Tensor, after: Tensor) -> Tensor:
     """``[B, T]`` bool rows whose intervals to the observed rows on either side (where there
     is one) are at most :data:`GAP_FACTOR` times their track's median interval."""
-    B, T = seen.shape
     gap_in = time - time.gather(1, before.clamp_min(0))
     gap_out = time.gather(1, after.clamp_min(0)) - time
     steps = torch.where(seen & (before >= 0), gap_in, torch.nan)
