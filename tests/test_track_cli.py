@@ -213,6 +213,7 @@ def test_fit_tunes_on_the_file_itself(tmp_path):
         (["--estimator", "svss", "--psi", "1,2,3"], "psi: expected 2 boundary layer widths"),
         (["--id-col", "missing"], r"columns: \['missing'\] not in the file"),
         (["--estimator", "svstps", "--no-velocity"], r"svstps with velocity=False \(--no-velocity"),
+        (["--estimator", "kf", "--lag", "5"], r"lag: kf is a filter; a lag applies to ks, "),
     ],
 )
 def test_bad_arguments_name_what_is_wrong(tmp_path, capsys, args, message):

@@ -244,3 +244,53 @@ def test_real_flights_merges_the_imm_rows_without_touching_the_rest():
     table = once[once.index("## Held-out flights") :]
     assert table.index("| IMM(CV, CT) | learned") < table.index("| traffic KalmanSmoother6D")
     assert re.search(r"the learned IMM ranks \d+ of \d+ rows \(83\.3 m\)", once)
+
+
+def test_turn_imm_smoother_is_kims_smoother_over_the_turn_imm_pass():
+    """``TurnIMMSmoother`` is ``IMMSmoother`` over the ``TurnIMM``'s IMM with the turn rate
+    appended to the prior (an independent construction here), cut to the CV state; its filter
+    pass is the ``TurnIMM``'s own, and at the last step (nothing later to use) the smoothed
+    estimate is the filtered one."""
+    truth, z = _turning_tracks(3, 120, 2, sigma=30.0)
+    z64 = torch.tensor(z)
+    model = ConstantVelocity(ndim=2, q=1.0, r=900.0).double()
+    turn = ts.TurnIMM(model, turn_rate_q=1e-5, turn_rate_std=0.05)
+    prior = ts.datasets.two_point_prior(z64, torch.ones(3, 120, dtype=torch.float64), 900.0)
+    with torch.no_grad():
+        smoothed = ts.TurnIMMSmoother(turn, lag=8)(z64, prior.x0, prior.P0)
+        filtered = turn(z64, prior.x0, prior.P0)
+        x0 = torch.cat([prior.x0, torch.zeros(3, 1, dtype=torch.float64)], -1)
+        P0 = torch.zeros(3, 5, 5, dtype=torch.float64)
+        P0[:, :4, :4] = prior.P0
+        P0[:, 4, 4] = 0.05**2
+        kim = ts.IMMSmoother(turn.imm, lag=8)(z64, x0, P0)
+    assert_close(smoothed.mean, kim.mean[..., :4], atol=1e-9)
+    assert_close(smoothed.cov, kim.cov[..., :4, :4], atol=1e-9)
+    assert_close(smoothed.filtered.mean[..., :4], filtered.mean, atol=1e-9)
+    assert_close(smoothed.mean[:, -1], filtered.mean[:, -1], atol=1e-9)
+    error = {
+        name: float(np.sqrt(np.mean((out.mean[..., 0::2].numpy() - truth) ** 2)))
+        for name, out in (("smoothed", smoothed), ("filtered", filtered))
+    }
+    assert error["smoothed"] < 0.8 * error["filtered"], error
+
+
+def test_track_imm_with_a_lag_smooths(tmp_path):
+    """``--estimator imm --lag 8`` runs Kim's fixed-lag smoother: closer to the truth than the
+    IMM filter on the same file and settings."""
+    truth, z = _turning_tracks(4, 150, 2, sigma=30.0, seed=2)
+    source = tmp_path / "in.csv"
+    _write(source, z)
+    errors = {}
+    for name, extra in (("filter", []), ("smoother", ["--lag", "8"])):
+        target = tmp_path / f"{name}.csv"
+        _track(str(source), "-o", str(target), "--estimator", "imm", "--meas-std", "30", *extra)
+        est = _positions(target, 2)
+        errors[name] = float(np.sqrt(np.mean((est - truth.reshape(-1, 2)) ** 2)))
+    assert errors["smoother"] < 0.85 * errors["filter"], errors
+
+
+@pytest.mark.parametrize("name", ["kf", "ekf", "ukf", "rstkf", "pf", "svsf", "spvsf"])
+def test_a_lag_for_a_filter_is_refused(name):
+    with pytest.raises(ValueError, match=f"lag: {name} is a filter"):
+        ts.tracking.Settings(estimator=name, lag=3)

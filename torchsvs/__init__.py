@@ -28,7 +28,7 @@ from torchsvs.filters import (
     UnscentedKalmanFilter,
     VariableBoundarySVSF,
 )
-from torchsvs.smoothers import SVSS, IMMSmoother, IMMSmootherResult, RTSSmoother
+from torchsvs.smoothers import SVSS, IMMSmoother, IMMSmootherResult, RTSSmoother, TurnIMMSmoother
 from torchsvs.types import FilterResult, FilterState, SmootherResult
 
 __all__ = [
@@ -56,6 +56,7 @@ __all__ = [
     "SlidingInnovationFilter",
     "SmootherResult",
     "TurnIMM",
+    "TurnIMMSmoother",
     "VariableBoundarySVSF",
     "datasets",
     "metrics",

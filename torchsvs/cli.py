@@ -221,7 +221,9 @@ def track_parser() -> argparse.ArgumentParser:
         "--lag",
         type=_at_least_one,
         default=None,
-        help="smoother lag (default: ks full interval, svss and svstps 5; svss --no-velocity 1)",
+        help="smoother lag (default: ks full interval, svss and svstps 5; svss --no-velocity 1; "
+        "imm: none, a filter, unless a lag is given: Kim's fixed-lag IMM smoother; refused for "
+        "the filters)",
     )
     parser.add_argument(
         "--no-velocity",

@@ -24,7 +24,7 @@ from torchsvs.filters import (
 )
 from torchsvs.filters.turn_imm import TurnIMM
 from torchsvs.models import ConstantVelocity
-from torchsvs.smoothers import SVSS, RTSSmoother
+from torchsvs.smoothers import SVSS, RTSSmoother, TurnIMMSmoother
 
 #: Estimator names of ``torchsvs track --estimator`` and what they are.
 ESTIMATORS = {
@@ -44,6 +44,9 @@ ESTIMATORS = {
 }
 #: Lag of each smoother when none is given (``None``: fixed interval).
 DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
+#: The estimators a lag applies to (``imm``: Kim's fixed-lag smoother, only where a lag is
+#: given; ``auto``: to its candidates).
+LAGGED = ("ks", "svss", "svstps", "imm", "auto")
 #: The smoothers' default lag in the ``H⁺`` mode (``--no-velocity``): that mode corrects
 #: positions only, so the velocity keeps the two-point prior's error (σ√2/Δt) for the whole
 #: track, and a backward pass longer than one step carries it into the positions. Measured on
@@ -123,6 +126,11 @@ class Settings:
             isinstance(self.lag, bool) or not isinstance(self.lag, int) or self.lag < 1
         ):
             raise ValueError(f"lag: expected an integer >= 1, got {self.lag!r}")
+        if self.lag is not None and self.estimator not in LAGGED:
+            raise ValueError(
+                f"lag: {self.estimator} is a filter; a lag applies to "
+                f"{', '.join(LAGGED)} (got lag={self.lag})"
+            )
         if not 0.0 <= self.gamma < 1.0:
             raise ValueError(f"gamma: expected a value in [0, 1), got {self.gamma!r}")
         if self.q is not None and not self.q > 0:
@@ -214,13 +222,15 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
                 f"{model.ndim}"
             )
         p = settings.switch_prob
-        return TurnIMM(
+        turn = TurnIMM(
             model,
             turn_q=settings.turn_q,
             turn_rate_q=settings.turn_rate_q,
             turn_rate_std=settings.turn_rate_std,
             transition=[[1.0 - p, p], [p, 1.0 - p]],
         )
+        lag = settings.smoother_lag
+        return turn if lag is None else TurnIMMSmoother(turn, lag)
     if name in ("kf", "ks"):
         kf = KalmanFilter(model)
         return kf if name == "kf" else RTSSmoother(kf, lag=settings.smoother_lag)

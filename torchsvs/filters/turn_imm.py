@@ -172,12 +172,23 @@ class TurnIMM(Estimator[IMMResult]):
         return self._pass(inputs, None)
 
     def _pass(self, inputs: Inputs, mode_probs: Any) -> IMMResult:
+        result = self.imm.filter_pass(self.common_inputs(inputs), mode_probs)
+        return self.cv_part(result)
+
+    def common_inputs(self, inputs: Inputs) -> Inputs:
+        """The checked inputs with the prior in the IMM's common state: the turn rate appended
+        with mean 0 and standard deviation ``turn_rate_std``."""
         n = self.model.state_dim
         x0 = torch.cat([inputs.x0, inputs.x0.new_zeros(inputs.x0.shape[0], 1)], dim=-1)
         P0 = inputs.P0.new_zeros(*inputs.P0.shape[:-2], n + 1, n + 1)
         P0[..., :n, :n] = inputs.P0
         P0[..., n, n] = self.turn_rate_std**2
-        result = self.imm.filter_pass(replace(inputs, x0=x0, P0=P0), mode_probs)
+        return replace(inputs, x0=x0, P0=P0)
+
+    def cv_part(self, result: Any) -> Any:
+        """A result (the IMM's or its smoother's, a NamedTuple) with its combined ``mean`` and
+        ``cov`` in the CV state (the turn rate dropped)."""
+        n = self.model.state_dim
         cov = None if result.cov is None else result.cov[..., :n, :n]
         return result._replace(mean=result.mean[..., :n], cov=cov)
 

@@ -16,6 +16,7 @@ from torchsvs.estimator import (
     threads_for,
 )
 from torchsvs.filters.imm import IMM, IMMResult
+from torchsvs.filters.turn_imm import TurnIMM
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.linalg import log_divisor, matvec, mixture_moments, right_psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
@@ -333,6 +334,63 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
             )
             tau = torch.where(active, tau - 1, tau)
         return cur
+
+
+class TurnIMMSmoother(Estimator[IMMSmootherResult]):
+    """Kim's fixed-lag smoother (:class:`IMMSmoother`) over a :class:`~torchsvs.TurnIMM` pass:
+    the IMM(CV, CT) of ``torchsvs track --estimator imm --lag L``, called like the
+    :class:`~torchsvs.TurnIMM` with the CV state's prior, its ``mean`` and ``cov`` in the CV
+    state (the smoothed modes keep the CT mode's turn rate).
+
+    Args:
+        turn: the :class:`~torchsvs.TurnIMM` whose pass is smoothed.
+        lag: a positive integer lag, or ``None`` for the fixed interval.
+    """
+
+    def __init__(self, turn: TurnIMM, lag: int | None) -> None:
+        super().__init__()
+        if not isinstance(turn, TurnIMM):
+            raise TypeError(f"turn: expected a TurnIMM, got {type(turn).__name__}")
+        self.turn = turn
+        self.smoother = IMMSmoother(turn.imm, lag)
+
+    @property
+    def model(self) -> StateSpaceModel:  # type: ignore[override]
+        return self.turn.model
+
+    @property
+    def lag(self) -> int | None:
+        return self.smoother.lag
+
+    @outside_dynamo
+    def forward(
+        self,
+        z: Tensor,
+        x0: Tensor,
+        P0: Tensor,
+        *,
+        mode_probs: Any = None,
+        u: Tensor | None = None,
+        dt: float | Tensor | None = None,
+        psi: Tensor | None = None,
+        generator: torch.Generator | None = None,
+        keep: str = "all",
+    ) -> IMMSmootherResult:
+        """Smooths every track; arguments as for :meth:`~torchsvs.TurnIMM.forward`."""
+        self.check_psi(psi)
+        inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, generator=generator, keep=keep)
+        with threads_for(inputs.batch, self.model.state_dim + 1):
+            result = self._pass(inputs, mode_probs)
+        result = _trim(result, keep)
+        return drop_batch(result) if inputs.single else result
+
+    def run(self, inputs: Inputs) -> IMMSmootherResult:
+        return self._pass(inputs, None)
+
+    def _pass(self, inputs: Inputs, mode_probs: Any) -> IMMSmootherResult:
+        common = self.turn.common_inputs(inputs)
+        filtered = self.turn.imm.filter_pass(common, mode_probs)
+        return self.turn.cv_part(self.smoother.smooth(filtered, common))
 
 
 def _trim(result: IMMSmootherResult, keep: str) -> IMMSmootherResult:
