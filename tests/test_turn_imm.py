@@ -15,6 +15,7 @@ import torchsvs as ts
 from tests.conftest import assert_close
 from torchsvs.cli import main
 from torchsvs.models import ConstantVelocity, CoordinatedTurn, CoordinatedTurn3D
+from torchsvs.recipes import Settings
 
 RATE = 3.0
 
@@ -293,4 +294,30 @@ def test_track_imm_with_a_lag_smooths(tmp_path):
 @pytest.mark.parametrize("name", ["kf", "ekf", "ukf", "rstkf", "pf", "svsf", "spvsf"])
 def test_a_lag_for_a_filter_is_refused(name):
     with pytest.raises(ValueError, match=f"lag: {name} is a filter"):
-        ts.tracking.Settings(estimator=name, lag=3)
+        Settings(estimator=name, lag=3)
+
+
+def test_imm_fit_searches_the_noises_and_moves_a_bad_start():
+    """``self_tune`` of the IMM scores scaled noises by SURE (no descent): from noises 30×
+    too small for these turns it raises the turn mode's (the straight legs need no more ``q``),
+    and its fresh-probe risk falls."""
+    from dataclasses import replace
+
+    from torchsvs.datasets import RecordedTracks
+    from torchsvs.fitting.defaults import complete_settings
+    from torchsvs.fitting.tuning import self_tune
+
+    _, z = _turning_tracks(6, 150, 2, sigma=30.0, seed=4)
+    z64 = torch.tensor(z)
+    dt = torch.ones(6, 150, dtype=torch.float64)
+    tracks = RecordedTracks(
+        z=z64, dt=dt, time=dt.cumsum(1), lengths=torch.full((6,), 150), ids=list("abcdef")
+    )
+    good = complete_settings(Settings("imm", meas_var=[900.0, 900.0]), tracks)
+    bad = replace(good, q=good.q / 30, turn_q=good.turn_q / 30, turn_rate_q=good.turn_rate_q / 30)
+    fit = self_tune(bad, tracks)
+    assert fit.settings.turn_rate_q > 3 * bad.turn_rate_q
+    began, ended = map(
+        float, re.search(r"fresh probes ([\d.]+) → ([\d.]+)", fit.stages[-1]).groups()
+    )
+    assert ended < began

@@ -13,7 +13,9 @@ Two stages, each a short L-BFGS run on (at most 64) windows of 128 steps cut fro
    the loss that targets the error users care about, while the NLL only scores one-step
    predictions.
 
-Parameters are moved in log space (ψ, q, R) and logit space (γ). The SURE surface of an SVSS
+The IMM's noises are not descended but searched (:func:`_imm_search`: scaled candidates scored by
+SURE on short windows): its step loop makes each gradient cost seconds. Parameters are moved in
+log space (ψ, q, R) and logit space (γ). The SURE surface of an SVSS
 has more than one valley, so stage 2 first compares a few starting points (:data:`START_Q`,
 :data:`START_PSI`) by their risk and descends from the best; ψ is shared by the axes.
 Measured on recorded flights (``experiments/results/real_flights.md``): seconds per fit, within
@@ -180,14 +182,16 @@ def self_tune(
     result = FitResult(settings)
     tracks = tracks.to(torch.float64)
 
-    def batches_for(meas_var: list[float]) -> list[TrackBatch]:
+    def batches_for(
+        meas_var: list[float], window: int = window, burn_in: int = burn_in, most: int = max_windows
+    ) -> list[TrackBatch]:
         all_windows = recorded_batches(
             tracks, torch.tensor(meas_var, dtype=torch.float64), window, burn_in, None
         )[0]
         count = len(all_windows.z)
-        if count <= max_windows:
+        if count <= most:
             return [all_windows]
-        pick = torch.linspace(0, count - 1, max_windows).round().long().unique()
+        pick = torch.linspace(0, count - 1, most).round().long().unique()
         return [TrackBatch(*(_rows(field, pick) for field in all_windows))]
 
     if not known_noise:
@@ -220,6 +224,11 @@ def self_tune(
         )
     assert settings.meas_var is not None
     meas_cov = torch.diag(torch.tensor(settings.meas_var, dtype=torch.float64))
+    if settings.estimator == "imm":
+        batches = batches_for(settings.meas_var, *IMM_WINDOWS)
+        result.settings = _imm_search(settings, batches, meas_cov, seed, result)
+        result.seconds = time.perf_counter() - start
+        return result
     batches = batches_for(settings.meas_var)
     settings = _best_start(settings, batches, meas_cov, seed)
     model = make_model(settings, learn_q=True, learn_r=False).double()
@@ -282,6 +291,82 @@ Q_FLOOR = 1e-12
 #: Seed offset of the probes that check a fit's result (apart from the descent's).
 VALIDATION_SEED = 7919
 START_PSI = (0.03, 0.2, 1.0)
+
+
+#: The IMM's fit: windows of this many steps, this many burnt in, at most this many windows.
+#: Its steps are a few dozen small tensor operations each, so a pass costs its steps, not its
+#: points: short windows side by side make a pass of thousands of points a fraction of a second.
+IMM_WINDOWS = (48, 8, 384)
+#: Factors on the three process noises of the IMM together (``q``, ``turn_q``, ``turn_rate_q``
+#: as :func:`~torchsvs.fitting.defaults.turn_settings` derives them), then on the turn-rate
+#: noise alone, then on the turn mode's acceleration noise alone: the candidates
+#: :func:`_imm_search` scores by SURE.
+IMM_FACTORS = tuple(10.0 ** (k / 2) for k in range(-2, 3))
+IMM_RATE_FACTORS = tuple(10.0 ** (k / 2) for k in range(-2, 3))
+
+
+def _imm_search(
+    settings: Settings,
+    batches: list[TrackBatch],
+    meas_cov: Tensor,
+    seed: int,
+    result: FitResult,
+) -> Settings:
+    """The IMM's process noises by a search over :data:`IMM_FACTORS` on all three together,
+    then :data:`IMM_RATE_FACTORS` on the turn-rate noise, then on ``turn_q``, each candidate
+    scored by its SURE
+    (forward passes only, the same probes); the choice is checked against the start with fresh
+    probes (kept only if lower). No gradients: a descent through the IMM's steps took 30-110 s
+    on 5,000 rows for 0-10% of error (``experiments/results/recorded_tracks.md``); this takes
+    seconds and lands within 2% of it (better on gliders: 0.99 of raw, was 1.07)."""
+    assert settings.q is not None and settings.turn_q is not None
+    assert settings.turn_rate_q is not None
+
+    def risk_of(candidate: Settings, probes: int = seed) -> float:
+        estimator = make_estimator(candidate, make_model(candidate)).double()
+        return _risk(estimator, batches, meas_cov, probes)
+
+    def scaled(base: Settings, factor: float, rate: float = 1.0) -> Settings:
+        assert base.q is not None and base.turn_q is not None and base.turn_rate_q is not None
+        return replace(
+            base,
+            q=base.q * factor,
+            turn_q=base.turn_q * factor,
+            turn_rate_q=base.turn_rate_q * factor * rate,
+        )
+
+    start_risk = risk_of(settings)
+    scores = {f: (start_risk if f == 1.0 else risk_of(scaled(settings, f))) for f in IMM_FACTORS}
+    factor = min(scores, key=scores.__getitem__)
+    best = scaled(settings, factor)
+    rates = {
+        r: (scores[factor] if r == 1.0 else risk_of(scaled(best, 1.0, r))) for r in IMM_RATE_FACTORS
+    }
+    rate = min(rates, key=rates.__getitem__)
+    best = scaled(best, 1.0, rate)
+    assert best.turn_q is not None
+    turns = {
+        t: (rates[rate] if t == 1.0 else risk_of(replace(best, turn_q=best.turn_q * t)))
+        for t in IMM_RATE_FACTORS
+    }
+    turn = min(turns, key=turns.__getitem__)
+    best = replace(best, turn_q=best.turn_q * turn)
+    fresh = seed + VALIDATION_SEED
+    began, ended = risk_of(settings, fresh), risk_of(best, fresh)
+    assert best.q is not None and best.turn_q is not None and best.turn_rate_q is not None
+    result.stages.append(
+        f"imm by SURE: noises ×{factor:.3g}, then turn-rate noise ×{rate:.3g}, turn mode's "
+        f"acceleration ×{turn:.3g}: q = {_fmt(best.q)}, "
+        f"turn_q = {_fmt(best.turn_q)}, turn_rate_q = {_fmt(best.turn_rate_q)} (risk "
+        f"{start_risk:.4f} → {turns[turn]:.4f} of R; fresh probes {began:.4f} → {ended:.4f}; "
+        f"{len(IMM_FACTORS) + 2 * len(IMM_RATE_FACTORS) - 1} candidates)"
+    )
+    if not ended <= began:
+        result.stages.append(
+            "kept the starting point: with fresh probes the fit's risk was not lower"
+        )
+        return settings
+    return best
 
 
 def _best_start(
