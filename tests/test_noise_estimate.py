@@ -343,3 +343,25 @@ def test_track_q_factors_split_quiet_from_maneuvering_tracks_and_beat_one_q():
     assert rmse(q * factors) < 0.95 * rmse(torch.full((6,), q))
     with pytest.raises(ValueError, match="^pooled, curves:"):
         track_q_factors(curves, curves.pooled()[:3])
+
+
+def test_settings_q_factors_only_rise_for_the_student_t_filter():
+    """The same quiet and maneuvering tracks: the Kalman filter's quiet tracks get a factor below
+    1, the robust Student-t filter's none (``recipes.UPWARD_Q_ONLY``), while its maneuvering
+    tracks keep theirs."""
+    from torchsvs.datasets import RecordedTracks
+    from torchsvs.estimating import settings_q_factors
+    from torchsvs.fitting.defaults import complete_settings, with_q_curve
+    from torchsvs.recipes import Settings
+
+    _, z, dt = _two_kinds()
+    tracks = RecordedTracks(
+        z=z, dt=dt, time=dt.cumsum(1), lengths=torch.full((6,), 300), ids=list("abcdef")
+    )
+    factors = {}
+    for name in ("kf", "rstkf"):
+        settings = with_q_curve(complete_settings(Settings(name, meas_var=[400.0]), tracks), tracks)
+        factors[name] = settings_q_factors(settings, tracks)
+    assert factors["kf"][:3].max() < 1
+    assert (factors["rstkf"] >= 1).all()
+    assert torch.equal(factors["rstkf"][3:], factors["kf"][3:].clamp_min(1.0))

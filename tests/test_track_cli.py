@@ -63,6 +63,11 @@ def _run(*args: str) -> None:
     main(["track", *args, "--quiet"])
 
 
+def _run_simulated(source, target, *args: str) -> None:
+    """``track`` on a :func:`_simulated_csv` file (its ``id`` and ``t`` columns)."""
+    _run(str(source), "-o", str(target), "--id-col", "id", "--time-col", "t", *args)
+
+
 def test_every_row_comes_back_with_its_id_and_time(tmp_path):
     source, target = tmp_path / "in.csv", tmp_path / "out.csv"
     truth = _simulated_csv(source)
@@ -85,17 +90,7 @@ def test_every_row_comes_back_with_its_id_and_time(tmp_path):
 def test_each_estimator_runs_from_the_command_line(tmp_path, estimator):
     source, target = tmp_path / "in.csv", tmp_path / "out.parquet"
     _simulated_csv(source, tracks=3, steps=20)
-    _run(
-        str(source),
-        "-o",
-        str(target),
-        "--id-col",
-        "id",
-        "--time-col",
-        "t",
-        "--estimator",
-        estimator,
-    )
+    _run_simulated(source, target, "--estimator", estimator)
     out = pq.read_table(target)
     assert out.num_rows == pcsv.read_csv(source).num_rows
     assert np.isfinite(out.column("vx").to_numpy()).all()
@@ -350,20 +345,7 @@ def test_hplus_svss_defaults_to_lag_one_and_stays_below_the_measurements(tmp_pat
     truth = _simulated_csv(source, tracks=12, steps=80)
     errors = {}
     for lag in ([], ["--lag", "5"]):
-        _run(
-            str(source),
-            "-o",
-            str(target),
-            "--id-col",
-            "id",
-            "--time-col",
-            "t",
-            "--estimator",
-            "svss",
-            "--no-velocity",
-            "--force",
-            *lag,
-        )
+        _run_simulated(source, target, "--estimator", "svss", "--no-velocity", "--force", *lag)
         errors[bool(lag)] = _errors(source, target, truth)
     assert errors[False][0] < errors[False][1], errors
     # and why the default is 1: at lag 5 the prior's velocity error reaches the positions

@@ -31,7 +31,7 @@ from torchsvs.fitting import noise
 from torchsvs.fitting.defaults import meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
-from torchsvs.recipes import FILTERS, Settings, make_estimator, make_model
+from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings, make_estimator, make_model
 
 #: Seed offset of the truth-free error estimate's probes (apart from the particles' seeds).
 PROBE_SEED = 1 << 20
@@ -231,10 +231,7 @@ def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
         tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
     )
     factors = noise.track_q_factors(curves, settings.q_curve)
-    if settings.estimator == "rstkf":
-        # Chosen on the Kalman filter's SURE; a Student-t filter with less q takes the turns it
-        # no longer expects for outliers and loses the track (1.25x raw on 10 s scans at a
-        # third of the file's q, experiments/results/recorded_faults.md): only more q for it.
+    if settings.estimator in UPWARD_Q_ONLY:
         factors = factors.clamp_min(1.0)
     return factors
 

@@ -44,6 +44,11 @@ ESTIMATORS = {
 }
 #: Lag of each smoother when none is given (``None``: fixed interval).
 DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
+#: Estimators whose own ``q`` per track (:func:`~torchsvs.estimating.settings_q_factors`) may
+#: only rise above the file's: the factors are chosen on the Kalman filter's SURE, and a
+#: Student-t filter with less ``q`` takes the turns it no longer expects for outliers and loses
+#: the track (1.25x raw on 10 s scans at a third of the file's q, ``--fit`` with faults).
+UPWARD_Q_ONLY = frozenset({"rstkf"})
 #: The estimators a lag applies to (``imm``: Kim's fixed-lag smoother, only where a lag is
 #: given; ``auto``: to its candidates).
 LAGGED = ("ks", "svss", "svstps", "imm", "auto")

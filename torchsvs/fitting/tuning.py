@@ -35,7 +35,7 @@ from torch.nn.utils import parametrize
 
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimator import threads_for
-from torchsvs.filters import SVSF, TurnIMM
+from torchsvs.filters import SVSF
 from torchsvs.fitting.batches import TrackBatch, batch_loss, recorded_batches
 from torchsvs.recipes import Settings, make_estimator, make_model, rule_of_thumb_psi
 
@@ -247,9 +247,6 @@ def self_tune(
     assert settings.meas_var is not None
     floor = Q_FLOOR * sum(settings.meas_var) / len(settings.meas_var) / settings.interval**3
     learned: dict[str, Any] = {"q": max(float(model.q().detach()), floor)}
-    if isinstance(estimator, TurnIMM):
-        learned["turn_q"] = float(estimator.turn_q.detach())
-        learned["turn_rate_q"] = float(estimator.turn_rate_q.detach())
     for svsf in _svsfs(estimator):
         learned["psi"] = [float(p) for p in svsf.psi.detach().reshape(-1)]
         learned["gamma"] = float(svsf.gamma.detach())
@@ -316,52 +313,57 @@ def _imm_search(
 ) -> Settings:
     """The IMM's process noises by a search over :data:`IMM_FACTORS` on all three together,
     then :data:`IMM_RATE_FACTORS` on the turn-rate noise, then on ``turn_q``, each candidate
-    scored by its SURE
-    (forward passes only, the same probes); the choice is checked against the start with fresh
-    probes (kept only if lower). No gradients: a descent through the IMM's steps took 30-110 s
-    on 5,000 rows for 0-10% of error (``experiments/results/recorded_tracks.md``); this takes
-    seconds and lands within 2% of it (better on gliders: 0.99 of raw, was 1.07)."""
-    assert settings.q is not None and settings.turn_q is not None
-    assert settings.turn_rate_q is not None
+    scored by its SURE (forward passes only, the same probes); the choice is checked against the
+    start with fresh probes (kept only if lower). No gradients: a descent through the IMM's steps
+    took 30-110 s on 5,000 rows for 0-10% of error (``experiments/results/recorded_tracks.md``);
+    this takes seconds and lands within 2% of it (better on gliders: 0.98 of raw, was 1.07)."""
+    scored = 0
 
     def risk_of(candidate: Settings, probes: int = seed) -> float:
+        nonlocal scored
+        scored += probes == seed
         estimator = make_estimator(candidate, make_model(candidate)).double()
         return _risk(estimator, batches, meas_cov, probes)
 
-    def scaled(base: Settings, factor: float, rate: float = 1.0) -> Settings:
-        assert base.q is not None and base.turn_q is not None and base.turn_rate_q is not None
+    def noise(base: Settings, name: str, factor: float) -> float:
+        value = getattr(base, name)
+        assert value is not None
+        return float(value) * factor
+
+    def together(base: Settings, f: float) -> Settings:
         return replace(
             base,
-            q=base.q * factor,
-            turn_q=base.turn_q * factor,
-            turn_rate_q=base.turn_rate_q * factor * rate,
+            q=noise(base, "q", f),
+            turn_q=noise(base, "turn_q", f),
+            turn_rate_q=noise(base, "turn_rate_q", f),
         )
 
-    start_risk = risk_of(settings)
-    scores = {f: (start_risk if f == 1.0 else risk_of(scaled(settings, f))) for f in IMM_FACTORS}
-    factor = min(scores, key=scores.__getitem__)
-    best = scaled(settings, factor)
-    rates = {
-        r: (scores[factor] if r == 1.0 else risk_of(scaled(best, 1.0, r))) for r in IMM_RATE_FACTORS
-    }
-    rate = min(rates, key=rates.__getitem__)
-    best = scaled(best, 1.0, rate)
-    assert best.turn_q is not None
-    turns = {
-        t: (rates[rate] if t == 1.0 else risk_of(replace(best, turn_q=best.turn_q * t)))
-        for t in IMM_RATE_FACTORS
-    }
-    turn = min(turns, key=turns.__getitem__)
-    best = replace(best, turn_q=best.turn_q * turn)
+    def rate(base: Settings, f: float) -> Settings:
+        return replace(base, turn_rate_q=noise(base, "turn_rate_q", f))
+
+    def turn(base: Settings, f: float) -> Settings:
+        return replace(base, turn_q=noise(base, "turn_q", f))
+
+    best = settings
+    start_risk = risk = risk_of(settings)
+    chosen = []
+    for factors, scale in (
+        (IMM_FACTORS, together),
+        (IMM_RATE_FACTORS, rate),
+        (IMM_RATE_FACTORS, turn),
+    ):
+        scores = {f: risk if f == 1.0 else risk_of(scale(best, f)) for f in factors}
+        factor = min(scores, key=scores.__getitem__)
+        best, risk = scale(best, factor), scores[factor]
+        chosen.append(factor)
     fresh = seed + VALIDATION_SEED
     began, ended = risk_of(settings, fresh), risk_of(best, fresh)
-    assert best.q is not None and best.turn_q is not None and best.turn_rate_q is not None
     result.stages.append(
-        f"imm by SURE: noises ×{factor:.3g}, then turn-rate noise ×{rate:.3g}, turn mode's "
-        f"acceleration ×{turn:.3g}: q = {_fmt(best.q)}, "
-        f"turn_q = {_fmt(best.turn_q)}, turn_rate_q = {_fmt(best.turn_rate_q)} (risk "
-        f"{start_risk:.4f} → {turns[turn]:.4f} of R; fresh probes {began:.4f} → {ended:.4f}; "
-        f"{len(IMM_FACTORS) + 2 * len(IMM_RATE_FACTORS) - 1} candidates)"
+        f"imm by SURE: noises ×{chosen[0]:.3g}, then turn-rate noise ×{chosen[1]:.3g}, turn "
+        f"mode's acceleration ×{chosen[2]:.3g}: q = {_fmt(noise(best, 'q', 1.0))}, turn_q = "
+        f"{_fmt(noise(best, 'turn_q', 1.0))}, turn_rate_q = "
+        f"{_fmt(noise(best, 'turn_rate_q', 1.0))} (risk {start_risk:.4f} → {risk:.4f} of R; "
+        f"fresh probes {began:.4f} → {ended:.4f}; {scored} candidates)"
     )
     if not ended <= began:
         result.stages.append(
@@ -385,8 +387,6 @@ def _best_start(
                 q=settings.q * q_factor,
                 psi=None if settings.psi is None else [p * psi_factor for p in settings.psi],
             )
-            if settings.turn_q is not None:  # the IMM: its turn mode's noise along
-                candidate = replace(candidate, turn_q=settings.turn_q * q_factor)
             estimator = make_estimator(candidate, make_model(candidate)).double()
             risk = _risk(estimator, batches, meas_cov, seed)
             if risk < best_risk:

@@ -156,12 +156,16 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         self.check_psi(psi)
         inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, generator=generator, keep=keep)
         with threads_for(inputs.batch, self.model.state_dim):
-            result = self.smooth(self.imm.filter_pass(inputs, mode_probs), inputs)
+            result = self._pass(inputs, mode_probs)
         result = _trim(result, keep)
         return drop_batch(result) if inputs.single else result
 
     def run(self, inputs: Inputs) -> IMMSmootherResult:
-        return self.smooth(self.imm.filter_pass(inputs), inputs)
+        return self._pass(inputs, None)
+
+    def _pass(self, inputs: Inputs, mode_probs: Any) -> IMMSmootherResult:
+        """The filter pass and its smoothing (a subclass may change what they run on)."""
+        return self.smooth(self.imm.filter_pass(inputs, mode_probs), inputs)
 
     def smooth(self, filtered: IMMResult, inputs: Inputs) -> IMMSmootherResult:
         """The smoothed pass of an IMM result (kept whole) over the checked ``inputs`` it was
@@ -336,7 +340,7 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         return cur
 
 
-class TurnIMMSmoother(Estimator[IMMSmootherResult]):
+class TurnIMMSmoother(IMMSmoother):
     """Kim's fixed-lag smoother (:class:`IMMSmoother`) over a :class:`~torchsvs.TurnIMM` pass:
     the IMM(CV, CT) of ``torchsvs track --estimator imm --lag L``, called like the
     :class:`~torchsvs.TurnIMM` with the CV state's prior, its ``mean`` and ``cov`` in the CV
@@ -348,49 +352,18 @@ class TurnIMMSmoother(Estimator[IMMSmootherResult]):
     """
 
     def __init__(self, turn: TurnIMM, lag: int | None) -> None:
-        super().__init__()
         if not isinstance(turn, TurnIMM):
             raise TypeError(f"turn: expected a TurnIMM, got {type(turn).__name__}")
+        super().__init__(turn.imm, lag)
         self.turn = turn
-        self.smoother = IMMSmoother(turn.imm, lag)
 
     @property
     def model(self) -> StateSpaceModel:  # type: ignore[override]
-        return self.turn.model
-
-    @property
-    def lag(self) -> int | None:
-        return self.smoother.lag
-
-    @outside_dynamo
-    def forward(
-        self,
-        z: Tensor,
-        x0: Tensor,
-        P0: Tensor,
-        *,
-        mode_probs: Any = None,
-        u: Tensor | None = None,
-        dt: float | Tensor | None = None,
-        psi: Tensor | None = None,
-        generator: torch.Generator | None = None,
-        keep: str = "all",
-    ) -> IMMSmootherResult:
-        """Smooths every track; arguments as for :meth:`~torchsvs.TurnIMM.forward`."""
-        self.check_psi(psi)
-        inputs = prepare_inputs(self.model, z, x0, P0, u=u, dt=dt, generator=generator, keep=keep)
-        with threads_for(inputs.batch, self.model.state_dim + 1):
-            result = self._pass(inputs, mode_probs)
-        result = _trim(result, keep)
-        return drop_batch(result) if inputs.single else result
-
-    def run(self, inputs: Inputs) -> IMMSmootherResult:
-        return self._pass(inputs, None)
+        return self.turn.model  # the CV state the prior and the result are in
 
     def _pass(self, inputs: Inputs, mode_probs: Any) -> IMMSmootherResult:
         common = self.turn.common_inputs(inputs)
-        filtered = self.turn.imm.filter_pass(common, mode_probs)
-        return self.turn.cv_part(self.smoother.smooth(filtered, common))
+        return self.turn.cv_part(super()._pass(common, mode_probs))
 
 
 def _trim(result: IMMSmootherResult, keep: str) -> IMMSmootherResult:
