@@ -697,6 +697,10 @@ def test_a_lag_past_the_track_end_is_the_fixed_interval():
     single = ts.IMMSmoother(imm, lag=3)(z[1], x0, P0, keep="mean")
     assert single.mean.shape == (80, 5) and single.cov is None
     assert_close(single.mean, ts.IMMSmoother(imm, lag=3)(z, x0, P0).mean[1], atol=1e-10)
+    # keep="mean" skips the smoothed covariances (the means never depend on them)
+    means_only = ts.IMMSmoother(imm, lag=None)(z, x0, P0, keep="mean")
+    assert means_only.cov is None and all(m.cov is None for m in means_only.modes)
+    assert_close(means_only.mean, whole.mean, atol=1e-10, rtol=1e-12)
 
 
 def test_imm_smoother_beats_the_filter_on_maneuvering_tracks():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import re
+from typing import Any, NamedTuple
 
 import numpy as np
 import pyarrow.csv as pcsv
@@ -276,19 +277,21 @@ def test_turn_imm_smoother_is_kims_smoother_over_the_turn_imm_pass():
     assert error["smoothed"] < 0.8 * error["filtered"], error
 
 
-def test_track_imm_with_a_lag_smooths(tmp_path):
-    """``--estimator imm --lag 8`` runs Kim's fixed-lag smoother: closer to the truth than the
-    IMM filter on the same file and settings."""
+def test_track_imm_smooths_by_default(tmp_path):
+    """``--estimator imm`` runs Kim's fixed-lag smoother (lag 5; ``--lag 8`` another lag):
+    closer to the truth than the IMM filter (``--lag 0``) on the same file and settings."""
     truth, z = _turning_tracks(4, 150, 2, sigma=30.0, seed=2)
     source = tmp_path / "in.csv"
     _write(source, z)
     errors = {}
-    for name, extra in (("filter", []), ("smoother", ["--lag", "8"])):
+    for name, extra in (("filter", ["--lag", "0"]), ("default", []), ("lag 8", ["--lag", "8"])):
         target = tmp_path / f"{name}.csv"
         _track(str(source), "-o", str(target), "--estimator", "imm", "--meas-std", "30", *extra)
         est = _positions(target, 2)
         errors[name] = float(np.sqrt(np.mean((est - truth.reshape(-1, 2)) ** 2)))
-    assert errors["smoother"] < 0.85 * errors["filter"], errors
+    assert errors["default"] < 0.85 * errors["filter"], errors
+    assert errors["lag 8"] < 0.85 * errors["filter"], errors
+    assert errors["default"] != errors["lag 8"], errors
 
 
 @pytest.mark.parametrize("name", ["kf", "ekf", "ukf", "rstkf", "pf", "svsf", "spvsf"])
@@ -321,3 +324,71 @@ def test_imm_fit_searches_the_noises_and_moves_a_bad_start():
         float, re.search(r"fresh probes ([\d.]+) → ([\d.]+)", fit.stages[-1]).groups()
     )
     assert ended < began
+
+
+class _Passes(NamedTuple):
+    """A smoother's result as :func:`~torchsvs.estimating.smoothed_or_filtered` reads it."""
+
+    mean: torch.Tensor
+    cov: torch.Tensor | None
+    filtered: Any
+
+
+def _linear_passes(smooth: torch.Tensor, filt: torch.Tensor):
+    """A "smoother" ``smooth[b] · z`` and a "filter" ``filt[b] · z`` per track ``b`` (states
+    ``[B, T, 4]`` of two axes, position and velocity, the velocities 0)."""
+
+    def state(positions: torch.Tensor) -> torch.Tensor:
+        out = positions.new_zeros(*positions.shape[:-1], 4)
+        out[..., 0::2] = positions
+        return out
+
+    def run(z: torch.Tensor) -> _Passes:
+        inner = _Passes(state(filt[:, None, None] * z), None, None)
+        return _Passes(state(smooth[:, None, None] * z), None, inner)
+
+    return run
+
+
+def test_the_imm_smoother_falls_back_to_its_filter_per_track_by_sure():
+    """Each track keeps the pass of lower SURE: on pure noise (track 0) estimating 0 (the
+    "filter" 0·z: SURE ≈ 0) beats following the data (the "smoother" z: SURE = r); on a large
+    signal (track 1) the other way round. The risk terms are the chosen pass's."""
+    from torchsvs.estimating import smoothed_or_filtered
+
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(2, 400, 2, generator=g, dtype=torch.float64)
+    z[1] += 1000.0 * torch.randn(400, 2, generator=g, dtype=torch.float64)
+    run = _linear_passes(torch.tensor([1.0, 1.0]), torch.tensor([0.0, 0.0]))
+    std = torch.ones(2, dtype=torch.float64)
+    chosen, terms, back = smoothed_or_filtered(run(z), run, z, std, seed=3)
+    assert back.tolist() == [True, False]
+    assert_close(chosen.mean[0, :, 0::2], torch.zeros_like(z[0]), atol=0)
+    assert_close(chosen.mean[1, :, 0::2], z[1], atol=0)
+    risk = terms.residual - terms.count + 2.0 * terms.divergence  # r = 1
+    per_track = np.bincount(terms.track, weights=risk.sum(1), minlength=2) / (400 * 2)
+    assert abs(per_track[0]) < 0.1 and abs(per_track[1] - 1.0) < 1e-9, per_track
+
+
+def test_the_imm_smoother_is_kept_only_where_it_wins_over_the_noise_interval():
+    """SURE is linear in the noise variance: with a "smoother" 0.2·z and a "filter" 0.8·z on
+    pure noise of variance 1.5 read as r = 1, the smoother wins at r (SURE difference
+    0.6·1.5 − 1.2·r < 0) and loses at 0.5 r; given that interval the track falls back."""
+    from torchsvs.estimating import smoothed_or_filtered
+
+    z = math.sqrt(1.5) * torch.randn(1, 2000, 2, generator=torch.Generator().manual_seed(1))
+    z = z.double()
+    run = _linear_passes(torch.tensor([0.2]), torch.tensor([0.8]))
+    std = torch.ones(2, dtype=torch.float64)
+    _, _, alone = smoothed_or_filtered(run(z), run, z, std, seed=3)
+    _, _, ranged = smoothed_or_filtered(run(z), run, z, std, 3, ([0.5, 0.5], [2.0, 2.0]))
+    assert alone.tolist() == [False] and ranged.tolist() == [True]
+
+
+def test_imm_lag_zero_is_its_filter_and_refused_elsewhere():
+    assert Settings(estimator="imm", lag=0).smoother_lag == 0
+    assert Settings(estimator="imm").smoother_lag == 5
+    with pytest.raises(ValueError, match=r"^lag: expected an integer >= 1, got 0"):
+        Settings(estimator="ks", lag=0)
+    with pytest.raises(ValueError, match=r"^lag: expected an integer >= 0 \(0 for imm"):
+        Settings(estimator="imm", lag=-1)

@@ -103,6 +103,16 @@ def _at_least_one(text: str) -> int:
     return value
 
 
+def _at_least_zero(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
 def _time_unit(text: str) -> float | str:
     """``auto``, a unit of :data:`~torchsvs.datasets.rows.TIME_UNITS` or seconds per unit."""
     from torchsvs.datasets.rows import TIME_UNITS
@@ -219,11 +229,10 @@ def track_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--lag",
-        type=_at_least_one,
+        type=_at_least_zero,
         default=None,
-        help="smoother lag (default: ks full interval, svss and svstps 5; svss --no-velocity 1; "
-        "imm: none, a filter, unless a lag is given: Kim's fixed-lag IMM smoother; refused for "
-        "the filters)",
+        help="smoother lag (default: ks full interval, svss, svstps and imm 5; svss "
+        "--no-velocity 1; imm --lag 0: the IMM filter; refused for the filters)",
     )
     parser.add_argument(
         "--no-velocity",
@@ -326,7 +335,13 @@ def track_parser() -> argparse.ArgumentParser:
 
 def track(argv: list[str]) -> None:
     """``torchsvs track``: see :func:`track_parser`."""
-    args = track_parser().parse_args(argv)
+    parser = track_parser()
+    args = parser.parse_args(argv)
+    if args.lag == 0 and args.estimator != "imm":
+        parser.error(
+            f"argument --lag: expected an integer >= 1 (0 only for --estimator imm: its "
+            f"filter), got 0 with --estimator {args.estimator}"
+        )
     if os.environ.get("LOCAL_RANK", "0") == "0":  # ranks 1..N-1 of --processes read no file
         try:
             args.columns = checked_columns(args)

@@ -121,13 +121,20 @@ def mixture_moments(
             order).
     """
     K = len(means)
-    x = weights[..., 0, None] * means[0]
-    for k in range(1, K):
-        x = x + weights[..., k, None] * means[k]
+    x = mixture_mean(weights, means)
     P = weights[..., 0, None, None] * (covs[0] + _outer(means[0] - x))
     for k in range(1, K):
         P = P + weights[..., k, None, None] * (covs[k] + _outer(means[k] - x))
     return x, symmetrize(P)
+
+
+def mixture_mean(weights: Tensor, means: Sequence[Tensor]) -> Tensor:
+    """``Σ_k w_k x_k`` for ``weights [..., K]`` and ``K`` means ``[..., n]`` (added in order):
+    :func:`mixture_moments`' mean, alone."""
+    x = weights[..., 0, None] * means[0]
+    for k in range(1, len(means)):
+        x = x + weights[..., k, None] * means[k]
+    return x
 
 
 def _outer(d: Tensor) -> Tensor:

@@ -42,15 +42,19 @@ ESTIMATORS = {
     "spvsf": "smooth particle variable structure filter",
     "imm": "IMM of a KF on constant velocity and an EKF on a coordinated turn (horizontal)",
 }
-#: Lag of each smoother when none is given (``None``: fixed interval).
-DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5}
+#: Lag of each smoother when none is given (``None``: fixed interval). The IMM's is Kim's
+#: fixed-lag smoother at 5 steps: on the recorded-tracks benchmark (``experiments.
+#: recorded_tracks``, σ 10-50) lag 5 took the IMM filter's 0.58-0.86x the raw measurements to
+#: 0.31-0.57x; lag 2 was 1-25% behind it, lag 20 up to 70% (a CV mode of small ``q`` carries
+#: a maneuver's error rigidly back over a long window: :class:`~torchsvs.IMMSmoother`).
+DEFAULT_LAG: dict[str, int | None] = {"ks": None, "svss": 5, "svstps": 5, "imm": 5}
 #: Estimators whose own ``q`` per track (:func:`~torchsvs.estimating.settings_q_factors`) may
 #: only rise above the file's: the factors are chosen on the Kalman filter's SURE, and a
 #: Student-t filter with less ``q`` takes the turns it no longer expects for outliers and loses
 #: the track (1.25x raw on 10 s scans at a third of the file's q, ``--fit`` with faults).
 UPWARD_Q_ONLY = frozenset({"rstkf"})
-#: The estimators a lag applies to (``imm``: Kim's fixed-lag smoother, only where a lag is
-#: given; ``auto``: to its candidates).
+#: The estimators a lag applies to (``imm``: Kim's fixed-lag smoother, lag 0 its filter;
+#: ``auto``: to its candidates).
 LAGGED = ("ks", "svss", "svstps", "imm", "auto")
 #: The smoothers' default lag in the ``H⁺`` mode (``--no-velocity``): that mode corrects
 #: positions only, so the velocity keeps the two-point prior's error (σ√2/Δt) for the whole
@@ -68,6 +72,11 @@ PSI_IN_SIGMAS = 5.0
 #: for a filter in turns (10 s airliner scans); wider limits (3-4) bring the smoothers 2-10%
 #: closer to the Kalman smoother on simulated tracks and lift the filter to the raw error there.
 PSI_LIMIT_IN_SIGMAS = 2.0
+#: Estimators ``torchsvs track`` runs in float64 whatever its ``dtype``: the IMM's cost is its
+#: step loop, not its arithmetic, and float32 left a rarely used mode's nearly singular
+#: covariance indefinite (an eigenvalue -6.8 of 1.2e4, recorded airliners at 1 s, σ 10), which
+#: its smoother's backward pass cannot factor.
+FLOAT64 = frozenset({"imm"})
 #: Estimators whose output is a filter's (each step from the past alone): their q is the
 #: Kalman filter's, the others' the Kalman smoother's
 #: (:func:`~torchsvs.fitting.defaults._sure_q`).
@@ -127,10 +136,15 @@ class Settings:
             raise ValueError(
                 f"estimator: expected one of {sorted(ESTIMATORS)}, got {self.estimator!r}"
             )
+        least = 0 if self.estimator == "imm" else 1  # the IMM's lag 0: its filter
         if self.lag is not None and (
-            isinstance(self.lag, bool) or not isinstance(self.lag, int) or self.lag < 1
+            isinstance(self.lag, bool) or not isinstance(self.lag, int) or self.lag < least
         ):
-            raise ValueError(f"lag: expected an integer >= 1, got {self.lag!r}")
+            raise ValueError(
+                f"lag: expected an integer >= {least}"
+                + ("" if least else " (0 for imm: its filter)")
+                + f", got {self.lag!r}"
+            )
         if self.lag is not None and self.estimator not in LAGGED:
             raise ValueError(
                 f"lag: {self.estimator} is a filter; a lag applies to "
@@ -235,7 +249,7 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
             transition=[[1.0 - p, p], [p, 1.0 - p]],
         )
         lag = settings.smoother_lag
-        return turn if lag is None else TurnIMMSmoother(turn, lag)
+        return turn if lag == 0 else TurnIMMSmoother(turn, lag)
     if name in ("kf", "ks"):
         kf = KalmanFilter(model)
         return kf if name == "kf" else RTSSmoother(kf, lag=settings.smoother_lag)

@@ -67,6 +67,7 @@ from torchsvs.recipes import (
     DEFAULT_LAG,
     ESTIMATORS,
     FILTERS,
+    FLOAT64,
     PSI_IN_SIGMAS,
     PSI_LIMIT_IN_SIGMAS,
     Settings,
@@ -445,6 +446,8 @@ def track_file(
                     steps, settings, fit, fit_options, checkpoint, save, say
                 )
                 run.phases["settings"] += time.perf_counter() - tick
+                if settings.estimator in FLOAT64:
+                    dtype = torch.float64
                 estimator = estimator.to(dtype)
                 run.settings = settings
                 assert settings.meas_var is not None

@@ -187,10 +187,12 @@ class TurnIMM(Estimator[IMMResult]):
 
     def cv_part(self, result: Any) -> Any:
         """A result (the IMM's or its smoother's, a NamedTuple) with its combined ``mean`` and
-        ``cov`` in the CV state (the turn rate dropped)."""
+        ``cov`` in the CV state (the turn rate dropped), and a smoother's ``filtered`` pass too."""
         n = self.model.state_dim
         cov = None if result.cov is None else result.cov[..., :n, :n]
-        return result._replace(mean=result.mean[..., :n], cov=cov)
+        result = result._replace(mean=result.mean[..., :n], cov=cov)
+        filtered = getattr(result, "filtered", None)
+        return result if filtered is None else result._replace(filtered=self.cv_part(filtered))
 
 
 def _plane(model: StateSpaceModel) -> CoordinatedTurn:

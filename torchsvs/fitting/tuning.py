@@ -295,13 +295,13 @@ START_PSI = (0.03, 0.2, 1.0)
 #: points: short windows side by side make a pass of thousands of points a fraction of a second.
 #: Measured on the recorded-tracks benchmark: 48-step windows (384 of them) chose alike, for
 #: 20% more time.
-IMM_WINDOWS = (32, 8, 512)
+IMM_WINDOWS = (32, 8, 256)
 #: Factors on the three process noises of the IMM together (``q``, ``turn_q``, ``turn_rate_q``
 #: as :func:`~torchsvs.fitting.defaults.turn_settings` derives them), then on the turn-rate
 #: noise alone, then on the turn mode's acceleration noise alone: the candidates
 #: :func:`_imm_search` scores by SURE.
 IMM_FACTORS = tuple(10.0 ** (k / 2) for k in range(-2, 3))
-IMM_RATE_FACTORS = tuple(10.0 ** (k / 2) for k in range(-2, 3))
+IMM_RATE_FACTORS = tuple(10.0 ** (k / 2) for k in range(-1, 2))
 
 
 def _imm_search(
@@ -407,6 +407,7 @@ def _risk(estimator: nn.Module, batches: list[TrackBatch], meas_cov: Tensor, see
                     "sure",
                     meas_cov=meas_cov,
                     generator=torch.Generator().manual_seed(seed),
+                    keep="mean",
                 )[0]
             )
             * len(b.z)

@@ -18,8 +18,16 @@ from torchsvs.estimator import (
 from torchsvs.filters.imm import IMM, IMMResult
 from torchsvs.filters.turn_imm import TurnIMM
 from torchsvs.kernels.compiled import outside_dynamo
-from torchsvs.linalg import log_divisor, matvec, mixture_moments, right_psd_solve, symmetrize
+from torchsvs.linalg import (
+    log_divisor,
+    matvec,
+    mixture_mean,
+    mixture_moments,
+    right_psd_solve,
+    symmetrize,
+)
 from torchsvs.models.base import StateSpaceModel
+from torchsvs.types import FilterState
 
 
 class Moments(NamedTuple):
@@ -63,7 +71,9 @@ class _Predictions(NamedTuple):
 
     mean: list[list[Tensor]]  #: x̂^{jl}_{k+1|k}, [B, T-1, n_l]
     cov: list[list[Tensor]]  #: P^{jl}_{k+1|k}, [B, T-1, n_l, n_l]
-    cross: list[list[Tensor]]  #: Cov(x^j_k, x_{k+1}) = P^j_k Sᵀ Fᵀ, [B, T-1, n_j, n_l]
+    #: the smoother gain C^{jl}_k = Cov(x^j_k, x_{k+1}) (P^{jl}_{k+1|k})⁻¹ with the cross
+    #: covariance P^j_k Sᵀ Fᵀ, [B, T-1, n_j, n_l]: the same in every sweep of a fixed lag
+    gain: list[list[Tensor]]
 
 
 class IMMSmoother(Estimator[IMMSmootherResult]):
@@ -179,20 +189,30 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         covs = [r.cov for r in filtered.modes]
         log_mu = filtered.mode_probs.log()
         smoothed = _Moments(means, covs, log_mu)
+        # The smoothed means never depend on the smoothed covariances: keep="mean" (a loss on
+        # the positions, SURE's probes) skips them, about half the backward pass.
+        with_cov = inputs.keep != "mean"
         if T > 1:
             log_T = imm.log_transition(dtype)
             log_c = filtered.pred_mode_probs.log()[:, 1:]  # c(k+1) for k = 0..T-2
             pred = self._predictions(means, covs, inputs)
+            kept = covs if with_cov else []
             if self.lag is None:
-                smoothed = self._fixed_interval(means, covs, log_mu, log_c, pred, log_T)
+                smoothed = self._fixed_interval(means, kept, log_mu, log_c, pred, log_T)
             else:
-                smoothed = self._fixed_lag(means, covs, log_mu, log_c, pred, log_T, self.lag)
+                smoothed = self._fixed_lag(means, kept, log_mu, log_c, pred, log_T, self.lag)
+        if not with_cov:  # (the combined covariance of the filtered ones, then dropped)
+            smoothed = smoothed._replace(covs=covs)
         mean, cov = imm.combine(smoothed.means, smoothed.covs, smoothed.log_probs)
+        nothing: Any = None
         return IMMSmootherResult(
             mean,
-            cov,
+            cov if with_cov else nothing,
             smoothed.log_probs.exp(),
-            tuple(Moments(x, P) for x, P in zip(smoothed.means, smoothed.covs, strict=True)),
+            tuple(
+                Moments(x, P if with_cov else nothing)
+                for x, P in zip(smoothed.means, smoothed.covs, strict=True)
+            ),
             filtered,
         )
 
@@ -211,19 +231,22 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         blank = torch.full((flat, imm.model.meas_dim), float("nan"), dtype=dtype)
         mean: list[list[Tensor]] = [[] for _ in range(M)]
         cov: list[list[Tensor]] = [[] for _ in range(M)]
-        cross: list[list[Tensor]] = [[] for _ in range(M)]
+        gain: list[list[Tensor]] = [[] for _ in range(M)]
         for l, f in enumerate(imm.mode_filters):
             n_l = means[l].shape[-1]
             for j in range(M):
                 x_j, P_j = means[j][:, :-1], covs[j][:, :-1]
                 x, P = imm.embedding.into(j, l, x_j, P_j, means[l][:, :-1], covs[l][:, :-1])
-                state = f.init(x.reshape(flat, n_l), symmetrize(P).reshape(flat, n_l, n_l))
+                # (not f.init: that checks a prior, and a float32 pass leaves some filtered
+                # covariances semi-definite by rounding; the steps factor them with jitter)
+                state = FilterState(x.reshape(flat, n_l), symmetrize(P).reshape(flat, n_l, n_l))
                 _, step = f.step(state, blank, dt=dt, u=u, generator=inputs.generator)
                 F = step.transition.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l)
                 mean[j].append(step.pred_mean.reshape(B, T - 1, n_l))
                 cov[j].append(step.pred_cov.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l))
-                cross[j].append(imm.embedding.columns(j, l, P_j) @ F.mT)
-        return _Predictions(mean, cov, cross)
+                cross = imm.embedding.columns(j, l, P_j) @ F.mT
+                gain[j].append(right_psd_solve(cross, cov[j][-1]))
+        return _Predictions(mean, cov, gain)
 
     def _backward(
         self,
@@ -236,7 +259,7 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         log_T: Tensor,
     ) -> _Moments:
         """One step of Kim's recursion, from the smoothed moments at ``k + 1`` (``after``) and
-        the filter's at ``k``, for any leading shape."""
+        the filter's at ``k``, for any leading shape; the means alone where ``covs`` is empty."""
         M = len(means)
         safe_c, impossible = log_divisor(log_c)  # c_l(k+1) = 0: mode l cannot be reached
         log_back = log_mu.unsqueeze(-1) + log_T - safe_c.unsqueeze(-2)  # P(s_k=j | s_k+1=l, z_1:k)
@@ -251,18 +274,22 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
             weights = torch.where(gone.unsqueeze(-1), torch.zeros_like(weights), weights)
         out_means, out_covs = [], []
         for j in range(M):
-            pairs = []
-            for l in range(M):
-                C = right_psd_solve(pred.cross[j][l], pred.cov[j][l])
-                x = means[j] + matvec(C, after.means[l] - pred.mean[j][l])
-                P = covs[j] + C @ (after.covs[l] - pred.cov[j][l]) @ C.mT
-                pairs.append((x, P))
-            x_s, P_s = mixture_moments(weights[..., j, :], *zip(*pairs, strict=True))
+            xs = [
+                means[j] + matvec(pred.gain[j][l], after.means[l] - pred.mean[j][l])
+                for l in range(M)
+            ]
             keep_filtered = gone[..., j]
-            x_s = torch.where(keep_filtered[..., None], means[j], x_s)
-            P_s = torch.where(keep_filtered[..., None, None], covs[j], P_s)
-            out_means.append(x_s)
-            out_covs.append(P_s)
+            if covs:
+                Ps = [
+                    covs[j]
+                    + pred.gain[j][l] @ (after.covs[l] - pred.cov[j][l]) @ pred.gain[j][l].mT
+                    for l in range(M)
+                ]
+                x_s, P_s = mixture_moments(weights[..., j, :], xs, Ps)
+                out_covs.append(torch.where(keep_filtered[..., None, None], covs[j], P_s))
+            else:
+                x_s = mixture_mean(weights[..., j, :], xs)
+            out_means.append(torch.where(keep_filtered[..., None], means[j], x_s))
         return _Moments(out_means, out_covs, log_probs)
 
     def _fixed_interval(
@@ -292,7 +319,7 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         steps.reverse()
         return _Moments(
             [torch.stack([s.means[j] for s in steps], 1) for j in range(M)],
-            [torch.stack([s.covs[j] for s in steps], 1) for j in range(M)],
+            [torch.stack([s.covs[j] for s in steps], 1) for j in range(len(covs))],
             torch.stack([s.log_probs for s in steps], 1),
         )
 
@@ -307,7 +334,8 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         lag: int,
     ) -> _Moments:
         """``L`` sweeps over every target step ``k`` at once: each carries its window's
-        smoothed moments from the window's end ``min(k + L, T - 1)`` down to ``k``."""
+        smoothed moments from the window's end ``min(k + L, T - 1)`` down to ``k`` (the means
+        alone where ``covs`` is empty)."""
         T = log_mu.shape[1]
         k = torch.arange(T)
         tau = (k + lag).clamp_max(T - 1)  # the time each target's moments are at
@@ -327,7 +355,11 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
                 [at(P, index) for P in covs],
                 at(log_mu, index),
                 at(log_c, index),
-                _Predictions(*[[[at(p, index) for p in row] for row in part] for part in pred]),
+                _Predictions(
+                    [[at(p, index) for p in row] for row in pred.mean],
+                    [[at(p, index) for p in row] for row in pred.cov] if covs else [],
+                    [[at(p, index) for p in row] for row in pred.gain],
+                ),
                 log_T,
             )
             a1, a2 = active[None, :, None], active[None, :, None, None]

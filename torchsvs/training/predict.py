@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, Dataset
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
 from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
-from torchsvs.recipes import Settings, make_estimator, make_model
+from torchsvs.recipes import FLOAT64, Settings, make_estimator, make_model
 from torchsvs.tracking import (
     BlockEstimates,
     TrackRun,
@@ -232,6 +232,8 @@ class TrackPredictor(L.LightningModule):
         estimator = make_estimator(settings, make_model(settings))
         estimator.load_state_dict(state)
         assert settings.meas_var is not None
+        if settings.estimator in FLOAT64:  # (the batches are cast in predict_step)
+            self.compute_dtype = torch.float64
         self.settings, self.estimator = settings, estimator.to(self.compute_dtype)
         self.meas_std = torch.tensor(settings.meas_var, dtype=self.compute_dtype).sqrt()
         self.prepare_seconds = time.perf_counter() - tick
@@ -241,6 +243,8 @@ class TrackPredictor(L.LightningModule):
         assert self.estimator is not None and self.meas_std is not None
         if batch is None:
             return None
+        if batch.tracks.z.dtype != self.compute_dtype:
+            batch = batch._replace(tracks=batch.tracks.to(self.compute_dtype))
         return estimate_group(
             self.estimator, batch, self.meas_std, self.covariance, settings=self.settings
         )
