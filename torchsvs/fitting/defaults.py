@@ -249,14 +249,18 @@ def _noise_standard_error(
     ]
 
 
-def meas_var_range(settings: Settings) -> tuple[list[float], list[float]] | None:
-    """The measurement variance two standard errors below and above the settings' own, where
-    the noise was read off the data with a standard error (else None)."""
+def meas_var_range(
+    settings: Settings, errors: float = 2.0
+) -> tuple[list[float], list[float]] | None:
+    """The measurement variance ``errors`` standard errors (of its standard deviation) below and
+    above the settings' own, where the noise was read off the data with a standard error (else
+    None)."""
     if settings.noise == "given" or settings.meas_var is None or settings.meas_std_se is None:
         return None
     std = [v**0.5 for v in settings.meas_var]
-    low = [max(s - 2 * e, 0.0) ** 2 for s, e in zip(std, settings.meas_std_se, strict=True)]
-    high = [(s + 2 * e) ** 2 for s, e in zip(std, settings.meas_std_se, strict=True)]
+    se = settings.meas_std_se
+    low = [max(s - errors * e, 0.0) ** 2 for s, e in zip(std, se, strict=True)]
+    high = [(s + errors * e) ** 2 for s, e in zip(std, se, strict=True)]
     return low, high
 
 
