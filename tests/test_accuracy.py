@@ -224,18 +224,3 @@ def test_track_warns_where_one_noise_level_does_not_fit_every_track(tmp_path):
     assert spread.meas_std_se[0] > spread.noise_spread * spread.meas_var[0] ** 0.5 * 0.99
     assert any("one noise level does not fit every track" in w for w in runs[mixed].warnings)
     assert not any("noise level" in w for w in runs[same].warnings)
-
-
-def test_auto_keeps_the_candidate_nearest_the_best_at_every_noise_level():
-    """A candidate best by 3% at the noise read but 10% behind at the interval's lower end
-    loses to one within 4% of the best at both; equal regrets keep the earlier candidate; a
-    candidate without a finite score is never kept."""
-    from torchsvs.fitting.selection import least_regret
-    from torchsvs.recipes import Settings
-
-    ks, imm, svss = Settings(estimator="ks"), Settings(estimator="imm"), Settings("svss")
-    assert least_regret([(ks, [5.03, 5.0]), (imm, [4.87, 5.5])]) is ks
-    assert least_regret([(ks, [5.03, 5.2]), (imm, [4.87, 5.0])]) is imm
-    assert least_regret([(ks, [5.0, 5.0]), (svss, [5.0, 5.0])]) is ks
-    assert least_regret([(ks, [math.nan, 5.0]), (svss, [6.0, 6.0])]) is svss
-    assert least_regret([]) is None

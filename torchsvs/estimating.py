@@ -49,18 +49,6 @@ def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
     """The truth-free error estimate (:mod:`torchsvs.accuracy`) of the estimator of complete
     ``settings`` on padded ``tracks`` (run as ``torchsvs track`` runs it, in float64)."""
     assert settings.meas_var is not None
-    return accuracy_of(
-        sample_risk(settings, tracks),
-        settings.meas_var,
-        noise_estimated=settings.noise != "given",
-        meas_var_range=meas_var_range(settings),
-    )
-
-
-def sample_risk(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
-    """SURE's terms (:func:`~torchsvs.accuracy.risk_terms`) of :func:`sample_accuracy`'s run:
-    its estimate at any noise level (:meth:`~torchsvs.accuracy.RiskTerms.mse`)."""
-    assert settings.meas_var is not None
     estimator = make_estimator(settings, make_model(settings)).double()
     moved, offset = centred(tracks.to(torch.float64))
     batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
@@ -68,7 +56,12 @@ def sample_risk(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     noise_range = meas_var_range(settings, GUARD_ERRORS)  # as estimate_group's guard reads it
     part = _estimate_part(estimator, batch, meas_std, risk=True, noise_range=noise_range)
     assert part.risk is not None
-    return part.risk
+    return accuracy_of(
+        part.risk,
+        settings.meas_var,
+        noise_estimated=settings.noise != "given",
+        meas_var_range=meas_var_range(settings),
+    )
 
 
 def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:

@@ -3,11 +3,9 @@
 Each candidate (:data:`CANDIDATES`) is completed from the data (:func:`~torchsvs.fitting.defaults.
 complete_settings`, the noise read once and shared), tuned by SURE on windows of the sample
 (:func:`~torchsvs.fitting.tuning.self_tune`), then run on the whole sample, where Stein's
-unbiased risk estimate (:mod:`torchsvs.accuracy`) scores its position error, penalised by its
-relative uncertainty (:data:`CAUTION`), at the noise read off the data and at the ends of that
-reading's interval (:func:`noise_levels`). The candidate nearest the best at every level wins
-(:func:`least_regret`): with the noise given, the lowest estimate; its settings are what
-``track`` then runs on the file. The candidates' table is printed and
+unbiased risk estimate (:mod:`torchsvs.accuracy`) scores its position error. The candidate of
+the lowest estimated error (penalised by its relative uncertainty, :data:`CAUTION`) wins; its
+settings are what ``track`` then runs on the file. The candidates' table is printed and
 written to the run's JSON summary.
 
 The estimate each candidate is chosen by is unbiased for its error at fixed settings; choosing
@@ -23,10 +21,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from torchsvs.accuracy import RiskTerms, accuracy
 from torchsvs.datasets import RecordedTracks
-from torchsvs.estimating import GUARD_ERRORS, sample_risk
-from torchsvs.fitting.defaults import complete_settings, meas_var_range, settings_note
+from torchsvs.estimating import sample_accuracy
+from torchsvs.fitting.defaults import complete_settings, settings_note
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings
 
@@ -117,7 +114,7 @@ def choose_estimator(
     options = dict(fit_options)
     options["known_noise"] = True  # read once above (or given): SURE in its units
     rows: list[dict[str, Any]] = []
-    scores: list[tuple[Settings, list[float]]] = []
+    best, best_rmse = None, math.inf
     for name in candidates:
         if name == "imm" and (points > IMM_POINTS or sample.z.shape[-1] not in (2, 3)):
             why = (
@@ -144,14 +141,7 @@ def choose_estimator(
         fit = self_tune(candidate, sample, **options)
         fitted = fit.settings
         learned = fit.stages[-1].split(": ", 1)[-1] if fit.stages else ""
-        terms = sample_risk(fitted, sample)
-        assert fitted.meas_var is not None
-        found = accuracy(
-            terms,
-            fitted.meas_var,
-            noise_estimated=fitted.noise != "given",
-            meas_var_range=meas_var_range(fitted),
-        )
+        found = sample_accuracy(fitted, sample)
         seconds = time.perf_counter() - tick
         rows.append(
             {
@@ -163,11 +153,9 @@ def choose_estimator(
             }
         )
         say(f"auto: {name} estimated {found.estimated_rmse:.3g} m ({seconds:.1f} s)")
-        # at the noise read and at each end of its interval (the choice must hold at each)
-        scores.append(
-            (fitted, [caution_score(*_rmse(terms, level)) for level in noise_levels(fitted)])
-        )
-    best = least_regret(scores)
+        score = caution_score(found.estimated_rmse, found.standard_error)
+        if score < best_rmse:
+            best, best_rmse = fitted, score
     if best is None:
         raise ValueError(
             "tracks: no candidate of --estimator auto could be scored (too few observed "
@@ -175,34 +163,3 @@ def choose_estimator(
         )
     chosen = replace(best, chosen_from=[r["estimator"] for r in rows if not r.get("skipped")])
     return Choice(chosen, time.perf_counter() - start, rows)
-
-
-def noise_levels(settings: Settings) -> list[list[float]]:
-    """The measurement variances ``auto`` compares its candidates at: the settings' own and,
-    where the noise was read off the data, :data:`~torchsvs.estimating.GUARD_ERRORS` standard
-    errors below and above it."""
-    assert settings.meas_var is not None
-    ends = meas_var_range(settings, GUARD_ERRORS)
-    return [list(settings.meas_var), *(ends or ())]
-
-
-def _rmse(terms: RiskTerms, meas_var: list[float]) -> tuple[float, float]:
-    """The estimated position RMSE at a noise level and its standard error."""
-    found = accuracy(terms, meas_var)
-    return found.estimated_rmse, found.standard_error
-
-
-def least_regret(scores: list[tuple[Settings, list[float]]]) -> Settings | None:
-    r"""The candidate whose score is nearest the best at every noise level: the least of
-    :math:`\max_l s_{c,l} / \min_{c'} s_{c',l}` (ties: the earlier). SURE's estimate moves with
-    the noise level by :math:`(1 - 2\,\partial f/\partial z)\,\Delta r`, most for the
-    estimator that smooths hardest, so a noise read 4% high (10.2 m for 10 on taxiing aircraft)
-    flattered the IMM smoother over the KS (4.87 against 5.03 m estimated; 5.8 against 5.4
-    true); at the interval's lower end the KS wins."""
-    usable = [(s, v) for s, v in scores if all(math.isfinite(x) and x > 0 for x in v)]
-    if not usable:
-        return None
-    levels = len(usable[0][1])
-    best_at = [min(v[level] for _, v in usable) for level in range(levels)]
-    regret = [max(v[level] / best_at[level] for level in range(levels)) for _, v in usable]
-    return usable[regret.index(min(regret))][0]
