@@ -161,7 +161,10 @@ class TrackFileDataModule(L.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader:
         processes = self.trainer.world_size if self.trainer is not None else 1
-        groups = TrackGroups(self.steps, self.groups, self.dtype, processes)
+        # float64 batches, cast to the estimator's dtype in TrackPredictor.predict_step (as
+        # track_file pads in float64 and casts once): the IMM runs in float64 whatever the
+        # dtype asked for, and a float32 batch cast up would have lost the digits
+        groups = TrackGroups(self.steps, self.groups, torch.float64, processes)
         # Batches of one group, so the sampler (and the prediction writer) see group indices.
         return DataLoader(groups, batch_size=1, collate_fn=_only)
 
