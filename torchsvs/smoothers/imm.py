@@ -27,7 +27,6 @@ from torchsvs.linalg import (
     symmetrize,
 )
 from torchsvs.models.base import StateSpaceModel
-from torchsvs.types import FilterState
 
 
 class Moments(NamedTuple):
@@ -227,8 +226,9 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         dt = inputs.dt
         if dt is not None and dt.ndim == 2:
             dt = dt[:, 1:].reshape(flat)
-        u = None if inputs.u is None else inputs.u[:, 1:].reshape(flat, -1)
-        blank = torch.full((flat, imm.model.meas_dim), float("nan"), dtype=dtype)
+        u = None if inputs.u is None else inputs.u[:, 1:].reshape(flat, 1, -1)
+        blank = torch.full((flat, 1, imm.model.meas_dim), float("nan"), dtype=dtype)
+        one_dt = dt.unsqueeze(1) if dt is not None and dt.ndim == 1 else dt
         mean: list[list[Tensor]] = [[] for _ in range(M)]
         cov: list[list[Tensor]] = [[] for _ in range(M)]
         gain: list[list[Tensor]] = [[] for _ in range(M)]
@@ -237,13 +237,15 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
             for j in range(M):
                 x_j, P_j = means[j][:, :-1], covs[j][:, :-1]
                 x, P = imm.embedding.into(j, l, x_j, P_j, means[l][:, :-1], covs[l][:, :-1])
-                # (not f.init: that checks a prior, and a float32 pass leaves some filtered
-                # covariances semi-definite by rounding; the steps factor them with jitter)
-                state = FilterState(x.reshape(flat, n_l), symmetrize(P).reshape(flat, n_l, n_l))
-                _, step = f.step(state, blank, dt=dt, u=u, generator=inputs.generator)
-                F = step.transition.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l)
-                mean[j].append(step.pred_mean.reshape(B, T - 1, n_l))
-                cov[j].append(step.pred_cov.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l))
+                # The filter's own prediction (no correction: nothing is measured), on inputs
+                # of one step built here (not through f.init or forward: they check a prior,
+                # and a float32 pass leaves some filtered covariances semi-definite by rounding)
+                x0, P0 = x.reshape(flat, n_l), symmetrize(P).reshape(flat, n_l, n_l)
+                one = Inputs(blank, x0, P0, one_dt, u, None, inputs.generator, False)
+                x_pred, P_pred, F = f.predict(0, x0, P0, f.prepare(one), one)
+                F = F.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l)
+                mean[j].append(x_pred.reshape(B, T - 1, n_l))
+                cov[j].append(P_pred.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l))
                 cross = imm.embedding.columns(j, l, P_j) @ F.mT
                 gain[j].append(right_psd_solve(cross, cov[j][-1]))
         return _Predictions(mean, cov, gain)
