@@ -5,7 +5,8 @@ Each call of ``torchsvs track`` is one group of a block's tracks of similar leng
 :func:`estimate_group` runs the estimator on it (each track with its own ``q`` where the settings
 carry the file's SURE curve, :func:`settings_q_factors`) and, with ``risk``, once more on probed
 measurements for Stein's unbiased risk estimate (:mod:`torchsvs.accuracy`), and hands back the
-estimates at the block's flat steps (:class:`StepEstimates`).
+estimates at the block's flat steps (:class:`StepEstimates`). An IMM smoother's tracks each keep
+their smoothed or their filtered pass, whichever SURE rates lower (:func:`smoothed_or_filtered`).
 """
 
 from __future__ import annotations
