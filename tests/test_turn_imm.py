@@ -365,9 +365,9 @@ def test_the_imm_smoother_falls_back_to_its_filter_per_track_by_sure():
     assert back.tolist() == [True, False]
     assert_close(chosen.mean[0, :, 0::2], torch.zeros_like(z[0]), atol=0)
     assert_close(chosen.mean[1, :, 0::2], z[1], atol=0)
-    risk = terms.residual - terms.count + 2.0 * terms.divergence  # r = 1
-    per_track = np.bincount(terms.track, weights=risk.sum(1), minlength=2) / (400 * 2)
-    assert abs(per_track[0]) < 0.1 and abs(per_track[1] - 1.0) < 1e-9, per_track
+    # the estimates of the passes kept: ≈ 0 for 0·z on noise, exactly √(r + r) for z itself
+    rmse, _ = terms.per_track([1.0, 1.0], 2)
+    assert rmse[0] < 0.45 and abs(rmse[1] - math.sqrt(2.0)) < 1e-9, rmse
 
 
 def test_the_imm_smoother_is_kept_only_where_it_wins_over_the_noise_interval():

@@ -363,18 +363,11 @@ def smoothed_or_filtered(
 
     smooth = terms_of(lambda result: result.mean)
     filt = terms_of(lambda result: result.filtered.mean)
-    levels = [meas_std.double().square().numpy()]
-    if noise_range is not None:
-        levels += [np.asarray(bound, dtype=np.float64) for bound in noise_range]
+    levels = [meas_std.double().square().tolist(), *(noise_range or ())]
     B = z.shape[0]
-
-    def per_track(t: RiskTerms, r: np.ndarray) -> np.ndarray:
-        risk = (t.residual - r * t.count + 2.0 * r * t.divergence).sum(1)
-        return np.bincount(t.track, weights=risk, minlength=B)
-
     fall_back = np.zeros(B, dtype=bool)
-    for r in levels:
-        fall_back |= per_track(filt, r) < per_track(smooth, r)  # [B]
+    for r in levels:  # each track's estimated error (NaN: nothing observed, no fallback)
+        fall_back |= filt.per_track(r, B)[0] < smooth.per_track(r, B)[0]
     back = torch.from_numpy(fall_back)
     mean = torch.where(back[:, None, None], out.filtered.mean, out.mean)
     cov = out.cov

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
+
 from torchsvs.estimator import Estimator
 from torchsvs.filters import (
     SPVSF,
@@ -77,6 +79,14 @@ PSI_LIMIT_IN_SIGMAS = 2.0
 #: covariance indefinite (an eigenvalue -6.8 of 1.2e4, recorded airliners at 1 s, σ 10), which
 #: its smoother's backward pass cannot factor.
 FLOAT64 = frozenset({"imm"})
+
+
+def compute_dtype(estimator: str, dtype: torch.dtype) -> torch.dtype:
+    """The dtype ``torchsvs track`` runs ``estimator`` in when ``dtype`` is asked for
+    (:data:`FLOAT64`)."""
+    return torch.float64 if estimator in FLOAT64 else dtype
+
+
 #: Estimators whose output is a filter's (each step from the past alone): their q is the
 #: Kalman filter's, the others' the Kalman smoother's
 #: (:func:`~torchsvs.fitting.defaults._sure_q`).

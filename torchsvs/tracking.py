@@ -67,10 +67,10 @@ from torchsvs.recipes import (
     DEFAULT_LAG,
     ESTIMATORS,
     FILTERS,
-    FLOAT64,
     PSI_IN_SIGMAS,
     PSI_LIMIT_IN_SIGMAS,
     Settings,
+    compute_dtype,
     make_estimator,
     make_model,
     rule_of_thumb_psi,
@@ -446,8 +446,7 @@ def track_file(
                     steps, settings, fit, fit_options, checkpoint, save, say
                 )
                 run.phases["settings"] += time.perf_counter() - tick
-                if settings.estimator in FLOAT64:
-                    dtype = torch.float64
+                dtype = compute_dtype(settings.estimator, dtype)
                 estimator = estimator.to(dtype)
                 run.settings = settings
                 assert settings.meas_var is not None

@@ -123,9 +123,9 @@ def batch_loss(
             assert batch.dt is not None
             prior = two_point_prior(z, batch.dt, batch.prior_var)
             x0, P0 = prior.x0, prior.P0
-        kwargs: dict[str, Any] = (
-            {"keep": keep} if batch.dt is None else {"dt": batch.dt, "keep": keep}
-        )
+        kwargs: dict[str, Any] = {"keep": keep}
+        if batch.dt is not None:
+            kwargs["dt"] = batch.dt
         return estimator(z, x0, P0, **kwargs)
 
     out = run(batch.z)

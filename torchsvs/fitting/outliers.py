@@ -195,6 +195,11 @@ def _packed(d2: Tensor) -> tuple[Tensor, Tensor]:
     return d2.gather(1, order), order
 
 
+def _unpacked(values: Tensor, order: Tensor) -> Tensor:
+    """``values`` of packed rows (:func:`_packed`) back at their rows."""
+    return torch.empty_like(values).scatter_(1, order, values)
+
+
 def _local_median(d2: Tensor, k: int) -> Tensor:
     """``[B, T]`` the median ``d²`` of the ``k`` judged rows on either side (the row itself
     left out; NaN where there are none)."""
@@ -202,23 +207,12 @@ def _local_median(d2: Tensor, k: int) -> Tensor:
     padded = torch.nn.functional.pad(packed, (k, k), value=torch.nan)
     window = padded.unfold(1, 2 * k + 1, 1).clone()  # [B, T, 2k+1]
     window[..., k] = torch.nan
-    local = window.nanmedian(-1).values
-    out = torch.empty_like(local)
-    out.scatter_(1, order, local)
-    return out
+    return _unpacked(window.nanmedian(-1).values, order)
 
 
 def _largest_nearby(d2: Tensor, k: int) -> Tensor:
     """``[B, T]`` the largest ``d²`` within ``k`` observed rows on either side (rows without one
     skipped), NaN-safe."""
-    B, T = d2.shape
-    seen = ~torch.isnan(d2)
-    filled = d2.nan_to_num(-1.0)
-    # the observed rows packed to the front of each track, so "k observed rows" is k places
-    order = torch.argsort((~seen).to(torch.int8), dim=1, stable=True)
-    packed = filled.gather(1, order)
-    padded = torch.nn.functional.pad(packed, (k, k), value=-1.0)
-    window = padded.unfold(1, 2 * k + 1, 1).amax(-1)  # [B, T]
-    largest = torch.empty_like(window)
-    largest.scatter_(1, order, window)
-    return largest
+    packed, order = _packed(d2)
+    padded = torch.nn.functional.pad(packed.nan_to_num(-1.0), (k, k), value=-1.0)
+    return _unpacked(padded.unfold(1, 2 * k + 1, 1).amax(-1), order)

@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, Dataset
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
 from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
-from torchsvs.recipes import FLOAT64, Settings, make_estimator, make_model
+from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
 from torchsvs.tracking import (
     BlockEstimates,
     TrackRun,
@@ -85,7 +85,11 @@ class TrackFileDataModule(L.LightningDataModule):
         block_rows: rows per block while reading.
         max_cells: padded steps (``B × T``) per group, as in
             :func:`~torchsvs.tracking.track_file`.
-        dtype: of the batches.
+
+    Its batches are float64 (padded and centred as :func:`~torchsvs.estimating.group_batch`
+    does); :class:`TrackPredictor` casts them to its estimator's dtype, as ``track_file`` casts
+    once (the IMM runs in float64 whatever dtype is asked for, and a float32 batch cast up
+    would have lost the digits).
     """
 
     def __init__(
@@ -94,11 +98,10 @@ class TrackFileDataModule(L.LightningDataModule):
         columns: Columns | None = None,
         block_rows: int = 1 << 18,
         max_cells: int = 1 << 19,
-        dtype: torch.dtype = torch.float32,
     ) -> None:
         super().__init__()
         self.source, self.columns = source, columns
-        self.block_rows, self.max_cells, self.dtype = block_rows, max_cells, dtype
+        self.block_rows, self.max_cells = block_rows, max_cells
         self.block: TrackBlock | None = None  #: the rows read (rank 0 only)
         self._steps: TrackSteps | None = None
         self.groups: list[np.ndarray] = []
@@ -161,9 +164,6 @@ class TrackFileDataModule(L.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader:
         processes = self.trainer.world_size if self.trainer is not None else 1
-        # float64 batches, cast to the estimator's dtype in TrackPredictor.predict_step (as
-        # track_file pads in float64 and casts once): the IMM runs in float64 whatever the
-        # dtype asked for, and a float32 batch cast up would have lost the digits
         groups = TrackGroups(self.steps, self.groups, torch.float64, processes)
         # Batches of one group, so the sampler (and the prediction writer) see group indices.
         return DataLoader(groups, batch_size=1, collate_fn=_only)
@@ -235,8 +235,7 @@ class TrackPredictor(L.LightningModule):
         estimator = make_estimator(settings, make_model(settings))
         estimator.load_state_dict(state)
         assert settings.meas_var is not None
-        if settings.estimator in FLOAT64:  # (the batches are cast in predict_step)
-            self.compute_dtype = torch.float64
+        self.compute_dtype = compute_dtype(settings.estimator, self.compute_dtype)
         self.settings, self.estimator = settings, estimator.to(self.compute_dtype)
         self.meas_std = torch.tensor(settings.meas_var, dtype=self.compute_dtype).sqrt()
         self.prepare_seconds = time.perf_counter() - tick
@@ -337,7 +336,7 @@ def predict_file(
     # The launched processes inherit the environment; Lightning leaves a set value alone.
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
-    data = TrackFileDataModule(source, columns, block_rows, max_cells, dtype)
+    data = TrackFileDataModule(source, columns, block_rows, max_cells)
     if os.environ.get("LOCAL_RANK", "0") == "0":  # the launching process (Lightning's ranks
         data.start_reading()  # 1..N-1 run this function again with LOCAL_RANK set)
     module = TrackPredictor(
