@@ -224,3 +224,67 @@ def test_track_warns_where_one_noise_level_does_not_fit_every_track(tmp_path):
     assert spread.meas_std_se[0] > spread.noise_spread * spread.meas_var[0] ** 0.5 * 0.99
     assert any("one noise level does not fit every track" in w for w in runs[mixed].warnings)
     assert not any("noise level" in w for w in runs[same].warnings)
+
+
+def _wandering_csv(path, sigma: float = 3.0, seed: int = 0) -> dict[tuple[str, float], np.ndarray]:
+    """Tracks on 10 s scans whose motion between scans wanders 2-16 m off a straight line (by
+    track) more than the CV model follows, measured with σ 3 m: the wander reads as noise."""
+    gen = np.random.default_rng(seed)
+    rows, truth = [], {}
+    for k in range(12):
+        t = np.cumsum(np.full(120, 10.0))
+        wander = 2.0 + 14.0 * k / 11
+        line = np.cumsum(np.tile([1500.0, 200.0], (120, 1)), axis=0) + gen.normal(0, 1e3, 2)
+        pos = line + gen.normal(0, wander, (120, 2))
+        for i in range(len(t)):
+            x, y = pos[i] + gen.normal(0, sigma, 2)
+            rows.append(f"trk{k},{t[i]:.1f},{x:.3f},{y:.3f}")
+            truth[(f"trk{k}", round(float(t[i]), 1))] = pos[i]
+    path.write_text("track_id,time,x,y\n" + "\n".join(rows) + "\n")
+    return truth
+
+
+def _true_rmse(target, truth) -> float:
+    out = pd.read_csv(target, dtype={"track_id": str})
+    errors = [
+        np.sum((np.array([x, y]) - truth[(i, round(t, 1))]) ** 2)
+        for i, t, x, y in zip(out.track_id, out.time, out.x, out.y, strict=True)
+    ]
+    return math.sqrt(np.mean(errors))
+
+
+def test_a_noise_reading_that_smooths_real_motion_away_is_lowered(tmp_path, monkeypatch):
+    """Motion the model does not follow reads as noise (9 m for 3): at that level the Kalman
+    smoother smooths the motion away, 3x the measurements' error. Its estimate is not clearly
+    below the measurements over the reading's uncertainty, so the run takes the reading's low
+    end, says so, and lands at the measurements' error; given the true noise it does the same."""
+    source = tmp_path / "in.csv"
+    truth = _wandering_csv(source)
+    raw = 3.0 * math.sqrt(2)
+    target = tmp_path / "out.csv"
+    run = track_file(source, target, Settings("ks"), progress=False)
+    assert run.settings is not None and run.settings.meas_var is not None
+    read = run.settings.noise_lowered_from
+    assert read is not None and min(read) > 2 * 3.0  # the wander read as noise
+    assert max(run.settings.meas_var) ** 0.5 < 0.6 * min(read)
+    assert any("ran at its low end" in w for w in run.warnings)
+    summary = json.loads(summary_path(target).read_text())
+    assert summary["settings"]["noise_lowered_from"] == pytest.approx(read)
+    assert _true_rmse(target, truth) < 1.05 * raw
+    # the given noise is never lowered
+    given = track_file(
+        source, tmp_path / "given.csv", Settings("ks", meas_var=[9.0, 9.0]), progress=False
+    )
+    assert given.settings is not None and given.settings.noise_lowered_from is None
+    # without the lowering, the reading smooths the motion away
+    monkeypatch.setattr("torchsvs.tracking.lowered_noise", lambda *args, **kwargs: None)
+    track_file(source, target, Settings("ks"), progress=False)
+    assert _true_rmse(target, truth) > 2.0 * raw
+
+
+def test_a_clear_estimate_keeps_the_noise_read_off_the_data(tmp_path):
+    source = tmp_path / "in.csv"
+    _turning_csv(source)
+    run = track_file(source, tmp_path / "out.csv", Settings("ks"), progress=False)
+    assert run.settings is not None and run.settings.noise_lowered_from is None
+    assert run.accuracy is not None and run.accuracy.clearly_better

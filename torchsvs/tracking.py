@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -28,6 +28,7 @@ from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import (
     Columns,
     EstimateWriter,
+    RecordedTracks,
     RowReport,
     TrackBlock,
     TrackSteps,
@@ -42,6 +43,7 @@ from torchsvs.estimating import (
     centred,
     estimate_group,
     group_batch,
+    lowered_noise,
     run_estimator,
     run_result,
     sample_accuracy,
@@ -61,7 +63,7 @@ from torchsvs.fitting.defaults import (
     typical_speed,
     with_q_curve,
 )
-from torchsvs.fitting.selection import choose_estimator
+from torchsvs.fitting.selection import Choice, choose_estimator
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import (
     DEFAULT_LAG,
@@ -272,6 +274,15 @@ class TrackRun:
                 "fit every track (different sensors, or motion the model does not follow at "
                 "these report times), and the error estimate rests on it; give --meas-std with "
                 "the sensor's noise if known"
+            )
+        lowered = self.settings.noise_lowered_from
+        if lowered is not None:
+            self.warnings.append(
+                f"measurement noise: read off the data as {_short(lowered)} m, at which the "
+                f"estimate was not clearly below the measurements over that reading's "
+                f"uncertainty; ran at its low end, {_short(found.meas_std)} m (a noise read too "
+                "high smooths away motion the model does not follow); give --meas-std with the "
+                "sensor's noise if known"
             )
         if not found.clearly_better:
             if self.settings.chosen_from is None:
@@ -541,34 +552,69 @@ def prepare_estimator(
         The estimator (float64), the settings it was built from, and the fit's summary (or
         ``None``).
     """
+    given = settings
     say = say or (lambda _: None)
     sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
     open_q = settings.q is None
-    # everything below is read off the sample without its outliers
-    settings, sample, _ = screened(settings, sample)
-    if settings.estimator != "auto":
-        settings = complete_settings(settings, sample)
-        say(settings_note(settings))
-    summary: Any = None
     options = dict(fit_options or {})
     options.pop("tracks", None)
-    if settings.estimator == "auto":
-        options.pop("known_noise", None)
-        summary = choose_estimator(settings, sample, say=say, **options)
-        settings = summary.settings
-        say(summary.summary())
-    elif fit:
-        summary = self_tune(settings, sample, **options)
-        settings = summary.settings
-        say(summary.summary())
+    settings, clean, summary = _settled(settings, sample, fit, options, say)
+    low = None
+    if checkpoint is None and settings.noise == "data":
+        found = summary.accuracy if isinstance(summary, Choice) else None
+        low = lowered_noise(settings, clean, found)
+    if low is not None:
+        assert settings.meas_var is not None
+        read = [v**0.5 for v in settings.meas_var]
+        say(
+            f"noise: at {_short(read)} m (read off the data) the {settings.estimator}'s error is "
+            f"not clearly below the measurements'; running at the low end of that reading, "
+            f"{_short([v**0.5 for v in low])} m"
+        )
+        lowered = replace(
+            given,
+            meas_var=low,
+            noise="data",
+            meas_std_se=settings.meas_std_se,
+            noise_spread=settings.noise_spread,
+            noise_lowered_from=read,
+        )
+        settings, clean, summary = _settled(lowered, sample, fit, options, say)
     if open_q and checkpoint is None:
-        settings = with_q_curve(settings, sample)
+        settings = with_q_curve(settings, clean)
     estimator = make_estimator(settings, make_model(settings))
     if checkpoint is not None:
         load_parameters(estimator, checkpoint)
     if save is not None:
         torch.save({"settings": asdict(settings), "state_dict": estimator.state_dict()}, save)
     return estimator, settings, summary
+
+
+def _settled(
+    settings: Settings,
+    sample: RecordedTracks,
+    fit: bool,
+    options: dict[str, Any],
+    say: Callable[[str], None],
+) -> tuple[Settings, RecordedTracks, Any]:
+    """The settings left open read off ``sample`` without its isolated outliers, then fitted
+    or chosen (``--estimator auto``); the screened sample, and the fit's summary."""
+    settings, sample, _ = screened(settings, sample)
+    if settings.estimator != "auto":
+        settings = complete_settings(settings, sample)
+        say(settings_note(settings))
+    summary: Any = None
+    if settings.estimator == "auto":
+        auto_options = dict(options)
+        auto_options.pop("known_noise", None)
+        summary = choose_estimator(settings, sample, say=say, **auto_options)
+        settings = summary.settings
+        say(summary.summary())
+    elif fit:
+        summary = self_tune(settings, sample, **options)
+        settings = summary.settings
+        say(summary.summary())
+    return settings, sample, summary
 
 
 def load_parameters(estimator: nn.Module, path: str | Path) -> None:

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from torchsvs.accuracy import Accuracy
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import sample_accuracy
 from torchsvs.fitting.defaults import complete_settings, settings_note
@@ -61,6 +62,7 @@ class Choice:
     #: what the fit learned (or why the candidate was skipped)
     candidates: list[dict[str, Any]] = field(default_factory=list)
     stages: list[str] = field(default_factory=list)
+    accuracy: Accuracy | None = None  #: the winner's truth-free estimate on the sample
 
     def table(self) -> str:
         lines = ["candidate  estimated position error (m)   fit (s)  settings"]
@@ -114,7 +116,7 @@ def choose_estimator(
     options = dict(fit_options)
     options["known_noise"] = True  # read once above (or given): SURE in its units
     rows: list[dict[str, Any]] = []
-    best, best_rmse = None, math.inf
+    best, best_rmse, best_found = None, math.inf, None
     for name in candidates:
         if name == "imm" and (points > IMM_POINTS or sample.z.shape[-1] not in (2, 3)):
             why = (
@@ -155,11 +157,11 @@ def choose_estimator(
         say(f"auto: {name} estimated {found.estimated_rmse:.3g} m ({seconds:.1f} s)")
         score = caution_score(found.estimated_rmse, found.standard_error)
         if score < best_rmse:
-            best, best_rmse = fitted, score
+            best, best_rmse, best_found = fitted, score, found
     if best is None:
         raise ValueError(
             "tracks: no candidate of --estimator auto could be scored (too few observed "
             "positions); choose an estimator (--estimator ks)"
         )
     chosen = replace(best, chosen_from=[r["estimator"] for r in rows if not r.get("skipped")])
-    return Choice(chosen, time.perf_counter() - start, rows)
+    return Choice(chosen, time.perf_counter() - start, rows, accuracy=best_found)
