@@ -19,6 +19,7 @@ from torchsvs.kernels import eager_loops, general_path
 from torchsvs.recipes import (
     PSI_IN_SIGMAS,
     PSI_LIMIT_IN_SIGMAS,
+    PSI_SMOOTHER_LIMIT_IN_SIGMAS,
     Settings,
     make_estimator,
     make_model,
@@ -395,14 +396,22 @@ def test_defaults_are_below_the_raw_measurements_on_every_kind(kind):
 def test_rule_of_thumb_is_in_units_of_each_steps_own_noise():
     """ψ is one value per axis in units of each step's own noise (no noise level or interval
     enters it); the default SVSF family is the variable boundary layer, the H⁺ mode the SVSF
-    with ψ in noise units."""
+    with ψ in noise units; the smoothers over the layer take the wider limit, over the fixed
+    interval."""
     for axes in (2, 3):
         assert rule_of_thumb_psi(axes) == [PSI_LIMIT_IN_SIGMAS] * axes
         assert rule_of_thumb_psi(axes, velocity=False) == [PSI_IN_SIGMAS] * axes
+        for smoother in ("svss", "svstps"):
+            wide = rule_of_thumb_psi(axes, estimator=smoother)
+            assert wide == [PSI_SMOOTHER_LIMIT_IN_SIGMAS] * axes
+            assert rule_of_thumb_psi(axes, False, smoother) == [PSI_IN_SIGMAS] * axes
+    assert PSI_SMOOTHER_LIMIT_IN_SIGMAS > PSI_LIMIT_IN_SIGMAS
     settings = Settings(estimator="svss", meas_var=[2500.0] * 2, q=1.0, interval=5.0)
     svss = make_estimator(settings, make_model(settings))
-    assert isinstance(svss.filter, ts.VariableBoundarySVSF)
-    assert_close(svss.filter.psi, torch.full((2,), PSI_LIMIT_IN_SIGMAS), atol=1e-6)
+    assert isinstance(svss.filter, ts.VariableBoundarySVSF) and svss.lag is None
+    assert_close(svss.filter.psi, torch.full((2,), PSI_SMOOTHER_LIMIT_IN_SIGMAS), atol=1e-6)
+    svsf = make_estimator(replace(settings, estimator="svsf"), make_model(settings))
+    assert_close(svsf.psi, torch.full((2,), PSI_LIMIT_IN_SIGMAS), atol=1e-6)
     classic = make_estimator(replace(settings, velocity=False), make_model(settings))
     assert isinstance(classic.filter, ts.SVSF) and classic.filter.psi_units == "noise"
     assert classic.filter.artificial is None

@@ -339,7 +339,7 @@ def test_hplus_svss_defaults_to_lag_one_and_stays_below_the_measurements(tmp_pat
     from torchsvs.recipes import Settings
 
     assert Settings(estimator="svss", velocity=False).smoother_lag == 1
-    assert Settings(estimator="svss").smoother_lag == 5
+    assert Settings(estimator="svss").smoother_lag is None  # the fixed interval
     assert Settings(estimator="svss", velocity=False, lag=3).smoother_lag == 3
     source, target = tmp_path / "in.csv", tmp_path / "out.csv"
     truth = _simulated_csv(source, tracks=12, steps=80)

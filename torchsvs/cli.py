@@ -221,7 +221,8 @@ def track_parser() -> argparse.ArgumentParser:
         type=_positive_floats,
         default=None,
         help="SVSF family's boundary layer, one value or one per axis: the variable boundary "
-        "layer's limit in innovation standard deviations (default 2); with --no-velocity the "
+        "layer's limit in innovation standard deviations (default 2 for svsf and spvsf, 4 for "
+        "the smoothers svss and svstps); with --no-velocity the "
         "width in measurement noise standard deviations (default 5)",
     )
     parser.add_argument(
@@ -231,7 +232,7 @@ def track_parser() -> argparse.ArgumentParser:
         "--lag",
         type=_at_least_zero,
         default=None,
-        help="smoother lag (default: ks full interval, svss, svstps and imm 5; svss "
+        help="smoother lag (default: ks, svss and svstps the full interval, imm 5; svss "
         "--no-velocity 1; imm --lag 0: the IMM filter; refused for the filters)",
     )
     parser.add_argument(

@@ -150,7 +150,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
             turn_rate_std = turn_rate_std or derived["turn_rate_std"]
     psi = settings.psi
     if psi is None and settings.estimator in ("svsf", "svss", "svstps", "spvsf"):
-        psi = rule_of_thumb_psi(m, settings.velocity)
+        psi = rule_of_thumb_psi(m, settings.velocity, settings.estimator)
     elif psi is not None and len(psi) == 1 and m > 1:
         psi = list(psi) * m  # one value for every axis, as --psi's help says
     assert q is not None  # (an open q sent the IMM through the data too)

@@ -220,7 +220,8 @@ def self_tune(
     if settings.psi is None and settings.estimator in ("svsf", "svss", "svstps"):
         assert settings.meas_var is not None
         settings = replace(
-            settings, psi=rule_of_thumb_psi(len(settings.meas_var), settings.velocity)
+            settings,
+            psi=rule_of_thumb_psi(len(settings.meas_var), settings.velocity, settings.estimator),
         )
     assert settings.meas_var is not None
     meas_cov = torch.diag(torch.tensor(settings.meas_var, dtype=torch.float64))
