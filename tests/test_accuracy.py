@@ -131,13 +131,21 @@ def _turning_csv(
     path, sigma: float = 30.0, seed: int = 0, sigmas: list[float] | None = None
 ) -> dict[tuple[str, float], np.ndarray]:
     gen = np.random.default_rng(seed)
-    rows, truth = [], {}
+    paths = []
     for k in range(8):
-        sigma = sigmas[k] if sigmas is not None else sigma
         t = np.cumsum(np.full(150, 4.0))
         heading = np.cumsum(np.where((t > 200) & (t < 320), np.radians(4.0) * 4.0, 0.0))
         velocity = 120.0 * np.stack([np.cos(heading), np.sin(heading)], 1)
         pos = np.cumsum(velocity * 4.0, axis=0) + gen.normal(0, 1e3, 2)
+        paths.append((t, pos, sigmas[k] if sigmas is not None else sigma))
+    return _measured_csv(path, paths, gen)
+
+
+def _measured_csv(path, paths, gen) -> dict[tuple[str, float], np.ndarray]:
+    """``paths`` (times, true positions, σ per track) measured with white noise, as a CSV; the
+    truth by (track id, time)."""
+    rows, truth = [], {}
+    for k, (t, pos, sigma) in enumerate(paths):
         for i in range(len(t)):
             x, y = pos[i] + gen.normal(0, sigma, 2)
             rows.append(f"trk{k},{t[i]:.1f},{x:.3f},{y:.3f}")
@@ -162,12 +170,7 @@ def test_track_writes_the_summary_and_warns_where_no_better_than_the_measurement
         summary = json.loads(summary_path(target).read_text())
         assert summary["warnings"] == result.warnings
         assert summary["measurement_rmse"] == pytest.approx(30.0 * math.sqrt(2))
-        out = pd.read_csv(target, dtype={"track_id": str})
-        errors = [
-            np.sum((np.array([x, y]) - truth[(i, round(t, 1))]) ** 2)
-            for i, t, x, y in zip(out.track_id, out.time, out.x, out.y, strict=True)
-        ]
-        true_rmse = math.sqrt(np.mean(errors))
+        true_rmse = _true_rmse(target, truth)
         low, high = summary["estimated_position_rmse_interval"]
         assert low <= true_rmse <= high, (low, true_rmse, high)
         assert len(summary["tracks"]) == 8
@@ -230,18 +233,13 @@ def _wandering_csv(path, sigma: float = 3.0, seed: int = 0) -> dict[tuple[str, f
     """Tracks on 10 s scans whose motion between scans wanders 2-16 m off a straight line (by
     track) more than the CV model follows, measured with σ 3 m: the wander reads as noise."""
     gen = np.random.default_rng(seed)
-    rows, truth = [], {}
+    paths = []
     for k in range(12):
         t = np.cumsum(np.full(120, 10.0))
         wander = 2.0 + 14.0 * k / 11
         line = np.cumsum(np.tile([1500.0, 200.0], (120, 1)), axis=0) + gen.normal(0, 1e3, 2)
-        pos = line + gen.normal(0, wander, (120, 2))
-        for i in range(len(t)):
-            x, y = pos[i] + gen.normal(0, sigma, 2)
-            rows.append(f"trk{k},{t[i]:.1f},{x:.3f},{y:.3f}")
-            truth[(f"trk{k}", round(float(t[i]), 1))] = pos[i]
-    path.write_text("track_id,time,x,y\n" + "\n".join(rows) + "\n")
-    return truth
+        paths.append((t, line + gen.normal(0, wander, (120, 2)), sigma))
+    return _measured_csv(path, paths, gen)
 
 
 def _true_rmse(target, truth) -> float:

@@ -546,7 +546,9 @@ def prepare_estimator(
     off them (:func:`~torchsvs.fitting.defaults.complete_settings`, on up to
     ``fit_options["tracks"]`` tracks spread over the block, their isolated outliers set aside
     first: :func:`~torchsvs.fitting.defaults.screened`), then fitted, loaded from
-    ``checkpoint``, saved to ``save``, as asked.
+    ``checkpoint``, saved to ``save``, as asked. Where the noise was read off the data and the
+    estimate on the sample is not clearly below the measurements, all of it is done again at
+    the low end of that reading (:func:`~torchsvs.estimating.lowered_noise`).
 
     Returns:
         The estimator (float64), the settings it was built from, and the fit's summary (or
