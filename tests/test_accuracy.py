@@ -269,6 +269,11 @@ def test_a_noise_reading_that_smooths_real_motion_away_is_lowered(tmp_path, monk
     summary = json.loads(summary_path(target).read_text())
     assert summary["settings"]["noise_lowered_from"] == pytest.approx(read)
     assert _true_rmse(target, truth) < 1.05 * raw
+    # the test is the data's (the Kalman smoother's): a fitted SVSS runs at the same noise
+    fitted = track_file(source, tmp_path / "svss.csv", Settings("svss"), fit=True, progress=False)
+    assert fitted.settings is not None and fitted.settings.noise_lowered_from == read
+    assert fitted.settings.meas_var == run.settings.meas_var
+    assert _true_rmse(tmp_path / "svss.csv", truth) < 1.1 * raw
     # the given noise is never lowered
     given = track_file(
         source, tmp_path / "given.csv", Settings("ks", meas_var=[9.0, 9.0]), progress=False

@@ -29,7 +29,7 @@ from torchsvs.datasets.files import flat_steps, short_track_notes
 from torchsvs.filters import ParticleFilter
 from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise
-from torchsvs.fitting.defaults import meas_var_range
+from torchsvs.fitting.defaults import complete_settings, meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings, make_estimator, make_model
@@ -70,27 +70,37 @@ LOWEST_NOISE_SHARE = 0.01
 
 
 def lowered_noise(
-    settings: Settings, tracks: RecordedTracks, found: Accuracy | None = None
+    settings: Settings, tracks: RecordedTracks, reference: Accuracy | None = None
 ) -> list[float] | None:
     """The measurement variance to run at instead of the one read off the data, or None.
 
-    Where the noise was read off the data and the estimate (``found``, else
-    :func:`sample_accuracy` on ``tracks``) is not clearly below the measurements over that
-    reading's uncertainty, the run takes the low end of it, :data:`GUARD_ERRORS` standard
-    errors down (at least :data:`LOWEST_NOISE_SHARE` of the reading). The two errors do not
-    cost alike: a noise read too low makes the estimator follow the measurements, so its error
-    stays near theirs, while one read too high smooths away motion the model does not follow,
-    without bound. Measured on airliners on 10 s scans with σ 3 m (their motion between scans
-    reads as 4-16 m of noise, 12.5 ± 7.6 m pooled): every default was 1.4-2.0× the raw
-    measurements' error, and 0.99-1.02× at the low end (5.0 m)."""
+    Where the noise was read off the data and the Kalman smoother on it (``reference``, else
+    :func:`sample_accuracy` on ``tracks`` with the file's ``q`` for that noise) is not clearly
+    below the measurements over the reading's uncertainty, the run takes the low end of it,
+    :data:`GUARD_ERRORS` standard errors down (at least :data:`LOWEST_NOISE_SHARE` of the
+    reading). The test is the data's, not the estimator's: every estimator of a file runs at
+    the same noise (a fit that over-smooths on an inflated reading judges itself clearly
+    better there). The two errors do not cost alike: a noise read too low makes the estimator
+    follow the measurements, so its error stays near theirs, while one read too high smooths
+    away motion the model does not follow, without bound. Measured on airliners on 10 s scans
+    with σ 3 m (their motion between scans reads as 4-16 m of noise, 12.5 ± 7.6 m pooled):
+    every default was 1.4-2.0× the raw measurements' error, and 0.99-1.02× at the low end
+    (5.0 m)."""
     if settings.noise != "data" or settings.meas_var is None:
         return None
     ends = meas_var_range(settings, GUARD_ERRORS)
     if ends is None:
         return None
-    if found is None:
-        found = sample_accuracy(settings, tracks)
-    if found.clearly_better:
+    if reference is None:
+        kalman = Settings(
+            "ks",
+            meas_var=settings.meas_var,
+            noise="data",
+            meas_std_se=settings.meas_std_se,
+            noise_spread=settings.noise_spread,
+        )
+        reference = sample_accuracy(complete_settings(kalman, tracks), tracks)
+    if reference.clearly_better:
         return None
     low, _ = ends
     return [max(v, LOWEST_NOISE_SHARE * r) for v, r in zip(low, settings.meas_var, strict=True)]

@@ -279,7 +279,7 @@ class TrackRun:
         if lowered is not None:
             self.warnings.append(
                 f"measurement noise: read off the data as {_short(lowered)} m, at which the "
-                f"estimate was not clearly below the measurements over that reading's "
+                f"Kalman smoother was not clearly below the measurements over that reading's "
                 f"uncertainty; ran at its low end, {_short(found.meas_std)} m (a noise read too "
                 "high smooths away motion the model does not follow); give --meas-std with the "
                 "sensor's noise if known"
@@ -547,8 +547,8 @@ def prepare_estimator(
     ``fit_options["tracks"]`` tracks spread over the block, their isolated outliers set aside
     first: :func:`~torchsvs.fitting.defaults.screened`), then fitted, loaded from
     ``checkpoint``, saved to ``save``, as asked. Where the noise was read off the data and the
-    estimate on the sample is not clearly below the measurements, all of it is done again at
-    the low end of that reading (:func:`~torchsvs.estimating.lowered_noise`).
+    Kalman smoother on the sample is not clearly below the measurements, all of it is done
+    again at the low end of that reading (:func:`~torchsvs.estimating.lowered_noise`).
 
     Returns:
         The estimator (float64), the settings it was built from, and the fit's summary (or
@@ -563,14 +563,14 @@ def prepare_estimator(
     settings, clean, summary = _settled(settings, sample, fit, options, say)
     low = None
     if checkpoint is None and settings.noise == "data":
-        found = summary.accuracy if isinstance(summary, Choice) else None
-        low = lowered_noise(settings, clean, found)
+        reference = summary.accuracies.get("ks") if isinstance(summary, Choice) else None
+        low = lowered_noise(settings, clean, reference)
     if low is not None:
         assert settings.meas_var is not None
         read = [v**0.5 for v in settings.meas_var]
         say(
-            f"noise: at {_short(read)} m (read off the data) the {settings.estimator}'s error is "
-            f"not clearly below the measurements'; running at the low end of that reading, "
+            f"noise: at {_short(read)} m (read off the data) the Kalman smoother's error is not "
+            f"clearly below the measurements'; running at the low end of that reading, "
             f"{_short([v**0.5 for v in low])} m"
         )
         lowered = replace(

@@ -62,7 +62,8 @@ class Choice:
     #: what the fit learned (or why the candidate was skipped)
     candidates: list[dict[str, Any]] = field(default_factory=list)
     stages: list[str] = field(default_factory=list)
-    accuracy: Accuracy | None = None  #: the winner's truth-free estimate on the sample
+    #: each candidate's truth-free estimate on the sample, by name
+    accuracies: dict[str, Accuracy] = field(default_factory=dict)
 
     def table(self) -> str:
         lines = ["candidate  estimated position error (m)   fit (s)  settings"]
@@ -116,7 +117,8 @@ def choose_estimator(
     options = dict(fit_options)
     options["known_noise"] = True  # read once above (or given): SURE in its units
     rows: list[dict[str, Any]] = []
-    best, best_rmse, best_found = None, math.inf, None
+    best, best_rmse = None, math.inf
+    accuracies: dict[str, Accuracy] = {}
     for name in candidates:
         if name == "imm" and (points > IMM_POINTS or sample.z.shape[-1] not in (2, 3)):
             why = (
@@ -143,7 +145,7 @@ def choose_estimator(
         fit = self_tune(candidate, sample, **options)
         fitted = fit.settings
         learned = fit.stages[-1].split(": ", 1)[-1] if fit.stages else ""
-        found = sample_accuracy(fitted, sample)
+        found = accuracies[name] = sample_accuracy(fitted, sample)
         seconds = time.perf_counter() - tick
         rows.append(
             {
@@ -157,11 +159,11 @@ def choose_estimator(
         say(f"auto: {name} estimated {found.estimated_rmse:.3g} m ({seconds:.1f} s)")
         score = caution_score(found.estimated_rmse, found.standard_error)
         if score < best_rmse:
-            best, best_rmse, best_found = fitted, score, found
+            best, best_rmse = fitted, score
     if best is None:
         raise ValueError(
             "tracks: no candidate of --estimator auto could be scored (too few observed "
             "positions); choose an estimator (--estimator ks)"
         )
     chosen = replace(best, chosen_from=[r["estimator"] for r in rows if not r.get("skipped")])
-    return Choice(chosen, time.perf_counter() - start, rows, accuracy=best_found)
+    return Choice(chosen, time.perf_counter() - start, rows, accuracies=accuracies)
