@@ -28,7 +28,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,8 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from experiments.recorded_sets import build_sets
+from torchsvs.accuracy import accuracy as accuracy_of
+from torchsvs.accuracy import risk_terms
 from torchsvs.datasets.files import read_tracks, with_prior
 from torchsvs.datasets.tracks import RecordedTracks
 from torchsvs.estimating import centred, run_result
@@ -161,7 +163,8 @@ def read_set(kind: str, sigma: float, rows: int, seed: int, folder: Path) -> tup
 
 
 def fitted(estimator: str, tracks: RecordedTracks) -> Settings:
-    """The truth-free settings ``torchsvs track --estimator E --fit`` reaches on ``tracks``."""
+    """The truth-free settings of ``estimator`` on ``tracks``: read off them and fitted as
+    ``torchsvs track --fit`` does (without its outlier screen and per-track q)."""
     settings = complete_settings(Settings(estimator=estimator), tracks)
     return self_tune(settings, tracks).settings
 
@@ -232,22 +235,27 @@ def train(
     return losses
 
 
-def held_out_rmse(half: Half, network: PsiNetwork | None) -> float:
-    """True 2-D position RMSE (m) of the half's SVSS, with the network's ψ_t if given."""
+def held_out(half: Half, network: PsiNetwork | None, seed: int) -> tuple[float, float]:
+    """The half's SVSS (with the network's ψ_t if given): its true 2-D position RMSE (m) and
+    the truth-free estimate of it that ``torchsvs track`` prints (:mod:`torchsvs.accuracy`), from
+    one run and one probed run."""
     estimator = half.svss if network is None else NetworkPsiSVSS(half.settings, network)
-    return position_rmse(run_result(estimator, half.tracks, keep="mean").mean, half.truth)
+    std = half.meas_var.sqrt()
 
+    def positions(z: Tensor) -> Tensor:
+        tracks = with_prior(replace(half.tracks, z=z), std)
+        return run_result(estimator, tracks, keep="mean").mean
 
-def estimated_rmse(half: Half, network: PsiNetwork | None, seed: int) -> float:
-    """The truth-free estimate of the same (SURE over whole tracks, in metres)."""
-    estimator = half.svss if network is None else NetworkPsiSVSS(half.settings, network)
-    (batch,) = recorded_batches(half.tracks, half.meas_var, None, 0, None)
-    probes = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        risk, _ = batch_loss(
-            estimator, batch, "sure", meas_cov=torch.diag(half.meas_var), generator=probes
-        )
-    return float(risk.clamp_min(0) * half.meas_var.sum()) ** 0.5
+    mean = positions(half.tracks.z)
+    terms = risk_terms(
+        lambda z: positions(z)[..., 0::2],
+        half.tracks.z,
+        mean[..., 0::2],
+        std,
+        torch.Generator().manual_seed(seed),
+    )
+    estimate = accuracy_of(terms, half.meas_var.tolist()).estimated_rmse
+    return position_rmse(mean, half.truth), estimate
 
 
 #: Windows the network is trained on (steps, and steps of burn-in the loss does not count).
@@ -321,14 +329,13 @@ def main(argv: list[str] | None = None) -> None:
     estimate_rows = []
     for name, half in second.items():
         ks = position_rmse(run_result(half.ks, half.tracks, keep="mean").mean, half.truth)
-        svss = held_out_rmse(half, None)
+        svss, guess = held_out(half, None, args.seed)
         cells = [name, len(half.tracks), f"{ks:.1f}", f"{svss:.1f} ({svss / ks:.3f})"]
-        estimates = [name, f"{estimated_rmse(half, None, args.seed):.1f} / {svss:.1f}"]
+        estimates = [name, f"{guess:.1f} / {svss:.1f}"]
         for label, network in networks.items():
-            value = held_out_rmse(half, network)
+            value, guess = held_out(half, network, args.seed)
             ratios[label][name] = value / svss
             cells.append(f"{value / svss:.3f}")
-            guess = estimated_rmse(half, network, args.seed)
             estimates.append(f"{guess:.1f} / {value:.1f}")
         rows.append(cells)
         estimate_rows.append(estimates)

@@ -11,7 +11,7 @@ from experiments.network_psi import (
     NetworkPsiSVSS,
     PsiNetwork,
     half_of,
-    held_out_rmse,
+    held_out,
     train,
 )
 from tests.conftest import simulate_cv
@@ -69,13 +69,15 @@ def test_sure_reaches_the_network_and_the_q_factor() -> None:
     assert network.log_q.grad is not None and network.log_q.grad.abs() > 0
     # the first layer's gradient is zero at the start (the last layer starts at zero)
     assert network.hidden.weight.grad is not None
+    assert not network.hidden.weight.grad.any()
 
 
 def test_training_without_truth_lowers_the_true_error_of_a_too_quiet_model() -> None:
-    training, held_out = _half(q_factor=0.01, seed=0), _half(q_factor=0.01, seed=1)
+    training, unseen = _half(q_factor=0.01, seed=0), _half(q_factor=0.01, seed=1)
     network = PsiNetwork()
-    before = held_out_rmse(held_out, None)
+    before, _ = held_out(unseen, None, seed=0)
     losses = train(network, [training], epochs=30, lr=0.05, seed=0)
-    after = held_out_rmse(held_out, network)
+    after, estimated = held_out(unseen, network, seed=0)
     assert losses[-1] < 0.9 * losses[0]
     assert after < 0.9 * before, (before, after)
+    assert abs(estimated / after - 1) < 0.15  # and the truth-free estimate sees it

@@ -69,14 +69,12 @@ def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
 LOWEST_NOISE_SHARE = 0.01
 
 
-def lowered_noise(
-    settings: Settings, tracks: RecordedTracks, reference: Accuracy | None = None
-) -> list[float] | None:
+def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | None:
     """The measurement variance to run at instead of the one read off the data, or None.
 
-    Where the noise was read off the data and the Kalman smoother on it (``reference``, else
-    :func:`sample_accuracy` on ``tracks`` with the file's ``q`` for that noise) is not clearly
-    below the measurements over the reading's uncertainty, the run takes the low end of it,
+    Where the noise was read off the data and the Kalman smoother on it (with the file's ``q``
+    for that noise, :func:`sample_accuracy` on ``tracks``) is not clearly below the
+    measurements over the reading's uncertainty, the run takes the low end of it,
     :data:`GUARD_ERRORS` standard errors down (at least :data:`LOWEST_NOISE_SHARE` of the
     reading). The test is the data's, not the estimator's: every estimator of a file runs at
     the same noise (a fit that over-smooths on an inflated reading judges itself clearly
@@ -91,16 +89,14 @@ def lowered_noise(
     ends = meas_var_range(settings, GUARD_ERRORS)
     if ends is None:
         return None
-    if reference is None:
-        kalman = Settings(
-            "ks",
-            meas_var=settings.meas_var,
-            noise="data",
-            meas_std_se=settings.meas_std_se,
-            noise_spread=settings.noise_spread,
-        )
-        reference = sample_accuracy(complete_settings(kalman, tracks), tracks)
-    if reference.clearly_better:
+    kalman = Settings(
+        "ks",
+        meas_var=settings.meas_var,
+        noise="data",
+        meas_std_se=settings.meas_std_se,
+        noise_spread=settings.noise_spread,
+    )
+    if sample_accuracy(complete_settings(kalman, tracks), tracks).clearly_better:
         return None
     low, _ = ends
     return [max(v, LOWEST_NOISE_SHARE * r) for v, r in zip(low, settings.meas_var, strict=True)]

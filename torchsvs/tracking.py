@@ -63,7 +63,7 @@ from torchsvs.fitting.defaults import (
     typical_speed,
     with_q_curve,
 )
-from torchsvs.fitting.selection import Choice, choose_estimator
+from torchsvs.fitting.selection import choose_estimator
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import (
     DEFAULT_LAG,
@@ -561,10 +561,7 @@ def prepare_estimator(
     options = dict(fit_options or {})
     options.pop("tracks", None)
     settings, clean, summary = _settled(settings, sample, fit, options, say)
-    low = None
-    if checkpoint is None and settings.noise == "data":
-        reference = summary.accuracies.get("ks") if isinstance(summary, Choice) else None
-        low = lowered_noise(settings, clean, reference)
+    low = lowered_noise(settings, clean) if checkpoint is None else None
     if low is not None:
         assert settings.meas_var is not None
         read = [v**0.5 for v in settings.meas_var]

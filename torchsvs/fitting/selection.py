@@ -21,7 +21,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from torchsvs.accuracy import Accuracy
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import sample_accuracy
 from torchsvs.fitting.defaults import complete_settings, settings_note
@@ -62,8 +61,6 @@ class Choice:
     #: what the fit learned (or why the candidate was skipped)
     candidates: list[dict[str, Any]] = field(default_factory=list)
     stages: list[str] = field(default_factory=list)
-    #: each candidate's truth-free estimate on the sample, by name
-    accuracies: dict[str, Accuracy] = field(default_factory=dict)
 
     def table(self) -> str:
         lines = ["candidate  estimated position error (m)   fit (s)  settings"]
@@ -118,7 +115,6 @@ def choose_estimator(
     options["known_noise"] = True  # read once above (or given): SURE in its units
     rows: list[dict[str, Any]] = []
     best, best_rmse = None, math.inf
-    accuracies: dict[str, Accuracy] = {}
     for name in candidates:
         if name == "imm" and (points > IMM_POINTS or sample.z.shape[-1] not in (2, 3)):
             why = (
@@ -145,7 +141,7 @@ def choose_estimator(
         fit = self_tune(candidate, sample, **options)
         fitted = fit.settings
         learned = fit.stages[-1].split(": ", 1)[-1] if fit.stages else ""
-        found = accuracies[name] = sample_accuracy(fitted, sample)
+        found = sample_accuracy(fitted, sample)
         seconds = time.perf_counter() - tick
         rows.append(
             {
@@ -166,4 +162,4 @@ def choose_estimator(
             "positions); choose an estimator (--estimator ks)"
         )
     chosen = replace(best, chosen_from=[r["estimator"] for r in rows if not r.get("skipped")])
-    return Choice(chosen, time.perf_counter() - start, rows, accuracies=accuracies)
+    return Choice(chosen, time.perf_counter() - start, rows)
