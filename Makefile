@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.ddp_predict
 	$(PY) -m benchmarks.compiled_steps
 	$(PY) -m benchmarks.covariance_forms
+	$(PY) -m benchmarks.imm_track
 
 # The full matrix (every estimator × B × dtype × pass beside four peers): most of an hour.
 bench-matrix: $(STAMP)

@@ -392,3 +392,64 @@ def test_imm_lag_zero_is_its_filter_and_refused_elsewhere():
         Settings(estimator="ks", lag=0)
     with pytest.raises(ValueError, match=r"^lag: expected an integer >= 0 \(0 for imm"):
         Settings(estimator="imm", lag=-1)
+
+
+def test_paired_probes_change_nothing_but_the_time(tmp_path, monkeypatch):
+    """The IMM's plain and probed runs in one batch (``paired_probes``: the fit's SURE and the
+    error estimate) choose the same noises and write the same estimates and error estimate
+    as two runs, and they did run paired (the split counted)."""
+    import json
+
+    import torchsvs.estimating as estimating
+    import torchsvs.fitting.batches as batches
+    from torchsvs.estimator import split_batch
+    from torchsvs.smoothers.imm import IMMSmoother
+    from torchsvs.tracking import summary_path
+
+    _, z = _turning_tracks(4, 120, 2, sigma=30.0, seed=2)
+    source = tmp_path / "in.csv"
+    _write(source, z)
+    splits = []
+
+    def counted(result: Any, first: int) -> Any:
+        splits.append(first)
+        return split_batch(result, first)
+
+    monkeypatch.setattr(estimating, "split_batch", counted)
+    monkeypatch.setattr(batches, "split_batch", counted)
+    found = {}
+    for paired in (True, False):
+        monkeypatch.setattr(IMMSmoother, "paired_probes", paired)
+        out = tmp_path / f"{paired}.csv"
+        _track(str(source), "-o", str(out), "--estimator", "imm", "--fit", "--meas-std", "30")
+        summary = json.loads(summary_path(out).read_text())
+        fit = re.sub(r"\(\d+\.\d s\)", "", summary["fit"])
+        found[paired] = (_positions(out, 2), fit, summary["estimated_position_rmse"])
+        if paired:
+            assert len(splits) >= 12, splits  # 11 fit candidates' risks and the estimate
+            splits.clear()
+    assert not splits
+    assert_close(torch.tensor(found[True][0]), torch.tensor(found[False][0]), atol=1e-9)
+    assert found[True][1] == found[False][1]
+    assert found[True][2] == pytest.approx(found[False][2], rel=1e-9)
+
+
+def test_split_batch_cuts_every_batched_tensor():
+    from torchsvs.estimator import split_batch
+
+    class Inner(NamedTuple):
+        mean: torch.Tensor
+        total: torch.Tensor
+
+    class Outer(NamedTuple):
+        mean: torch.Tensor
+        cov: torch.Tensor | None
+        modes: tuple[Inner, ...]
+
+    x = torch.arange(5.0)
+    inner = Inner(x, torch.tensor(7.0))
+    first, second = split_batch(Outer(x[:, None], None, (inner, inner)), 2)
+    assert first.mean.flatten().tolist() == [0.0, 1.0] and second.mean.shape == (3, 1)
+    assert first.cov is None and second.cov is None
+    assert second.modes[1].mean.tolist() == [2.0, 3.0, 4.0]
+    assert float(first.modes[0].total) == 7.0  # no batch axis: both halves keep it

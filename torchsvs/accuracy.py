@@ -101,6 +101,13 @@ class RiskTerms:
         return np.sqrt(np.clip(mse, 0.0, None)), count.mean(axis=1)
 
 
+def rademacher_probe(z: Tensor, generator: torch.Generator | None) -> Tensor:
+    """SURE's probe for measurements ``z [..., m]``: ±1 at random (from ``generator``) at the
+    observed components, 0 where ``z`` is missing."""
+    probe = torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1
+    return probe * ~torch.isnan(z)
+
+
 def risk_terms(
     rerun: Callable[[Tensor], Tensor],
     z: Tensor,
@@ -119,8 +126,7 @@ def risk_terms(
     with torch.no_grad():
         observed = ~torch.isnan(z)
         std = meas_std.to(z.dtype)
-        probe = torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1
-        probe = probe * observed
+        probe = rademacher_probe(z, generator)
         shifted = rerun(z + step * std * probe)
         estimate = estimate.to(torch.float64)
         zd = z.to(torch.float64)

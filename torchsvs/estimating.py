@@ -22,10 +22,11 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchsvs.accuracy import Accuracy, RiskTerms, risk_terms
+from torchsvs.accuracy import PROBE_STEP, Accuracy, RiskTerms, rademacher_probe, risk_terms
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
 from torchsvs.datasets.files import flat_steps, short_track_notes
+from torchsvs.estimator import split_batch
 from torchsvs.filters import ParticleFilter
 from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise
@@ -320,16 +321,22 @@ def _estimate_part(
     variance's interval, :func:`~torchsvs.fitting.defaults.meas_var_range`, where it was read
     off the data)."""
 
-    def positions(z: Tensor, keep: str = "all") -> Any:
-        tracks = with_prior(replace(batch.tracks, z=z), meas_std)
+    def positions(z: Tensor, keep: str = "all", rows: RecordedTracks = batch.tracks) -> Any:
+        tracks = with_prior(replace(rows, z=z), meas_std)
         generator = torch.Generator().manual_seed(batch.position)
         return run_result(estimator, tracks, generator, keep)
 
+    seed = PROBE_SEED + batch.position
+    paired = _paired_runs(estimator, positions, batch.tracks, meas_std, seed) if risk else None
+
     def probed(z: Tensor) -> Any:  # SURE's probed run reads the means alone
-        return positions(z, "mean")
+        if paired is None:
+            return positions(z, "mean")
+        assert torch.equal(z.nan_to_num(), paired[1].nan_to_num()), "the paired run's probes"
+        return paired[2]
 
     tracks = with_prior(batch.tracks, meas_std)
-    out = positions(batch.tracks.z)
+    out = positions(batch.tracks.z) if paired is None else paired[0]
     mean, cov = out.mean, out.cov
     notes = short_track_notes(tracks)
     if getattr(out, "ess", None) is not None:  # a particle filter: how often it degenerated
@@ -339,7 +346,6 @@ def _estimate_part(
         notes["particle_steps_degenerate"] = int(low.sum().round())
     terms = None
     if isinstance(out, IMMSmootherResult):  # (a Kalman smoother or SVSS is kept whole)
-        seed = PROBE_SEED + batch.position
         out, terms, fell_back = smoothed_or_filtered(
             out, probed, tracks.z, meas_std, seed, noise_range
         )
@@ -348,7 +354,7 @@ def _estimate_part(
             notes["smoother_fallback"] = int(fell_back.sum())
         terms = terms if risk else None
     elif risk:
-        probes = torch.Generator().manual_seed(PROBE_SEED + batch.position)
+        probes = torch.Generator().manual_seed(seed)
         terms = risk_terms(
             lambda z: probed(z).mean[..., 0::2], tracks.z, mean[..., 0::2], meas_std, probes
         )
@@ -360,6 +366,29 @@ def _estimate_part(
     assert tracks.never_observed is not None
     never = tracks.never_observed.numpy()
     return StepEstimates(batch.position, batch.group, target, values, covs, never, notes, terms)
+
+
+def _paired_runs(
+    estimator: nn.Module,
+    positions: Callable[..., Any],
+    tracks: RecordedTracks,
+    meas_std: Tensor,
+    seed: int,
+) -> tuple[Any, Tensor, Any] | None:
+    """For an estimator with ``paired_probes``: its run on the tracks and on the measurements
+    :func:`~torchsvs.accuracy.risk_terms` probes with ``seed`` in one batch of the tracks twice
+    over (``positions(z, keep, rows)``, the estimator's run). Returns the plain run's result,
+    the probed measurements and their result; ``None`` for other estimators."""
+    if not getattr(estimator, "paired_probes", False):
+        return None
+    z = tracks.z
+    B = len(z)
+    probe = rademacher_probe(z, torch.Generator().manual_seed(seed))
+    z_probed = z + PROBE_STEP * meas_std.to(z.dtype) * probe
+    rows = tracks.subset(torch.arange(B).repeat(2))
+    assert rows.z.shape == (2 * B, *z.shape[1:]), "every track twice over, steps unchanged"
+    out, shifted = split_batch(positions(torch.cat([z, z_probed]), "all", rows), B)
+    return out, z_probed, shifted
 
 
 def smoothed_or_filtered(

@@ -352,6 +352,8 @@ class IMM(SteppedEstimator[IMMResult]):
         dimension states", IEEE Trans. Aerosp. Electron. Syst. 51(4), 2015.
     """
 
+    paired_probes = True  # a Python loop over steps of small tensors
+
     state_type = IMMState
     log_transition_matrix: Tensor
     log_initial_probs: Tensor

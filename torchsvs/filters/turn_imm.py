@@ -78,6 +78,8 @@ class TurnIMM(Estimator[IMMResult]):
         IEEE Trans. Aerosp. Electron. Syst. 41(4), 2005. doi:10.1109/TAES.2005.1561886
     """
 
+    paired_probes = True  # a Python loop over steps of small tensors
+
     def __init__(
         self,
         model: ConstantVelocity,

@@ -4,14 +4,18 @@ needs, kept apart from the LightningModules so that those commands do not import
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
+from torchsvs.accuracy import rademacher_probe
 from torchsvs.datasets.tracks import RecordedTracks
+from torchsvs.estimator import split_batch
 from torchsvs.fitting.losses import (
     LOSSES,
+    SURE_STEP,
     innovation_nll,
     prediction_error,
     stein_risk,
@@ -117,17 +121,19 @@ def batch_loss(
     """
     from torchsvs.datasets.priors import two_point_prior
 
-    def run(z: Tensor) -> Any:
-        x0, P0 = batch.x0, batch.P0
-        if batch.prior_var is not None:
-            assert batch.dt is not None
-            prior = two_point_prior(z, batch.dt, batch.prior_var)
+    def run(z: Tensor, rows: TrackBatch = batch) -> Any:
+        x0, P0 = rows.x0, rows.P0
+        if rows.prior_var is not None:
+            assert rows.dt is not None
+            prior = two_point_prior(z, rows.dt, rows.prior_var)
             x0, P0 = prior.x0, prior.P0
         kwargs: dict[str, Any] = {"keep": keep}
-        if batch.dt is not None:
-            kwargs["dt"] = batch.dt
+        if rows.dt is not None:
+            kwargs["dt"] = rows.dt
         return estimator(z, x0, P0, **kwargs)
 
+    if loss == "sure" and estimator.paired_probes:
+        return _paired_sure(estimator, batch, run, meas_cov, generator)
     out = run(batch.z)
     if loss in ("nll", "prediction") and not isinstance(out, (FilterResult, SmootherResult)):
         raise ValueError(
@@ -147,7 +153,43 @@ def batch_loss(
         return prediction_error(out, batch.scored), out
     if loss != "sure":
         raise ValueError(f"loss: expected one of {sorted(LOSSES)}, got {loss!r}")
+    H, R = _sure_matrices(estimator, batch, meas_cov)
+    return stein_risk(run, out, batch.z, H, R, generator, scored=batch.scored), out
+
+
+def _sure_matrices(
+    estimator: nn.Module, batch: TrackBatch, meas_cov: Tensor | None
+) -> tuple[Tensor, Tensor]:
+    """``H`` and the known ``R`` that SURE measures the estimator's risk with."""
     model: LinearModel = estimator.model  # type: ignore[assignment]
     H = model.meas_matrix().to(batch.z.dtype)
-    R = known_meas_cov(estimator, meas_cov, batch.z.dtype)
-    return stein_risk(run, out, batch.z, H, R, generator, scored=batch.scored), out
+    return H, known_meas_cov(estimator, meas_cov, batch.z.dtype)
+
+
+def _paired_sure(
+    estimator: nn.Module,
+    batch: TrackBatch,
+    run: Callable[[Tensor, TrackBatch], Any],
+    meas_cov: Tensor | None,
+    generator: torch.Generator | None,
+) -> tuple[Tensor, Any]:
+    """:func:`batch_loss`'s ``"sure"`` for an estimator with ``paired_probes``: the plain and
+    the probed measurements in one run of the batch's rows twice over (the same probe as the
+    two runs would draw, so the same risk)."""
+    H, R = _sure_matrices(estimator, batch, meas_cov)
+    B = len(batch.z)
+    probe = rademacher_probe(batch.z, generator)
+    if batch.scored is not None:  # as stein_risk probes: the scored steps alone
+        probe = probe * batch.scored.unsqueeze(-1)
+    probed = batch.z + SURE_STEP * R.diagonal(dim1=-2, dim2=-1).sqrt() * probe
+
+    rows = batch._replace(
+        x0=torch.cat([batch.x0, batch.x0]),
+        P0=torch.cat([batch.P0, batch.P0]) if batch.P0.ndim == 3 else batch.P0,  # or shared
+        dt=None if batch.dt is None else torch.cat([batch.dt, batch.dt]),
+    )
+    out, shifted = split_batch(run(torch.cat([batch.z, probed]), rows), B)
+    risk = stein_risk(
+        lambda _: shifted, out, batch.z, H, R, scored=batch.scored, step=SURE_STEP, probe=probe
+    )
+    return risk, out

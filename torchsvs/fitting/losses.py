@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from torchsvs.accuracy import rademacher_probe
 from torchsvs.linalg import cholesky, gaussian_log_density
 from torchsvs.metrics import mean_squared_error
 from torchsvs.types import FilterResult, SmootherResult
@@ -76,6 +77,10 @@ def prediction_error(result: Result, scored: Tensor | None = None) -> Tensor:
 LOSSES = ("supervised", "sure", "nll", "prediction")
 
 
+#: :func:`stein_risk`'s finite-difference step, in noise standard deviations.
+SURE_STEP = 0.3
+
+
 def stein_risk(
     rerun: Callable[[Tensor], Result],
     result: Result,
@@ -83,8 +88,9 @@ def stein_risk(
     H: Tensor,
     R: Tensor,
     generator: torch.Generator | None = None,
-    step: float = 0.3,
+    step: float = SURE_STEP,
     scored: Tensor | None = None,
+    probe: Tensor | None = None,
 ) -> Tensor:
     r"""Monte Carlo SURE: an unbiased estimate of the measured-component MSE without truth.
 
@@ -114,9 +120,11 @@ def stein_risk(
         result: ``rerun(z)``.
         z: the measurements ``[B, T, m]``.
         H, R: measurement matrix and (diagonal) noise covariance of ``z``.
-        generator: source of the probe.
+        generator: source of the probe (:func:`~torchsvs.accuracy.rademacher_probe`).
         step: finite-difference step in units of σ.
         scored: ``[B, T]`` True at the steps the risk averages over (default: all).
+        probe: the probe, drawn beforehand (``rerun`` is then called with
+            ``z + step·σ·probe``); default: drawn from ``generator``.
 
     Returns the mean risk per observed component (in units of ``R``).
     """
@@ -128,7 +136,9 @@ def stein_risk(
     count = observed.sum().clamp_min(1)
     f = result.mean @ H.mT
     residual = ((z.nan_to_num(0.0) - f) / std).square() * observed
-    probe = (torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1) * observed
+    if probe is None:
+        probe = rademacher_probe(z, generator)
+    probe = probe * observed
     f_shift = rerun(z + step * std * probe).mean @ H.mT
     divergence = (probe * (f_shift - f) / (step * std)).sum()
     return (residual.sum() + 2.0 * divergence) / count - 1.0

@@ -133,6 +133,8 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         Rauch, Tung, Striebel, AIAA J. 3(8), 1965. doi:10.2514/3.3166
     """
 
+    paired_probes = True  # a Python loop over steps of small tensors
+
     def __init__(self, imm: IMM, lag: int | None) -> None:
         super().__init__()
         if not isinstance(imm, IMM):
