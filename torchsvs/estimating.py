@@ -22,19 +22,30 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchsvs.accuracy import PROBE_STEP, Accuracy, RiskTerms, rademacher_probe, risk_terms
+from torchsvs.accuracy import (
+    PROBE_STEP,
+    Accuracy,
+    Reference,
+    RiskTerms,
+    exact_divergence,
+    rademacher_probe,
+    risk_terms,
+)
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
 from torchsvs.datasets.files import flat_steps, short_track_notes
 from torchsvs.estimator import split_batch
-from torchsvs.filters import ParticleFilter
+from torchsvs.filters import KalmanFilter, ParticleFilter
 from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise
 from torchsvs.fitting.defaults import complete_settings, meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
+from torchsvs.models.base import LinearModel
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings, make_estimator, make_model
+from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
+from torchsvs.types import SmootherResult
 
 #: Seed offset of the truth-free error estimate's probes (apart from the particles' seeds).
 PROBE_SEED = 1 << 20
@@ -327,7 +338,10 @@ def _estimate_part(
         return run_result(estimator, tracks, generator, keep)
 
     seed = PROBE_SEED + batch.position
-    paired = _paired_runs(estimator, positions, batch.tracks, meas_std, seed) if risk else None
+    step = getattr(estimator, "probe_step", PROBE_STEP)
+    paired = (
+        _paired_runs(estimator, positions, batch.tracks, meas_std, seed, step) if risk else None
+    )
 
     def probed(z: Tensor) -> Any:  # SURE's probed run reads the means alone
         if paired is None:
@@ -345,9 +359,10 @@ def _estimate_part(
         low = degenerate_share(out, tracks.z) * measured
         notes["particle_steps_degenerate"] = int(low.sum().round())
     terms = None
+    control = LinearReference.of(estimator, out, tracks, meas_std) if risk else None
     if isinstance(out, IMMSmootherResult):  # (a Kalman smoother or SVSS is kept whole)
         out, terms, fell_back = smoothed_or_filtered(
-            out, probed, tracks.z, meas_std, seed, noise_range
+            out, probed, tracks.z, meas_std, seed, noise_range, control, step
         )
         mean, cov = out.mean, out.cov
         if fell_back.any():
@@ -356,7 +371,13 @@ def _estimate_part(
     elif risk:
         probes = torch.Generator().manual_seed(seed)
         terms = risk_terms(
-            lambda z: probed(z).mean[..., 0::2], tracks.z, mean[..., 0::2], meas_std, probes
+            lambda z: probed(z).mean[..., 0::2],
+            tracks.z,
+            mean[..., 0::2],
+            meas_std,
+            probes,
+            step=step,
+            reference=None if control is None else control.reference(out),
         )
     if terms is not None:
         terms.track = batch.group[terms.track]
@@ -368,12 +389,96 @@ def _estimate_part(
     return StepEstimates(batch.position, batch.group, target, values, covs, never, notes, terms)
 
 
+class LinearReference:
+    """The truth-free error estimate's control variate (:class:`~torchsvs.accuracy.Reference`)
+    for an estimator's run: the estimator itself where it is a Kalman filter or smoother
+    (its divergence exact), else, for a deterministic estimator on a constant-velocity model
+    (the SVSF family, the IMM, the other Gaussian filters), the Kalman smoother (or, for a
+    filter's output, the Kalman filter) on the estimator's own model, run on the same tracks
+    and probes. ``None`` (:meth:`of`) for the others (particle filters: their draws)."""
+
+    def __init__(self, estimator: nn.Module, tracks: RecordedTracks, meas_std: Tensor) -> None:
+        self.estimator = estimator
+        self.tracks = tracks
+        self.meas_std = meas_std
+        self.meas_var = _meas_var(estimator)
+        self._plain = run_result(estimator, tracks, keep="moments")
+        self._probed: tuple[Tensor, Any] | None = None
+
+    @classmethod
+    def of(
+        cls, estimator: nn.Module, out: Any, tracks: RecordedTracks, meas_std: Tensor
+    ) -> LinearReference | SelfReference | None:
+        if _linear_gaussian(estimator):
+            return SelfReference(estimator, tracks)
+        model = getattr(estimator, "model", None)
+        if isinstance(estimator, ParticleFilter) or not isinstance(model, ConstantVelocity):
+            return None
+        kf = KalmanFilter(model)
+        smoothed = isinstance(out, (SmootherResult, IMMSmootherResult))
+        return cls(RTSSmoother(kf) if smoothed else kf, tracks, meas_std)
+
+    def reference(self, result: Any, filtered: bool = False) -> Reference:
+        """The reference for the positions of ``result`` (the filter pass's with
+        ``filtered``: the smoother's forward pass)."""
+
+        def positions(found: Any) -> Any:
+            return found.filtered if filtered and hasattr(found, "filtered") else found
+
+        plain = positions(self._plain)
+
+        def rerun(z: Tensor) -> Tensor:
+            if self._probed is None or not _same(self._probed[0], z):
+                probed = with_prior(replace(self.tracks, z=z), self.meas_std)
+                self._probed = (z, run_result(self.estimator, probed, keep="mean"))
+            return positions(self._probed[1]).mean[..., 0::2]
+
+        position_var = plain.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+        exact = exact_divergence(self.tracks.z, position_var, self.meas_var)
+        return Reference(exact, rerun, plain.mean[..., 0::2])
+
+
+class SelfReference:
+    """:class:`LinearReference` for a Kalman filter or smoother: its own divergence, exact."""
+
+    def __init__(self, estimator: nn.Module, tracks: RecordedTracks) -> None:
+        self.meas_var = _meas_var(estimator)
+        self.z = tracks.z
+
+    def reference(self, result: Any, filtered: bool = False) -> Reference:
+        position_var = result.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+        return Reference(exact_divergence(self.z, position_var, self.meas_var), beta=1.0)
+
+
+def _meas_var(estimator: nn.Module) -> Tensor:
+    """``[m]`` the estimator's own measurement variances (its gain's ``R``)."""
+    model: Any = estimator.model
+    return model.meas_cov().detach().diagonal()
+
+
+def _linear_gaussian(estimator: nn.Module) -> bool:
+    """Whether the estimator is a Kalman filter or an RTS smoother over one (its estimate
+    linear in ``z``, with the gain ``P Hᵀ R⁻¹``)."""
+    if type(estimator) is RTSSmoother:
+        return not estimator.projection_gain and _linear_gaussian(estimator.filter)
+    return (
+        type(estimator) is KalmanFilter
+        and estimator.adaptive_noise is None
+        and isinstance(estimator.model, LinearModel)
+    )
+
+
+def _same(a: Tensor, b: Tensor) -> bool:
+    return a.shape == b.shape and torch.equal(a.nan_to_num(), b.nan_to_num())
+
+
 def _paired_runs(
     estimator: nn.Module,
     positions: Callable[..., Any],
     tracks: RecordedTracks,
     meas_std: Tensor,
     seed: int,
+    step: float,
 ) -> tuple[Any, Tensor, Any] | None:
     """For an estimator with ``paired_probes``: its run on the tracks and on the measurements
     :func:`~torchsvs.accuracy.risk_terms` probes with ``seed`` in one batch of the tracks twice
@@ -384,7 +489,7 @@ def _paired_runs(
     z = tracks.z
     B = len(z)
     probe = rademacher_probe(z, torch.Generator().manual_seed(seed))
-    z_probed = z + PROBE_STEP * meas_std.to(z.dtype) * probe
+    z_probed = z + step * meas_std.to(z.dtype) * probe
     rows = tracks.subset(torch.arange(B).repeat(2))
     assert rows.z.shape == (2 * B, *z.shape[1:]), "every track twice over, steps unchanged"
     out, shifted = split_batch(positions(torch.cat([z, z_probed]), "all", rows), B)
@@ -398,6 +503,8 @@ def smoothed_or_filtered(
     meas_std: Tensor,
     seed: int,
     noise_range: tuple[list[float], list[float]] | None = None,
+    control: LinearReference | SelfReference | None = None,
+    step: float = PROBE_STEP,
 ) -> tuple[Any, RiskTerms, np.ndarray]:
     """Each track's smoothed pass of ``out`` (a result with a ``filtered`` pass: the IMM's
     smoother), or its filter pass where that has the lower SURE (:mod:`torchsvs.accuracy`, both
@@ -421,14 +528,21 @@ def smoothed_or_filtered(
             probed["out"] = rerun(z_probed)
         return probed["out"]
 
-    def terms_of(pick: Callable[[Any], Tensor]) -> RiskTerms:
+    def terms_of(pick: Callable[[Any], Tensor], filtered: bool) -> RiskTerms:
         probes = torch.Generator().manual_seed(seed)
+        reference = None if control is None else control.reference(out, filtered)
         return risk_terms(
-            lambda zp: pick(once(zp))[..., 0::2], z, pick(out)[..., 0::2], meas_std, probes
+            lambda zp: pick(once(zp))[..., 0::2],
+            z,
+            pick(out)[..., 0::2],
+            meas_std,
+            probes,
+            step=step,
+            reference=reference,
         )
 
-    smooth = terms_of(lambda result: result.mean)
-    filt = terms_of(lambda result: result.filtered.mean)
+    smooth = terms_of(lambda result: result.mean, False)
+    filt = terms_of(lambda result: result.filtered.mean, True)
     levels = [meas_std.double().square().tolist(), *(noise_range or ())]
     B = z.shape[0]
     fall_back = np.zeros(B, dtype=bool)

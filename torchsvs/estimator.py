@@ -17,6 +17,7 @@ from typing import Any, Generic, TypeVar
 import torch
 from torch import Tensor, nn
 
+from torchsvs.accuracy import PROBE_STEP
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.linalg import holds_inf
 from torchsvs.models.base import StateSpaceModel
@@ -365,6 +366,9 @@ class Estimator(nn.Module, Generic[Result]):
     #: estimators deterministic in ``z`` whose run costs its steps more than its rows (the
     #: IMM's Python step loop: twice the rows cost 1.3-1.5x, two runs 2x).
     paired_probes = False
+    #: The truth-free error estimate's finite-difference step in noise standard deviations
+    #: (:func:`~torchsvs.accuracy.risk_terms`).
+    probe_step = PROBE_STEP
 
     @outside_dynamo  # a user's torch.compile: the time loop stays outside Dynamo
     def forward(

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.estimator import Estimator, Inputs, drop_batch, prepare_inputs, threads_for
-from torchsvs.filters.imm import IMM, IMMResult
+from torchsvs.filters.imm import IMM, IMM_PROBE_STEP, IMMResult
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.kernels.compiled import outside_dynamo
@@ -79,6 +79,7 @@ class TurnIMM(Estimator[IMMResult]):
     """
 
     paired_probes = True  # a Python loop over steps of small tensors
+    probe_step = IMM_PROBE_STEP
 
     def __init__(
         self,

@@ -15,7 +15,7 @@ from torchsvs.estimator import (
     prepare_inputs,
     threads_for,
 )
-from torchsvs.filters.imm import IMM, IMMResult
+from torchsvs.filters.imm import IMM, IMM_PROBE_STEP, IMMResult
 from torchsvs.filters.turn_imm import TurnIMM
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.linalg import (
@@ -134,6 +134,7 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
     """
 
     paired_probes = True  # a Python loop over steps of small tensors
+    probe_step = IMM_PROBE_STEP
 
     def __init__(self, imm: IMM, lag: int | None) -> None:
         super().__init__()
