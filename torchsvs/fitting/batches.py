@@ -132,7 +132,7 @@ def batch_loss(
             kwargs["dt"] = rows.dt
         return estimator(z, x0, P0, **kwargs)
 
-    if loss == "sure" and estimator.paired_probes:
+    if loss == "sure" and getattr(estimator, "paired_probes", False):  # (any nn.Module)
         return _paired_sure(estimator, batch, run, meas_cov, generator)
     out = run(batch.z)
     if loss in ("nll", "prediction") and not isinstance(out, (FilterResult, SmootherResult)):
