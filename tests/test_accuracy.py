@@ -417,3 +417,52 @@ def test_a_near_linear_estimators_estimate_moves_less_with_the_probe_under_the_c
     spread = {k: float(np.std(v)) for k, v in found.items()}
     assert spread[True] < 0.5 * spread[False], spread
     assert abs(np.mean(found[True]) - np.mean(found[False])) < 2 * spread[False], found
+
+
+def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_budget(
+    tmp_path, monkeypatch
+):
+    """A sample over ``IMM_POINTS`` no longer skips the IMM: every candidate is scored on the
+    same tracks spread over the sample, up to that many points (so the table compares like
+    with like), while the fits see the whole sample."""
+    import torchsvs.fitting.selection as selection
+
+    source = tmp_path / "in.csv"
+    _turning_csv(source)  # 8 tracks of 150 points
+    monkeypatch.setattr(selection, "IMM_POINTS", 500)
+    scored = []
+
+    def counted(settings, tracks):
+        scored.append((settings.estimator, len(tracks)))
+        return sample_accuracy(settings, tracks)
+
+    sample_accuracy = selection.sample_accuracy
+    monkeypatch.setattr(selection, "sample_accuracy", counted)
+    target = tmp_path / "out.csv"
+    track_file(source, target, Settings("auto"), columns=Columns(), progress=False)
+    summary = json.loads(summary_path(target).read_text())
+    rows = {r["estimator"]: r for r in summary["candidates"] if not r.get("skipped")}
+    assert {"ks", "svss", "imm"} <= set(rows)
+    assert {name for name, _ in scored} >= {"ks", "svss", "imm"}
+    assert {count for _, count in scored} == {3}  # 3 tracks of 150: at most 500 points
+
+
+def test_spread_tracks_keeps_the_most_tracks_within_the_points():
+    from torchsvs.datasets import RecordedTracks
+    from torchsvs.fitting.selection import spread_tracks
+
+    lengths = torch.tensor([100, 10, 50, 200, 30, 80, 120, 60])
+    z = torch.full((8, 200, 2), math.nan)
+    for k, n in enumerate(lengths.tolist()):
+        z[k, :n] = 0.0
+    dt = torch.ones(8, 200)
+    tracks = RecordedTracks(
+        z=z, dt=dt, time=dt.cumsum(1), lengths=lengths, ids=[f"t{k}" for k in range(8)]
+    )
+    for points in (100, 250, 400, 650, 10_000):
+        kept = spread_tracks(tracks, points)
+        total = int((~kept.z[..., 0].isnan()).sum())
+        assert total <= points or len(kept) == 1
+        assert kept.ids[0] == "t0" and (len(kept) == 1 or kept.ids[-1] == "t7")
+    assert len(spread_tracks(tracks, 10_000)) == 8
+    assert len(spread_tracks(tracks, 1)) == 1  # at least one track

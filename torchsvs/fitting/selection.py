@@ -21,6 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import torch
+
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import sample_accuracy
 from torchsvs.fitting.defaults import complete_settings, settings_note
@@ -29,10 +31,14 @@ from torchsvs.recipes import Settings
 
 #: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
 CANDIDATES = ("ks", "svstps", "svss", "imm")
-#: The IMM costs ~100× the KS per point (a step loop of small tensor operations): it is tried
-#: on samples of at most this many points, its noises fitted as the others' are (the search of
-#: :func:`~torchsvs.fitting.tuning.self_tune`, seconds). Unfitted, the IMM smoother left
-#: ``auto`` 1.095x ``imm --fit`` on simulated hard turns (recorded-tracks benchmark).
+#: The candidates are scored on the same tracks: the whole sample up to this many points, else
+#: tracks spread evenly over it up to this many. The IMM's run costs ~17× the KS's per point (a
+#: step loop of small tensor operations, ``benchmarks/imm_track.md``), so its score is kept to
+#: seconds; its noises are fitted on windows of the whole sample as the others' are (the search
+#: of :func:`~torchsvs.fitting.tuning.self_tune`, seconds). Unfitted, the IMM smoother left
+#: ``auto`` 1.095x ``imm --fit`` on simulated hard turns (recorded-tracks benchmark); skipped
+#: on samples over this size, it left ``auto`` 1.09x the IMM on 10,337 rows of airliners at
+#: 5 s and 10 s scans.
 IMM_POINTS = 10_000
 #: Each candidate is scored by its estimated error e times 1 + CAUTION·(se/e)², se its standard
 #: error. An estimate as uncertain as itself is penalised heavily (an estimator very sensitive
@@ -111,18 +117,18 @@ def choose_estimator(
         "noise_spread": base.noise_spread,
     }
     points = int((~sample.z[..., 0].isnan()).sum())
+    scored = sample
+    if "imm" in candidates and points > IMM_POINTS:
+        scored = spread_tracks(sample, IMM_POINTS)
+        shown = int((~scored.z[..., 0].isnan()).sum())
+        say(f"auto: candidates scored on {len(scored)} of {len(sample)} tracks ({shown} points)")
     options = dict(fit_options)
     options["known_noise"] = True  # read once above (or given): SURE in its units
     rows: list[dict[str, Any]] = []
     best, best_rmse = None, math.inf
     for name in candidates:
-        if name == "imm" and (points > IMM_POINTS or sample.z.shape[-1] not in (2, 3)):
-            why = (
-                f"{points} points in the sample (tried up to {IMM_POINTS})"
-                if points > IMM_POINTS
-                else "turns need 2 or 3 position axes"
-            )
-            rows.append({"estimator": name, "skipped": why})
+        if name == "imm" and sample.z.shape[-1] not in (2, 3):
+            rows.append({"estimator": name, "skipped": "turns need 2 or 3 position axes"})
             continue
         if name == "svstps" and base.velocity and "svss" in candidates:
             # The variable boundary layer's gain is the Kalman gain of its inflated prior, so
@@ -141,7 +147,7 @@ def choose_estimator(
         fit = self_tune(candidate, sample, **options)
         fitted = fit.settings
         learned = fit.stages[-1].split(": ", 1)[-1] if fit.stages else ""
-        found = sample_accuracy(fitted, sample)
+        found = sample_accuracy(fitted, scored)
         seconds = time.perf_counter() - tick
         rows.append(
             {
@@ -163,3 +169,22 @@ def choose_estimator(
         )
     chosen = replace(best, chosen_from=[r["estimator"] for r in rows if not r.get("skipped")])
     return Choice(chosen, time.perf_counter() - start, rows)
+
+
+def spread_tracks(tracks: RecordedTracks, points: int) -> RecordedTracks:
+    """The most tracks spread evenly over ``tracks`` whose observed positions number at most
+    ``points`` (at least one track)."""
+    observed = (~tracks.z[..., 0].isnan()).sum(dim=1)
+    count = len(observed)
+
+    def pick(k: int) -> torch.Tensor:
+        return torch.linspace(0, count - 1, k).round().long().unique()
+
+    low, high = 1, count  # the largest k whose pick fits
+    while low < high:
+        middle = (low + high + 1) // 2
+        if int(observed[pick(middle)].sum()) <= points:
+            low = middle
+        else:
+            high = middle - 1
+    return tracks.subset(pick(low))
