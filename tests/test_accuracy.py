@@ -366,17 +366,18 @@ def test_a_kalman_smoothers_estimate_is_its_own_control_and_nearly_free_of_the_p
             reference=control,
         )
 
-    later = np.repeat(np.arange(4) * 4, 1)  # the first chunk of each track holds its start
-    rest = np.setdiff1d(np.arange(16), later)
+    starts = np.arange(4) * 4  # each track's first chunk (of 4) holds its first observations
+    rest = np.setdiff1d(np.arange(16), starts)
     with_control = [terms(seed, reference).divergence[rest] for seed in (1, 2)]
     assert np.abs(with_control[0] - with_control[1]).max() < 1e-9
     sums = torch.nn.functional.pad(torch.nan_to_num(exact), (0, 0, 0, 8))
     expected = sums.reshape(4, 4, 32, 2).sum(2).reshape(16, 2).numpy()[rest]
     assert np.abs(with_control[0] - expected).max() < 1e-9
     without = [terms(seed, None).divergence[rest] for seed in (1, 2)]
-    assert np.abs(without[0] - without[1]).max() > 1e3 * np.abs(
-        with_control[0] - with_control[1]
-    ).max() + 0.05
+    assert (
+        np.abs(without[0] - without[1]).max()
+        > 1e3 * np.abs(with_control[0] - with_control[1]).max() + 0.05
+    )
 
 
 def test_a_near_linear_estimators_estimate_moves_less_with_the_probe_under_the_control():
