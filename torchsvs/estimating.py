@@ -339,8 +339,11 @@ def _estimate_part(
 
     seed = PROBE_SEED + batch.position
     step = getattr(estimator, "probe_step", PROBE_STEP)
+    keep = "all" if covariance else "mean"  # (the paired run's: nothing else reads its cov)
     paired = (
-        _paired_runs(estimator, positions, batch.tracks, meas_std, seed, step) if risk else None
+        _paired_runs(estimator, positions, batch.tracks, meas_std, seed, step, keep)
+        if risk
+        else None
     )
 
     def probed(z: Tensor) -> Any:  # SURE's probed run reads the means alone
@@ -479,11 +482,13 @@ def _paired_runs(
     meas_std: Tensor,
     seed: int,
     step: float,
+    keep: str = "all",
 ) -> tuple[Any, Tensor, Any] | None:
     """For an estimator with ``paired_probes``: its run on the tracks and on the measurements
     :func:`~torchsvs.accuracy.risk_terms` probes with ``seed`` in one batch of the tracks twice
-    over (``positions(z, keep, rows)``, the estimator's run). Returns the plain run's result,
-    the probed measurements and their result; ``None`` for other estimators."""
+    over (``positions(z, keep, rows)``, the estimator's run, keeping ``keep``). Returns the
+    plain run's result, the probed measurements and their result; ``None`` for other
+    estimators."""
     if not getattr(estimator, "paired_probes", False):
         return None
     z = tracks.z
@@ -492,7 +497,7 @@ def _paired_runs(
     z_probed = z + step * meas_std.to(z.dtype) * probe
     rows = tracks.subset(torch.arange(B).repeat(2))
     assert rows.z.shape == (2 * B, *z.shape[1:]), "every track twice over, steps unchanged"
-    out, shifted = split_batch(positions(torch.cat([z, z_probed]), "all", rows), B)
+    out, shifted = split_batch(positions(torch.cat([z, z_probed]), keep, rows), B)
     return out, z_probed, shifted
 
 
