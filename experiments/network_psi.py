@@ -37,11 +37,11 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from experiments.recorded_sets import build_sets
+from torchsvs.accuracy import PROBE_STEP, draw_probe, risk_terms
 from torchsvs.accuracy import accuracy as accuracy_of
-from torchsvs.accuracy import risk_terms
 from torchsvs.datasets.files import read_tracks, with_prior
 from torchsvs.datasets.tracks import RecordedTracks
-from torchsvs.estimating import centred, run_result
+from torchsvs.estimating import centred, reference_for, run_result
 from torchsvs.evaluation import markdown_table
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.batches import batch_loss, recorded_batches
@@ -242,17 +242,21 @@ def held_out(half: Half, network: PsiNetwork | None, seed: int) -> tuple[float, 
     estimator = half.svss if network is None else NetworkPsiSVSS(half.settings, network)
     std = half.meas_var.sqrt()
 
-    def positions(z: Tensor) -> Tensor:
-        tracks = with_prior(replace(half.tracks, z=z), std)
-        return run_result(estimator, tracks, keep="mean").mean
+    def run(z: Tensor) -> Any:
+        return run_result(estimator, with_prior(replace(half.tracks, z=z), std), keep="mean")
 
-    mean = positions(half.tracks.z)
+    out = run(half.tracks.z)
+    mean = out.mean
+    probe = draw_probe(half.tracks.z, std, PROBE_STEP, torch.Generator().manual_seed(seed))
+    control = reference_for(estimator, out, with_prior(half.tracks, std), std, probe)
     terms = risk_terms(
-        lambda z: positions(z)[..., 0::2],
+        lambda z: run(z).mean[..., 0::2],
         half.tracks.z,
         mean[..., 0::2],
         std,
-        torch.Generator().manual_seed(seed),
+        None,
+        reference=None if control is None else control.reference(out),
+        probe=probe,
     )
     estimate = accuracy_of(terms, half.meas_var.tolist()).estimated_rmse
     return position_rmse(mean, half.truth), estimate

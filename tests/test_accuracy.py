@@ -387,8 +387,9 @@ def test_a_near_linear_estimators_estimate_moves_less_with_the_probe_under_the_c
     value."""
     from dataclasses import replace
 
+    from torchsvs.accuracy import PROBE_STEP, draw_probe
     from torchsvs.datasets import with_prior
-    from torchsvs.estimating import LinearReference
+    from torchsvs.estimating import LinearReference, reference_for
     from torchsvs.recipes import make_estimator, make_model
 
     tracks, std, _, _ = _ks_tracks(B=4, T=120)
@@ -401,18 +402,20 @@ def test_a_near_linear_estimators_estimate_moves_less_with_the_probe_under_the_c
             return svss(found.z, found.x0, found.P0, dt=found.dt, keep=keep)
 
     out = run(tracks.z)
-    control = LinearReference.of(svss, out, tracks, std)
-    assert isinstance(control, LinearReference)
     found = {True: [], False: []}
     for seed in range(6):
+        probe = draw_probe(tracks.z, std, PROBE_STEP, torch.Generator().manual_seed(seed))
+        control = reference_for(svss, out, tracks, std, probe)
+        assert isinstance(control, LinearReference)
         for controlled in (True, False):
             terms = risk_terms(
                 lambda w: run(w, "mean").mean[..., 0::2],
                 tracks.z,
                 out.mean[..., 0::2],
                 std,
-                torch.Generator().manual_seed(seed),
+                None,
                 reference=control.reference(out) if controlled else None,
+                probe=probe,
             )
             found[controlled].append(terms.mse([900.0, 900.0])[0])
     spread = {k: float(np.std(v)) for k, v in found.items()}

@@ -350,6 +350,12 @@ def _linear_passes(smooth: torch.Tensor, filt: torch.Tensor):
     return run
 
 
+def _probe(z: torch.Tensor, std: torch.Tensor):
+    from torchsvs.accuracy import PROBE_STEP, draw_probe
+
+    return draw_probe(z, std, PROBE_STEP, torch.Generator().manual_seed(3))
+
+
 def test_the_imm_smoother_falls_back_to_its_filter_per_track_by_sure():
     """Each track keeps the pass of lower SURE: on pure noise (track 0) estimating 0 (the
     "filter" 0·z: SURE ≈ 0) beats following the data (the "smoother" z: SURE = r); on a large
@@ -361,7 +367,7 @@ def test_the_imm_smoother_falls_back_to_its_filter_per_track_by_sure():
     z[1] += 1000.0 * torch.randn(400, 2, generator=g, dtype=torch.float64)
     run = _linear_passes(torch.tensor([1.0, 1.0]), torch.tensor([0.0, 0.0]))
     std = torch.ones(2, dtype=torch.float64)
-    chosen, terms, back = smoothed_or_filtered(run(z), run, z, std, seed=3)
+    chosen, terms, back = smoothed_or_filtered(run(z), run, z, std, _probe(z, std))
     assert back.tolist() == [True, False]
     assert_close(chosen.mean[0, :, 0::2], torch.zeros_like(z[0]), atol=0)
     assert_close(chosen.mean[1, :, 0::2], z[1], atol=0)
@@ -380,8 +386,10 @@ def test_the_imm_smoother_is_kept_only_where_it_wins_over_the_noise_interval():
     z = z.double()
     run = _linear_passes(torch.tensor([0.2]), torch.tensor([0.8]))
     std = torch.ones(2, dtype=torch.float64)
-    _, _, alone = smoothed_or_filtered(run(z), run, z, std, seed=3)
-    _, _, ranged = smoothed_or_filtered(run(z), run, z, std, 3, ([0.5, 0.5], [2.0, 2.0]))
+    _, _, alone = smoothed_or_filtered(run(z), run, z, std, _probe(z, std))
+    _, _, ranged = smoothed_or_filtered(
+        run(z), run, z, std, _probe(z, std), ([0.5, 0.5], [2.0, 2.0])
+    )
     assert alone.tolist() == [False] and ranged.tolist() == [True]
 
 

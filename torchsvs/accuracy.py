@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -101,11 +102,29 @@ class RiskTerms:
         return np.sqrt(np.clip(mse, 0.0, None)), count.mean(axis=1)
 
 
-def rademacher_probe(z: Tensor, generator: torch.Generator | None) -> Tensor:
-    """SURE's probe for measurements ``z [..., m]``: ±1 at random (from ``generator``) at the
-    observed components, 0 where ``z`` is missing."""
-    probe = torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1
-    return probe * ~torch.isnan(z)
+class Probe(NamedTuple):
+    """SURE's probe of measurements ``z [..., m]`` (:func:`draw_probe`)."""
+
+    signs: Tensor  #: ±1 at the probed components, 0 elsewhere (missing, not scored)
+    measurements: Tensor  #: the probed measurements ``z + step·σ·signs``
+    step: float  #: the finite-difference step in noise standard deviations
+
+
+def draw_probe(
+    z: Tensor,
+    std: Tensor,
+    step: float,
+    generator: torch.Generator | None,
+    scored: Tensor | None = None,
+) -> Probe:
+    """A Rademacher probe of ``z [B, T, m]`` (NaN where missing) with noise standard
+    deviations ``std [m]``: ±1 at random (from ``generator``) at the observed components of
+    the ``scored [B, T]`` steps (default: all), 0 elsewhere."""
+    signs = torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1
+    signs = signs * ~torch.isnan(z)
+    if scored is not None:
+        signs = signs * scored.unsqueeze(-1)
+    return Probe(signs, z + step * std.to(z.dtype) * signs, step)
 
 
 @dataclass
@@ -131,14 +150,15 @@ class Reference:
     Attributes:
         exact: the reference's exact divergence per component ``[B, T, m]``, NaN where not
             known.
-        rerun: its position estimate of probed measurements; ``None``: the estimator is its
-            own reference (a Kalman filter or smoother).
-        estimate: its position estimate of the measurements ``[B, T, m]`` (with ``rerun``).
+        shifted: its position estimate of the probe's measurements (the ``probe`` given to
+            :func:`risk_terms`); ``None``: the estimator is its own reference (a Kalman
+            filter or smoother).
+        estimate: its position estimate of the measurements ``[B, T, m]`` (with ``shifted``).
         beta: the control's weight; ``None``: fitted.
     """
 
     exact: Tensor
-    rerun: Callable[[Tensor], Tensor] | None = None
+    shifted: Tensor | None = None
     estimate: Tensor | None = None
     beta: float | None = None
 
@@ -158,14 +178,17 @@ def risk_terms(
     z: Tensor,
     estimate: Tensor,
     meas_std: Tensor,
-    generator: torch.Generator,
+    generator: torch.Generator | None,
     chunk: int = CHUNK,
     step: float = PROBE_STEP,
     reference: Reference | None = None,
+    probe: Probe | None = None,
 ) -> RiskTerms:
     """SURE's sums for positions ``estimate [B, T, m]`` of measurements ``z [B, T, m]`` (NaN
     where missing), ``rerun`` mapping probed measurements to their position estimate; with a
-    ``reference``, its control variate on the divergence (:class:`Reference`).
+    ``reference``, its control variate on the divergence (:class:`Reference`). The probe is
+    ``probe`` where given (drawn beforehand, e.g. for a paired run), else drawn from
+    ``generator`` with ``step``.
 
     Chunk ``c`` of track ``b`` covers steps ``c·chunk ... (c+1)·chunk - 1``; its ``track`` is
     ``b``. Chunks without an observation are left out.
@@ -173,11 +196,15 @@ def risk_terms(
     with torch.no_grad():
         observed = ~torch.isnan(z)
         std = meas_std.to(z.dtype)
-        probe = rademacher_probe(z, generator)
-        probed = z + step * std * probe
+        if probe is None:
+            if reference is not None and reference.shifted is not None:
+                raise ValueError("probe: a reference's shifted estimate is of a given probe")
+            probe = draw_probe(z, std, step, generator)
+        probed = probe.measurements
+        scale = probe.step * std.double()
 
         def divergence_of(shifted: Tensor, base: Tensor) -> Tensor:
-            quotient = probe.double() * (shifted.double() - base) / (step * std.double())
+            quotient = probe.signs.double() * (shifted.double() - base) / scale
             return torch.where(observed, quotient, 0.0)
 
         estimate = estimate.to(torch.float64)
@@ -187,12 +214,11 @@ def risk_terms(
         control = None
         if reference is not None:
             found = divergence
-            if reference.rerun is not None:
+            if reference.shifted is not None:
                 assert reference.estimate is not None
-                found = divergence_of(reference.rerun(probed), reference.estimate.double())
+                found = divergence_of(reference.shifted, reference.estimate.double())
             unknown = reference.exact.isnan()
             control = torch.where(unknown, 0.0, found - reference.exact)
-            centred = torch.where(unknown, 0.0, divergence - reference.exact)
     B, T, m = z.shape
     pad = (-T) % chunk
 
@@ -210,6 +236,7 @@ def risk_terms(
         beta = reference.beta
         if beta is None:  # the slope of the estimator's probe error on the reference's
             spread = float((ys * ys).sum())
+            centred = torch.where(reference.exact.isnan(), 0.0, divergence - reference.exact)
             moved = float((sums(centred) * ys).sum())
             beta = float(np.clip(moved / spread, 0.0, 1.0)) if spread else 0.0
         divergences = divergences - beta * ys

@@ -25,10 +25,11 @@ from torch import Tensor, nn
 from torchsvs.accuracy import (
     PROBE_STEP,
     Accuracy,
+    Probe,
     Reference,
     RiskTerms,
+    draw_probe,
     exact_divergence,
-    rademacher_probe,
     risk_terms,
 )
 from torchsvs.accuracy import accuracy as accuracy_of
@@ -337,23 +338,24 @@ def _estimate_part(
         generator = torch.Generator().manual_seed(batch.position)
         return run_result(estimator, tracks, generator, keep)
 
-    seed = PROBE_SEED + batch.position
     step = getattr(estimator, "probe_step", PROBE_STEP)
-    keep = "all" if covariance else "mean"  # (the paired run's: nothing else reads its cov)
-    paired = (
-        _paired_runs(estimator, positions, batch.tracks, meas_std, seed, step, keep)
-        if risk
-        else None
-    )
+    seed = torch.Generator().manual_seed(PROBE_SEED + batch.position)
+    probe = draw_probe(batch.tracks.z, meas_std, step, seed)
+    if getattr(estimator, "paired_probes", False):
+        # the plain and the probed run in one batch; the means alone unless covariances are
+        # written (nothing else reads them)
+        out, shifted = _paired_run(positions, batch.tracks, probe, "all" if covariance else "mean")
 
-    def probed(z: Tensor) -> Any:  # SURE's probed run reads the means alone
-        if paired is None:
+        def probed(z: Tensor) -> Any:  # z: the probe's measurements, run above
+            return shifted
+
+    else:
+        out = positions(batch.tracks.z)
+
+        def probed(z: Tensor) -> Any:  # SURE's probed run reads the means alone
             return positions(z, "mean")
-        assert torch.equal(z.nan_to_num(), paired[1].nan_to_num()), "the paired run's probes"
-        return paired[2]
 
     tracks = with_prior(batch.tracks, meas_std)
-    out = positions(batch.tracks.z) if paired is None else paired[0]
     mean, cov = out.mean, out.cov
     notes = short_track_notes(tracks)
     if getattr(out, "ess", None) is not None:  # a particle filter: how often it degenerated
@@ -362,25 +364,24 @@ def _estimate_part(
         low = degenerate_share(out, tracks.z) * measured
         notes["particle_steps_degenerate"] = int(low.sum().round())
     terms = None
-    control = LinearReference.of(estimator, out, tracks, meas_std) if risk else None
+    control = reference_for(estimator, out, tracks, meas_std, probe) if risk else None
     if isinstance(out, IMMSmootherResult):  # (a Kalman smoother or SVSS is kept whole)
         out, terms, fell_back = smoothed_or_filtered(
-            out, probed, tracks.z, meas_std, seed, noise_range, control, step
+            out, probed, tracks.z, meas_std, probe, noise_range, control
         )
         mean, cov = out.mean, out.cov
         if fell_back.any():
             notes["smoother_fallback"] = int(fell_back.sum())
         terms = terms if risk else None
     elif risk:
-        probes = torch.Generator().manual_seed(seed)
         terms = risk_terms(
             lambda z: probed(z).mean[..., 0::2],
             tracks.z,
             mean[..., 0::2],
             meas_std,
-            probes,
-            step=step,
+            None,
             reference=None if control is None else control.reference(out),
+            probe=probe,
         )
     if terms is not None:
         terms.track = batch.group[terms.track]
@@ -394,55 +395,31 @@ def _estimate_part(
 
 class LinearReference:
     """The truth-free error estimate's control variate (:class:`~torchsvs.accuracy.Reference`)
-    for an estimator's run: the estimator itself where it is a Kalman filter or smoother
-    (its divergence exact), else, for a deterministic estimator on a constant-velocity model
-    (the SVSF family, the IMM, the other Gaussian filters), the Kalman smoother (or, for a
-    filter's output, the Kalman filter) on the estimator's own model, run on the same tracks
-    and probes. ``None`` (:meth:`of`) for the others (particle filters: their draws)."""
+    from a Kalman smoother (or filter) on the tracks and on a probe's measurements
+    (:func:`reference_for`)."""
 
-    def __init__(self, estimator: nn.Module, tracks: RecordedTracks, meas_std: Tensor) -> None:
-        self.estimator = estimator
-        self.tracks = tracks
-        self.meas_std = meas_std
-        self.meas_var = _meas_var(estimator)
-        self._plain = run_result(estimator, tracks, keep="moments")
-        self._probed: tuple[Tensor, Any] | None = None
+    def __init__(
+        self, kalman: nn.Module, tracks: RecordedTracks, meas_std: Tensor, probe: Probe
+    ) -> None:
+        self.meas_var = _meas_var(kalman)
+        self.z = tracks.z
+        self.plain = run_result(kalman, tracks, keep="moments")
+        shifted = with_prior(replace(tracks, z=probe.measurements), meas_std)
+        self.shifted = run_result(kalman, shifted, keep="mean")
 
-    @classmethod
-    def of(
-        cls, estimator: nn.Module, out: Any, tracks: RecordedTracks, meas_std: Tensor
-    ) -> LinearReference | SelfReference | None:
-        if _linear_gaussian(estimator):
-            return SelfReference(estimator, tracks)
-        model = getattr(estimator, "model", None)
-        if isinstance(estimator, ParticleFilter) or not isinstance(model, ConstantVelocity):
-            return None
-        kf = KalmanFilter(model)
-        smoothed = isinstance(out, (SmootherResult, IMMSmootherResult))
-        return cls(RTSSmoother(kf) if smoothed else kf, tracks, meas_std)
-
-    def reference(self, result: Any, filtered: bool = False) -> Reference:
-        """The reference for the positions of ``result`` (the filter pass's with
-        ``filtered``: the smoother's forward pass)."""
-
-        def positions(found: Any) -> Any:
-            return found.filtered if filtered and hasattr(found, "filtered") else found
-
-        plain = positions(self._plain)
-
-        def rerun(z: Tensor) -> Tensor:
-            if self._probed is None or not _same(self._probed[0], z):
-                probed = with_prior(replace(self.tracks, z=z), self.meas_std)
-                self._probed = (z, run_result(self.estimator, probed, keep="mean"))
-            return positions(self._probed[1]).mean[..., 0::2]
-
+    def reference(self, result: Any = None, filtered: bool = False) -> Reference:
+        """The reference for the estimator's positions (its filter pass's with ``filtered``:
+        the reference's forward pass)."""
+        plain, shifted = self.plain, self.shifted
+        if filtered:
+            plain, shifted = plain.filtered, shifted.filtered
         position_var = plain.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-        exact = exact_divergence(self.tracks.z, position_var, self.meas_var)
-        return Reference(exact, rerun, plain.mean[..., 0::2])
+        exact = exact_divergence(self.z, position_var, self.meas_var)
+        return Reference(exact, shifted.mean[..., 0::2], plain.mean[..., 0::2])
 
 
 class SelfReference:
-    """:class:`LinearReference` for a Kalman filter or smoother: its own divergence, exact."""
+    """The control variate of a Kalman filter or smoother: its own divergence, exact."""
 
     def __init__(self, estimator: nn.Module, tracks: RecordedTracks) -> None:
         self.meas_var = _meas_var(estimator)
@@ -451,6 +428,25 @@ class SelfReference:
     def reference(self, result: Any, filtered: bool = False) -> Reference:
         position_var = result.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
         return Reference(exact_divergence(self.z, position_var, self.meas_var), beta=1.0)
+
+
+def reference_for(
+    estimator: nn.Module, out: Any, tracks: RecordedTracks, meas_std: Tensor, probe: Probe
+) -> LinearReference | SelfReference | None:
+    """The control variate of an estimator's error estimate: the estimator itself where it is
+    a Kalman filter or smoother (its divergence exact); else, for a deterministic estimator on
+    a constant-velocity model (the SVSF family, the IMM, the other Gaussian filters), the
+    Kalman smoother (the Kalman filter for a filter's output ``out``) on the estimator's own
+    model, run on the same tracks and ``probe``; ``None`` for the particle filters (their
+    draws differ between runs)."""
+    if _linear_gaussian(estimator):
+        return SelfReference(estimator, tracks)
+    model = getattr(estimator, "model", None)
+    if isinstance(estimator, ParticleFilter) or not isinstance(model, ConstantVelocity):
+        return None
+    kf = KalmanFilter(model)
+    smoothed = isinstance(out, (SmootherResult, IMMSmootherResult))
+    return LinearReference(RTSSmoother(kf) if smoothed else kf, tracks, meas_std, probe)
 
 
 def _meas_var(estimator: nn.Module) -> Tensor:
@@ -471,34 +467,16 @@ def _linear_gaussian(estimator: nn.Module) -> bool:
     )
 
 
-def _same(a: Tensor, b: Tensor) -> bool:
-    return a.shape == b.shape and torch.equal(a.nan_to_num(), b.nan_to_num())
-
-
-def _paired_runs(
-    estimator: nn.Module,
-    positions: Callable[..., Any],
-    tracks: RecordedTracks,
-    meas_std: Tensor,
-    seed: int,
-    step: float,
-    keep: str = "all",
-) -> tuple[Any, Tensor, Any] | None:
-    """For an estimator with ``paired_probes``: its run on the tracks and on the measurements
-    :func:`~torchsvs.accuracy.risk_terms` probes with ``seed`` in one batch of the tracks twice
-    over (``positions(z, keep, rows)``, the estimator's run, keeping ``keep``). Returns the
-    plain run's result, the probed measurements and their result; ``None`` for other
-    estimators."""
-    if not getattr(estimator, "paired_probes", False):
-        return None
-    z = tracks.z
-    B = len(z)
-    probe = rademacher_probe(z, torch.Generator().manual_seed(seed))
-    z_probed = z + step * meas_std.to(z.dtype) * probe
+def _paired_run(
+    positions: Callable[..., Any], tracks: RecordedTracks, probe: Probe, keep: str
+) -> tuple[Any, Any]:
+    """An estimator's run (``positions(z, keep, rows)``) on the tracks and on the probe's
+    measurements in one batch of the tracks twice over, keeping ``keep``: the two results
+    (:attr:`~torchsvs.estimator.Estimator.paired_probes`)."""
+    B = len(tracks.z)
     rows = tracks.subset(torch.arange(B).repeat(2))
-    assert rows.z.shape == (2 * B, *z.shape[1:]), "every track twice over, steps unchanged"
-    out, shifted = split_batch(positions(torch.cat([z, z_probed]), keep, rows), B)
-    return out, z_probed, shifted
+    assert rows.z.shape == (2 * B, *tracks.z.shape[1:]), "every track twice over, steps kept"
+    return split_batch(positions(torch.cat([tracks.z, probe.measurements]), keep, rows), B)
 
 
 def smoothed_or_filtered(
@@ -506,14 +484,14 @@ def smoothed_or_filtered(
     rerun: Callable[[Tensor], Any],
     z: Tensor,
     meas_std: Tensor,
-    seed: int,
+    probe: Probe,
     noise_range: tuple[list[float], list[float]] | None = None,
     control: LinearReference | SelfReference | None = None,
-    step: float = PROBE_STEP,
 ) -> tuple[Any, RiskTerms, np.ndarray]:
     """Each track's smoothed pass of ``out`` (a result with a ``filtered`` pass: the IMM's
     smoother), or its filter pass where that has the lower SURE (:mod:`torchsvs.accuracy`, both
-    from one probed run ``rerun``): a guard where the smoother's backward pass fails. Kim's
+    from one run ``rerun`` on the ``probe``'s measurements; ``control``: the estimate's control
+    variate, :func:`reference_for`): a guard where the smoother's backward pass fails. Kim's
     smoother links a mode's estimates by the mode's own dynamics, and on tracks whose motion
     at their report times neither mode follows (gliders and survey aircraft at 7-33 s,
     speed jumps in the record) the IMM's fixed-lag smoother was 1.25x the raw measurements
@@ -526,24 +504,18 @@ def smoothed_or_filtered(
     less. Returns the result with the chosen passes' ``mean``
     and ``cov`` per track (the other fields the smoother's), their risk terms, and ``[B]`` which
     tracks fell back to the filter."""
-    probed: dict[str, Any] = {}
-
-    def once(z_probed: Tensor) -> Any:  # one probed run serves both passes (same probes)
-        if "out" not in probed:
-            probed["out"] = rerun(z_probed)
-        return probed["out"]
+    shifted = rerun(probe.measurements)  # one probed run serves both passes
 
     def terms_of(pick: Callable[[Any], Tensor], filtered: bool) -> RiskTerms:
-        probes = torch.Generator().manual_seed(seed)
         reference = None if control is None else control.reference(out, filtered)
         return risk_terms(
-            lambda zp: pick(once(zp))[..., 0::2],
+            lambda _: pick(shifted)[..., 0::2],  # (the probe's measurements: run above)
             z,
             pick(out)[..., 0::2],
             meas_std,
-            probes,
-            step=step,
+            None,
             reference=reference,
+            probe=probe,
         )
 
     smooth = terms_of(lambda result: result.mean, False)

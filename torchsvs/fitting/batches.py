@@ -10,7 +10,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchsvs.accuracy import rademacher_probe
+from torchsvs.accuracy import draw_probe
 from torchsvs.datasets.tracks import RecordedTracks
 from torchsvs.estimator import split_batch
 from torchsvs.fitting.losses import (
@@ -178,18 +178,14 @@ def _paired_sure(
     two runs would draw, so the same risk)."""
     H, R = _sure_matrices(estimator, batch, meas_cov)
     B = len(batch.z)
-    probe = rademacher_probe(batch.z, generator)
-    if batch.scored is not None:  # as stein_risk probes: the scored steps alone
-        probe = probe * batch.scored.unsqueeze(-1)
-    probed = batch.z + SURE_STEP * R.diagonal(dim1=-2, dim2=-1).sqrt() * probe
+    std = R.diagonal(dim1=-2, dim2=-1).sqrt()
+    probe = draw_probe(batch.z, std, SURE_STEP, generator, batch.scored)  # as stein_risk draws
 
     rows = batch._replace(
         x0=torch.cat([batch.x0, batch.x0]),
         P0=torch.cat([batch.P0, batch.P0]) if batch.P0.ndim == 3 else batch.P0,  # or shared
         dt=None if batch.dt is None else torch.cat([batch.dt, batch.dt]),
     )
-    out, shifted = split_batch(run(torch.cat([batch.z, probed]), rows), B)
-    risk = stein_risk(
-        lambda _: shifted, out, batch.z, H, R, scored=batch.scored, step=SURE_STEP, probe=probe
-    )
+    out, shifted = split_batch(run(torch.cat([batch.z, probe.measurements]), rows), B)
+    risk = stein_risk(lambda _: shifted, out, batch.z, H, R, scored=batch.scored, probe=probe)
     return risk, out

@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchsvs.accuracy import rademacher_probe
+from torchsvs.accuracy import Probe, draw_probe
 from torchsvs.linalg import cholesky, gaussian_log_density
 from torchsvs.metrics import mean_squared_error
 from torchsvs.types import FilterResult, SmootherResult
@@ -90,7 +90,7 @@ def stein_risk(
     generator: torch.Generator | None = None,
     step: float = SURE_STEP,
     scored: Tensor | None = None,
-    probe: Tensor | None = None,
+    probe: Probe | None = None,
 ) -> Tensor:
     r"""Monte Carlo SURE: an unbiased estimate of the measured-component MSE without truth.
 
@@ -120,11 +120,12 @@ def stein_risk(
         result: ``rerun(z)``.
         z: the measurements ``[B, T, m]``.
         H, R: measurement matrix and (diagonal) noise covariance of ``z``.
-        generator: source of the probe (:func:`~torchsvs.accuracy.rademacher_probe`).
+        generator: source of the probe (:func:`~torchsvs.accuracy.draw_probe`).
         step: finite-difference step in units of σ.
         scored: ``[B, T]`` True at the steps the risk averages over (default: all).
-        probe: the probe, drawn beforehand (``rerun`` is then called with
-            ``z + step·σ·probe``); default: drawn from ``generator``.
+        probe: the probe, drawn beforehand (:func:`~torchsvs.accuracy.draw_probe` with
+            ``scored``; ``rerun`` is then called with its measurements); default: drawn from
+            ``generator`` with ``step``.
 
     Returns the mean risk per observed component (in units of ``R``).
     """
@@ -137,8 +138,7 @@ def stein_risk(
     f = result.mean @ H.mT
     residual = ((z.nan_to_num(0.0) - f) / std).square() * observed
     if probe is None:
-        probe = rademacher_probe(z, generator)
-    probe = probe * observed
-    f_shift = rerun(z + step * std * probe).mean @ H.mT
-    divergence = (probe * (f_shift - f) / (step * std)).sum()
+        probe = draw_probe(z, std, step, generator, scored)
+    f_shift = rerun(probe.measurements).mean @ H.mT
+    divergence = (probe.signs * (f_shift - f) / (probe.step * std)).sum()
     return (residual.sum() + 2.0 * divergence) / count - 1.0
