@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench bench-matrix bench-million reproduce road ksvd real real-imm recorded recorded-faults recorded-wide network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million reproduce road ksvd real real-imm recorded recorded-faults recorded-wide network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -24,6 +24,11 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow -q
+
+# The docs site (mkdocs.yml, docs/; the reports of experiments/results and benchmarks join it):
+# any warning fails the build.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet --site-dir site
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.forward
