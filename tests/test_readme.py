@@ -1,4 +1,4 @@
-"""The README's first examples run as written (on a small track file made here)."""
+"""The user guide's first examples run as written (on a small track file made here)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _usage_blocks() -> list[str]:
-    text = (ROOT / "README.md").read_text()
-    usage = text[text.index("## Usage") :]
-    return re.findall(r"```python\n(.*?)```", usage, flags=re.S)
+def _python_blocks(page: str) -> list[str]:
+    text = (ROOT / "docs" / "guide" / page).read_text(encoding="utf-8")
+    return re.findall(r"```python\n(.*?)```", text, flags=re.S)
 
 
 def test_recorded_track_examples_run(tmp_path, monkeypatch):
@@ -27,7 +26,8 @@ def test_recorded_track_examples_run(tmp_path, monkeypatch):
             rows.append(f"aircraft {k},{ti:.1f},{x:.1f},{y:.1f}")
     (tmp_path / "tracks.csv").write_text("\n".join(rows) + "\n")
     monkeypatch.chdir(tmp_path)
-    first, second = _usage_blocks()[:2]
+    first = _python_blocks("python.md")[0]  # read a file, an SVSS, write the estimates
+    (second,) = _python_blocks("self_tuning.md")
     namespace: dict = {}
     exec(first, namespace)  # noqa: S102 - the README's own code
     exec(second, namespace)  # noqa: S102
@@ -38,7 +38,8 @@ def test_recorded_track_examples_run(tmp_path, monkeypatch):
 
 
 def test_online_example_runs():
-    block = next(b for b in _usage_blocks() if "svsf.step(" in b)
+    (block,) = _python_blocks("online.md")
+    assert "svsf.step(" in block
     namespace: dict = {}
     exec("import torch\nimport torchsvs as ts\n" + block, namespace)  # noqa: S102
     state = namespace["state"]
