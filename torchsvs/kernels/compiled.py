@@ -3,7 +3,8 @@
 Every Gaussian filter (KF, EKF, UKF, SVSF, RSTKF, SIF) runs its time loop in Python around one
 function, :meth:`~torchsvs.filters.kalman.GaussianFilter.filter_step`: a few dozen to a few
 hundred small tensor operations per step, each paying a dispatch (where the C++ loops of
-:mod:`~torchsvs.kernels.fused` apply, linear models without gradients, they run instead).
+:mod:`~torchsvs.kernels.fused_axes` and :mod:`~torchsvs.kernels.fused_dense` apply, linear
+models without gradients, they run instead).
 Within :func:`torchsvs.kernels.compiled_steps` a chunk of ``chunk`` steps (default 4) is
 compiled once per estimator, shapes, dtype and grad mode (inductor, with its C++ wrapper:
 :data:`INDUCTOR_OPTIONS`), and every chunk of a run, and of later runs, calls the same compiled
