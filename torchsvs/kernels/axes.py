@@ -93,7 +93,16 @@ def _forward_step(
     rule: str, gamma: Tensor, state: tuple[Tensor, ...], given: tuple[Tensor, ...]
 ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
     """One predict-correct step of every axis (see :func:`run_axes`); pure, so that a chunk of
-    steps can be compiled."""
+    steps can be compiled.
+
+    Deliberate twins (the Kalman update is written once per layout): the general update on
+    dense matrices is ``torchsvs.filters.gaussian.kalman_update`` (this is it on 2×2 blocks
+    with ``H = [1, 0]``; ``tests/test_kernels.py::test_kernel_equals_general_path`` holds them
+    to 1e-9); the compiled loop's is ``predict_correct`` in ``cpp/axis_step.h``, transcribed
+    line by line (``test_compiled_loops_equal_tensor_loops`` and
+    ``test_compiled_loops_for_any_axis_count_on_threads``: 1e-10 in float64). The associative
+    scan's first element (:func:`~torchsvs.kernels.scan.filter_scan`) updates the prior once
+    more, in the scan's own form."""
     p, v, a, b, c, memory_p, memory_v = state
     T, Qa, Qb, Qc, fp, fv, yp, yv, rp, rpv, rvv, wp, wv = given
     # Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
@@ -314,8 +323,8 @@ def run_axes(
 #: Without gradients, the filter and a smoother of lag other than 1 run together
 #: (:func:`fused_axes.filter_smoother`) from this many lanes (tracks × axes: a vector of float32
 #: lanes filled twice) and up to this many steps (a vector's record, ~2 kB a step, stays in
-#: cache); else the record is written and smoothed after (one track of 100,000 steps: 8×
-#: faster so, the RTS's own fixed-interval loop being lighter than the general recursion).
+#: cache); else the record is written and smoothed after (faster for long tracks: the RTS's own
+#: fixed-interval loop is lighter than the general recursion).
 #: With gradients they always run together: the whole record's reverse mode costs far more.
 _TOGETHER = {"lanes": 16, "steps": 4096}
 

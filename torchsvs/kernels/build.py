@@ -33,9 +33,9 @@ from torch import Tensor
 
 from torchsvs.kernels import AXIS_KERNEL
 
-#: The C++ sources: the one compiled unit and the headers it includes.
+#: The C++ sources: the one compiled unit (:data:`UNIT`) and the headers it includes.
 SOURCE_DIR = Path(__file__).with_name("cpp")
-SOURCE = SOURCE_DIR / "fused.cpp"
+UNIT = "fused.cpp"
 FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-pthread")
 #: Tried first: the build machine's vector width (the library is built where it runs, and cached
 #: per processor); no fused multiply-add contraction, so the numbers stay those of the plain
@@ -105,7 +105,7 @@ def _build(compiler: str) -> Path:
         with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
             built = Path(tmp) / target.name
             result = subprocess.run(
-                [compiler, *flags, str(SOURCE), "-o", str(built)],
+                [compiler, *flags, str(SOURCE_DIR / UNIT), "-o", str(built)],
                 capture_output=True,
                 text=True,
                 check=False,
@@ -201,7 +201,7 @@ _libc: dict[str, ctypes.CDLL | None] = {}
 def fresh(shape: Sequence[int], dtype: torch.dtype) -> Tensor:
     """``torch.empty``, with large buffers advised to the kernel as huge pages before their
     first touch: the page faults of a fresh multi-GB output otherwise cost more than
-    writing it (measured 3-4× on a whole-run output)."""
+    writing it."""
     size = math.prod(shape) * dtype.itemsize
     out = torch.empty(shape, dtype=dtype)
     if size < _ADVISED or platform.system() != "Linux":

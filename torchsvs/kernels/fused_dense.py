@@ -5,7 +5,7 @@
 mode with a selection ``H``) per track, over one step (an online ``step`` call: a Python-level
 step costs dozens of tensor operations; :class:`OnlineStep`) or a whole run of a model the
 per-axis kernel does not cover. Its twin is the tensor path (``GaussianFilter.predict``, then
-the Kalman update of :func:`torchsvs.filters.gaussian.kalman_update` or the SVSF's correction):
+the Kalman update of ``torchsvs.filters.gaussian.kalman_update`` or the SVSF's correction):
 tests hold both to 1e-10 in float64.
 """
 
@@ -102,7 +102,7 @@ class OnlineStep:
     keeping what ``keep`` keeps, with everything but the step's own tensors formed once: the
     outputs' prototypes, the scratch addresses of those not kept, the call's other arguments
     (in the arrays ``dense_step`` reads). An online step then costs its allocations and one
-    call of three arguments (a few µs; filterpy's ``predict`` + ``update`` about 20). One
+    call of three arguments (against filterpy: ``benchmarks/one_track.md``). One
     thread's: the arguments and scratch are written by every call."""
 
     def __init__(

@@ -145,6 +145,13 @@ def filter_scan(
 ) -> tuple[tuple[Tensor, Tensor], Sym2]:
     """Filtered means ``(p, v)`` and covariances of position-only Kalman filters per axis.
 
+    A deliberate twin of the Kalman branch of :func:`torchsvs.kernels.axes._forward_step`
+    (the first element is the prior's Kalman update, in the scan's standard form ``P − K S Kᵀ``
+    where the loop has Joseph's: the last bits differ, so it is not shared); the tensor loop
+    runs it only for few, long tracks (:func:`prefer_scan`).
+    ``tests/test_kernels.py::test_time_scan_on_few_long_tracks_equals_general_path`` holds
+    it to the general path to 1e-8.
+
     Args:
         position: measurements ``[B, T, m]`` (0 where missing); observed: ``[B, T, m]`` float 0/1.
         noise: ``R`` per axis with 1 where missing, ``[B, T, m]`` or ``[m]``.

@@ -1,6 +1,7 @@
-// One predict-correct step of a lane of the per-axis kernel (part of fused.cpp). Twin of
-// torchsvs/kernels/axes.py's _forward_step, transcribed line by line: tests/test_kernels.py
-// (test_compiled_loops_equal_tensor_loops and the tests after it) hold both to 1e-10 in float64.
+// One predict-correct step of a lane of the per-axis kernel (part of fused.cpp). A deliberate
+// twin of torchsvs/kernels/axes.py's _forward_step (its Kalman rule the Kalman update on 2×2
+// blocks), transcribed line by line: tests/test_kernels.py (test_compiled_loops_equal_tensor_loops,
+// test_compiled_loops_for_any_axis_count_on_threads) holds both to 1e-10 in float64.
 #pragma once
 
 #include "lanes.h"
