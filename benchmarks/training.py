@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> None:
         "of an SVSS (finite-difference velocities, lag 5): the forward pass, SURE's second "
         "forward pass on perturbed measurements and the backward pass. Small batch: "
         f"{label}, float64, best of {args.repeats} alternating rounds; compiled: the forward "
-        "and smoother loops and their reverse modes in C++ (`torchsvs.kernels.fused`); tensor "
+        "and smoother loops and their reverse modes in C++ (`torchsvs.kernels.fused_axes`); tensor "
         "loops: the same formulas as tensor operations (`torchsvs.kernels.eager_loops()`). "
         "Peak memory: `ru_maxrss` of a fresh process running one step on seeded random tracks.\n\n"
         f"{table}\n"

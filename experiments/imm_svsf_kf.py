@@ -394,7 +394,7 @@ def report(res: Results) -> str:
         "corrects the velocity, and the KF mode (which lags in the turns) is the only source of "
         "velocity information through the mixing. Cost: the IMMs run the general tensor step "
         "in a Python loop over time (two filters, mixing and combination per step), the single "
-        "filters the compiled per-axis loops (`torchsvs.kernels.fused`).",
+        "filters the compiled per-axis loops (`torchsvs.kernels.fused_axes`).",
         "",
         "Per phase (position / velocity RMSE per axis, pooled over x and y and the phase's "
         "steps): on the straight segment the KFs are the most accurate and every IMM pays for "

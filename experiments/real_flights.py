@@ -61,7 +61,7 @@ from torchsvs.fitting.defaults import (
     typical_speed,
 )
 from torchsvs.fitting.tuning import self_tune
-from torchsvs.kernels import eager_loops, fused
+from torchsvs.kernels import build, eager_loops
 from torchsvs.metrics import pooled_rmse
 from torchsvs.recipes import Settings, make_estimator, make_model, rule_of_thumb_psi
 
@@ -681,7 +681,7 @@ def speed_section(
             best = min(best, time.perf_counter() - start)
         return 1e6 * best / float(tracks.lengths.sum())
 
-    build = fused.library()
+    library = build.library()
     rows = []
     for label, fit in fits.items():
         if "σ unknown" in label:
@@ -704,9 +704,9 @@ def speed_section(
             ]
         )
     built = (
-        f"built by the C++ compiler in {fused.BUILD['seconds']:.1f} s on first use, then cached"
-        if build is not None and fused.BUILD["seconds"] > 0
-        else ("loaded from the cache" if build is not None else f"unavailable: {fused.failure()}")
+        f"built by the C++ compiler in {build.BUILD['seconds']:.1f} s on first use, then cached"
+        if library is not None and build.BUILD["seconds"] > 0
+        else ("loaded from the cache" if library is not None else f"unavailable: {build.failure()}")
     )
     return [
         "Speed on the held-out flights, the same run: the learned estimators on all 12 flights "
@@ -728,7 +728,7 @@ def speed_section(
             rows,
         ),
         "",
-        "Inference runs the per-axis kernel's compiled time loops (`torchsvs.kernels.fused`, "
+        "Inference runs the per-axis kernel's compiled time loops (`torchsvs.kernels.fused_axes`, "
         f"{built}); the tensor loops are the differentiable path training takes, timed here "
         "for comparison: on a dozen tracks each of their steps pays the dispatch of a few dozen "
         "small tensor operations. The `realisations` columns run the 12 flights at every noise "

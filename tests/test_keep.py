@@ -42,7 +42,7 @@ def _check(trimmed, whole, keep, tol):
 def test_compiled_loops_write_what_is_kept(name, keep, spy):  # noqa: F811
     """The compiled forward loop, told to write the moments or the means only, gives exactly
     those of the whole result (a misplaced record would show in the means); a smoother of a
-    lag other than 1 then runs its recursion in the filter's pass (fused.filter_smoother),
+    lag other than 1 then runs its recursion in the filter's pass (fused_axes.filter_smoother),
     whose filtered moments are exactly those of the whole result and its smoothed ones equal
     (the fixed-interval RTS by the general recursion, not Eq. (17)'s form: to 1e-9)."""
     z, dt, x0, P0 = _problem(seed=3, B=70, T=33)  # more tracks than a block of lanes

@@ -8,7 +8,7 @@ import torch
 
 import torchsvs as ts
 from tests.conftest import assert_close
-from torchsvs.kernels import eager_loops, fused, general_path
+from torchsvs.kernels import build, eager_loops, fused_axes, fused_dense, general_path
 
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov", "innovation", "mask", "gain")
 FIELDS += ("post_innovation", "innovation_cov", "log_likelihood", "meas_cov", "transition")
@@ -143,7 +143,7 @@ def test_associative_scan_is_a_prefix_product():
 def test_time_scan_on_few_long_tracks_equals_general_path(name):
     """Two tracks of 300 steps take the associative scan over time (where the compiled loops
     are not used)."""
-    from torchsvs.kernels.axes import prefer_scan
+    from torchsvs.kernels.scan import prefer_scan
 
     z, dt, x0, P0 = _problem(seed=4, B=2, T=300)
     assert prefer_scan(2 * 2, 300)
@@ -162,7 +162,7 @@ def test_time_scan_on_few_long_tracks_equals_general_path(name):
 
 
 needs_compiler = pytest.mark.skipif(
-    fused._compiler() is None, reason="no C++ compiler: the compiled loops cannot be built"
+    build._compiler() is None, reason="no C++ compiler: the compiled loops cannot be built"
 )
 
 
@@ -171,29 +171,29 @@ def spy(monkeypatch):
     """Counts the compiled loops' calls: the forward pass, the smoother passes together, and
     the dense linear steps."""
     calls = {"forward": 0, "adjoint": 0, "backward": 0, "dense": 0, "together": 0}
-    for function, counter in (
-        ("forward", "forward"),
-        ("filter_smoother", "together"),
-        ("adjoint", "adjoint"),
-        ("backward_adjoint", "adjoint"),
-        ("backward", "backward"),
-        ("rts_interval", "backward"),
-        ("dense_run", "dense"),
+    for module, function, counter in (
+        (fused_axes, "forward", "forward"),
+        (fused_axes, "filter_smoother", "together"),
+        (fused_axes, "adjoint", "adjoint"),
+        (fused_axes, "backward_adjoint", "adjoint"),
+        (fused_axes, "backward", "backward"),
+        (fused_axes, "rts_interval", "backward"),
+        (fused_dense, "dense_run", "dense"),
     ):
-        original = getattr(fused, function)
+        original = getattr(module, function)
 
         def counted(*args, _original=original, _counter=counter, **kwargs):
             calls[_counter] += 1
             return _original(*args, **kwargs)
 
-        monkeypatch.setattr(fused, function, counted)
-    online_step = fused.OnlineStep.__call__
+        monkeypatch.setattr(module, function, counted)
+    online_step = fused_dense.OnlineStep.__call__
 
     def counted_step(self, *args, **kwargs):  # an online step: dense_run's one-step form
         calls["dense"] += 1
         return online_step(self, *args, **kwargs)
 
-    monkeypatch.setattr(fused.OnlineStep, "__call__", counted_step)
+    monkeypatch.setattr(fused_dense.OnlineStep, "__call__", counted_step)
     return calls
 
 
@@ -201,13 +201,13 @@ def spy(monkeypatch):
 def on_two_threads(monkeypatch):
     """Runs a test with 2 intra-op threads; yields the thread count of every compiled call."""
     counts = []
-    threads = fused.threads
+    threads = build.threads
 
     def counted(*args):
         counts.append(threads(*args))
         return counts[-1]
 
-    monkeypatch.setattr(fused, "threads", counted)
+    monkeypatch.setattr(build, "threads", counted)
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
@@ -222,7 +222,7 @@ def on_two_threads(monkeypatch):
 def test_compiled_loops_equal_tensor_loops(name, dtype, spy):
     """Without gradients the per-axis kernel runs its compiled loops: the same numbers as the
     tensor loops (which the tests above hold to the general path), every field."""
-    assert fused.library() is not None, fused.failure()
+    assert build.library() is not None, build.failure()
     z, dt, x0, P0 = (x.to(dtype) for x in _problem(seed=5, B=4, T=40))
     model = ts.models.ConstantVelocity(dt=1.5, q=0.5, r=[4.0, 2.0])
     est = _estimators(model)[name].to(dtype)
@@ -422,7 +422,7 @@ def test_lag_one_smoothing_with_gradients_runs_in_the_forward_loop(name, spy):
 @pytest.mark.parametrize("keep", ["mean", "moments"])
 def test_training_a_smoother_keeping_less_runs_filter_and_smoother_together(name, keep, spy):
     """Training a smoother of another lag while keeping less than all runs the filter and the
-    smoother's recursion in one compiled pass (fused.filter_smoother: no record written, no
+    smoother's recursion in one compiled pass (fused_axes.filter_smoother: no record written, no
     smoother pass of its own) and its reverse mode: its numbers and gradients equal those of
     the whole record's pass through the smoother's own recursion and reverse mode (and of the
     inference pass, which at this size writes the record: axes._TOGETHER)."""
@@ -658,7 +658,7 @@ def test_compiled_smoother_reverse_mode_passes_gradcheck(lag, projection):
     innovations), missing components, per-step and constant inputs; the filtered covariance
     given as views of one tensor, as the filter's general layout gives it (the gradient then
     gathers in that tensor)."""
-    from torchsvs.kernels.axes import _CompiledSmoother, _Views
+    from torchsvs.kernels.axes_smoother import _CompiledSmoother, _Views
 
     B, T, m = 2, 7, 2
     gen = torch.Generator().manual_seed(4)
@@ -708,14 +708,14 @@ def test_without_a_compiler_the_tensor_loops_run(monkeypatch, spy):
     ks = ts.RTSSmoother(ts.KalmanFilter(model)).double()
     with torch.no_grad():
         expected = ks(z, x0, P0, dt=dt)
-    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
-    monkeypatch.setattr(fused, "_compiler", lambda: None)
+    monkeypatch.setattr(build, "_state", {"library": None, "failure": None})
+    monkeypatch.setattr(build, "_compiler", lambda: None)
     with torch.no_grad(), pytest.warns(RuntimeWarning, match="no C.. compiler"):
         fallback = ks(z, x0, P0, dt=dt)
-    assert "compiler" in (fused.failure() or "")
+    assert "compiler" in (build.failure() or "")
     assert_close(fallback.mean, expected.mean, atol=1e-9)
     assert spy["forward"] == 1  # only the first run
-    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
+    monkeypatch.setattr(build, "_state", {"library": None, "failure": None})
     monkeypatch.setenv("TORCHSVS_FUSED", "0")
     with torch.no_grad():
         ks(z, x0, P0, dt=dt)
@@ -726,18 +726,18 @@ def test_without_a_compiler_the_tensor_loops_run(monkeypatch, spy):
 def test_the_library_builds_into_the_cache(tmp_path, monkeypatch):
     """A fresh cache gets a freshly built library that loads and runs."""
     monkeypatch.setenv("TORCHSVS_CACHE", str(tmp_path))
-    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
-    assert fused.library() is not None, fused.failure()
+    monkeypatch.setattr(build, "_state", {"library": None, "failure": None})
+    assert build.library() is not None, build.failure()
     assert len(list(tmp_path.glob("fused-*.so"))) == 1
-    assert fused.BUILD["seconds"] > 0
+    assert build.BUILD["seconds"] > 0
 
 
 @needs_compiler
 def test_a_compiler_that_refuses_the_native_flags_builds_the_plain_library(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCHSVS_CACHE", str(tmp_path))
-    monkeypatch.setattr(fused, "_state", {"library": None, "failure": None})
-    monkeypatch.setattr(fused, "NATIVE", ("-fno-such-option-anywhere",))
-    assert fused.library() is not None, fused.failure()
+    monkeypatch.setattr(build, "_state", {"library": None, "failure": None})
+    monkeypatch.setattr(build, "NATIVE", ("-fno-such-option-anywhere",))
+    assert build.library() is not None, build.failure()
     assert len(list(tmp_path.glob("fused-*.so"))) == 1
 
 
@@ -772,7 +772,7 @@ def _online(est, x0, P0, z, psi=None):
 @pytest.mark.parametrize("case", ["KF dense", "EKF dense", "KF CV", "SVSF CV", "SVSF CV psi"])
 @pytest.mark.parametrize("single", [False, True], ids=["batch", "one track"])
 def test_compiled_online_steps_equal_the_tensor_steps(case, single, spy):
-    """An online step of a linear model without gradients runs compiled (fused.dense_run):
+    """An online step of a linear model without gradients runs compiled (fused_dense.dense_run):
     every field of every step and state equals the tensor path's to 1e-10 in float64, with
     missing components, a step without measurements, per-step ψ and one-track states."""
     dense, z = _dense_problem(seed=11)
@@ -884,7 +884,7 @@ def test_a_compiled_state_stepped_with_gradients_differentiates(spy):
 @pytest.mark.parametrize("case", ["KF", "EKF", "KS", "SVSF", "SVSF psi", "SVSS"])
 def test_compiled_dense_runs_equal_the_general_path(case, spy):
     """A whole run of a dense linear model without gradients is compiled
-    (:func:`fused.dense_run`): every field equals the general path's to 1e-10 in float64, with
+    (:func:`fused_dense.dense_run`): every field equals the general path's to 1e-10 in float64, with
     missing components, chunks carrying the state, per-step ψ, and smoothers over it."""
     dense, z = _dense_problem(seed=13, B=3, T=40)
     selection = ts.models.LinearGaussian(

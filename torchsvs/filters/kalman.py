@@ -12,7 +12,7 @@ from torch import Tensor
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
 from torchsvs.filters import factored
 from torchsvs.filters.adaptive import AdaptiveNoise, check_adaptive_noise
-from torchsvs.kernels import AXIS_KERNEL, axes, compiled, fused
+from torchsvs.kernels import AXIS_KERNEL, axes, blocks, build, compiled, fused_axes, fused_dense
 from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
@@ -68,7 +68,7 @@ class Observation(NamedTuple):
 class DenseConstants(NamedTuple):
     """What a run of compiled online steps computes once (``FilterState.constants``)."""
 
-    matrices: fused.DenseMatrices  #: F, Q, H, R, contiguous, in the run's dtype
+    matrices: fused_dense.DenseMatrices  #: F, Q, H, R, contiguous, in the run's dtype
     gamma: float  #: the SVSF's γ (0 for the KF)
     widths: Tensor  #: the SVSF's ψ, [m] (zeros for the KF)
     tensors: list[Tensor]  #: the filter's and model's parameters and buffers they came from
@@ -76,7 +76,7 @@ class DenseConstants(NamedTuple):
     fingerprint: tuple[Any, ...]  #: :func:`_fingerprint` when they were built
     #: the compiled online steps formed so far, by (keep, leading shape, thread: each has its
     #: own scratch)
-    steps: dict[tuple[Any, ...], fused.OnlineStep]
+    steps: dict[tuple[Any, ...], fused_dense.OnlineStep]
 
 
 def _plain_settings(model: StateSpaceModel) -> list[str]:
@@ -356,7 +356,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
                     inputs, state.post_innovation, state.history, state.steps == 0, prior
                 )
             post = result.post_innovation
-            last = fused.Last(
+            last = fused_axes.Last(
                 result.mean[:, -1], result.cov[:, -1], None if post is None else post[:, -1]
             )
         loglik = result.log_likelihood
@@ -374,8 +374,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         )
         return after, result
 
-    #: the corrector's rule in the compiled dense steps (:func:`torchsvs.kernels.fused.dense_run`)
-    #: for linear models, or None
+    #: the corrector's rule in the compiled dense steps
+    #: (:func:`torchsvs.kernels.fused_dense.dense_run`) for linear models, or None
     dense_rule: str | None = None
 
     def _dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
@@ -390,7 +390,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             for A in (model.transition(), model.process_noise(), model.meas_matrix())
         ]
         matrices.append(model.meas_cov().to(dtype).contiguous())
-        if not fused.usable(*matrices):
+        if not build.usable(*matrices):
             return None
         settings = self._dense_settings(dtype, matrices[2])
         if settings is None:
@@ -399,7 +399,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         tensors = [*self.parameters(), *self.buffers()]
         plain = _plain_settings(model)
         return DenseConstants(
-            fused.DenseMatrices(matrices),
+            fused_dense.DenseMatrices(matrices),
             gamma,
             widths.contiguous(),
             tensors,
@@ -410,7 +410,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
 
     def _dense_ready(self, history: Any) -> bool:
         """Whether the compiled dense steps can stand for this filter's (a linear model of at
-        most ``fused.DENSE_MAX`` states and measurements, a corrector with a compiled rule, no
+        most ``fused_dense.DENSE_MAX`` states and measurements, a corrector with a compiled rule, no
         artificial measurement's rows to carry)."""
         model = self.model
         return (
@@ -418,8 +418,8 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             and self.kernels_apply
             and isinstance(model, LinearModel)
             and history is None
-            and model.state_dim <= fused.DENSE_MAX
-            and model.meas_dim <= fused.DENSE_MAX
+            and model.state_dim <= fused_dense.DENSE_MAX
+            and model.meas_dim <= fused_dense.DENSE_MAX
         )
 
     def _valid_constants(self, constants: Any, dtype: torch.dtype) -> DenseConstants | None:
@@ -447,7 +447,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         lead: tuple[int, ...],
         keep: str,
     ) -> FilterResult | None:
-        """:func:`~torchsvs.kernels.fused.dense_run` from ``x [B, n]``, ``P [B|1, n, n]`` over
+        """:func:`~torchsvs.kernels.fused_dense.dense_run` from ``x [B, n]``, ``P [B|1, n, n]`` over
         ``z`` (``[B, T, m]``, or one step ``[B, m]``/``[m]``), as a result with the leading
         shape ``lead`` (its log-likelihood per step) keeping what ``keep`` keeps (and the SVSF
         memory); ``None`` where it could not run (an infinity in ``z``, ``S`` not positive
@@ -459,7 +459,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         widths = constants.widths if psi is None else psi.to(x.dtype).contiguous()
         if rule == "svsf" and memory is None:
             memory = x.new_zeros(B, m)
-        out = fused.dense_run(
+        out = fused_dense.dense_run(
             rule,
             constants.gamma,
             x.contiguous(),
@@ -507,7 +507,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if inputs.psi is not None and self.dense_rule != "svsf":
             return None
         given = (inputs.z, inputs.x0, inputs.P0, *(() if inputs.psi is None else (inputs.psi,)))
-        if not fused.usable(*given):  # (ψ given with a gradient: the differentiable path)
+        if not build.usable(*given):  # (ψ given with a gradient: the differentiable path)
             return None
         B, T = inputs.batch, inputs.steps
         if self.dense_rule == "kalman" and B > 1 and inputs.P0.shape[0] == 1:
@@ -538,7 +538,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     ) -> tuple[FilterState, FilterResult] | None:
         # An online step on a linear model without gradients runs compiled (the same numbers
         # up to rounding); anything else takes the one-step scan. Per call: checks, the step's
-        # tensors and one library call (fused.OnlineStep); filterpy's predict + update costs
+        # tensors and one library call (fused_dense.OnlineStep); filterpy's predict + update costs
         # about 20 µs, so every µs here shows.
         if not isinstance(state, FilterState) or not self.kernels_apply:
             return None
@@ -546,7 +546,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         if torch.is_grad_enabled() and psi is not None and psi.requires_grad:
             return None
         if known is None:
-            if not self._dense_ready(state.history) or not fused.usable(z, x):
+            if not self._dense_ready(state.history) or not build.usable(z, x):
                 return None  # (usable: CPU float32/64, no gradient, compiler available)
             m = self.model.meas_dim
         else:
@@ -577,7 +577,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
         step = constants.steps.get(key)
         if step is None:
             assert rule is not None
-            step = fused.OnlineStep(
+            step = fused_dense.OnlineStep(
                 rule, constants.gamma, constants.matrices, x.shape[1], lead, x.dtype, keep
             )
             constants.steps[key] = step
@@ -766,7 +766,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
 
     def _run_axes(
         self, inputs: Inputs, smoothing: str | None = None, lag: int | None = 1
-    ) -> tuple[FilterResult, fused.Last, tuple[Tensor, Tensor] | None] | None:
+    ) -> tuple[FilterResult, fused_axes.Last, tuple[Tensor, Tensor] | None] | None:
         """The pass through the per-axis kernel when the problem decouples by axis (a
         :class:`~torchsvs.models.ConstantVelocity` with diagonal ``R``, a prior without cross-axis
         covariance, a position-only or a finite-difference-velocity corrector), the state
@@ -794,7 +794,7 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
                 return None
             y, with_velocity, H, R_c = measured
         P0 = inputs.P0.expand(inputs.batch, n, n)
-        prior = axes.Sym2(P0[:, pos, pos], P0[:, pos, vel], P0[:, vel, vel])
+        prior = blocks.Sym2(P0[:, pos, pos], P0[:, pos, vel], P0[:, vel, vel])
         interval = inputs.dt if inputs.dt is not None else torch.tensor(model.dt, dtype=dtype)
         settings = self.axis_settings(inputs)
         psi, gamma = settings if settings is not None else (None, None)
@@ -817,7 +817,9 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             return FilterResult(**out._asdict(), **none), last, smoothed
         F = model.transition(inputs.dt).to(dtype)  # Q is not part of a result
         if R_c is None:  # measured per axis: R (unmasked) from its diagonal blocks
-            R_c = axes.block_diagonal(axes.full(axes.Sym2(*torch.broadcast_tensors(*y.noise))))
+            R_c = blocks.block_diagonal(
+                blocks.full(blocks.Sym2(*torch.broadcast_tensors(*y.noise)))
+            )
         return (
             FilterResult(
                 **out._asdict(),
@@ -851,11 +853,11 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
             def entry(i: list[int], j: list[int]) -> Tensor:
                 return R_c[..., i, j]
 
-            noise = axes.Sym2(entry(pos, pos), entry(pos, vel), entry(vel, vel))
+            noise = blocks.Sym2(entry(pos, pos), entry(pos, vel), entry(vel, vel))
             return axes.AxisMeasurements(z[..., pos], z[..., vel], noise), True, H, R_c
         if H.shape == (m, n) and bool(torch.equal(H, model.meas_matrix().to(H.dtype))):
             diagonal = R_c.diagonal(dim1=-2, dim2=-1)
-            noise = axes.Sym2(diagonal, torch.zeros_like(diagonal), torch.ones_like(diagonal))
+            noise = blocks.Sym2(diagonal, torch.zeros_like(diagonal), torch.ones_like(diagonal))
             return (
                 axes.AxisMeasurements(z, z.new_tensor(float("nan")).expand_as(z), noise),
                 False,

@@ -23,8 +23,9 @@ from torchsvs.filters.kalman import (
     innovation_covariance,
     kalman_correct,
 )
-from torchsvs.kernels import fused
-from torchsvs.kernels.axes import AxisMeasurements, Sym2
+from torchsvs.kernels import build
+from torchsvs.kernels.axes import AxisMeasurements
+from torchsvs.kernels.blocks import Sym2
 from torchsvs.linalg import (
     INFLATIONS,
     boundary_inflation,
@@ -330,7 +331,7 @@ class SVSF(GaussianFilter):
 
     def _dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
         gains = self.run_settings(dtype, H)
-        if not gains.orthonormal or not fused.usable(gains.psi, gains.gamma):
+        if not gains.orthonormal or not build.usable(gains.psi, gains.gamma):
             return None
         widths = gains.psi.expand(H.shape[0])
         if self.psi_units == "noise":  # (the dense steps run the model's constant R)

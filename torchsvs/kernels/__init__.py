@@ -1,7 +1,8 @@
 """Structure-exploiting kernels the estimators pick by themselves (exact: tested against the
 general path). :func:`general_path` turns them off, for comparisons and benchmarks;
 :func:`eager_loops` keeps the per-axis kernel but runs its time loops as tensor operations
-instead of the compiled ones (:mod:`torchsvs.kernels.fused`). :func:`compiled_steps` compiles
+instead of the compiled ones (:mod:`torchsvs.kernels.fused_axes`, built by
+:mod:`torchsvs.kernels.build`). :func:`compiled_steps` compiles
 the general path's predict-correct step with ``torch.compile``
 (:mod:`torchsvs.kernels.compiled`)."""
 
@@ -55,7 +56,7 @@ def compiled_steps(
     backend: str | None = None,
 ) -> Iterator[None]:
     """Within this block the Gaussian filters' general steps (EKF, UKF, the SVSF on nonlinear
-    models, any linear filter the compiled loops of :mod:`~torchsvs.kernels.fused` do not
+    models, any linear filter the compiled loops of :mod:`~torchsvs.kernels.fused_dense` do not
     cover, and every step with gradients) run compiled with ``torch.compile``: one compilation
     per estimator, shapes, dtype and grad mode, reused by every step and later run
     (:mod:`torchsvs.kernels.compiled`; ``TORCHSVS_COMPILE=0`` turns it off everywhere).

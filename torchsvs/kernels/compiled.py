@@ -3,7 +3,8 @@
 Every Gaussian filter (KF, EKF, UKF, SVSF, RSTKF, SIF) runs its time loop in Python around one
 function, :meth:`~torchsvs.filters.kalman.GaussianFilter.filter_step`: a few dozen to a few
 hundred small tensor operations per step, each paying a dispatch (where the C++ loops of
-:mod:`~torchsvs.kernels.fused` apply, linear models without gradients, they run instead).
+:mod:`~torchsvs.kernels.fused_axes` and :mod:`~torchsvs.kernels.fused_dense` apply, linear
+models without gradients, they run instead).
 Within :func:`torchsvs.kernels.compiled_steps` a chunk of ``chunk`` steps (default 4) is
 compiled once per estimator, shapes, dtype and grad mode (inductor, with its C++ wrapper:
 :data:`INDUCTOR_OPTIONS`), and every chunk of a run, and of later runs, calls the same compiled
@@ -31,12 +32,10 @@ with ``T``.
   Dynamo (:func:`outside_dynamo`; its Python time loop would be unrolled, and input checks
   break the graph) and runs its time loop eagerly with compiled steps.
 
-Where it pays (``benchmarks/compiled_steps.md``, ``python -m benchmarks.compiled_steps``: the
-ballistic re-entry model, T = 300, one thread, a 2-core machine shared with other jobs): per
-step, in every case measured (the EKF, UKF and SVSF at B = 1 and 100, float32 and float64,
-forward and forward + backward), compiled ÷ eager 0.19-0.65×. What does not pay is the
-compilation for a single run: 13-571 s per filter and pass (inductor, caches cold), repaid after
-32-307 runs of 300 steps. Hence compiled steps are opt-in, for many runs in one process
+Where it pays: a compiled step is faster than the eager one, but its compilation costs far
+more than a single run saves, and is repaid only after many runs (the measurements, per filter,
+batch, dtype and pass: ``benchmarks/compiled_steps.md``, from ``python -m
+benchmarks.compiled_steps``). Hence compiled steps are opt-in, for many runs in one process
 (training, evaluation sweeps, streams of tracks): outside :func:`torchsvs.kernels.compiled_steps`
 the steps run eagerly, and ``TORCHSVS_COMPILE=0`` keeps them eager even within it. Online
 :meth:`~torchsvs.estimator.SteppedEstimator.step` calls are one-step runs: they compile with
@@ -262,7 +261,7 @@ def outside_dynamo(method: Method) -> Method:
     def call(*args: Any, **kwargs: Any) -> Any:
         if torch.compiler.is_compiling():
             # Disabled here, under a trace, not when decorating: torch.compiler.disable imports
-            # Dynamo, 1.7 s of every command's start that never compiles anything.
+            # Dynamo, seconds of every command's start that never compiles anything.
             return torch.compiler.disable(with_compiled_steps)(*args, **kwargs)
         return method(*args, **kwargs)
 

@@ -4,7 +4,8 @@ Särkkä and García-Fernández (2021) write the filter and the smoother as pref
 per-step elements under associative operators, so a track of ``T`` steps needs ``O(log T)``
 sequential rounds of large elementwise operations instead of ``T`` small steps: for a few long
 tracks (recorded flights: a dozen tracks of thousands of steps) that is what keeps a CPU busy.
-Here for the two-state axes of :mod:`torchsvs.kernels.axes` (2×2 blocks, element by element).
+Here for the two-state axes of :mod:`torchsvs.kernels.axes` (2×2 blocks, element by element:
+:mod:`torchsvs.kernels.blocks`).
 
 Filtering elements (Lemma 8 of the paper), with ``S = H Q Hᵀ + R``, ``K = Q Hᵀ S⁻¹``:
 
@@ -42,9 +43,28 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from torchsvs.kernels.axes import Mat2, Sym2, full, mm, mv, t
+from torchsvs.kernels.blocks import (
+    Mat2,
+    Sym2,
+    full,
+    inverse,
+    inverse_general,
+    matmul,
+    matvec,
+    symmetric_part,
+    transpose,
+)
 
 Elements = tuple[Tensor, ...]
+
+
+def prefer_scan(tracks: int, steps: int) -> bool:
+    """Whether an associative scan over time beats the step-by-step tensor loop: for few, long
+    tracks (its ``O(log T)`` rounds do several times the arithmetic of the loop, which pays only
+    where the loop's cost is the per-step overhead of small operations). The compiled loops
+    beat both; this choice is for the tensor loops (:func:`~torchsvs.kernels.eager_loops`, no
+    compiler, higher derivatives)."""
+    return steps >= 64 and tracks * 16 <= steps * 4 + 4096
 
 
 def associative_scan(
@@ -73,15 +93,6 @@ def associative_scan(
     return tuple(out)
 
 
-def _inverse(X: Mat2) -> Mat2:
-    det = X.a * X.d - X.b * X.c
-    return Mat2(X.d / det, -X.b / det, -X.c / det, X.a / det)
-
-
-def _sym(X: Mat2) -> Sym2:
-    return Sym2(X.a, 0.5 * (X.b + X.c), X.d)
-
-
 def _combine_filter(i: Elements, j: Elements) -> Elements:
     A_i, b_i, C_i, eta_i, J_i = (
         Mat2(*i[:4]),
@@ -97,17 +108,17 @@ def _combine_filter(i: Elements, j: Elements) -> Elements:
         (j[9], j[10]),
         Sym2(*j[11:14]),
     )
-    CJ = mm(full(C_i), full(J_j))
-    M = _inverse(Mat2(1 + CJ.a, CJ.b, CJ.c, 1 + CJ.d))
-    AjM = mm(A_j, M)
-    A = mm(AjM, A_i)
-    Ceta = mv(full(C_i), eta_j)
-    b = mv(AjM, (b_i[0] + Ceta[0], b_i[1] + Ceta[1]))
-    C = _sym(mm(mm(AjM, full(C_i)), t(A_j)))
-    AiTMT = mm(t(A_i), t(M))
-    Jb = mv(full(J_j), b_i)
-    eta = mv(AiTMT, (eta_j[0] - Jb[0], eta_j[1] - Jb[1]))
-    J = _sym(mm(mm(AiTMT, full(J_j)), A_i))
+    CJ = matmul(full(C_i), full(J_j))
+    M = inverse_general(Mat2(1 + CJ.a, CJ.b, CJ.c, 1 + CJ.d))
+    AjM = matmul(A_j, M)
+    A = matmul(AjM, A_i)
+    Ceta = matvec(full(C_i), eta_j)
+    b = matvec(AjM, (b_i[0] + Ceta[0], b_i[1] + Ceta[1]))
+    C = symmetric_part(matmul(matmul(AjM, full(C_i)), transpose(A_j)))
+    AiTMT = matmul(transpose(A_i), transpose(M))
+    Jb = matvec(full(J_j), b_i)
+    eta = matvec(AiTMT, (eta_j[0] - Jb[0], eta_j[1] - Jb[1]))
+    J = symmetric_part(matmul(matmul(AiTMT, full(J_j)), A_i))
     return (
         *A,
         b[0] + b_j[0],
@@ -134,6 +145,13 @@ def filter_scan(
 ) -> tuple[tuple[Tensor, Tensor], Sym2]:
     """Filtered means ``(p, v)`` and covariances of position-only Kalman filters per axis.
 
+    A deliberate twin of the Kalman branch of :func:`torchsvs.kernels.axes._forward_step`
+    (the first element is the prior's Kalman update, in the scan's standard form ``P − K S Kᵀ``
+    where the loop has Joseph's: the last bits differ, so it is not shared); the tensor loop
+    runs it only for few, long tracks (:func:`prefer_scan`).
+    ``tests/test_kernels.py::test_time_scan_on_few_long_tracks_equals_general_path`` holds
+    it to the general path to 1e-8.
+
     Args:
         position: measurements ``[B, T, m]`` (0 where missing); observed: ``[B, T, m]`` float 0/1.
         noise: ``R`` per axis with 1 where missing, ``[B, T, m]`` or ``[m]``.
@@ -142,7 +160,7 @@ def filter_scan(
     """
     B, steps, m = position.shape
     f, y = observed, position
-    T = interval.expand(B, steps, 1) if interval.ndim == 3 else interval.expand(B, steps, 1)
+    T = interval.expand(B, steps, 1)
     Qa, Qb, Qc = (x.expand(B, steps, 1) for x in Q)
     R = noise.expand(B, steps, m)
     # Steps after the first: the model's own elements.
@@ -183,9 +201,9 @@ def _combine_smoother(later: Elements, earlier: Elements) -> Elements:
     """``earlier ⊗ later`` for the smoother's suffix scan (arguments in scan order)."""
     E_i, g_i, L_i = Mat2(*earlier[:4]), (earlier[4], earlier[5]), Sym2(*earlier[6:9])
     E_j, g_j, L_j = Mat2(*later[:4]), (later[4], later[5]), Sym2(*later[6:9])
-    E = mm(E_i, E_j)
-    g = mv(E_i, g_j)
-    L = _sym(mm(mm(E_i, full(L_j)), t(E_i)))
+    E = matmul(E_i, E_j)
+    g = matvec(E_i, g_j)
+    L = symmetric_part(matmul(matmul(E_i, full(L_j)), transpose(E_i)))
     return (*E, g[0] + g_i[0], g[1] + g_i[1], L.a + L_i.a, L.b + L_i.b, L.c + L_i.c)
 
 
@@ -198,16 +216,14 @@ def smoother_scan(
 ) -> tuple[tuple[Tensor, Tensor], Sym2]:
     """Fixed-interval RTS means and covariances per axis from a filter pass (``[B, T, m]``)."""
     B, steps, m = mean[0].shape
-    T = (interval.expand(B, steps, 1) if interval.ndim else interval.expand(B, steps, 1))[:, 1:]
+    T = interval.expand(B, steps, 1)[:, 1:]
     P = Sym2(*(x[:, :-1] for x in cov))
     Pp = Sym2(*(x[:, 1:] for x in pred_cov))
     # E = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]].
-    det = Pp.a * Pp.c - Pp.b * Pp.b
-    inv = Mat2(Pp.c / det, -Pp.b / det, -Pp.b / det, Pp.a / det)
-    E = mm(Mat2(P.a + T * P.b, P.b, P.b + T * P.c, P.c), inv)
-    Em = mv(E, (pred_mean[0][:, 1:], pred_mean[1][:, 1:]))
+    E = matmul(Mat2(P.a + T * P.b, P.b, P.b + T * P.c, P.c), full(inverse(Pp)))
+    Em = matvec(E, (pred_mean[0][:, 1:], pred_mean[1][:, 1:]))
     g = (mean[0][:, :-1] - Em[0], mean[1][:, :-1] - Em[1])
-    EPE = _sym(mm(mm(E, full(Pp)), t(E)))
+    EPE = symmetric_part(matmul(matmul(E, full(Pp)), transpose(E)))
     L = Sym2(P.a - EPE.a, P.b - EPE.b, P.c - EPE.c)
     zero = torch.zeros_like(mean[0][:, -1:])
     last = (zero, zero, zero, zero, mean[0][:, -1:], mean[1][:, -1:], *(x[:, -1:] for x in cov))

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchsvs.estimator import Estimator, Inputs, at_step, drop_batch
 from torchsvs.filters.kalman import GaussianFilter
-from torchsvs.kernels import axes
+from torchsvs.kernels import axes_smoother
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.types import FilterResult, FilterState, SmootherResult
@@ -226,7 +226,7 @@ class RTSSmoother(Estimator[SmootherResult]):
         if T == 1:
             return SmootherResult(result.mean, result.cov, result)
         if result.axes is not None:  # the filter ran per axis: so does the smoother
-            mean, cov = axes.smooth_axes(result.axes, self.projection_gain, self.lag)
+            mean, cov = axes_smoother.smooth_axes(result.axes, self.projection_gain, self.lag)
             return SmootherResult(mean, cov, result)
         b = self._backward_terms(_shared_moments(result))
         if self.lag is None or self.lag >= T - 1:
