@@ -3,6 +3,7 @@ headers it includes, all in the cache key and in the package data."""
 
 from __future__ import annotations
 
+import ctypes
 import fnmatch
 import re
 from pathlib import Path
@@ -33,11 +34,13 @@ def test_every_included_header_is_a_source_and_package_data():
         assert any(fnmatch.fnmatch(relative, p) for p in patterns), relative
 
 
-@pytest.mark.skipif(build._compiler() is None, reason="no C++ compiler")
-def test_a_changed_header_builds_a_library_of_its_own(tmp_path, monkeypatch):
-    """The cached library's key hashes every source, headers included: editing a header that
-    the unit includes gives a new build, never the stale library (a small stand-in unit, so
-    that the test compiles in a fraction of a second)."""
+needs_compiler = pytest.mark.skipif(build._compiler() is None, reason="no C++ compiler")
+
+
+def _stand_in(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A small stand-in for the compiled unit (one header, one function), built into a fresh
+    cache: the build's logic is exercised in a fraction of a second, where the real library
+    takes many (it is built once per test run, by the first test that runs a compiled loop)."""
     sources = tmp_path / "cpp"
     sources.mkdir()
     (sources / build.UNIT).write_text('#include "part.h"\nextern "C" int answer() { return A; }\n')
@@ -45,6 +48,37 @@ def test_a_changed_header_builds_a_library_of_its_own(tmp_path, monkeypatch):
     header.write_text("#define A 1\n")
     monkeypatch.setattr(build, "SOURCE_DIR", sources)
     monkeypatch.setenv("TORCHSVS_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(build, "_state", {"library": None, "failure": None})
+    return header
+
+
+@needs_compiler
+def test_a_fresh_cache_gets_a_library_that_loads_and_runs(tmp_path, monkeypatch):
+    _stand_in(tmp_path, monkeypatch)
+    compiler = build._compiler()
+    assert compiler is not None
+    built = build._build(compiler)
+    assert list((tmp_path / "cache").glob("fused-*.so")) == [built]
+    assert build.BUILD["seconds"] > 0
+    assert ctypes.CDLL(str(built)).answer() == 1
+
+
+@needs_compiler
+def test_a_compiler_that_refuses_the_native_flags_builds_the_plain_library(tmp_path, monkeypatch):
+    _stand_in(tmp_path, monkeypatch)
+    monkeypatch.setattr(build, "NATIVE", ("-fno-such-option-anywhere",))
+    compiler = build._compiler()
+    assert compiler is not None
+    built = build._build(compiler)
+    assert list((tmp_path / "cache").glob("fused-*.so")) == [built]
+    assert ctypes.CDLL(str(built)).answer() == 1
+
+
+@needs_compiler
+def test_a_changed_header_builds_a_library_of_its_own(tmp_path, monkeypatch):
+    """The cached library's key hashes every source, headers included: editing a header that
+    the unit includes gives a new build, never the stale library."""
+    header = _stand_in(tmp_path, monkeypatch)
     compiler = build._compiler()
     assert compiler is not None
     first = build._build(compiler)

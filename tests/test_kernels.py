@@ -722,25 +722,6 @@ def test_without_a_compiler_the_tensor_loops_run(monkeypatch, spy):
     assert spy["forward"] == 1
 
 
-@needs_compiler
-def test_the_library_builds_into_the_cache(tmp_path, monkeypatch):
-    """A fresh cache gets a freshly built library that loads and runs."""
-    monkeypatch.setenv("TORCHSVS_CACHE", str(tmp_path))
-    monkeypatch.setattr(build, "_state", {"library": None, "failure": None})
-    assert build.library() is not None, build.failure()
-    assert len(list(tmp_path.glob("fused-*.so"))) == 1
-    assert build.BUILD["seconds"] > 0
-
-
-@needs_compiler
-def test_a_compiler_that_refuses_the_native_flags_builds_the_plain_library(tmp_path, monkeypatch):
-    monkeypatch.setenv("TORCHSVS_CACHE", str(tmp_path))
-    monkeypatch.setattr(build, "_state", {"library": None, "failure": None})
-    monkeypatch.setattr(build, "NATIVE", ("-fno-such-option-anywhere",))
-    assert build.library() is not None, build.failure()
-    assert len(list(tmp_path.glob("fused-*.so"))) == 1
-
-
 def _dense_problem(seed: int, B: int = 3, T: int = 30):
     """A dense 3-state, 2-measurement linear-Gaussian model (H not a selection) and measurements
     with gaps; a CV model of two axes for the SVSF's H⁺ mode (H a selection)."""
