@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> None:
 
     t_pf = timed(pf)
     rows = [["SIR particle filter", f"{1e6 * t_pf / (B * T):.1f}", "1.00×"]]
-    for proposal in ts.filters.particle.PROPOSALS:
+    for proposal in ts.filters.spvsf.PROPOSALS:
         spvsf = ts.SPVSF(
             sc.model, psi=[1e4, 8e3], gamma=0.1, num_particles=args.particles, proposal=proposal
         )

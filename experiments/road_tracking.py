@@ -29,7 +29,8 @@ from tqdm.auto import tqdm
 
 import torchsvs as ts
 from torchsvs.evaluation import markdown_table, save_figure
-from torchsvs.filters.separate import DEFAULT_TRANSITION, online_fit
+from torchsvs.filters.separate.online_fitting import online_fit
+from torchsvs.filters.separate.tracker import DEFAULT_TRANSITION
 from torchsvs.scenarios import RoadScenario
 
 #: Where `python -m` writes the report: the tracked results of the checkout.
@@ -791,7 +792,7 @@ def report(res: Results, pngs: list[str]) -> str:
         f"per scenario, each estimator one batch of all runs, float64, {res.seconds:.0f} s on "
         "this machine. The paper's equations, several scenario numbers and its transition "
         "matrices were lost in extraction; the readings are documented in "
-        "`torchsvs/models/mileage.py`, `torchsvs/filters/separate.py` and "
+        "`torchsvs/models/mileage.py`, `torchsvs/filters/separate/` and "
         "`torchsvs/scenarios/road.py`.",
         "",
         "## How it is measured",
@@ -827,7 +828,7 @@ def report(res: Results, pngs: list[str]) -> str:
         "0.95 on the diagonal, 0.025 off it, and the paper's μ₀ (uniform on the straight road, "
         "where the paper does not run it).",
         "- **Online fitting**: per axis, the least-squares line in time over the latest k_m "
-        "measurements, evaluated at the newest (`torchsvs.filters.separate.online_fit`).",
+        "measurements, evaluated at the newest (`torchsvs.filters.separate.online_fitting.online_fit`).",
         f"- **q**: every estimator of a scenario uses the same q. Besides the paper's q, the "
         f"*tracking q* is the smallest q of the sweep {sorted(Q_GRID)} (and the paper's) at which "
         "the SM tracker's position RMSE during the accelerations is within "

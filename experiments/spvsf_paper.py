@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 import torchsvs as ts
 from torchsvs.evaluation import markdown_table
-from torchsvs.filters.particle import Proposal
+from torchsvs.filters.spvsf import Proposal
 from torchsvs.metrics import paper_rmse, run_rmse
 from torchsvs.scenarios import Scenario, ballistic_scenario, eha_scenario
 

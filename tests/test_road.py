@@ -14,14 +14,13 @@ from torch.func import jacrev, vmap
 import torchsvs as ts
 from tests.conftest import assert_close
 from tests.reference import road_numpy
-from torchsvs.filters.separate import (
+from torchsvs.filters.separate.initialisation import (
     _three_point,
-    online_fit,
-    reset_trajectory_parameters,
-    sliding_windows,
     three_point_state,
     unscented_initialisation,
 )
+from torchsvs.filters.separate.online_fitting import online_fit, sliding_windows
+from torchsvs.filters.separate.reset import reset_trajectory_parameters
 from torchsvs.scenarios import road as road_module
 
 F64 = torch.float64

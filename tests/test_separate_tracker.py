@@ -10,13 +10,13 @@ import torch
 
 import torchsvs as ts
 from tests.conftest import assert_close
-from torchsvs.filters.separate import (
-    DEFAULT_TRANSITION,
+from torchsvs.filters.separate.online_fitting import online_fit
+from torchsvs.filters.separate.reset import (
     fit_window_line,
-    online_fit,
     reset_covariance,
     reset_trajectory_parameters,
 )
+from torchsvs.filters.separate.tracker import DEFAULT_TRANSITION
 
 F64 = torch.float64
 

@@ -5,7 +5,7 @@ two adjacent times is used to approximate the target traveling distance", "the b
 formulated according to the two-point differencing procedure", the unscented transform of
 Julier & Uhlmann with ``2n + 1`` symmetric sigma points, "for the NCV model the acceleration
 component ... is zero and the elements related to the acceleration in the covariance are
-zero"), with the readings documented in ``torchsvs/filters/separate.py``. One track, plain
+zero"), with the readings documented in ``torchsvs/filters/separate/``. One track, plain
 loops over sigma points, for clarity.
 
 Layout of the augmented state: ``[s, ds, (dds,) x_l, r_x, y_l, r_y, s_l]``.

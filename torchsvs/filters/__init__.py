@@ -9,10 +9,11 @@ from torchsvs.filters.artificial import (
 from torchsvs.filters.imm import IMM, IMMResult, IMMState
 from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
-from torchsvs.filters.particle import SPVSF, ParticleFilter, ParticleResult
+from torchsvs.filters.particle import ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter
-from torchsvs.filters.separate import SeparateModelingResult, SeparateModelingTracker
+from torchsvs.filters.separate.tracker import SeparateModelingResult, SeparateModelingTracker
 from torchsvs.filters.sif import SlidingInnovationFilter
+from torchsvs.filters.spvsf import SPVSF
 from torchsvs.filters.svsf import SVSF, ArtificialKalmanFilter, VariableBoundarySVSF
 from torchsvs.filters.turn_imm import TurnIMM
 

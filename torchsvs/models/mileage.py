@@ -239,8 +239,8 @@ class SeparateModel(StateSpaceModel):
 
     Nothing in the model keeps the direction a unit vector or ``s_l`` at the window's start: the
     filter estimates them freely and the SM algorithm resets ``η`` by least squares at every
-    cycle (:func:`torchsvs.filters.separate.reset_trajectory_parameters`, Eqs. (36)-(40); the
-    tracker: :class:`torchsvs.SeparateModelingTracker`).
+    cycle (:func:`torchsvs.filters.separate.reset.reset_trajectory_parameters`,
+    Eqs. (36)-(40); the tracker: :class:`torchsvs.SeparateModelingTracker`).
 
     Args:
         base: :class:`MileageConstantVelocity` or :class:`MileageConstantAcceleration` (its
