@@ -20,7 +20,7 @@ import torch
 
 from torchsvs.cli import main, reproduce_usage, track_parser
 from torchsvs.datasets import Columns, EstimateWriter, geodesy, read_tracks, write_estimates
-from torchsvs.datasets.files import describe_input
+from torchsvs.datasets.describe import describe_input
 from torchsvs.datasets.rows import InputWarning
 
 ROOT = Path(__file__).resolve().parents[1]

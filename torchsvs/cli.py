@@ -365,13 +365,14 @@ def _columns(args: argparse.Namespace) -> Any:
 def checked_columns(args: argparse.Namespace) -> Any:
     """Checks the paths of ``torchsvs track`` before anything runs (the input readable, the
     output and ``--save`` never an input, an existing file only with ``--force``), settles the
-    input's columns on its first block (:func:`~torchsvs.datasets.files.describe_input`: the
+    input's columns on its first block (:func:`~torchsvs.datasets.describe.describe_input`: the
     frame, the time unit) and prints what was found (unless ``--quiet``) and any warning.
 
     Returns:
         The resolved :class:`~torchsvs.datasets.Columns`.
     """
-    from torchsvs.datasets.files import check_input, check_output, describe_input
+    from torchsvs.datasets.describe import describe_input
+    from torchsvs.datasets.paths import check_input, check_output
     from torchsvs.datasets.rows import file_format
 
     check_input(args.input, "input")

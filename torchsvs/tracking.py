@@ -35,7 +35,7 @@ from torchsvs.datasets import (
     estimate_table,
     track_blocks,
 )
-from torchsvs.datasets.files import check_output
+from torchsvs.datasets.paths import check_output
 from torchsvs.estimating import (
     PROBE_SEED,
     GroupBatch,
