@@ -19,7 +19,7 @@ from tests.test_track_cli import _simulated_csv
 from torchsvs.cli import main
 from torchsvs.datasets import Columns, track_blocks
 from torchsvs.recipes import Settings
-from torchsvs.tracking import summary_path
+from torchsvs.track_run import summary_path
 from torchsvs.training.predict import predict_file
 
 # Lightning 2.6 on torch 2.13, at every run of a Trainer in this process.

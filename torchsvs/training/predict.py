@@ -37,13 +37,8 @@ from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
 from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
-from torchsvs.tracking import (
-    BlockEstimates,
-    TrackRun,
-    prepare_estimator,
-    summary_path,
-    write_summary,
-)
+from torchsvs.track_run import BlockEstimates, TrackRun, summary_path, write_summary
+from torchsvs.tracking import prepare_estimator
 
 
 class TrackGroups(Dataset["GroupBatch | None"]):
