@@ -125,7 +125,7 @@ def estimator_choices(parser: argparse.ArgumentParser | None = None) -> tuple[li
     """The ``--estimator`` choices of ``torchsvs track`` (those of
     :data:`torchsvs.recipes.ESTIMATORS` first, in its order, then any other, such as ``auto``)
     and its default."""
-    from torchsvs.cli import track_parser
+    from torchsvs.track_options import track_parser
     from torchsvs.recipes import ESTIMATORS
 
     parser = parser or track_parser()

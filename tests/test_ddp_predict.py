@@ -156,7 +156,7 @@ def test_rank_zero_ends_when_another_rank_fails(tmp_path):
     file) must end rank 0, which would otherwise wait for it in a collective forever."""
     script = (
         "import time\n"
-        "from torchsvs.cli import OtherRanks\n"
+        "from torchsvs.track_command import OtherRanks\n"
         "with OtherRanks(['missing.csv', '-o', 'out.csv'], 2, 1):\n"
         "    time.sleep(120)\n"
     )

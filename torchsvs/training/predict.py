@@ -313,7 +313,7 @@ def predict_file(
     this one again (``sys.argv``), so call this from a script or the ``torchsvs track`` command
     (every process must reach the call with the same arguments), not from an interactive
     session; ``torchsvs track`` starts them itself, before its imports
-    (:class:`torchsvs.cli.OtherRanks`), and Lightning joins them. ``fit`` runs once, on rank 0,
+    (:class:`torchsvs.track_command.OtherRanks`), and Lightning joins them. ``fit`` runs once, on rank 0,
     inside the run; the other processes receive the fitted parameters. Rank 0 holds the whole
     file in memory, the others its tracks' steps.
 
