@@ -118,44 +118,51 @@ def track_file(
     run.phases = dict.fromkeys(("reading", "settings", "estimating", "writing"), 0.0)
     estimator: nn.Module | None = None
     bar: Any = None
-    with EstimateWriter(target) as writer:
-        blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
-        for block in timed(blocks, run.phases, "reading"):
-            steps = block.steps
-            if estimator is None:
+    try:
+        with EstimateWriter(target) as writer:
+            blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
+            for block in timed(blocks, run.phases, "reading"):
+                steps = block.steps
+                if estimator is None:
+                    tick = time.perf_counter()
+                    estimator, settings, run.fit = prepare_estimator(
+                        steps, settings, fit, fit_options, checkpoint, save, say
+                    )
+                    run.phases["settings"] += time.perf_counter() - tick
+                    dtype = compute_dtype(settings.estimator, dtype)
+                    estimator = estimator.to(dtype)
+                    run.settings = settings
+                    assert settings.meas_var is not None
+                    run.risk = RiskTotals(len(settings.meas_var)) if accuracy else None
+                    # disable=None: no bar where stderr is not a terminal (it would stay in a log)
+                    bar = tqdm(
+                        desc="tracks",
+                        unit=" tracks",
+                        disable=None if progress else True,
+                        leave=False,
+                    )
+                assert run.settings is not None and run.settings.meas_var is not None
+                meas_std = torch.tensor(run.settings.meas_var, dtype=dtype).sqrt()
+                found = BlockEstimates.empty(steps, covariance, run.settings.screens)
+                tick, cpu = time.perf_counter(), time.process_time()
+                for position, group in enumerate(steps.batches(max_cells)):
+                    batch = group_batch(steps, group, position, dtype)
+                    found.add(
+                        estimate_group(
+                            estimator, batch, meas_std, covariance, accuracy, run.settings
+                        )
+                    )
+                    bar.update(len(group))
+                run.estimate_seconds += time.perf_counter() - tick
+                run.estimate_cpu_seconds += time.process_time() - cpu
+                run.add_block(found, steps)
                 tick = time.perf_counter()
-                estimator, settings, run.fit = prepare_estimator(
-                    steps, settings, fit, fit_options, checkpoint, save, say
-                )
-                run.phases["settings"] += time.perf_counter() - tick
-                dtype = compute_dtype(settings.estimator, dtype)
-                estimator = estimator.to(dtype)
-                run.settings = settings
-                assert settings.meas_var is not None
-                run.risk = RiskTotals(len(settings.meas_var)) if accuracy else None
-                # disable=None: no bar where stderr is not a terminal (it would stay in a log)
-                bar = tqdm(
-                    desc="tracks", unit=" tracks", disable=None if progress else True, leave=False
-                )
-            assert run.settings is not None and run.settings.meas_var is not None
-            meas_std = torch.tensor(run.settings.meas_var, dtype=dtype).sqrt()
-            found = BlockEstimates.empty(steps, covariance, run.settings.screens)
-            tick, cpu = time.perf_counter(), time.process_time()
-            for position, group in enumerate(steps.batches(max_cells)):
-                batch = group_batch(steps, group, position, dtype)
-                found.add(
-                    estimate_group(estimator, batch, meas_std, covariance, accuracy, run.settings)
-                )
-                bar.update(len(group))
-            run.estimate_seconds += time.perf_counter() - tick
-            run.estimate_cpu_seconds += time.process_time() - cpu
-            run.add_block(found, steps)
-            tick = time.perf_counter()
-            writer.write(found.table(block))
-            run.phases["writing"] += time.perf_counter() - tick
+                writer.write(found.table(block))
+                run.phases["writing"] += time.perf_counter() - tick
+    finally:  # the bar cleared before anything else is printed, an error too
+        if bar is not None:
+            bar.close()
     run.phases["estimating"] = run.estimate_seconds
-    if bar is not None:
-        bar.close()
     run.report.notes = +run.report.notes
     run.check()
     run.seconds = time.perf_counter() - start
@@ -201,7 +208,8 @@ def prepare_estimator(
     first: :func:`~torchsvs.fitting.defaults.screened`), then fitted, loaded from
     ``checkpoint``, saved to ``save``, as asked. Where the noise was read off the data and the
     Kalman smoother on the sample is not clearly below the measurements, all of it is done
-    again at the low end of that reading (:func:`~torchsvs.estimating.lowered_noise`).
+    again at the low end of that reading (:func:`~torchsvs.estimating.lowered_noise`), and
+    ``say`` hears only the reading kept.
 
     Returns:
         The estimator (float64), the settings it was built from, and the fit's summary (or
@@ -213,9 +221,16 @@ def prepare_estimator(
     open_q = settings.q is None
     options = dict(fit_options or {})
     options.pop("tracks", None)
-    settings, clean, summary = _settled(settings, sample, fit, options, say)
+    # What the first reading says is printed only if the run keeps it: a lowered noise reads
+    # (and fits) again, and its own lines replace these (each line once, none of settings
+    # the run does not use).
+    first: list[str] = []
+    settings, clean, summary = _settled(settings, sample, fit, options, first.append)
     low = lowered_noise(settings, clean) if checkpoint is None else None
-    if low is not None:
+    if low is None:
+        for line in first:
+            say(line)
+    else:
         assert settings.meas_var is not None
         read = [v**0.5 for v in settings.meas_var]
         say(
