@@ -46,9 +46,9 @@ def track_blocks(
     ``whole=True`` reads the file at once and accepts any row order.
 
     What ``columns`` leaves open (``time_unit="auto"``, ``frame="auto"``) is settled on the
-    first block (:func:`describe_input`), with an :class:`~torchsvs.datasets.rows.InputWarning`
-    where the data look unlike what was settled (degrees read as metres, a typical interval of
-    over 1,000 s read as seconds).
+    first block (:func:`~torchsvs.datasets.describe.describe_input`), with an
+    :class:`~torchsvs.datasets.rows.InputWarning` where the data look unlike what was settled
+    (degrees read as metres, a typical interval of over 1,000 s read as seconds).
     """
     import pyarrow as pa
 
@@ -119,11 +119,12 @@ def read_tracks(
         path: a ``.csv`` or ``.parquet`` file.
         columns: its column names (default ``track_id, time, x, y[, z]``).
         meas_std: measurement noise standard deviation (one number or one per axis) for the
-            priors; ``None`` estimates it from the data (:func:`estimate_noise`).
+            priors; ``None`` estimates it from the data (:func:`~torchsvs.datasets.estimate_noise`).
         dtype: of the measurement tensors.
 
     Returns:
-        The tracks (``source`` set, for :func:`write_estimates`) and the row report.
+        The tracks (``source`` set, for :func:`~torchsvs.datasets.write_estimates`) and the row
+        report.
     """
     block = next(track_blocks(path, columns, whole=True))
     everything = np.arange(block.steps.num_tracks)

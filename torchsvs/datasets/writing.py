@@ -219,8 +219,8 @@ def _set_mode(temporary: Path, target: Path) -> None:
 def write_estimates(
     tracks: RecordedTracks, mean: Tensor, path: str | Path, cov: Tensor | None = None
 ) -> None:
-    """Writes an estimator's result on tracks from :func:`read_tracks`, one row per input row
-    (never over the file they were read from: ``ValueError``)."""
+    """Writes an estimator's result on tracks from :func:`~torchsvs.datasets.read_tracks`, one
+    row per input row (never over the file they were read from: ``ValueError``)."""
     if tracks.source is None or tracks.steps is None:
         raise ValueError("tracks: expected tracks read by read_tracks (they know their rows)")
     block = tracks.source.block
