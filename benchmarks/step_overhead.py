@@ -14,7 +14,7 @@ estimators choose. Writes ``benchmarks/step_overhead.md``.
 from __future__ import annotations
 
 import argparse
-import importlib
+import importlib.util
 import subprocess
 import sys
 import tempfile
@@ -104,8 +104,16 @@ def _load_baseline(into: Path) -> ModuleType:
         for old in ("from torchsvs.", "from torchsvs import", "import torchsvs."):
             text = text.replace(old, old.replace("torchsvs", "torchsvs_baseline"))
         source.write_text(text)
-    sys.path.insert(0, str(into))
-    return importlib.import_module("torchsvs_baseline")
+    # Loaded from its folder by name (no sys.path edit): its submodules import through the
+    # package's __path__.
+    spec = importlib.util.spec_from_file_location(
+        "torchsvs_baseline", package / "__init__.py", submodule_search_locations=[str(package)]
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["torchsvs_baseline"] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def main(argv: list[str] | None = None) -> None:

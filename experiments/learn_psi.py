@@ -30,6 +30,7 @@ from torchsvs.metrics import pooled_rmse
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
 from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule, config_path
 from torchsvs.training.cli import main as cli_main
+from torchsvs.training.quiet import TidyProgressBar, quiet_lightning
 
 FAMILIES = {
     # name: (shipped config of `torchsvs fit --config`, paper scenario, paper ψ)
@@ -108,20 +109,22 @@ def train(
     target = svss if estimator == "SVSS" else svss.filter
     module = EstimatorModule(target, loss=loss, lr=0.1, seed=seed)
     logdir = tempfile.mkdtemp(prefix="learn_psi_")
-    trainer = L.Trainer(
-        max_epochs=epochs,
-        accelerator="cpu",
-        devices=1,
-        logger=CSVLogger(logdir, name="run"),
-        enable_checkpointing=False,
-        enable_progress_bar=progress,
-        enable_model_summary=False,
-        log_every_n_steps=1,
-    )
-    L.seed_everything(seed, verbose=False)
-    start = time.perf_counter()
-    trainer.fit(module, data)
-    seconds = time.perf_counter() - start
+    with quiet_lightning():  # no banners or tips; the bar, if any, ends cleanly
+        trainer = L.Trainer(
+            max_epochs=epochs,
+            accelerator="cpu",
+            devices=1,
+            logger=CSVLogger(logdir, name="run"),
+            enable_checkpointing=False,
+            enable_progress_bar=progress,
+            callbacks=[TidyProgressBar()] if progress else [],
+            enable_model_summary=False,
+            log_every_n_steps=1,
+        )
+        L.seed_everything(seed, verbose=False)
+        start = time.perf_counter()
+        trainer.fit(module, data)
+        seconds = time.perf_counter() - start
     with open(Path(trainer.logger.log_dir) / "metrics.csv") as f:  # type: ignore[union-attr]
         curve = [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
     run = Run(

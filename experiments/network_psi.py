@@ -39,7 +39,7 @@ from tqdm.auto import tqdm
 from experiments.recorded_sets import build_sets
 from torchsvs.accuracy import PROBE_STEP, draw_probe, risk_terms
 from torchsvs.accuracy import accuracy as accuracy_of
-from torchsvs.datasets.files import read_tracks, with_prior
+from torchsvs.datasets.reading import read_tracks, with_prior
 from torchsvs.datasets.tracks import RecordedTracks
 from torchsvs.estimating import centred, reference_for, run_result
 from torchsvs.evaluation import markdown_table

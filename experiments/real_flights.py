@@ -139,6 +139,7 @@ def train_on_simulation(name: str, sigma: float, lag: int, seconds: float) -> Se
 
     from torchsvs.scenarios import ManeuverRanges
     from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule
+    from torchsvs.training.quiet import quiet_lightning
 
     ranges = ManeuverRanges(
         steps=150,
@@ -172,17 +173,17 @@ def train_on_simulation(name: str, sigma: float, lag: int, seconds: float) -> Se
         seed=3,
     )
     module = EstimatorModule(est, loss="supervised", lr=0.1, seed=0)
-    trainer = L.Trainer(
-        max_time={"seconds": seconds},
-        max_epochs=6,
-        accelerator="cpu",
-        devices=1,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-    )
-    with warnings.catch_warnings():
+    with quiet_lightning(), warnings.catch_warnings():
+        trainer = L.Trainer(
+            max_time={"seconds": seconds},
+            max_epochs=6,
+            accelerator="cpu",
+            devices=1,
+            logger=False,
+            enable_checkpointing=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+        )
         warnings.filterwarnings("ignore", message=".*LeafSpec.*|.*does not have many workers.*")
         trainer.fit(module, data)
     learned: dict[str, Any] = {"q": float(model.q().detach())}

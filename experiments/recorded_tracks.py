@@ -125,8 +125,8 @@ def estimator_choices(parser: argparse.ArgumentParser | None = None) -> tuple[li
     """The ``--estimator`` choices of ``torchsvs track`` (those of
     :data:`torchsvs.recipes.ESTIMATORS` first, in its order, then any other, such as ``auto``)
     and its default."""
-    from torchsvs.cli import track_parser
     from torchsvs.recipes import ESTIMATORS
+    from torchsvs.track_options import track_parser
 
     parser = parser or track_parser()
     action = next(a for a in parser._actions if "--estimator" in a.option_strings)

@@ -10,7 +10,7 @@ sweep, the paper's window lengths and a Fig. 10-style window sweep, and ablation
 tracker. Writes ``experiments/results/road_tracking.md`` and its figures.
 
     python -m experiments.road_tracking [--runs 100] [--seed 0] [--out experiments/results]
-    torchsvs reproduce road
+    make road
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Every Monte Carlo study is one batch. Writes ``experiments/results/svss_paper.md
 number beside ours, with a discussion of every difference over 10%) and the figures as PNGs.
 
     python -m experiments.svss_paper [--runs 500] [--seed 0] [--out experiments/results]
-    torchsvs reproduce svss
+    make reproduce   (with the other reproductions)
 """
 
 from __future__ import annotations

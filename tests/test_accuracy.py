@@ -16,7 +16,8 @@ from torchsvs.accuracy import RiskTerms, RiskTotals, accuracy, risk_terms
 from torchsvs.datasets import Columns
 from torchsvs.fitting.selection import caution_score
 from torchsvs.recipes import Settings
-from torchsvs.tracking import summary_path, track_file
+from torchsvs.track_run import summary_path
+from torchsvs.tracking import track_file
 
 
 def _measurements(B: int = 6, T: int = 100, m: int = 2, sigma: float = 3.0, seed: int = 0):

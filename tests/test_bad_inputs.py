@@ -18,10 +18,11 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from torchsvs.cli import main, reproduce_usage, track_parser
+from torchsvs.cli import main
 from torchsvs.datasets import Columns, EstimateWriter, geodesy, read_tracks, write_estimates
-from torchsvs.datasets.files import describe_input
+from torchsvs.datasets.describe import describe_input
 from torchsvs.datasets.rows import InputWarning
+from torchsvs.track_options import track_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 SIGMA = 30.0
@@ -653,17 +654,15 @@ def test_unwritable_outputs_get_a_clear_message(tmp_path, capsys):
 # --- 6. Help and README say what the code does ------------------------------------------------
 
 
-def test_reproduce_lists_the_reproductions(capsys):
-    for argv in (["reproduce"], ["reproduce", "--help"], ["reproduce", "-h"]):
-        main(argv)
-        out = capsys.readouterr().out
-        assert out == reproduce_usage() + "\n"
-        for name in ("svss", "spvsf", "road"):
-            assert f"torchsvs reproduce {name}" in out
-    with pytest.raises(SystemExit) as stop:
-        main(["reproduce", "nothing"])
-    assert stop.value.code == 2
-    assert "unknown reproduction 'nothing'" in capsys.readouterr().err
+def test_the_checkout_commands_are_not_commands_of_the_installed_cli(capsys):
+    """The demo and the reproductions are scripts of the clone (make demo, make reproduce): the
+    installed ``torchsvs`` refuses them as unknown and says where they run."""
+    for argv in (["demo"], ["reproduce", "svss"], ["reproduce", "--help"]):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert f"unknown command {argv[0]!r}" in err and "make demo, make reproduce" in err
 
 
 TRACK_GUIDE = ROOT / "docs" / "guide" / "track_files.md"

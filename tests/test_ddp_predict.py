@@ -19,7 +19,7 @@ from tests.test_track_cli import _simulated_csv
 from torchsvs.cli import main
 from torchsvs.datasets import Columns, track_blocks
 from torchsvs.recipes import Settings
-from torchsvs.tracking import summary_path
+from torchsvs.track_run import summary_path
 from torchsvs.training.predict import predict_file
 
 # Lightning 2.6 on torch 2.13, at every run of a Trainer in this process.
@@ -156,7 +156,7 @@ def test_rank_zero_ends_when_another_rank_fails(tmp_path):
     file) must end rank 0, which would otherwise wait for it in a collective forever."""
     script = (
         "import time\n"
-        "from torchsvs.cli import OtherRanks\n"
+        "from torchsvs.track_command import OtherRanks\n"
         "with OtherRanks(['missing.csv', '-o', 'out.csv'], 2, 1):\n"
         "    time.sleep(120)\n"
     )

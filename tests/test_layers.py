@@ -14,7 +14,13 @@ from pathlib import Path
 import torchsvs
 
 #: The modules whose imports must form no loop (a name ending in ``.`` is a package's modules).
-LAYERS = ("torchsvs.recipes", "torchsvs.estimating", "torchsvs.fitting", "torchsvs.tracking")
+LAYERS = (
+    "torchsvs.recipes",
+    "torchsvs.estimating",
+    "torchsvs.fitting",
+    "torchsvs.track_run",
+    "torchsvs.tracking",
+)
 LAYER_PACKAGES = ("torchsvs.fitting.", "torchsvs.training.")
 
 

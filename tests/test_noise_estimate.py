@@ -27,8 +27,8 @@ from experiments.noise_estimate import (
     simulate,
 )
 from tests.conftest import assert_close, simulate_cv
-from torchsvs.datasets import estimate_noise, priors, two_point_prior
-from torchsvs.datasets.priors import difference_residuals
+from torchsvs.datasets import estimate_noise, noise_estimate, two_point_prior
+from torchsvs.datasets.differences import difference_residuals
 from torchsvs.fitting.noise import Q_FACTORS, q_curves, smoother_q, track_q_factors
 
 #: The specification: within 20% of the true σ.
@@ -159,7 +159,7 @@ def test_three_point_residual_is_the_gasser_sroka_jennen_steinmetz_one():
 
 def test_large_data_are_fitted_on_a_sample_of_blocks(monkeypatch):
     sim = simulate(small("turns 1 s"), 50.0, seed=1)
-    monkeypatch.setattr(priors, "MAX_RESIDUALS", 4000)
+    monkeypatch.setattr(noise_estimate, "MAX_RESIDUALS", 4000)
     noise = estimate_noise(sim.z, sim.dt)
     assert noise.triplets <= 4000 * 1.05
     assert bool(((noise.meas_var.sqrt() / 50.0 - 1).abs() <= WITHIN).all())
@@ -238,17 +238,17 @@ def test_noise_spread_tells_one_sensor_from_two():
     gen = torch.Generator().manual_seed(4)
     dt = 1.0 + 9.0 * torch.rand(12, 120, generator=gen, dtype=torch.float64)
     _, z = simulate_cv(dt, q=0.5, r=40.0**2, generator=gen, speed=30.0)
-    one = priors.noise_spread(z, dt)
+    one = noise_estimate.noise_spread(z, dt)
     assert one is not None and one < 0.08
     _, z20 = simulate_cv(dt[:6], q=0.5, r=20.0**2, generator=gen, speed=30.0)
     _, z60 = simulate_cv(dt[6:], q=0.5, r=60.0**2, generator=gen, speed=30.0)
     mixed = torch.cat([z20, z60])
-    two = priors.noise_spread(mixed, dt)
+    two = noise_estimate.noise_spread(mixed, dt)
     assert two is not None and 0.4 < two < 0.7
-    assert priors.noise_spread(z[:3], dt[:3]) is None
+    assert noise_estimate.noise_spread(z[:3], dt[:3]) is None
     short = z.clone()
-    short[:, priors.SPREAD_POINTS - 1 :] = float("nan")  # no track has enough points
-    assert priors.noise_spread(short, dt) is None
+    short[:, noise_estimate.SPREAD_POINTS - 1 :] = float("nan")  # no track has enough points
+    assert noise_estimate.noise_spread(short, dt) is None
 
 
 @pytest.mark.parametrize("smoothed", [False, True])

@@ -176,8 +176,8 @@ def test_roughness_reads_white_error_off_one_second_reports() -> None:
 
 
 def test_estimator_choices_follow_the_command_including_auto() -> None:
-    from torchsvs.cli import track_parser
     from torchsvs.recipes import ESTIMATORS
+    from torchsvs.track_options import track_parser
 
     names, default = rt.estimator_choices()
     assert set(names) >= set(ESTIMATORS) and default in names

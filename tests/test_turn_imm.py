@@ -412,7 +412,7 @@ def test_paired_probes_change_nothing_but_the_time(tmp_path, monkeypatch):
     import torchsvs.fitting.batches as batches
     from torchsvs.estimator import split_batch
     from torchsvs.smoothers.imm import IMMSmoother
-    from torchsvs.tracking import summary_path
+    from torchsvs.track_run import summary_path
 
     _, z = _turning_tracks(4, 120, 2, sigma=30.0, seed=2)
     source = tmp_path / "in.csv"

@@ -34,7 +34,8 @@ from torchsvs.accuracy import (
 )
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
-from torchsvs.datasets.files import flat_steps, short_track_notes
+from torchsvs.datasets.reading import short_track_notes
+from torchsvs.datasets.writing import flat_steps
 from torchsvs.estimator import split_batch
 from torchsvs.filters import KalmanFilter, ParticleFilter
 from torchsvs.filters.particle import degenerate_share
@@ -169,7 +170,7 @@ class StepEstimates(NamedTuple):
     mean: np.ndarray  #: [s, 2m]
     cov: np.ndarray | None  #: [s, 2m, 2m], or None when not asked for
     never_observed: np.ndarray  #: [B, m] bool
-    notes: dict[str, int]  #: :func:`~torchsvs.datasets.files.short_track_notes` of the group
+    notes: dict[str, int]  #: :func:`~torchsvs.datasets.reading.short_track_notes` of the group
     #: SURE's sums (:mod:`torchsvs.accuracy`), chunks' ``track`` the block's track, or None
     risk: RiskTerms | None = None
     #: [B] each track's factor on the settings' ``q`` (:func:`settings_q_factors`), or None

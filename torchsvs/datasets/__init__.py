@@ -6,29 +6,20 @@ measurements, ids and times) and a :class:`RowReport` saying what happened to ev
 ``write_estimates`` writes one output row per input row.
 """
 
-from torchsvs.datasets.files import (
-    EstimateWriter,
-    InputDescription,
+from torchsvs.datasets.describe import InputDescription, describe_input
+from torchsvs.datasets.noise_estimate import NoiseEstimate, estimate_noise, noise_spread
+from torchsvs.datasets.paths import check_output
+from torchsvs.datasets.priors import Prior, two_point_prior
+from torchsvs.datasets.reading import (
     TrackBlock,
-    check_output,
-    describe_input,
-    estimate_table,
     meas_variance,
     read_tracks,
-    state_names,
     track_blocks,
     with_prior,
-    write_estimates,
-)
-from torchsvs.datasets.priors import (
-    NoiseEstimate,
-    Prior,
-    estimate_noise,
-    noise_spread,
-    two_point_prior,
 )
 from torchsvs.datasets.rows import NOTES, SET_ASIDE, TIME_UNITS, Columns, InputWarning, RowReport
 from torchsvs.datasets.tracks import RecordedTracks, TrackSteps, group_rows
+from torchsvs.datasets.writing import EstimateWriter, estimate_table, state_names, write_estimates
 
 __all__ = [
     "NOTES",

@@ -234,7 +234,7 @@ class RecordedTracks:
     steps: Tensor | None = None  #: [B, T] int64 flat step index (for writing back), -1 padded
     never_observed: Tensor | None = None  #: [B, m] bool: axes a track never observes
     source: Any = (
-        None  #: where the tracks were read (:class:`~torchsvs.datasets.files.TrackSource`)
+        None  #: where the tracks were read (:class:`~torchsvs.datasets.reading.TrackSource`)
     )
 
     def __len__(self) -> int:

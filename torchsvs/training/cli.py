@@ -28,6 +28,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from torchsvs.training.configs import config_path, shipped_configs
 from torchsvs.training.data import ManeuveringTargetDataModule
 from torchsvs.training.module import EstimatorModule
+from torchsvs.training.quiet import quiet_lightning, without_tips
 
 
 def resolve_config(value: str) -> str:
@@ -81,7 +82,9 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     """Builds the CLI; ``args`` as after ``torchsvs fit``, e.g. ``["--config", "atc_svss"]``."""
     # Lightning 2.6 on torch 2.13 warns about LeafSpec at every fit; third-party, harmless.
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
-    with warnings.catch_warnings():
+    # A run keeps Lightning's lines but its tips; a CLI built without running (for the objects
+    # it makes: experiments, tests) shows none of its Trainer's banners.
+    with warnings.catch_warnings(), without_tips() if run else quiet_lightning():
         # Called from Python (experiments, tests) with explicit args, the caller's own sys.argv
         # is not meant for the CLI.
         warnings.filterwarnings(

@@ -15,7 +15,6 @@ byte.
 
 from __future__ import annotations
 
-import logging
 import os
 import threading
 import time
@@ -37,13 +36,9 @@ from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
 from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
-from torchsvs.tracking import (
-    BlockEstimates,
-    TrackRun,
-    prepare_estimator,
-    summary_path,
-    write_summary,
-)
+from torchsvs.track_run import BlockEstimates, TrackRun, summary_path, write_summary
+from torchsvs.tracking import prepare_estimator
+from torchsvs.training.quiet import quiet_lightning
 
 
 class TrackGroups(Dataset["GroupBatch | None"]):
@@ -318,9 +313,9 @@ def predict_file(
     this one again (``sys.argv``), so call this from a script or the ``torchsvs track`` command
     (every process must reach the call with the same arguments), not from an interactive
     session; ``torchsvs track`` starts them itself, before its imports
-    (:class:`torchsvs.cli.OtherRanks`), and Lightning joins them. ``fit`` runs once, on rank 0,
-    inside the run; the other processes receive the fitted parameters. Rank 0 holds the whole
-    file in memory, the others its tracks' steps.
+    (:class:`torchsvs.track_command.OtherRanks`), and Lightning joins them. ``fit`` runs once,
+    on rank 0, inside the run; the other processes receive the fitted parameters. Rank 0 holds
+    the whole file in memory, the others its tracks' steps.
 
     Args:
         processes: processes to run (1: the same path in this process alone).
@@ -351,32 +346,27 @@ def predict_file(
     )
     gather = GatherEstimates()
     strategy: Any = DDPStrategy(process_group_backend="gloo") if processes > 1 else "auto"
-    # No banners about GPUs and process groups on every run.
-    loggers = [logging.getLogger(f"lightning.{name}") for name in ("pytorch", "fabric")]
-    levels = [one.level for one in loggers]
-    for one in loggers:
-        one.setLevel(logging.WARNING)
     try:
-        trainer = L.Trainer(
-            accelerator="cpu",
-            devices=processes,
-            strategy=strategy,
-            logger=False,
-            enable_progress_bar=False,
-            enable_model_summary=False,
-            enable_checkpointing=False,
-            inference_mode=False,  # the estimators run under no_grad, as in one process
-            callbacks=[gather],
-        )
-        with warnings.catch_warnings():
-            # Loading workers would copy the file into more processes; the groups are ready.
-            warnings.filterwarnings("ignore", ".*does not have many workers.*")
-            # Lightning 2.6 on torch 2.13, at every run: not the user's to act on.
-            warnings.filterwarnings("ignore", ".*LeafSpec.*", FutureWarning)
-            trainer.predict(module, datamodule=data, return_predictions=True)
+        # No banners about GPUs and process groups, no tips, on every run.
+        with quiet_lightning():
+            trainer = L.Trainer(
+                accelerator="cpu",
+                devices=processes,
+                strategy=strategy,
+                logger=False,
+                enable_progress_bar=False,
+                enable_model_summary=False,
+                enable_checkpointing=False,
+                inference_mode=False,  # the estimators run under no_grad, as in one process
+                callbacks=[gather],
+            )
+            with warnings.catch_warnings():
+                # Loading workers would copy the file into more processes; the groups are ready.
+                warnings.filterwarnings("ignore", ".*does not have many workers.*")
+                # Lightning 2.6 on torch 2.13, at every run: not the user's to act on.
+                warnings.filterwarnings("ignore", ".*LeafSpec.*", FutureWarning)
+                trainer.predict(module, datamodule=data, return_predictions=True)
     finally:
-        for one, level in zip(loggers, levels, strict=True):
-            one.setLevel(level)
         torch.set_num_threads(before[0])
         if before[1] is None:
             del os.environ["OMP_NUM_THREADS"]

@@ -1,0 +1,95 @@
+"""Divided differences of the positions at their own time stamps: the residuals the
+measurement noise is read from (:func:`~torchsvs.datasets.noise_estimate.estimate_noise`)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+#: Orders of the divided differences the measurement noise is read from
+#: (:func:`~torchsvs.datasets.noise_estimate.estimate_noise`).
+ORDERS = (2, 3, 4)
+
+
+class Residuals(NamedTuple):
+    """Normalised difference residuals of the measurements (:func:`difference_residuals`)."""
+
+    u: Tensor  #: [N] residual, variance ``r_axis + b q`` (unit noise gain)
+    b: Tensor  #: [N] its variance per unit ``q`` of white acceleration (s³)
+    axis: Tensor  #: [N] int64 its axis
+    order: Tensor  #: [N] int64 its order
+    track: Tensor  #: [N] int64 its track
+    first: Tensor  #: [N] int64 the step of its stencil's first point
+    last: Tensor  #: [N] int64 the step of its stencil's last point
+
+
+def _observed_first(z: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per ``(track, axis)`` the observed positions, their times and their steps moved to the
+    front in time order (``[B·m, T]`` each), and their count ``[B·m]``."""
+    B, T, m = z.shape
+    zz = z.permute(0, 2, 1).reshape(B * m, T)
+    tt = t.unsqueeze(1).expand(B, m, T).reshape(B * m, T)
+    observed = torch.isfinite(zz)
+    order = torch.argsort((~observed).to(torch.int8), dim=1, stable=True)
+    return zz.gather(1, order), tt.gather(1, order), order, observed.sum(dim=1)
+
+
+def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS) -> Residuals:
+    r"""Divided differences of order ``k`` over each ``k + 1`` successive observed positions of
+    an axis, at their own time stamps, scaled to unit noise gain.
+
+    The ``k``-th divided difference has weights :math:`w_j = 1/\prod_{l \ne j}(t_j - t_l)` and
+    annihilates polynomials of degree below ``k``; with :math:`c = w/\lVert w\rVert` the residual
+    :math:`u = \sum_j c_j z_j` of white noise of variance :math:`r` has variance :math:`r`.
+    Motion adds to it: a path of degree below ``k`` adds nothing, and white acceleration of
+    spectral density :math:`q` (the model of :class:`~torchsvs.models.ConstantVelocity`,
+    :math:`x(t) = x_0 + v_0 t + \int (t - s)_+ w(s)\,ds`) adds :math:`b\,q` with
+    :math:`b = \int K(s)^2 ds` for the Peano kernel :math:`K(s) = \sum_j c_j (t_j - s)_+` of the
+    stencil. :math:`K` is linear between the time stamps and zero outside them, so
+    :math:`b = \sum_l h_l (K_l^2 + K_l K_{l+1} + K_{l+1}^2)/3` exactly, with
+    :math:`K_l = \sum_{j>l} c_j (t_j - t_l)`. For ``k = 2`` this is the three-point residual of
+    Gasser, Sroka & Jennen-Steinmetz (1986), :math:`\rho = z_1 - (h_2 z_0 + h_1 z_2)/H` over its
+    noise gain :math:`\sqrt{1 + (h_1/H)^2 + (h_2/H)^2}`, and :math:`b = h_1^2 h_2^2/(3H)` over
+    the gain squared.
+
+    References:
+        Gasser, Sroka, Jennen-Steinmetz, "Residual variance and residual pattern in nonlinear
+        regression", Biometrika 73(3):625-633, 1986. doi:10.1093/biomet/73.3.625
+    """
+    B, T, m = z.shape
+    t = torch.cumsum(dt.to(torch.float64), dim=1)
+    zc, tc, steps, count = _observed_first(z.to(torch.float64), t)
+    rows = torch.arange(B * m)
+    out: dict[str, list[Tensor]] = {key: [] for key in Residuals._fields}
+    for k in orders:
+        if T <= k:
+            continue
+        n = T - k
+        valid = torch.arange(n).unsqueeze(0) + k < count.unsqueeze(1)  # [B·m, n]
+        times = torch.stack([tc[:, j : j + n] for j in range(k + 1)], -1)[valid]  # [N, k+1]
+        values = torch.stack([zc[:, j : j + n] for j in range(k + 1)], -1)[valid]
+        times = times - times[:, :1]  # relative to the stencil's start (precision)
+        gaps = times.unsqueeze(-1) - times.unsqueeze(-2) + torch.eye(k + 1, dtype=times.dtype)
+        w = 1.0 / gaps.prod(dim=-1)  # (the diagonal's 1 stands for the missing l = j)
+        c = w / w.norm(dim=-1, keepdim=True)
+        later = torch.triu(torch.ones(k + 1, k + 1, dtype=c.dtype), diagonal=1)  # [l, j]: j > l
+        knots = (c.unsqueeze(-2) * (times.unsqueeze(-2) - times.unsqueeze(-1)) * later).sum(-1)
+        h = times[:, 1:] - times[:, :-1]
+        k0, k1 = knots[:, :-1], knots[:, 1:]
+        b = (h * (k0.square() + k0 * k1 + k1.square())).sum(-1) / 3.0
+        u = (c * values).sum(-1)
+        ok = torch.isfinite(u) & torch.isfinite(b)
+        row = rows.unsqueeze(1).expand(-1, n)[valid][ok]
+        out["u"].append(u[ok])
+        out["b"].append(b[ok])
+        out["axis"].append(row % m)
+        out["order"].append(torch.full_like(row, k))
+        out["track"].append(row // m)
+        out["first"].append(steps[:, :n][valid][ok])
+        out["last"].append(steps[:, k : k + n][valid][ok])
+    if not out["u"]:
+        empty, none = torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.int64)
+        return Residuals(empty, empty, none, none, none, none, none)
+    return Residuals(*(torch.cat(out[key]) for key in Residuals._fields))

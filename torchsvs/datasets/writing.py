@@ -1,0 +1,263 @@
+"""Estimates out: :func:`estimate_table` gives a block's output rows (one per input row, with
+the id and time as read and the estimates of the step the row was placed at), and
+:class:`EstimateWriter` appends them to a CSV or Parquet file, written beside it under a
+temporary name and renamed over it only once complete."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from torch import Tensor
+
+from torchsvs.datasets.paths import check_output
+from torchsvs.datasets.reading import TrackBlock
+from torchsvs.datasets.rows import Columns, file_format
+from torchsvs.datasets.tracks import RecordedTracks, TrackSteps
+
+
+def state_names(position: Sequence[str]) -> list[str]:
+    """Names of the state components in the layout of ConstantVelocity: ``x, vx, y, vy, ...``."""
+    return [name for p in position for name in (p, f"v{p}")]
+
+
+#: Names of a WGS 84 file's local axes (east, north, up: the altitude).
+LOCAL_AXES = ("east", "north", "up")
+
+
+def output_names(columns: Columns) -> tuple[list[str], list[str]]:
+    """The output's names of the state components in state order (positions under the
+    input's names, velocities: ``x, vx, y, vy, ...``; WGS 84: ``lat, v_east, lon, v_north[,
+    alt, v_up]``, written positions first)
+    and the names the covariance columns use (``cov_<a>_<b>``: ``x, vx, ...`` or ``east,
+    v_east, ...``, in metres)."""
+    assert columns.position is not None
+    if not columns.geodetic:
+        names = state_names(columns.position)
+        return names, names
+    axes = LOCAL_AXES[: len(columns.position)]
+    state = [n for p, a in zip(columns.position, axes, strict=True) for n in (p, f"v_{a}")]
+    return state, [n for a in axes for n in (a, f"v_{a}")]
+
+
+def to_geodetic(
+    steps: TrackSteps, mean: np.ndarray, cov: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Estimates in the tracks' local frames (``[S, 2m]``: east, v_east, north, v_north[, up,
+    v_up]) back to latitude, longitude (degrees)[, altitude]; velocities and covariances into
+    metres along the east and north at each estimate (:func:`~torchsvs.datasets.geodesy.
+    local_axes`; the frame's own axes turn against them away from its reference)."""
+    from torchsvs.datasets import geodesy
+
+    assert steps.reference is not None
+    S, n = mean.shape
+    m = n // 2
+    track = np.repeat(np.arange(steps.num_tracks), steps.length)
+    ref = steps.reference[track]
+    east_north = mean[:, [0, 2]]
+    lat, lon = geodesy.from_local(east_north, ref[:, 0], ref[:, 1])
+    known = np.isfinite(lat + lon + ref.sum(axis=1))
+    axes = np.broadcast_to(np.eye(2), (S, 2, 2)).copy()
+    axes[known] = geodesy.local_axes(lat[known], lon[known], ref[known, 0], ref[known, 1])
+    back = np.broadcast_to(np.eye(m), (S, m, m)).copy()
+    back[:, :2, :2] = np.linalg.inv(axes)  # frame's axes -> east, north at the estimate
+    transform = np.zeros((S, n, n))
+    transform[:, 0::2, 0::2] = back  # positions (for the covariances)
+    transform[:, 1::2, 1::2] = back  # velocities
+    out = np.einsum("sij,sj->si", transform, mean)
+    out[:, 0], out[:, 2] = lat, lon
+    if cov is None:
+        return out, None
+    return out, transform @ cov @ np.swapaxes(transform, -1, -2)
+
+
+def estimate_table(
+    block: TrackBlock,
+    mean: np.ndarray,
+    cov: np.ndarray | None = None,
+    never_observed: np.ndarray | None = None,
+    outlier: np.ndarray | None = None,
+) -> Any:
+    """The output rows of a block: ``track_id, time`` as read, then the estimates.
+
+    Args:
+        block: the block the estimates belong to.
+        mean: ``[S, 2m]`` estimate at each of the block's steps (NaN where not estimated).
+        cov: ``[S, 2m, 2m]`` covariances, or ``None``.
+        never_observed: ``[K, m]`` axes a track never observes (their estimates become NaN).
+        outlier: ``[S]`` bool steps whose position was set aside as an outlier, written as a
+            last column ``outlier`` (rows not placed: false); None: no such column.
+
+    Returns:
+        A ``pyarrow.Table`` with one row per input row: the id and time columns as read,
+        positions under the input's names, velocities as ``v<name>`` (``x, vx, y, vy, ...``;
+        WGS 84: ``lat, lon[, alt], v_east, v_north[, v_up]``), and with ``cov`` the
+        upper triangle as ``cov_<a>_<b>``. WGS 84 positions (:class:`~torchsvs.datasets.rows.
+        Columns`) come back as degrees (:func:`to_geodetic`), velocities as ``v_east,
+        v_north[, v_up]`` and covariances named by ``east, north, up`` in metres.
+    """
+    import pyarrow as pa
+
+    steps, cols = block.steps, block.columns
+    assert cols.position is not None
+    names, cov_names = output_names(cols)
+    m = len(cols.position)
+    if never_observed is not None and never_observed.any():
+        track_of_step = np.repeat(np.arange(steps.num_tracks), steps.length)
+        hidden = np.repeat(never_observed[track_of_step], 2, axis=1)  # [S, 2m]
+        mean = np.where(hidden, np.nan, mean)
+        if cov is not None:
+            cov = np.where(hidden[:, :, None] | hidden[:, None, :], np.nan, cov)
+    if cols.geodetic and len(mean):
+        mean, cov = to_geodetic(steps, mean, cov)
+    row_step = steps.row_step
+    placed = row_step >= 0
+    index = np.where(placed, row_step, 0)
+
+    def per_row(values: np.ndarray) -> Any:
+        # NaN (not estimated) becomes an empty field
+        return pa.array(
+            np.where(placed, values[index], np.nan), type=pa.float64(), from_pandas=True
+        )
+
+    out = {
+        cols.track_id: block.table.column(cols.track_id),
+        cols.time: block.table.column(cols.time),
+    }
+    # metric: x, vx, y, vy, ...; WGS 84: the positions, then the velocities
+    order = range(2 * m) if not cols.geodetic else [*range(0, 2 * m, 2), *range(1, 2 * m, 2)]
+    for j in order:
+        out[names[j]] = per_row(mean[:, j]) if len(mean) else pa.nulls(len(row_step), pa.float64())
+    if cov is not None:
+        for a in range(2 * m):
+            for b in range(a, 2 * m):
+                out[f"cov_{cov_names[a]}_{cov_names[b]}"] = per_row(cov[:, a, b])
+    if outlier is not None:
+        flags = outlier[index] if len(outlier) else np.zeros(len(row_step), dtype=bool)
+        out["outlier"] = pa.array(placed & flags, type=pa.bool_())
+    return pa.table(out)
+
+
+class EstimateWriter:
+    """Appends output tables to a CSV (``.csv``) or Parquet (``.parquet``) file.
+
+    The rows go to a temporary file beside ``path`` (``.<name>.<random>.part``), renamed over
+    ``path`` when the writer is closed without an error: a run that fails midway leaves any
+    earlier file at ``path`` as it was, and no half-written one."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.format = file_format(path)
+        self._writer: Any = None
+        self._temporary: Path | None = None
+
+    def write(self, table: Any) -> None:
+        import pyarrow.csv as pcsv
+        import pyarrow.parquet as pq
+
+        if self._writer is None:
+            self._schema = table.schema
+            handle, name = tempfile.mkstemp(
+                prefix=f".{self.path.name}.", suffix=".part", dir=self.path.parent
+            )
+            os.close(handle)
+            self._temporary = Path(name)
+            _set_mode(self._temporary, self.path)
+            if self.format == "parquet":
+                self._writer = pq.ParquetWriter(self._temporary, table.schema)
+            else:
+                options = pcsv.WriteOptions(quoting_style="needed")
+                self._writer = pcsv.CSVWriter(self._temporary, table.schema, write_options=options)
+        self._writer.write_table(table.cast(self._schema))
+
+    def close(self) -> None:
+        """Finishes the file and puts it in place."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+            assert self._temporary is not None
+            os.replace(self._temporary, self.path)
+            self._temporary = None
+
+    def discard(self) -> None:
+        """Drops what was written; ``path`` stays as it was."""
+        if self._writer is not None:
+            try:
+                self._writer.close()
+            finally:
+                self._writer = None
+        if self._temporary is not None:
+            self._temporary.unlink(missing_ok=True)
+            self._temporary = None
+
+    def __enter__(self) -> EstimateWriter:
+        return self
+
+    def __exit__(self, kind: object, *exc: object) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.discard()
+
+
+def _set_mode(temporary: Path, target: Path) -> None:
+    """Gives a temporary file the mode the target has, or a new file would get (``mkstemp``
+    makes it private)."""
+    try:
+        mode = target.stat().st_mode & 0o777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    os.chmod(temporary, mode)
+
+
+def write_estimates(
+    tracks: RecordedTracks, mean: Tensor, path: str | Path, cov: Tensor | None = None
+) -> None:
+    """Writes an estimator's result on tracks from :func:`~torchsvs.datasets.read_tracks`, one
+    row per input row (never over the file they were read from: ``ValueError``)."""
+    if tracks.source is None or tracks.steps is None:
+        raise ValueError("tracks: expected tracks read by read_tracks (they know their rows)")
+    block = tracks.source.block
+    check_output(path, "path", inputs=(block.path,), force=True)
+    flat_mean, flat_cov = scatter_steps(block.steps, tracks, mean, cov)
+    never = None if tracks.never_observed is None else tracks.never_observed.numpy()
+    never_all = None
+    if never is not None:
+        never_all = np.zeros((block.steps.num_tracks, never.shape[1]), dtype=bool)
+        never_all[tracks.source.tracks] = never
+    with EstimateWriter(path) as writer:
+        writer.write(estimate_table(block, flat_mean, flat_cov, never_all))
+
+
+def scatter_steps(
+    steps: TrackSteps, tracks: RecordedTracks, mean: Tensor, cov: Tensor | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Padded results ``[B, T, ...]`` back to the flat steps of the block (``[S, ...]``, NaN at
+    the steps of other tracks)."""
+    n = mean.shape[-1]
+    S = len(steps.time)
+    flat_mean = np.full((S, n), np.nan)
+    flat_cov = None if cov is None else np.full((S, n, n), np.nan)
+    target, values, covs = flat_steps(tracks, mean, cov)
+    flat_mean[target] = values
+    if covs is not None and flat_cov is not None:
+        flat_cov[target] = covs
+    return flat_mean, flat_cov
+
+
+def flat_steps(
+    tracks: RecordedTracks, mean: Tensor, cov: Tensor | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Padded results at the real steps only: the block's flat step of each (``[s]`` int64) and
+    the float64 values there (``mean [s, n]``, ``cov [s, n, n]`` or ``None``)."""
+    assert tracks.steps is not None
+    where = tracks.steps >= 0
+    target = tracks.steps[where].numpy()
+    covs = None if cov is None else cov.detach()[where].double().numpy()
+    return target, mean.detach()[where].double().numpy(), covs

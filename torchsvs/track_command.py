@@ -1,0 +1,236 @@
+"""``torchsvs track``: checks its paths and columns, then runs :func:`~torchsvs.tracking.
+track_file` in this process, or :func:`~torchsvs.training.predict.predict_file` in
+``--processes N`` of them (:class:`OtherRanks` starts the others)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from torchsvs.track_options import track_parser
+
+
+def track(argv: list[str]) -> None:
+    """``torchsvs track``: see :func:`track_parser`."""
+    parser = track_parser()
+    args = parser.parse_args(argv)
+    if args.lag == 0 and args.estimator != "imm":
+        parser.error(
+            f"argument --lag: expected an integer >= 1 (0 only for --estimator imm: its "
+            f"filter), got 0 with --estimator {args.estimator}"
+        )
+    if os.environ.get("LOCAL_RANK", "0") == "0":  # ranks 1..N-1 of --processes read no file
+        try:
+            args.columns = checked_columns(args)
+        except (ValueError, TypeError, FileNotFoundError) as err:
+            raise SystemExit(f"torchsvs track: {err}") from err
+    if args.processes > 1 and not args.stream and "LOCAL_RANK" not in os.environ:
+        with OtherRanks(argv, args.processes, args.threads):
+            _track(args)
+    else:
+        _track(args)
+
+
+def _columns(args: argparse.Namespace) -> Any:
+    from torchsvs.datasets import Columns
+
+    pos = tuple(args.pos_cols.split(",")) if args.pos_cols else None
+    return Columns(args.id_col, args.time_col, pos, time_unit=args.time_unit, frame=args.frame)
+
+
+def checked_columns(args: argparse.Namespace) -> Any:
+    """Checks the paths of ``torchsvs track`` before anything runs (the input readable, the
+    output and ``--save`` never an input, an existing file only with ``--force``), settles the
+    input's columns on its first block (:func:`~torchsvs.datasets.describe.describe_input`: the
+    frame, the time unit) and prints what was found (unless ``--quiet``) and any warning.
+
+    Returns:
+        The resolved :class:`~torchsvs.datasets.Columns`.
+    """
+    from torchsvs.datasets.describe import describe_input
+    from torchsvs.datasets.paths import check_input, check_output
+    from torchsvs.datasets.rows import file_format
+
+    check_input(args.input, "input")
+    check_output(args.output, "output", inputs=(args.input, args.checkpoint), force=args.force)
+    try:
+        file_format(args.output)
+    except ValueError:
+        raise ValueError(
+            f"output: expected a .csv or .parquet file name, got {args.output!r}"
+        ) from None
+    if args.save is not None:
+        if Path(args.save).resolve() == Path(args.output).resolve():
+            raise ValueError(f"save: {args.save!r} is the output file; name another file")
+        check_output(args.save, "save", inputs=(args.input,), force=args.force)
+    if args.checkpoint is not None and not Path(args.checkpoint).is_file():
+        raise FileNotFoundError(f"checkpoint: {args.checkpoint!r}: no such file")
+    described = describe_input(args.input, _columns(args), block_rows=args.block_rows, name="input")
+    if described.constant and args.checkpoint is None and None in (args.meas_std, args.q):
+        raise ValueError(
+            f"position: {described.constant} do not change within any track of the first "
+            f"{described.rows} rows: no noise can be read off them; give --meas-std (one value "
+            "per axis) and --q, or leave such a column out with --pos-cols"
+        )
+    if not args.quiet:
+        for line in described.lines:
+            print(f"reading {args.input}: {line}", file=sys.stderr)
+    for text in described.warnings:
+        print(f"torchsvs track: warning: {text}", file=sys.stderr)
+    return described.columns
+
+
+class OtherRanks:
+    """Starts ranks ``1..N-1`` of ``torchsvs track --processes N`` at once, as ``torchrun``
+    does, and sets this process up as rank 0 of that group (Lightning then joins the processes
+    instead of launching them). Lightning's own launcher starts them only when rank 0 reaches
+    ``Trainer.predict``, after its imports: their interpreters and imports (seconds) then run
+    after rank 0's instead of beside them. A rank that fails ends the others, as Lightning's
+    launcher does; on leaving, rank 0 waits for the others and restores its environment."""
+
+    VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "WORLD_SIZE", "LOCAL_RANK")
+
+    def __init__(self, argv: list[str], processes: int, threads: int) -> None:
+        self.command = [sys.executable, "-m", "torchsvs.cli", "track", *argv]
+        self.processes, self.threads = processes, threads
+        self.saved = {k: os.environ.get(k) for k in (*self.VARIABLES, "OMP_NUM_THREADS")}
+        self.children: list[subprocess.Popen[bytes]] = []
+        self.done = threading.Event()
+
+    def __enter__(self) -> OtherRanks:
+        with socket.socket() as probe:  # a free port for the process group
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        os.environ.update(
+            MASTER_ADDR="127.0.0.1",
+            MASTER_PORT=str(port),
+            NODE_RANK="0",
+            WORLD_SIZE=str(self.processes),
+            OMP_NUM_THREADS=str(self.threads),
+        )
+        for rank in range(1, self.processes):
+            env = dict(os.environ, LOCAL_RANK=str(rank))
+            self.children.append(subprocess.Popen(self.command, env=env))
+        os.environ["LOCAL_RANK"] = "0"
+        threading.Thread(target=self._watch, daemon=True, name="other-ranks").start()
+        return self
+
+    def _watch(self) -> None:
+        """Ends this process if another rank fails (rank 0 would wait for it forever)."""
+        while not self.done.wait(0.5):
+            codes = [child.poll() for child in self.children]
+            if all(code == 0 for code in codes):
+                return
+            failed = [(c.pid, code) for c, code in zip(self.children, codes, strict=True) if code]
+            if failed:
+                print(f"torchsvs track: a process ended with {failed}; ending", file=sys.stderr)
+                self._end_children()
+                os._exit(1)
+
+    def _end_children(self) -> None:
+        for child in self.children:
+            if child.poll() is None:
+                child.kill()
+
+    def __exit__(self, kind: object, error: object, trace: object) -> None:
+        try:
+            if kind is not None:  # rank 0 failed: the others would wait for it
+                self._end_children()
+            for child in self.children:
+                child.wait()
+        finally:
+            self.done.set()  # stops the watch
+            for key, value in self.saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+
+def _track(args: argparse.Namespace) -> None:
+    import torch
+
+    from torchsvs.recipes import Settings
+    from torchsvs.tracking import saved_settings, track_file
+
+    torch.set_num_threads(args.threads)
+    columns = getattr(args, "columns", None) or _columns(args)
+    try:
+        if args.checkpoint is not None and Path(args.checkpoint).is_file():
+            try:
+                base = saved_settings(args.checkpoint)
+            except ValueError:
+                base = None
+        else:
+            base = None
+        settings = base or Settings(
+            estimator=args.estimator,
+            meas_var=None if args.meas_std is None else [s * s for s in args.meas_std],
+            q=args.q,
+            psi=args.psi,
+            gamma=args.gamma,
+            lag=args.lag,
+            velocity=not args.no_velocity,
+            particles=args.particles,
+            turn_q=args.turn_q,
+            turn_rate_q=args.turn_rate_q,
+            turn_rate_std=args.turn_rate_std,
+            switch_prob=args.switch_prob,
+            track_q=not args.shared_q,
+            outliers=not args.keep_outliers,
+        )
+        fit_options: dict[str, object] = {
+            "tracks": args.fit_tracks,
+            # Given, or read off the data robustly (estimate_noise): SURE fits in its units. The
+            # innovation likelihood's noise (self_tune's first stage) counts turns as noise: on
+            # recorded tracks at irregular times it made the KS worse than the measurements.
+            "known_noise": True,
+        }
+        if args.fit_steps is not None:
+            fit_options["steps"] = args.fit_steps
+        common: dict[str, Any] = {
+            "columns": columns,
+            "fit": args.fit,
+            "fit_options": fit_options,
+            "checkpoint": args.checkpoint,
+            "save": args.save,
+            "covariance": args.covariance,
+            "block_rows": args.block_rows,
+            "max_cells": args.max_cells,
+            "dtype": torch.float64 if args.double else torch.float32,
+            "log": None if args.quiet else lambda text: print(text, file=sys.stderr),
+        }
+        if args.processes > 1:
+            if args.stream:
+                raise ValueError(
+                    "processes: more than one process reads the whole file; drop --stream"
+                )
+            from torchsvs.training.predict import predict_file
+
+            run = predict_file(
+                args.input,
+                args.output,
+                settings,
+                processes=args.processes,
+                threads=args.threads,
+                **common,
+            )
+        else:
+            run = track_file(
+                args.input,
+                args.output,
+                settings,
+                whole=True if args.in_memory else False if args.stream else None,
+                progress=not args.quiet,
+                **common,
+            )
+    except (ValueError, TypeError, FileNotFoundError) as err:
+        raise SystemExit(f"torchsvs track: {err}") from err
+    if run is not None and not args.quiet:  # None: a process launched by rank 0
+        print(run.summary(), file=sys.stderr)

@@ -1,0 +1,296 @@
+"""What a run of ``torchsvs track`` did: the estimates of a block (:class:`BlockEstimates`),
+the run's totals, its truth-free error estimate and warnings (:class:`TrackRun`), and its
+summary, printed and written as JSON next to the output (:func:`write_summary`)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchsvs.accuracy import Accuracy, RiskTerms, RiskTotals
+from torchsvs.accuracy import accuracy as accuracy_of
+from torchsvs.datasets import RowReport, TrackBlock, TrackSteps, estimate_table
+from torchsvs.estimating import StepEstimates
+from torchsvs.filters.particle import DEGENERATE_SHARE
+from torchsvs.fitting.defaults import meas_var_range
+from torchsvs.recipes import Settings
+
+#: Share of a particle filter's steps with a degenerate sample above which a run warns.
+DEGENERATE_WARNING = 0.3
+#: Between-track spread of the noise read off the data (relative) above which a run warns:
+#: 0.27 on gliders and survey aircraft at 6-33 s reports, at most 0.12 on the benchmark's other
+#: recorded kinds (``experiments/results/recorded_tracks.md``).
+NOISE_SPREAD_WARNING = 0.2
+#: Per-track error estimates a run keeps beyond this many tracks: the worst this many.
+TRACKS_KEPT = 10_000
+
+
+@dataclass
+class BlockEstimates:
+    """A block's estimates at its flat steps, filled group by group (:meth:`add`)."""
+
+    mean: np.ndarray  #: [S, 2m] NaN until estimated
+    cov: np.ndarray | None  #: [S, 2m, 2m]
+    never_observed: np.ndarray  #: [K, m] bool
+    notes: Counter[str] = field(default_factory=Counter)
+    groups: set[int] = field(default_factory=set)  #: positions of the groups added
+    risk: list[RiskTerms] = field(default_factory=list)  #: the groups' SURE terms
+    #: [K] each track's factor on the settings' ``q`` (NaN: one ``q`` for all, or not estimated)
+    q_factor: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: [S] bool steps set aside as outliers (:func:`~torchsvs.estimating.screen_group`), or
+    #: None where the groups are not screened
+    outlier: np.ndarray | None = None
+
+    @classmethod
+    def empty(
+        cls, steps: TrackSteps, covariance: bool = False, screened: bool = False
+    ) -> BlockEstimates:
+        """Nothing estimated yet; ``screened``: the groups will be screened for outliers (the
+        output gets its ``outlier`` column, in every block alike)."""
+        S, m = steps.position.shape
+        return cls(
+            np.full((S, 2 * m), np.nan),
+            np.full((S, 2 * m, 2 * m), np.nan) if covariance else None,
+            np.zeros((steps.num_tracks, m), dtype=bool),
+            q_factor=np.full(steps.num_tracks, np.nan),
+            outlier=np.zeros(S, dtype=bool) if screened else None,
+        )
+
+    def add(self, part: StepEstimates) -> None:
+        self.mean[part.steps] = part.mean
+        if self.cov is not None and part.cov is not None:
+            self.cov[part.steps] = part.cov
+        self.never_observed[part.group] = part.never_observed
+        self.notes.update(part.notes)
+        self.groups.add(part.position)
+        if part.risk is not None:
+            self.risk.append(part.risk)
+        if part.q_factor is not None:
+            self.q_factor[part.group] = part.q_factor
+        if part.outliers is not None:
+            assert self.outlier is not None, "BlockEstimates.empty(..., screened=True)"
+            self.outlier[part.outliers] = True
+
+    def table(self, block: TrackBlock) -> Any:
+        """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
+        return estimate_table(block, self.mean, self.cov, self.never_observed, self.outlier)
+
+
+@dataclass
+class TrackRun:
+    """What ``torchsvs track`` did."""
+
+    report: RowReport = field(default_factory=RowReport)
+    settings: Settings | None = None
+    seconds: float = 0.0
+    estimate_seconds: float = 0.0
+    estimate_cpu_seconds: float = 0.0  #: CPU time of this process (rank 0) while estimating
+    fit: Any = None  #: the fit's summary (:class:`~torchsvs.fitting.tuning.FitResult`)
+    #: seconds spent reading, reading off settings (and fitting), estimating, ..., writing
+    #: (rank 0's in a multi-process run, ``torchsvs.training.predict``)
+    phases: dict[str, float] = field(default_factory=dict)
+    risk: RiskTotals | None = None  #: the truth-free error estimate's totals
+    #: estimated position RMSE per track: id → (metres, observed points); the worst
+    #: :data:`TRACKS_KEPT` when there are more tracks
+    track_errors: dict[str, tuple[float, int]] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)  #: what the user must know
+    #: tracks per factor on the settings' ``q`` where each track ran with its own
+    q_factors: Counter[float] = field(default_factory=Counter)
+    #: the factor of the tracks in :attr:`track_errors` (id → factor)
+    track_q: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def accuracy(self) -> Accuracy | None:
+        """The truth-free error estimate of the whole run (:mod:`torchsvs.accuracy`)."""
+        if self.risk is None or self.settings is None or self.risk.points == 0:
+            return None
+        assert self.settings.meas_var is not None
+        return accuracy_of(
+            self.risk,
+            self.settings.meas_var,
+            noise_estimated=self.settings.noise != "given",
+            meas_var_range=meas_var_range(self.settings),
+        )
+
+    def add_block(self, found: BlockEstimates, steps: TrackSteps) -> None:
+        """Counts a block's estimates: its notes, tracks' q factors, error estimate's terms."""
+        self.report.add(steps.report)
+        self.report.notes.update(found.notes)
+        own = np.isfinite(found.q_factor)
+        self.q_factors.update(found.q_factor[own].tolist())
+        if self.risk is not None:
+            for terms in found.risk:
+                self.risk.add(terms)
+            self.add_track_errors(found.risk, steps.ids, found.q_factor)
+
+    def add_track_errors(
+        self, terms: Sequence[RiskTerms], ids: Sequence[str], q_factor: np.ndarray | None = None
+    ) -> None:
+        """Adds a block's per-track error estimates (the worst :data:`TRACKS_KEPT` kept), and
+        the kept tracks' q factors (``[K]``, NaN where none)."""
+        assert self.settings is not None and self.settings.meas_var is not None
+        m = len(self.settings.meas_var)
+        rmse, points = RiskTerms.concat(terms, m).per_track(self.settings.meas_var, len(ids))
+        for k in np.flatnonzero(points > 0):
+            self.track_errors[ids[int(k)]] = (float(rmse[k]), int(points[k]))
+            if q_factor is not None and np.isfinite(q_factor[k]):
+                self.track_q[ids[int(k)]] = float(q_factor[k])
+        if len(self.track_errors) > 2 * TRACKS_KEPT:
+            worst = sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
+            self.track_errors = dict(worst)
+            self.track_q = {k: v for k, v in self.track_q.items() if k in self.track_errors}
+
+    def check(self) -> None:
+        """Warns where the estimate is not clearly better than the raw measurements."""
+        found = self.accuracy
+        if found is None or self.settings is None:
+            return
+        name = self.settings.estimator
+        steps = self.report.notes.get("particle_steps", 0)
+        low = self.report.notes.get("particle_steps_degenerate", 0)
+        if steps and low > DEGENERATE_WARNING * steps:
+            self.warnings.append(
+                f"{name}: the particles degenerated (effective sample size below "
+                f"{DEGENERATE_SHARE:.0%} of them) at {low / steps:.0%} of the steps; there the "
+                "estimate rests on a few particles or the regularised Gaussian; try more "
+                "--particles or --estimator ks"
+            )
+        spread = self.settings.noise_spread
+        if self.settings.noise == "data" and spread is not None and spread > NOISE_SPREAD_WARNING:
+            self.warnings.append(
+                f"measurement noise: read off each track alone it differs between tracks by "
+                f"about {spread:.0%}, more than their own uncertainty: one noise level does not "
+                "fit every track (different sensors, or motion the model does not follow at "
+                "these report times), and the error estimate rests on it; give --meas-std with "
+                "the sensor's noise if known"
+            )
+        lowered = self.settings.noise_lowered_from
+        if lowered is not None:
+            self.warnings.append(
+                f"measurement noise: read off the data as {short(lowered)} m, at which the "
+                f"Kalman smoother was not clearly below the measurements over that reading's "
+                f"uncertainty; ran at its low end, {short(found.meas_std)} m (a noise read too "
+                "high smooths away motion the model does not follow); give --meas-std with the "
+                "sensor's noise if known"
+            )
+        if not found.clearly_better:
+            if self.settings.chosen_from is None:
+                better = "--estimator auto (tries the candidates, keeps the lowest estimated error)"
+                if name != "ks":
+                    better += " or --estimator ks"
+            else:
+                better = "--meas-std with the sensor's noise, if known (the noise may be misread)"
+            self.warnings.append(
+                f"{name}: estimated position error {found.estimated_rmse:.3g} m (up to "
+                f"{found.interval[1]:.3g} m) is not clearly below the measurements' "
+                f"{found.measurement_rmse:.3g} m; try {better}"
+            )
+
+    def summary_json(self) -> dict[str, Any]:
+        """The run's summary as written next to the output (``<output>.summary.json``)."""
+        found = self.accuracy
+        settings = asdict(self.settings) if self.settings is not None else None
+        out: dict[str, Any] = {
+            "estimator": None if self.settings is None else self.settings.estimator,
+            "settings": settings,
+            "rows": {"total": self.report.total, "placed": self.report.placed}
+            | (
+                {"outliers": self.report.notes.get("outliers", 0)}
+                if self.settings is not None and self.settings.screens
+                else {}
+            ),
+            "seconds": round(self.seconds, 3),
+            "warnings": self.warnings,
+        }
+        if found is not None:
+            out.update(
+                estimated_position_rmse=found.estimated_rmse,
+                estimated_position_rmse_interval=list(found.interval),
+                estimated_position_rmse_standard_error=found.standard_error,
+                measurement_rmse=found.measurement_rmse,
+                meas_std=found.meas_std,
+                noise=None if self.settings is None else self.settings.noise,
+                points=found.points,
+                method="Stein's unbiased risk estimate (no truth), torchsvs.accuracy",
+            )
+        out["tracks"] = {
+            k: {"estimated_position_rmse": v[0], "points": v[1]}
+            | ({"q_factor": self.track_q[k]} if k in self.track_q else {})
+            for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])
+        }
+        if self.q_factors:
+            out["q_per_track"] = {
+                "line": self.q_factor_line(),
+                "tracks_per_factor": {f"{k:.6g}": v for k, v in sorted(self.q_factors.items())},
+            }
+        if self.fit is not None:
+            out["fit"] = self.fit.summary()
+            table = getattr(self.fit, "candidates", None)
+            if table:
+                out["candidates"] = table
+        return out
+
+    def q_factor_line(self) -> str:
+        """How the tracks' own ``q`` spread around the file's."""
+        factors = np.array(sorted(self.q_factors.elements()))
+        own = int((factors != 1.0).sum())
+        return (
+            f"q per track: {own} of {len(factors)} tracks with their own, "
+            f"{factors.min():.3g}-{factors.max():.3g}× the file's (median "
+            f"{float(np.median(factors)):.3g}); --shared-q for one q"
+        )
+
+    def summary(self) -> str:
+        lines = [self.report.summary()]
+        if self.settings is not None:
+            shown = {k: v for k, v in asdict(self.settings).items() if v is not None}
+            shown.pop("q_curve", None)  # thirteen numbers: the summary file has them
+            lines.append("settings: " + ", ".join(f"{k}={short(v)}" for k, v in shown.items()))
+        if self.q_factors:
+            lines.append(self.q_factor_line())
+        found = self.accuracy
+        if found is not None:
+            lines.append(found.line())
+        lines.extend(f"warning: {w}" for w in self.warnings)
+        steps = self.report.placed
+        lines.append(
+            f"{self.seconds:.1f} s in all, {self.estimate_seconds:.1f} s estimating "
+            f"({self.estimate_cpu_seconds:.1f} s CPU; "
+            f"{1e6 * self.estimate_seconds / max(steps, 1):.2f} µs per row placed)"
+        )
+        if self.phases:
+            rest = self.seconds - sum(self.phases.values())
+            timed = ", ".join(f"{k} {v:.1f} s" for k, v in self.phases.items())
+            lines.append(f"phases: {timed}, other {rest:.1f} s")
+        return "\n".join(lines)
+
+
+def short(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(short(v) for v in value) + "]"
+    return str(value)
+
+
+def summary_path(target: str | Path) -> Path:
+    """Where ``torchsvs track`` writes its JSON summary: ``out.csv`` → ``out.summary.json``."""
+    return Path(target).with_suffix(".summary.json")
+
+
+def write_summary(run: TrackRun, path: Path) -> None:
+    """The run's summary (:meth:`TrackRun.summary_json`) as JSON."""
+    import json
+
+    path.write_text(json.dumps(run.summary_json(), indent=1, default=_json_default) + "\n")
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    raise TypeError(f"not JSON: {type(value).__name__}")
