@@ -16,7 +16,6 @@ and two PNGs.
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,8 @@ import torch
 from torch import Tensor
 
 import torchsvs as ts
+from experiments import common
+from experiments.common import RESULTS
 from experiments.svss_paper import COMPLEX_PSI, GAMMA, table3_estimators
 from torchsvs.estimator import Estimator, at_step
 from torchsvs.evaluation import evaluate, markdown_table
@@ -33,8 +34,6 @@ from torchsvs.filters.imm import log_mode_likelihood
 from torchsvs.linalg import cholesky, gaussian_log_density
 from torchsvs.metrics import rmse_over_time
 from torchsvs.scenarios import complex_scenario
-
-RESULTS = Path(__file__).parent / "results"
 
 #: The transition matrices compared (rows: from SVSF, from KF); the first is the main one.
 TRANSITIONS = {
@@ -408,22 +407,17 @@ def report(res: Results) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RESULTS) -> None:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=500, help="Monte Carlo runs (default 500)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument(
-        "--out", type=Path, default=out, help=f"where the report and figures go (default {out})"
+def main(argv: list[str] | None = None, out: Path = RESULTS) -> None:
+    common.main(
+        "imm_svsf_kf",
+        __doc__,
+        lambda args: run(args.runs, args.seed),
+        figures,
+        lambda res, pngs: report(res),
+        runs=500,
+        argv=argv,
+        out=out,
     )
-    args = parser.parse_args(argv)
-    torch.set_num_threads(1)
-    args.out.mkdir(parents=True, exist_ok=True)
-    res = run(args.runs, args.seed)
-    pngs = figures(res, args.out)
-    text = report(res)
-    (args.out / "imm_svsf_kf.md").write_text(text)
-    print(text)
-    print(f"written: {args.out / 'imm_svsf_kf.md'} and {', '.join(pngs)}")
 
 
 if __name__ == "__main__":

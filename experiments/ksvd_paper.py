@@ -32,11 +32,10 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 import torchsvs as ts
+from experiments import common
+from experiments.common import RESULTS
 from torchsvs.evaluation import markdown_table, save_figure
 from torchsvs.scenarios import dme as dme_module
-
-#: Where `python -m` writes the report: the tracked results of the checkout.
-RESULTS = Path(__file__).parent / "results"
 
 #: The covariance forms of the paper's comparison, in the order of the tables.
 FORMS = ("joseph", "conventional", "sqrt", "ud", "svd")
@@ -675,26 +674,27 @@ def report(res: Results, pngs: list[str]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RESULTS) -> None:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=100, help="Example 4 runs (default 100)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+def _quick(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--quick",
         action="store_true",
         help="a smoke test: 4 runs, Example 4's degraded flights in float64, no window sweep",
     )
-    parser.add_argument(
-        "--out", type=Path, default=out, help=f"where the report and figures go (default {out})"
+
+
+def main(argv: list[str] | None = None, out: Path = RESULTS) -> None:
+    common.main(
+        "ksvd_paper",
+        __doc__,
+        lambda args: reproduce(4 if args.quick else args.runs, args.seed, args.quick),
+        figures,
+        report,
+        runs=100,
+        runs_help="Example 4 runs",
+        options=_quick,
+        argv=argv,
+        out=out,
     )
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    res = reproduce(4 if args.quick else args.runs, args.seed, args.quick)
-    pngs = figures(res, args.out)
-    text = report(res, pngs)
-    (args.out / "ksvd_paper.md").write_text(text)
-    print(text)
-    print(f"written: {args.out / 'ksvd_paper.md'} and {', '.join(pngs)}")
 
 
 if __name__ == "__main__":
