@@ -57,7 +57,7 @@ def main(
     *,
     runs: int,
     runs_help: str = "Monte Carlo runs",
-    options: Callable[[argparse.ArgumentParser], None] | None = None,
+    options: Callable[[argparse.ArgumentParser], object] | None = None,
     argv: Sequence[str] | None = None,
     out: Path = RESULTS,
 ) -> Results:
