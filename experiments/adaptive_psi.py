@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import time
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,8 @@ import torch
 from torch import Tensor, nn
 
 import torchsvs as ts
+from experiments import common
+from experiments.common import RESULTS, render
 from experiments.learn_psi import COMPLEX_GRID, load, position_rmse
 from torchsvs.evaluation import markdown_table, psi_sweep
 from torchsvs.scenarios import complex_scenario
@@ -116,24 +119,34 @@ def figure(adaptive: AdaptivePsiSVSS, sc: ts.scenarios.Scenario, path: Path) -> 
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--epochs", type=int, default=6)
-    parser.add_argument("--runs", type=int, default=500)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
-    args = parser.parse_args(argv)
+@dataclass
+class Results:
+    """The trained models and the scores the report and the figure need."""
+
+    epochs: int
+    constant: Any  #: the SVSS with a learned constant ψ, γ
+    adaptive: AdaptivePsiSVSS
+    constant_time: float  #: training time (s)
+    adaptive_time: float
+    paper: ts.scenarios.Scenario  #: the complex scenario of the paper
+    #: per test set: grid-best constant, learned constant, adaptive RMSE, change, ψ_t range
+    rows: list[list[object]] = field(default_factory=list)
+
+
+def reproduce(epochs: int = 6, runs: int = 500, seed: int = 0) -> Results:
+    """Trains both models on the same random maneuvers and scores them, and the best constant
+    ψ of a grid, on the paper's complex scenario (``runs`` runs) and held-out maneuvers."""
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
     warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-    L.seed_everything(args.seed, verbose=False)
+    L.seed_everything(seed, verbose=False)
 
-    constant, data = load("complex", args.epochs)
-    constant_time = fit(constant, data, args.epochs, lr=0.1)
-    adaptive_base, _ = load("complex", args.epochs)
+    constant, data = load("complex", epochs)
+    constant_time = fit(constant, data, epochs, lr=0.1)
+    adaptive_base, _ = load("complex", epochs)
     adaptive = AdaptivePsiSVSS(adaptive_base)
-    adaptive_time = fit(adaptive, data, args.epochs, lr=0.03)
+    adaptive_time = fit(adaptive, data, epochs, lr=0.03)
 
-    paper_sc = complex_scenario(args.runs, torch.Generator().manual_seed(args.seed))
+    paper_sc = complex_scenario(runs, torch.Generator().manual_seed(seed))
     data.setup("test")
     held_out = data.datasets["test"]
     tests = {
@@ -156,7 +169,7 @@ def main(argv: list[str] | None = None) -> None:
         scores = psi_sweep(fixed, z, x0, P0, truth, grid, position_rmse)
         grid_best[name] = min(smoothed for _, smoothed in scores)
 
-    rows = []
+    rows: list[list[object]] = []
     for name, (z, x0, P0, truth) in tests.items():
         with torch.no_grad():
             c = position_rmse(constant(z, x0, P0).mean, truth)
@@ -172,40 +185,61 @@ def main(argv: list[str] | None = None) -> None:
                 f"{psi_t[..., 0].min():.0f}-{psi_t[..., 0].max():.0f}",
             ]
         )
-    figure(adaptive, paper_sc, args.out / "adaptive_psi.png")
-    text = "\n".join(
-        [
-            "# Adaptive ψ: an estimator as a layer",
-            "",
-            f"`python -m experiments.adaptive_psi --epochs {args.epochs}`. Both models are trained "
-            "(supervised, SVSS lag 1, complex-scenario sensor, shipped config `complex_svss`) "
-            "on the same random maneuvers from ψ = 100 m; the adaptive one adds a causal "
-            f"network (innovations of a KF pre-pass over {adaptive.window} steps → log ψ_t scale; "
-            f"{sum(p.numel() for p in adaptive.net.parameters())} weights). Training times: constant "
-            f"{constant_time:.0f} s, adaptive {adaptive_time:.0f} s.",
-            "",
-            markdown_table(
-                [
-                    "test set",
-                    "grid-best constant ψ (γ = 0.1)",
-                    "learned constant ψ, γ",
-                    "adaptive ψ_t",
-                    "adaptive vs constant",
-                    "ψ_t range (position)",
-                ],
-                rows,
-            ),
-            "",
-            f"Learned constant: ψ = {[round(p) for p in constant.filter.psi.tolist()]}, γ = {constant.filter.gamma.item():.3f}; "
-            f"adaptive base: ψ = {[round(p) for p in adaptive.svss.filter.psi.tolist()]}, γ = {adaptive.svss.filter.gamma.item():.3f}.",
-            "",
-            "Position RMSE (m) over both axes. The result is reported as measured, better or not.",
-            "",
-            "![adaptive psi](adaptive_psi.png)",
-        ]
+    return Results(epochs, constant, adaptive, constant_time, adaptive_time, paper_sc, rows)
+
+
+def figures(res: Results, out: Path) -> list[str]:
+    """ψ_t over the complex scenario; returns the file name."""
+    figure(res.adaptive, res.paper, out / "adaptive_psi.png")
+    return ["adaptive_psi.png"]
+
+
+def report(res: Results, pngs: list[str]) -> str:
+    """The results file: the prose of ``templates/adaptive_psi.md`` around the table."""
+    constant, adaptive = res.constant, res.adaptive
+    header = [
+        "test set",
+        "grid-best constant ψ (γ = 0.1)",
+        "learned constant ψ, γ",
+        "adaptive ψ_t",
+        "adaptive vs constant",
+        "ψ_t range (position)",
+    ]
+    return (
+        render(
+            "adaptive_psi",
+            "report",
+            epochs=res.epochs,
+            window=adaptive.window,
+            weights=sum(p.numel() for p in adaptive.net.parameters()),
+            constant_time=f"{res.constant_time:.0f}",
+            adaptive_time=f"{res.adaptive_time:.0f}",
+            table=markdown_table(header, res.rows),
+            constant_psi=[round(p) for p in constant.filter.psi.tolist()],
+            constant_gamma=f"{constant.filter.gamma.item():.3f}",
+            adaptive_psi=[round(p) for p in adaptive.svss.filter.psi.tolist()],
+            adaptive_gamma=f"{adaptive.svss.filter.gamma.item():.3f}",
+        )
+        + "\n"
     )
-    (args.out / "adaptive_psi.md").write_text(text + "\n")
-    print(text)
+
+
+def _epochs(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--epochs", type=int, default=6, help="training epochs (default 6)")
+
+
+def main(argv: list[str] | None = None, out: Path = RESULTS) -> None:
+    common.main(
+        "adaptive_psi",
+        __doc__,
+        lambda args: reproduce(args.epochs, args.runs, args.seed),
+        figures,
+        report,
+        runs=500,
+        options=_epochs,
+        argv=argv,
+        out=out,
+    )
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ and two PNGs.
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,8 @@ import torch
 from torch import Tensor
 
 import torchsvs as ts
+from experiments import common
+from experiments.common import RESULTS, render
 from experiments.svss_paper import COMPLEX_PSI, GAMMA, table3_estimators
 from torchsvs.estimator import Estimator, at_step
 from torchsvs.evaluation import evaluate, markdown_table
@@ -33,8 +34,6 @@ from torchsvs.filters.imm import log_mode_likelihood
 from torchsvs.linalg import cholesky, gaussian_log_density
 from torchsvs.metrics import rmse_over_time
 from torchsvs.scenarios import complex_scenario
-
-RESULTS = Path(__file__).parent / "results"
 
 #: The transition matrices compared (rows: from SVSF, from KF); the first is the main one.
 TRANSITIONS = {
@@ -212,6 +211,7 @@ def phase_rmse(res: Results) -> list[list[str]]:
 
 
 def report(res: Results) -> str:
+    """The results file: the prose of ``templates/imm_svsf_kf.md`` around the tables."""
     rows = []
     for name, (rmse, us) in res.rows.items():
         kind = KINDS.get(name, "IMM filter")
@@ -274,156 +274,65 @@ def report(res: Results) -> str:
         peaks.append(f"{float(mu_main[k]):.2f} at {k + 1} s in the {label.split(' (')[0]}")
     steady = float(mu_main[45:75].mean())
     hplus = res.rows["IMM(SVSF H⁺, KF), π_ii = 0.95"][0]
-    lines = [
-        "# IMM of an SVSF and a KF on the complex scenario (Chen et al. 2020, Sec 4.2)",
-        "",
-        f"`python -m experiments.imm_svsf_kf --runs {res.runs}`: the Monte Carlo runs, seed, model "
-        "(Q of Eq 48 with L = 15, R = 100² m²), prior and SVSF settings (ψ = 500/600, γ = 0.1, "
-        "the Eq 51 finite-difference velocity with its derived noise) of "
-        "`experiments/svss_paper.py`'s Table 3, whose rows reappear below unchanged. "
-        f"float64, one batch per estimator, {res.seconds:.0f} s.",
-        "",
-        "## Is the SVSF mode's likelihood meaningful?",
-        "",
-        "What an SVSF step gives the IMM: its result has no log-likelihood of its own "
-        "(`log_likelihood` is None), so the IMM scores it by the Gaussian density of its a-priori "
-        "innovation under `innovation_cov`, S = H P⁻ Hᵀ + R, with P⁻ the prediction from the SVSF's "
-        "Joseph-form covariance (`log_mode_likelihood`; checked here against "
-        "`gaussian_log_density` on one step of the SVSF run: largest difference "
-        f"{res.likelihood_check:.1e}). Three consequences:",
-        "",
-        "1. **The modes must measure the same thing.** Table 3's SVSF corrects with the artificial "
-        "measurement [z, finite-difference velocity] (4 components) while the KF measures z (2): "
-        "their densities are over different spaces and the IMM refuses the pair (`ValueError: "
-        "filters: the modes' correctors measure different things`). The KF mode here is "
-        "therefore `ArtificialKalmanFilter`, the Kalman correction on the same [z, FD velocity] "
-        "with the same derived R: not the position-only KF of Table 3 (its own row, 'KF on [z, "
-        "FD velocity]'). The alternative that the IMM accepts as is, the SVSF in its H⁺ mode "
-        "(measures z, never corrects the velocity) beside the plain KF, is the last row.",
-        "2. **The SVSF's S is not the KF's.** The SVSF's gain is not the Kalman gain, so its "
-        "Joseph covariance is larger (median position variance "
-        f"{res.spread['SVSF']:.0f} m² against {res.spread['KF on [z, FD velocity]']:.0f} m² for "
-        "the KF on the same measurement): its density is flatter, so it loses the likelihood "
-        "comparison where both modes predict well and wins it where the KF mode lags (in the "
-        f"IMM with π_ii = {MAIN}, the mean log Λ_SVSF − log Λ_KF is {gaps[0]:+.2f} on the "
-        f"straight segment and {max(gaps):+.2f} at its highest, in the "
-        f"{list(PHASES)[gaps.index(max(gaps))].split(' (')[0]}; table below). The normalised "
-        "innovation squared eᵀS⁻¹e per component (1 for a consistent filter) shows how well "
-        "each S describes its own innovations, per phase:",
-        "",
-        markdown_table(["filter alone", "median P_xx (m²)", *PHASES], nis_rows),
-        "",
-        f"The SVSF's S describes its own innovations in every phase (normalised innovation "
-        f"squared {min(res.nis['SVSF']):.2f}-{max(res.nis['SVSF']):.2f} per component), the "
-        "KF's only on the straight segment (up to "
-        f"{max(res.nis['KF']):.0f} in the maneuvers): the SVSF mode's likelihood is the "
-        "better calibrated of the two, which is what lets the IMM move to it when the KF mode "
-        "lags. One caveat of scoring the artificial measurement: its density counts z_k twice "
-        "(in the position and in the velocity) and the previous step's noise as new, so both "
-        "modes' likelihoods are sharper than the density of z_k alone would be; their ratio is "
-        "what moves μ, and it moves faster than a position-only score would move it. Scoring "
-        "the SVSF mode on the measured components only (the marginal of its S, the exact "
-        "density of z_k) would need the IMM to score a mode on part of its corrector's "
-        "measurement, which `torchsvs/filters/imm.py` does not offer.",
-        "",
-        "3. **The mode probabilities are not degenerate.** Per phase: mean μ_SVSF over runs "
-        "and steps, and in parentheses the mean log-likelihood difference log Λ_SVSF − log Λ_KF; "
-        "last column: the share of (run, step) pairs with 0.01 < μ_SVSF < 0.99.",
-        "",
-        markdown_table(["IMM", *PHASES, "μ inside (0.01, 0.99)"], phase_rows),
-        "",
-        f"With π_ii = {MAIN}, averaged over the runs: the KF mode is trusted on the straight "
-        f"segment (mean μ_SVSF {straight:.2f} from 5 s to 20 s); μ_SVSF peaks a few seconds "
-        f"after each maneuver begins ({'; '.join(peaks)}), and falls back once the KF mode, "
-        "restarted at every step from the mixture that already holds the SVSF's estimate, "
-        f"follows the maneuver again (mean {steady:.2f} over 45-75 s of the steady 3°/s turn). "
-        "Single runs swing much further than the mean (the shaded 10-90% band). With π_ii = "
-        "0.50 the probabilities stay at 0.5 by construction (see the RMSE section). In the last "
-        "row, where both modes measure z, the probabilities do not collapse either, but the "
-        "SVSF mode wins through the turns with an uncorrected velocity.",
-        "",
-        "![mode probabilities](imm_svsf_kf_mode_probs.png)",
-        "",
-        "## Accumulative RMSE (all runs, all steps)",
-        "",
-        "Transition matrices π (rows from SVSF, from KF; a symmetric switch probability): "
-        f"π_ii = {MAIN} (the main one: a mean sojourn of 20 steps, shorter than the scenario's "
-        "segments of 20-55 s), 0.80 (fast switching), 0.99 (sticky) and 0.50 (no memory of the "
-        "mode: see below). Smoother rows see one "
-        "measurement ahead (lag 1) and are not comparable with the filters; they are Table 3's.",
-        "",
-        markdown_table(
-            [
-                "estimator",
-                "kind",
-                "x position (m)",
-                "x velocity (m/s)",
-                "y position (m)",
-                "y velocity (m/s)",
-                "µs/track-step",
-            ],
-            rows,
-        ),
-        "",
-        f"The main IMM (π_ii = {MAIN}) against each of its modes alone (relative change):",
-        "",
-        markdown_table(
-            [
-                "component",
-                "IMM",
-                "SVSF alone",
-                "KF alone (position-only, Table 3)",
-                "KF mode alone",
-            ],
-            vs,
-        ),
-        "",
-        f"Of the transition matrices, π_ii = {best} has the lowest sum of the four RMSEs. "
-        "With π_ii = 0.50 both modes restart from the same mixture at every step; on one model "
-        "they then make the same prediction, hence the same innovation and S, and score alike "
-        f"(largest |log Λ_SVSF − log Λ_KF| over all runs and steps: {half_gap:.1e}): μ stays "
-        "0.5, and the estimate is the plain average of an SVSF correction and a KF correction "
-        "of one prediction. So on this scenario most of the IMM's gain over its modes comes "
-        "from blending the two correctors (the SVSF's robustness, the KF's smoothing), not "
-        "from recognising the maneuvers: a mode's likelihood on the same model can only tell "
-        "the modes apart through the history its own posterior carries, which the mixing "
-        "erases at π_ii = 0.5 and keeps at π_ii near 1, where the IMM does follow the "
-        "maneuvers (the mode probabilities above) but estimates less well. "
-        f"The IMM of the H⁺-mode SVSF and the plain KF reaches {hplus[0]:.0f}/{hplus[2]:.0f} m "
-        f"in position but {hplus[1]:.0f}/{hplus[3]:.0f} m/s in velocity: its SVSF mode never "
-        "corrects the velocity, and the KF mode (which lags in the turns) is the only source of "
-        "velocity information through the mixing. Cost: the IMMs run the general tensor step "
-        "in a Python loop over time (two filters, mixing and combination per step), the single "
-        "filters the compiled per-axis loops (`torchsvs.kernels.fused_axes`).",
-        "",
-        "Per phase (position / velocity RMSE per axis, pooled over x and y and the phase's "
-        "steps): on the straight segment the KFs are the most accurate and every IMM pays for "
-        "its SVSF mode; through the maneuvers the IMMs are.",
-        "",
-        markdown_table(["estimator", *PHASES], phase_rmse(res)),
-        "",
-        "![RMSE over time](imm_svsf_kf_rmse.png)",
-        "",
+    rmse_header = [
+        "estimator",
+        "kind",
+        "x position (m)",
+        "x velocity (m/s)",
+        "y position (m)",
+        "y velocity (m/s)",
+        "µs/track-step",
     ]
-    return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RESULTS) -> None:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=500, help="Monte Carlo runs (default 500)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument(
-        "--out", type=Path, default=out, help=f"where the report and figures go (default {out})"
+    versus_header = [
+        "component",
+        "IMM",
+        "SVSF alone",
+        "KF alone (position-only, Table 3)",
+        "KF mode alone",
+    ]
+    return (
+        render(
+            "imm_svsf_kf",
+            "report",
+            runs=res.runs,
+            seconds=f"{res.seconds:.0f}",
+            likelihood_check=f"{res.likelihood_check:.1e}",
+            spread_svsf=f"{res.spread['SVSF']:.0f}",
+            spread_kf=f"{res.spread['KF on [z, FD velocity]']:.0f}",
+            main=MAIN,
+            gap_straight=f"{gaps[0]:+.2f}",
+            gap_max=f"{max(gaps):+.2f}",
+            gap_max_phase=list(PHASES)[gaps.index(max(gaps))].split(" (")[0],
+            nis=markdown_table(["filter alone", "median P_xx (m²)", *PHASES], nis_rows),
+            nis_svsf=f"{min(res.nis['SVSF']):.2f}-{max(res.nis['SVSF']):.2f}",
+            nis_kf=f"{max(res.nis['KF']):.0f}",
+            phases=markdown_table(["IMM", *PHASES, "μ inside (0.01, 0.99)"], phase_rows),
+            straight=f"{straight:.2f}",
+            peaks="; ".join(peaks),
+            steady=f"{steady:.2f}",
+            rows=markdown_table(rmse_header, rows),
+            versus=markdown_table(versus_header, vs),
+            best=best,
+            half_gap=f"{half_gap:.1e}",
+            hplus_position=f"{hplus[0]:.0f}/{hplus[2]:.0f}",
+            hplus_velocity=f"{hplus[1]:.0f}/{hplus[3]:.0f}",
+            phase_rmse=markdown_table(["estimator", *PHASES], phase_rmse(res)),
+        )
+        + "\n"
     )
-    args = parser.parse_args(argv)
-    torch.set_num_threads(1)
-    args.out.mkdir(parents=True, exist_ok=True)
-    res = run(args.runs, args.seed)
-    pngs = figures(res, args.out)
-    text = report(res)
-    (args.out / "imm_svsf_kf.md").write_text(text)
-    print(text)
-    print(f"written: {args.out / 'imm_svsf_kf.md'} and {', '.join(pngs)}")
+
+
+def main(argv: list[str] | None = None, out: Path = RESULTS) -> None:
+    common.main(
+        "imm_svsf_kf",
+        __doc__,
+        lambda args: run(args.runs, args.seed),
+        figures,
+        lambda res, pngs: report(res),
+        runs=500,
+        argv=argv,
+        out=out,
+    )
 
 
 if __name__ == "__main__":

@@ -25,6 +25,8 @@ from lightning.pytorch.loggers import CSVLogger
 from tqdm.auto import tqdm
 
 import torchsvs as ts
+from experiments import common
+from experiments.common import RESULTS, render
 from torchsvs.evaluation import markdown_table, psi_sweep
 from torchsvs.metrics import pooled_rmse
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
@@ -223,32 +225,37 @@ def figures(runs: list[Run], grids: dict[str, dict], out: Path) -> list[str]:
     return names
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--batches", type=int, default=None, help="training batches per epoch")
-    parser.add_argument(
-        "--runs", type=int, default=500, help="Monte Carlo runs of the paper scenarios"
-    )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
-    args = parser.parse_args(argv)
+@dataclass
+class Results:
+    """The training runs, grid sweeps and table rows the report and the figures need."""
+
+    epochs: int
+    runs: int  #: Monte Carlo runs of the paper scenarios
+    trained: list[Run]
+    grids: dict[str, dict]
+    rows: list[list[object]]
+    checks: list[str]
+    seconds: float
+
+
+def reproduce(
+    epochs: int = 4, batches: int | None = None, runs: int = 500, seed: int = 0
+) -> Results:
+    """Trains ψ, γ of the SVSS and SVSF of each family with either loss, sweeps the grids and
+    scores everything on the paper's scenarios (``runs`` runs, seeded)."""
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
     warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-    args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
 
-    scenarios = {
-        f: FAMILIES[f][1](args.runs, torch.Generator().manual_seed(args.seed)) for f in FAMILIES
-    }
-    runs: list[Run] = []
+    scenarios = {f: FAMILIES[f][1](runs, torch.Generator().manual_seed(seed)) for f in FAMILIES}
+    trained: list[Run] = []
     jobs = [
         (f, e, loss) for f in FAMILIES for e in ("SVSS", "SVSF") for loss in ("supervised", "sure")
     ]
     for family, estimator, loss in tqdm(jobs, desc="training runs"):
-        svss, run = train(family, estimator, loss, args.epochs, args.batches, args.seed)
+        svss, run = train(family, estimator, loss, epochs, batches, seed)
         run.rmse = evaluate(svss, scenarios[family])
-        runs.append(run)
+        trained.append(run)
 
     grids, rows, checks = {}, [], []
     for family in tqdm(FAMILIES, desc="grid sweeps"):
@@ -286,7 +293,7 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(
                 [family, name, "grid-best ψ, γ = 0.1", fmt(psi_best), 0.1, rmse_best[k], 1.0]
             )
-            for run in (r for r in runs if r.family == family and r.estimator == name):
+            for run in (r for r in trained if r.family == family and r.estimator == name):
                 ratio = run.rmse[k] / rmse_best[k]
                 rows.append(
                     [
@@ -304,64 +311,50 @@ def main(argv: list[str] | None = None) -> None:
                     checks.append(
                         f"{family} SVSS, {run.loss}: {ratio:.3f}× grid-best (target ≤ {limit}): {'met' if ratio <= limit else 'NOT met'}"
                     )
-    pngs = figures(runs, grids, args.out)
-    seconds = time.perf_counter() - start
-    text = report(rows, checks, runs, args, seconds)
-    (args.out / "learn_psi.md").write_text(text)
-    print(text)
-    print(f"written: {args.out / 'learn_psi.md'}, {', '.join(pngs)}")
+    return Results(epochs, runs, trained, grids, rows, checks, time.perf_counter() - start)
+
+
+def _options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--epochs", type=int, default=4, help="training epochs (default 4)")
+    parser.add_argument("--batches", type=int, default=None, help="training batches per epoch")
+
+
+def main(argv: list[str] | None = None, out: Path = RESULTS) -> None:
+    common.main(
+        "learn_psi",
+        __doc__,
+        lambda args: reproduce(args.epochs, args.batches, args.runs, args.seed),
+        lambda res, folder: figures(res.trained, res.grids, folder),
+        report,
+        runs=500,
+        runs_help="Monte Carlo runs of the paper scenarios",
+        options=_options,
+        argv=argv,
+        out=out,
+    )
 
 
 def fmt(psi: list[float] | tuple[float, ...]) -> str:
     return "[" + ", ".join(f"{p:.0f}" for p in psi) + "]"
 
 
-def report(
-    rows: list, checks: list[str], runs: list[Run], args: argparse.Namespace, seconds: float
-) -> str:
+def report(res: Results, pngs: list[str]) -> str:
+    """The results file: the prose of ``templates/learn_psi.md`` around the table."""
     header = ["scenario", "output", "ψ, γ from", "ψ", "γ", "position RMSE (m)", "÷ grid-best"]
-    times = ", ".join(f"{r.family} {r.estimator} {r.loss} {r.seconds:.0f} s" for r in runs)
+    times = ", ".join(f"{r.family} {r.estimator} {r.loss} {r.seconds:.0f} s" for r in res.trained)
     return (
-        "\n".join(
-            [
-                "# Learning ψ and γ (torchsvs)",
-                "",
-                f"`python -m experiments.learn_psi --epochs {args.epochs}`: {seconds:.0f} s in all. Training starts "
-                "from ψ = 100 m, γ = 0.1, on random maneuvers drawn by `torchsvs.scenarios.random_maneuvers` "
-                "with the paper's sensor and model (shipped configs `atc_svss`, "
-                "`complex_svss` of `torchsvs fit --config`), and is evaluated on the paper's scenarios "
-                f"({args.runs} runs, never seen in training). Position RMSE is over both axes. "
-                "`supervised`: MSE to truth; `sure`: Stein's unbiased estimate of the same MSE from the "
-                "known 200 m / 100 m noise, no truth. Rows `output = SVSF` train and score the filter alone.",
-                "",
-                markdown_table(header, rows),
-                "",
-                "## Targets",
-                "",
-                *[f"- {c}" for c in checks],
-                "",
-                f"Training times: {times}.",
-                "",
-                "![curves](learn_psi_curves.png)",
-                "![grid](learn_psi_vs_grid.png)",
-                "",
-                NOTES,
-            ]
+        render(
+            "learn_psi",
+            "report",
+            epochs=res.epochs,
+            seconds=f"{res.seconds:.0f}",
+            runs=res.runs,
+            table=markdown_table(header, res.rows),
+            checks="\n".join(f"- {c}" for c in res.checks),
+            times=times,
         )
         + "\n"
     )
-
-
-NOTES = """## Notes
-
-- The grid sweeps fix γ = 0.1 (the paper's value) and sweep ψ: a scalar 100-3000 m in steps of
-  50 m for the ATC case, and (position width, velocity width) on a 100-1600 grid in steps of 100 for
-  the complex case. Learning moves γ as well, which is why a learned pair can beat the grid.
-- Self-supervised alternatives that need no noise model do worse here: the one-step prediction
-  error (`loss: prediction`) and the innovation NLL (`loss: nll`) reward following the
-  measurements and drive ψ toward 0 (measured on the ATC family: ψ ≈ 15-25 m, SVSS RMSE 144 m,
-  1.29× grid-best). SURE targets the estimate's own error and lands next to the supervised optimum.
-"""
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from experiments.common import render
 from experiments.recorded_sets import build_sets
 from torchsvs.accuracy import PROBE_STEP, draw_probe, risk_terms
 from torchsvs.accuracy import accuracy as accuracy_of
@@ -356,7 +357,9 @@ def main(argv: list[str] | None = None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     figure(args.out / "network_psi.png", ratios)
     elapsed = time.perf_counter() - start
-    text = REPORT.format(
+    text = render(
+        "network_psi",
+        "report",
         command=f"python -m experiments.network_psi --epochs {args.epochs} --rows {args.rows} "
         f"--lr {args.lr} --seed {args.seed}",
         notes="\n".join(f"- {n}" for n in notes),
@@ -368,36 +371,6 @@ def main(argv: list[str] | None = None) -> None:
     (args.out / "network_psi.md").write_text(text)
     print(table)
     print(f"total {elapsed:.0f} s")
-
-
-REPORT = """# ψ from a network, trained without truth, on recorded tracks
-
-`{command}` ({elapsed} min). Issue 29, item 5: the estimator as a layer. A network of {weights} weights
-(`experiments.network_psi.PsiNetwork`) reads a Kalman filter pre-pass's normalised
-innovations over the 7 steps centred on each step and scales the variable boundary layer's limit
-ψ per step and axis; it also learns one factor on every file's fitted q, so that ψ_t can decide
-where to inflate a quieter model. It is trained by SURE alone (no truth) on the first halves of
-the tracks of the sets named, and scored with the truth on the second halves of every set. On each
-half, every estimator starts from that half's own truth-free settings (noise read off the data,
-then `--fit`, as `torchsvs track --fit` does). All three run alike here: whole tracks, shared q
-(no per-track q factors, no outlier screen), so the columns differ only in ψ_t. The result is
-reported as measured, better or not: a mean below 1 is a gain.
-
-{notes}
-
-## Held-out RMSE
-
-{table}
-
-![network psi](network_psi.png)
-
-## Could a user tell, without truth?
-
-SURE's estimate / the true RMSE (m) on each held-out half, of the SVSS and of each network's ψ_t
-(same probes):
-
-{estimates}
-"""
 
 
 if __name__ == "__main__":

@@ -38,15 +38,16 @@ import sys
 import tempfile
 import time
 import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from experiments import traffic_baseline
+from experiments.common import RESULTS, render
 from experiments.flight_data import load_flights, noisy, score, split
 from torchsvs.datasets import RecordedTracks, with_prior
 from torchsvs.datasets.flights import flight_steps
@@ -65,7 +66,6 @@ from torchsvs.kernels import build, eager_loops
 from torchsvs.metrics import pooled_rmse
 from torchsvs.recipes import Settings, make_estimator, make_model, rule_of_thumb_psi
 
-RESULTS = Path(__file__).parent / "results"
 #: The IMM's rows in the held-out table start with this label.
 IMM_LABEL = "IMM(CV, CT)"
 #: The IMM rows are its filter (``torchsvs track --estimator imm --lag 0``; ``track`` smooths
@@ -437,18 +437,49 @@ def table_row(
     ]
 
 
-def main_table(
+class Row(NamedTuple):
+    """One estimator's scores on the held-out flights, and the settings it ran with."""
+
+    label: str
+    source: str
+    settings: Settings | None
+    result: dict[str, float]
+
+
+@dataclass
+class HeldOut:
+    """The held-out study's numbers (:func:`held_out_study`), all that :func:`held_out_lines`
+    formats."""
+
+    sigma: float
+    lag: int  #: the SVSS lag of the learned rows
+    measurements: dict[str, float]  #: the scores of the measurements themselves
+    rows: list[Row]
+    fits: dict[str, Any]  #: label → the truth-free fit (``self_tune``'s result)
+    ks_test: dict[float, float]  #: the KS's q grid on the held-out flights (needs their truth)
+    sv_test: dict[tuple[float, float], float]  #: the SVSS's (q, ψ limit) grid, likewise
+    clis: dict[str, dict[str, float]]  #: ``torchsvs track --fit`` per estimator
+    #: traffic's smoother on the held-out flights (mean, seconds, points), where installed
+    traffic: tuple[torch.Tensor, float, int] | None = None
+
+    @property
+    def results(self) -> dict[str, dict[str, float]]:
+        """Each row's scores by ``"label, source"``."""
+        return {f"{r.label}, {r.source}": r.result for r in self.rows}
+
+
+def held_out_study(
     train: RecordedTracks, test: RecordedTracks, quick: bool, progress: bool
-) -> list[str]:
-    sigma = MAIN_SIGMA
-    rows: list[list[object]] = []
-    results: dict[str, dict[str, float]] = {}
+) -> HeldOut:
+    """Every estimator on the held-out flights: rules of thumb, grids, truth-free fits on the
+    training flights, training on simulation, traffic's smoother and ``torchsvs track --fit``."""
+    sigma, lag = MAIN_SIGMA, DEFAULT_SVSS_LAG
+    rows: list[Row] = []
 
     def add(label: str, source: str, settings: Settings | None, result: dict[str, float]) -> None:
-        results[f"{label}, {source}"] = result
-        rows.append(table_row(label, source, settings, result))
+        rows.append(Row(label, source, settings, result))
 
-    raw = score(
+    measurements = score(
         torch.stack(
             [
                 test.z[..., 0],
@@ -460,8 +491,6 @@ def main_table(
         ),
         test,
     )
-    rows.append(["measurements", "—", f"{raw['position']:.1f}", "", "", "", ""])
-    lag = DEFAULT_SVSS_LAG
     names = ["kf", "ks", "svsf", "svss", "svstps", "rstkf"]
     for name in tqdm(names, desc="rules of thumb", disable=not progress, leave=False):
         s = rule_of_thumb(name, train, sigma)
@@ -473,12 +502,8 @@ def main_table(
     ks_base = rule_of_thumb("ks", train, sigma)
     ks_train, ks_test = grid_ks(ks_base, train), grid_ks(ks_base, test)
     q_train = min(ks_train, key=ks_train.get)  # type: ignore[arg-type]
-    add(
-        "KS",
-        "grid (training)",
-        replace(ks_base, q=q_train),
-        evaluate(replace(ks_base, q=q_train), test),
-    )
+    chosen = replace(ks_base, q=q_train)
+    add("KS", "grid (training)", chosen, evaluate(chosen, test))
     svss_base = rule_of_thumb("svss", train, sigma, lag=lag)
     sv_train = grid_svss(svss_base, train) if not quick else {}
     sv_test = grid_svss(svss_base, test) if not quick else {}
@@ -530,79 +555,85 @@ def main_table(
                 else "its own; velocity from the noisy positions"
             )
             add("traffic KalmanSmoother6D", source, None, result)
-    lines = [
-        f"## Held-out flights, σ = {sigma:.0f} m",
-        "",
-        "Position RMSE per axis over all held-out scans; velocity RMSE against the reported "
-        "velocity where it agrees with the motion, and against the motion (central differences "
-        "of the recorded positions). µs/point: wall time of one call on all held-out flights "
-        "at once, per scan (float64, one thread). Learned rows learn on the training flights "
-        "only.",
-        "",
-        markdown_table(
-            [
-                "estimator",
-                "parameters",
-                "position (m)",
-                "velocity (m/s)",
-                "vs motion",
-                "µs/point",
-                "values",
-            ],
-            rows,
-        ),
-        "",
-    ]
-    lines += fit_section(fits, ks_test, sv_test, results, lag)
     with tempfile.TemporaryDirectory() as workdir:
         clis = {name: cli_fit(test, name, sigma, Path(workdir)) for name in ("ks", "svss")}
-    lines += [
-        "`torchsvs track held_out.csv -o out.csv --estimator NAME --meas-std 100 --fit` on a CSV "
-        "of the held-out flights (self-tuning on the user's own data, then estimating it):",
+    return HeldOut(sigma, lag, measurements, rows, fits, ks_test, sv_test, clis, traffic)
+
+
+def held_out_lines(study: HeldOut) -> list[str]:
+    """The held-out table, the truth-free fits and ``track --fit``, formatted (the prose in
+    ``templates/real_flights.md``)."""
+    rows: list[list[object]] = [
+        ["measurements", "—", f"{study.measurements['position']:.1f}", "", "", "", ""]
+    ]
+    rows += [table_row(*row) for row in study.rows]
+    held_out = markdown_table(
+        [
+            "estimator",
+            "parameters",
+            "position (m)",
+            "velocity (m/s)",
+            "vs motion",
+            "µs/point",
+            "values",
+        ],
+        rows,
+    )
+    cli_rows = []
+    for name, r in study.clis.items():
+        bound = (
+            min(study.ks_test.values())
+            if name == "ks"
+            else min(study.sv_test.values(), default=math.nan)
+        )
+        cli_rows.append(
+            [
+                name.upper(),
+                f"{r['position']:.2f}",
+                f"{bound:.2f}",
+                f"{r['position'] / bound:.3f}",
+                f"{r['seconds']:.1f}",
+            ]
+        )
+    cli = markdown_table(
+        [
+            "estimator",
+            "position (m)",
+            "best grid q / ψ on these flights (m)",
+            "ratio",
+            "wall time (s)",
+        ],
+        cli_rows,
+    )
+    fits = fit_section(study.fits, study.ks_test, study.sv_test, study.results, study.lag)
+    return [
+        render("real_flights", "held_out", sigma=f"{study.sigma:.0f}", table=held_out),
         "",
-        markdown_table(
-            [
-                "estimator",
-                "position (m)",
-                "best grid q / ψ on these flights (m)",
-                "ratio",
-                "wall time (s)",
-            ],
-            [
-                [
-                    name.upper(),
-                    f"{r['position']:.2f}",
-                    f"{bound:.2f}",
-                    f"{r['position'] / bound:.3f}",
-                    f"{r['seconds']:.1f}",
-                ]
-                for name, r in clis.items()
-                for bound in [
-                    min(ks_test.values())
-                    if name == "ks"
-                    else min(sv_test.values(), default=math.nan)
-                ]
-            ],
-        ),
+        *fits,
+        render("real_flights", "track_fit", sigma=f"{study.sigma:.0f}", table=cli),
         "",
     ]
-    if traffic is not None:
-        lines += speed_section(fits, traffic, test)
+
+
+def main_table(
+    train: RecordedTracks, test: RecordedTracks, quick: bool, progress: bool
+) -> list[str]:
+    """The held-out section: :func:`held_out_study`, then its lines, the speed section where
+    traffic is installed and the map of the flight that turns most."""
+    study = held_out_study(train, test, quick, progress)
+    lines = held_out_lines(study)
+    if study.traffic is not None:
+        lines += speed_section(study.fits, study.traffic, test)
     shown = {
-        "KS, learned": estimate(fits["KS, learned, SURE (σ known)"].settings, test)[0],
-        f"SVSS lag {lag}, learned": estimate(
-            fits[f"SVSS lag {lag}, learned, SURE (σ known)"].settings, test
+        "KS, learned": estimate(study.fits["KS, learned, SURE (σ known)"].settings, test)[0],
+        f"SVSS lag {study.lag}, learned": estimate(
+            study.fits[f"SVSS lag {study.lag}, learned, SURE (σ known)"].settings, test
         )[0],
     }
-    if traffic is not None:
-        shown["traffic"] = traffic[0]
+    if study.traffic is not None:
+        shown["traffic"] = study.traffic[0]
     flight = map_figure(test, shown, RESULTS / "real_flights_map.png")
-    lines += [
-        f"![map](real_flights_map.png) The held-out flight that turns most ({flight}): recorded "
-        "track, measurements and estimates; right, its busiest five minutes.",
-        "",
-    ]
-    return lines
+    return [*lines, render("real_flights", "map", flight=flight), ""]
 
 
 def fit_section(

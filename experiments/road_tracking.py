@@ -15,7 +15,6 @@ tracker. Writes ``experiments/results/road_tracking.md`` and its figures.
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -28,13 +27,12 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 import torchsvs as ts
+from experiments import common
+from experiments.common import RESULTS, template
 from torchsvs.evaluation import markdown_table, save_figure
 from torchsvs.filters.separate.online_fitting import online_fit
 from torchsvs.filters.separate.tracker import DEFAULT_TRANSITION
 from torchsvs.scenarios import RoadScenario
-
-#: Where `python -m` writes the report: the tracked results of the checkout.
-RESULTS = Path(__file__).parent / "results"
 
 #: The estimators of the paper's figures, in the order of the tables.
 ESTIMATORS = ("SM", "KF(CA)", "EKF(CT)", "IMM-KF(CVCA)", "IMM-EKF(CVCACT)", "online fitting")
@@ -623,10 +621,10 @@ def _during(out: ScenarioResults, q: float, window: int, est: str, column: int =
 CURVE_RIVALS = ("KF(CA)", "IMM-KF(CVCA)", "IMM-EKF(CVCACT)", "online fitting")
 
 
-def claims(res: Results) -> list[str]:
+def claims(res: Results) -> str:
     """Each qualitative claim of the paper's Figs 2-10 checked at the paper's q and at the
-    tracking q: "claim → what we see"."""
-    lines = []
+    tracking q: the claims' text in ``templates/road_tracking.md``, what we see under each."""
+    t = template("road_tracking")
 
     def verdict(ok: bool) -> str:
         return "**holds**" if ok else "**does not hold**"
@@ -651,59 +649,35 @@ def claims(res: Results) -> list[str]:
             detail += f" ({below}: {', '.join(beaten)})"
         return ok, detail
 
-    def each_q(out: ScenarioResults, claim: str, check: Callable[[float], tuple[bool, str]]):
-        lines.append(f"- {claim}")
+    def each_q(out: ScenarioResults, check: Callable[[float], tuple[bool, str]]) -> str:
+        """The verdict and numbers under a claim, one line per q."""
+        lines = []
         for q in out.qs:
             ok, detail = check(q)
             lines.append(f"  - q = {q:g} m/s²: {verdict(ok)}: {detail}.")
+        return "\n".join(lines)
 
+    groups = []
     st = res.scenarios.get("straight")
     if st is not None:
         w = SETTINGS["straight"].windows[0]
         rivals = ("KF(CA)", "IMM-KF(CVCA)", "online fitting")
-        lines.append("**Fig. 2, straight road.**")
-        each_q(
-            st,
-            "(a) During the accelerations SM significantly outperforms KF(CA), IMM-KF(CVCA) "
-            "and online fitting in position (read: at least 10% lower RMSE):",
-            lambda q: ordering(st, q, w, rivals, 1, 0.9),
-        )
-        each_q(
-            st,
-            "(b) The SM velocity RMSE is below the other three (during the accelerations):",
-            lambda q: ordering(st, q, w, rivals, 3),
-        )
-        each_q(
-            st,
-            "(b) Online fitting's velocity error grows large during the accelerations "
-            "(a constant speed within the window):",
-            lambda q: (
-                _during(st, q, w, "online fitting", 3) > 2 * _during(st, q, w, "SM", 3),
-                f"online fitting {_during(st, q, w, 'online fitting', 3):.2f} m/s, "
-                f"SM {_during(st, q, w, 'SM', 3):.2f} m/s during the accelerations",
-            ),
+        groups.append(
+            t["claims_straight"].substitute(
+                position=each_q(st, lambda q: ordering(st, q, w, rivals, 1, 0.9)),
+                velocity=each_q(st, lambda q: ordering(st, q, w, rivals, 3)),
+                online_velocity=each_q(
+                    st,
+                    lambda q: (
+                        _during(st, q, w, "online fitting", 3) > 2 * _during(st, q, w, "SM", 3),
+                        f"online fitting {_during(st, q, w, 'online fitting', 3):.2f} m/s, "
+                        f"SM {_during(st, q, w, 'SM', 3):.2f} m/s during the accelerations",
+                    ),
+                ),
+            )
         )
     ci = res.scenarios.get("circle")
     if ci is not None:
-        lines.append("")
-        lines.append("**Figs. 4-5, circular arc.**")
-        rivals = ("EKF(CT)", "IMM-KF(CVCA)", "IMM-EKF(CVCACT)")
-        each_q(
-            ci,
-            "Fig. 4(b): during the accelerations the SM position RMSE is below EKF(CT), "
-            "IMM-KF(CVCA), IMM-EKF(CVCACT) (k_m = 12):",
-            lambda q: ordering(ci, q, 12, rivals, 1),
-        )
-        each_q(
-            ci,
-            "Fig. 4(b): SM is more accurate than online fitting, by a small margin (k_m = 12):",
-            lambda q: ordering(ci, q, 12, ("online fitting",), 1),
-        )
-        each_q(
-            ci,
-            "Fig. 4(c): the SM velocity RMSE is below every other estimator's (all steps):",
-            lambda q: ordering(ci, q, 12, [e for e in ESTIMATORS if e != "SM"], 2),
-        )
 
         def fig5(q: float) -> tuple[bool, str]:
             of = {w: _during(ci, q, w, "online fitting") for w in (12, 14, 16)}
@@ -717,38 +691,40 @@ def claims(res: Results) -> list[str]:
                 + " m at k_m = 12 / 14 / 16 (during the accelerations)"
             )
 
-        each_q(
-            ci,
-            "Fig. 5: with k_m = 14, 16 online fitting deteriorates and its gap to SM widens; "
-            "SM is insensitive to the window length:",
-            fig5,
+        rivals = ("EKF(CT)", "IMM-KF(CVCA)", "IMM-EKF(CVCACT)")
+        others = [e for e in ESTIMATORS if e != "SM"]
+        groups.append(
+            t["claims_circle"].substitute(
+                position=each_q(ci, lambda q: ordering(ci, q, 12, rivals, 1)),
+                online_position=each_q(ci, lambda q: ordering(ci, q, 12, ("online fitting",), 1)),
+                velocity=each_q(ci, lambda q: ordering(ci, q, 12, others, 2)),
+                windows=each_q(ci, fig5),
+            )
         )
     for name, fig in (("curve1", "Fig. 7, curve road I"), ("curve2", "Fig. 9, curve road II")):
         out = res.scenarios.get(name)
         if out is None:
             continue
-        lines.append("")
-        lines.append(f"**{fig}.**")
-        for w in sorted(SETTINGS[name].windows):
-            each_q(
-                out,
-                f"During the accelerations the SM position RMSE is below KF(CA), IMM-KF(CVCA), "
-                f"IMM-EKF(CVCACT) and online fitting (k_m = {w}):",
-                lambda q, out=out, w=w: ordering(out, q, w, CURVE_RIVALS, 1),
+        windows = [
+            t["claims_curve_window"].substitute(
+                window=w,
+                position=each_q(out, lambda q, out=out, w=w: ordering(out, q, w, CURVE_RIVALS, 1)),
             )
+            for w in sorted(SETTINGS[name].windows)
+        ]
         if name == "curve1":
-            each_q(
-                out,
-                "Fig. 7(c): and so is its velocity RMSE:",
-                lambda q, out=out: ordering(out, q, 12, CURVE_RIVALS, 3),
+            extra = t["claims_curve1"].substitute(
+                velocity=each_q(out, lambda q, out=out: ordering(out, q, 12, CURVE_RIVALS, 3))
             )
         else:
-            each_q(
-                out,
-                "At k_m = 14 SM is remarkably better than online fitting (position, "
-                "accelerations; read: at least 10% lower RMSE):",
-                lambda q, out=out: ordering(out, q, 14, ("online fitting",), 1, 0.9),
+            extra = t["claims_curve2"].substitute(
+                online_position=each_q(
+                    out, lambda q, out=out: ordering(out, q, 14, ("online fitting",), 1, 0.9)
+                )
             )
+        groups.append(
+            t["claims_curve"].substitute(figure=fig, windows="\n".join(windows), extra=extra)
+        )
     c2 = res.scenarios.get("curve2")
     if c2 is not None:
 
@@ -768,133 +744,74 @@ def claims(res: Results) -> list[str]:
                 return (max(of) - min(of)) > (max(sm) - min(sm)), detail
             return all(s < 0.9 * o for s, o in zip(sm, of, strict=True)), detail
 
-        lines.append("")
-        lines.append("**Fig. 10, curve road II, window sweep (averages over all steps).**")
-        each_q(
-            c2,
-            "The window length moves online fitting's position RMSE much more than SM's:",
-            lambda q: fig10(q, 0),
+        groups.append(
+            t["claims_fig10"].substitute(
+                position=each_q(c2, lambda q: fig10(q, 0)),
+                velocity=each_q(c2, lambda q: fig10(q, 2)),
+            )
         )
-        each_q(
-            c2,
-            "SM's velocity RMSE is significantly below online fitting's (read: at least 10% "
-            "lower at every window length):",
-            lambda q: fig10(q, 2),
-        )
-    return lines
+    return "\n\n".join(groups)
 
 
 def report(res: Results, pngs: list[str]) -> str:
-    lines = [
-        "# Zhang & Zhou 2022 (separate modeling of road targets) with torchsvs",
-        "",
-        f"`python -m experiments.road_tracking --runs {res.runs}`: {res.runs} Monte Carlo runs "
-        f"per scenario, each estimator one batch of all runs, float64, {res.seconds:.0f} s on "
-        "this machine. The paper's equations, several scenario numbers and its transition "
-        "matrices were lost in extraction; the readings are documented in "
-        "`torchsvs/models/mileage.py`, `torchsvs/filters/separate/` and "
-        "`torchsvs/scenarios/road.py`.",
-        "",
-        "## How it is measured",
-        "",
-        "- **RMSE at step k**: `sqrt(mean over runs of ‖p̂_k − p_k‖²)` for the position (both "
-        "axes, Euclidean) and likewise for the velocity `[vx, vy]`. **95% intervals**: the 2.5 "
-        f"and 97.5 percentiles over {BOOTSTRAP} bootstrap resamples of the runs (the runs "
-        "drawn with replacement, the same resamples for every estimator), for the curves and "
-        "for the averages alike.",
-        "- **Averages** (tables): the mean of the RMSE curve over the steps from sample 4 (the "
-        "SM tracker's first filtered step; the first three are its initialisation) or over the "
-        "steps of the accelerations (the paper's maneuvers), with the bootstrap interval in "
-        "brackets. *diverged*: above 10⁶.",
-        "- **SM tracker**: `ts.SeparateModelingTracker`: NCV-NCA IMM with EKF modes on the "
-        "augmented mileage models (the acceleration the NCV mode lacks mixed without bias: the "
-        "NCA mode's own, as the Cartesian IMMs mix), unscented initialisation from z₁..z₃, "
-        "least-squares (QR) reset of η over the latest k_m − 1 measurements before every "
-        "interaction stage but the first (the direction normalised and the slope's norm moved "
-        "into the mileage state, η's covariance set to the least-squares estimate's with "
-        "residual-pooled noise), transition matrix `[[0.95, 0.05], [0.05, 0.95]]` and "
-        "μ₀ = [0.5, 0.5], the scenario's σ_η. Its first three estimates are the initialisation.",
-        "- **Cartesian filters**: `ts.KalmanFilter(ConstantAcceleration)`, "
-        "`ts.ExtendedKalmanFilter(CoordinatedTurn)`, `ts.IMM([KF(CV), KF(CA)])` in the CA "
-        "layout and `ts.IMM([KF(CV), KF(CA), EKF(CT)])` in `[x, vx, ax, y, vy, ay, ω]` (unbiased "
-        "mixing through the embedding). Prior at sample 2 by two-point differencing of z₁, z₂ "
-        f"(per axis `[[R, R/T], [R/T, 2R/T²]]`), accelerations 0 ± {ACCEL_PRIOR_STD:g} m/s², "
-        f"turn rate 0 ± {TURN_PRIOR_STD:g} rad/s; they filter from sample 3 (samples 1-2: the "
-        "measurements and the two-point velocity). The paper's σ = q of its discrete noise models "
-        "is mapped to the library's continuous densities so that the per-step increments match: "
-        "CV `q_psd = σ²T` (velocity), CA `q_psd = σ²/T` (acceleration); CT: acceleration "
-        f"variance σ², turn-rate noise {TURN_RATE_NOISE_STD:g} rad/s² (not in the paper). "
-        "IMM-KF(CVCA) uses the SM tracker's transition matrix and μ₀; IMM-EKF(CVCACT) "
-        "0.95 on the diagonal, 0.025 off it, and the paper's μ₀ (uniform on the straight road, "
-        "where the paper does not run it).",
-        "- **Online fitting**: per axis, the least-squares line in time over the latest k_m "
-        "measurements, evaluated at the newest (`torchsvs.filters.separate.online_fitting.online_fit`).",
-        f"- **q**: every estimator of a scenario uses the same q. Besides the paper's q, the "
-        f"*tracking q* is the smallest q of the sweep {sorted(Q_GRID)} (and the paper's) at which "
-        "the SM tracker's position RMSE during the accelerations is within "
-        f"{TRACKING_TOLERANCE:g}× of its smallest over the sweep: below it the mileage models "
-        "cannot follow the scenario's acceleration steps and the estimate lags.",
-        "",
+    """The results file: the prose of ``templates/road_tracking.md`` around the tables."""
+    t = template("road_tracking")
+    q_rows = [
+        [
+            SETTINGS[name].title,
+            f"{out.paper_q:g}",
+            f"{out.tracking_q:g}",
+            "yes" if out.tracking_q == out.paper_q else "**no**",
+        ]
+        for name, out in res.scenarios.items()
     ]
-    lines += ["## Process noise: the paper's q and the tracking q", ""]
-    rows = []
-    for name, out in res.scenarios.items():
-        rows.append(
-            [
-                SETTINGS[name].title,
-                f"{out.paper_q:g}",
-                f"{out.tracking_q:g}",
-                "yes" if out.tracking_q == out.paper_q else "**no**",
-            ]
-        )
-    lines += [
-        markdown_table(["scenario", "paper q (m/s²)", "tracking q", "paper q tracks"], rows),
-        "",
-    ]
-    lines += [
-        "SM position RMSE during the accelerations (m) over the sweep, and every other "
-        "estimator's (paper's main window):",
-        "",
-    ]
+    sweeps = []
     for name, out in res.scenarios.items():
         window = SETTINGS[name].windows[0]
         grid = sorted(q for (q, w) in out.scores if w == window and "KF(CA)" in out.scores[(q, w)])
         rows = [[est, *(f"{_during(out, q, window, est):.2f}" for q in grid)] for est in ESTIMATORS]
-        lines += [
-            f"**{SETTINGS[name].title}** (k_m = {window}; paper q = {out.paper_q:g})",
-            "",
-            markdown_table(["estimator", *(f"q = {q:g}" for q in grid)], rows),
-            "",
-        ]
-    lines += ["## Average RMSE per scenario", ""]
+        sweeps.append(
+            t["sweep"].substitute(
+                title=SETTINGS[name].title,
+                window=window,
+                paper_q=f"{out.paper_q:g}",
+                table=markdown_table(["estimator", *(f"q = {q:g}" for q in grid)], rows),
+            )
+        )
+    scenarios = []
     for name, out in res.scenarios.items():
-        setting = SETTINGS[name]
-        sc = out.sc
-        lines += [
-            f"### {setting.title} ({setting.figures})",
-            "",
-            f"T = {sc.dt:g} s, σ = {sc.meas_std:g} m per axis, {sc.z.shape[1]} steps, "
-            f"σ_η = {sc.eta_std:g}, paper's windows {', '.join(map(str, sorted(setting.windows)))}; "
-            f"smallest radius of curvature {min_radius(sc):.0f} m.",
-            "",
+        setting, sc = SETTINGS[name], out.sc
+        tables = [
+            t["scores"].substitute(
+                q=f"{q:g}",
+                label="paper's q" if q == out.paper_q else "tracking q",
+                window=window,
+                table=markdown_table(HEADER, _score_rows(scores_at(out, q, window))),
+            )
+            for q in out.qs
+            for window in setting.windows
         ]
-        for q in out.qs:
-            for window in setting.windows:
-                scores = scores_at(out, q, window)
-                label = "paper's q" if q == out.paper_q else "tracking q"
-                lines += [
-                    f"q = {q:g} m/s² ({label}), k_m = {window}:",
-                    "",
-                    markdown_table(HEADER, _score_rows(scores)),
-                    "",
-                ]
-        lines.append(f"![{setting.figures}]({f'road_{name}.png'})")
+        images = [f"![{setting.figures}](road_{name}.png)"]
         if name in ("circle", "curve2"):
-            lines.append(f"![windows](road_{name}_windows.png)")
-        lines.append("")
+            images.append(f"![windows](road_{name}_windows.png)")
+        scenarios.append(
+            t["scenario"].substitute(
+                title=setting.title,
+                figures=setting.figures,
+                dt=f"{sc.dt:g}",
+                meas_std=f"{sc.meas_std:g}",
+                steps=sc.z.shape[1],
+                eta_std=f"{sc.eta_std:g}",
+                windows=", ".join(map(str, sorted(setting.windows))),
+                radius=f"{min_radius(sc):.0f}",
+                tables="\n\n".join(tables),
+                images="\n".join(images),
+            )
+        )
+    fig10 = ""
     c2 = res.scenarios.get("curve2")
     if c2 is not None:
-        lines += ["## Fig. 10: window sweep on curve road II (SM vs online fitting)", ""]
+        tables = []
         for q in c2.qs:
             windows = sorted(w for (qq, w) in c2.scores if qq == q and "SM" in c2.scores[(qq, w)])
             rows = []
@@ -902,61 +819,56 @@ def report(res: Results, pngs: list[str]) -> str:
                 for est in WINDOWED:
                     a = c2.scores[(q, w)][est].averages
                     rows.append([str(w), est, _cell(a[0]), _cell(a[2])])
-            lines += [
-                f"q = {q:g} m/s²:",
-                "",
-                markdown_table(
-                    ["k_m", "estimator", "position, all steps (m)", "velocity, all steps (m/s)"],
-                    rows,
-                ),
-                "",
-            ]
-        lines += ["![Fig. 10](road_fig10_windows.png)", ""]
-    lines += [
-        "## SM tracker ablations (paper's main window)",
-        "",
-        "The default tracker beside: η's covariance at a reset from R alone (no residuals), "
-        "kept as the filter had it (the paper's silence read literally), no least-squares reset "
-        "at all, the raw least-squares slope as the direction (the paper's text; the mileage unit drifts by the slope's norm), the direction normalised without moving its norm into the mileage state, that with the covariance kept (the configuration the SM building blocks were first tried in), UKF modes, and the NCV mode's missing acceleration mixed as a zero of variance 0 (zero padding, the tracker's mixing until issue 14's diagnosis). The default normalises the direction and rescales the mileage state by the slope's norm, and mixes the NCA mode's own acceleration for the NCV mode's share.",
-        "",
+            header = ["k_m", "estimator", "position, all steps (m)", "velocity, all steps (m/s)"]
+            tables.append(t["fig10_q"].substitute(q=f"{q:g}", table=markdown_table(header, rows)))
+        fig10 = t["fig10"].substitute(tables="\n\n".join(tables)) + "\n\n"
+    ablations = [
+        t["ablation"].substitute(
+            title=SETTINGS[name].title,
+            q=f"{q:g}",
+            table=markdown_table(HEADER, _score_rows(out.ablations[q])),
+        )
+        for name, out in res.scenarios.items()
+        for q in out.qs
     ]
-    for name, out in res.scenarios.items():
-        for q in out.qs:
-            lines += [
-                f"**{SETTINGS[name].title}, q = {q:g} m/s²**",
-                "",
-                markdown_table(HEADER, _score_rows(out.ablations[q])),
-                "",
-            ]
-    lines += ["## Acceptance point (issue 14)", ""]
-    lines.append(
-        "\"On every road scenario the SM tracker's position RMSE during maneuvers is below the "
-        'Cartesian IMM-KF(CVCA) and KF(CA), as the paper reports."'
-    )
-    lines.append("")
-    rows = []
+    acceptance_rows = []
     for name, out in res.scenarios.items():
         for q in out.qs:
             verdict, text = acceptance(out, q)
             label = "paper" if q == out.paper_q else "tracking"
-            rows.append([SETTINGS[name].title, f"{q:g} ({label})", verdict, text])
-    lines += [markdown_table(["scenario", "q", "acceptance", "during the accelerations"], rows)]
-    lines += [
-        "",
-        "Differences are SM's minus the rival's average RMSE during the accelerations, with the "
-        "paired bootstrap 95% interval (the same resampled runs for both); *holds nominally*: "
-        "SM is lower but an interval includes 0.",
-    ]
-    lines += ["", "## The paper's claims (Figs 2-10)", "", *claims(res), ""]
-    mixing = mixing_discussion(res)
-    lines += [*mixing, *([""] if mixing else []), DISCUSSION]
-    lines += ["", "Figures: " + ", ".join(pngs)]
-    return "\n".join(lines) + "\n"
+            acceptance_rows.append([SETTINGS[name].title, f"{q:g} ({label})", verdict, text])
+    mixing = mixing_table(res)
+    return (
+        t["report"].substitute(
+            runs=res.runs,
+            seconds=f"{res.seconds:.0f}",
+            bootstrap=BOOTSTRAP,
+            accel_prior_std=f"{ACCEL_PRIOR_STD:g}",
+            turn_prior_std=f"{TURN_PRIOR_STD:g}",
+            turn_rate_noise_std=f"{TURN_RATE_NOISE_STD:g}",
+            q_grid=sorted(Q_GRID),
+            tracking_tolerance=f"{TRACKING_TOLERANCE:g}",
+            q_table=markdown_table(
+                ["scenario", "paper q (m/s²)", "tracking q", "paper q tracks"], q_rows
+            ),
+            sweeps="\n\n".join(sweeps),
+            scenarios="\n\n".join(scenarios),
+            fig10=fig10,
+            ablations="\n\n".join(ablations),
+            acceptance=markdown_table(
+                ["scenario", "q", "acceptance", "during the accelerations"], acceptance_rows
+            ),
+            claims=claims(res),
+            mixing=t["mixing"].substitute(table=mixing) + "\n\n" if mixing else "",
+            figures=", ".join(pngs),
+        )
+        + "\n"
+    )
 
 
-def mixing_discussion(res: Results) -> list[str]:
-    """The section on how the NCV mode's missing acceleration is mixed, with the ablation's
-    numbers at each scenario's paper q (issue 14)."""
+def mixing_table(res: Results) -> str:
+    """How the NCV mode's missing acceleration is mixed: the ablation's numbers at each
+    scenario's paper q (issue 14), as a table; empty without that ablation."""
     rows = []
     for name, out in res.scenarios.items():
         q = out.paper_q
@@ -972,100 +884,22 @@ def mixing_discussion(res: Results) -> list[str]:
             ]
         )
     if not rows:
-        return []
-    return [
-        "## The NCV mode's missing acceleration (issue 14)",
-        "",
-        "The NCV mode has no acceleration. Mixed into the NCA mode as a zero of variance 0 (zero "
-        "padding: the NCV model embedded in the NCA layout, as the SM tracker first did), that "
-        "zero is not an estimate but the absence of one: at every step it shrinks the NCA mode's "
-        "acceleration, its variance and its covariances with the speed by the probability that "
-        "the NCV mode was in effect. With the paper's q the NCA mode cannot then build up an "
-        "acceleration when a maneuver starts (after a steady stretch its acceleration variance "
-        "has decayed to almost nothing), and the SM speed lags until the reset's slope norm "
-        "drags it along; on the straight road, with the largest accelerations, that put the SM "
-        "tracker behind IMM-KF(CVCA). The tracker now mixes as the Cartesian IMMs do (unbiased "
-        "mixing, Yuan et al. 2012): the NCV mode lends the NCA mode's own acceleration mean and "
-        "variance, so only the NCA mode's own filter changes its acceleration. That has a "
-        "price where the NCA acceleration starts wrong: on the circle (5 m/s at T = 0.1 s under "
-        "2 m noise) the chord lengths of the unscented initialisation are mostly noise, the "
-        "initial speed far too high, and the NCA mode learns a spurious deceleration while it "
-        "comes down; the zero padding shrinks that away, unbiased mixing leaves it to the NCA "
-        "filter, slow at the paper's q. Position / velocity RMSE during the accelerations "
-        "(m / m/s), paper's q and main window:",
-        "",
-        markdown_table(
-            ["scenario", "SM, zero padding", "SM (unbiased mixing)", "IMM-KF(CVCA)"], rows
-        ),
-    ]
+        return ""
+    header = ["scenario", "SM, zero padding", "SM (unbiased mixing)", "IMM-KF(CVCA)"]
+    return markdown_table(header, rows)
 
 
-DISCUSSION = """## Why the results differ from the paper's
-
-**Process noise.** At the paper's q (0.008-0.01 m/s², a definition of the paper) a discrete
-white-noise-acceleration model lets the speed change by about q·T per step and the NCA
-acceleration by q per step, while the scenarios' accelerations jump from 0 to several m/s² in
-one step. The Cartesian KF(CA) cannot follow such a step with that noise and lags far behind,
-which is what the paper's figures show of it. The IMM baselines are much less affected: mixing
-two modes whose estimates disagree widens the mixed covariance by the spread of their means, an
-adaptive process noise of their own. So is the SM tracker, whose NCV-NCA IMM in mileage
-coordinates mixes in the same way (the section above), and whose least-squares reset rescales
-the speed by the window's verdict on the scale of the estimated arc lengths (ρ, below); on the
-bends and the circle its trajectory model also keeps the target on the fitted line whatever its
-speed. We report every scenario at the paper's q and, where the SM tracker needs a larger q to
-follow the accelerations, at the tracking q as well, and give the sweep: the ordering of the
-Cartesian estimators depends on q.
-
-**The reset.** Two choices the paper's lost equations leave open matter (ablations). (1) The least-squares slope has norm ρ ≠ 1 whenever the
-estimated arc lengths of the window are off in scale, which is exactly what a lagging speed
-does. Resetting to the raw slope (the paper's text) keeps positions and velocities right but
-lets the mileage unit drift by ρ at every reset (‖r‖ ends far from 1, and q then stands for a
-larger noise in metres); normalising the direction alone discards ρ and the tracker lags the
-accelerations more. The default normalises and moves ρ into the arc length, speed and acceleration:
-the same positions as the raw reset, with the mileage in metres. (2) Resetting only η's mean and
-keeping the filter's covariance makes the filter overconfident in a line that every reset moves,
-which costs accuracy, most on the curves (a single-model NCA EKF with a normalised direction,
-the first try of the SM building blocks, diverged on the straight road). Setting η's block to the least-squares estimate's own covariance removes
-that; pooling the window's residuals into it lets a window that the line does not fit (a bend)
-count the new measurement more.
-
-**Bends.** The SM tracker approximates the road over k_m − 1 samples by a straight line and
-extrapolates it to the newest sample. On a bend of radius ρ_c a line fitted over an arc of
-length L misses the arc's end by about L²/(12ρ_c), and its direction is the window's mean
-direction, which lags the target's by about L/(2ρ_c) radians; the velocity ṡ·r inherits that
-lag, which is why the SM velocity RMSE stays high on the circle and the curves at every q. These
-biases grow with the speed (L = (k_m − 1)·v·T) and with k_m. The Cartesian filters have no such
-bias once their q lets them follow the turn, and IMM-EKF(CVCACT) follows turns at any q through
-its turn-rate mode. The paper's curve roads were lost; ours are designed (smallest radii above),
-and a gentler road would favour the SM tracker. On the circle, whose interval T the paper does
-not give (we use 0.1 s, `torchsvs/scenarios/road.py`), windows of 12-16 samples span only
-1.1-1.5 s, short enough for a line in time to follow the arc: online fitting there matches SM
-and hardly changes with k_m, unlike the paper's Fig. 5.
-
-**Online fitting** fits a line in time over D = (k_m − 1)·T, so during an acceleration a its
-position lags by about a·D²/12 and its velocity (the window's mean) by a·D/2, and it cuts a bend
-like the SM line does. Its error grows quickly with k_m (Fig. 10), the paper's finding; at the
-shortest windows it comes close to SM in position because a short line fits a bend well, and
-the paper's claim that SM's velocity is far better does not hold on our roads, where both
-velocities are dominated by the window's mean direction.
-"""
-
-
-def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RESULTS) -> None:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs (default 100)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument(
-        "--out", type=Path, default=out, help=f"where the report and figures go (default {out})"
+def main(argv: list[str] | None = None, out: Path = RESULTS) -> None:
+    common.main(
+        "road_tracking",
+        __doc__,
+        lambda args: reproduce(args.runs, args.seed),
+        figures,
+        report,
+        runs=100,
+        argv=argv,
+        out=out,
     )
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    res = reproduce(args.runs, args.seed)
-    pngs = figures(res, args.out)
-    text = report(res, pngs)
-    (args.out / "road_tracking.md").write_text(text)
-    print(text)
-    print(f"written: {args.out / 'road_tracking.md'} and {', '.join(pngs)}")
 
 
 if __name__ == "__main__":

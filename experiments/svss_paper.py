@@ -9,7 +9,6 @@ number beside ours, with a discussion of every difference over 10%) and the figu
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -20,6 +19,8 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 import torchsvs as ts
+from experiments import common
+from experiments.common import RESULTS, render
 from torchsvs.estimator import Estimator
 from torchsvs.evaluation import evaluate, markdown_table, psi_sweep, save_figure
 from torchsvs.metrics import accumulative_rmse, rmse_over_time
@@ -55,9 +56,6 @@ TABLE3 = {
 TABLE_A2 = {"SVSF": 48.0, "SVSS lag 1": 72.0, "SVSS lag 2": 120.0, "SVSS lag 3": 180.0}
 
 ATC_PSI, COMPLEX_PSI, GAMMA = [800.0, 800.0], [500.0, 600.0, 500.0, 600.0], 0.1
-
-#: Where `python -m` writes the report: the tracked results of the checkout.
-RESULTS = Path(__file__).parent / "results"
 
 
 def _svsf(model: ts.models.LinearModel, psi: list[float], **kw: object) -> ts.SVSF:
@@ -299,7 +297,7 @@ def figures(res: Results, out: Path) -> list[str]:
 
 
 def report(res: Results, pngs: list[str]) -> str:
-    """The results file: tables side by side and the discussion."""
+    """The results file: tables side by side, the prose of ``templates/svss_paper.md``."""
     t1 = res.table1
     rows1 = []
     for name, (x, y, single, batch) in t1.items():
@@ -355,101 +353,60 @@ def report(res: Results, pngs: list[str]) -> str:
                 label = ["x position", "x velocity", "y position", "y velocity"][c]
                 big.append(f"Table 3 {name} {label}: {o:.0f} vs {q:.0f} ({pct(o, q)})")
 
-    ordering = _orderings(res)
-    lines = [
-        "# Chen et al. 2020 (SVSS) reproduced with torchsvs",
-        "",
-        f"`python -m experiments.svss_paper --runs {res.runs}`: {res.runs} Monte Carlo runs per study, "
-        f"each study one batch, float64, {res.seconds:.0f} s on this machine. Paper numbers in "
-        "parentheses or beside ours; ± is ours relative to the paper.",
-        "",
-        "## Table 1: ATC scenario (Sec 4.1), position accumulative RMSE (m)",
-        "",
-        markdown_table(
-            [
-                "estimator",
-                "x",
-                "paper x",
-                "±",
-                "y",
-                "paper y",
-                "±",
-                "µs/step, 1 track",
-                "paper µs/step",
-                "µs/track-step, batch",
-            ],
-            rows1,
-        ),
-        "",
-        "KS, SVSTPS and SVSS are one-step-lag smoothers x̂(k|k+1), as in the paper's tables. The "
-        'RSTKF row uses `scale_shapes="swapped"` (see the discussion). Times: ours are wall times '
-        "of PyTorch on CPU, per step of one track (Python overhead per step dominates) and per "
-        f"track-step inside the {res.runs}-track batch; the paper's are MATLAB on an i5-3230M, "
-        "per step.",
-        "",
-        "![Fig 4](svss_fig4_trajectory.png)",
-        "![Fig 5](svss_fig5_rmse.png)",
-        "",
-        "## Table 2: boundary layer ψ (m), position accumulative RMSE (m): ours (paper, ±)",
-        "",
-        markdown_table(["ψ", "SVSF x", "SVSS x", "SVSF y", "SVSS y"], rows2),
-        "",
-        "![Fig 6](svss_fig6_psi_sweep.png)",
-        "",
-        "## Lag study (Fig 7) and Table A2",
-        "",
-        markdown_table(
-            ["estimator", "x RMSE (m)", "y RMSE (m)", "µs/step, 1 track", "paper µs/step"], rows_lag
-        ),
-        "",
-        "![Fig 7](svss_fig7_lags.png)",
-        "",
-        "## Table 3: complex scenario (Sec 4.2), accumulative RMSE: ours (paper, ±)",
-        "",
-        markdown_table(
-            [
-                "estimator",
-                "x position (m)",
-                "x velocity (m/s)",
-                "y position (m)",
-                "y velocity (m/s)",
-            ],
-            rows3,
-        ),
-        "",
-        "The SVSF-based estimators use the artificial velocity of Eq 51 (`FiniteDifferenceVelocity`), "
-        "with the noise model derived from the 100 m position noise: Cov(v) = 2R/T², "
-        "Cov(z, v) = R/T (the paper does not give one).",
-        "",
-        "![Fig 8](svss_fig8_complex_trajectory.png)",
-        "![Fig 9](svss_fig9_complex_rmse.png)",
-        "",
-        "## Orderings",
-        "",
-        *[f"- {line}" for line in ordering],
-        "",
-        "## Ablations",
-        "",
-        "ATC turn directions (not stated in the text): SVSF and SVSS position RMSE at ψ = 800 m "
-        "(paper: SVSF 146/148, SVSS 113/117) and y at ψ = 3000 m (paper: SVSF 266, SVSS 209).",
-        "",
-        markdown_table(
-            ["turns", "SVSF x", "SVSF y", "SVSS x", "SVSS y", "SVSF y, ψ=3000", "SVSS y, ψ=3000"],
-            turns,
-        ),
-        "",
-        "Complex scenario: artificial-velocity noise model, SVSTPS lag and turn directions "
-        "(paper: SVSTPS 75/73/75/69, SVSS 65/57/65/52, KF 461/160/297/113).",
-        "",
-        markdown_table(["variant", "x pos", "x vel", "y pos", "y vel"], abl3),
-        "",
-        "## Differences over 10%",
-        "",
-        *([f"- {b}" for b in big] or ["- none"]),
-        "",
-        DISCUSSION,
-    ]
-    return "\n".join(lines) + "\n"
+    return (
+        render(
+            "svss_paper",
+            "report",
+            runs=res.runs,
+            seconds=f"{res.seconds:.0f}",
+            table1=markdown_table(
+                [
+                    "estimator",
+                    "x",
+                    "paper x",
+                    "±",
+                    "y",
+                    "paper y",
+                    "±",
+                    "µs/step, 1 track",
+                    "paper µs/step",
+                    "µs/track-step, batch",
+                ],
+                rows1,
+            ),
+            table2=markdown_table(["ψ", "SVSF x", "SVSS x", "SVSF y", "SVSS y"], rows2),
+            lags=markdown_table(
+                ["estimator", "x RMSE (m)", "y RMSE (m)", "µs/step, 1 track", "paper µs/step"],
+                rows_lag,
+            ),
+            table3=markdown_table(
+                [
+                    "estimator",
+                    "x position (m)",
+                    "x velocity (m/s)",
+                    "y position (m)",
+                    "y velocity (m/s)",
+                ],
+                rows3,
+            ),
+            orderings="\n".join(f"- {line}" for line in _orderings(res)),
+            turns=markdown_table(
+                [
+                    "turns",
+                    "SVSF x",
+                    "SVSF y",
+                    "SVSS x",
+                    "SVSS y",
+                    "SVSF y, ψ=3000",
+                    "SVSS y, ψ=3000",
+                ],
+                turns,
+            ),
+            ablations=markdown_table(["variant", "x pos", "x vel", "y pos", "y vel"], abl3),
+            differences="\n".join(f"- {b}" for b in big) or "- none",
+        )
+        + "\n"
+    )
 
 
 def _orderings(res: Results) -> list[str]:
@@ -484,62 +441,17 @@ def _orderings(res: Results) -> list[str]:
     return checks
 
 
-DISCUSSION = """## Discussion
-
-**What reproduces.** KF, KS and SVSF of Table 1 and the whole SVSF column of Table 2 land within
-a few percent, SVSS of Table 1 within 1-2%, and the SVSS falls below the SVSF by 23% (paper: about
-22%). The SVSF column of Table 3 is within 4%, and every ordering the paper reports holds.
-
-**ATC geometry (Table 1, Table 2 SVSS y at large ψ).** The text gives turn rates but not
-directions. The SVSF of Sec 4.1 never corrects the velocity (H⁺ = Hᵀ), so its error depends on
-the target's final heading relative to the filter's initial velocity [80, −10] m/s; the turn
-ablation above shows that only clockwise-then-counter-clockwise fits the SVSF column (cw-cw moves
-SVSF x from 146 to 182 m). The SVSS y values at ψ = 2500-3000 m are 11-14% below the paper's: at
-large ψ the SVSS error is dominated by this uncorrected velocity bias, and it moves with the
-unstated geometry (ccw-cw gives SVSS y = 192 m at ψ = 3000 m against the paper's 209 m, but
-moves SVSF y to 295 m against 266 m). The text does not determine it.
-
-**RSTKF.** Table 1 gives only its settings (ω = ν = 5, τ = 5, N = 10; ref 20). Derived from the
-hierarchical Student's t model (docstring of `RobustStudentTKalmanFilter`), the filter takes the
-large innovations of the turns for measurement outliers and loses the target (row "RSTKF
-(derived shapes)"). Exchanging the dimension terms of the two Gamma posteriors, as a public Julia
-implementation of this filter does, gives 151/151 m against the paper's 145/144 m, which suggests
-the paper's numbers come from code of that form; we report that variant as the RSTKF row and keep
-the derived one as the library default. Its time per step is the highest, as in the paper.
-
-**Complex scenario (Table 3).** The paper's angle signs fit the KF and KS only if they count
-clockwise (ablation above: KF x/y position 463/303 m with the first turn counter-clockwise, paper
-461/297). KF and KS velocities are 7-10% below the paper's. SVSTPS is 12-13% above the paper in
-position and insensitive to the artificial-velocity noise model; larger lags make it worse (lag
-2: about 130 m), so it is not a lag mismatch; we found nothing in the text that determines it.
-SVSS is 12-13% below in position with the derived, correlated noise model and 5-6% above with a
-diagonal one (which then puts its velocities 13-18% low): the paper does not state R for Eq 51,
-and SVSS depends on it through B = P Hᵀ S⁻¹ while the SVSF gain does not.
-
-**Times.** Ours are not comparable to MATLAB per-step times. For one track, every estimator
-costs about the same per step (the Python loop over steps dominates; the RSTKF's ten VB iterations
-make it about 12× the others, as in the paper), and the SVSS adds only a few percent to its SVSF
-at any lag because the backward sweeps are vectorised over time; the paper's smoother cost grows
-with the lag (Table A2: 72, 120, 180 µs). In a batch, a track-step costs a few microseconds or
-less (see also `make bench`).
-"""
-
-
-def main(argv: list[str] | None = None, prog: str | None = None, out: Path = RESULTS) -> None:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=500, help="Monte Carlo runs (default 500)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument(
-        "--out", type=Path, default=out, help=f"where the report and figures go (default {out})"
+def main(argv: list[str] | None = None, out: Path = RESULTS) -> None:
+    common.main(
+        "svss_paper",
+        __doc__,
+        lambda args: reproduce(args.runs, args.seed),
+        figures,
+        report,
+        runs=500,
+        argv=argv,
+        out=out,
     )
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    res = reproduce(args.runs, args.seed)
-    pngs = figures(res, args.out)
-    text = report(res, pngs)
-    (args.out / "svss_paper.md").write_text(text)
-    print(text)
-    print(f"written: {args.out / 'svss_paper.md'} and {', '.join(pngs)}")
 
 
 if __name__ == "__main__":
