@@ -121,8 +121,8 @@ def recorded_flights(sigma: float = 100.0, seed: int = 0) -> str:
     )
 
 
-def main(argv: list[str] | None = None, prog: str | None = None) -> None:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=4, help="training epochs (default 4)")
     parser.add_argument("--batches", type=int, default=20, help="training batches per epoch")
     parser.add_argument("--runs", type=int, default=500, help="Monte Carlo runs (default 500)")

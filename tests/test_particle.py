@@ -150,8 +150,10 @@ def test_spvsf_other_readings_miss_the_kalman_filter(psi):
     miss the KF by over 0.5σ on average; the default ("adapted", weighted by the predictive
     likelihood) stays within 0.35σ on average but is off by over 0.5σ somewhere. At 2000
     particles the mean offset is within 0.01σ of 20,000 particles' (printed 0.72 and 0.56σ,
-    adapted 0.27 and 0.16σ at ψ = 0.5 and 3). The closest bound, the printed reading's at ψ = 3,
-    needs its 100 runs: 0.52 to 0.53σ over five reseedings (0.47 with 20 runs)."""
+    adapted 0.27 and 0.16σ at ψ = 0.5 and 3). The printed reading's claim is tested at 0.4σ:
+    its mean offset is 0.56σ at the closest (ψ = 3) and the confidence bound takes off k·se,
+    0.03-0.04σ at 100 runs (the bound: 0.52 to 0.53σ over five reseedings), a margin of over
+    0.1σ against a spread of 0.01σ; 0.5σ would leave 0.02σ."""
     system = random_system(2, 1, T=12, B=2, seed=4)
     low, high = {}, {}
     for proposal, runs in (("estimate", 100), ("adapted", 50)):
@@ -161,7 +163,7 @@ def test_spvsf_other_readings_miss_the_kalman_filter(psi):
         k = _two_sided_k(ORACLE_ALPHA, runs, offset.numel())
         low[proposal] = (offset.abs() - k * se).clamp(min=0.0)
         high[proposal] = offset.abs() + k * se
-    assert float(low["estimate"].mean()) > 0.5, f"printed: {float(low['estimate'].mean()):.3f}σ"
+    assert float(low["estimate"].mean()) > 0.4, f"printed: {float(low['estimate'].mean()):.3f}σ"
     assert float(high["adapted"].mean()) < 0.35, f"adapted: {float(high['adapted'].mean()):.3f}σ"
     assert float(low["adapted"].max()) > 0.5, f"adapted: {float(low['adapted'].max()):.3f}σ"
 

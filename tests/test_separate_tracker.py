@@ -137,7 +137,7 @@ def test_at_the_papers_q_the_straight_road_speed_follows_the_accelerations():
 
     sm_velocity = rmse((sm - sc.truth)[:, during][..., [1, 3]].norm(dim=-1))
     known_speed = rmse((speed - sc.speed[:, 2:])[:, during - 2])
-    assert sm_velocity < 1.2 * known_speed
+    assert sm_velocity < known_speed  # 0.69-0.74 of it over five seeds of 8 runs
     sm_position, imm_position = (
         rmse((e - sc.truth)[:, during][..., [0, 2]].norm(dim=-1)) for e in (sm, cartesian_imm)
     )
