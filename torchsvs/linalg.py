@@ -128,6 +128,15 @@ def mixture_moments(
     return x, symmetrize(P)
 
 
+def sum_in_order(terms: Sequence[Tensor]) -> Tensor:
+    """The sum of ``terms``, added in order (``torch.stack(terms).sum(0)`` may add in another
+    order and change the last bits; the IMM's and the road tracker's sums are pinned to them)."""
+    total = terms[0]
+    for term in terms[1:]:
+        total = total + term
+    return total
+
+
 def mixture_mean(weights: Tensor, means: Sequence[Tensor]) -> Tensor:
     """``Σ_k w_k x_k`` for ``weights [..., K]`` and ``K`` means ``[..., n]`` (added in order):
     :func:`mixture_moments`' mean, alone."""

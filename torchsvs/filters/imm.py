@@ -22,7 +22,13 @@ from torchsvs.estimator import (
 from torchsvs.filters.imm_embedding import Embedding, ModeSet
 from torchsvs.filters.kalman import GaussianFilter, step_input, step_interval
 from torchsvs.kernels.compiled import outside_dynamo
-from torchsvs.linalg import cholesky, gaussian_log_density, log_divisor, mixture_moments
+from torchsvs.linalg import (
+    cholesky,
+    gaussian_log_density,
+    log_divisor,
+    mixture_moments,
+    sum_in_order,
+)
 from torchsvs.types import FilterResult, FilterState
 
 #: The IMM's truth-free error estimate's finite-difference step (in noise standard deviations;
@@ -443,7 +449,7 @@ class IMM(SteppedEstimator[IMMResult]):
             pred_mode_probs=over_time("log_pred").exp(),
             mode_log_likelihood=over_time("log_lik"),
             modes=modes,
-            log_likelihood=_total([o.log_likelihood for o in outs]),  # as the state sums it
+            log_likelihood=sum_in_order([o.log_likelihood for o in outs]),  # as the state sums it
         )
         return state, result
 
@@ -548,11 +554,3 @@ class IMM(SteppedEstimator[IMMResult]):
             for j, (x, P) in enumerate(zip(means, covs, strict=True))
         ]
         return mixture_moments(probs, *zip(*common, strict=True))
-
-
-def _total(terms: list[Tensor]) -> Tensor:
-    """The sum of ``terms``, added in order."""
-    total = terms[0]
-    for term in terms[1:]:
-        total = total + term
-    return total

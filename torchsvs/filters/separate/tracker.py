@@ -35,6 +35,7 @@ from torchsvs.filters.separate.reset import (
     parameters_of_fit,
 )
 from torchsvs.kernels.compiled import outside_dynamo
+from torchsvs.linalg import sum_in_order
 from torchsvs.models.mileage import (
     MileageConstantAcceleration,
     MileageConstantVelocity,
@@ -314,7 +315,7 @@ class SeparateModelingTracker(IMM):
         # The estimates of k = 1..3: the initialisation read at those arc lengths.
         probs = state.log_probs.exp()
         at = [torch.cat([arc.unsqueeze(-1), x[:, None, 1:].expand(-1, 3, -1)], -1) for x in means]
-        cartesian = _total(
+        cartesian = sum_in_order(
             [
                 probs[:, None, j, None] * mdl.cartesian(x)
                 for j, (mdl, x) in enumerate(zip(self.mode_models, at, strict=True))
@@ -355,8 +356,8 @@ class SeparateModelingTracker(IMM):
         if aux is None or state.steps == 0:
             return state
         probs = state.log_probs.exp()
-        s_hat = _total([probs[:, j] * m.mean[:, 0] for j, m in enumerate(state.modes)])
-        speed = _total([probs[:, j] * m.mean[:, 1] for j, m in enumerate(state.modes)])
+        s_hat = sum_in_order([probs[:, j] * m.mean[:, 0] for j, m in enumerate(state.modes)])
+        speed = sum_in_order([probs[:, j] * m.mean[:, 1] for j, m in enumerate(state.modes)])
         arc = torch.cat([aux.arc_length[:, :-1], s_hat.unsqueeze(-1).to(aux.arc_length.dtype)], 1)
         # Orientation: (s, ṡ, s̈, r, s_l) and -(s, ṡ, s̈, r, s_l) give the same h and the same
         # models' likelihoods; keep the mileage increasing along the direction of travel.
@@ -452,7 +453,7 @@ class SeparateModelingTracker(IMM):
         parts = [
             mdl.cartesian(r.mean) for mdl, r in zip(self.mode_models, result.modes, strict=True)
         ]
-        return _total([probs[..., j, None] * part for j, part in enumerate(parts)])
+        return sum_in_order([probs[..., j, None] * part for j, part in enumerate(parts)])
 
     # The IMM's call, with the prior optional and a richer result.
     @outside_dynamo
@@ -527,11 +528,3 @@ def _jittered(P: Tensor) -> Tensor:
     scale = P.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(1.0)
     eye = torch.eye(P.shape[-1], dtype=P.dtype)
     return P + (64 * torch.finfo(P.dtype).eps * scale)[:, None, None] * eye
-
-
-def _total(terms: list[Tensor]) -> Tensor:
-    """The sum of ``terms``, added in order."""
-    total = terms[0]
-    for term in terms[1:]:
-        total = total + term
-    return total
