@@ -19,7 +19,7 @@ from torchsvs.estimator import (
     threads_for,
     trim,
 )
-from torchsvs.filters.kalman import GaussianFilter, step_input, step_interval
+from torchsvs.filters.gaussian import GaussianFilter, step_input, step_interval
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.linalg import cholesky, gaussian_log_density, log_divisor, mixture_moments
 from torchsvs.models.base import StateSpaceModel

@@ -13,7 +13,8 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
-from torchsvs.filters.kalman import (
+from torchsvs.filters.artificial_rows import ArtificialMeasurement
+from torchsvs.filters.gaussian import (
     Observation,
     Prepared,
     _at,
@@ -21,7 +22,7 @@ from torchsvs.filters.kalman import (
     step_input,
     step_interval,
 )
-from torchsvs.filters.svsf import SVSF, ArtificialMeasurement, VariableBoundarySVSF
+from torchsvs.filters.svsf import SVSF, VariableBoundarySVSF
 from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
