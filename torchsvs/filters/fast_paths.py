@@ -15,7 +15,9 @@ path gives the loop's numbers up to rounding (the kernel tests pin them).
 
 from __future__ import annotations
 
+import operator
 import threading
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, NamedTuple, cast
 
@@ -56,7 +58,24 @@ class DenseConstants(NamedTuple):
     fingerprint: tuple[Any, ...]  #: :func:`_fingerprint` when they were built
     #: the compiled online steps formed so far, by (keep, leading shape, thread: each has its
     #: own scratch)
-    steps: dict[tuple[Any, ...], fused.OnlineStep]
+    steps: dict[tuple[Any, ...], OnlineStep]
+
+
+class OnlineStep(NamedTuple):
+    """A compiled online step and how its kept outputs fill :class:`DenseOutputs`."""
+
+    call: fused.OnlineStep
+    #: picks the :class:`DenseOutputs` fields from its kept outputs followed by a ``None``
+    pick: Callable[[list[Any]], tuple[Any, ...]]
+
+    @staticmethod
+    def of(call: fused.OnlineStep) -> OnlineStep:
+        """``call`` and its :attr:`pick`."""
+        kept = list(call.kept)
+        where = [
+            kept.index(i) if i in kept else len(kept) for i in range(len(DenseOutputs._fields))
+        ]
+        return OnlineStep(call, operator.itemgetter(*where))
 
 
 class DenseOutputs(NamedTuple):
@@ -427,8 +446,10 @@ class FastPathFilter(GaussianFilter):
         step = constants.steps.get(key)
         if step is None:
             x = state.mean
-            step = fused.OnlineStep(
-                rule, constants.gamma, constants.matrices, x.shape[1], lead, x.dtype, keep
+            step = OnlineStep.of(
+                fused.OnlineStep(
+                    rule, constants.gamma, constants.matrices, x.shape[1], lead, x.dtype, keep
+                )
             )
             constants.steps[key] = step
         return self._online_step(step, state, z, psi, rule, constants, keep)
@@ -468,7 +489,7 @@ class FastPathFilter(GaussianFilter):
 
     def _online_step(
         self,
-        step: fused.OnlineStep,
+        step: OnlineStep,
         state: FilterState,
         z: Tensor,
         psi: Tensor | None,
@@ -491,25 +512,42 @@ class FastPathFilter(GaussianFilter):
         widths = constants.widths if psi is None else psi.to(x.dtype).contiguous()
         total = state.log_likelihood  # (the library reads it as x's dtype, contiguous)
         total = None if total is None else total.to(x.dtype).contiguous()
-        done = step(x.contiguous(), P.contiguous(), z.contiguous(), memory, widths, total)
+        done = step.call(x.contiguous(), P.contiguous(), z.contiguous(), memory, widths, total)
         if done is None:
             return None
         kept, after = done
-        slots: list[Any] = [None] * len(DenseOutputs._fields)
-        for i, value in zip(step.kept, kept, strict=True):
-            slots[i] = value
-        out = DenseOutputs._make(slots)
+        out = DenseOutputs._make(step.pick([*kept, None]))
         mean, cov, e_post = out.mean, out.cov, out.post_innovation
         if single:  # the state keeps the batch axis; the step's result of one track drops it
             mean, cov = mean[None], cov[None]
             e_post = None if e_post is None else e_post[None]
         after_state = FilterState(
-            mean, cov, e_post, after, None, state.steps + 1, single, constants
+            mean=mean,
+            cov=cov,
+            post_innovation=e_post,
+            log_likelihood=after,
+            steps=state.steps + 1,
+            single=single,
+            constants=constants,
         )
-        if keep != "all":  # the fields a kept result leaves out (FilterResult's doc)
-            out = out._replace(cov=out.cov if keep == "moments" else None, post_innovation=None)
         lead = () if single else (B,)
-        return after_state, _dense_result(out, rule, constants.matrices, lead, keep)
+        if keep == "all":
+            return after_state, _dense_result(out, rule, constants.matrices, lead, keep)
+        nothing: Any = None  # the fields a kept result leaves out (FilterResult's doc)
+        result = FilterResult(
+            mean=out.mean,
+            cov=out.cov if keep == "moments" else nothing,
+            pred_mean=nothing,
+            pred_cov=nothing,
+            innovation=nothing,
+            mask=nothing,
+            transition=nothing,
+            meas_matrix=nothing,
+            meas_cov=nothing,
+            gain=nothing,
+            log_likelihood=out.log_likelihood if rule == "kalman" else None,
+        )
+        return after_state, result
 
 
 def _cross_axis(m: int) -> Tensor:
