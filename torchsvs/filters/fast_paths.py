@@ -58,24 +58,25 @@ class DenseConstants(NamedTuple):
     fingerprint: tuple[Any, ...]  #: :func:`_fingerprint` when they were built
     #: the compiled online steps formed so far, by (keep, leading shape, thread: each has its
     #: own scratch)
-    steps: dict[tuple[Any, ...], OnlineStep]
+    steps: dict[tuple[Any, ...], CompiledStep]
 
 
-class OnlineStep(NamedTuple):
-    """A compiled online step and how its kept outputs fill :class:`DenseOutputs`."""
+class CompiledStep(NamedTuple):
+    """A compiled online step (:class:`torchsvs.kernels.fused.OnlineStep`) and how its kept
+    outputs fill :class:`DenseOutputs`."""
 
     call: fused.OnlineStep
     #: picks the :class:`DenseOutputs` fields from its kept outputs followed by a ``None``
     pick: Callable[[list[Any]], tuple[Any, ...]]
 
     @staticmethod
-    def of(call: fused.OnlineStep) -> OnlineStep:
+    def of(call: fused.OnlineStep) -> CompiledStep:
         """``call`` and its :attr:`pick`."""
         kept = list(call.kept)
         where = [
             kept.index(i) if i in kept else len(kept) for i in range(len(DenseOutputs._fields))
         ]
-        return OnlineStep(call, operator.itemgetter(*where))
+        return CompiledStep(call, operator.itemgetter(*where))
 
 
 class DenseOutputs(NamedTuple):
@@ -446,7 +447,7 @@ class FastPathFilter(GaussianFilter):
         step = constants.steps.get(key)
         if step is None:
             x = state.mean
-            step = OnlineStep.of(
+            step = CompiledStep.of(
                 fused.OnlineStep(
                     rule, constants.gamma, constants.matrices, x.shape[1], lead, x.dtype, keep
                 )
@@ -489,7 +490,7 @@ class FastPathFilter(GaussianFilter):
 
     def _online_step(
         self,
-        step: OnlineStep,
+        step: CompiledStep,
         state: FilterState,
         z: Tensor,
         psi: Tensor | None,

@@ -309,7 +309,7 @@ class SVSF(FastPathFilter):
     @property
     def paths(self) -> FastPaths:  # type: ignore[override]
         """Both kernels' ``"svsf"`` rules; the compiled dense steps in the ``H⁺`` mode only."""
-        return FastPaths(axis="svsf", dense="svsf" if self.artificial is None else None)
+        return _H_PLUS_PATHS if self.artificial is None else _ARTIFICIAL_PATHS
 
     def dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
         gains = self.run_settings(dtype, H)
@@ -543,6 +543,12 @@ class ArtificialKalmanFilter(KalmanFilter):
     def carried_history(self, history: Any, inputs: Inputs) -> Any:
         """The raw rows the artificial measurement may still look back to (as for the SVSF)."""
         return rows_to_keep(history, inputs)
+
+
+#: The fast paths of the SVSF's ``H⁺`` mode and of its artificial measurement (one each: an
+#: online step reads them).
+_H_PLUS_PATHS = FastPaths(axis="svsf", dense="svsf")
+_ARTIFICIAL_PATHS = FastPaths(axis="svsf")
 
 
 class _Gains(NamedTuple):
