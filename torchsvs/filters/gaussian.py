@@ -217,7 +217,9 @@ class GaussianFilter(SteppedEstimator[FilterResult]):
     The prediction (Eqs. (11)-(12) and (18)-(20), Chen et al. 2020) is shared; subclasses replace
     only the corrector (:meth:`correct`) and, if they measure something else than the model's
     ``z`` (artificial measurements), :meth:`measurements`; nonlinear filters replace
-    :meth:`dynamics` and :meth:`predict`.
+    :meth:`dynamics` and :meth:`predict`. A run goes through :meth:`filter_step` step by step
+    unless :meth:`fast_pass` takes it (:class:`~torchsvs.filters.fast_paths.FastPathFilter`:
+    the kernels a corrector declares).
     """
 
     #: the kind of model the filter needs (nonlinear filters take any StateSpaceModel)
