@@ -266,8 +266,8 @@ def test_without_adaptive_noise_the_fast_paths_run_and_with_it_they_decline():
         state = plain.init(x0, P0)
         if plain.step_shortcut(state, z[:, 0], None, "all") is not None:  # compiled, if built
             assert adaptive.step_shortcut(adaptive.init(x0, P0), z[:, 0], None, "all") is None
-        assert adaptive._dense_scan(adaptive.init(x0, P0), _as_inputs(model, z, x0, P0)) is None
-        assert plain._dense_ready(None) and not adaptive._dense_ready(None)
+        assert adaptive.dense_scan(adaptive.init(x0, P0), _as_inputs(model, z, x0, P0)) is None
+        assert plain.dense_ready(None) and not adaptive.dense_ready(None)
     # The window never fills (T < window): the model's R at every step, the same numbers.
     for key in ("mean", "cov", "innovation_cov"):
         assert_close(getattr(slow, key), getattr(fast, key), atol=1e-9, rtol=1e-9)

@@ -124,6 +124,29 @@ def test_noise_units_are_each_steps_own_noise(path):
 
 
 @torch.no_grad()
+def test_a_per_step_psi_in_noise_units_with_the_artificial_velocity():
+    """A ψ per step passed at call time in noise units, with the finite-difference velocity
+    (no compiled dense steps: they once scaled it by the model's 2 position noises and
+    crashed), run whole on the general path and step by step: ψ times each step's own noise
+    (built by hand) in metres and m/s."""
+    z, _, x0, P0 = _irregular(seed=5, T=12)
+    model = ts.models.ConstantVelocity(ndim=2, dt=1.0, q=0.3, r=[16.0, 9.0]).double()
+    per_step = 3.0 + torch.rand(z.shape[:2] + (4,), generator=torch.Generator().manual_seed(5))
+    per_step = per_step.double()
+    relative = ts.SVSF(model, psi=1.0, psi_units="noise").double()
+    absolute = ts.SVSF(model, psi=1.0).double()
+    psi = per_step * _noise_psi(z, torch.ones(z.shape[:2]), model, (1.0, 1.0))
+    with general_path():
+        whole, expected = relative(z, x0, P0, psi=per_step), absolute(z, x0, P0, psi=psi)
+    state, means = relative.init(x0, P0), []
+    for t in range(z.shape[1]):
+        state, out = relative.step(state, z[:, t], psi=per_step[:, t])
+        means.append(out.mean)
+    assert_close(whole.mean, expected.mean, atol=1e-10, rtol=1e-10)
+    assert_close(torch.stack(means, 1), expected.mean, atol=1e-10, rtol=1e-10)
+
+
+@torch.no_grad()
 def test_one_psi_in_noise_units_fits_1_s_and_10_s_steps():
     """The same track sampled every 1 s and, time stretched tenfold, every 10 s: with ψ in
     noise units the SVSF behaves the same (positions equal, velocities a tenth, gains equal);

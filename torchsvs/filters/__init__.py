@@ -6,8 +6,9 @@ from torchsvs.filters.artificial import (
     FiniteDifferenceVelocity,
     ModulusFromAcceleration,
 )
+from torchsvs.filters.gaussian import GaussianFilter
 from torchsvs.filters.imm import IMM, IMMResult, IMMState
-from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
+from torchsvs.filters.kalman import KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.filters.particle import ParticleFilter, ParticleResult
 from torchsvs.filters.robust import RobustStudentTKalmanFilter

@@ -19,8 +19,8 @@ from torchsvs.estimator import (
     threads_for,
     trim,
 )
+from torchsvs.filters.gaussian import GaussianFilter, step_input, step_interval
 from torchsvs.filters.imm_embedding import Embedding, ModeSet
-from torchsvs.filters.kalman import GaussianFilter, step_input, step_interval
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.linalg import (
     cholesky,

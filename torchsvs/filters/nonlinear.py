@@ -6,8 +6,8 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import (
-    KalmanFilter,
+from torchsvs.filters.fast_paths import NO_FAST_PATHS, FastPaths
+from torchsvs.filters.gaussian import (
     Observation,
     Prepared,
     Step,
@@ -16,6 +16,7 @@ from torchsvs.filters.kalman import (
     step_input,
     step_interval,
 )
+from torchsvs.filters.kalman import KalmanFilter
 from torchsvs.linalg import cholesky, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel
 
@@ -43,7 +44,8 @@ class ExtendedKalmanFilter(KalmanFilter):
     """
 
     model_type = StateSpaceModel
-    axis_rule = None  # for models that need linearising; on a CV model the KF has the kernel
+    #: for models that need linearising; on a CV model the KF has the per-axis kernel
+    paths = FastPaths(dense="kalman")
 
 
 class UnscentedKalmanFilter(ExtendedKalmanFilter):
@@ -75,7 +77,7 @@ class UnscentedKalmanFilter(ExtendedKalmanFilter):
         2000. doi:10.1109/ASSPCC.2000.882463
     """
 
-    dense_rule = None  # sigma points, not the Kalman correction of F and H
+    paths = NO_FAST_PATHS  # sigma points, not the Kalman correction of F and H
 
     def __init__(
         self, model: StateSpaceModel, alpha: float = 0.5, beta: float = 2.0, kappa: float = 0.0

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs, SteppedEstimator, prepare_prior
-from torchsvs.filters.kalman import _at, kalman_update, step_input, step_interval
+from torchsvs.filters.gaussian import _at, kalman_update, step_input, step_interval
 from torchsvs.filters.particle_gaussians import gaussian_draws, measurement_log_density
 from torchsvs.linalg import cholesky, gaussian_log_density, mask_measurement, matvec
 from torchsvs.models.base import LinearModel, StateSpaceModel, noise_factor

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import (
+from torchsvs.filters.gaussian import (
     GaussianFilter,
     Observation,
     Step,

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike, Positive
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import GaussianFilter, Observation, Step, innovation_covariance
+from torchsvs.filters.gaussian import GaussianFilter, Observation, Step, innovation_covariance
 from torchsvs.linalg import joseph_update, mask_measurement, masked_pinv, matvec, svsf_gain_ratio
 from torchsvs.models.base import LinearModel
 

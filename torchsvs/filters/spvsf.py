@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchsvs.constraints import ArrayLike
 from torchsvs.estimator import Inputs
-from torchsvs.filters.kalman import Observation, Prepared, _at
+from torchsvs.filters.gaussian import Observation, Prepared, _at
 from torchsvs.filters.particle import ParticleFilter
 from torchsvs.filters.particle_gaussians import (
     gaussian_draws,

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable
-from dataclasses import replace
-from typing import Any, NamedTuple, cast
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -15,14 +13,15 @@ from torchsvs.estimator import Inputs
 from torchsvs.filters import factored
 from torchsvs.filters.adaptive import AdaptiveNoise, check_adaptive_noise
 from torchsvs.filters.artificial import FiniteDifferenceVelocity
-from torchsvs.filters.kalman import (
-    GaussianFilter,
-    KalmanFilter,
-    Observation,
-    Step,
-    innovation_covariance,
-    kalman_correct,
+from torchsvs.filters.artificial_rows import (
+    ArtificialMeasurement,
+    artificial_measurements,
+    auto_artificial,
+    rows_to_keep,
 )
+from torchsvs.filters.fast_paths import NO_FAST_PATHS, FastPathFilter, FastPaths
+from torchsvs.filters.gaussian import Observation, Step, innovation_covariance, kalman_correct
+from torchsvs.filters.kalman import KalmanFilter
 from torchsvs.kernels import build
 from torchsvs.kernels.axes import AxisMeasurements
 from torchsvs.kernels.blocks import Sym2
@@ -38,27 +37,12 @@ from torchsvs.linalg import (
 )
 from torchsvs.models.base import StateSpaceModel
 
-ArtificialMeasurement = Callable[
-    [Tensor, StateSpaceModel, "Tensor | None", "Tensor | None"], tuple[Tensor, Tensor, Tensor]
-]
 #: How an :class:`SVSF` reads ψ: in the measurement's own units, or in standard deviations of
 #: each step's own corrector-measurement noise.
 PSI_UNITS = ("absolute", "noise")
 
 
-def auto_artificial(model: StateSpaceModel) -> ArtificialMeasurement | None:
-    """The artificial measurement ``artificial="auto"`` picks: finite-difference velocity for a
-    model whose measurement is its positions and whose state adds their velocities, else none."""
-    pos = getattr(model, "position_index", None)
-    vel = getattr(model, "velocity_index", None)
-    if pos is None or vel is None or model.meas_dim >= model.state_dim:
-        return None
-    if len(pos) != model.meas_dim or len(set(pos) | set(vel)) != model.state_dim:
-        return None
-    return FiniteDifferenceVelocity()
-
-
-class SVSF(GaussianFilter):
+class SVSF(FastPathFilter):
     r"""Smooth variable structure filter with covariance, Eqs. (18)-(28), Chen et al. 2020.
 
     Shares the Kalman prediction (Eqs. (18), (20)) and replaces the corrector:
@@ -191,8 +175,6 @@ class SVSF(GaussianFilter):
         """Memory γ in [0, 1)."""
         return self.memory()
 
-    axis_rule: str | None = "svsf"
-
     def takes_psi(self) -> bool:
         return True
 
@@ -231,7 +213,7 @@ class SVSF(GaussianFilter):
         if self.artificial is None:
             z, H, R = super().measurements(inputs, history)
         else:
-            z, H, R = _artificial_measurements(
+            z, H, R = artificial_measurements(
                 self.artificial, self.model, history, inputs, self.adaptive_noise
             )
         self._check_widths(z.shape[-1], inputs)
@@ -246,10 +228,10 @@ class SVSF(GaussianFilter):
             return super().carried_history(history, inputs)
         adaptive = self.adaptive_noise
         if adaptive is None:
-            return _rows_to_keep(history, inputs)
+            return rows_to_keep(history, inputs)
         # A velocity's noise reads R_k at both of its positions: the earlier one's segment too.
         needed = adaptive.rows_needed
-        return _rows_to_keep(history, inputs, needed, reach_back=needed)
+        return rows_to_keep(history, inputs, needed, reach_back=needed)
 
     def axis_measurements(self, inputs: Inputs) -> AxisMeasurements | None:
         """Finite-difference velocities axis by axis (``R_y`` never assembled)."""
@@ -326,10 +308,11 @@ class SVSF(GaussianFilter):
         )
 
     @property
-    def dense_rule(self) -> str | None:  # type: ignore[override]
-        return "svsf" if self.artificial is None else None
+    def paths(self) -> FastPaths:  # type: ignore[override]
+        """Both kernels' ``"svsf"`` rules; the compiled dense steps in the ``H⁺`` mode only."""
+        return _H_PLUS_PATHS if self.artificial is None else _ARTIFICIAL_PATHS
 
-    def _dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
+    def dense_settings(self, dtype: torch.dtype, H: Tensor) -> tuple[float, Tensor] | None:
         gains = self.run_settings(dtype, H)
         if not gains.orthonormal or not build.usable(gains.psi, gains.gamma):
             return None
@@ -341,15 +324,11 @@ class SVSF(GaussianFilter):
     def _model_noise_std(self, dtype: torch.dtype) -> Tensor:
         return self.model.meas_cov().to(dtype).diagonal().sqrt()
 
-    def _dense_scan(self, state: Any, inputs: Inputs) -> Any:
-        if self.psi_units == "noise" and inputs.psi is not None:  # a per-step ψ in noise units
-            inputs = replace(inputs, psi=inputs.psi * self._model_noise_std(inputs.z.dtype))
-        return super()._dense_scan(state, inputs)
-
-    def step_shortcut(self, state: Any, z: Tensor, psi: Tensor | None, keep: str) -> Any:
-        if self.psi_units == "noise" and psi is not None:
-            psi = psi * self._model_noise_std(z.dtype)
-        return super().step_shortcut(state, z, psi, keep)
+    def dense_widths(self, psi: Tensor, dtype: torch.dtype) -> Tensor:
+        """A per-step ψ in noise units as widths in the model's constant ``R``'s."""
+        if self.psi_units == "noise":
+            return psi * self._model_noise_std(dtype)
+        return psi
 
     def run_settings(self, dtype: torch.dtype, H: Tensor | None) -> _Gains:
         orthonormal = None if H is None or H.ndim != 2 else has_orthonormal_rows(H)
@@ -454,13 +433,9 @@ class VariableBoundarySVSF(SVSF):
         self.inflation = inflation
 
     @property
-    def dense_rule(self) -> str | None:  # type: ignore[override]
-        return None
-
-    @property
-    def axis_rule(self) -> str | None:  # type: ignore[override]
+    def paths(self) -> FastPaths:  # type: ignore[override]
         """The per-axis kernel's rule (its tensor loop: no compiled one yet)."""
-        return f"vbl-{self.inflation}"
+        return FastPaths(axis=f"vbl-{self.inflation}")
 
     def filter_step(
         self,
@@ -471,7 +446,8 @@ class VariableBoundarySVSF(SVSF):
         prep: Any,
         inputs: Inputs,
     ) -> tuple[Tensor, Tensor, Tensor, Step]:
-        """The step of :class:`GaussianFilter`, recording the inflated prior ``P̃``."""
+        """The step of :class:`~torchsvs.filters.GaussianFilter`, recording the inflated prior
+        ``P̃``."""
         x_pred, P_pred, F_t = self.predict(t, x, P, prep, inputs)
         step, inflation = self._correct(x_pred, P_pred, prep.observation(t), carried, inputs)
         return x_pred, P_pred * inflation[..., None, None], F_t, step
@@ -542,8 +518,7 @@ class ArtificialKalmanFilter(KalmanFilter):
             for :class:`SVSF`) or an artificial measurement callable.
     """
 
-    axis_rule = None  # the kernels' Kalman rule measures z itself
-    dense_rule = None
+    paths = NO_FAST_PATHS  # the kernels' Kalman rule measures z itself
 
     def __init__(
         self, model: StateSpaceModel, artificial: ArtificialMeasurement | str = "auto"
@@ -564,50 +539,17 @@ class ArtificialKalmanFilter(KalmanFilter):
     def measurements(
         self, inputs: Inputs, history: Any = None
     ) -> tuple[Tensor, Tensor | None, Tensor]:
-        return _artificial_measurements(self.artificial, self.model, history, inputs)
+        return artificial_measurements(self.artificial, self.model, history, inputs)
 
     def carried_history(self, history: Any, inputs: Inputs) -> Any:
         """The raw rows the artificial measurement may still look back to (as for the SVSF)."""
-        return _rows_to_keep(history, inputs)
+        return rows_to_keep(history, inputs)
 
 
-def _artificial_measurements(
-    artificial: ArtificialMeasurement,
-    model: StateSpaceModel,
-    history: Any,
-    inputs: Inputs,
-    adaptive: AdaptiveNoise | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The artificial measurement of the steps of ``inputs``, ``H`` and ``R``, formed over the
-    rows kept from earlier steps and these (see :func:`_rows_to_keep`); with ``adaptive``, from
-    the adaptive ``R_k`` of those rows."""
-    window = _window(history, inputs)
-    if adaptive is None:
-        z, H, R = artificial(window.z, model, window.dt, window.u)
-    else:  # the kept rows cover the segments of this call's steps (carried_history)
-        R_k = adaptive.covariance(model.meas_cov().to(window.z.dtype), window.z)
-        z, H, R = cast(Any, artificial)(window.z, model, window.dt, window.u, meas_cov=R_k)
-    H, R = H.to(z.dtype), R.to(z.dtype)
-    kept = window.z.shape[1] - inputs.steps
-    return z[:, kept:], H, R[:, kept:] if R.ndim == 4 else R
-
-
-def _rows_to_keep(history: Any, inputs: Inputs, at_least: int = 1, reach_back: int = 0) -> _Rows:
-    """The raw rows an artificial measurement may still look back to: from the earliest step at
-    which some track last observed some component (finite differences bridge gaps back to it),
-    and ``reach_back`` rows before it (the segments of its adaptive ``R_k``), and at least the
-    last ``at_least`` rows (a step's previous row)."""
-    window = _window(history, inputs)
-    T = window.z.shape[1]
-    least = max(0, T - at_least)
-    if not bool(torch.isnan(window.z[:, -1]).any()):  # every component seen last step
-        return _window_rows(window, max(0, min(T - 1 - reach_back, least)))
-    seen = ~torch.isnan(window.z)
-    index = torch.arange(T).view(1, T, 1).expand_as(seen)
-    last = torch.where(seen, index, torch.full_like(index, -1)).amax(dim=1)  # [B, m]
-    observed = last[last >= 0]
-    start = min(T - 1, int(observed.min())) if observed.numel() else T - 1
-    return _window_rows(window, max(0, min(start - reach_back, least)))
+#: The fast paths of the SVSF's ``H⁺`` mode and of its artificial measurement (one each: an
+#: online step reads them).
+_H_PLUS_PATHS = FastPaths(axis="svsf", dense="svsf")
+_ARTIFICIAL_PATHS = FastPaths(axis="svsf")
 
 
 class _Gains(NamedTuple):
@@ -616,38 +558,3 @@ class _Gains(NamedTuple):
     psi: Tensor  #: ψ in the run's dtype (a per-step override replaces it)
     gamma: Tensor  #: γ in the run's dtype
     orthonormal: bool | None  #: whether the run's H has orthonormal rows (None: H varies)
-
-
-class _Rows(NamedTuple):
-    """Raw measurement rows with their intervals and inputs (``dt``: None, 0-d or ``[B, k]``)."""
-
-    z: Tensor
-    dt: Tensor | None
-    u: Tensor | None
-
-
-def _window(history: _Rows | None, inputs: Inputs) -> _Rows:
-    """The kept rows of earlier steps followed by this call's."""
-    if history is None:
-        return _Rows(inputs.z, inputs.dt, inputs.u)
-    B, kept = history.z.shape[:2]
-    dt: Tensor | None
-    if history.dt is None and inputs.dt is None:
-        dt = None
-    elif history.dt is None or inputs.dt is None:
-        raise ValueError(
-            "dt: pass it at every step or at none (the earlier steps of this state "
-            f"{'had' if history.dt is not None else 'had no'} dt)"
-        )
-    elif history.dt.ndim == 0 and inputs.dt.ndim == 0 and bool(history.dt == inputs.dt):
-        dt = inputs.dt  # one interval throughout: kept as a scalar, as a whole run has it
-    else:
-        dt = torch.cat([history.dt.expand(B, kept), inputs.dt.expand(B, inputs.steps)], dim=1)
-    u = None if history.u is None or inputs.u is None else torch.cat([history.u, inputs.u], 1)
-    return _Rows(torch.cat([history.z, inputs.z], dim=1), dt, u)
-
-
-def _window_rows(window: _Rows, start: int) -> _Rows:
-    dt = window.dt if window.dt is None or window.dt.ndim == 0 else window.dt[:, start:]
-    u = None if window.u is None else window.u[:, start:]
-    return _Rows(window.z[:, start:], dt, u)

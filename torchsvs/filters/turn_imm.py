@@ -10,8 +10,9 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.estimator import Estimator, Inputs, drop_batch, prepare_inputs, threads_for
+from torchsvs.filters.gaussian import GaussianFilter
 from torchsvs.filters.imm import IMM, IMM_PROBE_STEP, IMMResult
-from torchsvs.filters.kalman import GaussianFilter, KalmanFilter
+from torchsvs.filters.kalman import KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.models.base import StateSpaceModel

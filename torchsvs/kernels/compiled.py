@@ -1,7 +1,7 @@
 """The Gaussian filters' predict-correct step compiled with ``torch.compile``.
 
 Every Gaussian filter (KF, EKF, UKF, SVSF, RSTKF, SIF) runs its time loop in Python around one
-function, :meth:`~torchsvs.filters.kalman.GaussianFilter.filter_step`: a few dozen to a few
+function, :meth:`~torchsvs.filters.gaussian.GaussianFilter.filter_step`: a few dozen to a few
 hundred small tensor operations per step, each paying a dispatch (where the C++ loops of
 :mod:`~torchsvs.kernels.fused_axes` and :mod:`~torchsvs.kernels.fused_dense` apply, linear
 models without gradients, they run instead).

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.estimator import Estimator, Inputs, at_step, drop_batch
-from torchsvs.filters.kalman import GaussianFilter
+from torchsvs.filters.gaussian import GaussianFilter
 from torchsvs.kernels import axes_smoother
 from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
 from torchsvs.models.base import StateSpaceModel

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from torchsvs.filters.kalman import GaussianFilter
+from torchsvs.filters.gaussian import GaussianFilter
 from torchsvs.linalg import right_psd_solve
 from torchsvs.smoothers.rts import RTSSmoother
 from torchsvs.types import FilterResult
