@@ -158,3 +158,99 @@ def test_fitting_needs_no_lightning():
         cwd=Path(torchsvs.__file__).parents[1],
     )
     assert out.stdout.split() == ["False", "False"]
+
+
+def _direct_imports(path: Path, name: str, modules: dict[str, Path]) -> set[str]:
+    """The torchsvs modules ``name`` names in its imports, each the most specific one
+    (``from a.b import c`` is ``a.b.c`` where that is a module, else ``a.b``): a package's
+    ``__init__`` counts only where it is imported itself."""
+    tree = ast.parse(path.read_text(), str(path))
+    skipped = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and _is_type_checking(node)
+        for statement in node.body
+        for inner in ast.walk(statement)
+    }
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name in modules)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
+            for alias in node.names:
+                target = f"{base}.{alias.name}"
+                found.add(target if target in modules else base)
+    return {target for target in found if target in modules and target != name}
+
+
+def module_loops(root: Path) -> list[list[str]]:
+    """Every set of modules of the package at ``root`` that import each other in a loop (the
+    strongly connected components of more than one module, Tarjan's algorithm)."""
+    modules = _modules(root)
+    graph = {name: _direct_imports(path, name, modules) for name, path in modules.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    loops: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for nxt in graph[node]:
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                loops.append(sorted(component))
+
+    for name in sorted(graph):
+        if name not in index:
+            visit(name)
+    return loops
+
+
+def test_no_module_imports_itself_through_others():
+    """No import loop anywhere in the package (issue 30), at module level or in a function."""
+    assert module_loops(Path(torchsvs.__file__).parent) == []
+
+
+def test_a_loop_between_two_modules_is_found(tmp_path):
+    package = tmp_path / "torchsvs"
+    (package / "kernels").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "kernels" / "__init__.py").write_text("")
+    (package / "kernels" / "axes.py").write_text("def f():\n    from . import scan\n")
+    (package / "kernels" / "scan.py").write_text("from torchsvs.kernels.axes import f\n")
+    assert module_loops(package) == [["torchsvs.kernels.axes", "torchsvs.kernels.scan"]]
+    (package / "kernels" / "axes.py").write_text("def f():\n    pass\n")
+    assert module_loops(package) == []
+
+
+#: The longest a Python file of the package may be (issue 30: one idea per file).
+MAX_LINES = 600
+
+
+def test_no_python_file_of_the_package_is_over_the_limit():
+    root = Path(torchsvs.__file__).parent
+    long = {
+        str(path.relative_to(root)): lines
+        for path in root.rglob("*.py")
+        if (lines := len(path.read_text(encoding="utf-8").splitlines())) > MAX_LINES
+    }
+    assert not long, f"over {MAX_LINES} lines: {long}"
