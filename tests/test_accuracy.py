@@ -14,8 +14,8 @@ import torch
 
 from torchsvs.accuracy import RiskTerms, RiskTotals, accuracy, risk_terms
 from torchsvs.datasets import Columns
-from torchsvs.fitting.selection import caution_score
 from torchsvs.recipes import Settings
+from torchsvs.selection import caution_score
 from torchsvs.track_run import summary_path
 from torchsvs.tracking import track_file
 
@@ -430,7 +430,7 @@ def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_b
     """A sample over ``IMM_POINTS`` no longer skips the IMM: every candidate is scored on the
     same tracks spread over the sample, up to that many points (so the table compares like
     with like), while the fits see the whole sample."""
-    import torchsvs.fitting.selection as selection
+    import torchsvs.selection as selection
 
     source = tmp_path / "in.csv"
     _turning_csv(source)  # 8 tracks of 150 points
@@ -454,7 +454,7 @@ def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_b
 
 def test_spread_tracks_keeps_the_most_tracks_within_the_points():
     from torchsvs.datasets import RecordedTracks
-    from torchsvs.fitting.selection import spread_tracks
+    from torchsvs.selection import spread_tracks
 
     lengths = torch.tensor([100, 10, 50, 200, 30, 80, 120, 60])
     z = torch.full((8, 200, 2), math.nan)

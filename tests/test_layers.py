@@ -17,6 +17,7 @@ import torchsvs
 LAYERS = (
     "torchsvs.recipes",
     "torchsvs.estimating",
+    "torchsvs.selection",
     "torchsvs.fitting",
     "torchsvs.track_run",
     "torchsvs.tracking",

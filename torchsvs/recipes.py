@@ -31,7 +31,7 @@ from torchsvs.smoothers import SVSS, RTSSmoother, TurnIMMSmoother
 #: Estimator names of ``torchsvs track --estimator`` and what they are.
 ESTIMATORS = {
     "auto": "the lowest estimated error of ks, svss, imm (small "
-    "files), each tuned on the file without truth (torchsvs.fitting.selection)",
+    "files), each tuned on the file without truth (torchsvs.selection)",
     "kf": "Kalman filter",
     "ks": "Kalman smoother (RTS; fixed interval unless --lag)",
     "svsf": "smooth variable structure filter",
@@ -254,7 +254,7 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
     if name == "auto":
         raise ValueError(
             "estimator: 'auto' is a choice among estimators, made on data "
-            "(torchsvs.fitting.selection.choose_estimator), not an estimator to build"
+            "(torchsvs.selection.choose_estimator), not an estimator to build"
         )
     if name == "imm":
         if settings.turn_rate_q is None or settings.turn_rate_std is None:

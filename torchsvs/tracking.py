@@ -4,7 +4,7 @@ A file is read in blocks of complete tracks (:func:`~torchsvs.datasets.track_blo
 estimator is built from the settings (:mod:`torchsvs.recipes`) with what the user left open read
 off the first block (:func:`torchsvs.fitting.defaults.complete_settings`), tuned on the file
 itself with ``--fit`` (:func:`torchsvs.fitting.tuning.self_tune`) or chosen among several with
-``auto`` (:mod:`torchsvs.fitting.selection`); each block is then estimated group by group
+``auto`` (:mod:`torchsvs.selection`); each block is then estimated group by group
 (:func:`torchsvs.estimating.estimate_group`) and written. Every run estimates its own error
 without truth (:mod:`torchsvs.accuracy`) and warns where it is not clearly below the
 measurements' (:class:`~torchsvs.track_run.TrackRun`, which also holds the run's summary).
@@ -42,7 +42,6 @@ from torchsvs.fitting.defaults import (
     settings_note,
     with_q_curve,
 )
-from torchsvs.fitting.selection import choose_estimator
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import (
     Settings,
@@ -50,6 +49,7 @@ from torchsvs.recipes import (
     make_estimator,
     make_model,
 )
+from torchsvs.selection import choose_estimator
 from torchsvs.track_run import BlockEstimates, TrackRun, short, summary_path, write_summary
 
 Item = TypeVar("Item")

@@ -6,9 +6,9 @@
   track.
 * :mod:`~torchsvs.fitting.defaults`: the settings ``torchsvs track`` reads off the data.
 * :mod:`~torchsvs.fitting.tuning`: :func:`~torchsvs.fitting.tuning.self_tune`, ``--fit``.
-* :mod:`~torchsvs.fitting.selection`: ``--estimator auto``.
 
 Nothing is imported here, so that importing one part (e.g. ``torchsvs.fitting.noise``) does not
-import the others: :mod:`~torchsvs.fitting.tuning` and :mod:`~torchsvs.fitting.selection` sit
-above :mod:`torchsvs.estimating`, which uses :mod:`~torchsvs.fitting.noise`.
+import the others. :mod:`torchsvs.estimating` uses these parts; ``--estimator auto``, which
+scores fitted candidates as :mod:`torchsvs.estimating` runs them, sits above both
+(:mod:`torchsvs.selection`).
 """
