@@ -31,7 +31,7 @@ from experiments.learn_psi import COMPLEX_GRID, load, position_rmse
 from torchsvs.evaluation import markdown_table, psi_sweep
 from torchsvs.scenarios import complex_scenario
 from torchsvs.training import EstimatorModule
-from torchsvs.training.quiet import quiet_lightning
+from torchsvs.training.quiet import quiet_lightning, tool_trainer
 
 
 class AdaptivePsiSVSS(nn.Module):
@@ -76,15 +76,7 @@ class AdaptivePsiSVSS(nn.Module):
 
 def fit(module: nn.Module, data: Any, epochs: int, lr: float) -> float:
     with quiet_lightning():
-        trainer = L.Trainer(
-            max_epochs=epochs,
-            accelerator="cpu",
-            devices=1,
-            logger=False,
-            enable_checkpointing=False,
-            enable_progress_bar=False,
-            enable_model_summary=False,
-        )
+        trainer = tool_trainer(max_epochs=epochs)
         start = time.perf_counter()
         trainer.fit(EstimatorModule(module, loss="supervised", lr=lr), data)
     return time.perf_counter() - start

@@ -32,7 +32,7 @@ from torchsvs.metrics import pooled_rmse
 from torchsvs.scenarios import Scenario, atc_scenario, complex_scenario
 from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule, config_path
 from torchsvs.training.cli import main as cli_main
-from torchsvs.training.quiet import TidyProgressBar, quiet_lightning
+from torchsvs.training.quiet import TidyProgressBar, quiet_lightning, tool_trainer
 
 FAMILIES = {
     # name: (shipped config of `torchsvs fit --config`, paper scenario, paper ψ)
@@ -112,15 +112,11 @@ def train(
     module = EstimatorModule(target, loss=loss, lr=0.1, seed=seed)
     logdir = tempfile.mkdtemp(prefix="learn_psi_")
     with quiet_lightning():  # no banners or tips; the bar, if any, ends cleanly
-        trainer = L.Trainer(
+        trainer = tool_trainer(
             max_epochs=epochs,
-            accelerator="cpu",
-            devices=1,
             logger=CSVLogger(logdir, name="run"),
-            enable_checkpointing=False,
             enable_progress_bar=progress,
             callbacks=[TidyProgressBar()] if progress else [],
-            enable_model_summary=False,
             log_every_n_steps=1,
         )
         L.seed_everything(seed, verbose=False)

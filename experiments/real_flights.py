@@ -135,11 +135,10 @@ def grid_svss(base: Settings, tracks: RecordedTracks) -> dict[tuple[float, float
 def train_on_simulation(name: str, sigma: float, lag: int, seconds: float) -> Settings:
     """An estimator's q (KS) or q, ψ, γ (SVSS) learned with truth on random maneuvers that look
     like the flights (5 s scan, 50-250 m/s, turns up to 4°/s, σ noise), via Lightning."""
-    import lightning as L
 
     from torchsvs.scenarios import ManeuverRanges
     from torchsvs.training import EstimatorModule, ManeuveringTargetDataModule
-    from torchsvs.training.quiet import quiet_lightning
+    from torchsvs.training.quiet import quiet_lightning, tool_trainer
 
     ranges = ManeuverRanges(
         steps=150,
@@ -174,16 +173,7 @@ def train_on_simulation(name: str, sigma: float, lag: int, seconds: float) -> Se
     )
     module = EstimatorModule(est, loss="supervised", lr=0.1, seed=0)
     with quiet_lightning(), warnings.catch_warnings():
-        trainer = L.Trainer(
-            max_time={"seconds": seconds},
-            max_epochs=6,
-            accelerator="cpu",
-            devices=1,
-            logger=False,
-            enable_checkpointing=False,
-            enable_progress_bar=False,
-            enable_model_summary=False,
-        )
+        trainer = tool_trainer(max_time={"seconds": seconds}, max_epochs=6)
         warnings.filterwarnings("ignore", message=".*LeafSpec.*|.*does not have many workers.*")
         trainer.fit(module, data)
     learned: dict[str, Any] = {"q": float(model.q().detach())}

@@ -48,10 +48,10 @@ def _is_type_checking(node: ast.If) -> bool:
     )
 
 
-def _imports(path: Path, name: str, modules: dict[str, Path]) -> set[str]:
-    """The torchsvs modules ``name`` imports when it runs: every import statement, at any depth,
-    but those under ``if TYPE_CHECKING:`` (never run); ``from a import b`` is ``a.b`` where that
-    is a module, and a module's package counts as imported with it."""
+def _imported(path: Path, name: str) -> list[tuple[str, list[str]]]:
+    """What ``name``'s import statements name when it runs, at any depth but under ``if
+    TYPE_CHECKING:`` (never run): ``(module, [])`` for ``import module``, ``(base, names)`` for
+    ``from base import names`` (relative bases made absolute)."""
     tree = ast.parse(path.read_text(), str(path))
     skipped = {
         id(inner)
@@ -61,19 +61,28 @@ def _imports(path: Path, name: str, modules: dict[str, Path]) -> set[str]:
         for inner in ast.walk(statement)
     }
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    targets: set[str] = set()
+    found: list[tuple[str, list[str]]] = []
     for node in ast.walk(tree):
         if id(node) in skipped:
             continue
         if isinstance(node, ast.Import):
-            targets.update(a.name for a in node.names)
+            found += [(a.name, []) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 parts = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join(parts + ([base] if base else []))
-            targets.add(base)
-            targets.update(f"{base}.{a.name}" for a in node.names)
+            found.append((base, [a.name for a in node.names]))
+    return found
+
+
+def _imports(path: Path, name: str, modules: dict[str, Path]) -> set[str]:
+    """The torchsvs modules ``name`` imports when it runs (:func:`_imported`); ``from a import
+    b`` is ``a.b`` where that is a module, and a module's package counts as imported with it."""
+    targets: set[str] = set()
+    for base, names in _imported(path, name):
+        targets.add(base)
+        targets.update(f"{base}.{alias}" for alias in names)
     edges = set()
     for target in targets:
         # importing a.b.c runs a.b's __init__ too (the root package aside: everything is in it)
@@ -165,29 +174,11 @@ def _direct_imports(path: Path, name: str, modules: dict[str, Path]) -> set[str]
     """The torchsvs modules ``name`` names in its imports, each the most specific one
     (``from a.b import c`` is ``a.b.c`` where that is a module, else ``a.b``): a package's
     ``__init__`` counts only where it is imported itself."""
-    tree = ast.parse(path.read_text(), str(path))
-    skipped = {
-        id(inner)
-        for node in ast.walk(tree)
-        if isinstance(node, ast.If) and _is_type_checking(node)
-        for statement in node.body
-        for inner in ast.walk(statement)
-    }
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(tree):
-        if id(node) in skipped:
-            continue
-        if isinstance(node, ast.Import):
-            found.update(a.name for a in node.names if a.name in modules)
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
-                base = ".".join(parts + ([base] if base else []))
-            for alias in node.names:
-                target = f"{base}.{alias.name}"
-                found.add(target if target in modules else base)
+    for base, names in _imported(path, name):
+        found.update(f"{base}.{a}" if f"{base}.{a}" in modules else base for a in names)
+        if not names:
+            found.add(base)
     return {target for target in found if target in modules and target != name}
 
 

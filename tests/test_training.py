@@ -23,6 +23,7 @@ from torchsvs.training import (
     shipped_configs,
 )
 from torchsvs.training.cli import main as cli_main
+from torchsvs.training.quiet import tool_trainer
 
 pytestmark = pytest.mark.filterwarnings(
     "ignore:.*does not have many workers.*", "ignore:.*LeafSpec.*", "ignore:.*litlogger.*"
@@ -44,16 +45,7 @@ def _svss(psi: float = 10.0) -> ts.SVSS:
 
 
 def _trainer(tmp_path, epochs: int = 2, **kw) -> L.Trainer:
-    return L.Trainer(
-        max_epochs=epochs,
-        accelerator="cpu",
-        devices=1,
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
-        **kw,
-    )
+    return tool_trainer(max_epochs=epochs, default_root_dir=tmp_path, **kw)
 
 
 def test_data_module_splits_are_seeded_and_disjoint():

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import lightning as L
 import pytest
 import torch
 
@@ -17,6 +16,7 @@ from torchsvs.fitting.defaults import complete_settings
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, make_estimator, make_model
 from torchsvs.training import EstimatorModule, RecordedTracksDataModule
+from torchsvs.training.quiet import tool_trainer
 
 pytestmark = pytest.mark.filterwarnings(
     "ignore:.*does not have many workers.*", "ignore:.*LeafSpec.*", "ignore:.*litlogger.*"
@@ -124,16 +124,7 @@ def test_lightning_fits_recorded_tracks_without_truth(tmp_path):
     module = EstimatorModule(
         ts.RTSSmoother(ts.KalmanFilter(model), lag=2), loss="sure", lr=0.3, meas_cov=data.meas_cov
     )
-    trainer = L.Trainer(
-        max_epochs=12,
-        accelerator="cpu",
-        devices=1,
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        enable_checkpointing=False,
-        default_root_dir=tmp_path,
-    )
+    trainer = tool_trainer(max_epochs=12, default_root_dir=tmp_path)
     trainer.fit(module, data)
     assert float(model.q().detach()) < 100.0  # from 200 toward the true 4
     assert "val_rmse" not in trainer.callback_metrics  # no truth, no RMSE

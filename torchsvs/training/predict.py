@@ -38,7 +38,7 @@ from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
 from torchsvs.track_run import BlockEstimates, TrackRun, summary_path, write_summary
 from torchsvs.tracking import prepare_estimator
-from torchsvs.training.quiet import quiet_lightning
+from torchsvs.training.quiet import quiet_lightning, tool_trainer
 
 
 class TrackGroups(Dataset["GroupBatch | None"]):
@@ -349,14 +349,9 @@ def predict_file(
     try:
         # No banners about GPUs and process groups, no tips, on every run.
         with quiet_lightning():
-            trainer = L.Trainer(
-                accelerator="cpu",
+            trainer = tool_trainer(
                 devices=processes,
                 strategy=strategy,
-                logger=False,
-                enable_progress_bar=False,
-                enable_model_summary=False,
-                enable_checkpointing=False,
                 inference_mode=False,  # the estimators run under no_grad, as in one process
                 callbacks=[gather],
             )
