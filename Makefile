@@ -19,8 +19,9 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m experiments.demo
 
+# Two pytest workers share the two cores (tests/conftest.py builds the compiled loops once first).
 test: $(STAMP)
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow" -q -n 2
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow -q

@@ -87,3 +87,16 @@ def simulate_cv(
     truth = torch.stack(states, 1)
     noise = r**0.5 * torch.randn(B, T, 2, generator=generator, dtype=torch.float64)
     return truth, truth[..., [0, 2]] + noise
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Before any test (and, under pytest-xdist, in the controller before its workers start):
+    the compiled loops' library built once, so that the workers load it from the cache rather
+    than each build it on a fresh machine. Each worker then runs its tests on one intra-op
+    thread: two workers share the two cores, and tests that need threads set them."""
+    if hasattr(config, "workerinput"):
+        torch.set_num_threads(1)
+        return
+    from torchsvs.kernels import build
+
+    build.library()
