@@ -86,3 +86,15 @@ def test_every_docs_page_is_in_the_nav() -> None:
     assert pages
     unlisted = [p for p in pages if f": {p}" not in nav]
     assert not unlisted, f"docs pages missing from mkdocs.yml's nav: {unlisted}"
+
+
+def test_readme_python_example_runs() -> None:
+    """The README's first Python example runs as printed (on 8 runs of the scenario, not 500:
+    the count is the only change), and its gradients reach ψ."""
+    text = README.read_text(encoding="utf-8")
+    (block,) = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert "num_runs=500" in block
+    scope: dict = {"__name__": "readme_example"}
+    exec(compile(block.replace("num_runs=500", "num_runs=8"), "README.md", "exec"), scope)
+    assert scope["out"].mean.shape == (8, 490, 4)
+    assert scope["svsf"].boundary_layer.raw.grad is not None
