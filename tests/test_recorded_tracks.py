@@ -240,6 +240,16 @@ def test_harness_end_to_end_on_a_tiny_set(tmp_path: Path) -> None:
     assert bench.name in text and "The command's default estimator is `" in text
     assert "from 25.0 m as recorded to 3.0 m after it" in text
     assert "Messages of the runs that gave nothing:\n\n- 1 × " in text and "$" not in text
+    # the mode without options says so; no `auto` among the estimators: the best table says so
+    assert "the mode's options: `default` (no option: the noise is read off the data). " in text
+    assert ". The command has no `auto` yet: its column appears when it does." in text
+    assert "1 runs (1 sets × 1 estimators × 1 modes)" not in text  # three runs were given
+    assert "3 runs (1 sets × 1 estimators × 1 modes)" in text
+    assert rt.estimate_section([broken]).startswith("No run wrote a summary")
+    near = [rt.Run(bench.name, "ks", "default", [], rmse=27.0, raw=70.0, estimated=30.0)]
+    assert rt.estimate_section(near).startswith(
+        "1 runs wrote a truth-free estimate; 0 are more than 15% off the true RMSE."
+    )
 
 
 def test_the_command_line_gives_what_the_in_process_run_gives(tmp_path: Path) -> None:
