@@ -46,6 +46,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import pandas as pd
 
+from experiments.common import render
 from experiments.recorded_sets import (
     DEJITTER_WINDOW,
     KINDS,
@@ -434,16 +435,8 @@ def sources_text(files: Sequence[str]) -> str:
     )
 
 
-def sets_section(sets: Sequence[BenchSet]) -> list[str]:
-    lines = [
-        "## The sets",
-        "",
-        "Measurements = truth + independent Gaussian noise σ on `x` and `y` (seeded); the input "
-        "file holds `track_id,time,x,y` only. Intervals and speeds are the 10th/50th/90th "
-        "percentiles between successive rows of a track (speeds of the truth; the longest "
-        "interval in brackets). Raw RMSE: 2-D RMSE of the measurements (≈ σ√2).",
-        "",
-    ]
+def sets_section(sets: Sequence[BenchSet]) -> str:
+    """The sets' table and how each kind's truth was made."""
     rows = []
     for bench in sets:
         d = describe(bench)
@@ -471,28 +464,32 @@ def sets_section(sets: Sequence[BenchSet]) -> list[str]:
         "σ m",
         "raw RMSE m",
     ]
-    lines += table(header, rows)
-    lines += ["", "How each truth was made:", ""]
+    truths = []
     seen = set()
     for bench in sets:
         kind = bench.kind
         if kind.name in seen:
             continue
         seen.add(kind.name)
-        builder = kind.build.__doc__ or ""
-        counts = ", ".join(f"{k} {v:,}" for k, v in bench.truth.counts.items())
         rough = bench.truth.roughness
-        text = f"- **{kind.name}** ({kind.title}): {' '.join(builder.split())}"
-        if kind.note:
-            text += f" {kind.note[0].upper()}{kind.note[1:]}."
-        text += f" Cleaning: {counts}."
+        roughness = ""
         if rough and math.isfinite(rough.get("along", math.nan)):
-            text += (
-                f" White error of the record at reports 1 s apart (along / across the track, "
-                f"per report): {rough['along']:.1f} / {rough['across']:.1f} m as recorded."
+            roughness = _text(
+                "truth_roughness", along=f"{rough['along']:.1f}", across=f"{rough['across']:.1f}"
             )
-        lines.append(text)
-    return lines
+        note = _text("truth_note", note=kind.note[0].upper() + kind.note[1:]) if kind.note else ""
+        truths.append(
+            _text(
+                "truth",
+                kind=kind.name,
+                title=kind.title,
+                builder=" ".join((kind.build.__doc__ or "").split()),
+                note=note,
+                counts=", ".join(f"{k} {v:,}" for k, v in bench.truth.counts.items()),
+                roughness=roughness,
+            )
+        )
+    return _text("sets", table="\n".join(table(header, rows)), truths="\n".join(truths))
 
 
 def truth_check(along: float = 25.0, seed: int = 0) -> dict[str, float]:
@@ -609,29 +606,23 @@ def best_section(
     return table(header, rows)
 
 
-def estimate_section(runs: Sequence[Run]) -> list[str]:
+def estimate_section(runs: Sequence[Run]) -> str:
+    """How many runs wrote a truth-free estimate, and those more than 15% off the true RMSE."""
     with_estimate = [r for r in runs if r.ok and math.isfinite(r.estimated)]
     if not with_estimate:
-        return [
-            "No run wrote a summary with `estimated_position_rmse` (`<output stem>.summary.json`"
-            " beside the output): `track` gives no truth-free estimate yet, so the estimate "
-            "columns below are empty.",
-        ]
+        return _text("estimate_none")
     off = [r for r in with_estimate if abs(r.estimate_ratio - 1) > ESTIMATE_TOLERANCE]
-    lines = [
-        f"{len(with_estimate)} runs wrote a truth-free estimate; {len(off)} are more than "
-        f"{ESTIMATE_TOLERANCE:.0%} off the true RMSE" + (":" if off else "."),
-        "",
-    ]
-    if off:
-        lines += table(
-            ["set", "estimator", "mode", "true RMSE m", "estimated m", "estimated / true"],
-            [
-                [r.set, r.estimator, r.mode, _f(r.rmse), _f(r.estimated), f"{r.estimate_ratio:.2f}"]
-                for r in sorted(off, key=lambda r: -abs(math.log(r.estimate_ratio)))
-            ],
-        )
-    return lines
+    counts = {"runs": len(with_estimate), "off": len(off), "tolerance": f"{ESTIMATE_TOLERANCE:.0%}"}
+    if not off:
+        return _text("estimate_all_near", **counts)
+    rows = table(
+        ["set", "estimator", "mode", "true RMSE m", "estimated m", "estimated / true"],
+        [
+            [r.set, r.estimator, r.mode, _f(r.rmse), _f(r.estimated), f"{r.estimate_ratio:.2f}"]
+            for r in sorted(off, key=lambda r: -abs(math.log(r.estimate_ratio)))
+        ],
+    )
+    return _text("estimate_some_off", table="\n".join(rows), **counts)
 
 
 #: The rows of issue 28's table that a set of this benchmark matches: (what was run, kind, σ,
@@ -770,10 +761,10 @@ def issue_section(runs: Sequence[Run], sets: Sequence[BenchSet]) -> list[str]:
     )
 
 
-def detail_section(runs: Sequence[Run], bench: BenchSet) -> list[str]:
+def detail_section(runs: Sequence[Run], bench: BenchSet) -> str:
+    """Every run on one set: its scores, cost, truth-free estimate and messages."""
     mine = [r for r in runs if r.set == bench.name]
     raw = describe(bench).raw_rmse
-    lines = [f"### {bench.name}: {bench.kind.title}, raw RMSE {_f(raw)} m", ""]
     rows = []
     for r in mine:
         if r.ok:
@@ -809,7 +800,7 @@ def detail_section(runs: Sequence[Run], bench: BenchSet) -> list[str]:
                 "; ".join(note),
             ]
         )
-    lines += table(
+    lines = table(
         [
             "estimator",
             "mode",
@@ -825,7 +816,9 @@ def detail_section(runs: Sequence[Run], bench: BenchSet) -> list[str]:
         ],
         rows,
     )
-    return lines + [""]
+    return _text(
+        "set_runs", set=bench.name, title=bench.kind.title, raw=_f(raw), table="\n".join(lines)
+    )
 
 
 def heat_map(
@@ -946,117 +939,70 @@ def report(
     options: dict[str, Any],
     timing: str,
     figure: str,
+    check: dict[str, float],
 ) -> str:
-    names = [b.name for b in sets]
+    """The report of ``runs`` on ``sets`` (``check``: :func:`truth_check`'s numbers), its prose
+    from ``templates/recorded_tracks.md``."""
     offered, _ = estimator_choices()
-    check = truth_check()
     failures = [r for r in runs if not r.ok]
     total_run = sum(r.seconds for r in runs if math.isfinite(r.seconds))
     total_cpu = sum(r.cpu_seconds for r in runs if math.isfinite(r.cpu_seconds))
-    codes = ", ".join(f"`{c}`" for c in dict.fromkeys(r.code or "unknown" for r in runs))
     cost: dict[str, float] = {}
     for r in runs:
         if math.isfinite(r.cpu_seconds):
             key = f"`{r.estimator}` {r.mode}"
             cost[key] = cost.get(key, 0.0) + r.cpu_seconds
     costliest = sorted(cost.items(), key=lambda kv: -kv[1])[:4]
-    lines = [
-        "# Recorded tracks of several kinds: `torchsvs track` as a user runs it",
-        "",
-        "Generated by `python -m experiments.recorded_tracks` (`make recorded`); every number "
-        "below is printed by that run.",
-        "",
-        f"Code: {codes}. Options: "
-        + ", ".join(f"{k} {v}" for k, v in options.items())
-        + f". {len(runs)} runs ({len(sets)} sets × {len(estimators)} estimators × {len(modes)} "
-        f"modes) took {total_run / 60:.1f} min (the sum of their wall times) and "
-        f"{total_cpu / 60:.1f} min of CPU (their wall time on an idle core; the machine is "
-        f"shared, so wall times are inflated); {timing}. Seconds in the tables are wall times. "
-        "The costliest, in CPU minutes over all sets: "
-        + ", ".join(f"{k} {v / 60:.1f}" for k, v in costliest)
-        + ".",
-        "",
-        "Each run is `torchsvs track IN -o OUT --estimator E` plus the mode's options: "
-        + ", ".join(
-            f"`{m}`" + (" (no option: the noise is read off the data)" if not MODES[m](1.0) else "")
-            for m in modes
-        )
-        + (" (σ: the set's noise level)" if any("σ" in m for m in modes) else "")
-        + f". The command's default estimator is `{default}`"
-        + ("; it offers `auto`." if "auto" in offered else "; it offers no `auto` yet.")
-        + " Position RMSE is 2-D (the root of the mean squared distance to the truth, m); "
-        "× raw is its ratio to the measurements' own RMSE, **bold where not below it**; ✗: the "
-        'command refused or failed (its message is in the set\'s table); "no est.": rows the '
-        "output left without an estimate (counted, never dropped: a run with any is not "
-        "below raw).",
-        "",
-    ]
-    lines += ["## Ratio to raw, every estimator × mode × set", "", f"![ratio to raw]({figure})", ""]
-    lines += headline(runs, names, estimators, modes)
-    lines += [
-        "",
-        "## Below raw on every set?",
-        "",
-        "Sets below raw out of those run, and the worst ratio (where):",
-        "",
-    ]
-    lines += below_raw_section(runs, names, estimators, modes)
-    lines += ["", "## The best single estimator per set, and `auto`", ""]
-    lines += [
-        "Per set and mode, the single estimator with the lowest RMSE (m; × raw in brackets; "
-        "runs with rows left without an estimate do not count)"
-        + (
-            f"; `auto`'s RMSE over it (bold above {AUTO_TOLERANCE:.2f}; what it ran in brackets "
-            "where its summary says)."
-            if "auto" in estimators
-            else ". The command has no `auto` yet: its column appears when it does."
-        ),
-        "",
-    ]
-    lines += best_section(runs, names, estimators, modes)
-    lines += ["", "## The truth-free estimate", ""]
-    lines += estimate_section(runs)
-    lines += ["", "## Issue 28's table, on these sets", ""]
-    lines += [
-        "The issue's rows beside the run on the matching set here. The issue's sets are not "
-        "these (its recorded ships and drone are not held: the taxiing aircraft and the 1 s "
-        "scans stand in for them; its simulated turns are its own; its simulated rows are "
-        "per-axis RMSE, scaled by √2 to 2-D here), so the numbers differ; what compares is "
-        'whether a run is worse than raw. "same side of raw": both worse than raw or both '
-        "below.",
-        "",
-    ]
-    lines += issue_section(runs, sets)
-    lines += [""]
-    lines += sets_section(sets)
-    examples = Path(figure).stem + "_examples.png"
-    lines += ["", f"![one track of each kind]({examples})"]
-    lines += [
-        "",
-        f"The re-timing is checked on simulated 1 s turns (3-6 deg/s, 100-250 m/s) with a white "
-        f"along-track error of 25 m per report: the truth's 2-D error goes from "
-        f"{check['before']:.1f} m as recorded to {check['after']:.1f} m after it "
-        f"(local-quadratic fit over ±{DEJITTER_WINDOW:g} s). That residual bounds how far below "
-        "raw any estimator can score at σ = 10 m on the fast kinds.",
-        "",
-        f"The simulated turning tracks are on {TURN_DT:g} s scans.",
-        "",
-        "## Every run",
-        "",
-        "σ used: the measurement noise std of the settings the run printed (read off the data, "
-        "given or fitted); est. RMSE: the run's truth-free estimate of its position RMSE, "
-        "where its summary has one (⚠: more than 15% off).",
-        "",
-    ]
-    for bench in sets:
-        lines += detail_section(runs, bench)
+    details = [detail_section(runs, bench) for bench in sets]
     if failures:
         reasons: dict[str, int] = {}
         for r in failures:
             reasons[_short(r.error, 160)] = reasons.get(_short(r.error, 160), 0) + 1
-        lines += ["Messages of the runs that gave nothing:", ""]
-        lines += [f"- {count} × {reason}" for reason, count in reasons.items()]
-    return "\n".join(lines).rstrip() + "\n"
+        messages = "\n".join(f"- {count} × {reason}" for reason, count in reasons.items())
+        details.append(_text("failures", messages=messages))
+    text = _text(
+        "report",
+        codes=", ".join(f"`{c}`" for c in dict.fromkeys(r.code or "unknown" for r in runs)),
+        options=", ".join(f"{k} {v}" for k, v in options.items()),
+        runs=len(runs),
+        sets=len(sets),
+        estimators=len(estimators),
+        modes=len(modes),
+        run_minutes=f"{total_run / 60:.1f}",
+        cpu_minutes=f"{total_cpu / 60:.1f}",
+        timing=timing,
+        costliest=", ".join(f"{k} {v / 60:.1f}" for k, v in costliest),
+        mode_list=", ".join(
+            _text("mode" if MODES[m](1.0) else "mode_default", mode=m) for m in modes
+        ),
+        sigma_note=_text("sigma_note") if any("σ" in m for m in modes) else "",
+        default=default,
+        auto_offered=_text("auto_offered" if "auto" in offered else "auto_not_offered"),
+        figure=figure,
+        headline="\n".join(headline(runs, [b.name for b in sets], estimators, modes)),
+        below_raw="\n".join(below_raw_section(runs, [b.name for b in sets], estimators, modes)),
+        best_auto=(
+            _text("best_auto", tolerance=f"{AUTO_TOLERANCE:.2f}")
+            if "auto" in estimators
+            else _text("best_no_auto")
+        ),
+        best="\n".join(best_section(runs, [b.name for b in sets], estimators, modes)),
+        estimate=estimate_section(runs),
+        issue="\n".join(issue_section(runs, sets)),
+        sets_section=sets_section(sets),
+        examples=Path(figure).stem + "_examples.png",
+        check_before=f"{check['before']:.1f}",
+        check_after=f"{check['after']:.1f}",
+        window=f"{DEJITTER_WINDOW:g}",
+        turn_dt=f"{TURN_DT:g}",
+        details="\n\n".join(details),
+    )
+    return text.rstrip() + "\n"
+
+
+def _text(section: str, **fields: object) -> str:
+    """Section ``section`` of ``templates/recorded_tracks.md``, filled."""
+    return render("recorded_tracks", section, **fields)
 
 
 def save_runs(path: Path, options: dict[str, Any], runs: Sequence[Run]) -> None:
@@ -1179,18 +1125,24 @@ def main(argv: list[str] | None = None) -> None:
         save_runs(saved, options, runs)
     seconds = time.perf_counter() - start
     if new:
-        timing = (
-            f"this invocation took {seconds / 60:.1f} min (building {len(sets)} sets, "
-            f"{len(new)} runs{', merged with the saved runs' if kept else ''}, the report)"
+        timing = _text(
+            "timing_run",
+            minutes=f"{seconds / 60:.1f}",
+            sets=len(sets),
+            runs=len(new),
+            merged=_text("timing_merged") if kept else "",
         )
     else:
-        timing = "the report was written from the saved runs (`--report-only`)"
+        timing = _text("timing_saved")
     shown_estimators = [e for e in choices if any(r.estimator == e for r in runs)]
     shown_modes = [m for m in MODES if any(r.mode == m for r in runs)]
     figure = out / f"{args.name}.png"
     heat_map(runs, [b.name for b in sets], shown_estimators, shown_modes, figure)
     tracks_figure(sets, out / f"{args.name}_examples.png")
-    text = report(sets, runs, shown_estimators, shown_modes, default, options, timing, figure.name)
+    check = truth_check()
+    text = report(
+        sets, runs, shown_estimators, shown_modes, default, options, timing, figure.name, check
+    )
     (out / f"{args.name}.md").write_text(text)
     print(text)
     print(f"\n(total {time.perf_counter() - start:.0f} s)")

@@ -205,11 +205,11 @@ def test_summary_beside_the_output_is_read_and_flagged(tmp_path: Path) -> None:
     bench = tiny_turning(rows=200)
     close = rt.Run(bench.name, "ks", "default", [], rmse=27.0, raw=70.0, estimated=30.0)
     far = rt.Run(bench.name, "kf", "default", [], rmse=25.0, raw=70.0, estimated=30.0)
-    text = "\n".join(rt.detail_section([close, far], bench))
+    text = rt.detail_section([close, far], bench)
     assert "| 1.11 |" in text  # 30 / 27: within 15%
     assert "**1.20** ⚠" in text  # 30 / 25: flagged
-    lines = rt.estimate_section([close, far])
-    assert lines[0].startswith("2 runs wrote a truth-free estimate; 1 are more than 15% off")
+    text = rt.estimate_section([close, far])
+    assert text.startswith("2 runs wrote a truth-free estimate; 1 are more than 15% off")
 
 
 def test_harness_end_to_end_on_a_tiny_set(tmp_path: Path) -> None:
@@ -233,8 +233,23 @@ def test_harness_end_to_end_on_a_tiny_set(tmp_path: Path) -> None:
     figure = tmp_path / "map.png"
     rt.heat_map([*runs, broken], [bench.name], ["ks"], ["default", "--meas-std σ"], figure)
     assert figure.stat().st_size > 0
-    text = rt.report([bench], [*runs, broken], ["ks"], ["default"], "ks", {}, "1 s", figure.name)
+    check = {"before": 25.0, "after": 3.0}
+    text = rt.report(
+        [bench], [*runs, broken], ["ks"], ["default"], "ks", {}, "1 s", figure.name, check
+    )
     assert bench.name in text and "The command's default estimator is `" in text
+    assert "from 25.0 m as recorded to 3.0 m after it" in text
+    assert "Messages of the runs that gave nothing:\n\n- 1 × " in text and "$" not in text
+    # the mode without options says so; no `auto` among the estimators: the best table says so
+    assert "the mode's options: `default` (no option: the noise is read off the data). " in text
+    assert ". The command has no `auto` yet: its column appears when it does." in text
+    assert "1 runs (1 sets × 1 estimators × 1 modes)" not in text  # three runs were given
+    assert "3 runs (1 sets × 1 estimators × 1 modes)" in text
+    assert rt.estimate_section([broken]).startswith("No run wrote a summary")
+    near = [rt.Run(bench.name, "ks", "default", [], rmse=27.0, raw=70.0, estimated=30.0)]
+    assert rt.estimate_section(near).startswith(
+        "1 runs wrote a truth-free estimate; 0 are more than 15% off the true RMSE."
+    )
 
 
 def test_the_command_line_gives_what_the_in_process_run_gives(tmp_path: Path) -> None:
