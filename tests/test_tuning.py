@@ -76,9 +76,13 @@ def test_fit_finds_the_true_q_without_truth():
     assert fit.curve[-1] < fit.curve[0]
 
 
-def test_fit_learns_the_noise_when_it_is_not_given():
+@pytest.mark.parametrize("lag", [None, 5])
+def test_fit_learns_the_noise_when_it_is_not_given(lag):
+    """The noise is learned by a Kalman filter's innovation likelihood, whatever the smoother's
+    lag (a lag given to the smoother is not the filter's: it was refused as one)."""
     tracks = _cv_tracks(q=4.0, r=400.0, B=32)
-    start = complete_settings(Settings(estimator="ks", meas_var=[50.0, 50.0], q=1.0), tracks)
+    start = Settings(estimator="ks", meas_var=[50.0, 50.0], q=1.0, lag=lag)
+    start = complete_settings(start, tracks)
     fit = self_tune(start, tracks, known_noise=False)
     assert fit.settings.meas_var == pytest.approx([400.0, 400.0], rel=0.15)
     assert "innovation NLL" in fit.summary()

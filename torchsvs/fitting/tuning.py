@@ -196,7 +196,7 @@ def self_tune(
 
     if not known_noise:
         assert settings.meas_var is not None
-        kf_settings = replace(settings, estimator="kf")
+        kf_settings = replace(settings, estimator="kf", lag=None)  # the filter of a smoother
         model = make_model(kf_settings, learn_q=True, learn_r=True).double()
         kf = make_estimator(kf_settings, model)
         curve = _minimise(
