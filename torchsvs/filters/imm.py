@@ -654,13 +654,13 @@ class IMM(SteppedEstimator[IMMResult]):
         B = log_probs.shape[0]
         means = [m.mean.to(dtype).expand(B, -1) for m in modes]
         covs = [m.cov.to(dtype).expand(B, -1, -1) for m in modes]
-        priors = []
-        for j in range(M):
-            lent = [
-                self.embedding.into(i, j, means[i], covs[i], means[j], covs[j]) for i in range(M)
-            ]
-            priors.append(mixture_moments(weights[..., j], *zip(*lent, strict=True)))
-        return priors, log_pred
+        # every mode j's mixture at once, in the common state (elementwise: the same numbers
+        # as mode by mode; the components mode j lacks are dropped)
+        x_lent, P_lent = self.embedding.lent(means, covs)  # [B, i, j, n], [B, i, j, n, n]
+        x, P = mixture_moments(
+            weights.transpose(-1, -2), x_lent.unbind(-3), P_lent.unbind(-4)
+        )  # [B, j, n]...
+        return self.embedding.of_modes(x, P), log_pred
 
     def combine(
         self, means: Sequence[Tensor], covs: Sequence[Tensor], log_probs: Tensor
