@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any, NamedTuple, cast
 
 import numpy as np
@@ -36,6 +35,7 @@ from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
     log_divisor,
+    mixture_mean,
     mixture_moments,
     sum_in_order,
 )
@@ -156,7 +156,12 @@ def _over_steps(results: list[FilterResult]) -> FilterResult:
             fields.append(torch.stack(torch.broadcast_tensors(*parts), 1).sum(1))
         else:
             width = max(p.shape[0] for p in parts)
-            fields.append(torch.stack([p.expand(width, *p.shape[1:]) for p in parts], dim=1))
+            fields.append(
+                torch.stack(
+                    [p if p.shape[0] == width else p.expand(width, *p.shape[1:]) for p in parts],
+                    dim=1,
+                )
+            )
     return FilterResult(*fields)
 
 
@@ -191,7 +196,7 @@ def _mode_step(
     B, dtype = inputs.batch, inputs.z.dtype
     x, P = prior.mean.to(dtype).expand(B, -1), prior.cov.to(dtype)  # (as scan's prior)
     if type(f).fast_pass is not GaussianFilter.fast_pass:
-        one = replace(inputs.window(t, t + 1), x0=x, P0=P, keep="all")
+        one = _one_step(inputs, t, x, P)
         fast = f.fast_pass(prior, one)
         if fast is not None:
             result, last = fast
@@ -200,7 +205,7 @@ def _mode_step(
     x_pred, P_pred, F_t, step = f.filter_step(t, x, P, prior.post_innovation, prep, inputs)
 
     def full(v: Tensor) -> Tensor:  # a run of one step's record at that step, as scan keeps it
-        return v.expand(B, *v.shape[1:])
+        return v if v.shape[0] == B else v.expand(B, *v.shape[1:])
 
     def at(A: Tensor) -> Tensor:  # a model matrix at step t, as a run's result keeps it
         A = as_result_matrix(A)
@@ -224,6 +229,18 @@ def _mode_step(
     )
     last = Last(result.mean, result.cov, result.post_innovation)
     return _after(prior, result.log_likelihood, last), result
+
+
+def _one_step(inputs: Inputs, t: int, x0: Tensor, P0: Tensor) -> Inputs:
+    """Step ``t`` of ``inputs`` as a run of its own from ``x0``, ``P0`` (as a one-step
+    :meth:`~GaussianFilter.step` checks them: views, keeping everything)."""
+
+    def span(v: Tensor | None) -> Tensor | None:
+        return v[:, t : t + 1] if v is not None and v.ndim >= 2 else v
+
+    z, dt, u, psi = span(inputs.z), span(inputs.dt), span(inputs.u), span(inputs.psi)
+    assert z is not None
+    return Inputs(z, x0, P0, dt, u, psi, inputs.generator, False, "all")
 
 
 def _given(value: Tensor | None) -> Tensor:
@@ -528,9 +545,10 @@ class IMM(SteppedEstimator[IMMResult]):
             return torch.stack([getattr(o, field) for o in outs], dim=1)
 
         modes = tuple(_over_steps([o.modes[j] for o in outs]) for j in range(self.num_modes))
+        nothing: Any = None
         result = IMMResult(
             mean=over_time("mean"),
-            cov=over_time("cov"),
+            cov=nothing if inputs.keep == "mean" else over_time("cov"),
             mode_probs=over_time("log_probs").exp(),
             pred_mode_probs=over_time("log_pred").exp(),
             mode_log_likelihood=over_time("log_lik"),
@@ -600,7 +618,11 @@ class IMM(SteppedEstimator[IMMResult]):
         log_joint = log_pred + log_lik
         step_log_likelihood = torch.logsumexp(log_joint, dim=-1)
         log_probs = log_joint - step_log_likelihood.unsqueeze(-1)
-        mean, cov = self.combine([m.mean for m in modes], [m.cov for m in modes], log_probs)
+        if inputs.keep == "mean":  # (the combined covariance is not kept)
+            nothing: Any = None
+            mean, cov = self.combined_mean([m.mean for m in modes], log_probs), nothing
+        else:
+            mean, cov = self.combine([m.mean for m in modes], [m.cov for m in modes], log_probs)
         total = step_log_likelihood
         if state.log_likelihood is not None:
             total = state.log_likelihood + step_log_likelihood
@@ -670,8 +692,13 @@ class IMM(SteppedEstimator[IMMResult]):
         ``[..., n_j, n_j]`` and ``log_probs [..., M]``."""
         probs = log_probs.exp()
         lead = probs.shape[:-1]
-        common = [
-            self.embedding.common(j, x.expand(*lead, -1), P.expand(*lead, -1, -1))
-            for j, (x, P) in enumerate(zip(means, covs, strict=True))
-        ]
-        return mixture_moments(probs, *zip(*common, strict=True))
+        x = self.embedding.common_means([x.expand(*lead, -1) for x in means])
+        P = self.embedding.common_covs([P.expand(*lead, -1, -1) for P in covs])
+        return mixture_moments(probs, x.unbind(-2), P.unbind(-3))
+
+    def combined_mean(self, means: Sequence[Tensor], log_probs: Tensor) -> Tensor:
+        """The mean of :meth:`combine`, alone (the same numbers)."""
+        probs = log_probs.exp()
+        lead = probs.shape[:-1]
+        x = self.embedding.common_means([x.expand(*lead, -1) for x in means])
+        return mixture_mean(probs, x.unbind(-2))

@@ -147,10 +147,10 @@ class Embedding:
         laid out in the common state: ``[..., i, j, n]`` and ``[..., i, j, n, n]`` from each
         mode's ``[..., n_j]``, ``[..., n_j, n_j]``; the components mode ``j`` lacks are 0 (one
         gather each; :meth:`of_modes` reads mode ``j``'s own components back)."""
-        maps, n = self._maps, self.size
+        maps, n, M = self._maps, self.size, len(self.index)
         x = torch.cat([*means, means[0].new_zeros(*means[0].shape[:-1], 1)], -1)
-        P = torch.cat([*(c.flatten(-2) for c in covs), covs[0].new_zeros(*covs[0].shape[:-2], 1)], -1)
-        M = len(self.index)
+        zero = covs[0].new_zeros(*covs[0].shape[:-2], 1)
+        P = torch.cat([*(c.flatten(-2) for c in covs), zero], -1)
         return (
             x[..., maps.lent_mean].unflatten(-1, (M, M, n)),
             P[..., maps.lent_cov].unflatten(-1, (M, M, n, n)),
@@ -167,16 +167,19 @@ class Embedding:
             for ix, at_x, at_P in zip(self.index, maps.own_mean, maps.own_cov, strict=True)
         ]
 
-    def commons(self, means: Sequence[Tensor], covs: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
-        """Every mode's moments in the common state at once (:meth:`common`): ``[..., M, n]``
-        and ``[..., M, n, n]``."""
-        maps, n, M = self._maps, self.size, len(self.index)
+    def common_means(self, means: Sequence[Tensor]) -> Tensor:
+        """Every mode's mean in the common state at once (:meth:`common`): ``[..., M, n]``
+        from each mode's ``[..., n_j]`` (of one leading shape)."""
         x = torch.cat([*means, means[0].new_zeros(*means[0].shape[:-1], 1)], -1)
-        P = torch.cat([*(c.flatten(-2) for c in covs), covs[0].new_zeros(*covs[0].shape[:-2], 1)], -1)
-        return (
-            x[..., maps.common_mean].unflatten(-1, (M, n)),
-            P[..., maps.common_cov].unflatten(-1, (M, n, n)),
-        )
+        return x[..., self._maps.common_mean].unflatten(-1, (len(self.index), self.size))
+
+    def common_covs(self, covs: Sequence[Tensor]) -> Tensor:
+        """Every mode's covariance in the common state at once (:meth:`common`):
+        ``[..., M, n, n]`` from each mode's ``[..., n_j, n_j]`` (of one leading shape)."""
+        zero = covs[0].new_zeros(*covs[0].shape[:-2], 1)
+        P = torch.cat([*(c.flatten(-2) for c in covs), zero], -1)
+        n = self.size
+        return P[..., self._maps.common_cov].unflatten(-1, (len(self.index), n, n))
 
     def project(self, j: int, x: Tensor, P: Tensor) -> tuple[Tensor, Tensor]:
         """The components of mode ``j`` of a common-state ``x``, ``P``."""

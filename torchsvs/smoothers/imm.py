@@ -203,18 +203,17 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
                 smoothed = self._fixed_interval(means, kept, log_mu, log_c, pred, log_T)
             else:
                 smoothed = self._fixed_lag(means, kept, log_mu, log_c, pred, log_T, self.lag)
-        if not with_cov:  # (the combined covariance of the filtered ones, then dropped)
-            smoothed = smoothed._replace(covs=covs)
-        mean, cov = imm.combine(smoothed.means, smoothed.covs, smoothed.log_probs)
         nothing: Any = None
+        if with_cov:
+            mean, cov = imm.combine(smoothed.means, smoothed.covs, smoothed.log_probs)
+        else:  # (the combined covariance is not kept)
+            mean, cov = imm.combined_mean(smoothed.means, smoothed.log_probs), nothing
+        covs_out = smoothed.covs if with_cov else [nothing] * len(smoothed.means)
         return IMMSmootherResult(
             mean,
-            cov if with_cov else nothing,
+            cov,
             smoothed.log_probs.exp(),
-            tuple(
-                Moments(x, P if with_cov else nothing)
-                for x, P in zip(smoothed.means, smoothed.covs, strict=True)
-            ),
+            tuple(Moments(x, P) for x, P in zip(smoothed.means, covs_out, strict=True)),
             filtered,
         )
 
