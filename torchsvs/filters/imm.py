@@ -580,6 +580,17 @@ class IMM(SteppedEstimator[IMMResult]):
                 or f.carried_history(None, inputs) is not None
             ):
                 return None
+        for f in filters:  # the checks of each mode's own steps (its model's dt, u), once
+            n = f.model.state_dim
+            prepare_inputs(
+                f.model,
+                inputs.z,
+                inputs.z.new_zeros(1, n),
+                inputs.z.new_zeros(1, n, n),
+                u=inputs.u,
+                dt=inputs.dt,
+                state_prior=True,
+            )
         preps = [f.prepare(inputs) for f in filters]
         # per mode and step: whether anything in the batch is missing (a one-step run's mask)
         missing = [(~p.observed).any(-1).any(0).tolist() for p in preps]

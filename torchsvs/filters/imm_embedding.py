@@ -145,41 +145,36 @@ class Embedding:
     def lent(self, means: Sequence[Tensor], covs: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
         """Every mode ``i``'s moments in every mode ``j``'s space at once (:meth:`into`), each
         laid out in the common state: ``[..., i, j, n]`` and ``[..., i, j, n, n]`` from each
-        mode's ``[..., n_j]``, ``[..., n_j, n_j]``; the components mode ``j`` lacks are 0 (one
-        gather each; :meth:`of_modes` reads mode ``j``'s own components back)."""
+        mode's ``[..., n_j]``, ``[..., n_j, n_j]`` (of one leading shape); the components mode
+        ``j`` lacks are 0 (:meth:`of_modes` reads mode ``j``'s own components back)."""
         maps, n, M = self._maps, self.size, len(self.index)
-        x = torch.cat([*means, means[0].new_zeros(*means[0].shape[:-1], 1)], -1)
-        zero = covs[0].new_zeros(*covs[0].shape[:-2], 1)
-        P = torch.cat([*(c.flatten(-2) for c in covs), zero], -1)
         return (
-            x[..., maps.lent_mean].unflatten(-1, (M, M, n)),
-            P[..., maps.lent_cov].unflatten(-1, (M, M, n, n)),
+            _pool(means, 1).index_select(-1, maps.lent_mean).unflatten(-1, (M, M, n)),
+            _pool(covs, 2).index_select(-1, maps.lent_cov).unflatten(-1, (M, M, n, n)),
         )
 
     def of_modes(self, x: Tensor, P: Tensor) -> list[tuple[Tensor, Tensor]]:
         """Each mode ``j``'s own components of ``x [..., j, n]``, ``P [..., j, n, n]`` (moments
-        per mode laid out in the common state, :meth:`lent`): ``(x_j [..., n_j], P_j [..., n_j,
-        n_j])`` per mode."""
+        per mode laid out in the common state, as :meth:`lent` lays them out): ``(x_j [...,
+        n_j], P_j [..., n_j, n_j])`` per mode."""
         maps = self._maps
         x, P = x.flatten(-2), P.flatten(-3)
         return [
-            (x[..., at_x], P[..., at_P].unflatten(-1, (len(ix), len(ix))))
+            (x.index_select(-1, at_x), P.index_select(-1, at_P).unflatten(-1, (len(ix), len(ix))))
             for ix, at_x, at_P in zip(self.index, maps.own_mean, maps.own_cov, strict=True)
         ]
 
     def common_means(self, means: Sequence[Tensor]) -> Tensor:
         """Every mode's mean in the common state at once (:meth:`common`): ``[..., M, n]``
         from each mode's ``[..., n_j]`` (of one leading shape)."""
-        x = torch.cat([*means, means[0].new_zeros(*means[0].shape[:-1], 1)], -1)
-        return x[..., self._maps.common_mean].unflatten(-1, (len(self.index), self.size))
+        M, n = len(self.index), self.size
+        return _pool(means, 1).index_select(-1, self._maps.common_mean).unflatten(-1, (M, n))
 
     def common_covs(self, covs: Sequence[Tensor]) -> Tensor:
         """Every mode's covariance in the common state at once (:meth:`common`):
         ``[..., M, n, n]`` from each mode's ``[..., n_j, n_j]`` (of one leading shape)."""
-        zero = covs[0].new_zeros(*covs[0].shape[:-2], 1)
-        P = torch.cat([*(c.flatten(-2) for c in covs), zero], -1)
-        n = self.size
-        return P[..., self._maps.common_cov].unflatten(-1, (len(self.index), n, n))
+        M, n = len(self.index), self.size
+        return _pool(covs, 2).index_select(-1, self._maps.common_cov).unflatten(-1, (M, n, n))
 
     def project(self, j: int, x: Tensor, P: Tensor) -> tuple[Tensor, Tensor]:
         """The components of mode ``j`` of a common-state ``x``, ``P``."""
@@ -187,6 +182,13 @@ class Embedding:
             return x, P
         ix = self.index[j]
         return x[..., ix], P[..., ix, :][..., :, ix]
+
+
+def _pool(parts: Sequence[Tensor], rank: int) -> Tensor:
+    """Every mode's vector (``rank`` 1) or matrix (2) flattened and concatenated, then a 0:
+    ``[..., Σ n_j (+ 1)]`` or ``[..., Σ n_j² (+ 1)]``, what :class:`_PoolMaps` gathers from."""
+    flat = [p.flatten(-rank) for p in parts]
+    return torch.cat([*flat, flat[0].new_zeros(*flat[0].shape[:-1], 1)], -1)
 
 
 class _PoolMaps:
@@ -232,4 +234,6 @@ class _PoolMaps:
         self.common_mean, self.common_cov = common_mean.flatten(), common_cov.flatten()
         ix = [torch.tensor(i, dtype=torch.long) for i in index]
         self.own_mean = [j * n + ix[j] for j in range(M)]
-        self.own_cov = [j * n * n + (ix[j][:, None] * n + ix[j][None, :]).flatten() for j in range(M)]
+        self.own_cov = [
+            j * n * n + (ix[j][:, None] * n + ix[j][None, :]).flatten() for j in range(M)
+        ]

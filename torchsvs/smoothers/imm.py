@@ -236,6 +236,7 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         gain: list[list[Tensor]] = [[] for _ in range(M)]
         for l, f in enumerate(imm.mode_filters):
             n_l = means[l].shape[-1]
+            prep = None  # (mode l's model matrices: the same for every j)
             for j in range(M):
                 x_j, P_j = means[j][:, :-1], covs[j][:, :-1]
                 x, P = imm.embedding.into(j, l, x_j, P_j, means[l][:, :-1], covs[l][:, :-1])
@@ -244,7 +245,8 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
                 # and a float32 pass leaves some filtered covariances semi-definite by rounding)
                 x0, P0 = x.reshape(flat, n_l), symmetrize(P).reshape(flat, n_l, n_l)
                 one = Inputs(blank, x0, P0, one_dt, u, None, inputs.generator, False)
-                x_pred, P_pred, F = f.predict(0, x0, P0, f.prepare(one), one)
+                prep = f.prepare(one) if prep is None else prep
+                x_pred, P_pred, F = f.predict(0, x0, P0, prep, one)
                 F = F.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l)
                 mean[j].append(x_pred.reshape(B, T - 1, n_l))
                 cov[j].append(P_pred.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l))
