@@ -12,7 +12,6 @@ from torch import Tensor, nn
 from torchsvs.estimator import (
     Inputs,
     SteppedEstimator,
-    at_step,
     check_keep,
     drop_batch,
     prepare_inputs,
@@ -22,15 +21,12 @@ from torchsvs.estimator import (
 )
 from torchsvs.filters.gaussian import (
     GaussianFilter,
-    Prepared,
-    as_result_matrix,
     step_input,
     step_interval,
 )
 from torchsvs.filters.imm_embedding import Embedding, ModeSet
-from torchsvs.kernels import compiled
+from torchsvs.filters.imm_runs import Runs, mode_step, prepared_runs
 from torchsvs.kernels.compiled import outside_dynamo
-from torchsvs.kernels.fused_axes import Last
 from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
@@ -173,93 +169,6 @@ class _StepOut(NamedTuple):
     log_lik: Tensor
     modes: tuple[FilterResult, ...]
     log_likelihood: Tensor
-
-
-class _Runs(NamedTuple):
-    """Each mode's whole run prepared once (:meth:`IMM._prepared_runs`)."""
-
-    preps: list[Prepared]
-    missing: list[list[bool]]  #: per mode and step: anything missing in the batch at that step
-
-
-def _mode_step(
-    f: GaussianFilter, prior: FilterState, runs: _Runs, j: int, inputs: Inputs, t: int
-) -> tuple[FilterState, FilterResult]:
-    """Mode ``j``'s filter ``f`` at step ``t`` from ``prior`` on its run prepared once: the
-    state after it and the step's result, the same numbers and fields as its one-step
-    :meth:`~GaussianFilter.step` gives (whose inputs are these steps' views: its fast path
-    where the filter takes one, else :meth:`~GaussianFilter.filter_step`, the step
-    :meth:`~GaussianFilter.scan` records)."""
-    if prior.history is not None or prior.single:
-        z_t, dt_t, u_t = inputs.z[:, t], step_interval(inputs, t), step_input(inputs, t)
-        return f.step(prior, z_t, dt=dt_t, u=u_t, generator=inputs.generator)
-    B, dtype = inputs.batch, inputs.z.dtype
-    x, P = prior.mean.to(dtype).expand(B, -1), prior.cov.to(dtype)  # (as scan's prior)
-    if type(f).fast_pass is not GaussianFilter.fast_pass:
-        one = _one_step(inputs, t, x, P)
-        fast = f.fast_pass(prior, one)
-        if fast is not None:
-            result, last = fast
-            return _after(prior, result.log_likelihood, last), at_step(result, 0)
-    prep = runs.preps[j]._replace(any_missing=runs.missing[j][t])
-    x_pred, P_pred, F_t, step = f.filter_step(t, x, P, prior.post_innovation, prep, inputs)
-
-    def full(v: Tensor) -> Tensor:  # a run of one step's record at that step, as scan keeps it
-        return v if v.shape[0] == B else v.expand(B, *v.shape[1:])
-
-    def at(A: Tensor) -> Tensor:  # a model matrix at step t, as a run's result keeps it
-        A = as_result_matrix(A)
-        return A.select(1, min(t, A.shape[1] - 1))
-
-    ll = step.log_likelihood
-    result = FilterResult(
-        mean=full(step.mean),
-        cov=full(step.cov),
-        pred_mean=full(x_pred),
-        pred_cov=full(P_pred),
-        innovation=full(step.innovation),
-        mask=prep.observed[:, t],
-        transition=full(F_t) if prep.F is None else at(prep.F),
-        meas_matrix=at(prep.H) if prep.H is not None else full(_given(step.meas_matrix)),
-        meas_cov=at(prep.R),
-        gain=full(step.gain),
-        post_innovation=None if step.post_innovation is None else full(step.post_innovation),
-        innovation_cov=None if step.innovation_cov is None else full(step.innovation_cov),
-        log_likelihood=None if ll is None else full(ll).unsqueeze(1).sum(1),
-    )
-    last = Last(result.mean, result.cov, result.post_innovation)
-    return _after(prior, result.log_likelihood, last), result
-
-
-def _one_step(inputs: Inputs, t: int, x0: Tensor, P0: Tensor) -> Inputs:
-    """Step ``t`` of ``inputs`` as a run of its own from ``x0``, ``P0`` (as a one-step
-    :meth:`~GaussianFilter.step` checks them: views, keeping everything)."""
-
-    def span(v: Tensor | None) -> Tensor | None:
-        return v[:, t : t + 1] if v is not None and v.ndim >= 2 else v
-
-    z, dt, u, psi = span(inputs.z), span(inputs.dt), span(inputs.u), span(inputs.psi)
-    assert z is not None
-    return Inputs(z, x0, P0, dt, u, psi, inputs.generator, False, "all")
-
-
-def _given(value: Tensor | None) -> Tensor:
-    assert value is not None, "a filter that linearises h per step reports its H"
-    return value
-
-
-def _after(prior: FilterState, log_likelihood: Tensor | None, last: Last) -> FilterState:
-    """The filter's state after one step from ``prior`` (as its ``scan`` leaves it)."""
-    if log_likelihood is not None and prior.log_likelihood is not None:
-        log_likelihood = prior.log_likelihood + log_likelihood
-    return FilterState(
-        mean=last.mean,
-        cov=last.cov,
-        post_innovation=last.post_innovation,
-        log_likelihood=log_likelihood,
-        steps=prior.steps + 1,
-        single=prior.single,
-    )
 
 
 class IMM(SteppedEstimator[IMMResult]):
@@ -557,47 +466,13 @@ class IMM(SteppedEstimator[IMMResult]):
         )
         return state, result
 
-    def _prepared_runs(self, inputs: Inputs) -> _Runs | None:
-        """Each mode's whole run prepared once (:meth:`~GaussianFilter.prepare`: measurements,
-        mask, model matrices), where every mode's step is its :meth:`~GaussianFilter.filter_step`
-        on them (:meth:`_mode_step`); else ``None``: each step is the mode's own one-step
-        :meth:`~GaussianFilter.step`. The one-step call checks its inputs and prepares, stacks
-        and trims a run of one step: half the IMM's time per step on recorded tracks. It keeps
-        the compiled steps, the filters' online shortcut (taken without an interval or input)
-        and the correctors that carry earlier rows (an artificial measurement, an adaptive
-        ``R``) or a factored covariance."""
-        if compiled.active() or (inputs.dt is None and inputs.u is None):
-            return None
-        filters = self.mode_filters
-        for f in filters:
-            if (
-                f.covariance_form != "joseph"
-                or f.adaptive_noise is not None
-                or any(
-                    getattr(type(f), name) is not getattr(GaussianFilter, name)
-                    for name in ("step", "scan", "_scan")
-                )
-                or f.carried_history(None, inputs) is not None
-            ):
-                return None
-        for f in filters:  # the checks of each mode's own steps (its model's dt, u), once
-            n = f.model.state_dim
-            prepare_inputs(
-                f.model,
-                inputs.z,
-                inputs.z.new_zeros(1, n),
-                inputs.z.new_zeros(1, n, n),
-                u=inputs.u,
-                dt=inputs.dt,
-                state_prior=True,
-            )
-        preps = [f.prepare(inputs) for f in filters]
-        # per mode and step: whether anything in the batch is missing (a one-step run's mask)
-        missing = [(~p.observed).any(-1).any(0).tolist() for p in preps]
-        return _Runs(preps, missing)
+    def _prepared_runs(self, inputs: Inputs) -> Runs | None:
+        """Each mode's run prepared once (:func:`~torchsvs.filters.imm_runs.prepared_runs`), or
+        ``None``: each step is the mode's own one-step :meth:`~GaussianFilter.step`."""
+        return prepared_runs(self.mode_filters, inputs)
 
     def _step(
-        self, state: IMMState, inputs: Inputs, t: int, runs: _Runs | None = None
+        self, state: IMMState, inputs: Inputs, t: int, runs: Runs | None = None
     ) -> tuple[IMMState, _StepOut]:
         dtype = inputs.z.dtype
         z_t, dt_t, u_t = inputs.z[:, t], step_interval(inputs, t), step_input(inputs, t)
@@ -612,7 +487,7 @@ class IMM(SteppedEstimator[IMMResult]):
             if runs is None:
                 after, result = f.step(prior, z_t, dt=dt_t, u=u_t, generator=inputs.generator)
             else:
-                after, result = _mode_step(f, prior, runs, j, inputs, t)
+                after, result = mode_step(f, prior, runs, j, inputs, t)
             modes.append(after)
             results.append(result)
         sizes = {r.innovation.shape[-1] for r in results}
