@@ -19,13 +19,19 @@ from torchsvs.estimator import (
     threads_for,
     trim,
 )
-from torchsvs.filters.gaussian import GaussianFilter, step_input, step_interval
+from torchsvs.filters.gaussian import (
+    GaussianFilter,
+    step_input,
+    step_interval,
+)
 from torchsvs.filters.imm_embedding import Embedding, ModeSet
+from torchsvs.filters.imm_runs import Runs, mode_step, prepared_runs
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.linalg import (
     cholesky,
     gaussian_log_density,
     log_divisor,
+    mixture_mean,
     mixture_moments,
     sum_in_order,
 )
@@ -146,7 +152,12 @@ def _over_steps(results: list[FilterResult]) -> FilterResult:
             fields.append(torch.stack(torch.broadcast_tensors(*parts), 1).sum(1))
         else:
             width = max(p.shape[0] for p in parts)
-            fields.append(torch.stack([p.expand(width, *p.shape[1:]) for p in parts], dim=1))
+            fields.append(
+                torch.stack(
+                    [p if p.shape[0] == width else p.expand(width, *p.shape[1:]) for p in parts],
+                    dim=1,
+                )
+            )
     return FilterResult(*fields)
 
 
@@ -433,18 +444,20 @@ class IMM(SteppedEstimator[IMMResult]):
         )
 
     def _scan(self, state: IMMState, inputs: Inputs) -> tuple[IMMState, IMMResult]:
+        runs = self._prepared_runs(inputs)
         outs = []
         for t in range(inputs.steps):
-            state, out = self._step(state, inputs, t)
+            state, out = self._step(state, inputs, t, runs)
             outs.append(out)
 
         def over_time(field: str) -> Tensor:
             return torch.stack([getattr(o, field) for o in outs], dim=1)
 
         modes = tuple(_over_steps([o.modes[j] for o in outs]) for j in range(self.num_modes))
+        nothing: Any = None
         result = IMMResult(
             mean=over_time("mean"),
-            cov=over_time("cov"),
+            cov=nothing if inputs.keep == "mean" else over_time("cov"),
             mode_probs=over_time("log_probs").exp(),
             pred_mode_probs=over_time("log_pred").exp(),
             mode_log_likelihood=over_time("log_lik"),
@@ -453,16 +466,28 @@ class IMM(SteppedEstimator[IMMResult]):
         )
         return state, result
 
-    def _step(self, state: IMMState, inputs: Inputs, t: int) -> tuple[IMMState, _StepOut]:
+    def _prepared_runs(self, inputs: Inputs) -> Runs | None:
+        """Each mode's run prepared once (:func:`~torchsvs.filters.imm_runs.prepared_runs`), or
+        ``None``: each step is the mode's own one-step :meth:`~GaussianFilter.step`."""
+        return prepared_runs(self.mode_filters, inputs)
+
+    def _step(
+        self, state: IMMState, inputs: Inputs, t: int, runs: Runs | None = None
+    ) -> tuple[IMMState, _StepOut]:
         dtype = inputs.z.dtype
         z_t, dt_t, u_t = inputs.z[:, t], step_interval(inputs, t), step_input(inputs, t)
         state, priors, log_pred = self.interact(state, self.log_transition(dtype))
         modes, results = [], []
-        for f, mode, (x, P) in zip(self.mode_filters, state.modes, priors, strict=True):
+        for j, (f, mode, (x, P)) in enumerate(
+            zip(self.mode_filters, state.modes, priors, strict=True)
+        ):
             prior = mode._replace(mean=x, cov=P)
             if torch.is_grad_enabled() and (x.requires_grad or P.requires_grad):
                 prior = prior._replace(constants=None)  # (compiled steps run without gradients)
-            after, result = f.step(prior, z_t, dt=dt_t, u=u_t, generator=inputs.generator)
+            if runs is None:
+                after, result = f.step(prior, z_t, dt=dt_t, u=u_t, generator=inputs.generator)
+            else:
+                after, result = mode_step(f, prior, runs, j, inputs, t)
             modes.append(after)
             results.append(result)
         sizes = {r.innovation.shape[-1] for r in results}
@@ -479,7 +504,11 @@ class IMM(SteppedEstimator[IMMResult]):
         log_joint = log_pred + log_lik
         step_log_likelihood = torch.logsumexp(log_joint, dim=-1)
         log_probs = log_joint - step_log_likelihood.unsqueeze(-1)
-        mean, cov = self.combine([m.mean for m in modes], [m.cov for m in modes], log_probs)
+        if inputs.keep == "mean":  # (the combined covariance is not kept)
+            nothing: Any = None
+            mean, cov = self.combined_mean([m.mean for m in modes], log_probs), nothing
+        else:
+            mean, cov = self.combine([m.mean for m in modes], [m.cov for m in modes], log_probs)
         total = step_log_likelihood
         if state.log_likelihood is not None:
             total = state.log_likelihood + step_log_likelihood
@@ -533,13 +562,13 @@ class IMM(SteppedEstimator[IMMResult]):
         B = log_probs.shape[0]
         means = [m.mean.to(dtype).expand(B, -1) for m in modes]
         covs = [m.cov.to(dtype).expand(B, -1, -1) for m in modes]
-        priors = []
-        for j in range(M):
-            lent = [
-                self.embedding.into(i, j, means[i], covs[i], means[j], covs[j]) for i in range(M)
-            ]
-            priors.append(mixture_moments(weights[..., j], *zip(*lent, strict=True)))
-        return priors, log_pred
+        # every mode j's mixture at once, in the common state (elementwise: the same numbers
+        # as mode by mode; the components mode j lacks are dropped)
+        x_lent, P_lent = self.embedding.lent(means, covs)  # [B, i, j, n], [B, i, j, n, n]
+        x, P = mixture_moments(
+            weights.transpose(-1, -2), x_lent.unbind(-3), P_lent.unbind(-4)
+        )  # [B, j, n]...
+        return self.embedding.of_modes(x, P), log_pred
 
     def combine(
         self, means: Sequence[Tensor], covs: Sequence[Tensor], log_probs: Tensor
@@ -549,8 +578,13 @@ class IMM(SteppedEstimator[IMMResult]):
         ``[..., n_j, n_j]`` and ``log_probs [..., M]``."""
         probs = log_probs.exp()
         lead = probs.shape[:-1]
-        common = [
-            self.embedding.common(j, x.expand(*lead, -1), P.expand(*lead, -1, -1))
-            for j, (x, P) in enumerate(zip(means, covs, strict=True))
-        ]
-        return mixture_moments(probs, *zip(*common, strict=True))
+        x = self.embedding.common_means([x.expand(*lead, -1) for x in means])
+        P = self.embedding.common_covs([P.expand(*lead, -1, -1) for P in covs])
+        return mixture_moments(probs, x.unbind(-2), P.unbind(-3))
+
+    def combined_mean(self, means: Sequence[Tensor], log_probs: Tensor) -> Tensor:
+        """The mean of :meth:`combine`, alone (the same numbers)."""
+        probs = log_probs.exp()
+        lead = probs.shape[:-1]
+        x = self.embedding.common_means([x.expand(*lead, -1) for x in means])
+        return mixture_mean(probs, x.unbind(-2))

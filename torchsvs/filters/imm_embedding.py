@@ -13,6 +13,7 @@ References:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -137,9 +138,102 @@ class Embedding:
         rows = P.new_zeros(*P.shape[:-1], n).index_copy(-1, ix, P)
         return X, P.new_zeros(*P.shape[:-2], n, n).index_copy(-2, ix, rows)
 
+    @functools.cached_property
+    def _maps(self) -> _PoolMaps:
+        return _PoolMaps([ix.tolist() for ix in self.index], self.size)
+
+    def lent(self, means: Sequence[Tensor], covs: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+        """Every mode ``i``'s moments in every mode ``j``'s space at once (:meth:`into`), each
+        laid out in the common state: ``[..., i, j, n]`` and ``[..., i, j, n, n]`` from each
+        mode's ``[..., n_j]``, ``[..., n_j, n_j]`` (of one leading shape); the components mode
+        ``j`` lacks are 0 (:meth:`of_modes` reads mode ``j``'s own components back)."""
+        maps, n, M = self._maps, self.size, len(self.index)
+        return (
+            _pool(means, 1).index_select(-1, maps.lent_mean).unflatten(-1, (M, M, n)),
+            _pool(covs, 2).index_select(-1, maps.lent_cov).unflatten(-1, (M, M, n, n)),
+        )
+
+    def of_modes(self, x: Tensor, P: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Each mode ``j``'s own components of ``x [..., j, n]``, ``P [..., j, n, n]`` (moments
+        per mode laid out in the common state, as :meth:`lent` lays them out): ``(x_j [...,
+        n_j], P_j [..., n_j, n_j])`` per mode."""
+        maps = self._maps
+        x, P = x.flatten(-2), P.flatten(-3)
+        return [
+            (x.index_select(-1, at_x), P.index_select(-1, at_P).unflatten(-1, (len(ix), len(ix))))
+            for ix, at_x, at_P in zip(self.index, maps.own_mean, maps.own_cov, strict=True)
+        ]
+
+    def common_means(self, means: Sequence[Tensor]) -> Tensor:
+        """Every mode's mean in the common state at once (:meth:`common`): ``[..., M, n]``
+        from each mode's ``[..., n_j]`` (of one leading shape)."""
+        M, n = len(self.index), self.size
+        return _pool(means, 1).index_select(-1, self._maps.common_mean).unflatten(-1, (M, n))
+
+    def common_covs(self, covs: Sequence[Tensor]) -> Tensor:
+        """Every mode's covariance in the common state at once (:meth:`common`):
+        ``[..., M, n, n]`` from each mode's ``[..., n_j, n_j]`` (of one leading shape)."""
+        M, n = len(self.index), self.size
+        return _pool(covs, 2).index_select(-1, self._maps.common_cov).unflatten(-1, (M, n, n))
+
     def project(self, j: int, x: Tensor, P: Tensor) -> tuple[Tensor, Tensor]:
         """The components of mode ``j`` of a common-state ``x``, ``P``."""
         if self.identity:
             return x, P
         ix = self.index[j]
         return x[..., ix], P[..., ix, :][..., :, ix]
+
+
+def _pool(parts: Sequence[Tensor], rank: int) -> Tensor:
+    """Every mode's vector (``rank`` 1) or matrix (2) flattened and concatenated, then a 0:
+    ``[..., Σ n_j (+ 1)]`` or ``[..., Σ n_j² (+ 1)]``, what :class:`_PoolMaps` gathers from."""
+    flat = [p.flatten(-rank) for p in parts]
+    return torch.cat([*flat, flat[0].new_zeros(*flat[0].shape[:-1], 1)], -1)
+
+
+class _PoolMaps:
+    """Gather maps over a pool of every mode's moments (the means concatenated ``[Σ n_j]``, then
+    a 0; the covariances flattened and concatenated ``[Σ n_j²]``, then a 0): the moments of
+    :meth:`Embedding.lent`, :meth:`Embedding.of_modes` and :meth:`Embedding.commons` in one
+    gather each, every entry a copy of a mode's entry or 0."""
+
+    def __init__(self, index: list[list[int]], size: int) -> None:
+        M, n = len(index), size
+        sizes = [len(ix) for ix in index]
+        start_x = [sum(sizes[:j]) for j in range(M)]
+        start_P = [sum(k * k for k in sizes[:j]) for j in range(M)]
+        zero_x, zero_P = sum(sizes), sum(k * k for k in sizes)
+        where = [{c: k for k, c in enumerate(ix)} for ix in index]  # common -> position in mode
+
+        def mean_at(j: int, c: int) -> int:
+            return start_x[j] + where[j][c]
+
+        def cov_at(j: int, a: int, b: int) -> int:
+            return start_P[j] + where[j][a] * sizes[j] + where[j][b]
+
+        lent_mean = torch.full((M, M, n), zero_x, dtype=torch.long)
+        lent_cov = torch.full((M, M, n, n), zero_P, dtype=torch.long)
+        for i in range(M):
+            for j in range(M):
+                for a in index[j]:
+                    # a component mode i lacks: mode j's own (Embedding.into)
+                    lent_mean[i, j, a] = mean_at(i if a in where[i] else j, a)
+                    for b in index[j]:
+                        if a in where[i] and b in where[i]:
+                            lent_cov[i, j, a, b] = cov_at(i, a, b)
+                        elif a not in where[i] and b not in where[i]:
+                            lent_cov[i, j, a, b] = cov_at(j, a, b)
+        self.lent_mean, self.lent_cov = lent_mean.flatten(), lent_cov.flatten()
+        common_mean = torch.full((M, n), zero_x, dtype=torch.long)
+        common_cov = torch.full((M, n, n), zero_P, dtype=torch.long)
+        for j in range(M):
+            for a in index[j]:
+                common_mean[j, a] = mean_at(j, a)
+                for b in index[j]:
+                    common_cov[j, a, b] = cov_at(j, a, b)
+        self.common_mean, self.common_cov = common_mean.flatten(), common_cov.flatten()
+        ix = [torch.tensor(i, dtype=torch.long) for i in index]
+        self.own_mean = [j * n + ix[j] for j in range(M)]
+        self.own_cov = [
+            j * n * n + (ix[j][:, None] * n + ix[j][None, :]).flatten() for j in range(M)
+        ]

@@ -203,18 +203,17 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
                 smoothed = self._fixed_interval(means, kept, log_mu, log_c, pred, log_T)
             else:
                 smoothed = self._fixed_lag(means, kept, log_mu, log_c, pred, log_T, self.lag)
-        if not with_cov:  # (the combined covariance of the filtered ones, then dropped)
-            smoothed = smoothed._replace(covs=covs)
-        mean, cov = imm.combine(smoothed.means, smoothed.covs, smoothed.log_probs)
         nothing: Any = None
+        if with_cov:
+            mean, cov = imm.combine(smoothed.means, smoothed.covs, smoothed.log_probs)
+        else:  # (the combined covariance is not kept)
+            mean, cov = imm.combined_mean(smoothed.means, smoothed.log_probs), nothing
+        covs_out = smoothed.covs if with_cov else [nothing] * len(smoothed.means)
         return IMMSmootherResult(
             mean,
-            cov if with_cov else nothing,
+            cov,
             smoothed.log_probs.exp(),
-            tuple(
-                Moments(x, P if with_cov else nothing)
-                for x, P in zip(smoothed.means, smoothed.covs, strict=True)
-            ),
+            tuple(Moments(x, P) for x, P in zip(smoothed.means, covs_out, strict=True)),
             filtered,
         )
 
@@ -237,6 +236,7 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         gain: list[list[Tensor]] = [[] for _ in range(M)]
         for l, f in enumerate(imm.mode_filters):
             n_l = means[l].shape[-1]
+            prep = None  # (mode l's model matrices: the same for every j)
             for j in range(M):
                 x_j, P_j = means[j][:, :-1], covs[j][:, :-1]
                 x, P = imm.embedding.into(j, l, x_j, P_j, means[l][:, :-1], covs[l][:, :-1])
@@ -245,7 +245,8 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
                 # and a float32 pass leaves some filtered covariances semi-definite by rounding)
                 x0, P0 = x.reshape(flat, n_l), symmetrize(P).reshape(flat, n_l, n_l)
                 one = Inputs(blank, x0, P0, one_dt, u, None, inputs.generator, False)
-                x_pred, P_pred, F = f.predict(0, x0, P0, f.prepare(one), one)
+                prep = f.prepare(one) if prep is None else prep
+                x_pred, P_pred, F = f.predict(0, x0, P0, prep, one)
                 F = F.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l)
                 mean[j].append(x_pred.reshape(B, T - 1, n_l))
                 cov[j].append(P_pred.expand(flat, n_l, n_l).reshape(B, T - 1, n_l, n_l))
