@@ -213,6 +213,10 @@ def test_coordinated_turn_3d_is_the_planar_turn_and_a_cv_height():
         # The analytic Jacobian against autograd's (the base class's default).
         auto = ts.models.StateSpaceModel.f_jacobian(model, x, d)
         assert_close(model.f_jacobian(x, d), auto)
+        # linearize evaluates the turn's terms once: f and F to the last bit, 3-D and planar.
+        for turn, state in ((model, x), (plane, x[:, horizontal])):
+            f, F = turn.linearize(state, d)
+            assert torch.equal(f, turn.f(state, d)) and torch.equal(F, turn.f_jacobian(state, d))
     Q = model.process_noise(dt)
     assert Q.shape == (6, 7, 7)
     assert_close(Q[:, horizontal][:, :, horizontal], plane.process_noise(dt))

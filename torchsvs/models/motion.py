@@ -3,6 +3,8 @@ linear block per axis), and the nearly coordinated turn with unknown turn rate."
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -231,6 +233,25 @@ def turn_coefficients(a: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return s, c, ds, dc
 
 
+class _Turn(NamedTuple):
+    """The terms of one coordinated-turn step (:meth:`CoordinatedTurn.f` and its Jacobian): the
+    interval, ``a = ωT``, the state's components, :func:`turn_coefficients` of ``a``, cos, sin."""
+
+    T: Tensor
+    a: Tensor
+    px: Tensor
+    vx: Tensor
+    py: Tensor
+    vy: Tensor
+    omega: Tensor
+    s: Tensor
+    c: Tensor
+    ds: Tensor
+    dc: Tensor
+    cos: Tensor
+    sin: Tensor
+
+
 class CoordinatedTurn(StateSpaceModel):
     r"""Nearly coordinated turn with unknown turn rate (Bar-Shalom, Li, Kirubarajan 2001,
     Sec. 11.7): planar state ``[x, vx, y, vy, ω]`` (:class:`ConstantVelocity`'s layout, then the
@@ -332,31 +353,32 @@ class CoordinatedTurn(StateSpaceModel):
             return torch.tensor(self.dt, dtype=like.dtype, device=like.device)
         return dt.to(like.dtype)
 
-    def f(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
+    def _turn(self, x: Tensor, dt: Tensor | None) -> _Turn:
         T = self._interval(dt, x)
         px, vx, py, vy, omega = x.unbind(-1)
         a = omega * T
-        s, c, _, _ = turn_coefficients(a)
-        cos, sin = torch.cos(a), torch.sin(a)
+        s, c, ds, dc = turn_coefficients(a)
+        return _Turn(T, a, px, vx, py, vy, omega, s, c, ds, dc, torch.cos(a), torch.sin(a))
+
+    @staticmethod
+    def _f(t: _Turn) -> Tensor:
+        T, s, c, cos, sin = t.T, t.s, t.c, t.cos, t.sin
         return torch.stack(
             [
-                px + T * (s * vx - c * vy),
-                cos * vx - sin * vy,
-                py + T * (c * vx + s * vy),
-                sin * vx + cos * vy,
-                omega,
+                t.px + T * (s * t.vx - c * t.vy),
+                cos * t.vx - sin * t.vy,
+                t.py + T * (c * t.vx + s * t.vy),
+                sin * t.vx + cos * t.vy,
+                t.omega,
             ],
             -1,
         )
 
-    def f_jacobian(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
-        T = self._interval(dt, x)
-        _, vx, _, vy, omega = x.unbind(-1)
-        a = omega * T
-        s, c, ds, dc = turn_coefficients(a)
-        cos, sin = torch.cos(a), torch.sin(a)
-        zero, one = torch.zeros_like(a), torch.ones_like(a)
-        T = T.expand_as(a)
+    @staticmethod
+    def _f_jacobian(t: _Turn) -> Tensor:
+        s, c, ds, dc, cos, sin, vx, vy = t.s, t.c, t.ds, t.dc, t.cos, t.sin, t.vx, t.vy
+        zero, one = torch.zeros_like(t.a), torch.ones_like(t.a)
+        T = t.T.expand_as(t.a)
         return _matrix(
             [
                 [one, T * s, zero, -T * c, T * T * (ds * vx - dc * vy)],
@@ -366,6 +388,20 @@ class CoordinatedTurn(StateSpaceModel):
                 [zero, zero, zero, zero, one],
             ]
         )
+
+    def f(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
+        return self._f(self._turn(x, dt))
+
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
+        return self._f_jacobian(self._turn(x, dt))
+
+    def linearize(
+        self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """``f(x)`` and ``F`` from one evaluation of the turn's terms (each the same numbers as
+        :meth:`f` and :meth:`f_jacobian` give alone): an EKF step asks for both."""
+        turn = self._turn(x, dt)
+        return self._f(turn), self._f_jacobian(turn)
 
     def h(self, x: Tensor) -> Tensor:
         return x[..., [0, 2]]

@@ -91,21 +91,34 @@ class CoordinatedTurn3D(StateSpaceModel):
         """State index of the turn rate ω."""
         return 6
 
-    def f(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
-        plane = self.plane.f(x[..., _PLANE], dt)
+    def _f_with(self, x: Tensor, plane: Tensor, dt: Tensor | None) -> Tensor:
         F_v = self.vertical.transition(dt).to(x.dtype)
         if F_v.ndim > 2:  # a per-track interval [B]: one 2 × 2 block per track
             F_v = F_v.expand(*x.shape[:-1], 2, 2)
         height = (F_v @ x[..., _VERTICAL].unsqueeze(-1)).squeeze(-1)
         return torch.cat([plane[..., :4], height, plane[..., 4:]], dim=-1)
 
-    def f_jacobian(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
+    def _jacobian_with(self, x: Tensor, plane_jacobian: Tensor, dt: Tensor | None) -> Tensor:
         J = x.new_zeros(*x.shape[:-1], 7, 7)
         plane = torch.tensor(_PLANE)
-        J[..., plane[:, None], plane[None, :]] = self.plane.f_jacobian(x[..., _PLANE], dt)
+        J[..., plane[:, None], plane[None, :]] = plane_jacobian
         F_v = self.vertical.transition(dt).to(x.dtype)
         J[..., 4:6, 4:6] = F_v.expand(*x.shape[:-1], 2, 2)
         return J
+
+    def f(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
+        return self._f_with(x, self.plane.f(x[..., _PLANE], dt), dt)
+
+    def f_jacobian(self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None) -> Tensor:
+        return self._jacobian_with(x, self.plane.f_jacobian(x[..., _PLANE], dt), dt)
+
+    def linearize(
+        self, x: Tensor, dt: Tensor | None = None, u: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """``f(x)`` and ``F`` with the horizontal turn's terms evaluated once
+        (:meth:`CoordinatedTurn.linearize`)."""
+        plane, plane_jacobian = self.plane.linearize(x[..., _PLANE], dt)
+        return self._f_with(x, plane, dt), self._jacobian_with(x, plane_jacobian, dt)
 
     def h(self, x: Tensor) -> Tensor:
         return x[..., [0, 2, 4]]
