@@ -563,6 +563,18 @@ def held_out_study(
     return HeldOut(sigma, lag, measurements, rows, fits, ks_test, sv_test, clis, traffic)
 
 
+#: The held-out table's columns (:func:`merge_imm` adds the IMM's rows to it).
+HELD_OUT_COLUMNS = (
+    "estimator",
+    "parameters",
+    "position (m)",
+    "velocity (m/s)",
+    "vs motion",
+    "µs/point",
+    "values",
+)
+
+
 def held_out_lines(study: HeldOut) -> list[str]:
     """The held-out table, the truth-free fits and ``track --fit``, formatted (the prose in
     ``templates/real_flights.md``)."""
@@ -570,18 +582,7 @@ def held_out_lines(study: HeldOut) -> list[str]:
         ["measurements", "—", f"{study.measurements['position']:.1f}", "", "", "", ""]
     ]
     rows += [table_row(*row) for row in study.rows]
-    held_out = markdown_table(
-        [
-            "estimator",
-            "parameters",
-            "position (m)",
-            "velocity (m/s)",
-            "vs motion",
-            "µs/point",
-            "values",
-        ],
-        rows,
-    )
+    held_out = markdown_table(list(HELD_OUT_COLUMNS), rows)
     cli_rows = []
     for name, r in study.clis.items():
         bound = (

@@ -218,15 +218,7 @@ def test_real_flights_imm_section_and_ranking_are_formatted_from_their_numbers()
     assert "ratio: σ = 100: 1.004. A velocity error" in text
 
     held_out = markdown_table(
-        [
-            "estimator",
-            "parameters",
-            "position (m)",
-            "velocity (m/s)",
-            "vs motion",
-            "µs/point",
-            "values",
-        ],
+        list(rf.HELD_OUT_COLUMNS),
         [
             ["measurements", "—", "70.7", "", "", "", ""],
             ["KS", "learned, SURE (σ known)", "40.0", "5.0", "6.0", "", ""],
