@@ -281,7 +281,7 @@ def test_a_noise_reading_that_smooths_real_motion_away_is_lowered(tmp_path, monk
     )
     assert given.settings is not None and given.settings.noise_lowered_from is None
     # without the lowering, the reading smooths the motion away
-    monkeypatch.setattr("torchsvs.tracking.lowered_noise", lambda *args, **kwargs: None)
+    monkeypatch.setattr("torchsvs.track_plan.lowered_noise", lambda *args, **kwargs: None)
     track_file(source, target, Settings("ks"), progress=False)
     assert _true_rmse(target, truth) > 2.0 * raw
 

@@ -236,7 +236,7 @@ def test_bad_arguments_name_what_is_wrong(tmp_path, capsys, args, message):
 
 def test_lightning_checkpoint_loads_into_the_command_line_estimator(tmp_path):
     from torchsvs.recipes import Settings, make_estimator, make_model
-    from torchsvs.tracking import load_parameters
+    from torchsvs.track_plan import load_parameters
     from torchsvs.training import EstimatorModule
 
     settings = Settings(estimator="svss", meas_var=[900.0, 900.0], q=4.0, psi=[2.0, 3.0])

@@ -36,6 +36,7 @@ References:
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -116,15 +117,37 @@ def draw_probe(
     step: float,
     generator: torch.Generator | None,
     scored: Tensor | None = None,
+    ids: Sequence[str] | None = None,
 ) -> Probe:
     """A Rademacher probe of ``z [B, T, m]`` (NaN where missing) with noise standard
-    deviations ``std [m]``: ±1 at random (from ``generator``) at the observed components of
-    the ``scored [B, T]`` steps (default: all), 0 elsewhere."""
-    signs = torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1
+    deviations ``std [m]``: ±1 at random (from ``generator``, or with ``ids`` from
+    :func:`track_signs`) at the observed components of the ``scored [B, T]`` steps (default:
+    all), 0 elsewhere."""
+    if ids is None:
+        signs = torch.randint(0, 2, z.shape, generator=generator).to(z.dtype) * 2 - 1
+    else:
+        signs = track_signs(ids, z.shape).to(z.dtype)
     signs = signs * ~torch.isnan(z)
     if scored is not None:
         signs = signs * scored.unsqueeze(-1)
     return Probe(signs, z + step * std.to(z.dtype) * signs, step)
+
+
+def track_signs(ids: Sequence[str], shape: Sequence[int]) -> Tensor:
+    """``[B, T, m]`` ±1 for the components of tracks ``ids``, each a hash (SplitMix64, Steele
+    et al. 2014) of its track's id, step and axis: a track gets the same probe whichever
+    tracks it is batched with, so its error estimate (and what depends on it) does not depend
+    on how a dataset was split. Tracks sharing signs do no harm: the probe's error comes from
+    the cross terms within a track, where the signs are independent."""
+    B, T, m = shape
+    key = np.array([zlib.crc32(str(i).encode()) for i in ids], dtype=np.uint64)
+    cell = np.arange(T * m, dtype=np.uint64).reshape(1, T, m)
+    x = (key.reshape(B, 1, 1) << np.uint64(32)) + cell + np.uint64(0x9E3779B97F4A7C15)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    x = x ^ (x >> np.uint64(31))
+    bit = (x >> np.uint64(63)).astype(np.int8)
+    return torch.from_numpy(bit * 2 - 1)
 
 
 @dataclass
@@ -263,6 +286,14 @@ class RiskTotals:
         self.chunks += len(u)
         self.first += u.sum(axis=0)
         self.gram += u.T @ u
+
+    def merge(self, other: RiskTotals) -> None:
+        """Adds another run's totals (of the same axes) to these."""
+        if other.m != self.m:
+            raise ValueError(f"other: expected totals of {self.m} axes, got {other.m}")
+        self.chunks += other.chunks
+        self.first += other.first
+        self.gram += other.gram
 
     def mse(self, meas_var: Sequence[float]) -> tuple[float, float]:
         r"""The position MSE per point, :math:`\sum_j \sum_c e_{c,j} / N_j` with

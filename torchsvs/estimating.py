@@ -49,8 +49,6 @@ from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
 from torchsvs.types import SmootherResult
 
-#: Seed offset of the truth-free error estimate's probes (apart from the particles' seeds).
-PROBE_SEED = 1 << 20
 #: :func:`smoothed_or_filtered` keeps a track's smoothed pass where it is the better at every
 #: noise level within this many standard errors of the noise read off the data. Measured with
 #: the IMM on the recorded-tracks benchmark's sets: at the estimate alone (0) the gliders and
@@ -340,8 +338,8 @@ def _estimate_part(
         return run_result(estimator, tracks, generator, keep)
 
     step = getattr(estimator, "probe_step", PROBE_STEP)
-    seed = torch.Generator().manual_seed(PROBE_SEED + batch.position)
-    probe = draw_probe(batch.tracks.z, meas_std, step, seed)
+    # probes per track (not per group): a table's estimates do not depend on its other tracks
+    probe = draw_probe(batch.tracks.z, meas_std, step, None, ids=batch.tracks.ids)
     if getattr(estimator, "paired_probes", False):
         # the plain and the probed run in one batch; the means alone unless covariances are
         # written (nothing else reads them)

@@ -157,7 +157,8 @@ def _track(args: argparse.Namespace) -> None:
     import torch
 
     from torchsvs.recipes import Settings
-    from torchsvs.tracking import saved_settings, track_file
+    from torchsvs.track_plan import saved_settings
+    from torchsvs.tracking import track_file
 
     torch.set_num_threads(args.threads)
     columns = getattr(args, "columns", None) or _columns(args)
@@ -204,6 +205,7 @@ def _track(args: argparse.Namespace) -> None:
             "block_rows": args.block_rows,
             "max_cells": args.max_cells,
             "dtype": torch.float64 if args.double else torch.float32,
+            "precision": args.precision,
             "log": None if args.quiet else lambda text: print(text, file=sys.stderr),
         }
         if args.processes > 1:

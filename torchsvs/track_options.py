@@ -281,6 +281,14 @@ def track_parser() -> argparse.ArgumentParser:
         "--double", action="store_true", help="compute in float64 (default float32)"
     )
     parser.add_argument(
+        "--precision",
+        choices=("auto", "float32", "float64"),
+        default="auto",
+        help="of the estimates written (default auto: float32 where it keeps every position "
+        "to a hundredth of the measurement noise, as metres near an origin; float64 for large "
+        "map coordinates and for latitude, longitude in degrees)",
+    )
+    parser.add_argument(
         "--threads", type=_at_least_one, default=1, help="torch threads (default 1)"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")

@@ -76,9 +76,11 @@ class BlockEstimates:
             assert self.outlier is not None, "BlockEstimates.empty(..., screened=True)"
             self.outlier[part.outliers] = True
 
-    def table(self, block: TrackBlock) -> Any:
+    def table(self, block: TrackBlock, precision: str = "float64") -> Any:
         """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
-        return estimate_table(block, self.mean, self.cov, self.never_observed, self.outlier)
+        return estimate_table(
+            block, self.mean, self.cov, self.never_observed, self.outlier, precision
+        )
 
 
 @dataclass
@@ -117,6 +119,23 @@ class TrackRun:
             meas_var_range=meas_var_range(self.settings),
         )
 
+    def merge(self, other: TrackRun) -> None:
+        """Adds what another run of the same settings did (another part of one dataset: the
+        engines' partitions) to this one: rows, notes, error estimate, tracks, warnings."""
+        self.report.add(other.report)
+        self.report.notes = +self.report.notes
+        if self.risk is not None and other.risk is not None:
+            self.risk.merge(other.risk)
+        self.estimate_seconds += other.estimate_seconds
+        self.estimate_cpu_seconds += other.estimate_cpu_seconds
+        for name, seconds in other.phases.items():
+            self.phases[name] = self.phases.get(name, 0.0) + seconds
+        self.q_factors.update(other.q_factors)
+        self.track_errors.update(other.track_errors)
+        self.track_q.update(other.track_q)
+        self._keep_worst()
+        self.warnings.extend(w for w in other.warnings if w not in self.warnings)
+
     def add_block(self, found: BlockEstimates, steps: TrackSteps) -> None:
         """Counts a block's estimates: its notes, tracks' q factors, error estimate's terms."""
         self.report.add(steps.report)
@@ -140,6 +159,11 @@ class TrackRun:
             self.track_errors[ids[int(k)]] = (float(rmse[k]), int(points[k]))
             if q_factor is not None and np.isfinite(q_factor[k]):
                 self.track_q[ids[int(k)]] = float(q_factor[k])
+        self._keep_worst()
+
+    def _keep_worst(self) -> None:
+        """Per-track error estimates: the worst :data:`TRACKS_KEPT` once there are twice as
+        many (memory bounded whatever the run's size)."""
         if len(self.track_errors) > 2 * TRACKS_KEPT:
             worst = sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
             self.track_errors = dict(worst)

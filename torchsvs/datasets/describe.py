@@ -80,15 +80,33 @@ def open_blocks(
     return described, itertools.chain([first], blocks)
 
 
+def describe_table(
+    table: Any, columns: Columns | None = None, name: str = "table"
+) -> InputDescription:
+    """:func:`describe_input` of a ``pyarrow.Table`` of track rows (all of it is looked at)."""
+    if len(table) == 0:
+        raise ValueError(f"{name}: expected rows of tracks, got an empty table")
+    try:
+        cols = (columns or Columns()).resolve(table.column_names)
+    except ValueError as err:
+        raise ValueError(str(err).replace("not in the file", f"not in the {name}")) from None
+    return _describe(None, table, cols, columns or Columns(), name, thorough=True)
+
+
 def _describe(
-    path: str | Path, table: Any, cols: Columns, asked: Columns, name: str, thorough: bool
+    path: str | Path | None,
+    table: Any,
+    cols: Columns,
+    asked: Columns,
+    name: str,
+    thorough: bool,
 ) -> InputDescription:
     import pyarrow.compute as pc
 
     rows = len(table)
     lines: list[str] = []
     notes: list[str] = []
-    if file_format(path) == "csv" and csv_delimiter(path) != ",":
+    if path is not None and file_format(path) == "csv" and csv_delimiter(path) != ",":
         lines.append(f"separator {csv_delimiter(path)!r} (read from the header)")
     assert cols.position is not None
     for label in cols.position:

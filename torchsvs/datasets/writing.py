@@ -25,6 +25,8 @@ def state_names(position: Sequence[str]) -> list[str]:
     return [name for p in position for name in (p, f"v{p}")]
 
 
+#: numpy type of the estimates written at each ``precision``.
+OUTPUT_TYPES = {"float64": np.float64, "float32": np.float32}
 #: Names of a WGS 84 file's local axes (east, north, up: the altitude).
 LOCAL_AXES = ("east", "north", "up")
 
@@ -81,6 +83,7 @@ def estimate_table(
     cov: np.ndarray | None = None,
     never_observed: np.ndarray | None = None,
     outlier: np.ndarray | None = None,
+    precision: str = "float64",
 ) -> Any:
     """The output rows of a block: ``track_id, time`` as read, then the estimates.
 
@@ -91,6 +94,8 @@ def estimate_table(
         never_observed: ``[K, m]`` axes a track never observes (their estimates become NaN).
         outlier: ``[S]`` bool steps whose position was set aside as an outlier, written as a
             last column ``outlier`` (rows not placed: false); None: no such column.
+        precision: of the estimates, ``"float64"`` or ``"float32"`` (computed in float64,
+            rounded once as they are written).
 
     Returns:
         A ``pyarrow.Table`` with one row per input row: the id and time columns as read,
@@ -102,6 +107,9 @@ def estimate_table(
     """
     import pyarrow as pa
 
+    if precision not in OUTPUT_TYPES:
+        raise ValueError(f"precision: expected one of {list(OUTPUT_TYPES)}, got {precision!r}")
+    kind = OUTPUT_TYPES[precision]
     steps, cols = block.steps, block.columns
     assert cols.position is not None
     names, cov_names = output_names(cols)
@@ -120,9 +128,8 @@ def estimate_table(
 
     def per_row(values: np.ndarray) -> Any:
         # NaN (not estimated) becomes an empty field
-        return pa.array(
-            np.where(placed, values[index], np.nan), type=pa.float64(), from_pandas=True
-        )
+        rows = np.where(placed, values[index], np.nan).astype(kind, copy=False)
+        return pa.array(rows, from_pandas=True)
 
     out = {
         cols.track_id: block.table.column(cols.track_id),
@@ -131,7 +138,9 @@ def estimate_table(
     # metric: x, vx, y, vy, ...; WGS 84: the positions, then the velocities
     order = range(2 * m) if not cols.geodetic else [*range(0, 2 * m, 2), *range(1, 2 * m, 2)]
     for j in order:
-        out[names[j]] = per_row(mean[:, j]) if len(mean) else pa.nulls(len(row_step), pa.float64())
+        out[names[j]] = (
+            per_row(mean[:, j]) if len(mean) else pa.nulls(len(row_step), pa.from_numpy_dtype(kind))
+        )
     if cov is not None:
         for a in range(2 * m):
             for b in range(a, 2 * m):

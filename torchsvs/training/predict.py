@@ -20,7 +20,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -35,9 +35,9 @@ from torch.utils.data import DataLoader, Dataset
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
 from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
-from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
+from torchsvs.recipes import Settings
+from torchsvs.track_plan import TrackPlan, plan_block
 from torchsvs.track_run import BlockEstimates, TrackRun, summary_path, write_summary
-from torchsvs.tracking import prepare_estimator
 from torchsvs.training.quiet import quiet_lightning, tool_trainer
 
 
@@ -176,7 +176,7 @@ class TrackPredictor(L.LightningModule):
     The estimator is built in :meth:`setup`, once the file is read: rank 0 completes the
     settings from the data, fits (``fit``: :func:`~torchsvs.training.self_tune`, on rank 0
     only, while the other processes wait), loads ``checkpoint`` and saves to ``save``
-    (:func:`~torchsvs.tracking.prepare_estimator`), then broadcasts the settings and the
+    (:func:`~torchsvs.track_plan.prepare_estimator`), then broadcasts the settings and the
     estimator's parameters to the other processes.
 
     Args:
@@ -197,9 +197,12 @@ class TrackPredictor(L.LightningModule):
         save: str | Path | None = None,
         covariance: bool = False,
         dtype: torch.dtype = torch.float32,
+        precision: str = "auto",
         log: Callable[[str], None] | None = None,
     ) -> None:
         super().__init__()
+        self.precision = precision
+        self.plan: TrackPlan | None = None
         self.settings, self.fit, self.fit_options = settings, fit, fit_options
         self.checkpoint, self.save, self.covariance = checkpoint, save, covariance
         self.compute_dtype, self.say = dtype, log
@@ -212,27 +215,27 @@ class TrackPredictor(L.LightningModule):
         if self.estimator is not None:
             return
         tick = time.perf_counter()
-        steps = self.trainer.datamodule.steps  # type: ignore[attr-defined]
-        shared: tuple[dict[str, Any], dict[str, Tensor]] | None = None
+        data = self.trainer.datamodule  # type: ignore[attr-defined]
+        plan: TrackPlan | None = None
         if self.trainer.global_rank == 0:
-            estimator, settings, self.fit_summary = prepare_estimator(
-                steps,
+            assert data.block is not None
+            plan = plan_block(
+                data.steps,
+                data.block.columns,
                 self.settings,
-                self.fit,
-                self.fit_options,
-                self.checkpoint,
-                self.save,
-                self.say,
+                fit=self.fit,
+                fit_options=self.fit_options,
+                checkpoint=self.checkpoint,
+                save=self.save,
+                dtype=self.compute_dtype,
+                precision=self.precision,
+                log=self.say,
             )
-            shared = (asdict(settings), estimator.state_dict())
-        known, state = self.trainer.strategy.broadcast(shared, src=0)  # type: ignore[misc]
-        settings = Settings(**known)
-        estimator = make_estimator(settings, make_model(settings))
-        estimator.load_state_dict(state)
-        assert settings.meas_var is not None
-        self.compute_dtype = compute_dtype(settings.estimator, self.compute_dtype)
-        self.settings, self.estimator = settings, estimator.to(self.compute_dtype)
-        self.meas_std = torch.tensor(settings.meas_var, dtype=self.compute_dtype).sqrt()
+        plan = self.trainer.strategy.broadcast(plan, src=0)
+        assert plan is not None
+        self.plan, self.settings, self.fit_summary = plan, plan.settings, plan.fit
+        self.estimator, self.meas_std = plan.estimator(), plan.meas_std
+        self.compute_dtype = plan.dtype
         self.prepare_seconds = time.perf_counter() - tick
 
     def predict_step(self, batch: GroupBatch | None, batch_idx: int) -> StepEstimates | None:
@@ -303,6 +306,7 @@ def predict_file(
     block_rows: int = 1 << 18,
     max_cells: int = 1 << 19,
     dtype: torch.dtype = torch.float32,
+    precision: str = "auto",
     threads: int = 1,
     log: Callable[[str], None] | None = None,
 ) -> TrackRun | None:
@@ -342,6 +346,7 @@ def predict_file(
         save=save,
         covariance=covariance,
         dtype=dtype,
+        precision=precision,
         log=log,
     )
     gather = GatherEstimates()
@@ -386,7 +391,8 @@ def predict_file(
     run.check()
     assert data.block is not None
     with EstimateWriter(target) as writer:
-        writer.write(found.table(data.block))
+        assert module.plan is not None
+        writer.write(found.table(data.block, module.plan.precision))
     run.estimate_seconds = gather.estimate_seconds
     run.estimate_cpu_seconds = gather.estimate_cpu_seconds
     run.seconds = time.perf_counter() - start

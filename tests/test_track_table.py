@@ -1,0 +1,161 @@
+"""One table in, the same rows with estimates out (:func:`torchsvs.track_table.track_table`),
+with what a :class:`~torchsvs.track_plan.TrackPlan` settled once: the unit ``torchsvs track``
+and the engines call. A table's estimates must not depend on which other tracks it holds."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.csv as pcsv
+import pyarrow.parquet as pq
+import pytest
+
+from tests.test_track_cli import _simulated_csv
+from torchsvs.datasets import Columns
+from torchsvs.recipes import Settings
+from torchsvs.track_plan import TrackPlan, output_precision, plan_tracks
+from torchsvs.track_table import output_schema, track_table
+from torchsvs.tracking import track_file
+
+COLUMNS = Columns("id", "t")
+TEXT = pcsv.ConvertOptions(column_types={"id": pa.string(), "t": pa.string()})
+
+
+@pytest.fixture(scope="module")
+def rows(tmp_path_factory) -> tuple[pd.DataFrame, object]:
+    """Irregular times, missing values, repeated times, shuffled rows (the CLI tests' file)."""
+    path = tmp_path_factory.mktemp("table") / "in.csv"
+    _simulated_csv(path, tracks=9, steps=[40, 7, 25, 60, 13, 33, 52, 20, 9])
+    return pcsv.read_csv(path).to_pandas(), path
+
+
+def _plan(frame: pd.DataFrame, estimator: str, **kwargs) -> TrackPlan:
+    return plan_tracks(frame, Settings(estimator=estimator), columns=COLUMNS, **kwargs)
+
+
+def _sorted(frame: pd.DataFrame) -> pd.DataFrame:
+    return frame.sort_values(["id", "t"], kind="stable").reset_index(drop=True)
+
+
+@pytest.mark.parametrize("estimator", ["ks", "kf", "svsf", "svss", "svstps", "rstkf"])
+def test_parts_give_the_estimates_of_the_whole(rows, estimator):
+    """Tracks split over three tables (as an engine's partitions split them) get the estimates
+    they get in one table, to the last bit, in the same rows; the parts' runs add up to the
+    whole's counts and error estimate. (Not the particle filters, whose draws are seeded per
+    group of tracks, nor the IMM, whose choice between its smoother and filter per track
+    weighs a control variate fitted over the group: test_imm_parts_differ_only_by_that.)"""
+    frame, _ = rows
+    plan = _plan(frame, estimator)
+    whole = track_table(frame, plan)
+    part_of = frame["id"].map(lambda i: int(i.split("-")[1]) % 3)
+    parts = [track_table(frame[part_of == p], plan, check=False) for p in range(3)]
+    assert all(len(p.table) == (part_of == k).sum() for k, p in enumerate(parts))
+    joined = pd.concat([p.table for p in parts])
+    pd.testing.assert_frame_equal(_sorted(joined), _sorted(whole.table), check_exact=True)
+    run = parts[0].run
+    for part in parts[1:]:
+        run.merge(part.run)
+    assert run.report.total == whole.run.report.total == len(frame)
+    assert run.report.measurement == whole.run.report.measurement
+    assert set(run.track_errors) == set(whole.run.track_errors)
+    merged, alone = run.accuracy, whole.run.accuracy
+    assert merged is not None and alone is not None
+    # the probes are drawn per group of tracks, so the parts' error estimate is another draw of
+    # the same estimate: within its sampling error (both standard errors, 3 of them)
+    spread = 3.0 * np.hypot(merged.standard_error, alone.standard_error)
+    assert abs(merged.estimated_rmse - alone.estimated_rmse) <= spread
+
+
+def test_a_table_gives_what_track_writes(rows, tmp_path):
+    """track_file is built on the same unit: the table's estimates are the file's, row for row
+    (the file's rows in their order, ids and times as given)."""
+    frame, path = rows
+    target = tmp_path / "out.csv"
+    run = track_file(path, target, Settings(estimator="ks"), columns=COLUMNS, progress=False)
+    plan = _plan(frame, "ks")
+    assert plan.settings == run.settings
+    out = track_table(frame, plan).table
+    written = pcsv.read_csv(target).to_pandas()
+    assert list(out.columns) == list(written.columns)
+    assert out["id"].tolist() == frame["id"].tolist()  # the input's row order
+    for name in ("x", "vx", "y", "vy"):  # float32 written as its shortest decimal text
+        expected = written[name].to_numpy().astype(out[name].dtype)
+        np.testing.assert_array_equal(out[name].to_numpy(), expected)
+
+
+def test_arrow_in_arrow_out_and_the_declared_schema(rows):
+    """An Arrow table gives an Arrow table whose schema is the one an engine declares before
+    running (output_schema), float32 estimates where the plan says so."""
+    frame, _ = rows
+    table = pa.Table.from_pandas(frame, preserve_index=False)
+    plan = _plan(frame, "ks", precision="float32")
+    out = track_table(table, plan, covariance=True).table
+    assert isinstance(out, pa.Table)
+    schema = output_schema(plan, table.schema.field("id").type, table.schema.field("t").type, True)
+    assert out.schema == schema
+    assert out.schema.field("x").type == pa.float32()
+
+
+def test_a_plan_travels_by_pickle(rows):
+    """An engine broadcasts the plan as a pickle: the same estimates from the copy; the fit's
+    summary stays with the one who planned."""
+    frame, _ = rows
+    plan = _plan(frame, "svss", fit=True, fit_options={"steps": 5})
+    assert plan.fit is not None
+    copy = pickle.loads(pickle.dumps(plan))
+    assert copy.fit is None and copy.settings == plan.settings
+    pd.testing.assert_frame_equal(
+        track_table(frame, copy).table, track_table(frame, plan).table, check_exact=True
+    )
+
+
+def test_auto_precision_follows_the_positions_and_the_noise(rows):
+    """float32 keeps metres near an origin to a hundredth of the noise; far from it (UTM
+    northings) or in degrees it would not, and "auto" writes float64; a part with positions
+    beyond the sample's warns."""
+    frame, _ = rows
+    plan = _plan(frame, "ks")
+    assert plan.precision == "float32"
+    far = frame.assign(y=frame["y"] + 5e6)  # a UTM northing
+    assert _plan(far, "ks").precision == "float64"
+    result = track_table(far, plan)  # planned near the origin, run far from it
+    assert any(w.startswith("precision:") for w in result.run.warnings)
+    degrees = frame.assign(lat=48.0 + frame["y"] / 111e3, lon=11.0 + frame["x"] / 74e3)
+    geo = plan_tracks(degrees.drop(columns=["x", "y"]), Settings(estimator="ks"), columns=COLUMNS)
+    assert geo.columns.geodetic and geo.precision == "float64"
+    block = pa.Table.from_pandas(frame, preserve_index=False)
+    assert output_precision  # the rule itself is tested through the plans above
+    assert track_table(block, plan).table.schema.field("x").type == pa.float32()
+
+
+def test_float32_estimates_are_the_float64_ones_rounded(rows):
+    """The precision is applied once, as the estimates are written."""
+    frame, _ = rows
+    wide = _plan(frame, "ks", precision="float64")
+    narrow = TrackPlan(wide.columns, wide.settings, wide.parameters, wide.dtype, "float32")
+    a, b = track_table(frame, wide).table, track_table(frame, narrow).table
+    for name in ("x", "vx", "y", "vy"):
+        assert b[name].dtype == np.float32
+        np.testing.assert_array_equal(a[name].to_numpy().astype(np.float32), b[name].to_numpy())
+
+
+def test_bad_input_names_the_argument(rows, tmp_path):
+    frame, _ = rows
+    plan = _plan(frame, "ks")
+    with pytest.raises(TypeError, match="^data: expected a pandas DataFrame"):
+        track_table(frame.to_numpy(), plan)
+    with pytest.raises(ValueError, match="^precision: expected one of"):
+        _plan(frame, "ks", precision="half")
+    with pytest.raises(ValueError, match="^data: expected rows of tracks"):
+        plan_tracks(frame.iloc[:0], columns=COLUMNS)
+    with pytest.raises(ValueError, match=r"^columns: \['id'\] not in the data"):
+        plan_tracks(frame.drop(columns=["id"]), columns=COLUMNS)
+    with pytest.raises(ValueError, match="^settings: expected complete settings"):
+        TrackPlan(plan.columns, Settings(estimator="ks"), plan.parameters)
+    path = tmp_path / "sample.parquet"
+    pq.write_table(pa.Table.from_pandas(frame, preserve_index=False), path)
+    from_file = plan_tracks(path, Settings(estimator="ks"), columns=COLUMNS)
+    assert from_file.settings.meas_var == pytest.approx(plan.settings.meas_var)

@@ -1,0 +1,338 @@
+"""What every part of a track dataset is estimated with, settled once (:class:`TrackPlan`).
+
+``torchsvs track`` reads the settings a user left open off its first block of tracks (and fits
+there with ``--fit``, or chooses with ``auto``); a dataset split over many processes or machines
+(Spark, Dask: :mod:`torchsvs.engines`) must do that once, on a sample, and hand every part the
+same result, or each part would read its own noise and ``q`` and the estimates would depend on
+how the data were split. A :class:`TrackPlan` is that result: the resolved columns, the complete
+settings, the estimator's parameters, the computation's dtype and the output's precision. It
+pickles, so an engine broadcasts it as it is; :func:`~torchsvs.track_table.track_table` runs it
+on a table of tracks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
+from torchsvs.datasets.tables import block_of
+from torchsvs.estimating import lowered_noise
+from torchsvs.fitting.defaults import (
+    complete_settings,
+    screened,
+    settings_note,
+    with_q_curve,
+)
+from torchsvs.fitting.tuning import self_tune
+from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
+from torchsvs.selection import choose_estimator
+from torchsvs.track_run import short
+
+#: ``precision`` of the estimates written: ``"auto"`` is float32 where it keeps positions to
+#: :data:`POSITION_RESOLUTION` of the measurement noise (:func:`output_precision`).
+PRECISIONS = ("auto", "float32", "float64")
+#: float32 is written (``precision="auto"``) where its spacing at the largest position is at
+#: most this share of the smallest measurement noise standard deviation: rounding then moves a
+#: position by at most half of it, far below any estimate's own error.
+POSITION_RESOLUTION = 0.01
+#: Positions of the parts not yet seen may be larger than the sample's: ``"auto"`` decides at
+#: this many times the sample's largest (later parts are checked: :func:`precision_warning`).
+MAGNITUDE_HEADROOM = 4.0
+#: Metres per degree of latitude (WGS 84, mean): a float32 degree's spacing in metres.
+METRES_PER_DEGREE = 111_320.0
+
+
+@dataclass
+class TrackPlan:
+    """What every table of a dataset is estimated with (:func:`plan_tracks`), settled once."""
+
+    columns: Columns  #: resolved: positions, frame and the time unit in seconds
+    settings: Settings  #: complete (noise, ``q``, ...), fitted or chosen where asked
+    parameters: dict[str, Tensor]  #: the estimator's state (a checkpoint's, or the settings')
+    dtype: torch.dtype = torch.float32  #: of the computation
+    precision: str = "float64"  #: of the estimates written, ``"float32"`` or ``"float64"``
+    #: the fit's or the choice's summary (``--fit``, ``auto``), or None; not needed to estimate
+    fit: Any = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.precision not in ("float32", "float64"):
+            raise ValueError(f"precision: expected 'float32' or 'float64', got {self.precision!r}")
+        if self.settings.meas_var is None:
+            raise ValueError("settings: expected complete settings (meas_var set): plan_tracks")
+
+    def estimator(self) -> nn.Module:
+        """The estimator, built from the settings with the plan's parameters, in its dtype."""
+        estimator = make_estimator(self.settings, make_model(self.settings))
+        estimator.load_state_dict(self.parameters)
+        return estimator.to(self.dtype)
+
+    @property
+    def meas_std(self) -> Tensor:
+        """``[m]`` the measurement noise standard deviation per axis, in the plan's dtype."""
+        assert self.settings.meas_var is not None
+        return torch.tensor(self.settings.meas_var, dtype=self.dtype).sqrt()
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The fit's summary is for the person who ran the plan, not for the parts: sent
+        # to every executor it would only cost time.
+        return {**self.__dict__, "fit": None}
+
+
+def plan_tracks(
+    data: Any,
+    settings: Settings | None = None,
+    *,
+    columns: Columns | None = None,
+    fit: bool = False,
+    fit_options: dict[str, Any] | None = None,
+    checkpoint: str | Path | None = None,
+    save: str | Path | None = None,
+    dtype: torch.dtype = torch.float32,
+    precision: str = "auto",
+    block_rows: int = 1 << 18,
+    log: Callable[[str], None] | None = None,
+) -> TrackPlan:
+    """Settles what ``settings`` leave open on a sample of the data, once: the noise and ``q``
+    read off it, fitted with ``fit``, chosen with ``settings.estimator == "auto"``, as
+    ``torchsvs track`` does on a file's first block.
+
+    Args:
+        data: a sample of the dataset: a ``.csv``/``.parquet`` file (its first ``block_rows``
+            rows are read), a ``pandas.DataFrame`` or a ``pyarrow.Table`` of track rows.
+        settings: the estimator and what is known of its settings (default: ``auto``).
+        columns: the data's column names (default ``track_id, time, x, y[, z]``).
+        fit, fit_options, checkpoint, save: as for :func:`~torchsvs.tracking.track_file`.
+        dtype: of the computation (some estimators always run in float64:
+            :func:`~torchsvs.recipes.compute_dtype`).
+        precision: of the estimates written: ``"float32"``, ``"float64"`` or ``"auto"``
+            (:func:`output_precision`).
+        log: where to print what was read off the data.
+    """
+    block = block_of(data, columns, block_rows)
+    return plan_block(
+        block.steps,
+        block.columns,
+        settings or Settings(estimator="auto"),
+        fit=fit,
+        fit_options=fit_options,
+        checkpoint=checkpoint,
+        save=save,
+        dtype=dtype,
+        precision=precision,
+        log=log,
+    )
+
+
+def plan_block(
+    steps: TrackSteps,
+    columns: Columns,
+    settings: Settings,
+    *,
+    fit: bool = False,
+    fit_options: dict[str, Any] | None = None,
+    checkpoint: str | Path | None = None,
+    save: str | Path | None = None,
+    dtype: torch.dtype = torch.float32,
+    precision: str = "auto",
+    log: Callable[[str], None] | None = None,
+) -> TrackPlan:
+    """:func:`plan_tracks` on a block's steps (``columns`` resolved)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision: expected one of {list(PRECISIONS)}, got {precision!r}")
+    estimator, settings, summary = prepare_estimator(
+        steps, settings, fit, fit_options, checkpoint, save, log
+    )
+    assert settings.meas_var is not None
+    if precision == "auto":
+        precision = output_precision(steps, columns, settings.meas_var)
+    return TrackPlan(
+        columns,
+        settings,
+        estimator.state_dict(),
+        compute_dtype(settings.estimator, dtype),
+        precision,
+        summary,
+    )
+
+
+def output_precision(steps: TrackSteps, columns: Columns, meas_var: list[float]) -> str:
+    """``"float32"`` where float32 keeps the positions of tracks like these (at
+    :data:`MAGNITUDE_HEADROOM` times their largest) to :data:`POSITION_RESOLUTION` of the
+    smallest measurement noise standard deviation, else ``"float64"``: metres near an origin
+    (a local frame, a sensor's) are written as float32, large map coordinates (UTM
+    northings) and latitude, longitude in degrees mostly as float64."""
+    return "float32" if _float32_keeps(steps, columns, meas_var, MAGNITUDE_HEADROOM) else "float64"
+
+
+def precision_warning(plan: TrackPlan, steps: TrackSteps) -> str | None:
+    """Why float32 does not keep these tracks' positions as :func:`output_precision` meant
+    (positions larger than the sample's), or None."""
+    assert plan.settings.meas_var is not None
+    if plan.precision != "float32" or _float32_keeps(
+        steps, plan.columns, plan.settings.meas_var, 1.0
+    ):
+        return None
+    return (
+        "precision: positions larger than the sample the plan was made on are written as "
+        f"float32, which rounds them by more than {POSITION_RESOLUTION / 2:g} of the noise; "
+        "write float64 (--precision float64, or plan_tracks(..., precision='float64'))"
+    )
+
+
+def _float32_keeps(
+    steps: TrackSteps, columns: Columns, meas_var: list[float], headroom: float
+) -> bool:
+    position = steps.position
+    if columns.geodetic:  # written as degrees (and the altitude in metres)
+        assert steps.reference is not None
+        finite = steps.reference[np.isfinite(steps.reference).all(axis=1)]
+        largest = float(np.abs(finite).max(initial=0.0))
+        spacing = float(np.spacing(np.float32(min(largest * headroom, 360.0))))
+        spacings = [spacing * METRES_PER_DEGREE] * 2
+        if position.shape[1] == 3:
+            spacings.append(_spacing(position[:, 2], headroom))
+    else:
+        spacings = [_spacing(position[:, j], headroom) for j in range(position.shape[1])]
+    smallest = min(float(v) ** 0.5 for v in meas_var)
+    return max(spacings) <= POSITION_RESOLUTION * smallest
+
+
+def _spacing(values: np.ndarray, headroom: float) -> float:
+    finite = values[np.isfinite(values)]
+    largest = float(np.abs(finite).max(initial=0.0)) * headroom
+    return float(np.spacing(np.float32(min(largest, 3e38))))
+
+
+def _sample_tracks(steps: Any, fit_options: dict[str, Any] | None) -> np.ndarray:
+    """The tracks the settings are read off (and a fit runs on): up to ``tracks`` of the first
+    block, spread evenly over it."""
+    limit = int((fit_options or {}).get("tracks", 2000))
+    count = steps.num_tracks
+    if count <= limit:
+        return np.arange(count)
+    return np.unique(np.linspace(0, count - 1, limit).round().astype(np.int64))
+
+
+def prepare_estimator(
+    steps: TrackSteps,
+    settings: Settings,
+    fit: bool = False,
+    fit_options: dict[str, Any] | None = None,
+    checkpoint: str | Path | None = None,
+    save: str | Path | None = None,
+    say: Callable[[str], None] | None = None,
+) -> tuple[nn.Module, Settings, Any]:
+    """The estimator of ``torchsvs track`` for a block's tracks: the settings left open read
+    off them (:func:`~torchsvs.fitting.defaults.complete_settings`, on up to
+    ``fit_options["tracks"]`` tracks spread over the block, their isolated outliers set aside
+    first: :func:`~torchsvs.fitting.defaults.screened`), then fitted, loaded from
+    ``checkpoint``, saved to ``save``, as asked. Where the noise was read off the data and the
+    Kalman smoother on the sample is not clearly below the measurements, all of it is done
+    again at the low end of that reading (:func:`~torchsvs.estimating.lowered_noise`), and
+    ``say`` hears only the reading kept.
+
+    Returns:
+        The estimator (float64), the settings it was built from, and the fit's summary (or
+        ``None``).
+    """
+    given = settings
+    say = say or (lambda _: None)
+    sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
+    open_q = settings.q is None
+    options = dict(fit_options or {})
+    options.pop("tracks", None)
+    # What the first reading says is printed only if the run keeps it: a lowered noise reads
+    # (and fits) again, and its own lines replace these (each line once, none of settings
+    # the run does not use).
+    first: list[str] = []
+    settings, clean, summary = _settled(settings, sample, fit, options, first.append)
+    low = lowered_noise(settings, clean) if checkpoint is None else None
+    if low is None:
+        for line in first:
+            say(line)
+    else:
+        assert settings.meas_var is not None
+        read = [v**0.5 for v in settings.meas_var]
+        say(
+            f"noise: at {short(read)} m (read off the data) the Kalman smoother's error is not "
+            f"clearly below the measurements'; running at the low end of that reading, "
+            f"{short([v**0.5 for v in low])} m"
+        )
+        lowered = replace(
+            given,
+            meas_var=low,
+            noise="data",
+            meas_std_se=settings.meas_std_se,
+            noise_spread=settings.noise_spread,
+            noise_lowered_from=read,
+        )
+        settings, clean, summary = _settled(lowered, sample, fit, options, say)
+    if open_q and checkpoint is None:
+        settings = with_q_curve(settings, clean)
+    estimator = make_estimator(settings, make_model(settings))
+    if checkpoint is not None:
+        load_parameters(estimator, checkpoint)
+    if save is not None:
+        torch.save({"settings": asdict(settings), "state_dict": estimator.state_dict()}, save)
+    return estimator, settings, summary
+
+
+def _settled(
+    settings: Settings,
+    sample: RecordedTracks,
+    fit: bool,
+    options: dict[str, Any],
+    say: Callable[[str], None],
+) -> tuple[Settings, RecordedTracks, Any]:
+    """The settings left open read off ``sample`` without its isolated outliers, then fitted
+    or chosen (``--estimator auto``); the screened sample, and the fit's summary."""
+    settings, sample, _ = screened(settings, sample)
+    if settings.estimator != "auto":
+        settings = complete_settings(settings, sample)
+        say(settings_note(settings))
+    summary: Any = None
+    if settings.estimator == "auto":
+        auto_options = dict(options)
+        auto_options.pop("known_noise", None)
+        summary = choose_estimator(settings, sample, say=say, **auto_options)
+        settings = summary.settings
+        say(summary.summary())
+    elif fit:
+        summary = self_tune(settings, sample, **options)
+        settings = summary.settings
+        say(summary.summary())
+    return settings, sample, summary
+
+
+def load_parameters(estimator: nn.Module, path: str | Path) -> None:
+    """Loads an estimator's parameters from a ``--save`` file or a Lightning checkpoint of
+    :class:`~torchsvs.training.EstimatorModule` (keys ``estimator.*``)."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or "state_dict" not in state:
+        raise ValueError(f"checkpoint: {str(path)!r} holds no state_dict")
+    weights = state["state_dict"]
+    prefix = "estimator."
+    if any(k.startswith(prefix) for k in weights):
+        weights = {k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)}
+    try:
+        estimator.load_state_dict(weights)
+    except RuntimeError as err:
+        raise ValueError(
+            f"checkpoint: {str(path)!r} does not fit the estimator built from these settings "
+            f"({type(estimator).__name__}): {err}"
+        ) from err
+
+
+def saved_settings(path: str | Path) -> Settings:
+    """The settings stored by ``--save``."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or "settings" not in state:
+        raise ValueError(f"checkpoint: {str(path)!r} holds no torchsvs settings (a --save file)")
+    return Settings(**state["settings"])
