@@ -181,7 +181,7 @@ def test_estimate_writer_renames_only_a_complete_file(tmp_path):
 
 def test_python_api_never_writes_over_the_file_it_read(tmp_path):
     from torchsvs.recipes import Settings
-    from torchsvs.datasets.tables import WHOLE_FILE
+    from torchsvs.tracking import track_file
 
     source = _metric_file(tmp_path / "a.csv")
     before = source.read_bytes()
@@ -698,7 +698,7 @@ def test_readme_and_help_say_who_reads_the_file_and_in_what_order():
     0 and broadcasts the steps); streaming (files of 256 MiB or more) needs contiguous tracks,
     and the help of both reading modes and the track-file guide say so."""
     import torchsvs.training.predict as predict
-    from torchsvs.tracking import track_file
+    from torchsvs.datasets.tables import WHOLE_FILE
 
     readme = " ".join(TRACK_GUIDE.read_text(encoding="utf-8").split())
     assert "rank 0 alone reads the whole file" in _option_help("--processes")
