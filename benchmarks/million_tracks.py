@@ -29,10 +29,11 @@ def write_tracks(
     seed: int = 0,
     ragged: bool = False,
     missing: float = 0.0,
+    first_id: int = 0,
 ) -> None:
     """Seeded tracks (rows of each track together, 1 s scans, 50 m noise); ``ragged``: each
     track keeps its first ``steps/2`` to ``steps`` scans; ``missing``: share of empty
-    position values."""
+    position values; ids ``track-<n>`` from ``first_id`` on."""
     import pyarrow as pa
     import pyarrow.csv as pcsv
     import pyarrow.parquet as pq
@@ -49,7 +50,8 @@ def write_tracks(
         z = pos + gen.normal(0, 50, pos.shape)
         if missing > 0:
             z[gen.random(z.shape) < missing] = np.nan
-        ids = np.repeat(np.char.add("track-", np.arange(first, first + count).astype(str)), steps)
+        numbers = np.arange(first_id + first, first_id + first + count)
+        ids = np.repeat(np.char.add("track-", numbers.astype(str)), steps)
         kept = np.ones((count, steps), dtype=bool)
         if ragged:
             lengths = gen.integers(steps // 2, steps + 1, count)

@@ -98,3 +98,21 @@ def test_readme_python_example_runs() -> None:
     exec(compile(block.replace("num_runs=500", "num_runs=8"), "README.md", "exec"), scope)
     assert scope["out"].mean.shape == (8, 490, 4)
     assert scope["svsf"].boundary_layer.raw.grad is not None
+
+
+def test_table_example_runs(tmp_path, monkeypatch) -> None:
+    """The guide's table example runs as printed on a file of its columns, and gives one row
+    per input row with the estimates' columns."""
+    from benchmarks.million_tracks import write_tracks
+
+    text = (ROOT / "docs" / "guide" / "python.md").read_text(encoding="utf-8")
+    (block,) = [
+        b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S) if "track_table" in b
+    ]
+    monkeypatch.chdir(tmp_path)
+    write_tracks(tmp_path / "tracks.parquet", 30, 40)
+    scope: dict = {"__name__": "guide_example"}
+    exec(compile(block, "python.md", "exec"), scope)
+    out = scope["out"]
+    assert len(out) == len(scope["rows"]) == 30 * 40
+    assert list(out.columns[:6]) == ["track_id", "time", "x", "vx", "y", "vy"]

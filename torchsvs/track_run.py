@@ -229,6 +229,7 @@ class TrackRun:
                 else {}
             ),
             "seconds": round(self.seconds, 3),
+            "phases": {k: round(v, 3) for k, v in self.phases.items()},
             "warnings": self.warnings,
         }
         if found is not None:

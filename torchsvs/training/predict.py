@@ -396,7 +396,6 @@ def predict_file(
     run.estimate_seconds = gather.estimate_seconds
     run.estimate_cpu_seconds = gather.estimate_cpu_seconds
     run.seconds = time.perf_counter() - start
-    write_summary(run, summary_path(target))
     run.phases = {
         "start-up": data.setup_time - start,  # the trainer, the processes, the process group
         "reading": data.read_seconds,
@@ -405,4 +404,5 @@ def predict_file(
         "gathering": gather.gather_seconds,
         "writing": time.perf_counter() - tick,
     }
+    write_summary(run, summary_path(target))
     return run
