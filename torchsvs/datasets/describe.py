@@ -63,16 +63,18 @@ def open_blocks(
     block_rows: int,
     name: str = "path",
     thorough: bool = False,
+    dictionary_ids: bool = False,
 ) -> tuple[InputDescription, Iterator[Any]]:
     """The file's description (:func:`describe_input`) and all its blocks (the first read
-    once). Unless ``thorough``, the checks that group the first block's rows into tracks run
-    only where ``columns`` leaves the frame or the time unit open (``torchsvs track`` settles
-    them first, with ``thorough``)."""
+    once; ``dictionary_ids`` as for :func:`~torchsvs.datasets.rows.read_blocks`). Unless
+    ``thorough``, the checks that group the first block's rows into tracks run only where
+    ``columns`` leaves the frame or the time unit open (``torchsvs track`` settles them first,
+    with ``thorough``)."""
     check_input(path, name)
     if Path(path).stat().st_size == 0:
         raise ValueError(f"{name}: {str(path)!r} is empty (no header, no rows)")
     cols = (columns or Columns()).resolve(file_columns(path))
-    blocks = read_blocks(path, cols, block_rows)
+    blocks = read_blocks(path, cols, block_rows, dictionary_ids)
     first = next(blocks, None)
     if first is None or len(first) == 0:
         raise ValueError(f"{name}: {str(path)!r} has a header but no rows")

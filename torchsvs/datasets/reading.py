@@ -17,8 +17,21 @@ from torch import Tensor
 
 from torchsvs.datasets.describe import open_blocks
 from torchsvs.datasets.priors import two_point_prior
-from torchsvs.datasets.rows import Columns, InputWarning, RowReport, parse_block, slice_rows
-from torchsvs.datasets.tracks import RecordedTracks, TrackSteps, check_contiguous, group_rows
+from torchsvs.datasets.rows import (
+    Columns,
+    InputWarning,
+    RowReport,
+    parquet_id_type,
+    parse_block,
+    slice_rows,
+)
+from torchsvs.datasets.tracks import (
+    RecordedTracks,
+    TrackSteps,
+    check_contiguous,
+    group_rows,
+    track_runs,
+)
 
 
 @dataclass
@@ -29,6 +42,9 @@ class TrackBlock:
     steps: TrackSteps
     columns: Columns
     path: Path | None = None  #: the file read (an output must not replace it)
+    #: the id column's type in the file where ``table`` holds it dictionary-encoded (it is
+    #: written back in this type), else None
+    id_type: Any = None
 
 
 def track_blocks(
@@ -52,13 +68,14 @@ def track_blocks(
     """
     import pyarrow as pa
 
-    described, blocks = open_blocks(path, columns, block_rows)
+    described, blocks = open_blocks(path, columns, block_rows, dictionary_ids=True)
     for text in described.warnings:
         warnings.warn(text, InputWarning, stacklevel=2)
     cols, source = described.columns, Path(path)
+    id_type = parquet_id_type(path, cols)
     if whole:
         table = pa.concat_tables(list(blocks))
-        yield TrackBlock(table, group_rows(parse_block(table, cols)), cols, source)
+        yield TrackBlock(table, group_rows(parse_block(table, cols)), cols, source, id_type)
         return
     done: set[str] = set()
     carry = None
@@ -79,15 +96,15 @@ def track_blocks(
             continue
         carry = table.slice(cut)
         head = slice_rows(parsed, 0, cut)
-        yield TrackBlock(table.slice(0, cut), _complete(head, done), cols, source)
+        yield TrackBlock(table.slice(0, cut), _complete(head, done), cols, source, id_type)
     if carry is not None and len(carry):
         parsed = parse_block(carry, cols)
-        yield TrackBlock(carry, _complete(parsed, done), cols, source)
+        yield TrackBlock(carry, _complete(parsed, done), cols, source, id_type)
 
 
 def _complete(rows: Any, done: set[str]) -> TrackSteps:
     check_contiguous(rows.track_code, rows.track_ids)
-    present = {rows.track_ids[c] for c in np.unique(rows.track_code[rows.track_code >= 0])}
+    present = {rows.track_ids[c] for c in track_runs(rows.track_code)[1]}
     again = present & done
     if again:
         raise ValueError(

@@ -23,6 +23,7 @@ with an optional altitude (metres), estimated in a local metric frame per track 
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections import Counter
@@ -335,12 +336,16 @@ def csv_delimiter(path: str | Path) -> str:
     return best if counts[best] > counts[default] else default
 
 
-def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -> Iterator[Any]:
+def read_blocks(
+    path: str | Path, columns: Columns, block_rows: int = 1 << 20, dictionary_ids: bool = False
+) -> Iterator[Any]:
     """The file's rows as ``pyarrow.Table`` blocks of about ``block_rows`` rows, in file order.
 
     Only the needed columns are read. CSV columns are read as text (so ids and times are written
     back exactly as they were, and a stray non-numeric value is counted, not fatal); Parquet
-    columns keep their stored types.
+    columns keep their stored types, but with ``dictionary_ids`` a text id column comes
+    dictionary-encoded (as Parquet stores it: :func:`track_codes` then reads each distinct id
+    once; :func:`parquet_id_type` is its type to write back).
     """
     import pyarrow as pa
     import pyarrow.csv as pcsv
@@ -348,7 +353,8 @@ def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -
 
     names = [columns.track_id, columns.time, *(columns.position or ()), *columns.extra]
     if file_format(path) == "parquet":
-        parquet = pq.ParquetFile(path)
+        read = [columns.track_id] if dictionary_ids and parquet_id_type(path, columns) else None
+        parquet = pq.ParquetFile(path, read_dictionary=read)
         for batch in parquet.iter_batches(batch_size=block_rows, columns=names):
             yield pa.Table.from_batches([batch])
         return
@@ -368,6 +374,18 @@ def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -
                     yield pa.Table.from_batches([batch.slice(start, block_rows)])
     except pa.ArrowInvalid as err:  # a row of more fields than the header, a bad quote, ...
         raise ValueError(f"path: {str(path)!r}: {err}") from err
+
+
+def parquet_id_type(path: str | Path, columns: Columns) -> Any:
+    """The type of a Parquet file's id column where it is text (read dictionary-encoded with
+    ``read_blocks(..., dictionary_ids=True)``), else ``None``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    if file_format(path) != "parquet":
+        return None
+    kind = pq.read_schema(path).field(columns.track_id).type
+    return kind if pa.types.is_string(kind) or pa.types.is_large_string(kind) else None
 
 
 @dataclass
@@ -391,6 +409,15 @@ def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
     import pyarrow as pa
     import pyarrow.compute as pc
 
+    if column.null_count == 0 and (
+        pa.types.is_floating(column.type) or pa.types.is_integer(column.type)
+    ):
+        # Numbers without empty values: nothing to mark as missing but what is not finite.
+        values = np.asarray(column.to_numpy(), dtype=np.float64)
+        finite = np.isfinite(values)
+        if finite.all():
+            return values, np.zeros(len(values), dtype=bool)
+        return np.where(finite, values, np.nan), ~finite
     if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
         try:
             numbers = pc.cast(column, pa.float64())
@@ -423,7 +450,8 @@ def to_seconds(column: Any, unit: float) -> np.ndarray:
         ns = pc.cast(pc.cast(column, pa.timestamp("ns")), pa.int64())
         return np.asarray(ns.to_numpy(zero_copy_only=False), dtype=np.float64) * 1e-9
     values, bad = to_float(column)
-    values = values * unit
+    if unit != 1.0:
+        values = values * unit
     if bad.any():  # texts that are not numbers may be dates
         import pandas as pd
 
@@ -466,27 +494,58 @@ def detect_time_unit(column: Any) -> tuple[float, str]:
     return 1.0, "numbers, read as seconds (--time-unit ms, us, ns for other units)"
 
 
+def track_codes(ids: Any) -> tuple[np.ndarray, list[str]]:
+    """A track id column as codes (``[R]`` int64 numbering the ids in order of first
+    appearance, -1 where the id is empty or blank) and the id text of each code.
+
+    Each distinct id's text is looked at once (dictionary-encoded, as a Parquet file's text
+    columns may be read): the rows cost only their dictionary indices."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if isinstance(ids, pa.Array):
+        ids = pa.chunked_array([ids])
+    if not pa.types.is_dictionary(ids.type):
+        if not (pa.types.is_string(ids.type) or pa.types.is_large_string(ids.type)):
+            ids = pc.cast(ids, pa.string())
+        ids = pc.dictionary_encode(ids)
+    known: dict[str, int] = {}
+    parts = []
+    for chunk in ids.chunks:
+        size = len(chunk.dictionary)
+        index = pc.fill_null(chunk.indices, size).to_numpy(zero_copy_only=False)
+        # The entries in use, in order of first appearance (found among the runs of equal
+        # indices: a sorted file has one per track).
+        first = np.flatnonzero(index[1:] != index[:-1]) + 1
+        runs = index[np.concatenate([[0], first])] if len(index) else index
+        used, at = np.unique(runs, return_index=True)
+        used = used[np.argsort(at, kind="stable")]
+        used = used[used < size]
+        entries = chunk.dictionary.take(pa.array(used, type=pa.int64()))
+        if not (pa.types.is_string(entries.type) or pa.types.is_large_string(entries.type)):
+            entries = pc.cast(entries, pa.string())
+        blank = pc.fill_null(pc.equal(pc.utf8_trim_whitespace(entries), ""), True)
+        blank = blank.to_numpy(zero_copy_only=False)
+        lookup = np.full(size + 1, -1, dtype=np.int64)
+        texts = entries.filter(pa.array(~blank)).to_pylist()
+        lookup[used[~blank]] = [known.setdefault(str(text), len(known)) for text in texts]
+        parts.append(lookup[index])
+    codes = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+    return codes, list(known)
+
+
 def parse_block(table: Any, columns: Columns) -> ParsedRows:
     """Parses a block read by :func:`read_blocks` (columns already resolved; a time unit still
     ``"auto"`` is detected on this block). WGS 84 positions are projected to each track's local
     frame (:func:`project_rows`)."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    ids = table.column(columns.track_id)
-    if not (pa.types.is_string(ids.type) or pa.types.is_large_string(ids.type)):
-        ids = pc.cast(ids, pa.string())
-    ids = pc.if_else(pc.equal(pc.utf8_trim_whitespace(ids), ""), pa.scalar(None, pa.string()), ids)
-    encoded = pc.dictionary_encode(ids).combine_chunks()
-    codes = pc.fill_null(encoded.indices, -1).to_numpy(zero_copy_only=False).astype(np.int64)
-    track_ids = [str(v) for v in encoded.dictionary.to_pylist()]
+    codes, track_ids = track_codes(table.column(columns.track_id))
     column = table.column(columns.time)
     unit = detect_time_unit(column)[0] if columns.time_unit == "auto" else columns.seconds_per_unit
     time = to_seconds(column, unit)
     assert columns.position is not None
     parts = [to_float(table.column(name)) for name in columns.position]
     position = np.stack([p[0] for p in parts], axis=1)
-    non_numeric = np.any(np.stack([p[1] for p in parts], axis=1), axis=1)
+    non_numeric = functools.reduce(np.logical_or, [p[1] for p in parts])
     extra = {name: to_float(table.column(name))[0] for name in columns.extra}
     rows = ParsedRows(codes, track_ids, time, position, extra, non_numeric)
     return project_rows(rows) if columns.geodetic else rows

@@ -124,8 +124,9 @@ def estimate_table(
             np.where(placed, values[index], np.nan), type=pa.float64(), from_pandas=True
         )
 
+    ids = block.table.column(cols.track_id)
     out = {
-        cols.track_id: block.table.column(cols.track_id),
+        cols.track_id: ids if block.id_type is None else ids.cast(block.id_type),
         cols.time: block.table.column(cols.time),
     }
     # metric: x, vx, y, vy, ...; WGS 84: the positions, then the velocities
