@@ -337,7 +337,11 @@ def csv_delimiter(path: str | Path) -> str:
 
 
 def read_blocks(
-    path: str | Path, columns: Columns, block_rows: int = 1 << 20, dictionary_ids: bool = False
+    path: str | Path,
+    columns: Columns,
+    block_rows: int = 1 << 20,
+    dictionary_ids: bool = False,
+    partition: dict[str, str] | None = None,
 ) -> Iterator[Any]:
     """The file's rows as ``pyarrow.Table`` blocks of about ``block_rows`` rows, in file order.
 
@@ -345,7 +349,9 @@ def read_blocks(
     back exactly as they were, and a stray non-numeric value is counted, not fatal); Parquet
     columns keep their stored types, but with ``dictionary_ids`` a text id column comes
     dictionary-encoded (as Parquet stores it: :func:`track_codes` then reads each distinct id
-    once; :func:`parquet_id_type` is its type to write back).
+    once; :func:`parquet_id_type` is its type to write back). A needed column the Parquet file
+    lacks is taken from ``partition`` (a dataset's hive partition values: text, one value for
+    the whole file).
     """
     import pyarrow as pa
     import pyarrow.csv as pcsv
@@ -355,8 +361,16 @@ def read_blocks(
     if file_format(path) == "parquet":
         read = [columns.track_id] if dictionary_ids and parquet_id_type(path, columns) else None
         parquet = pq.ParquetFile(path, read_dictionary=read)
-        for batch in parquet.iter_batches(batch_size=block_rows, columns=names):
-            yield pa.Table.from_batches([batch])
+        stored = set(parquet.schema_arrow.names)
+        constant = {k: v for k, v in (partition or {}).items() if k in names and k not in stored}
+        for batch in parquet.iter_batches(
+            batch_size=block_rows, columns=[n for n in names if n not in constant]
+        ):
+            table = pa.Table.from_batches([batch])
+            for key, value in constant.items():
+                zeros = pa.array(np.zeros(len(table), dtype=np.int32))
+                table = table.append_column(key, pa.array([value]).take(zeros))
+            yield table
         return
     # Average row of a track file is 20-60 bytes; the reader's block is in bytes.
     read = pcsv.ReadOptions(block_size=max(1 << 16, min(block_rows * 48, 1 << 30)))
@@ -384,7 +398,10 @@ def parquet_id_type(path: str | Path, columns: Columns) -> Any:
 
     if file_format(path) != "parquet":
         return None
-    kind = pq.read_schema(path).field(columns.track_id).type
+    schema = pq.read_schema(path)
+    if columns.track_id not in schema.names:  # a dataset's partition value
+        return None
+    kind = schema.field(columns.track_id).type
     return kind if pa.types.is_string(kind) or pa.types.is_large_string(kind) else None
 
 

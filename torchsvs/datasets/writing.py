@@ -6,6 +6,7 @@ temporary name and renamed over it only once complete."""
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -167,49 +168,87 @@ def nan_as_null(values: np.ndarray) -> Any:
 
 
 class EstimateWriter:
-    """Appends output tables to a CSV (``.csv``) or Parquet (``.parquet``) file.
+    """Appends output tables to a CSV (``.csv``) or Parquet (``.parquet``) file, or, where
+    ``source`` is a directory (a Parquet dataset:
+    :func:`~torchsvs.datasets.paths.dataset_files`), to one Parquet file per input file in the
+    directory ``path``, under the input file's name and relative path (``part=3/a.parquet``
+    gives ``path/part=3/a.parquet``; an input file without rows gives one without rows).
 
-    The rows go to a temporary file beside ``path`` (``.<name>.<random>.part``), renamed over
-    ``path`` when the writer is closed without an error: a run that fails midway leaves any
-    earlier file at ``path`` as it was, and no half-written one."""
+    The rows go to a temporary file (a dataset's to a temporary directory) beside ``path``
+    (``.<name>.<random>.part``), renamed over ``path`` when the writer is closed without an
+    error: a run that fails midway leaves any earlier file or directory at ``path`` as it
+    was, and no half-written one. A directory at ``path`` is replaced as a whole."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, source: str | Path | None = None) -> None:
         self.path = Path(path)
-        self.format = file_format(path)
+        self.source = Path(source) if source is not None and Path(source).is_dir() else None
+        self.format = "parquet" if self.source is not None else file_format(path)
         self._writer: Any = None
-        self._temporary: Path | None = None
+        self._schema: Any = None
+        self._temporary: Path | None = None  #: the file (a dataset: the directory) written
+        self._current: Path | None = None  #: a dataset's input file being written
+        self._written: set[Path] = set()  #: a dataset's input files written
 
-    def write(self, table: Any) -> None:
-        import pyarrow.csv as pcsv
-        import pyarrow.parquet as pq
-
-        if self._writer is None:
+    def write(self, table: Any, read_from: str | Path | None = None) -> None:
+        """Appends ``table``; a dataset's rows go to the output file of their input file
+        ``read_from`` (:attr:`TrackBlock.path <torchsvs.datasets.reading.TrackBlock.path>`;
+        files one after the other)."""
+        if self._schema is None:
             self._schema = table.schema
-            handle, name = tempfile.mkstemp(
-                prefix=f".{self.path.name}.", suffix=".part", dir=self.path.parent
-            )
-            os.close(handle)
-            self._temporary = Path(name)
-            _set_mode(self._temporary, self.path)
-            if self.format == "parquet":
-                self._writer = pq.ParquetWriter(
-                    self._temporary, table.schema, use_dictionary=_dictionary_columns(table)
+        elif not table.schema.equals(self._schema):
+            table = table.cast(self._schema)
+        if self.source is None:
+            if self._writer is None:
+                self._temporary = _temporary_file(self.path)
+                self._writer = _open_file(self._temporary, self.format, self._schema)
+        else:
+            if read_from is None:
+                raise ValueError(
+                    "read_from: expected the input file of the rows (a dataset's output has "
+                    "one file per input file)"
                 )
-            else:
-                options = pcsv.WriteOptions(quoting_style="needed")
-                self._writer = pcsv.CSVWriter(self._temporary, table.schema, write_options=options)
-        self._writer.write_table(
-            table if table.schema.equals(self._schema) else table.cast(self._schema)
-        )
+            if self._temporary is None:
+                self._temporary = _temporary_directory(self.path)
+            if Path(read_from) != self._current:
+                self._next_file(Path(read_from))
+        self._writer.write_table(table)
 
-    def close(self) -> None:
-        """Finishes the file and puts it in place."""
+    def _next_file(self, read_from: Path) -> None:
+        """Finishes a dataset's output file and opens that of ``read_from``."""
+        assert self._temporary is not None and self.source is not None
         if self._writer is not None:
             self._writer.close()
             self._writer = None
-            assert self._temporary is not None
+        if read_from in self._written:
+            raise ValueError(
+                f"read_from: {str(read_from)!r} was written before; a dataset's files are "
+                "written one after the other"
+            )
+        target = self._temporary / read_from.relative_to(self.source)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = _open_file(target, "parquet", self._schema)
+        self._current = read_from
+        self._written.add(read_from)
+
+    def close(self) -> None:
+        """Finishes the file (a dataset's files) and puts it in place."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        if self._temporary is None:
+            return
+        if self.source is None:
             os.replace(self._temporary, self.path)
-            self._temporary = None
+        else:
+            from torchsvs.datasets.paths import dataset_files
+
+            for file, _ in dataset_files(self.source):  # input files without rows
+                if file not in self._written:
+                    self._next_file(file)
+                    self._writer.close()
+                    self._writer = None
+            _replace_directory(self._temporary, self.path)
+        self._temporary = None
 
     def discard(self) -> None:
         """Drops what was written; ``path`` stays as it was."""
@@ -219,7 +258,10 @@ class EstimateWriter:
             finally:
                 self._writer = None
         if self._temporary is not None:
-            self._temporary.unlink(missing_ok=True)
+            if self._temporary.is_dir():
+                shutil.rmtree(self._temporary, ignore_errors=True)
+            else:
+                self._temporary.unlink(missing_ok=True)
             self._temporary = None
 
     def __enter__(self) -> EstimateWriter:
@@ -232,7 +274,47 @@ class EstimateWriter:
             self.discard()
 
 
-def _dictionary_columns(table: Any) -> list[str]:
+def _open_file(path: Path, kind: str, schema: Any) -> Any:
+    """A ``pyarrow`` writer of a CSV or Parquet file."""
+    import pyarrow.csv as pcsv
+    import pyarrow.parquet as pq
+
+    if kind == "parquet":
+        return pq.ParquetWriter(path, schema, use_dictionary=_dictionary_columns(schema))
+    options = pcsv.WriteOptions(quoting_style="needed")
+    return pcsv.CSVWriter(path, schema, write_options=options)
+
+
+def _temporary_file(target: Path) -> Path:
+    """A new empty file beside ``target``, with the mode ``target`` has or would get."""
+    handle, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    os.close(handle)
+    _set_mode(Path(name), target)
+    return Path(name)
+
+
+def _temporary_directory(target: Path) -> Path:
+    """A new empty directory beside ``target``, with the mode a new directory would get."""
+    folder = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(folder, 0o777 & ~umask)
+    return folder
+
+
+def _replace_directory(finished: Path, target: Path) -> None:
+    """Puts the directory ``finished`` at ``target``; a directory there before is moved
+    aside first and removed only once the new one is in place."""
+    if not target.exists():
+        os.replace(finished, target)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent))
+    os.replace(target, old / target.name)
+    os.replace(finished, target)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _dictionary_columns(schema: Any) -> list[str]:
     """The columns a Parquet output stores dictionary-encoded: the id and the time as read
     (:func:`estimate_table`'s first two columns, few distinct values) and any column not of
     floats. Estimates are distinct floats: a dictionary would be built and dropped at every row
@@ -241,7 +323,7 @@ def _dictionary_columns(table: Any) -> list[str]:
 
     return [
         field.name
-        for j, field in enumerate(table.schema)
+        for j, field in enumerate(schema)
         if j < 2 or not pa.types.is_floating(field.type)
     ]
 
