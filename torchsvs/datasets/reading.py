@@ -139,9 +139,10 @@ def _file_blocks(
 
     id_type = parquet_id_type(file, cols)
     if whole:
-        table = pa.concat_tables(list(blocks))
-        if len(table) == 0:
+        tables = list(blocks)
+        if not tables:  # a dataset's file without rows
             return
+        table = pa.concat_tables(tables)
         parsed = parse_block(table, cols)
         if dataset:
             _record(parsed, done, file)
