@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from torchsvs.datasets.paths import check_output
+from torchsvs.datasets.paths import check_output, dataset_files
 from torchsvs.datasets.reading import TrackBlock
 from torchsvs.datasets.rows import Columns, file_format
 from torchsvs.datasets.tracks import RecordedTracks, TrackSteps
@@ -213,12 +213,16 @@ class EstimateWriter:
                 self._next_file(Path(read_from))
         self._writer.write_table(table)
 
-    def _next_file(self, read_from: Path) -> None:
-        """Finishes a dataset's output file and opens that of ``read_from``."""
-        assert self._temporary is not None and self.source is not None
+    def _close_file(self) -> None:
+        """Finishes the file being written (a dataset's next rows open the next one)."""
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+
+    def _next_file(self, read_from: Path) -> None:
+        """Finishes a dataset's output file and opens that of ``read_from``."""
+        assert self._temporary is not None and self.source is not None
+        self._close_file()
         if read_from in self._written:
             raise ValueError(
                 f"read_from: {str(read_from)!r} was written before; a dataset's files are "
@@ -232,21 +236,16 @@ class EstimateWriter:
 
     def close(self) -> None:
         """Finishes the file (a dataset's files) and puts it in place."""
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
+        self._close_file()
         if self._temporary is None:
             return
         if self.source is None:
             os.replace(self._temporary, self.path)
         else:
-            from torchsvs.datasets.paths import dataset_files
-
             for file, _ in dataset_files(self.source):  # input files without rows
                 if file not in self._written:
                     self._next_file(file)
-                    self._writer.close()
-                    self._writer = None
+                    self._close_file()
             _replace_directory(self._temporary, self.path)
         self._temporary = None
 
