@@ -17,8 +17,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from torchsvs.cli import main
+from torchsvs.datasets.ids import track_codes
 from torchsvs.datasets.reading import track_blocks
-from torchsvs.datasets.rows import Columns, ParsedRows, track_codes
+from torchsvs.datasets.rows import Columns, ParsedRows
 from torchsvs.datasets.tracks import group_rows
 from torchsvs.datasets.writing import nan_as_null
 
@@ -122,6 +123,23 @@ def test_nan_as_null_is_pyarrows_from_pandas(dtype):
             ours.validate(full=True)
             assert ours.type == theirs.type and ours.null_count == theirs.null_count
             assert ours.equals(theirs)
+
+
+def test_whole_or_streamed_is_decided_by_rows(tmp_path, monkeypatch):
+    """A Parquet file by the rows its metadata counts (not its bytes: Parquet packs 10 M rows
+    in 120 MB), a CSV file by its size, a dataset by its largest file."""
+    from torchsvs.datasets import reading
+
+    monkeypatch.setattr(reading, "WHOLE_ROWS", 60)
+    pq.write_table(_table(2), tmp_path / "two.parquet")  # 60 rows
+    pq.write_table(_table(3), tmp_path / "three.parquet")
+    assert reading.reads_whole(tmp_path / "two.parquet")
+    assert not reading.reads_whole(tmp_path / "three.parquet")
+    assert not reading.reads_whole(tmp_path)
+    (tmp_path / "three.parquet").unlink()
+    assert reading.reads_whole(tmp_path)
+    (tmp_path / "a.csv").write_text("x" * 40 * 61)
+    assert not reading.reads_whole(tmp_path / "a.csv")
 
 
 # --- Parquet datasets: a directory in, a directory out ---
