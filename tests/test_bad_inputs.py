@@ -604,9 +604,16 @@ def test_header_only_parquet_and_directory_inputs(tmp_path, capsys):
         "-o",
         tmp_path / "o.csv",
     )
+    _refused(  # a directory is a dataset: its first file with rows is described
+        capsys,
+        r"input: .*a\.parquet' has a header but no rows",
+        tmp_path,
+        "-o",
+        tmp_path.parent / f"{tmp_path.name}_out",
+    )
     _refused(
         capsys,
-        r"input: .* is a directory; expected a \.csv or \.parquet file",
+        r"output: .* and the input directory .* lie one inside the other",
         tmp_path,
         "-o",
         tmp_path / "o.csv",
@@ -695,18 +702,20 @@ def _option_help(name: str) -> str:
 
 def test_readme_and_help_say_who_reads_the_file_and_in_what_order():
     """``--processes``: rank 0 alone reads the file (torchsvs.training.predict reads it on rank
-    0 and broadcasts the steps); streaming (files of 256 MiB or more) needs contiguous tracks,
+    0 and broadcasts the steps); streaming (files of more than 2^22 rows) needs contiguous tracks,
     and the help of both reading modes and the track-file guide say so."""
     import torchsvs.training.predict as predict
-    from torchsvs.datasets.tables import WHOLE_FILE
+    from torchsvs.datasets.reading import WHOLE_ROWS
+    from torchsvs.tracking import track_file
 
     readme = " ".join(TRACK_GUIDE.read_text(encoding="utf-8").split())
     assert "rank 0 alone reads the whole file" in _option_help("--processes")
     assert "rank 0 alone reads the whole file" in readme
     assert "Only rank 0 reads the file" in predict.TrackFileDataModule.__doc__
-    assert WHOLE_FILE == 256 << 20  # the size the help and the guide name
+    assert "reads_whole(source)" in Path(track_file.__code__.co_filename).read_text()
+    assert WHOLE_ROWS == 1 << 22
     for text in (_option_help("--stream"), readme):
-        assert "256 MiB" in text and "contiguous" in text and "--in-memory" in text
+        assert "2^22 rows" in text and "contiguous" in text and "--in-memory" in text
     # "any row order" only where the file is read whole
     for claim in re.finditer("any row order", readme):
         before = readme[max(0, claim.start() - 200) : claim.start()]
@@ -750,7 +759,7 @@ def test_prior_of_another_dtype_than_z_is_refused():
 
 
 def test_duplicated_ids_in_separate_places(tmp_path, capsys):
-    """Read whole (the default under 256 MiB), a track's rows may be anywhere in the file;
+    """Read whole (the default up to 2^22 rows), a track's rows may be anywhere in the file;
     streamed, a track found again after other tracks stops the run naming it and the flag."""
     ids, t, _, z = _tracks(tracks=2, steps=20)
     rows = [(i, ti, x, y) for i, ti, (x, y) in zip(ids, t, z, strict=True)]

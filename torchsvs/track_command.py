@@ -59,12 +59,13 @@ def checked_columns(args: argparse.Namespace) -> Any:
 
     check_input(args.input, "input")
     check_output(args.output, "output", inputs=(args.input, args.checkpoint), force=args.force)
-    try:
-        file_format(args.output)
-    except ValueError:
-        raise ValueError(
-            f"output: expected a .csv or .parquet file name, got {args.output!r}"
-        ) from None
+    if not Path(args.input).is_dir():  # a directory's output is a directory of Parquet files
+        try:
+            file_format(args.output)
+        except ValueError:
+            raise ValueError(
+                f"output: expected a .csv or .parquet file name, got {args.output!r}"
+            ) from None
     if args.save is not None:
         if Path(args.save).resolve() == Path(args.output).resolve():
             raise ValueError(f"save: {args.save!r} is the output file; name another file")

@@ -87,8 +87,9 @@ def track_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="torchsvs track",
         description=(
-            "Estimate every track of a CSV or Parquet file (rows: track id, time, position) and "
-            "write one row per input row with the estimated position and velocity."
+            "Estimate every track of a CSV or Parquet file, or of a directory of Parquet files "
+            "(rows: track id, time, position), and write one row per input row with the "
+            "estimated position and velocity."
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="estimators:\n" + "\n".join(f"  {k:<8} {v}" for k, v in ESTIMATORS.items()),
@@ -96,14 +97,19 @@ def track_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "input",
         help="a .csv (.csv.gz, .tsv, .txt; separator , ; tab or | read from the header) or "
-        ".parquet file of track rows",
+        ".parquet file of track rows, or a directory of .parquet files (a dataset, e.g. written "
+        "by Spark or pyarrow.dataset, hive partitions such as part=3/ included; names starting "
+        "with . or _ skipped): read file by file, a track's rows all in one file",
     )
     parser.add_argument(
         "-o",
         "--output",
         required=True,
         help="the .csv or .parquet to write (never the input; an existing file only with "
-        "--force); written under a temporary name beside it and renamed when complete",
+        "--force); written under a temporary name beside it and renamed when complete. For a "
+        "directory input, the directory to write: one .parquet file per input file under the "
+        "same relative name, written in a temporary directory beside it and renamed when "
+        "complete (an existing one is replaced as a whole, only with --force)",
     )
     parser.add_argument(
         "--force", action="store_true", help="replace an existing output (or --save) file"
@@ -247,15 +253,16 @@ def track_parser() -> argparse.ArgumentParser:
     reading.add_argument(
         "--in-memory",
         action="store_true",
-        help="read the whole file at once: any row order (the default for files under 256 MiB)",
+        help="read the whole file (each file of a directory) at once: any row order (the "
+        "default for files of up to 2^22 rows, a CSV's counted at 40 bytes a row)",
     )
     reading.add_argument(
         "--stream",
         action="store_true",
         help="stream the file track by track in bounded memory (the default for files of "
-        "256 MiB or more): each track's rows must be contiguous (any order within a track); a "
-        "track found again after other tracks stops the run with its id: sort the file by "
-        "track id or pass --in-memory",
+        "more than 2^22 rows): each track's rows must be contiguous (any order within a "
+        "track); a track found again after other tracks, or in two files of a directory, "
+        "stops the run with its id: sort the file by track id or pass --in-memory",
     )
     parser.add_argument(
         "--block-rows", type=_at_least_one, default=1 << 18, help="rows per streamed block"

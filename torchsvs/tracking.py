@@ -21,7 +21,7 @@ from torch import nn
 
 from torchsvs.datasets import Columns, EstimateWriter, track_blocks
 from torchsvs.datasets.paths import check_output
-from torchsvs.datasets.tables import WHOLE_FILE
+from torchsvs.datasets.reading import reads_whole
 from torchsvs.recipes import Settings
 from torchsvs.track_plan import TrackPlan, plan_block
 from torchsvs.track_run import TrackRun, summary_path, write_summary
@@ -54,7 +54,8 @@ def track_file(
     """Estimates every track of a file and writes one output row per input row.
 
     The file is read in blocks of complete tracks (``whole=None``: the whole file at once when
-    it is under 256 MB, else streamed; streaming needs each track's rows contiguous). Settings
+    it is small, :func:`~torchsvs.datasets.reading.reads_whole`, else streamed; streaming needs
+    each track's rows contiguous). Settings
     the user left open are read off the first block
     (:func:`~torchsvs.fitting.defaults.complete_settings`); with ``fit`` the estimator is tuned
     on the first block's tracks (up to ``fit_options["tracks"]``) without truth before anything
@@ -62,7 +63,9 @@ def track_file(
     length of at most ``max_cells`` padded steps, so memory stays bounded.
 
     Args:
-        source, target: input and output files (``.csv`` or ``.parquet`` each).
+        source, target: input and output files (``.csv`` or ``.parquet`` each), or a
+            directory of Parquet files and the output directory (one file per input file:
+            :class:`~torchsvs.datasets.EstimateWriter`).
         settings: the estimator and whatever of its settings are known.
         columns: the input's column names.
         fit: tune the estimator on the data first (:func:`~torchsvs.fitting.tuning.self_tune`).
@@ -71,7 +74,7 @@ def track_file(
             Lightning checkpoint of :class:`~torchsvs.training.EstimatorModule`).
         save: save the settings and the (fitted) parameters here.
         covariance: also write the covariance of every estimate.
-        whole: read the whole file at once (True), stream it (False) or decide by size (None).
+        whole: read the whole file at once (True), stream it (False) or decide by rows (None).
         block_rows: rows per block when streaming.
         max_cells: padded steps per estimator call.
         dtype: of the computation (positions are centred per track, so float32 keeps its
@@ -92,14 +95,14 @@ def track_file(
     say = log or (lambda _: None)
     check_output(target, "target", inputs=(source,), force=True)  # never over the input
     if whole is None:
-        whole = Path(source).stat().st_size < WHOLE_FILE
+        whole = reads_whole(source)
     phases = dict.fromkeys(("reading", "settings", "estimating", "writing"), 0.0)
     run: TrackRun | None = None
     plan: TrackPlan | None = None
     estimator: nn.Module | None = None
     bar: Any = None
     try:
-        with EstimateWriter(target) as writer:
+        with EstimateWriter(target, source) as writer:
             blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
             for block in timed(blocks, phases, "reading"):
                 if plan is None:
@@ -138,7 +141,7 @@ def track_file(
                     progress=bar,
                 )
                 tick = time.perf_counter()
-                writer.write(found.table(block, plan.precision))
+                writer.write(found.table(block, plan.precision), block.path)
                 phases["writing"] += time.perf_counter() - tick
     finally:  # the bar cleared before anything else is printed, an error too
         if bar is not None:

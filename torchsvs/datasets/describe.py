@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from torchsvs.datasets.paths import check_input
+from torchsvs.datasets.paths import check_input, dataset_files
 from torchsvs.datasets.rows import (
     Columns,
     csv_delimiter,
@@ -36,6 +36,7 @@ class InputDescription:
     #: position columns constant within every track of the first block (no noise to read off)
     constant: list[str] = field(default_factory=list)
     rows: int = 0  #: rows of the first block (what was looked at)
+    source: Path | None = None  #: the file described (a dataset's first file with rows)
 
 
 #: Typical interval (in the detected unit, read as seconds) above which the unit is questioned.
@@ -63,20 +64,34 @@ def open_blocks(
     block_rows: int,
     name: str = "path",
     thorough: bool = False,
+    dictionary_ids: bool = False,
 ) -> tuple[InputDescription, Iterator[Any]]:
     """The file's description (:func:`describe_input`) and all its blocks (the first read
-    once). Unless ``thorough``, the checks that group the first block's rows into tracks run
-    only where ``columns`` leaves the frame or the time unit open (``torchsvs track`` settles
-    them first, with ``thorough``)."""
+    once; ``dictionary_ids`` as for :func:`~torchsvs.datasets.rows.read_blocks`). Unless
+    ``thorough``, the checks that group the first block's rows into tracks run only where
+    ``columns`` leaves the frame or the time unit open (``torchsvs track`` settles them first,
+    with ``thorough``)."""
     check_input(path, name)
+    partition: dict[str, str] = {}
+    if Path(path).is_dir():  # a Parquet dataset: described on its first file with rows
+        import pyarrow.parquet as pq
+
+        files = dataset_files(path, name)
+        path, partition = next(
+            ((f, p) for f, p in files if pq.ParquetFile(f).metadata.num_rows > 0), files[0]
+        )
     if Path(path).stat().st_size == 0:
         raise ValueError(f"{name}: {str(path)!r} is empty (no header, no rows)")
-    cols = (columns or Columns()).resolve(file_columns(path))
-    blocks = read_blocks(path, cols, block_rows)
+    available = file_columns(path)
+    cols = (columns or Columns()).resolve(
+        [*available, *(k for k in partition if k not in available)]
+    )
+    blocks = read_blocks(path, cols, block_rows, dictionary_ids, partition)
     first = next(blocks, None)
     if first is None or len(first) == 0:
         raise ValueError(f"{name}: {str(path)!r} has a header but no rows")
     described = _describe(path, first, cols, columns or Columns(), name, thorough)
+    described.source = Path(path)
     return described, itertools.chain([first], blocks)
 
 

@@ -23,6 +23,7 @@ with an optional altitude (metres), estimated in a local metric frame per track 
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections import Counter
@@ -32,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from torchsvs.datasets.ids import track_codes
 
 #: Reasons a row is set aside (not placed at any step).
 SET_ASIDE = {
@@ -335,12 +338,22 @@ def csv_delimiter(path: str | Path) -> str:
     return best if counts[best] > counts[default] else default
 
 
-def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -> Iterator[Any]:
+def read_blocks(
+    path: str | Path,
+    columns: Columns,
+    block_rows: int = 1 << 20,
+    dictionary_ids: bool = False,
+    partition: dict[str, str] | None = None,
+) -> Iterator[Any]:
     """The file's rows as ``pyarrow.Table`` blocks of about ``block_rows`` rows, in file order.
 
     Only the needed columns are read. CSV columns are read as text (so ids and times are written
     back exactly as they were, and a stray non-numeric value is counted, not fatal); Parquet
-    columns keep their stored types.
+    columns keep their stored types, but with ``dictionary_ids`` a text id column comes
+    dictionary-encoded (as Parquet stores it: :func:`~torchsvs.datasets.ids.track_codes` then
+    reads each distinct id once; :func:`parquet_id_type` is its type to write back). A needed
+    column the Parquet file lacks is taken from ``partition`` (a dataset's hive partition
+    values: text, one value for the whole file).
     """
     import pyarrow as pa
     import pyarrow.csv as pcsv
@@ -348,9 +361,18 @@ def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -
 
     names = [columns.track_id, columns.time, *(columns.position or ()), *columns.extra]
     if file_format(path) == "parquet":
-        parquet = pq.ParquetFile(path)
-        for batch in parquet.iter_batches(batch_size=block_rows, columns=names):
-            yield pa.Table.from_batches([batch])
+        read = [columns.track_id] if dictionary_ids and parquet_id_type(path, columns) else None
+        parquet = pq.ParquetFile(path, read_dictionary=read)
+        stored = set(parquet.schema_arrow.names)
+        constant = {k: v for k, v in (partition or {}).items() if k in names and k not in stored}
+        for batch in parquet.iter_batches(
+            batch_size=block_rows, columns=[n for n in names if n not in constant]
+        ):
+            table = pa.Table.from_batches([batch])
+            for key, value in constant.items():
+                zeros = pa.array(np.zeros(len(table), dtype=np.int32))
+                table = table.append_column(key, pa.array([value]).take(zeros))
+            yield table
         return
     # Average row of a track file is 20-60 bytes; the reader's block is in bytes.
     read = pcsv.ReadOptions(block_size=max(1 << 16, min(block_rows * 48, 1 << 30)))
@@ -368,6 +390,21 @@ def read_blocks(path: str | Path, columns: Columns, block_rows: int = 1 << 20) -
                     yield pa.Table.from_batches([batch.slice(start, block_rows)])
     except pa.ArrowInvalid as err:  # a row of more fields than the header, a bad quote, ...
         raise ValueError(f"path: {str(path)!r}: {err}") from err
+
+
+def parquet_id_type(path: str | Path, columns: Columns) -> Any:
+    """The type of a Parquet file's id column where it is text (read dictionary-encoded with
+    ``read_blocks(..., dictionary_ids=True)``), else ``None``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    if file_format(path) != "parquet":
+        return None
+    schema = pq.read_schema(path)
+    if columns.track_id not in schema.names:  # a dataset's partition value
+        return None
+    kind = schema.field(columns.track_id).type
+    return kind if pa.types.is_string(kind) or pa.types.is_large_string(kind) else None
 
 
 @dataclass
@@ -391,6 +428,15 @@ def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
     import pyarrow as pa
     import pyarrow.compute as pc
 
+    if column.null_count == 0 and (
+        pa.types.is_floating(column.type) or pa.types.is_integer(column.type)
+    ):
+        # Numbers without empty values: nothing to mark as missing but what is not finite.
+        values = np.asarray(column.to_numpy(), dtype=np.float64)
+        finite = np.isfinite(values)
+        if finite.all():
+            return values, np.zeros(len(values), dtype=bool)
+        return np.where(finite, values, np.nan), ~finite
     if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
         try:
             numbers = pc.cast(column, pa.float64())
@@ -423,7 +469,8 @@ def to_seconds(column: Any, unit: float) -> np.ndarray:
         ns = pc.cast(pc.cast(column, pa.timestamp("ns")), pa.int64())
         return np.asarray(ns.to_numpy(zero_copy_only=False), dtype=np.float64) * 1e-9
     values, bad = to_float(column)
-    values = values * unit
+    if unit != 1.0:
+        values = values * unit
     if bad.any():  # texts that are not numbers may be dates
         import pandas as pd
 
@@ -470,23 +517,14 @@ def parse_block(table: Any, columns: Columns) -> ParsedRows:
     """Parses a block read by :func:`read_blocks` (columns already resolved; a time unit still
     ``"auto"`` is detected on this block). WGS 84 positions are projected to each track's local
     frame (:func:`project_rows`)."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    ids = table.column(columns.track_id)
-    if not (pa.types.is_string(ids.type) or pa.types.is_large_string(ids.type)):
-        ids = pc.cast(ids, pa.string())
-    ids = pc.if_else(pc.equal(pc.utf8_trim_whitespace(ids), ""), pa.scalar(None, pa.string()), ids)
-    encoded = pc.dictionary_encode(ids).combine_chunks()
-    codes = pc.fill_null(encoded.indices, -1).to_numpy(zero_copy_only=False).astype(np.int64)
-    track_ids = [str(v) for v in encoded.dictionary.to_pylist()]
+    codes, track_ids = track_codes(table.column(columns.track_id))
     column = table.column(columns.time)
     unit = detect_time_unit(column)[0] if columns.time_unit == "auto" else columns.seconds_per_unit
     time = to_seconds(column, unit)
     assert columns.position is not None
     parts = [to_float(table.column(name)) for name in columns.position]
     position = np.stack([p[0] for p in parts], axis=1)
-    non_numeric = np.any(np.stack([p[1] for p in parts], axis=1), axis=1)
+    non_numeric = functools.reduce(np.logical_or, [p[1] for p in parts])
     extra = {name: to_float(table.column(name))[0] for name in columns.extra}
     rows = ParsedRows(codes, track_ids, time, position, extra, non_numeric)
     return project_rows(rows) if columns.geodetic else rows

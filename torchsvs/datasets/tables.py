@@ -8,25 +8,21 @@ from pathlib import Path
 from typing import Any
 
 from torchsvs.datasets.describe import describe_table
-from torchsvs.datasets.reading import TrackBlock, track_blocks
+from torchsvs.datasets.reading import TrackBlock, reads_whole, track_blocks
 from torchsvs.datasets.rows import Columns, parse_block
 from torchsvs.datasets.tracks import group_rows
-
-#: Files under this size are read whole (any row order), larger ones streamed.
-WHOLE_FILE = 256 << 20
 
 
 def block_of(data: Any, columns: Columns | None = None, block_rows: int = 1 << 18) -> TrackBlock:
     """Track rows as a block: a table's (``pandas.DataFrame`` or ``pyarrow.Table``; columns
     still open are settled on it, :func:`~torchsvs.datasets.describe.describe_table`) or the
-    first block of a ``.csv``/``.parquet`` file (a path): the whole file under
-    :data:`WHOLE_FILE` bytes, as ``torchsvs track`` reads it, else its first ``block_rows``
-    rows' complete tracks."""
+    first block of a ``.csv``/``.parquet`` file or Parquet dataset (a path): all of it where
+    ``torchsvs track`` reads it whole (:func:`~torchsvs.datasets.reading.reads_whole`), else
+    its first ``block_rows`` rows' complete tracks."""
     import pyarrow as pa
 
     if isinstance(data, (str, Path)):
-        whole = Path(data).stat().st_size < WHOLE_FILE
-        return next(track_blocks(data, columns, block_rows=block_rows, whole=whole))
+        return next(track_blocks(data, columns, block_rows=block_rows, whole=reads_whole(data)))
     if is_pandas(data):
         data = pa.Table.from_pandas(data, preserve_index=False)
     elif not isinstance(data, pa.Table):

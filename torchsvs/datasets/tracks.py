@@ -9,6 +9,7 @@ smoothers' backward passes leave the real steps unchanged).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -115,67 +116,82 @@ def group_rows(rows: ParsedRows, contiguous: bool = False) -> TrackSteps:
     code, time = rows.track_code, rows.time
     has_id = code >= 0
     has_time = np.isfinite(time)
-    report.set_aside["no_track_id"] += int((~has_id).sum())
-    report.set_aside["no_time"] += int((has_id & ~has_time).sum())
-    report.notes["non_numeric_value"] += int(rows.non_numeric.sum())
+    report.set_aside["no_track_id"] += R - _count(has_id)
+    report.set_aside["no_time"] += _count(has_id & ~has_time)
+    report.notes["non_numeric_value"] += _count(rows.non_numeric)
     if rows.invalid is not None:
-        report.notes["invalid_coordinate"] += int(rows.invalid.sum())
+        report.notes["invalid_coordinate"] += _count(rows.invalid)
     if contiguous:
         check_contiguous(code, rows.track_ids)
 
-    observed = ~np.isnan(rows.position)
+    # Column by column: numpy's reductions along a short last axis are slow.
+    missing = [np.isnan(rows.position[:, j]) for j in range(m)]
+    some = ~functools.reduce(np.logical_and, missing, np.ones(R, dtype=bool))
     candidate = has_id & has_time
     # A track needs one observed position to start from.
     seen = np.zeros(len(rows.track_ids), dtype=bool)
-    seen[code[candidate & observed.any(axis=1)]] = True
+    seen[code[candidate & some]] = True
     no_position = candidate & ~seen[np.maximum(code, 0)]
-    report.set_aside["track_without_position"] += int(no_position.sum())
-    placed = np.flatnonzero(candidate & ~no_position)
+    report.set_aside["track_without_position"] += _count(no_position)
+    keep = candidate & ~no_position
+    everything = bool(keep.all())
+    placed = np.arange(R) if everything else np.flatnonzero(keep)
 
-    # Out of order: earlier than the track's previous row in the file.
-    by_track = placed[np.argsort(code[placed], kind="stable")]
-    same = code[by_track][1:] == code[by_track][:-1]
-    report.notes["out_of_order"] += int((same & (time[by_track][1:] < time[by_track][:-1])).sum())
-
-    order = placed[np.lexsort((time[placed], code[placed]))]
-    c, t = code[order], time[order]
+    # Tracks one after the other (codes number ids in order of first appearance), each in
+    # time order, as a sorted file has them: grouped without sorting.
+    c, t = (code, time) if everything else (code[placed], time[placed])
+    same = c[1:] == c[:-1]
+    in_order = not (same & (t[1:] < t[:-1])).any() and not (c[1:] < c[:-1]).any()
+    if in_order:
+        order = placed
+    else:
+        # Out of order: earlier than the track's previous row in the file.
+        by_track = placed[np.argsort(c, kind="stable")]
+        earlier = time[by_track][1:] < time[by_track][:-1]
+        report.notes["out_of_order"] += _count(
+            (code[by_track][1:] == code[by_track][:-1]) & earlier
+        )
+        order = placed[np.lexsort((t, c))]
+        c, t = code[order], time[order]
+        same = c[1:] == c[:-1]
     new_step = np.ones(len(order), dtype=bool)
-    new_step[1:] = (c[1:] != c[:-1]) | (t[1:] != t[:-1])
-    report.notes["duplicate_time"] += int((~new_step).sum())
-    step_of = np.cumsum(new_step) - 1
-    S = int(step_of[-1]) + 1 if len(order) else 0
-
-    obs = observed[order]
-    position = np.empty((S, m))
-    for j in range(m):
-        total = np.bincount(step_of, np.where(obs[:, j], rows.position[order, j], 0.0), S)
-        count = np.bincount(step_of, obs[:, j].astype(np.float64), S)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            position[:, j] = np.where(count > 0, total / count, np.nan)
-    extra = {}
-    for name, values in rows.extra.items():
-        v = values[order]
-        ok = np.isfinite(v)
-        total = np.bincount(step_of, np.where(ok, v, 0.0), S)
-        count = np.bincount(step_of, ok.astype(np.float64), S)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            extra[name] = np.where(count > 0, total / count, np.nan)
-
-    step_time = t[new_step]
-    step_code = c[new_step]
+    new_step[1:] = ~same | (t[1:] != t[:-1])
+    merged = len(order) - _count(new_step)
+    report.notes["duplicate_time"] += merged
+    if merged == 0:  # one row per step: each step's mean is its row's value
+        S = len(order)
+        step_of = np.arange(S)
+        # + 0.0: -0.0 becomes 0.0, as the sums below make it
+        position = (rows.position if in_order and everything else rows.position[order]) + 0.0
+        extra = {}
+        for name, values in rows.extra.items():
+            v = values[order]
+            extra[name] = np.where(np.isfinite(v), v + 0.0, np.nan)
+        step_time, step_code = t, c
+    else:
+        step_of = np.cumsum(new_step) - 1
+        S = int(step_of[-1]) + 1 if len(order) else 0
+        position = _step_means(step_of, rows.position[order], S)
+        extra = {
+            name: _step_means(step_of, values[order, None], S, finite=True)[:, 0]
+            for name, values in rows.extra.items()
+        }
+        step_time, step_code = t[new_step], c[new_step]
     new_track = np.ones(S, dtype=bool)
     new_track[1:] = step_code[1:] != step_code[:-1]
     start = np.flatnonzero(new_track)
     length = np.diff(np.append(start, S))
     kept_codes = step_code[start]
 
-    row_step = np.full(R, -1, dtype=np.int64)
-    row_step[order] = step_of
-    fully = observed.all(axis=1)
-    some = observed.any(axis=1)
-    report.measurement = int(some[placed].sum())
+    if everything and in_order:  # every row placed, in file order
+        row_step = step_of
+    else:
+        row_step = np.full(R, -1, dtype=np.int64)
+        row_step[order] = step_of
+    partial = some & functools.reduce(np.logical_or, missing, np.zeros(R, dtype=bool))
+    report.measurement = _count(some[placed])
     report.prediction = len(placed) - report.measurement
-    report.notes["partial_position"] += int((some & ~fully)[placed].sum())
+    report.notes["partial_position"] += _count(partial[placed])
     report.tracks = len(start)
     report.set_aside = +report.set_aside  # drop zero counts
     report.notes = +report.notes
@@ -193,22 +209,48 @@ def group_rows(rows: ParsedRows, contiguous: bool = False) -> TrackSteps:
     )
 
 
+def _count(mask: np.ndarray) -> int:
+    """How many entries of ``mask`` are true (numpy's fastest count, as a Python int)."""
+    return int(np.count_nonzero(mask))
+
+
+def _step_means(
+    step_of: np.ndarray, values: np.ndarray, S: int, finite: bool = False
+) -> np.ndarray:
+    """``[S, n]`` mean of each step's observed values of ``values [r, n]`` (not NaN; with
+    ``finite``, finite), NaN where none is."""
+    out = np.empty((S, values.shape[1]))
+    for j in range(values.shape[1]):
+        ok = np.isfinite(values[:, j]) if finite else ~np.isnan(values[:, j])
+        total = np.bincount(step_of, np.where(ok, values[:, j], 0.0), S)
+        count = np.bincount(step_of, ok.astype(np.float64), S)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[:, j] = np.where(count > 0, total / count, np.nan)
+    return out
+
+
+def track_runs(code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of rows of one track (rows without an id skipped): the row each run starts at
+    and its track code."""
+    rows = np.flatnonzero(code >= 0) if (code < 0).any() else np.arange(len(code))
+    c = code[rows]
+    first = np.flatnonzero(c[1:] != c[:-1]) + 1
+    first = np.concatenate([[0], first]) if len(c) else first
+    return rows[first], c[first]
+
+
 def check_contiguous(code: np.ndarray, track_ids: Sequence[str]) -> None:
     """Raises ``ValueError`` naming the first track whose rows are not contiguous."""
-    rows = np.flatnonzero(code >= 0)
-    c = code[rows]
-    boundary = np.flatnonzero(c[1:] != c[:-1]) + 1
-    run_codes = c[np.concatenate([[0], boundary])] if len(c) else c
+    starts, run_codes = track_runs(code)
     if len(run_codes) == len(np.unique(run_codes)):
         return
     _, first = np.unique(run_codes, return_index=True)
     repeated = np.setdiff1d(np.arange(len(run_codes)), first)[0]
-    track = run_codes[repeated]
-    where = rows[np.concatenate([[0], boundary])[repeated]]
     raise ValueError(
-        f"track {track_ids[track]!r}: its rows are not contiguous (it starts again at row "
-        f"{where} of the block after rows of other tracks); streaming reads a file track by "
-        "track, so sort it by track id, or read it whole (torchsvs track --in-memory)"
+        f"track {track_ids[run_codes[repeated]]!r}: its rows are not contiguous (it starts "
+        f"again at row {starts[repeated]} of the block after rows of other tracks); streaming "
+        "reads a file track by track, so sort it by track id, or read it whole (torchsvs track "
+        "--in-memory)"
     )
 
 

@@ -6,6 +6,7 @@ temporary name and renamed over it only once complete."""
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -14,7 +15,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from torchsvs.datasets.paths import check_output
+from torchsvs.datasets.paths import check_output, dataset_files
 from torchsvs.datasets.reading import TrackBlock
 from torchsvs.datasets.rows import Columns, file_format
 from torchsvs.datasets.tracks import RecordedTracks, TrackSteps
@@ -126,13 +127,18 @@ def estimate_table(
     placed = row_step >= 0
     index = np.where(placed, row_step, 0)
 
+    everywhere = bool(placed.all())
+
     def per_row(values: np.ndarray) -> Any:
         # NaN (not estimated) becomes an empty field
-        rows = np.where(placed, values[index], np.nan).astype(kind, copy=False)
-        return pa.array(rows, from_pandas=True)
+        picked = values[index]
+        if not everywhere:
+            picked[~placed] = np.nan
+        return nan_as_null(picked.astype(kind, copy=False))
 
+    ids = block.table.column(cols.track_id)
     out = {
-        cols.track_id: block.table.column(cols.track_id),
+        cols.track_id: ids if block.id_type is None else ids.cast(block.id_type),
         cols.time: block.table.column(cols.time),
     }
     # metric: x, vx, y, vy, ...; WGS 84: the positions, then the velocities
@@ -151,46 +157,107 @@ def estimate_table(
     return pa.table(out)
 
 
+def nan_as_null(values: np.ndarray) -> Any:
+    """A float array as a ``pyarrow`` array with NaN as empty (null) values: the numbers'
+    buffer as it is and a validity bitmap only where a value is NaN (as ``pyarrow.array(...,
+    from_pandas=True)`` gives, at a fraction of its cost)."""
+    import pyarrow as pa
+
+    values = np.ascontiguousarray(values)
+    kind = pa.from_numpy_dtype(values.dtype)
+    missing = np.isnan(values)
+    if not missing.any():
+        return pa.array(values, type=kind)
+    valid = np.packbits(~missing, bitorder="little")
+    return pa.Array.from_buffers(
+        kind,
+        len(values),
+        [pa.py_buffer(valid), pa.py_buffer(values)],
+        null_count=int(np.count_nonzero(missing)),
+    )
+
+
 class EstimateWriter:
-    """Appends output tables to a CSV (``.csv``) or Parquet (``.parquet``) file.
+    """Appends output tables to a CSV (``.csv``) or Parquet (``.parquet``) file, or, where
+    ``source`` is a directory (a Parquet dataset:
+    :func:`~torchsvs.datasets.paths.dataset_files`), to one Parquet file per input file in the
+    directory ``path``, under the input file's name and relative path (``part=3/a.parquet``
+    gives ``path/part=3/a.parquet``; an input file without rows gives one without rows).
 
-    The rows go to a temporary file beside ``path`` (``.<name>.<random>.part``), renamed over
-    ``path`` when the writer is closed without an error: a run that fails midway leaves any
-    earlier file at ``path`` as it was, and no half-written one."""
+    The rows go to a temporary file (a dataset's to a temporary directory) beside ``path``
+    (``.<name>.<random>.part``), renamed over ``path`` when the writer is closed without an
+    error: a run that fails midway leaves any earlier file or directory at ``path`` as it
+    was, and no half-written one. A directory at ``path`` is replaced as a whole."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, source: str | Path | None = None) -> None:
         self.path = Path(path)
-        self.format = file_format(path)
+        self.source = Path(source) if source is not None and Path(source).is_dir() else None
+        self.format = "parquet" if self.source is not None else file_format(path)
         self._writer: Any = None
-        self._temporary: Path | None = None
+        self._schema: Any = None
+        self._temporary: Path | None = None  #: the file (a dataset: the directory) written
+        self._current: Path | None = None  #: a dataset's input file being written
+        self._written: set[Path] = set()  #: a dataset's input files written
 
-    def write(self, table: Any) -> None:
-        import pyarrow.csv as pcsv
-        import pyarrow.parquet as pq
-
-        if self._writer is None:
+    def write(self, table: Any, read_from: str | Path | None = None) -> None:
+        """Appends ``table``; a dataset's rows go to the output file of their input file
+        ``read_from`` (:attr:`TrackBlock.path <torchsvs.datasets.reading.TrackBlock.path>`;
+        files one after the other)."""
+        if self._schema is None:
             self._schema = table.schema
-            handle, name = tempfile.mkstemp(
-                prefix=f".{self.path.name}.", suffix=".part", dir=self.path.parent
-            )
-            os.close(handle)
-            self._temporary = Path(name)
-            _set_mode(self._temporary, self.path)
-            if self.format == "parquet":
-                self._writer = pq.ParquetWriter(self._temporary, table.schema)
-            else:
-                options = pcsv.WriteOptions(quoting_style="needed")
-                self._writer = pcsv.CSVWriter(self._temporary, table.schema, write_options=options)
-        self._writer.write_table(table.cast(self._schema))
+        elif not table.schema.equals(self._schema):
+            table = table.cast(self._schema)
+        if self.source is None:
+            if self._writer is None:
+                self._temporary = _temporary_file(self.path)
+                self._writer = _open_file(self._temporary, self.format, self._schema)
+        else:
+            if read_from is None:
+                raise ValueError(
+                    "read_from: expected the input file of the rows (a dataset's output has "
+                    "one file per input file)"
+                )
+            if self._temporary is None:
+                self._temporary = _temporary_directory(self.path)
+            if Path(read_from) != self._current:
+                self._next_file(Path(read_from))
+        self._writer.write_table(table)
 
-    def close(self) -> None:
-        """Finishes the file and puts it in place."""
+    def _close_file(self) -> None:
+        """Finishes the file being written (a dataset's next rows open the next one)."""
         if self._writer is not None:
             self._writer.close()
             self._writer = None
-            assert self._temporary is not None
+
+    def _next_file(self, read_from: Path) -> None:
+        """Finishes a dataset's output file and opens that of ``read_from``."""
+        assert self._temporary is not None and self.source is not None
+        self._close_file()
+        if read_from in self._written:
+            raise ValueError(
+                f"read_from: {str(read_from)!r} was written before; a dataset's files are "
+                "written one after the other"
+            )
+        target = self._temporary / read_from.relative_to(self.source)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = _open_file(target, "parquet", self._schema)
+        self._current = read_from
+        self._written.add(read_from)
+
+    def close(self) -> None:
+        """Finishes the file (a dataset's files) and puts it in place."""
+        self._close_file()
+        if self._temporary is None:
+            return
+        if self.source is None:
             os.replace(self._temporary, self.path)
-            self._temporary = None
+        else:
+            for file, _ in dataset_files(self.source):  # input files without rows
+                if file not in self._written:
+                    self._next_file(file)
+                    self._close_file()
+            _replace_directory(self._temporary, self.path)
+        self._temporary = None
 
     def discard(self) -> None:
         """Drops what was written; ``path`` stays as it was."""
@@ -200,7 +267,10 @@ class EstimateWriter:
             finally:
                 self._writer = None
         if self._temporary is not None:
-            self._temporary.unlink(missing_ok=True)
+            if self._temporary.is_dir():
+                shutil.rmtree(self._temporary, ignore_errors=True)
+            else:
+                self._temporary.unlink(missing_ok=True)
             self._temporary = None
 
     def __enter__(self) -> EstimateWriter:
@@ -211,6 +281,60 @@ class EstimateWriter:
             self.close()
         else:
             self.discard()
+
+
+def _open_file(path: Path, kind: str, schema: Any) -> Any:
+    """A ``pyarrow`` writer of a CSV or Parquet file."""
+    import pyarrow.csv as pcsv
+    import pyarrow.parquet as pq
+
+    if kind == "parquet":
+        return pq.ParquetWriter(path, schema, use_dictionary=_dictionary_columns(schema))
+    options = pcsv.WriteOptions(quoting_style="needed")
+    return pcsv.CSVWriter(path, schema, write_options=options)
+
+
+def _temporary_file(target: Path) -> Path:
+    """A new empty file beside ``target``, with the mode ``target`` has or would get."""
+    handle, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    os.close(handle)
+    _set_mode(Path(name), target)
+    return Path(name)
+
+
+def _temporary_directory(target: Path) -> Path:
+    """A new empty directory beside ``target``, with the mode a new directory would get."""
+    folder = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(folder, 0o777 & ~umask)
+    return folder
+
+
+def _replace_directory(finished: Path, target: Path) -> None:
+    """Puts the directory ``finished`` at ``target``; a directory there before is moved
+    aside first and removed only once the new one is in place."""
+    if not target.exists():
+        os.replace(finished, target)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent))
+    os.replace(target, old / target.name)
+    os.replace(finished, target)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _dictionary_columns(schema: Any) -> list[str]:
+    """The columns a Parquet output stores dictionary-encoded: the id and the time as read
+    (:func:`estimate_table`'s first two columns, few distinct values) and any column not of
+    floats. Estimates are distinct floats: a dictionary would be built and dropped at every row
+    group (that doubled the writing time)."""
+    import pyarrow as pa
+
+    return [
+        field.name
+        for j, field in enumerate(schema)
+        if j < 2 or not pa.types.is_floating(field.type)
+    ]
 
 
 def _set_mode(temporary: Path, target: Path) -> None:
