@@ -1,0 +1,184 @@
+"""Spark (local mode) and Dask (a distributed LocalCluster) give the estimates of one process:
+:func:`~torchsvs.track_table.track_table` on the whole table, value for value, with each
+track's rows wherever the engine's input put them (torchsvs.engines)."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pandas as pd
+import pyarrow.csv as pcsv
+import pytest
+
+from tests.test_track_cli import _simulated_csv
+from torchsvs.datasets import Columns
+from torchsvs.recipes import Settings
+from torchsvs.track_plan import plan_tracks
+from torchsvs.track_table import track_table
+
+COLUMNS = Columns("id", "t")
+pytestmark = [
+    # PySpark 4.3 on pandas 3: it warns at each pandas conversion, and its Arrow conversion
+    # passes pandas' deprecated ``copy`` keyword (third party, not ours).
+    pytest.mark.filterwarnings("ignore:PySpark does not yet fully support pandas:FutureWarning"),
+    pytest.mark.filterwarnings("ignore:The copy keyword is deprecated"),
+]
+#: The exact comparisons: the estimators whose estimates do not depend on a table's other
+#: tracks (tests/test_track_table.py), at both output precisions.
+CASES = [("ks", "float32"), ("ks", "float64"), ("svss", "float32"), ("svss", "float64")]
+
+
+@pytest.fixture(scope="module")
+def rows(tmp_path_factory) -> pd.DataFrame:
+    """30 tracks of 5-60 rows: irregular times, missing values, repeated times, shuffled."""
+    path = tmp_path_factory.mktemp("engines") / "in.csv"
+    steps = np.random.default_rng(3).integers(5, 60, 30).tolist()
+    _simulated_csv(path, tracks=30, steps=steps)
+    return pcsv.read_csv(path).to_pandas()
+
+
+@pytest.fixture(scope="module")
+def plans(rows):
+    return {
+        case: plan_tracks(rows, Settings(estimator=case[0]), columns=COLUMNS, precision=case[1])
+        for case in CASES
+    }
+
+
+def _sorted(frame: pd.DataFrame) -> pd.DataFrame:
+    """Rows in one order whatever the engine's (every column: repeated times tie on id, t)."""
+    return frame.sort_values(list(frame.columns), kind="stable").reset_index(drop=True)
+
+
+def _same(out: pd.DataFrame, whole: pd.DataFrame) -> None:
+    """The same rows (every one once, ids and times unchanged) with the same values, exactly."""
+    assert list(out.columns) == list(whole.columns)
+    a, b = _sorted(out), _sorted(whole)
+    assert len(a) == len(b)
+    for name in a.columns:
+        left, right = a[name].to_numpy(), b[name].to_numpy()
+        if left.dtype.kind == "f":
+            assert left.dtype == right.dtype, name
+            np.testing.assert_array_equal(left, right, err_msg=name)
+        else:
+            assert left.tolist() == right.tolist(), name
+
+
+# Spark --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def spark():
+    """One local[2] session for the module; its JVM ended with it."""
+    pytest.importorskip("pyspark")
+    os.environ.setdefault("PYSPARK_PYTHON", sys.executable)
+    os.environ.setdefault("SPARK_LOCAL_IP", "127.0.0.1")
+    from pyspark import SparkContext
+    from pyspark.sql import SparkSession
+
+    session = (
+        SparkSession.builder.master("local[2]")
+        .appName("torchsvs-tests")
+        .config("spark.sql.shuffle.partitions", "3")
+        .config("spark.default.parallelism", "2")
+        .config("spark.ui.enabled", "false")
+        .config("spark.sql.execution.arrow.pyspark.enabled", "true")
+        .config("spark.driver.memory", "1g")
+        .getOrCreate()
+    )
+    session.sparkContext.setLogLevel("ERROR")
+    yield session
+    session.stop()
+    gateway = SparkContext._gateway
+    if gateway is not None:  # the JVM leaves when its standard input closes
+        gateway.shutdown()
+        gateway.proc.stdin.close()
+        gateway.proc.wait(timeout=30)
+        SparkContext._gateway = None
+        SparkContext._jvm = None
+
+
+@pytest.fixture(scope="module")
+def spark_rows(spark, rows):
+    """The rows in 4 partitions dealt round robin: every track split over them."""
+    frame = spark.createDataFrame(rows).repartition(4)
+    parts = frame.rdd.glom().map(lambda p: sorted({r["id"] for r in p})).collect()
+    assert sum(len(p) for p in parts) > rows["id"].nunique()  # tracks do span partitions
+    return frame
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_spark_gives_the_estimates_of_one_process(spark, spark_rows, rows, plans, case):
+    """Tracks split over partitions get their whole-track estimates, exactly; the parts' runs
+    add up to the whole's row counts."""
+    from torchsvs.engines.spark import SparkRuns, track_spark
+
+    plan = plans[case]
+    whole = track_table(rows, plan)
+    runs = SparkRuns(spark)
+    out = track_spark(spark_rows, plan, runs=runs).toPandas()
+    _same(out, whole.table)
+    run = runs.run(plan)
+    assert run.report.total == whole.run.report.total == len(rows)
+    assert run.report.measurement == whole.run.report.measurement
+    assert run.report.tracks == whole.run.report.tracks
+    assert run.accuracy is not None
+
+
+def test_spark_groups_give_the_same(spark, spark_rows, rows, plans):
+    """groupBy(bucket).applyInPandas: the same rows and estimates as one process; a run
+    computed twice (two actions) counts every row once."""
+    from torchsvs.engines.spark import SparkRuns, track_spark
+
+    plan = plans[("svss", "float64")]
+    runs = SparkRuns(spark)
+    out = track_spark(spark_rows, plan, method="group", buckets=5, runs=runs)
+    _same(out.toPandas(), track_table(rows, plan).table)
+    assert out.count() == len(rows)
+    run = runs.run(plan)
+    assert run.report.total == len(rows)
+    assert len(runs.parts) <= 5
+
+
+def test_spark_streams_whole_tracks(spark, spark_rows, rows, plans):
+    """Calls of a few rows each (tracks span Arrow batches and calls): the same estimates."""
+    from torchsvs.engines.spark import track_spark
+
+    spark.conf.set("spark.sql.execution.arrow.maxRecordsPerBatch", "17")
+    try:
+        plan = plans[("ks", "float64")]
+        out = track_spark(spark_rows, plan, rows_per_call=40, buckets=2).toPandas()
+    finally:
+        spark.conf.unset("spark.sql.execution.arrow.maxRecordsPerBatch")
+    _same(out, track_table(rows, plan).table)
+
+
+def test_spark_samples_whole_tracks(spark, spark_rows, rows):
+    from torchsvs.engines.spark import plan_spark, sample_tracks
+
+    sample = sample_tracks(spark_rows, COLUMNS, tracks=8, seed=1)
+    ids = set(sample["id"])
+    assert 1 <= len(ids) <= 8
+    assert len(sample) == rows["id"].isin(ids).sum()  # every row of a sampled track
+    plan = plan_spark(spark_rows, Settings(estimator="ks"), columns=COLUMNS, tracks=8)
+    assert plan.settings.meas_var is not None and plan.precision in ("float32", "float64")
+
+
+def test_spark_bad_input_names_the_argument(spark, spark_rows, rows, plans):
+    from torchsvs.engines.spark import SparkRuns, track_spark
+
+    plan = plans[("ks", "float64")]
+    with pytest.raises(ValueError, match=r"^df: columns \['x'\] of the plan not in the data"):
+        track_spark(spark_rows.drop("x"), plan)
+    with pytest.raises(TypeError, match="^plan: expected a TrackPlan"):
+        track_spark(spark_rows, plan.settings)
+    with pytest.raises(TypeError, match="^df: expected a pyspark.sql.DataFrame"):
+        track_spark(rows, plan)
+    with pytest.raises(ValueError, match="^method: expected one of"):
+        track_spark(spark_rows, plan, method="udf")
+    with pytest.raises(ValueError, match="^buckets: expected a positive int"):
+        track_spark(spark_rows, plan, buckets=0)
+    with pytest.raises(TypeError, match="^spark: expected a SparkSession"):
+        SparkRuns(rows)
