@@ -21,9 +21,11 @@ from torchsvs.track_table import track_table
 COLUMNS = Columns("id", "t")
 pytestmark = [
     # PySpark 4.3 on pandas 3: it warns at each pandas conversion, and its Arrow conversion
-    # passes pandas' deprecated ``copy`` keyword (third party, not ours).
+    # passes pandas' deprecated ``copy`` keyword (third party).
     pytest.mark.filterwarnings("ignore:PySpark does not yet fully support pandas:FutureWarning"),
     pytest.mark.filterwarnings("ignore:The copy keyword is deprecated"),
+    # Dask 2026.8's Parquet reader on pandas 3.1 (third party).
+    pytest.mark.filterwarnings("ignore:The inplace keyword in DataFrame.reset_index"),
 ]
 #: The exact comparisons: the estimators whose estimates do not depend on a table's other
 #: tracks (tests/test_track_table.py), at both output precisions.
@@ -182,3 +184,72 @@ def test_spark_bad_input_names_the_argument(spark, spark_rows, rows, plans):
         track_spark(spark_rows, plan, buckets=0)
     with pytest.raises(TypeError, match="^spark: expected a SparkSession"):
         SparkRuns(rows)
+
+
+# Dask ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def dask_client():
+    """A distributed LocalCluster in this process (two worker threads)."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+    ) as cluster, distributed.Client(cluster) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def dask_rows(rows):
+    """The rows in 4 partitions of consecutive rows: every track split over them."""
+    import dask.dataframe as dd
+
+    frame = dd.from_pandas(rows, npartitions=4, sort=False)
+    ids = [set(frame.get_partition(k).compute()["id"]) for k in range(4)]
+    assert sum(len(p) for p in ids) > rows["id"].nunique()
+    return frame
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_dask_gives_the_estimates_of_one_process(dask_client, dask_rows, rows, plans, case):
+    from torchsvs.engines.dask import track_dask
+
+    plan = plans[case]
+    out = track_dask(dask_rows, plan).compute()
+    _same(out, track_table(rows, plan).table)
+
+
+def test_dask_run_comes_with_the_estimates(dask_client, dask_rows, rows, plans, tmp_path):
+    """with_run: the parts' runs from the same tasks (one compute); written as Parquet, the
+    rows read back are the estimates of one process; the id as index needs no shuffle."""
+    import dask
+    import dask.dataframe as dd
+
+    from torchsvs.engines.dask import parquet_to_parquet, track_dask
+
+    plan = plans[("svss", "float32")]
+    whole = track_table(rows, plan)
+    frame, run = track_dask(dask_rows, plan, with_run=True)
+    parts, total = dask.compute(frame.to_delayed(), run)
+    _same(pd.concat(parts), whole.table)
+    assert total.report.total == len(rows) and total.report.tracks == whole.run.report.tracks
+    assert total.accuracy is not None
+    indexed = dd.from_pandas(rows.set_index("id").sort_index(), npartitions=3)
+    _same(track_dask(indexed, plan).compute(), whole.table)
+    source = tmp_path / "in"
+    dask_rows.to_parquet(source, write_index=False)
+    run, seconds = parquet_to_parquet(str(source), str(tmp_path / "out"), plan)
+    _same(pd.read_parquet(tmp_path / "out"), whole.table)
+    assert run.report.total == len(rows) and seconds["run"] > 0
+
+
+def test_dask_bad_input_names_the_argument(dask_rows, rows, plans):
+    from torchsvs.engines.dask import track_dask
+
+    plan = plans[("ks", "float64")]
+    with pytest.raises(ValueError, match=r"^ddf: columns \['x'\] of the plan not in the data"):
+        track_dask(dask_rows.drop(columns=["x"]), plan)
+    with pytest.raises(TypeError, match="^plan: expected a TrackPlan"):
+        track_dask(dask_rows, "ks")
+    with pytest.raises(TypeError, match="^ddf: expected a dask.dataframe.DataFrame"):
+        track_dask(rows, plan)

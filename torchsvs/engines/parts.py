@@ -4,6 +4,7 @@ estimated (:func:`estimate_part`) and its run kept small, the parts' runs added 
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -55,15 +56,17 @@ def set_threads(threads: int | None) -> None:
             torch.set_num_threads(threads)
 
 
-_built: tuple[TrackPlan, nn.Module] | None = None
+_built = threading.local()
 
 
 def estimator_of(plan: TrackPlan) -> nn.Module:
-    """``plan.estimator()``, built once per plan in a worker (its last plan's kept)."""
-    global _built
-    if _built is None or _built[0] is not plan:
-        _built = (plan, plan.estimator())
-    return _built[1]
+    """``plan.estimator()``, built once per plan in each worker thread (its last plan's
+    kept): an estimator keeps state while it runs, so threads (a Dask worker's) do not share
+    one."""
+    last = getattr(_built, "last", None)
+    if last is None or last[0] is not plan:
+        last = _built.last = (plan, plan.estimator())
+    return last[1]
 
 
 def estimate_part(
