@@ -48,9 +48,7 @@ def dask_meta(ddf: Any, plan: TrackPlan, covariance: bool = False) -> Any:
 
     cols = plan.columns
     head = pa.Table.from_pandas(ddf._meta[[cols.track_id, cols.time]], preserve_index=False)
-    schema = output_schema(
-        plan, head.schema.field(0).type, head.schema.field(1).type, covariance
-    )
+    schema = output_schema(plan, head.schema.field(0).type, head.schema.field(1).type, covariance)
     return schema.empty_table().to_pandas()
 
 

@@ -1,15 +1,15 @@
 """Smoothing a Spark DataFrame of track rows (:func:`track_spark`), with a plan settled once on
 the driver (:func:`plan_spark`, on whole tracks sampled by id: :func:`sample_tracks`).
 
-Every track's rows must reach one pandas call whole. ``method="map"`` (the default) shuffles the
+Every track's rows must reach one call whole. ``method="map"`` (the default) shuffles the
 rows by track id (``repartition(n, id)``), sorts each partition by id and streams it through
-``mapInArrow`` (``mapInPandas``' Arrow twin: no pandas), cut into tables of about ``rows_per_call`` rows at track boundaries, so memory
-stays bounded whatever a partition's size. ``method="group"`` is the other convention,
-``groupBy(bucket).applyInArrow``, where the bucket is a hash of the id modulo ``buckets``:
-each call gets a whole bucket (many tracks) at once. Grouping by the id itself would call
-pandas once per track, far slower. Both give the same rows and estimates; "map" is the
-default because it was the faster on ``local[2]`` (``tests/test_engines.py`` and the guide,
-:doc:`/guide/engines`), and its memory does not grow with the buckets.
+``mapInArrow`` (``mapInPandas``' Arrow twin: no pandas), cut into tables of about
+``rows_per_call`` rows at track boundaries, so memory stays bounded whatever a partition's
+size. ``method="group"`` is the other convention, ``groupBy(bucket).applyInArrow``, where the
+bucket is a hash of the id modulo ``buckets``: each call gets a whole bucket (many tracks) at
+once. Grouping by the id itself would make one call per track, far slower. Both give the same
+rows and estimates; "map" is the default: its memory does not grow with a bucket's size (see
+the guide, "Datasets on Spark and Dask").
 
 The run's summary (row counts, the truth-free error estimate, warnings) is gathered while Spark
 computes the output, in an accumulator (:class:`SparkRuns`) keyed by part, so a task run again
@@ -36,7 +36,7 @@ from torchsvs.track_run import TrackRun
 from torchsvs.track_table import output_schema
 
 METHODS = ("map", "group")
-#: Rows per pandas call of ``method="map"`` (whole tracks: a call may hold more).
+#: Rows per call of ``method="map"`` (whole tracks: a call may hold more).
 ROWS_PER_CALL = 1 << 18
 #: The hidden column of ``method="group"``'s buckets.
 BUCKET = "__torchsvs_bucket"
@@ -130,11 +130,11 @@ def track_spark(
         method: ``"map"``, tracks shuffled by id then streamed through ``mapInArrow``, or
             ``"group"``, ``groupBy(bucket).applyInArrow`` (see the module's docstring).
         buckets: ``"map"``: the partitions the rows are shuffled into; ``"group"``: the
-            buckets (one pandas call each, held in memory whole: aim at a few hundred thousand
+            buckets (one call each, held in memory whole: aim at a few hundred thousand
             rows each). Default: ``spark.sql.shuffle.partitions``.
         partitioned: ``"map"`` only: every track is in one partition of ``df`` already (read
             from a dataset written partitioned by track); no shuffle, only a sort.
-        rows_per_call: ``"map"``: rows per pandas call (whole tracks), bounds a task's memory.
+        rows_per_call: ``"map"``: rows per call (whole tracks), bounds a task's memory.
         accuracy: estimate the position error without truth (:mod:`torchsvs.accuracy`).
         threads: torch threads per task (Spark runs a task per core); None leaves torch's.
         runs: gathers the parts' runs as the output is computed (:class:`SparkRuns`).
