@@ -5,6 +5,7 @@ track's rows wherever the engine's input put them (torchsvs.engines)."""
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 
 import numpy as np
@@ -256,3 +257,15 @@ def test_dask_bad_input_names_the_argument(dask_rows, rows, plans):
         track_dask(dask_rows, "ks")
     with pytest.raises(TypeError, match="^ddf: expected a dask.dataframe.DataFrame"):
         track_dask(rows, plan)
+
+
+def test_engines_import_neither_spark_nor_dask_until_run():
+    """torchsvs and its engines' modules load without Spark or Dask (a user of one engine need
+    not install the other)."""
+    code = (
+        "import sys, torchsvs, torchsvs.engines.spark, torchsvs.engines.dask, torchsvs.track_table;"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('pyspark', 'dask', "
+        "'distributed')))"
+    )
+    found = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert found.stdout.strip() == "[]"
