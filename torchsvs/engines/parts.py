@@ -1,0 +1,116 @@
+"""What the engines share: their arguments checked before anything runs, one part of a dataset
+estimated (:func:`estimate_part`) and its run kept small, the parts' runs added up
+(:func:`merged_run`). No Spark or Dask here: a part is a pandas DataFrame."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from torch import nn
+
+from torchsvs.track_plan import TrackPlan
+from torchsvs.track_run import TrackRun
+from torchsvs.track_table import new_run, track_table
+
+#: Per-track error estimates each part hands back: its worst this many. The run's worst this
+#: many tracks are then exactly the dataset's (each is among its own part's worst), and what
+#: the driver holds stays bounded by parts × this, whatever the number of tracks.
+TRACKS_PER_PART = 100
+
+
+def check_plan(plan: Any) -> TrackPlan:
+    """``plan`` itself, or a TypeError naming it."""
+    if not isinstance(plan, TrackPlan):
+        raise TypeError(
+            "plan: expected a TrackPlan (torchsvs.track_plan.plan_tracks on a sample), got "
+            f"{type(plan).__name__}"
+        )
+    return plan
+
+
+def plan_columns(plan: TrackPlan) -> list[str]:
+    """The columns a part must hold: the id, the time, the positions and any extra."""
+    cols = plan.columns
+    return [cols.track_id, cols.time, *(cols.position or ()), *cols.extra]
+
+
+def check_columns(available: Sequence[str], plan: TrackPlan, name: str) -> None:
+    """A ValueError naming the argument ``name`` where the data lack a column of the plan."""
+    missing = [c for c in plan_columns(plan) if c not in available]
+    if missing:
+        raise ValueError(
+            f"{name}: columns {missing} of the plan not in the data (its columns: "
+            f"{list(available)})"
+        )
+
+
+def set_threads(threads: int | None) -> None:
+    """Torch's threads in a worker: an engine runs one task per core already, and a task on
+    every core would oversubscribe them."""
+    if threads is not None:
+        import torch
+
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+
+
+_built = threading.local()
+
+
+def estimator_of(plan: TrackPlan) -> nn.Module:
+    """``plan.estimator()``, built once per plan in each worker thread (its last plan's
+    kept): an estimator keeps state while it runs, so threads (a Dask worker's) do not share
+    one."""
+    last = getattr(_built, "last", None)
+    if last is None or last[0] is not plan:
+        last = _built.last = (plan, plan.estimator())
+    return last[1]
+
+
+def estimate_part(
+    frame: Any,
+    plan: TrackPlan,
+    *,
+    covariance: bool = False,
+    accuracy: bool = True,
+    max_cells: int = 1 << 19,
+    threads: int | None = 1,
+) -> tuple[Any, TrackRun]:
+    """One part's rows with their estimates (:func:`~torchsvs.track_table.track_table`,
+    unchecked: the sum of the parts is checked) and its run, with the worst
+    :data:`TRACKS_PER_PART` per-track error estimates."""
+    set_threads(threads)
+    result = track_table(
+        frame,
+        plan,
+        covariance=covariance,
+        accuracy=accuracy,
+        max_cells=max_cells,
+        estimator=estimator_of(plan),
+        check=False,
+    )
+    run = result.run
+    worst(run, TRACKS_PER_PART)
+    return result.table, run
+
+
+def worst(run: TrackRun, count: int) -> None:
+    """Keeps ``run``'s worst ``count`` per-track error estimates."""
+    if len(run.track_errors) > count:
+        kept = sorted(run.track_errors.items(), key=lambda kv: -kv[1][0])[:count]
+        run.track_errors = dict(kept)
+        run.track_q = {k: v for k, v in run.track_q.items() if k in run.track_errors}
+
+
+def merged_run(plan: TrackPlan, runs: Iterable[TrackRun], accuracy: bool = True) -> TrackRun:
+    """The parts' runs added up to the dataset's (:meth:`~torchsvs.track_run.TrackRun.merge`),
+    then checked; its ``seconds`` are the parts' added up (task time, not the wall's)."""
+    total = new_run(plan, accuracy)
+    for run in runs:
+        total.merge(run)
+        total.seconds += run.seconds
+    worst(total, TRACKS_PER_PART)
+    total.check()
+    return total
