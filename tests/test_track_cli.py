@@ -320,15 +320,16 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     assert one.settings.q == pytest.approx(settings.q)
 
 
-def test_scaled_q_scales_inside_and_restores_exactly():
+def test_scaled_q_scales_a_copy_and_leaves_the_estimator_alone():
     from torchsvs.estimating import scaled_q
     from torchsvs.recipes import Settings, make_estimator, make_model
 
     settings = Settings(estimator="svss", meas_var=[100.0, 100.0], q=0.3, psi=[2.0, 2.0])
     estimator = make_estimator(settings, make_model(settings))
     before = estimator.model.q().clone()
-    with scaled_q(estimator, 10 ** (-3 / 4)):
-        assert float(estimator.model.q()) == pytest.approx(0.3 * 10 ** (-3 / 4), rel=1e-6)
+    with scaled_q(estimator, 10 ** (-3 / 4)) as scaled:
+        assert float(scaled.model.q()) == pytest.approx(0.3 * 10 ** (-3 / 4), rel=1e-6)
+        assert torch.equal(estimator.model.q(), before)  # another thread may be using it
     assert torch.equal(estimator.model.q(), before)
 
 

@@ -159,3 +159,29 @@ def test_bad_input_names_the_argument(rows, tmp_path):
     pq.write_table(pa.Table.from_pandas(frame, preserve_index=False), path)
     from_file = plan_tracks(path, Settings(estimator="ks"), columns=COLUMNS)
     assert from_file.settings.meas_var == pytest.approx(plan.settings.meas_var)
+
+
+@pytest.mark.parametrize("estimator", ["ks", "svss"])
+def test_threads_may_share_one_estimator(rows, estimator):
+    """Engines call track_table from several threads with one estimator (Dask's threaded
+    workers): each track keeps its own q and gets the estimate it gets alone."""
+    import threading
+
+    frame, _ = rows
+    plan = _plan(frame, estimator)
+    assert plan.settings.q_curve is not None  # tracks with their own q
+    alone = _sorted(track_table(frame, plan).table)
+    shared = plan.estimator()
+    part_of = frame["id"].map(lambda i: int(i.split("-")[1]) % 4)
+    outs: list = [None] * 4
+
+    def run(p: int) -> None:
+        for _ in range(3):  # a few times over, so the threads overlap
+            outs[p] = track_table(frame[part_of == p], plan, estimator=shared).table
+
+    threads = [threading.Thread(target=run, args=(p,)) for p in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    pd.testing.assert_frame_equal(_sorted(pd.concat(outs)), alone, check_exact=True)

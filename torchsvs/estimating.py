@@ -12,6 +12,7 @@ their smoothed or their filtered pass, whichever SURE rates lower (:func:`smooth
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
@@ -280,8 +281,8 @@ def _estimate_factors(
             batch.tracks.subset(index),
             batch.offset[index],
         )
-        with scaled_q(estimator, factor):
-            found = _estimate_part(estimator, part, meas_std, covariance, risk, noise_range)
+        with scaled_q(estimator, factor) as scaled:
+            found = _estimate_part(scaled, part, meas_std, covariance, risk, noise_range)
         parts.append(found._replace(q_factor=np.full(len(index), factor)))
     return StepEstimates.merge(parts, len(meas_std))
 
@@ -302,22 +303,19 @@ def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
 
 @contextlib.contextmanager
 def scaled_q(estimator: nn.Module, factor: float) -> Iterator[nn.Module]:
-    """The estimator with its motion model's ``q`` times ``factor`` inside the block (then
-    restored exactly)."""
+    """A copy of the estimator with its motion model's ``q`` times ``factor`` (the estimator
+    itself where the factor is 1), for the block: the estimator is never changed, so callers
+    in several threads may share it (changed in place, a thread's tracks ran with another's
+    ``q``: 92% of estimates off under Dask's threads)."""
     if factor == 1.0:
         yield estimator
         return
     model = estimator.model
     assert isinstance(model, ConstantVelocity), "scaled_q: a constant-velocity model's q"
-    raw = model.q.raw  # q is stored as its log (constraints.Positive)
-    kept = raw.detach().clone()
+    scaled = copy.deepcopy(estimator)
     with torch.no_grad():
-        raw.add_(math.log(factor))
-    try:
-        yield estimator
-    finally:
-        with torch.no_grad():
-            raw.copy_(kept)
+        scaled.model.q.raw.add_(math.log(factor))  # q is stored as its log (Positive)
+    yield scaled
 
 
 def _estimate_part(
