@@ -272,7 +272,8 @@ def _estimate_factors(
     noise_range = None if settings is None else meas_var_range(settings, GUARD_ERRORS)
     if settings is None or settings.q_curve is None:
         return _estimate_part(estimator, batch, meas_std, covariance, risk, noise_range)
-    factors = settings_q_factors(settings, batch.tracks)
+    reuse = not covariance and _is_curves_estimator(estimator, settings)
+    factors, runs = _q_factors(settings, batch.tracks, reuse)
     parts = []
     for factor in torch.unique(factors).tolist():
         index = torch.nonzero(factors == factor).flatten()
@@ -282,8 +283,12 @@ def _estimate_factors(
             batch.tracks.subset(index),
             batch.offset[index],
         )
-        with scaled_q(estimator, factor):
-            found = _estimate_part(estimator, part, meas_std, covariance, risk, noise_range)
+        run = None if runs is None else _curve_run(runs, factor, settings, index)
+        if run is not None:
+            found = _estimate_from_run(estimator, part, meas_std, risk, *run)
+        else:
+            with scaled_q(estimator, factor):
+                found = _estimate_part(estimator, part, meas_std, covariance, risk, noise_range)
         parts.append(found._replace(q_factor=np.full(len(index), factor)))
     return StepEstimates.merge(parts, len(meas_std))
 
@@ -291,15 +296,66 @@ def _estimate_factors(
 def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
     """``[B]`` each track's factor on ``settings.q`` (:func:`torchsvs.fitting.noise.
     track_q_factors` against the file's curve ``settings.q_curve``)."""
+    return _q_factors(settings, tracks, False)[0]
+
+
+def _q_factors(
+    settings: Settings, tracks: RecordedTracks, keep: bool
+) -> tuple[Tensor, noise.CurveRuns | None]:
+    """:func:`settings_q_factors`, and with ``keep`` the curves' passes
+    (:func:`~torchsvs.fitting.noise.q_curve_runs`)."""
     assert settings.q_curve is not None and settings.meas_var is not None
     assert settings.q is not None
-    curves = noise.q_curves(
-        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
+    curves, runs = noise.q_curve_runs(
+        tracks.z,
+        tracks.dt,
+        settings.meas_var,
+        settings.q,
+        settings.estimator not in FILTERS,
+        keep=keep,
     )
     factors = noise.track_q_factors(curves, settings.q_curve)
     if settings.estimator in UPWARD_Q_ONLY:
         factors = factors.clamp_min(1.0)
-    return factors
+    return factors, runs
+
+
+def _is_curves_estimator(estimator: nn.Module, settings: Settings) -> bool:
+    """Whether ``estimator`` is the Kalman smoother (fixed interval) or filter that the
+    settings' SURE curves run (:func:`~torchsvs.fitting.noise.kalman`, up to the estimator's
+    dtype): the same model, ``q`` and noise, so a track's estimate at its factor is that
+    curve's pass."""
+    if not _linear_gaussian(estimator) or settings.q is None or settings.meas_var is None:
+        return False
+    smoothed = isinstance(estimator, RTSSmoother)
+    if smoothed != (settings.estimator not in FILTERS) or getattr(estimator, "lag", None):
+        return False
+    model = estimator.model
+    if type(model) is not ConstantVelocity:
+        return False
+    q = float(model.q().detach().double())
+    r = _meas_var(estimator).double()
+    wanted = torch.tensor(settings.meas_var, dtype=torch.float64)
+    return math.isclose(q, settings.q, rel_tol=CURVE_MATCH) and bool(
+        torch.allclose(r, wanted, rtol=CURVE_MATCH, atol=0.0)
+    )
+
+
+#: :func:`_is_curves_estimator`'s relative tolerance on ``q`` and the noise: a float32
+#: estimator's parameters hold the settings' to ~1e-7.
+CURVE_MATCH = 1e-5
+
+
+def _curve_run(
+    runs: noise.CurveRuns, factor: float, settings: Settings, index: Tensor
+) -> tuple[Tensor, Tensor, float] | None:
+    """The tracks ``index``'s pass at ``factor`` among the curves' (their mean, position
+    variances and ``q``), or None where the curves ran no such ``q``."""
+    assert settings.q is not None
+    for i, f in enumerate(noise.Q_FACTORS):
+        if math.isclose(f, factor, rel_tol=1e-9):
+            return runs.mean[i, index], runs.position_var[i, index], settings.q * f
+    return None
 
 
 @contextlib.contextmanager
@@ -384,14 +440,68 @@ def _estimate_part(
             reference=None if control is None else control.reference(out),
             probe=probe,
         )
+    return _step_estimates(batch, tracks, mean, cov if covariance else None, notes, terms)
+
+
+def _step_estimates(
+    batch: GroupBatch,
+    tracks: RecordedTracks,
+    mean: Tensor,
+    cov: Tensor | None,
+    notes: dict[str, int],
+    terms: RiskTerms | None,
+) -> StepEstimates:
+    """The group's estimates ``mean`` (and ``cov``) at the block's flat steps, the offsets
+    added back (``tracks``: the group's with their priors)."""
     if terms is not None:
         terms.track = batch.group[terms.track]
     mean = mean.double()
     mean[..., 0::2] += batch.offset.unsqueeze(1)
-    target, values, covs = flat_steps(tracks, mean, cov if covariance else None)
+    target, values, covs = flat_steps(tracks, mean, cov)
     assert tracks.never_observed is not None
     never = tracks.never_observed.numpy()
     return StepEstimates(batch.position, batch.group, target, values, covs, never, notes, terms)
+
+
+def _estimate_from_run(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    risk: bool,
+    mean: Tensor,
+    position_var: Tensor,
+    q: float,
+) -> StepEstimates:
+    """:func:`_estimate_part` of a Kalman smoother or filter (:func:`_is_curves_estimator`)
+    whose run on the group is given: its ``mean [B, T, 2m]`` and ``position_var [B, T, m]``
+    (float64, at ``q``, from the SURE curves' pass). The error estimate's terms are those of
+    its own run: the divergence exact (:class:`SelfReference`) but at each axis's first two
+    observations, which the two-point prior reads; there the probe's, from one float64 run of
+    the same smoother on the probed measurements (the probe drawn as
+    :func:`_estimate_part` draws it)."""
+    tracks = with_prior(batch.tracks, meas_std)
+    notes = short_track_notes(tracks)
+    terms = None
+    if risk:
+        z = batch.tracks.z.double()
+        std = meas_std.double()
+        r = std.square()
+        step = getattr(estimator, "probe_step", PROBE_STEP)
+        seed = torch.Generator().manual_seed(PROBE_SEED + batch.position)
+        probe = draw_probe(z, std, step, seed)
+        probed = with_prior(replace(batch.tracks.to(torch.float64), z=probe.measurements), std)
+        kalman = noise.kalman(z.shape[-1], q, r, isinstance(estimator, RTSSmoother))
+        shifted = run_result(kalman, probed, keep="mean").mean[..., 0::2]
+        terms = risk_terms(
+            lambda _: shifted,  # (the probe's measurements: run above)
+            z,
+            mean[..., 0::2],
+            std,
+            None,
+            reference=Reference(exact_divergence(z, position_var, r), beta=1.0),
+            probe=probe,
+        )
+    return _step_estimates(batch, tracks, mean, None, notes, terms)
 
 
 class LinearReference:

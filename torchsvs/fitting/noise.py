@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
-from torchsvs.estimator import threads_for
+from torchsvs.estimator import prepare_inputs, threads_for
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.losses import innovation_nll
 from torchsvs.models import ConstantVelocity
@@ -92,6 +92,32 @@ def _scored(z: Tensor) -> Tensor:
     return seen & (seen.cumsum(1) >= 3)
 
 
+def kalman(m: int, q: float, r: Tensor, smoothed: bool = True) -> Any:
+    """The float64 nearly-constant-velocity Kalman smoother (RTS, fixed interval), or with
+    ``smoothed=False`` filter, with ``q`` and measurement variances ``r [m]``: the estimator
+    every SURE curve here is of."""
+    kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
+    return RTSSmoother(kf) if smoothed else kf
+
+
+def _run(z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool) -> Any:
+    """:func:`kalman`'s means and covariances on ``z`` from ``prior`` (no gradients). The
+    smoother's filter pass keeps its means alone (the compiled pass then never writes the
+    filter's covariances: a third less time)."""
+    estimator = kalman(z.shape[-1], q, r, smoothed)
+    with torch.no_grad():
+        if not smoothed:
+            return estimator(z, prior.x0, prior.P0, dt=dt, keep="moments")
+        inputs = prepare_inputs(estimator.model, z, prior.x0, prior.P0, dt=dt, keep="mean")
+        with threads_for(inputs.batch, estimator.model.state_dim):
+            return estimator.run(inputs)  # (a smoother's run has its moments whatever it keeps)
+
+
+def _sure_of(z: Tensor, r: Tensor, mean: Tensor, leverage: Tensor, clip: float) -> Tensor:
+    """:func:`_sure`'s terms from the positions' estimate ``mean`` and variance ``leverage``."""
+    return ((z - mean).square() - r + 2.0 * leverage).clamp_max(clip * r)
+
+
 def _sure(
     z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool, clip: float = math.inf
 ) -> Tensor:
@@ -99,13 +125,9 @@ def _sure(
     Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
     ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
     outliers do not drive, as their terms stay at the clip whatever ``q``)."""
-    m = z.shape[-1]
-    kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
-    estimator = RTSSmoother(kf) if smoothed else kf
-    with torch.no_grad():
-        out = estimator(z, prior.x0, prior.P0, dt=dt, keep="moments")
+    out = _run(z, dt, prior, r, q, smoothed)
     leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-    return ((z - out.mean[..., 0::2]).square() - r + 2.0 * leverage).clamp_max(clip * r)
+    return _sure_of(z, r, out.mean[..., 0::2], leverage, clip)
 
 
 def smoother_q(
@@ -230,6 +252,14 @@ class QCurves(NamedTuple):
         return (self.risk.sum(1) / self.counts.sum().clamp_min(1.0)).tolist()
 
 
+class CurveRuns(NamedTuple):
+    """The passes behind :class:`QCurves` (:func:`q_curve_runs`): what the Kalman smoother (or
+    filter) estimates at each factor, float64."""
+
+    mean: Tensor  #: [F, B, T, 2m] the state's mean
+    position_var: Tensor  #: [F, B, T, m] the positions' variances
+
+
 def q_curves(
     z: Tensor,
     dt: Tensor,
@@ -241,17 +271,43 @@ def q_curves(
     """SURE (:func:`smoother_q`'s, exact) of the nearly-constant-velocity Kalman smoother
     (``smoothed``) or filter with ``q`` times each factor, per track: each whole track from its
     two-point prior, scored from its third observed step on."""
+    return q_curve_runs(z, dt, meas_var, q, smoothed, factors, keep=False)[0]
+
+
+def q_curve_runs(
+    z: Tensor,
+    dt: Tensor,
+    meas_var: Tensor | float | Sequence[float],
+    q: float,
+    smoothed: bool = True,
+    factors: tuple[float, ...] = Q_FACTORS,
+    keep: bool = True,
+) -> tuple[QCurves, CurveRuns | None]:
+    """:func:`q_curves`, and with ``keep`` the passes' estimates (:class:`CurveRuns`): those of
+    :func:`kalman` with ``q`` times each factor on the tracks from their two-point prior
+    (:func:`~torchsvs.datasets.with_prior`'s), which a Kalman smoother's (filter's) run at one
+    of those ``q`` need not repeat."""
     m = z.shape[-1]
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
     counted = ~torch.isnan(z64) & _scored(z64).unsqueeze(-1)
     prior = two_point_prior(z64, dt64, r)
+    B, T, _ = z64.shape
+    runs = None
+    if keep:
+        runs = CurveRuns(
+            z64.new_empty(len(factors), B, T, 2 * m), z64.new_empty(len(factors), B, T, m)
+        )
     risks = []
-    with threads_for(1, 1):
-        for factor in factors:
-            risk = _sure(z64, dt64, prior, r, q * factor, smoothed)
-            risks.append(torch.where(counted, risk, 0.0).sum((1, 2)))
-    return QCurves(torch.stack(risks), counted.sum((1, 2)).to(torch.float64))
+    for i, factor in enumerate(factors):  # (the passes thread a large batch themselves)
+        out = _run(z64, dt64, prior, r, q * factor, smoothed)
+        leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+        risk = _sure_of(z64, r, out.mean[..., 0::2], leverage, math.inf)
+        risks.append(torch.where(counted, risk, 0.0).sum((1, 2)))
+        if runs is not None:
+            runs.mean[i] = out.mean
+            runs.position_var[i] = leverage
+    return QCurves(torch.stack(risks), counted.sum((1, 2)).to(torch.float64)), runs
 
 
 def track_q_factors(

@@ -221,7 +221,7 @@ def _short_gaps(time: Tensor, seen: Tensor, before: Tensor, after: Tensor) -> Te
     return ok_in & ok_out
 
 
-def _windows(d2: Tensor, k: int, at: tuple[Tensor, Tensor]) -> Tensor:
+def _windows(d2: Tensor, k: int, at: tuple[Tensor, ...]) -> Tensor:
     """``[n, 2k+1]`` the ``d²`` of the ``k`` judged rows on either side of each row ``at``
     (track and step indices of ``n`` judged rows), the row itself in the middle, NaN past a
     track's judged rows (so "k judged rows away" is k places)."""
@@ -234,7 +234,7 @@ def _windows(d2: Tensor, k: int, at: tuple[Tensor, Tensor]) -> Tensor:
     return packed[track.unsqueeze(1), columns]
 
 
-def _local_median(d2: Tensor, k: int, at: tuple[Tensor, Tensor]) -> Tensor:
+def _local_median(d2: Tensor, k: int, at: tuple[Tensor, ...]) -> Tensor:
     """``[n]`` the median ``d²`` of the ``k`` judged rows on either side of each row ``at``
     (:func:`_windows`; the row itself left out; NaN where there are none)."""
     window = _windows(d2, k, at)
