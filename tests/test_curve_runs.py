@@ -70,12 +70,12 @@ def test_estimates_and_error_terms_from_the_curves_are_the_runs_own(name, monkey
     tracks = _batch()
     settings = _settings(tracks, name)
     estimator = make_estimator(settings, make_model(settings)).double()
-    assert estimating._is_curves_estimator(estimator, settings)
+    assert estimating.is_curves_estimator(estimator, settings)
     moved, offset = centred(tracks)
     batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
     meas_std = torch.full((2,), SIGMA, dtype=torch.float64)
     reused = estimate_group(estimator, batch, meas_std, settings=settings)
-    monkeypatch.setattr(estimating, "_is_curves_estimator", lambda *_: False)
+    monkeypatch.setattr(estimating, "is_curves_estimator", lambda *_: False)
     rerun = estimate_group(estimator, batch, meas_std, settings=settings)
     assert reused.q_factor is not None and rerun.q_factor is not None
     assert len(np.unique(reused.q_factor)) > 1  # tracks of several factors
@@ -106,10 +106,10 @@ def test_a_smoother_the_curves_do_not_run_is_run_again():
     smoother's: not the curves' estimator."""
     tracks = _batch()
     settings = _settings(tracks, "ks")
-    assert not estimating._is_curves_estimator(
+    assert not estimating.is_curves_estimator(
         make_estimator(Settings("ks", meas_var=settings.meas_var, q=settings.q, lag=5),
                        make_model(settings)), settings)  # fmt: skip
     other = Settings("ks", meas_var=settings.meas_var, q=2 * settings.q)
-    assert not estimating._is_curves_estimator(make_estimator(other, make_model(other)), settings)
+    assert not estimating.is_curves_estimator(make_estimator(other, make_model(other)), settings)
     kf = Settings("kf", meas_var=settings.meas_var, q=settings.q)
-    assert not estimating._is_curves_estimator(make_estimator(kf, make_model(kf)), settings)
+    assert not estimating.is_curves_estimator(make_estimator(kf, make_model(kf)), settings)

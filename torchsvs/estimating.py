@@ -33,6 +33,13 @@ from torchsvs.accuracy import (
     risk_terms,
 )
 from torchsvs.accuracy import accuracy as accuracy_of
+from torchsvs.curve_estimates import (
+    curve_run,
+    is_curves_estimator,
+    linear_gaussian,
+    meas_var_of,
+    run_risk_terms,
+)
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
 from torchsvs.datasets.reading import short_track_notes
 from torchsvs.datasets.writing import flat_steps
@@ -43,7 +50,6 @@ from torchsvs.fitting import noise
 from torchsvs.fitting.defaults import complete_settings, meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
-from torchsvs.models.base import LinearModel
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings, make_estimator, make_model
 from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
@@ -272,7 +278,7 @@ def _estimate_factors(
     noise_range = None if settings is None else meas_var_range(settings, GUARD_ERRORS)
     if settings is None or settings.q_curve is None:
         return _estimate_part(estimator, batch, meas_std, covariance, risk, noise_range)
-    reuse = not covariance and _is_curves_estimator(estimator, settings)
+    reuse = not covariance and is_curves_estimator(estimator, settings)
     factors, runs = _q_factors(settings, batch.tracks, reuse)
     parts = []
     for factor in torch.unique(factors).tolist():
@@ -283,7 +289,7 @@ def _estimate_factors(
             batch.tracks.subset(index),
             batch.offset[index],
         )
-        run = None if runs is None else _curve_run(runs, factor, settings, index)
+        run = None if runs is None else curve_run(runs, factor, settings, index)
         if run is not None:
             found = _estimate_from_run(estimator, part, meas_std, risk, *run)
         else:
@@ -318,44 +324,6 @@ def _q_factors(
     if settings.estimator in UPWARD_Q_ONLY:
         factors = factors.clamp_min(1.0)
     return factors, runs
-
-
-def _is_curves_estimator(estimator: nn.Module, settings: Settings) -> bool:
-    """Whether ``estimator`` is the Kalman smoother (fixed interval) or filter that the
-    settings' SURE curves run (:func:`~torchsvs.fitting.noise.kalman`, up to the estimator's
-    dtype): the same model, ``q`` and noise, so a track's estimate at its factor is that
-    curve's pass."""
-    if not _linear_gaussian(estimator) or settings.q is None or settings.meas_var is None:
-        return False
-    smoothed = isinstance(estimator, RTSSmoother)
-    if smoothed != (settings.estimator not in FILTERS) or getattr(estimator, "lag", None):
-        return False
-    model = estimator.model
-    if type(model) is not ConstantVelocity:
-        return False
-    q = float(model.q().detach().double())
-    r = _meas_var(estimator).double()
-    wanted = torch.tensor(settings.meas_var, dtype=torch.float64)
-    return math.isclose(q, settings.q, rel_tol=CURVE_MATCH) and bool(
-        torch.allclose(r, wanted, rtol=CURVE_MATCH, atol=0.0)
-    )
-
-
-#: :func:`_is_curves_estimator`'s relative tolerance on ``q`` and the noise: a float32
-#: estimator's parameters hold the settings' to ~1e-7.
-CURVE_MATCH = 1e-5
-
-
-def _curve_run(
-    runs: noise.CurveRuns, factor: float, settings: Settings, index: Tensor
-) -> tuple[Tensor, Tensor, float] | None:
-    """The tracks ``index``'s pass at ``factor`` among the curves' (their mean, position
-    variances and ``q``), or None where the curves ran no such ``q``."""
-    assert settings.q is not None
-    for i, f in enumerate(noise.Q_FACTORS):
-        if math.isclose(f, factor, rel_tol=1e-9):
-            return runs.mean[i, index], runs.position_var[i, index], settings.q * f
-    return None
 
 
 @contextlib.contextmanager
@@ -472,36 +440,20 @@ def _estimate_from_run(
     position_var: Tensor,
     q: float,
 ) -> StepEstimates:
-    """:func:`_estimate_part` of a Kalman smoother or filter (:func:`_is_curves_estimator`)
-    whose run on the group is given: its ``mean [B, T, 2m]`` and ``position_var [B, T, m]``
-    (float64, at ``q``, from the SURE curves' pass). The error estimate's terms are those of
-    its own run: the divergence exact (:class:`SelfReference`) but at each axis's first two
-    observations, which the two-point prior reads; there the probe's, from one float64 run of
-    the same smoother on the probed measurements (the probe drawn as
+    """:func:`_estimate_part` of a Kalman smoother or filter
+    (:func:`~torchsvs.curve_estimates.is_curves_estimator`) whose run on the group is given:
+    its ``mean [B, T, 2m]`` and ``position_var [B, T, m]`` (float64, at ``q``, from the SURE
+    curves' pass), the error terms from them
+    (:func:`~torchsvs.curve_estimates.run_risk_terms`, the probe drawn as
     :func:`_estimate_part` draws it)."""
     tracks = with_prior(batch.tracks, meas_std)
-    notes = short_track_notes(tracks)
     terms = None
     if risk:
-        z = batch.tracks.z.double()
-        std = meas_std.double()
-        r = std.square()
         step = getattr(estimator, "probe_step", PROBE_STEP)
         seed = torch.Generator().manual_seed(PROBE_SEED + batch.position)
-        probe = draw_probe(z, std, step, seed)
-        probed = with_prior(replace(batch.tracks.to(torch.float64), z=probe.measurements), std)
-        kalman = noise.kalman(z.shape[-1], q, r, isinstance(estimator, RTSSmoother))
-        shifted = run_result(kalman, probed, keep="mean").mean[..., 0::2]
-        terms = risk_terms(
-            lambda _: shifted,  # (the probe's measurements: run above)
-            z,
-            mean[..., 0::2],
-            std,
-            None,
-            reference=Reference(exact_divergence(z, position_var, r), beta=1.0),
-            probe=probe,
-        )
-    return _step_estimates(batch, tracks, mean, None, notes, terms)
+        smoothed = isinstance(estimator, RTSSmoother)
+        terms = run_risk_terms(batch.tracks, meas_std, mean, position_var, q, smoothed, step, seed)
+    return _step_estimates(batch, tracks, mean, None, short_track_notes(tracks), terms)
 
 
 class LinearReference:
@@ -512,7 +464,7 @@ class LinearReference:
     def __init__(
         self, kalman: nn.Module, tracks: RecordedTracks, meas_std: Tensor, probe: Probe
     ) -> None:
-        self.meas_var = _meas_var(kalman)
+        self.meas_var = meas_var_of(kalman)
         self.z = tracks.z
         self.plain = run_result(kalman, tracks, keep="moments")
         shifted = with_prior(replace(tracks, z=probe.measurements), meas_std)
@@ -533,7 +485,7 @@ class SelfReference:
     """The control variate of a Kalman filter or smoother: its own divergence, exact."""
 
     def __init__(self, estimator: nn.Module, tracks: RecordedTracks) -> None:
-        self.meas_var = _meas_var(estimator)
+        self.meas_var = meas_var_of(estimator)
         self.z = tracks.z
 
     def reference(self, result: Any, filtered: bool = False) -> Reference:
@@ -550,7 +502,7 @@ def reference_for(
     Kalman smoother (the Kalman filter for a filter's output ``out``) on the estimator's own
     model, run on the same tracks and ``probe``; ``None`` for the particle filters (their
     draws differ between runs)."""
-    if _linear_gaussian(estimator):
+    if linear_gaussian(estimator):
         return SelfReference(estimator, tracks)
     model = getattr(estimator, "model", None)
     if isinstance(estimator, ParticleFilter) or not isinstance(model, ConstantVelocity):
@@ -558,24 +510,6 @@ def reference_for(
     kf = KalmanFilter(model)
     smoothed = isinstance(out, (SmootherResult, IMMSmootherResult))
     return LinearReference(RTSSmoother(kf) if smoothed else kf, tracks, meas_std, probe)
-
-
-def _meas_var(estimator: nn.Module) -> Tensor:
-    """``[m]`` the estimator's own measurement variances (its gain's ``R``)."""
-    model: Any = estimator.model
-    return model.meas_cov().detach().diagonal()
-
-
-def _linear_gaussian(estimator: nn.Module) -> bool:
-    """Whether the estimator is a Kalman filter or an RTS smoother over one (its estimate
-    linear in ``z``, with the gain ``P Hᵀ R⁻¹``)."""
-    if type(estimator) is RTSSmoother:
-        return not estimator.projection_gain and _linear_gaussian(estimator.filter)
-    return (
-        type(estimator) is KalmanFilter
-        and estimator.adaptive_noise is None
-        and isinstance(estimator.model, LinearModel)
-    )
 
 
 def _paired_run(

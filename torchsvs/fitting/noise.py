@@ -100,8 +100,10 @@ def kalman(m: int, q: float, r: Tensor, smoothed: bool = True) -> Any:
     return RTSSmoother(kf) if smoothed else kf
 
 
-def _run(z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool) -> Any:
-    """:func:`kalman`'s means and covariances on ``z`` from ``prior`` (no gradients). The
+def smoother_run(
+    z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool = True
+) -> Any:
+    """:func:`kalman`'s means and covariances on ``z`` from ``prior`` (no gradients), float64. The
     smoother's filter pass keeps its means alone (the compiled pass then never writes the
     filter's covariances: a third less time)."""
     estimator = kalman(z.shape[-1], q, r, smoothed)
@@ -115,7 +117,8 @@ def _run(z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool)
 
 def _sure_of(z: Tensor, r: Tensor, mean: Tensor, leverage: Tensor, clip: float) -> Tensor:
     """:func:`_sure`'s terms from the positions' estimate ``mean`` and variance ``leverage``."""
-    return ((z - mean).square() - r + 2.0 * leverage).clamp_max(clip * r)
+    risk = (z - mean).square() - r + 2.0 * leverage
+    return risk if clip == math.inf else risk.clamp_max(clip * r)
 
 
 def _sure(
@@ -125,7 +128,7 @@ def _sure(
     Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
     ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
     outliers do not drive, as their terms stay at the clip whatever ``q``)."""
-    out = _run(z, dt, prior, r, q, smoothed)
+    out = smoother_run(z, dt, prior, r, q, smoothed)
     leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
     return _sure_of(z, r, out.mean[..., 0::2], leverage, clip)
 
@@ -300,7 +303,7 @@ def q_curve_runs(
         )
     risks = []
     for i, factor in enumerate(factors):  # (the passes thread a large batch themselves)
-        out = _run(z64, dt64, prior, r, q * factor, smoothed)
+        out = smoother_run(z64, dt64, prior, r, q * factor, smoothed)
         leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
         risk = _sure_of(z64, r, out.mean[..., 0::2], leverage, math.inf)
         risks.append(torch.where(counted, risk, 0.0).sum((1, 2)))

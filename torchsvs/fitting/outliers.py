@@ -44,9 +44,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
-from torchsvs.filters import KalmanFilter
-from torchsvs.models import ConstantVelocity
-from torchsvs.smoothers import RTSSmoother
+from torchsvs.fitting.noise import smoother_run
 
 #: A row that fits the model is flagged with at most this probability (χ² tail): on a million
 #: rows about one. Residuals of a maneuver the smoother's ``q`` does not follow have heavier
@@ -98,9 +96,7 @@ def outlier_distances(
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     prior = two_point_prior(z64, dt64, r, inflation=DIFFUSE)
-    kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
-    with torch.no_grad():  # (the smoother threads a large batch itself)
-        out = RTSSmoother(kf)(z64, prior.x0, prior.P0, dt=dt64, keep="moments")
+    out = smoother_run(z64, dt64, prior, r, q)
     leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2] / r
     d2 = ((z64 - out.mean[..., 0::2]).square() / (r * (1.0 - leverage).clamp_min(1e-12))).sum(-1)
     judged = ~torch.isnan(z64).any(-1) & (leverage <= MAX_LEVERAGE).all(-1)
