@@ -21,7 +21,8 @@ SIGMA = 20.0
 
 def _batch() -> RecordedTracks:
     """Quiet and maneuvering tracks at irregular intervals, with 10σ outliers, missing rows, an
-    axis missing for a stretch, an axis seen once, tracks of 1, 2 and 3 rows, and padding."""
+    axis missing for a stretch, an axis seen once, tracks of 1, 2 and 3 rows, and padding (the
+    quiet tracks shorter than the others)."""
     gen = torch.Generator().manual_seed(3)
     B, T = 24, 90
     dt = (0.5 + 2.0 * torch.rand(B, T, generator=gen)).double()
@@ -36,6 +37,7 @@ def _batch() -> RecordedTracks:
     z[7, :, 1] = math.nan
     z[7, 10, 1] = 5e4
     lengths = torch.full((B,), T, dtype=torch.int64)
+    lengths[::2] = 70  # the quiet tracks shorter: their factors' parts are trimmed
     lengths[[1, 2, 4, 6]] = torch.tensor([1, 2, 3, 50])
     padded = torch.arange(T) >= lengths.unsqueeze(1)
     z[padded] = math.nan

@@ -289,7 +289,8 @@ def _estimate_factors(
             batch.tracks.subset(index),
             batch.offset[index],
         )
-        run = None if runs is None else curve_run(runs, factor, settings, index)
+        steps = part.tracks.z.shape[1]
+        run = None if runs is None else curve_run(runs, factor, settings, index, steps)
         if run is not None:
             found = _estimate_from_run(estimator, part, meas_std, risk, *run)
         else:
