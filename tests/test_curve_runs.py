@@ -115,3 +115,23 @@ def test_a_smoother_the_curves_do_not_run_is_run_again():
     assert not estimating.is_curves_estimator(make_estimator(other, make_model(other)), settings)
     kf = Settings("kf", meas_var=settings.meas_var, q=settings.q)
     assert not estimating.is_curves_estimator(make_estimator(kf, make_model(kf)), settings)
+
+
+def test_the_probes_run_in_float32_is_the_float64_divergence_to_its_precision():
+    """The probe's response runs in the estimator's dtype: in float32 each chunk's divergence
+    (a sum of at most 64 components of size ~1, all but each axis's first two exact from the
+    float64 curves) is the float64 one to 1e-4."""
+    tracks = _batch()
+    settings = _settings(tracks, "ks")
+    estimator = make_estimator(settings, make_model(settings))
+    moved, offset = centred(tracks)
+    found = {}
+    for dtype in (torch.float32, torch.float64):
+        batch = GroupBatch(0, np.arange(len(tracks)), moved.to(dtype), offset)
+        meas_std = torch.full((2,), SIGMA, dtype=dtype)
+        found[dtype] = estimate_group(estimator.to(dtype), batch, meas_std, settings=settings)
+    single, double = found[torch.float32].risk, found[torch.float64].risk
+    assert single is not None and double is not None
+    assert np.array_equal(single.track, double.track)
+    assert np.abs(single.divergence - double.divergence).max() < 1e-4
+    assert np.abs(double.divergence).max() > 1.0
