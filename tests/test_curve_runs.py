@@ -13,6 +13,7 @@ import torch
 from torchsvs import estimating
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import GroupBatch, centred, estimate_group
+from torchsvs.fitting import noise
 from torchsvs.fitting.noise import q_curves, smoother_q
 from torchsvs.recipes import Settings, make_estimator, make_model
 
@@ -64,11 +65,14 @@ def _flat(found: estimating.StepEstimates) -> tuple[np.ndarray, np.ndarray]:
     return found.steps[order], found.mean[order]
 
 
-@pytest.mark.parametrize("name", ["ks", "kf"])
-def test_estimates_and_error_terms_from_the_curves_are_the_runs_own(name, monkeypatch):
+@pytest.mark.parametrize(("name", "cells"), [("ks", None), ("kf", None), ("ks", 500)])
+def test_estimates_and_error_terms_from_the_curves_are_the_runs_own(name, cells, monkeypatch):
     """float64, so the two paths agree to rounding: the estimates, each track's factor, the
     outliers set aside and SURE's sums per chunk (the divergence exact from the run's own
-    covariances, and at the first two observations the same probe's) are the same."""
+    covariances, and at the first two observations the same probe's) are the same; also with
+    the curves' passes run five tracks at a time (``cells``)."""
+    if cells is not None:
+        monkeypatch.setattr(noise, "CHUNK_CELLS", cells)
     tracks = _batch()
     settings = _settings(tracks, name)
     estimator = make_estimator(settings, make_model(settings)).double()
@@ -135,3 +139,31 @@ def test_the_probes_run_in_float32_is_the_float64_divergence_to_its_precision():
     assert np.array_equal(single.track, double.track)
     assert np.abs(single.divergence - double.divergence).max() < 1e-4
     assert np.abs(double.divergence).max() > 1.0
+
+
+def test_curves_run_by_chunks_are_the_whole_batchs():
+    """The curves, the factors and the passes kept are the same whatever the chunk (to the
+    rounding of another split of the batch: sums, and the compiled loop's lanes of several
+    tracks, ~1e-11 relative)."""
+    tracks = _batch()
+    settings = _settings(tracks, "ks")
+    assert settings.q_curve is not None and settings.q is not None
+    pooled = settings.q_curve
+
+    def found(cells: int) -> tuple:
+        noise.CHUNK_CELLS, kept = cells, noise.CHUNK_CELLS
+        try:
+            return noise.q_curve_runs(
+                tracks.z, tracks.dt, settings.meas_var, settings.q,
+                choose=lambda c: noise.track_q_factors(c, pooled), keep=True,
+            )  # fmt: skip
+        finally:
+            noise.CHUNK_CELLS = kept
+
+    whole, parts = found(1 << 20), found(7 * 90)
+    torch.testing.assert_close(whole[0].risk, parts[0].risk, rtol=1e-9, atol=1e-6)
+    assert torch.equal(whole[1], parts[1])
+    assert whole[2] is not None and parts[2] is not None and bool(whole[2].ran.all())
+    assert torch.equal(whole[2].ran, parts[2].ran)
+    for a, b in zip(whole[2][:2], parts[2][:2], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-6, equal_nan=True)

@@ -73,18 +73,16 @@ CURVE_MATCH = 1e-5
 
 
 def curve_run(
-    runs: noise.CurveRuns, factor: float, settings: Settings, index: Tensor, steps: int
+    runs: noise.CurveRuns, index: Tensor, steps: int, q: float
 ) -> tuple[Tensor, Tensor, float] | None:
-    """The tracks ``index``'s pass at ``factor`` among the curves' (their mean and position
-    variances over their first ``steps`` steps, and ``q``), or None where the curves ran no
-    such ``q``. (A smoother's estimates do not depend on the padding after a track's last
-    step, so the group's pass serves tracks trimmed to their own longest length.)"""
-    assert settings.q is not None
-    for i, f in enumerate(noise.Q_FACTORS):
-        if math.isclose(f, factor, rel_tol=1e-9):
-            mean, variance = runs.mean[i, index, :steps], runs.position_var[i, index, :steps]
-            return mean, variance, settings.q * f
-    return None
+    """The tracks ``index``'s passes at their factor (one ``q`` for all of them) among the
+    curves': their mean and position variances over their first ``steps`` steps, and ``q``;
+    or None where the curves ran no such ``q``. (A smoother's estimates do not depend on the
+    padding after a track's last step, so the group's pass serves tracks trimmed to their own
+    longest length.)"""
+    if not bool(runs.ran[index].all()):
+        return None
+    return runs.mean[index, :steps], runs.position_var[index, :steps], q
 
 
 def run_risk_terms(

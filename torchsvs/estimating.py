@@ -290,7 +290,7 @@ def _estimate_factors(
             batch.offset[index],
         )
         steps = part.tracks.z.shape[1]
-        run = None if runs is None else curve_run(runs, factor, settings, index, steps)
+        run = None if runs is None else curve_run(runs, index, steps, settings.q * factor)
         if run is not None:
             found = _estimate_from_run(estimator, part, meas_std, risk, *run)
         else:
@@ -309,21 +309,26 @@ def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
 def _q_factors(
     settings: Settings, tracks: RecordedTracks, keep: bool
 ) -> tuple[Tensor, noise.CurveRuns | None]:
-    """:func:`settings_q_factors`, and with ``keep`` the curves' passes
+    """:func:`settings_q_factors`, and with ``keep`` the curves' passes at them
     (:func:`~torchsvs.fitting.noise.q_curve_runs`)."""
     assert settings.q_curve is not None and settings.meas_var is not None
     assert settings.q is not None
-    curves, runs = noise.q_curve_runs(
+    pooled = settings.q_curve
+
+    def choose(curves: noise.QCurves) -> Tensor:
+        factors = noise.track_q_factors(curves, pooled)
+        return factors.clamp_min(1.0) if settings.estimator in UPWARD_Q_ONLY else factors
+
+    _, factors, runs = noise.q_curve_runs(
         tracks.z,
         tracks.dt,
         settings.meas_var,
         settings.q,
         settings.estimator not in FILTERS,
+        choose=choose,
         keep=keep,
     )
-    factors = noise.track_q_factors(curves, settings.q_curve)
-    if settings.estimator in UPWARD_Q_ONLY:
-        factors = factors.clamp_min(1.0)
+    assert factors is not None
     return factors, runs
 
 

@@ -12,7 +12,7 @@ maximising the Kalman filter's innovation likelihood.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -100,15 +100,12 @@ def kalman(m: int, q: float, r: Tensor, smoothed: bool = True) -> Any:
     return RTSSmoother(kf) if smoothed else kf
 
 
-def smoother_run(
-    z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool = True
-) -> Any:
-    """:func:`kalman`'s means and covariances on ``z`` from ``prior`` (no gradients), float64. The
-    smoother's filter pass keeps its means alone (the compiled pass then never writes the
-    filter's covariances: a third less time)."""
-    estimator = kalman(z.shape[-1], q, r, smoothed)
+def smoother_run(estimator: Any, z: Tensor, dt: Tensor, prior: Any) -> Any:
+    """The means and covariances of ``estimator`` (:func:`kalman`'s) on ``z`` from ``prior``
+    (no gradients). The smoother's filter pass keeps its means alone (the compiled pass then
+    never writes the filter's covariances: a third less time)."""
     with torch.no_grad():
-        if not smoothed:
+        if not isinstance(estimator, RTSSmoother):
             return estimator(z, prior.x0, prior.P0, dt=dt, keep="moments")
         inputs = prepare_inputs(estimator.model, z, prior.x0, prior.P0, dt=dt, keep="mean")
         with threads_for(inputs.batch, estimator.model.state_dim):
@@ -128,7 +125,7 @@ def _sure(
     Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
     ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
     outliers do not drive, as their terms stay at the clip whatever ``q``)."""
-    out = smoother_run(z, dt, prior, r, q, smoothed)
+    out = smoother_run(kalman(z.shape[-1], q, r, smoothed), z, dt, prior)
     leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
     return _sure_of(z, r, out.mean[..., 0::2], leverage, clip)
 
@@ -256,11 +253,30 @@ class QCurves(NamedTuple):
 
 
 class CurveRuns(NamedTuple):
-    """The passes behind :class:`QCurves` (:func:`q_curve_runs`): what the Kalman smoother (or
-    filter) estimates at each factor, float64."""
+    """The passes behind :class:`QCurves` at each track's chosen factor
+    (:func:`q_curve_runs`): what the Kalman smoother (or filter) estimates there, float64."""
 
-    mean: Tensor  #: [F, B, T, 2m] the state's mean
-    position_var: Tensor  #: [F, B, T, m] the positions' variances
+    mean: Tensor  #: [B, T, 2m] the state's mean
+    position_var: Tensor  #: [B, T, m] the positions' variances
+    ran: Tensor  #: [B] bool the chosen factor is among the curves' (else mean, var unset)
+
+
+#: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of a
+#: large group in turn, on one thread): a pass's outputs (~200 bytes a cell) stay in cache for
+#: the sums read off them and in memory the allocator reuses. On 10^6 rows (2 groups of 2^19
+#: cells) the estimating stage of ``track --estimator ks`` took 3.05 s of CPU a whole group a
+#: pass (1.69 s of it in the system: the page faults of ~100 MB of fresh pages a pass), 2.0 s
+#: at 2^17 and 2^18 cells, 1.56 s at 2^15. On two threads (the pass's own, the elementwise
+#: sums' OpenMP threads, which spin between the passes) it took 5-10 times the CPU.
+CHUNK_CELLS = 1 << 15
+
+
+def chunks(batch: int, steps: int) -> Iterator[slice]:
+    """The tracks of a batch of ``batch`` tracks × ``steps`` in turn, :data:`CHUNK_CELLS` cells
+    at a time."""
+    rows = max(1, CHUNK_CELLS // max(steps, 1))
+    for start in range(0, batch, rows):
+        yield slice(start, start + rows)
 
 
 def q_curves(
@@ -274,7 +290,7 @@ def q_curves(
     """SURE (:func:`smoother_q`'s, exact) of the nearly-constant-velocity Kalman smoother
     (``smoothed``) or filter with ``q`` times each factor, per track: each whole track from its
     two-point prior, scored from its third observed step on."""
-    return q_curve_runs(z, dt, meas_var, q, smoothed, factors, keep=False)[0]
+    return q_curve_runs(z, dt, meas_var, q, smoothed, factors)[0]
 
 
 def q_curve_runs(
@@ -284,33 +300,54 @@ def q_curve_runs(
     q: float,
     smoothed: bool = True,
     factors: tuple[float, ...] = Q_FACTORS,
-    keep: bool = True,
-) -> tuple[QCurves, CurveRuns | None]:
-    """:func:`q_curves`, and with ``keep`` the passes' estimates (:class:`CurveRuns`): those of
-    :func:`kalman` with ``q`` times each factor on the tracks from their two-point prior
-    (:func:`~torchsvs.datasets.with_prior`'s), which a Kalman smoother's (filter's) run at one
-    of those ``q`` need not repeat."""
+    choose: Callable[[QCurves], Tensor] | None = None,
+    keep: bool = False,
+) -> tuple[QCurves, Tensor | None, CurveRuns | None]:
+    """:func:`q_curves`; with ``choose`` (a track's curve to its factor, track by track:
+    :func:`track_q_factors`) each track's factor ``[B]``, and with ``keep`` the pass at it
+    (:class:`CurveRuns`): :func:`kalman` with ``q`` times that factor on the tracks from their
+    two-point prior (:func:`~torchsvs.datasets.with_prior`'s), which a Kalman smoother's
+    (filter's) run at that ``q`` need not repeat. The passes run a chunk of tracks at a time
+    (:data:`CHUNK_CELLS`), each from the whole batch's prior."""
     m = z.shape[-1]
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
     counted = ~torch.isnan(z64) & _scored(z64).unsqueeze(-1)
-    prior = two_point_prior(z64, dt64, r)
+    prior = two_point_prior(z64, dt64, r)  # (whole: an axis seen once reads the batch)
     B, T, _ = z64.shape
+    grid = torch.tensor(factors, dtype=torch.float64)
+    risk = z64.new_empty(len(factors), B)
+    chosen = z64.new_empty(B) if choose is not None else None
     runs = None
-    if keep:
-        runs = CurveRuns(
-            z64.new_empty(len(factors), B, T, 2 * m), z64.new_empty(len(factors), B, T, m)
-        )
-    risks = []
-    for i, factor in enumerate(factors):  # (the passes thread a large batch themselves)
-        out = smoother_run(z64, dt64, prior, r, q * factor, smoothed)
-        leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-        risk = _sure_of(z64, r, out.mean[..., 0::2], leverage, math.inf)
-        risks.append(torch.where(counted, risk, 0.0).sum((1, 2)))
-        if runs is not None:
-            runs.mean[i] = out.mean
-            runs.position_var[i] = leverage
-    return QCurves(torch.stack(risks), counted.sum((1, 2)).to(torch.float64)), runs
+    if keep and chosen is not None:
+        ran = torch.zeros(B, dtype=torch.bool)
+        runs = CurveRuns(z64.new_empty(B, T, 2 * m), z64.new_empty(B, T, m), ran)
+    estimators = [kalman(m, q * factor, r, smoothed) for factor in factors]
+    with threads_for(1, 1):  # (chunks of a cache's size: one thread, :data:`CHUNK_CELLS`)
+        for part in chunks(B, T):
+            zs, seen = z64[part], counted[part]
+            at = type(prior)(*(x[part] for x in prior))
+            outs = []
+            for i, estimator in enumerate(estimators):
+                out = smoother_run(estimator, zs, dt64[part], at)
+                leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+                terms = _sure_of(zs, r, out.mean[..., 0::2], leverage, math.inf)
+                risk[i, part] = torch.where(seen, terms, 0.0).sum((1, 2))
+                outs.append((out.mean, leverage.contiguous()) if runs is not None else None)
+                del out  # (before the next pass: its buffers are the allocator's again)
+            if chosen is None or choose is None:
+                continue
+            chosen[part] = choose(QCurves(risk[:, part], seen.sum((1, 2)).to(torch.float64)))
+            if runs is None:
+                continue
+            close = torch.isclose(chosen[part].unsqueeze(0), grid.unsqueeze(1), rtol=1e-9, atol=0.0)
+            runs.ran[part] = close.any(0)
+            for i, kept in enumerate(outs):
+                assert kept is not None
+                pick = close[i]
+                runs.mean[part][pick] = kept[0][pick]
+                runs.position_var[part][pick] = kept[1][pick]
+    return QCurves(risk, counted.sum((1, 2)).to(torch.float64)), chosen, runs
 
 
 def track_q_factors(
