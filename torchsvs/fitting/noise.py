@@ -263,12 +263,14 @@ class CurveRuns(NamedTuple):
 
 #: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of a
 #: large group in turn, on one thread): a pass's outputs (~200 bytes a cell) stay in cache for
-#: the sums read off them and in memory the allocator reuses. On 10^6 rows (2 groups of 2^19
-#: cells) the estimating stage of ``track --estimator ks`` took 3.05 s of CPU a whole group a
-#: pass (1.69 s of it in the system: the page faults of ~100 MB of fresh pages a pass), 2.0 s
-#: at 2^17 and 2^18 cells, 1.56 s at 2^15. On two threads (the pass's own, the elementwise
-#: sums' OpenMP threads, which spin between the passes) it took 5-10 times the CPU.
-CHUNK_CELLS = 1 << 15
+#: the sums read off them, in memory the allocator reuses and below the size that
+#: :func:`~torchsvs.kernels.build.fresh` advises as huge pages. The estimating stage of
+#: ``track --estimator ks`` on 10^6 rows (2 groups of 2^19 cells; a shared, loaded machine)
+#: took 3.05 s of CPU with a whole group a pass (1.69 s of it in the system: page faults),
+#: 1.63 s at 2^17 cells (0.24 s system), 1.46-1.55 s at 2^16, 1.60-1.67 s at 2^15. On two
+#: threads (the pass's own, and the elementwise sums' OpenMP threads, which spin between the
+#: passes) it took several times the CPU.
+CHUNK_CELLS = 1 << 16
 
 
 def chunks(batch: int, steps: int) -> Iterator[slice]:
