@@ -12,7 +12,8 @@ maximising the Kalman filter's innovation likelihood.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import torch
@@ -261,24 +262,33 @@ class CurveRuns(NamedTuple):
     ran: Tensor  #: [B] bool the chosen factor is among the curves' (else mean, var unset)
 
 
-#: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of a
-#: large group in turn, on one thread): a pass's outputs (~200 bytes a cell) stay in cache for
-#: the sums read off them, in memory the allocator reuses and below the size that
+#: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of
+#: a large group in turn, :func:`over_chunks`): a pass's outputs (~200 bytes a cell) stay in
+#: cache for the sums read off them, in memory the allocator reuses and below the size that
 #: :func:`~torchsvs.kernels.build.fresh` advises as huge pages. The estimating stage of
-#: ``track --estimator ks`` on 10^6 rows (2 groups of 2^19 cells; a shared, loaded machine)
-#: took 3.05 s of CPU with a whole group a pass (1.69 s of it in the system: page faults),
-#: 1.63 s at 2^17 cells (0.24 s system), 1.46-1.55 s at 2^16, 1.60-1.67 s at 2^15. On two
-#: threads (the pass's own, and the elementwise sums' OpenMP threads, which spin between the
-#: passes) it took several times the CPU.
+#: ``track --estimator ks`` on 10^6 rows (2 groups of 2^19 cells; a shared, loaded machine,
+#: one thread) took 3.05 s of CPU with a whole group a pass (1.69 s of it in the system: page
+#: faults), 1.63 s at 2^17 cells (0.24 s system), 1.46-1.55 s at 2^16, 1.60-1.67 s at 2^15.
 CHUNK_CELLS = 1 << 16
 
 
-def chunks(batch: int, steps: int) -> Iterator[slice]:
-    """The tracks of a batch of ``batch`` tracks × ``steps`` in turn, :data:`CHUNK_CELLS` cells
-    at a time."""
+def over_chunks(batch: int, steps: int, work: Callable[[slice], None]) -> None:
+    """``work`` on the tracks of a batch of ``batch`` tracks × ``steps``, :data:`CHUNK_CELLS`
+    cells (a slice of tracks) at a time: the chunks spread over as many Python threads as
+    torch's intra-op count, every operation inside on one (the compiled passes and torch's
+    operations release the GIL; torch's OpenMP threads would spin between the passes). Each
+    chunk's ``work`` must write apart from the others'."""
     rows = max(1, CHUNK_CELLS // max(steps, 1))
-    for start in range(0, batch, rows):
-        yield slice(start, start + rows)
+    parts = [slice(start, start + rows) for start in range(0, batch, rows)]
+    workers = min(torch.get_num_threads(), len(parts))
+    with threads_for(1, 1):
+        if workers <= 1:
+            for part in parts:
+                work(part)
+            return
+        with ThreadPoolExecutor(workers) as pool:
+            for done in pool.map(work, parts):  # (raises a chunk's error)
+                del done
 
 
 def q_curves(
@@ -325,30 +335,32 @@ def q_curve_runs(
         ran = torch.zeros(B, dtype=torch.bool)
         runs = CurveRuns(z64.new_empty(B, T, 2 * m), z64.new_empty(B, T, m), ran)
     estimators = [kalman(m, q * factor, r, smoothed) for factor in factors]
-    with threads_for(1, 1):  # (chunks of a cache's size: one thread, :data:`CHUNK_CELLS`)
-        for part in chunks(B, T):
-            zs, seen = z64[part], counted[part]
-            at = type(prior)(*(x[part] for x in prior))
-            outs = []
-            for i, estimator in enumerate(estimators):
-                out = smoother_run(estimator, zs, dt64[part], at)
-                leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-                terms = _sure_of(zs, r, out.mean[..., 0::2], leverage, math.inf)
-                risk[i, part] = torch.where(seen, terms, 0.0).sum((1, 2))
-                outs.append((out.mean, leverage.contiguous()) if runs is not None else None)
-                del out  # (before the next pass: its buffers are the allocator's again)
-            if chosen is None or choose is None:
-                continue
-            chosen[part] = choose(QCurves(risk[:, part], seen.sum((1, 2)).to(torch.float64)))
-            if runs is None:
-                continue
-            close = torch.isclose(chosen[part].unsqueeze(0), grid.unsqueeze(1), rtol=1e-9, atol=0.0)
-            runs.ran[part] = close.any(0)
-            for i, kept in enumerate(outs):
-                assert kept is not None
-                pick = close[i]
-                runs.mean[part][pick] = kept[0][pick]
-                runs.position_var[part][pick] = kept[1][pick]
+
+    def chunk(part: slice) -> None:
+        zs, seen = z64[part], counted[part]
+        at = type(prior)(*(x[part] for x in prior))
+        outs = []
+        for i, estimator in enumerate(estimators):
+            out = smoother_run(estimator, zs, dt64[part], at)
+            leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+            terms = _sure_of(zs, r, out.mean[..., 0::2], leverage, math.inf)
+            risk[i, part] = torch.where(seen, terms, 0.0).sum((1, 2))
+            outs.append((out.mean, leverage.contiguous()) if runs is not None else None)
+            del out  # (before the next pass: its buffers are the allocator's again)
+        if chosen is None or choose is None:
+            return
+        chosen[part] = choose(QCurves(risk[:, part], seen.sum((1, 2)).to(torch.float64)))
+        if runs is None:
+            return
+        close = torch.isclose(chosen[part].unsqueeze(0), grid.unsqueeze(1), rtol=1e-9, atol=0.0)
+        runs.ran[part] = close.any(0)
+        for i, kept in enumerate(outs):
+            assert kept is not None
+            pick = close[i]
+            runs.mean[part][pick] = kept[0][pick]
+            runs.position_var[part][pick] = kept[1][pick]
+
+    over_chunks(B, T, chunk)
     return QCurves(risk, counted.sum((1, 2)).to(torch.float64)), chosen, runs
 
 
