@@ -115,7 +115,7 @@ def smoother_run(estimator: Any, z: Tensor, dt: Tensor, prior: Any) -> Any:
 
 def _sure_of(z: Tensor, r: Tensor, mean: Tensor, leverage: Tensor, clip: float) -> Tensor:
     """:func:`_sure`'s terms from the positions' estimate ``mean`` and variance ``leverage``."""
-    risk = (z - mean).square() - r + 2.0 * leverage
+    risk = (z - mean).square_().sub_(r).add_(leverage, alpha=2.0)  # (2·leverage: exact)
     return risk if clip == math.inf else risk.clamp_max(clip * r)
 
 
@@ -338,13 +338,14 @@ def q_curve_runs(
 
     def chunk(part: slice) -> None:
         zs, seen = z64[part], counted[part]
+        unseen = ~seen
         at = type(prior)(*(x[part] for x in prior))
         outs = []
         for i, estimator in enumerate(estimators):
             out = smoother_run(estimator, zs, dt64[part], at)
             leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
             terms = _sure_of(zs, r, out.mean[..., 0::2], leverage, math.inf)
-            risk[i, part] = torch.where(seen, terms, 0.0).sum((1, 2))
+            risk[i, part] = terms.masked_fill_(unseen, 0.0).sum((1, 2))
             outs.append((out.mean, leverage.contiguous()) if runs is not None else None)
             del out  # (before the next pass: its buffers are the allocator's again)
         if chosen is None or choose is None:
