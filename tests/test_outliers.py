@@ -171,3 +171,59 @@ def test_clipped_sure_reads_q_as_if_the_outliers_were_not_there():
         bad = z + (10 * SIGMA * hit)[..., None] * torch.stack([angle.cos(), angle.sin()], -1)
         assert smoother_q(bad, dt, r).q > 2 * clean
         assert abs(math.log(smoother_q(bad, dt, r, clip=SCREEN_CLIP).q / clean)) < math.log(1.5)
+
+
+def _mixed(seed: int, tracks: int = 40, steps: int = 120) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tracks at irregular intervals with 10σ outliers, pairs of them, a noisy stretch, missing
+    rows and axes, short tracks and long gaps: what the screen's shortcuts must not change."""
+    z, _, _ = _tracks(tracks=tracks, steps=steps, seed=seed)
+    gen = torch.Generator().manual_seed(seed + 100)
+    dt = (0.5 + 2.0 * torch.rand(tracks, steps, generator=gen)).double()
+    dt[::7, 60] = 40.0
+    hit = torch.rand(tracks, steps, generator=gen) < 0.03
+    z[..., 0] += 10 * SIGMA * hit
+    z[::6, 30:32, 1] += 12 * SIGMA
+    z[::5, 80:100] += 6 * SIGMA * torch.randn(len(range(0, tracks, 5)), 20, 2, generator=gen)
+    z[torch.rand(tracks, steps, generator=gen) < 0.1] = math.nan
+    z[::9, 10:50, 1] = math.nan
+    z[torch.arange(steps) >= torch.randint(1, steps + 1, (tracks, 1), generator=gen)] = math.nan
+    return z, dt
+
+
+def test_screen_of_a_batch_is_each_tracks_own():
+    """Tracks are judged apart, so later rounds run on the tracks that changed only: the flags
+    of a batch are those of each track screened alone (and some are flagged)."""
+    z, dt = _mixed(1)
+    found = screen_outliers(z, dt, [SIGMA**2] * 2, 1.0)
+    alone = torch.cat([screen_outliers(z[b : b + 1], dt[b : b + 1], [SIGMA**2] * 2, 1.0)
+                       for b in range(len(z))])  # fmt: skip
+    assert found.sum() > 10
+    assert torch.equal(found, alone)
+
+
+def test_local_median_and_largest_nearby_are_those_of_the_judged_neighbours():
+    """At every judged row, the windows' median (row left out) and maximum (row in) against
+    the judged rows listed track by track; the χ² tail test against the tail computed at every
+    row with that median."""
+    from torchsvs.fitting.outliers import CHI2_MEDIAN, _largest_nearby, _local_median, _tail_below
+
+    z, dt = _mixed(2)
+    d2 = outlier_distances(z, dt, [SIGMA**2] * 2, 10.0)
+    at = (~torch.isnan(d2)).nonzero(as_tuple=True)
+    median = _local_median(d2, 5, at)
+    largest = _largest_nearby(d2, 2, ~torch.isnan(d2))
+    scale = torch.full_like(d2, math.nan)
+    for i, (b, t) in enumerate(zip(*(x.tolist() for x in at), strict=True)):
+        rows = (~torch.isnan(d2[b])).nonzero().flatten().tolist()
+        j = rows.index(t)
+        near = sorted(d2[b, rows[max(j - 5, 0) : j] + rows[j + 1 : j + 6]].tolist())
+        expected = near[(len(near) - 1) // 2] if near else math.nan
+        assert median[i].item() == expected or (math.isnan(expected) and median[i].isnan())
+        scale[b, t] = expected
+        assert largest[b, t].item() == max(d2[b, rows[max(j - 2, 0) : j + 3]].tolist())
+    tail = torch.special.gammaincc(
+        torch.tensor(1.0, dtype=torch.float64), d2 / (scale / CHI2_MEDIAN[2]).clamp_min(1.0) / 2
+    )
+    for p in (1e-6, 1e-3, 0.2):
+        assert torch.equal(_tail_below(d2, 2, p), tail < p)
+    assert (tail < 1e-3).any()

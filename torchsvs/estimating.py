@@ -34,6 +34,13 @@ from torchsvs.accuracy import (
     risk_terms,
 )
 from torchsvs.accuracy import accuracy as accuracy_of
+from torchsvs.curve_estimates import (
+    curve_run,
+    is_curves_estimator,
+    linear_gaussian,
+    meas_var_of,
+    run_risk_terms,
+)
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
 from torchsvs.datasets.reading import short_track_notes
 from torchsvs.datasets.writing import flat_steps
@@ -44,7 +51,6 @@ from torchsvs.fitting import noise
 from torchsvs.fitting.defaults import complete_settings, meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
-from torchsvs.models.base import LinearModel
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings, make_estimator, make_model
 from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
@@ -271,7 +277,8 @@ def _estimate_factors(
     noise_range = None if settings is None else meas_var_range(settings, GUARD_ERRORS)
     if settings is None or settings.q_curve is None:
         return _estimate_part(estimator, batch, meas_std, covariance, risk, noise_range)
-    factors = settings_q_factors(settings, batch.tracks)
+    reuse = not covariance and is_curves_estimator(estimator, settings)
+    factors, runs = _q_factors(settings, batch.tracks, reuse)
     parts = []
     for factor in torch.unique(factors).tolist():
         index = torch.nonzero(factors == factor).flatten()
@@ -281,8 +288,13 @@ def _estimate_factors(
             batch.tracks.subset(index),
             batch.offset[index],
         )
-        with scaled_q(estimator, factor) as scaled:
-            found = _estimate_part(scaled, part, meas_std, covariance, risk, noise_range)
+        steps = part.tracks.z.shape[1]
+        run = None if runs is None else curve_run(runs, index, steps, settings.q * factor)
+        if run is not None:
+            found = _estimate_from_run(estimator, part, meas_std, risk, *run)
+        else:
+            with scaled_q(estimator, factor) as scaled:
+                found = _estimate_part(scaled, part, meas_std, covariance, risk, noise_range)
         parts.append(found._replace(q_factor=np.full(len(index), factor)))
     return StepEstimates.merge(parts, len(meas_std))
 
@@ -290,15 +302,33 @@ def _estimate_factors(
 def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
     """``[B]`` each track's factor on ``settings.q`` (:func:`torchsvs.fitting.noise.
     track_q_factors` against the file's curve ``settings.q_curve``)."""
+    return _q_factors(settings, tracks, False)[0]
+
+
+def _q_factors(
+    settings: Settings, tracks: RecordedTracks, keep: bool
+) -> tuple[Tensor, noise.CurveRuns | None]:
+    """:func:`settings_q_factors`, and with ``keep`` the curves' passes at them
+    (:func:`~torchsvs.fitting.noise.q_curve_runs`)."""
     assert settings.q_curve is not None and settings.meas_var is not None
     assert settings.q is not None
-    curves = noise.q_curves(
-        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
+    pooled = settings.q_curve
+
+    def choose(curves: noise.QCurves) -> Tensor:
+        factors = noise.track_q_factors(curves, pooled)
+        return factors.clamp_min(1.0) if settings.estimator in UPWARD_Q_ONLY else factors
+
+    _, factors, runs = noise.q_curve_runs(
+        tracks.z,
+        tracks.dt,
+        settings.meas_var,
+        settings.q,
+        settings.estimator not in FILTERS,
+        choose=choose,
+        keep=keep,
     )
-    factors = noise.track_q_factors(curves, settings.q_curve)
-    if settings.estimator in UPWARD_Q_ONLY:
-        factors = factors.clamp_min(1.0)
-    return factors
+    assert factors is not None
+    return factors, runs
 
 
 @contextlib.contextmanager
@@ -310,11 +340,11 @@ def scaled_q(estimator: nn.Module, factor: float) -> Iterator[nn.Module]:
     if factor == 1.0:
         yield estimator
         return
-    model = estimator.model
-    assert isinstance(model, ConstantVelocity), "scaled_q: a constant-velocity model's q"
     scaled = copy.deepcopy(estimator)
+    model = scaled.model
+    assert isinstance(model, ConstantVelocity), "scaled_q: a constant-velocity model's q"
     with torch.no_grad():
-        scaled.model.q.raw.add_(math.log(factor))  # q is stored as its log (Positive)
+        model.q.raw.add_(math.log(factor))  # q is stored as its log (constraints.Positive)
     yield scaled
 
 
@@ -380,14 +410,51 @@ def _estimate_part(
             reference=None if control is None else control.reference(out),
             probe=probe,
         )
+    return _step_estimates(batch, tracks, mean, cov if covariance else None, notes, terms)
+
+
+def _step_estimates(
+    batch: GroupBatch,
+    tracks: RecordedTracks,
+    mean: Tensor,
+    cov: Tensor | None,
+    notes: dict[str, int],
+    terms: RiskTerms | None,
+) -> StepEstimates:
+    """The group's estimates ``mean`` (and ``cov``) at the block's flat steps, the offsets
+    added back (``tracks``: the group's with their priors)."""
     if terms is not None:
         terms.track = batch.group[terms.track]
     mean = mean.double()
     mean[..., 0::2] += batch.offset.unsqueeze(1)
-    target, values, covs = flat_steps(tracks, mean, cov if covariance else None)
+    target, values, covs = flat_steps(tracks, mean, cov)
     assert tracks.never_observed is not None
     never = tracks.never_observed.numpy()
     return StepEstimates(batch.position, batch.group, target, values, covs, never, notes, terms)
+
+
+def _estimate_from_run(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    risk: bool,
+    mean: Tensor,
+    position_var: Tensor,
+    q: float,
+) -> StepEstimates:
+    """:func:`_estimate_part` of a Kalman smoother or filter
+    (:func:`~torchsvs.curve_estimates.is_curves_estimator`) whose run on the group is given:
+    its ``mean [B, T, 2m]`` and ``position_var [B, T, m]`` (float64, at ``q``, from the SURE
+    curves' pass), the error terms from them
+    (:func:`~torchsvs.curve_estimates.run_risk_terms`, the probe drawn as
+    :func:`_estimate_part` draws it)."""
+    tracks = with_prior(batch.tracks, meas_std)
+    terms = None
+    if risk:
+        step = getattr(estimator, "probe_step", PROBE_STEP)
+        smoothed = isinstance(estimator, RTSSmoother)
+        terms = run_risk_terms(batch.tracks, meas_std, mean, position_var, q, smoothed, step)
+    return _step_estimates(batch, tracks, mean, None, short_track_notes(tracks), terms)
 
 
 class LinearReference:
@@ -398,7 +465,7 @@ class LinearReference:
     def __init__(
         self, kalman: nn.Module, tracks: RecordedTracks, meas_std: Tensor, probe: Probe
     ) -> None:
-        self.meas_var = _meas_var(kalman)
+        self.meas_var = meas_var_of(kalman)
         self.z = tracks.z
         self.plain = run_result(kalman, tracks, keep="moments")
         shifted = with_prior(replace(tracks, z=probe.measurements), meas_std)
@@ -419,7 +486,7 @@ class SelfReference:
     """The control variate of a Kalman filter or smoother: its own divergence, exact."""
 
     def __init__(self, estimator: nn.Module, tracks: RecordedTracks) -> None:
-        self.meas_var = _meas_var(estimator)
+        self.meas_var = meas_var_of(estimator)
         self.z = tracks.z
 
     def reference(self, result: Any, filtered: bool = False) -> Reference:
@@ -436,7 +503,7 @@ def reference_for(
     Kalman smoother (the Kalman filter for a filter's output ``out``) on the estimator's own
     model, run on the same tracks and ``probe``; ``None`` for the particle filters (their
     draws differ between runs)."""
-    if _linear_gaussian(estimator):
+    if linear_gaussian(estimator):
         return SelfReference(estimator, tracks)
     model = getattr(estimator, "model", None)
     if isinstance(estimator, ParticleFilter) or not isinstance(model, ConstantVelocity):
@@ -444,24 +511,6 @@ def reference_for(
     kf = KalmanFilter(model)
     smoothed = isinstance(out, (SmootherResult, IMMSmootherResult))
     return LinearReference(RTSSmoother(kf) if smoothed else kf, tracks, meas_std, probe)
-
-
-def _meas_var(estimator: nn.Module) -> Tensor:
-    """``[m]`` the estimator's own measurement variances (its gain's ``R``)."""
-    model: Any = estimator.model
-    return model.meas_cov().detach().diagonal()
-
-
-def _linear_gaussian(estimator: nn.Module) -> bool:
-    """Whether the estimator is a Kalman filter or an RTS smoother over one (its estimate
-    linear in ``z``, with the gain ``P Hᵀ R⁻¹``)."""
-    if type(estimator) is RTSSmoother:
-        return not estimator.projection_gain and _linear_gaussian(estimator.filter)
-    return (
-        type(estimator) is KalmanFilter
-        and estimator.adaptive_noise is None
-        and isinstance(estimator.model, LinearModel)
-    )
 
 
 def _paired_run(

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
-from torchsvs.estimator import threads_for
+from torchsvs.estimator import prepare_inputs, threads_for
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.losses import innovation_nll
 from torchsvs.models import ConstantVelocity
@@ -92,6 +93,32 @@ def _scored(z: Tensor) -> Tensor:
     return seen & (seen.cumsum(1) >= 3)
 
 
+def kalman(m: int, q: float, r: Tensor, smoothed: bool = True) -> Any:
+    """The float64 nearly-constant-velocity Kalman smoother (RTS, fixed interval), or with
+    ``smoothed=False`` filter, with ``q`` and measurement variances ``r [m]``: the estimator
+    every SURE curve here is of."""
+    kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
+    return RTSSmoother(kf) if smoothed else kf
+
+
+def smoother_run(estimator: Any, z: Tensor, dt: Tensor, prior: Any) -> Any:
+    """The means and covariances of ``estimator`` (:func:`kalman`'s) on ``z`` from ``prior``
+    (no gradients). The smoother's filter pass keeps its means alone (the compiled pass then
+    never writes the filter's covariances: a third less time)."""
+    with torch.no_grad():
+        if not isinstance(estimator, RTSSmoother):
+            return estimator(z, prior.x0, prior.P0, dt=dt, keep="moments")
+        inputs = prepare_inputs(estimator.model, z, prior.x0, prior.P0, dt=dt, keep="mean")
+        with threads_for(inputs.batch, estimator.model.state_dim):
+            return estimator.run(inputs)  # (a smoother's run has its moments whatever it keeps)
+
+
+def _sure_of(z: Tensor, r: Tensor, mean: Tensor, leverage: Tensor, clip: float) -> Tensor:
+    """:func:`_sure`'s terms from the positions' estimate ``mean`` and variance ``leverage``."""
+    risk = (z - mean).square_().sub_(r).add_(leverage, alpha=2.0)  # (2·leverage: exact)
+    return risk if clip == math.inf else risk.clamp_max(clip * r)
+
+
 def _sure(
     z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool, clip: float = math.inf
 ) -> Tensor:
@@ -99,13 +126,9 @@ def _sure(
     Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
     ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
     outliers do not drive, as their terms stay at the clip whatever ``q``)."""
-    m = z.shape[-1]
-    kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
-    estimator = RTSSmoother(kf) if smoothed else kf
-    with torch.no_grad():
-        out = estimator(z, prior.x0, prior.P0, dt=dt, keep="moments")
+    out = smoother_run(kalman(z.shape[-1], q, r, smoothed), z, dt, prior)
     leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-    return ((z - out.mean[..., 0::2]).square() - r + 2.0 * leverage).clamp_max(clip * r)
+    return _sure_of(z, r, out.mean[..., 0::2], leverage, clip)
 
 
 def smoother_q(
@@ -230,6 +253,44 @@ class QCurves(NamedTuple):
         return (self.risk.sum(1) / self.counts.sum().clamp_min(1.0)).tolist()
 
 
+class CurveRuns(NamedTuple):
+    """The passes behind :class:`QCurves` at each track's chosen factor
+    (:func:`q_curve_runs`): what the Kalman smoother (or filter) estimates there, float64."""
+
+    mean: Tensor  #: [B, T, 2m] the state's mean
+    position_var: Tensor  #: [B, T, m] the positions' variances
+    ran: Tensor  #: [B] bool the chosen factor is among the curves' (else mean, var unset)
+
+
+#: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of
+#: a large group in turn, :func:`over_chunks`): a pass's outputs (~200 bytes a cell) stay in
+#: cache for the sums read off them, in memory the allocator reuses and below the size that
+#: :func:`~torchsvs.kernels.build.fresh` advises as huge pages. The estimating stage of
+#: ``track --estimator ks`` on 10^6 rows (2 groups of 2^19 cells; a shared, loaded machine,
+#: one thread) took 3.05 s of CPU with a whole group a pass (1.69 s of it in the system: page
+#: faults), 1.63 s at 2^17 cells (0.24 s system), 1.46-1.55 s at 2^16, 1.60-1.67 s at 2^15.
+CHUNK_CELLS = 1 << 16
+
+
+def over_chunks(batch: int, steps: int, work: Callable[[slice], None]) -> None:
+    """``work`` on the tracks of a batch of ``batch`` tracks × ``steps``, :data:`CHUNK_CELLS`
+    cells (a slice of tracks) at a time: the chunks spread over as many Python threads as
+    torch's intra-op count, every operation inside on one (the compiled passes and torch's
+    operations release the GIL; torch's OpenMP threads would spin between the passes). Each
+    chunk's ``work`` must write apart from the others'."""
+    rows = max(1, CHUNK_CELLS // max(steps, 1))
+    parts = [slice(start, start + rows) for start in range(0, batch, rows)]
+    workers = min(torch.get_num_threads(), len(parts))
+    with threads_for(1, 1):
+        if workers <= 1:
+            for part in parts:
+                work(part)
+            return
+        with ThreadPoolExecutor(workers) as pool:
+            for done in pool.map(work, parts):  # (raises a chunk's error)
+                del done
+
+
 def q_curves(
     z: Tensor,
     dt: Tensor,
@@ -241,17 +302,67 @@ def q_curves(
     """SURE (:func:`smoother_q`'s, exact) of the nearly-constant-velocity Kalman smoother
     (``smoothed``) or filter with ``q`` times each factor, per track: each whole track from its
     two-point prior, scored from its third observed step on."""
+    return q_curve_runs(z, dt, meas_var, q, smoothed, factors)[0]
+
+
+def q_curve_runs(
+    z: Tensor,
+    dt: Tensor,
+    meas_var: Tensor | float | Sequence[float],
+    q: float,
+    smoothed: bool = True,
+    factors: tuple[float, ...] = Q_FACTORS,
+    choose: Callable[[QCurves], Tensor] | None = None,
+    keep: bool = False,
+) -> tuple[QCurves, Tensor | None, CurveRuns | None]:
+    """:func:`q_curves`; with ``choose`` (a track's curve to its factor, track by track:
+    :func:`track_q_factors`) each track's factor ``[B]``, and with ``keep`` the pass at it
+    (:class:`CurveRuns`): :func:`kalman` with ``q`` times that factor on the tracks from their
+    two-point prior (:func:`~torchsvs.datasets.with_prior`'s), which a Kalman smoother's
+    (filter's) run at that ``q`` need not repeat. The passes run a chunk of tracks at a time
+    (:data:`CHUNK_CELLS`), each from the whole batch's prior."""
     m = z.shape[-1]
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
     counted = ~torch.isnan(z64) & _scored(z64).unsqueeze(-1)
-    prior = two_point_prior(z64, dt64, r)
-    risks = []
-    with threads_for(1, 1):
-        for factor in factors:
-            risk = _sure(z64, dt64, prior, r, q * factor, smoothed)
-            risks.append(torch.where(counted, risk, 0.0).sum((1, 2)))
-    return QCurves(torch.stack(risks), counted.sum((1, 2)).to(torch.float64))
+    prior = two_point_prior(z64, dt64, r)  # (whole: an axis seen once reads the batch)
+    B, T, _ = z64.shape
+    grid = torch.tensor(factors, dtype=torch.float64)
+    risk = z64.new_empty(len(factors), B)
+    chosen = z64.new_empty(B) if choose is not None else None
+    runs = None
+    if keep and chosen is not None:
+        ran = torch.zeros(B, dtype=torch.bool)
+        runs = CurveRuns(z64.new_empty(B, T, 2 * m), z64.new_empty(B, T, m), ran)
+    estimators = [kalman(m, q * factor, r, smoothed) for factor in factors]
+
+    def chunk(part: slice) -> None:
+        zs, seen = z64[part], counted[part]
+        unseen = ~seen
+        at = type(prior)(*(x[part] for x in prior))
+        outs = []
+        for i, estimator in enumerate(estimators):
+            out = smoother_run(estimator, zs, dt64[part], at)
+            leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+            terms = _sure_of(zs, r, out.mean[..., 0::2], leverage, math.inf)
+            risk[i, part] = terms.masked_fill_(unseen, 0.0).sum((1, 2))
+            outs.append((out.mean, leverage.contiguous()) if runs is not None else None)
+            del out  # (before the next pass: its buffers are the allocator's again)
+        if chosen is None or choose is None:
+            return
+        chosen[part] = choose(QCurves(risk[:, part], seen.sum((1, 2)).to(torch.float64)))
+        if runs is None:
+            return
+        close = torch.isclose(chosen[part].unsqueeze(0), grid.unsqueeze(1), rtol=1e-9, atol=0.0)
+        runs.ran[part] = close.any(0)
+        for i, kept in enumerate(outs):
+            assert kept is not None
+            pick = close[i]
+            runs.mean[part][pick] = kept[0][pick]
+            runs.position_var[part][pick] = kept[1][pick]
+
+    over_chunks(B, T, chunk)
+    return QCurves(risk, counted.sum((1, 2)).to(torch.float64)), chosen, runs
 
 
 def track_q_factors(

@@ -44,10 +44,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
-from torchsvs.estimator import threads_for
-from torchsvs.filters import KalmanFilter
-from torchsvs.models import ConstantVelocity
-from torchsvs.smoothers import RTSSmoother
+from torchsvs.fitting.noise import kalman, over_chunks, smoother_run
 
 #: A row that fits the model is flagged with at most this probability (χ² tail): on a million
 #: rows about one. Residuals of a maneuver the smoother's ``q`` does not follow have heavier
@@ -99,13 +96,20 @@ def outlier_distances(
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     prior = two_point_prior(z64, dt64, r, inflation=DIFFUSE)
-    kf = KalmanFilter(ConstantVelocity(ndim=m, q=q, r=r.tolist()).double())
-    with threads_for(1, 1), torch.no_grad():
-        out = RTSSmoother(kf)(z64, prior.x0, prior.P0, dt=dt64, keep="moments")
-    leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2] / r
-    d2 = ((z64 - out.mean[..., 0::2]).square() / (r * (1.0 - leverage).clamp_min(1e-12))).sum(-1)
-    judged = ~torch.isnan(z64).any(-1) & (leverage <= MAX_LEVERAGE).all(-1)
-    return torch.where(judged, d2, torch.nan)
+    d2 = z64.new_empty(z64.shape[:2])
+    smoother = kalman(m, q, r)
+
+    def chunk(part: slice) -> None:  # (each from the whole batch's prior)
+        zs = z64[part]
+        out = smoother_run(smoother, zs, dt64[part], type(prior)(*(x[part] for x in prior)))
+        leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2] / r
+        fit = (zs - out.mean[..., 0::2]).square() / (r * (1.0 - leverage).clamp_min(1e-12))
+        judged = ~torch.isnan(zs).any(-1) & (leverage <= MAX_LEVERAGE).all(-1)
+        d2[part] = torch.where(judged, fit.sum(-1), torch.nan)
+
+    B, T = z64.shape[:2]
+    over_chunks(B, T, chunk)
+    return d2
 
 
 def screen_outliers(
@@ -118,7 +122,9 @@ def screen_outliers(
 ) -> Tensor:
     """``[B, T]`` bool the rows of ``z [B, T, m]`` (NaN where missing) that are isolated
     outliers (module docstring), found in up to ``rounds`` rounds of two smoother passes;
-    ``q`` is the file's (the smoother that judges has :data:`AGILITY` times it)."""
+    ``q`` is the file's (the smoother that judges has :data:`AGILITY` times it). Tracks are
+    judged apart, so a round after the first runs on the tracks the one before changed only
+    (the others would find what they found), and the trial pass on those with candidates."""
     if not 0.0 < p_false < 1.0:
         raise ValueError(f"p_false: expected a probability in (0, 1), got {p_false}")
     m = z.shape[-1]
@@ -127,33 +133,66 @@ def screen_outliers(
     dt64 = dt.to(torch.float64)
     time = dt64.cumsum(1)
 
-    def tails(values: Tensor) -> tuple[Tensor, Tensor]:
-        d2 = outlier_distances(values, dt64, meas_var, AGILITY * q)
-        scale = (_local_median(d2, LOCAL) / CHI2_MEDIAN[m]).clamp_min(1.0)
-        half = torch.tensor(m / 2.0, dtype=torch.float64)
-        return torch.special.gammaincc(half, d2 / scale / 2.0), d2
+    def below(values: Tensor, dts: Tensor, p: float) -> tuple[Tensor, Tensor]:
+        d2 = outlier_distances(values, dts, meas_var, AGILITY * q)
+        return _tail_below(d2, m, p), d2
 
+    active = torch.arange(z.shape[0])  # the tracks whose rows may still change
     for _ in range(rounds):
-        tail, d2 = tails(work)
-        candidate = (tail < p_false) & (d2 >= _largest_nearby(d2, NEIGHBOURS))  # NaN: False
-        seen = ~torch.isnan(work).any(-1)
+        if not len(active):
+            break
+        rows, dts = work[active], dt64[active]
+        tail_low, d2 = below(rows, dts, p_false)
+        candidate = tail_low & (d2 >= _largest_nearby(d2, NEIGHBOURS, tail_low))  # NaN: False
+        seen = ~torch.isnan(rows).any(-1)
         before, after = _adjacent(seen)
-        candidate &= _short_gaps(time, seen, before, after) & _inside(seen, NEIGHBOURS)
-        if not candidate.any():
+        candidate &= _short_gaps(time[active], seen, before, after) & _inside(seen, NEIGHBOURS)
+        some = candidate.any(1)
+        if not some.any():
             break
         # the path without the candidates must fit their neighbours: where a neighbour is off
         # too, the two agree on a maneuver the model does not follow
-        trial = work.masked_fill(candidate.unsqueeze(-1), torch.nan)
-        off = (tails(trial)[0] < NEIGHBOUR_TAIL).nan_to_num(0.0).bool()
+        candidate, before, after = candidate[some], before[some], after[some]
+        trial = rows[some].masked_fill(candidate.unsqueeze(-1), torch.nan)
+        off = below(trial, dts[some], NEIGHBOUR_TAIL)[0]
         off = torch.nn.functional.pad(off, (0, 1))  # index T: no neighbour
         T = z.shape[1]
         new = candidate & ~off.gather(1, before.where(before >= 0, T))
         new &= ~off.gather(1, after.where(after >= 0, T))
-        if not new.any():
-            break
-        flagged |= new
-        work[new] = torch.nan
+        changed = new.any(1)
+        active = active[some][changed]
+        new = new[changed]
+        flagged[active] |= new
+        work[active] = work[active].masked_fill(new.unsqueeze(-1), torch.nan)
     return flagged
+
+
+def _tail_below(d2: Tensor, m: int, p: float) -> Tensor:
+    """``[B, T]`` bool where the χ² tail (``m`` degrees of freedom) of ``d2`` over its local
+    scale (its neighbours' median level over the χ² median, at least 1: :data:`LOCAL`) is
+    below ``p``. The scale is at least 1, so a row whose own ``d²`` has a tail of at least
+    ``p`` is not below: the scale and the tail are computed at the others only."""
+    half = torch.tensor(m / 2.0, dtype=torch.float64)
+    reach = (d2 > _chi2_floor(m, p)).nonzero(as_tuple=True)  # NaN: not reached
+    scale = (_local_median(d2, LOCAL, reach) / CHI2_MEDIAN[m]).clamp_min(1.0)
+    tail = torch.special.gammaincc(half, d2[reach] / scale / 2.0)
+    return torch.zeros_like(d2, dtype=torch.bool).index_put_(reach, tail < p)
+
+
+def _chi2_floor(m: int, p: float) -> float:
+    """A value below the χ² quantile of tail ``p`` (``m`` degrees of freedom): a ``d²`` at or
+    below it has a tail above ``p`` (bisection on the tail, then a margin of 0.1%)."""
+    half = torch.tensor(m / 2.0, dtype=torch.float64)
+    lo, hi = 0.0, 1.0
+    while float(torch.special.gammaincc(half, torch.tensor(hi / 2.0))) >= p:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if float(torch.special.gammaincc(half, torch.tensor(mid / 2.0))) >= p:
+            lo = mid
+        else:
+            hi = mid
+    return 0.999 * lo
 
 
 def _adjacent(seen: Tensor) -> tuple[Tensor, Tensor]:
@@ -187,32 +226,30 @@ def _short_gaps(time: Tensor, seen: Tensor, before: Tensor, after: Tensor) -> Te
     return ok_in & ok_out
 
 
-def _packed(d2: Tensor) -> tuple[Tensor, Tensor]:
-    """The judged rows of each track packed to the front (NaN after), and the order that did it
-    (so "k judged rows away" is k places)."""
+def _windows(d2: Tensor, k: int, at: tuple[Tensor, ...]) -> Tensor:
+    """``[n, 2k+1]`` the ``d²`` of the ``k`` judged rows on either side of each row ``at``
+    (track and step indices of ``n`` judged rows), the row itself in the middle, NaN past a
+    track's judged rows (so "k judged rows away" is k places)."""
     seen = ~torch.isnan(d2)
-    order = torch.argsort((~seen).to(torch.int8), dim=1, stable=True)
-    return d2.gather(1, order), order
+    order = torch.argsort((~seen).to(torch.int8), dim=1, stable=True)  # judged rows first
+    packed = torch.nn.functional.pad(d2.gather(1, order), (k, k), value=torch.nan)
+    place = torch.empty_like(order).scatter_(1, order, torch.arange(d2.shape[1]).expand_as(order))
+    track, step = at
+    columns = place[track, step].unsqueeze(1) + torch.arange(2 * k + 1)  # (padded by k)
+    return packed[track.unsqueeze(1), columns]
 
 
-def _unpacked(values: Tensor, order: Tensor) -> Tensor:
-    """``values`` of packed rows (:func:`_packed`) back at their rows."""
-    return torch.empty_like(values).scatter_(1, order, values)
+def _local_median(d2: Tensor, k: int, at: tuple[Tensor, ...]) -> Tensor:
+    """``[n]`` the median ``d²`` of the ``k`` judged rows on either side of each row ``at``
+    (:func:`_windows`; the row itself left out; NaN where there are none)."""
+    window = _windows(d2, k, at)
+    window[:, k] = torch.nan
+    return window.nanmedian(-1).values
 
 
-def _local_median(d2: Tensor, k: int) -> Tensor:
-    """``[B, T]`` the median ``d²`` of the ``k`` judged rows on either side (the row itself
-    left out; NaN where there are none)."""
-    packed, order = _packed(d2)
-    padded = torch.nn.functional.pad(packed, (k, k), value=torch.nan)
-    window = padded.unfold(1, 2 * k + 1, 1).clone()  # [B, T, 2k+1]
-    window[..., k] = torch.nan
-    return _unpacked(window.nanmedian(-1).values, order)
-
-
-def _largest_nearby(d2: Tensor, k: int) -> Tensor:
-    """``[B, T]`` the largest ``d²`` within ``k`` observed rows on either side (rows without one
-    skipped), NaN-safe."""
-    packed, order = _packed(d2)
-    padded = torch.nn.functional.pad(packed.nan_to_num(-1.0), (k, k), value=-1.0)
-    return _unpacked(padded.unfold(1, 2 * k + 1, 1).amax(-1), order)
+def _largest_nearby(d2: Tensor, k: int, where: Tensor) -> Tensor:
+    """``[B, T]`` the largest ``d²`` within ``k`` judged rows on either side (rows without one
+    skipped) at the rows ``where`` (``[B, T]`` bool, judged rows), NaN elsewhere."""
+    at = where.nonzero(as_tuple=True)
+    largest = _windows(d2, k, at).nan_to_num(-1.0).amax(-1)
+    return torch.full_like(d2, torch.nan).index_put_(at, largest)

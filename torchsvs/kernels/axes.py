@@ -244,9 +244,11 @@ def run_axes(
         training = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma))
         # A lag other than 1 smooths in the filter's pass where less than all is kept (and
         # there is a step to smooth); else the smoother's own pass reads the whole record.
+        # Never chosen by the batch's size: a track's numbers must not depend on which tracks
+        # share its batch (the two loops round differently, ~1e-13; torchsvs.track_table's
+        # parts); and together was the faster at every size measured (float64, one thread:
+        # 227 against 958 ns a step at 2000 x 8000, 111 against 150 at 20000 x 100).
         together = smoothing is not None and lag != 1 and keep != "all" and steps > 1
-        if together and not training:  # where it pays: see _TOGETHER
-            together = B * m >= _TOGETHER["lanes"] and steps <= _TOGETHER["steps"]
         if smoothing is not None and lag != 1 and not together:
             keep, smoothing = "all", None
         if training:
@@ -318,15 +320,6 @@ def run_axes(
     )
     out = interleaved(res, velocity)
     return AxesPass(res, out, _last(out))
-
-
-#: Without gradients, the filter and a smoother of lag other than 1 run together
-#: (:func:`fused_axes.filter_smoother`) from this many lanes (tracks × axes: a vector of float32
-#: lanes filled twice) and up to this many steps (a vector's record, ~2 kB a step, stays in
-#: cache); else the record is written and smoothed after (faster for long tracks: the RTS's own
-#: fixed-interval loop is lighter than the general recursion).
-#: With gradients they always run together: the whole record's reverse mode costs far more.
-_TOGETHER = {"lanes": 16, "steps": 4096}
 
 
 def _last(out: Interleaved) -> fused_axes.Last:
