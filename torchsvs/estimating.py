@@ -25,7 +25,6 @@ from torch import Tensor, nn
 
 from torchsvs.accuracy import (
     PROBE_STEP,
-    Accuracy,
     Probe,
     Reference,
     RiskTerms,
@@ -33,7 +32,6 @@ from torchsvs.accuracy import (
     exact_divergence,
     risk_terms,
 )
-from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.curve_estimates import (
     curve_run,
     is_curves_estimator,
@@ -48,10 +46,10 @@ from torchsvs.estimator import split_batch
 from torchsvs.filters import KalmanFilter, ParticleFilter
 from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise
-from torchsvs.fitting.defaults import complete_settings, meas_var_range
+from torchsvs.fitting.defaults import meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
-from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings, make_estimator, make_model
+from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings
 from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
 from torchsvs.types import SmootherResult
@@ -63,62 +61,6 @@ from torchsvs.types import SmootherResult
 #: than their filters, 1.07x raw; at 2 the airliners at 1 s (σ 10 read as 10.9 ± 1.7 m) lost
 #: good smoothers, 0.58 -> 0.70x raw; at 1 both held (1.00x and 0.58x raw).
 GUARD_ERRORS = 1.0
-
-
-def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
-    """The truth-free error estimate (:mod:`torchsvs.accuracy`) of the estimator of complete
-    ``settings`` on padded ``tracks`` (run as ``torchsvs track`` runs it, in float64)."""
-    assert settings.meas_var is not None
-    estimator = make_estimator(settings, make_model(settings)).double()
-    moved, offset = centred(tracks.to(torch.float64))
-    batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
-    meas_std = torch.tensor(settings.meas_var, dtype=torch.float64).sqrt()
-    noise_range = meas_var_range(settings, GUARD_ERRORS)  # as estimate_group's guard reads it
-    part = _estimate_part(estimator, batch, meas_std, risk=True, noise_range=noise_range)
-    assert part.risk is not None
-    return accuracy_of(
-        part.risk,
-        settings.meas_var,
-        noise_estimated=settings.noise != "given",
-        meas_var_range=meas_var_range(settings),
-    )
-
-
-#: :func:`lowered_noise` takes the noise no lower than this share of the variance read.
-LOWEST_NOISE_SHARE = 0.01
-
-
-def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | None:
-    """The measurement variance to run at instead of the one read off the data, or None.
-
-    Where the noise was read off the data and the Kalman smoother on it (with the file's ``q``
-    for that noise, :func:`sample_accuracy` on ``tracks``) is not clearly below the
-    measurements over the reading's uncertainty, the run takes the low end of it,
-    :data:`GUARD_ERRORS` standard errors down (at least :data:`LOWEST_NOISE_SHARE` of the
-    reading). The test is the data's, not the estimator's: every estimator of a file runs at
-    the same noise (a fit that over-smooths on an inflated reading judges itself clearly
-    better there). The two errors do not cost alike: a noise read too low makes the estimator
-    follow the measurements, so its error stays near theirs, while one read too high smooths
-    away motion the model does not follow, without bound. Measured on airliners on 10 s scans
-    with σ 3 m (their motion between scans reads as 4-16 m of noise, 12.5 ± 7.6 m pooled):
-    every default was 1.4-2.0× the raw measurements' error, and 0.99-1.02× at the low end
-    (5.0 m)."""
-    if settings.noise != "data" or settings.meas_var is None:
-        return None
-    ends = meas_var_range(settings, GUARD_ERRORS)
-    if ends is None:
-        return None
-    kalman = Settings(
-        "ks",
-        meas_var=settings.meas_var,
-        noise="data",
-        meas_std_se=settings.meas_std_se,
-        noise_spread=settings.noise_spread,
-    )
-    if sample_accuracy(complete_settings(kalman, tracks), tracks).clearly_better:
-        return None
-    low, _ = ends
-    return [max(v, LOWEST_NOISE_SHARE * r) for v, r in zip(low, settings.meas_var, strict=True)]
 
 
 def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:
@@ -276,6 +218,8 @@ def _estimate_factors(
     settings carry the file's curve."""
     noise_range = None if settings is None else meas_var_range(settings, GUARD_ERRORS)
     if settings is None or settings.q_curve is None:
+        if settings is not None and not covariance and is_curves_estimator(estimator, settings):
+            return _estimate_one_q(estimator, batch, meas_std, risk, settings)
         return _estimate_part(estimator, batch, meas_std, covariance, risk, noise_range)
     reuse = not covariance and is_curves_estimator(estimator, settings)
     factors, runs = _q_factors(settings, batch.tracks, reuse)
@@ -297,6 +241,32 @@ def _estimate_factors(
                 found = _estimate_part(scaled, part, meas_std, covariance, risk, noise_range)
         parts.append(found._replace(q_factor=np.full(len(index), factor)))
     return StepEstimates.merge(parts, len(meas_std))
+
+
+def _estimate_one_q(
+    estimator: nn.Module, batch: GroupBatch, meas_std: Tensor, risk: bool, settings: Settings
+) -> StepEstimates:
+    """:func:`_estimate_factors` with one ``q`` for every track (``--shared-q``, or ``q``
+    given) for the Kalman smoother or filter: its pass as the curves run it, one factor
+    (:func:`~torchsvs.fitting.noise.q_curve_runs`), its error terms exact from that pass's
+    covariances (:func:`_estimate_from_run`): one float64 pass and the probe's, where the
+    plain run, the probed run and the Kalman reference's two took four."""
+    assert settings.meas_var is not None and settings.q is not None
+    tracks = batch.tracks
+    _, _, runs = noise.q_curve_runs(
+        tracks.z,
+        tracks.dt,
+        settings.meas_var,
+        settings.q,
+        settings.estimator not in FILTERS,
+        factors=(1.0,),
+        choose=lambda curves: torch.ones(curves.risk.shape[1], dtype=torch.float64),
+        keep=True,
+    )
+    assert runs is not None
+    run = curve_run(runs, torch.arange(len(tracks)), tracks.z.shape[1], settings.q)
+    assert run is not None
+    return _estimate_from_run(estimator, batch, meas_std, risk, *run)
 
 
 def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:

@@ -137,7 +137,7 @@ class Settings:
     #: ``--estimator auto``: the candidates this estimator was chosen from
     chosen_from: list[str] | None = None
     #: the noise standard deviation per axis as read off the data, where the run took the low
-    #: end of its uncertainty instead (:func:`~torchsvs.estimating.lowered_noise`)
+    #: end of its uncertainty instead (:func:`~torchsvs.sample_accuracy.lowered_noise`)
     noise_lowered_from: list[float] | None = None
     #: each track its own ``q`` (the file's times a factor its SURE picks, shrunk toward the
     #: file's: :func:`~torchsvs.fitting.noise.track_q_factors`), where ``q`` is not given

@@ -24,10 +24,10 @@ from typing import Any
 import torch
 
 from torchsvs.datasets import RecordedTracks
-from torchsvs.estimating import sample_accuracy
 from torchsvs.fitting.defaults import complete_settings, settings_note
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings
+from torchsvs.sample_accuracy import sample_accuracy
 
 #: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
 CANDIDATES = ("ks", "svstps", "svss", "imm")

@@ -23,7 +23,6 @@ from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
 from torchsvs.datasets.tables import block_of
-from torchsvs.estimating import lowered_noise
 from torchsvs.fitting.defaults import (
     complete_settings,
     screened,
@@ -32,6 +31,7 @@ from torchsvs.fitting.defaults import (
 )
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
+from torchsvs.sample_accuracy import lowered_noise
 from torchsvs.selection import choose_estimator
 from torchsvs.track_run import short
 
@@ -235,7 +235,7 @@ def prepare_estimator(
     first: :func:`~torchsvs.fitting.defaults.screened`), then fitted, loaded from
     ``checkpoint``, saved to ``save``, as asked. Where the noise was read off the data and the
     Kalman smoother on the sample is not clearly below the measurements, all of it is done
-    again at the low end of that reading (:func:`~torchsvs.estimating.lowered_noise`), and
+    again at the low end of that reading (:func:`~torchsvs.sample_accuracy.lowered_noise`), and
     ``say`` hears only the reading kept.
 
     Returns:
