@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow docs bench bench-matrix bench-million reproduce road ksvd real real-imm recorded recorded-faults recorded-wide network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -49,6 +49,11 @@ bench-matrix: $(STAMP)
 
 bench-million: $(STAMP)
 	$(PY) -m benchmarks.million_tracks
+
+# One Parquet dataset (100 M rows, 100 files) through torchsvs track, Spark local[2] and Dask
+# beside pyarrow's floor, with the cost model: benchmarks/scale.md (about half an hour).
+bench-scale: $(STAMP)
+	$(PY) -m benchmarks.scale --rows 100000000 --small 10000000 --files 100
 
 real: $(STAMP)
 	$(PY) -m experiments.real_flights
