@@ -273,3 +273,17 @@ def test_a_dataset_streams_file_by_file(tmp_path):
         )
     assert sum(len(b.table) for b in blocks) == 9 * 30
     assert os.path.basename(str(blocks[-1].path)) == "b.parquet"
+
+
+def test_processes_refuse_a_dataset_naming_the_option(tmp_path, capsys):
+    """--processes reads one file whole on rank 0: a directory is refused before any process
+    starts, naming the option and where a dataset runs."""
+    source = tmp_path / "in"
+    source.mkdir()
+    pq.write_table(_table(3), source / "a.parquet")
+    with pytest.raises(SystemExit) as stop:
+        _track(source, "-o", tmp_path / "out", "--processes", "2")
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --processes" in err and "directory" in err and "Spark or Dask" in err
+    assert not (tmp_path / "out").exists()

@@ -25,6 +25,12 @@ def track(argv: list[str]) -> None:
             f"argument --lag: expected an integer >= 1 (0 only for --estimator imm: its "
             f"filter), got 0 with --estimator {args.estimator}"
         )
+    if args.processes > 1 and Path(args.input).is_dir():
+        parser.error(
+            f"argument --processes: rank 0 reads one file whole, and {args.input!r} is a "
+            "directory (a Parquet dataset); run it in one process (streamed file by file) or "
+            "on Spark or Dask (torchsvs.engines)"
+        )
     if os.environ.get("LOCAL_RANK", "0") == "0":  # ranks 1..N-1 of --processes read no file
         try:
             args.columns = checked_columns(args)
