@@ -280,9 +280,9 @@ def track_parser() -> argparse.ArgumentParser:
         help="processes sharing the tracks (Lightning DDP on CPU, gloo; each runs --threads "
         "threads): rank 0 alone reads the whole file (into memory, any row order; not with "
         "--stream, nor a directory), reads the settings off it (and fits) once, sends the "
-        "others their tracks' steps and the settings, gathers the estimates and writes the same file as one "
-        "process; only the estimating is shared, so it pays only where that dominates, see "
-        "benchmarks/ddp_predict.md; default 1",
+        "others their tracks' steps and the settings, gathers the estimates and writes the "
+        "same file as one process; only the estimating is shared, so it pays only where that "
+        "dominates, see benchmarks/ddp_predict.md; default 1",
     )
     parser.add_argument(
         "--double", action="store_true", help="compute in float64 (default float32)"
