@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from benchmarks.million_tracks import write_tracks
+from torchsvs.track_run import summary_path
 
 HERE = Path(__file__).resolve().parent
 ENGINES = ("floor", "one", "one-lean", "processes", "spark", "dask")
@@ -210,8 +211,8 @@ def measure(engine: str, source: Path, rows: int, work: Path, estimator: str) ->
         if engine == "processes":
             command += ["--processes", "2"]
         seconds, peak = timed_child(command)
-        summary = _summary_of(out)
-        phases = {k: float(v) for k, v in summary.get("phases", {}).items()}
+        summary = json.loads(summary_path(out).read_text())
+        phases = {k: float(v) for k, v in summary["phases"].items()}
     else:
         report = work / f"{engine}.json"
         command = [sys.executable, "-m", "benchmarks.scale", "--run-engine", engine]
@@ -219,14 +220,6 @@ def measure(engine: str, source: Path, rows: int, work: Path, estimator: str) ->
         seconds, peak = timed_child(command)
         phases = json.loads(report.read_text())
     return Measured(engine, rows, seconds, peak, phases)
-
-
-def _summary_of(output: Path) -> dict:
-    for candidate in (output.with_suffix(".summary.json"), output / "summary.json"):
-        if candidate.is_file():
-            return json.loads(candidate.read_text())
-    found = sorted(output.parent.glob(output.name + "*.summary.json"))
-    return json.loads(found[0].read_text()) if found else {}
 
 
 def whole_file(source: Path, target: Path) -> None:

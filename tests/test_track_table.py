@@ -15,6 +15,7 @@ import pytest
 
 from tests.test_track_cli import _simulated_csv
 from torchsvs.datasets import Columns
+from torchsvs.datasets.tables import block_of
 from torchsvs.recipes import Settings
 from torchsvs.track_plan import TrackPlan, output_precision, plan_tracks
 from torchsvs.track_table import output_schema, track_table
@@ -127,9 +128,13 @@ def test_auto_precision_follows_the_positions_and_the_noise(rows):
     degrees = frame.assign(lat=48.0 + frame["y"] / 111e3, lon=11.0 + frame["x"] / 74e3)
     geo = plan_tracks(degrees.drop(columns=["x", "y"]), Settings(estimator="ks"), columns=COLUMNS)
     assert geo.columns.geodetic and geo.precision == "float64"
-    block = pa.Table.from_pandas(frame, preserve_index=False)
-    assert output_precision  # the rule itself is tested through the plans above
-    assert track_table(block, plan).table.schema.field("x").type == pa.float32()
+    # the rule itself: float32's spacing at 4x the largest position (7.8 km here: 2^-9 m at
+    # 31 km) against 1/100 of the noise's standard deviation
+    block = block_of(frame, plan.columns)
+    assert output_precision(block.steps, block.columns, [1.0, 1.0]) == "float32"  # 1 cm bar
+    assert output_precision(block.steps, block.columns, [1e-6, 1e-6]) == "float64"  # 10 µm
+    table = pa.Table.from_pandas(frame, preserve_index=False)
+    assert track_table(table, plan).table.schema.field("x").type == pa.float32()
 
 
 def test_float32_estimates_are_the_float64_ones_rounded(rows):

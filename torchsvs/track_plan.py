@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
 from torchsvs.datasets.tables import block_of
+from torchsvs.datasets.writing import OUTPUT_TYPES
 from torchsvs.fitting.defaults import (
     complete_settings,
     screened,
@@ -37,7 +38,7 @@ from torchsvs.track_run import short
 
 #: ``precision`` of the estimates written: ``"auto"`` is float32 where it keeps positions to
 #: :data:`POSITION_RESOLUTION` of the measurement noise (:func:`output_precision`).
-PRECISIONS = ("auto", "float32", "float64")
+PRECISIONS = ("auto", *OUTPUT_TYPES)
 #: float32 is written (``precision="auto"``) where its spacing at the largest position is at
 #: most this share of the smallest measurement noise standard deviation: rounding then moves a
 #: position by at most half of it, far below any estimate's own error.
@@ -62,8 +63,10 @@ class TrackPlan:
     fit: Any = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
-        if self.precision not in ("float32", "float64"):
-            raise ValueError(f"precision: expected 'float32' or 'float64', got {self.precision!r}")
+        if self.precision not in OUTPUT_TYPES:
+            raise ValueError(
+                f"precision: expected one of {list(OUTPUT_TYPES)}, got {self.precision!r}"
+            )
         if self.settings.meas_var is None:
             raise ValueError("settings: expected complete settings (meas_var set): plan_tracks")
 

@@ -101,10 +101,7 @@ def describe_table(
     """:func:`describe_input` of a ``pyarrow.Table`` of track rows (all of it is looked at)."""
     if len(table) == 0:
         raise ValueError(f"{name}: expected rows of tracks, got an empty table")
-    try:
-        cols = (columns or Columns()).resolve(table.column_names)
-    except ValueError as err:
-        raise ValueError(str(err).replace("not in the file", f"not in the {name}")) from None
+    cols = (columns or Columns()).resolve(table.column_names, source=f"the {name}")
     return _describe(None, table, cols, columns or Columns(), name, thorough=True)
 
 

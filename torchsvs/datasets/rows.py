@@ -178,9 +178,10 @@ class Columns:
     time_unit: float | str = "auto"
     frame: str = "auto"
 
-    def resolve(self, available: Sequence[str]) -> Columns:
+    def resolve(self, available: Sequence[str], source: str = "the file") -> Columns:
         """These columns with ``position`` and ``frame`` filled in (a WGS 84 frame's positions
-        in the order latitude, longitude[, altitude]), checked against the file's columns;
+        in the order latitude, longitude[, altitude]), checked against the columns of
+        ``source`` (named in an error);
         ``time_unit`` stays ``"auto"`` (it needs the values: :func:`detect_time_unit`)."""
         if self.frame not in FRAMES:
             raise ValueError(f"frame: expected one of {sorted(FRAMES)}, got {self.frame!r}")
@@ -221,7 +222,7 @@ class Columns:
         if missing:
             hint = ", ".join(sorted({flags.get(c, "Columns(extra=...)") for c in missing}))
             raise ValueError(
-                f"columns: {missing} not in the file (its columns: {list(available)}); "
+                f"columns: {missing} not in {source} (its columns: {list(available)}); "
                 f"name yours with {hint} (torchsvs track) or Columns(...)"
             )
         return replace(

@@ -61,8 +61,9 @@ _built = threading.local()
 
 def estimator_of(plan: TrackPlan) -> nn.Module:
     """``plan.estimator()``, built once per plan in each worker thread (its last plan's
-    kept): an estimator keeps state while it runs, so threads (a Dask worker's) do not share
-    one."""
+    kept): a thread's calls reuse it, and no lock is needed for a cache shared by threads
+    (an estimator itself may be shared: ``tests/test_track_table.py`` runs four threads on
+    one)."""
     last = getattr(_built, "last", None)
     if last is None or last[0] is not plan:
         last = _built.last = (plan, plan.estimator())
