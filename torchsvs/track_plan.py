@@ -107,8 +107,10 @@ def plan_tracks(
     ``torchsvs track`` does on a file's first block.
 
     Args:
-        data: a sample of the dataset: a ``.csv``/``.parquet`` file (its first ``block_rows``
-            rows are read), a ``pandas.DataFrame`` or a ``pyarrow.Table`` of track rows.
+        data: a sample of the dataset: a ``.csv``/``.parquet`` file or Parquet dataset (its
+            first block: :func:`~torchsvs.datasets.tables.block_of`), a ``pandas.DataFrame``
+            or a ``pyarrow.Table`` of track rows, or a block already read (``torchsvs track``
+            plans on its first).
         settings: the estimator and what is known of its settings (default: ``auto``).
         columns: the data's column names (default ``track_id, time, x, y[, z]``).
         fit, fit_options, checkpoint, save: as for :func:`~torchsvs.tracking.track_file`.
@@ -118,45 +120,17 @@ def plan_tracks(
             (:func:`output_precision`).
         log: where to print what was read off the data.
     """
-    block = block_of(data, columns, block_rows)
-    return plan_block(
-        block.steps,
-        block.columns,
-        settings or Settings(estimator="auto"),
-        fit=fit,
-        fit_options=fit_options,
-        checkpoint=checkpoint,
-        save=save,
-        dtype=dtype,
-        precision=precision,
-        log=log,
-    )
-
-
-def plan_block(
-    steps: TrackSteps,
-    columns: Columns,
-    settings: Settings,
-    *,
-    fit: bool = False,
-    fit_options: dict[str, Any] | None = None,
-    checkpoint: str | Path | None = None,
-    save: str | Path | None = None,
-    dtype: torch.dtype = torch.float32,
-    precision: str = "auto",
-    log: Callable[[str], None] | None = None,
-) -> TrackPlan:
-    """:func:`plan_tracks` on a block's steps (``columns`` resolved)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {list(PRECISIONS)}, got {precision!r}")
+    block = block_of(data, columns, block_rows)
     estimator, settings, summary = prepare_estimator(
-        steps, settings, fit, fit_options, checkpoint, save, log
+        block.steps, settings or Settings(estimator="auto"), fit, fit_options, checkpoint, save, log
     )
     assert settings.meas_var is not None
     if precision == "auto":
-        precision = output_precision(steps, columns, settings.meas_var)
+        precision = output_precision(block.steps, block.columns, settings.meas_var)
     return TrackPlan(
-        columns,
+        block.columns,
         settings,
         estimator.state_dict(),
         compute_dtype(settings.estimator, dtype),

@@ -1,7 +1,7 @@
 """Tracking recorded files: the loop behind ``torchsvs track``.
 
 A file is read in blocks of complete tracks (:func:`~torchsvs.datasets.track_blocks`); what
-the user left open is settled on the first block (:func:`~torchsvs.track_plan.plan_block`: read
+the user left open is settled on the first block (:func:`~torchsvs.track_plan.plan_tracks`: read
 off the data, tuned with ``--fit``, chosen with ``auto``); each block is then estimated as one
 table (:func:`~torchsvs.track_table.estimate_block`, the unit the engines call too) and written.
 Every run estimates its own error without truth (:mod:`torchsvs.accuracy`) and warns where it
@@ -23,7 +23,7 @@ from torchsvs.datasets import Columns, EstimateWriter, track_blocks
 from torchsvs.datasets.paths import check_output
 from torchsvs.datasets.reading import reads_whole
 from torchsvs.recipes import Settings
-from torchsvs.track_plan import TrackPlan, plan_block
+from torchsvs.track_plan import TrackPlan, plan_tracks
 from torchsvs.track_run import TrackRun, summary_path, write_summary
 from torchsvs.track_table import estimate_block, new_run
 
@@ -107,9 +107,8 @@ def track_file(
             for block in timed(blocks, phases, "reading"):
                 if plan is None:
                     tick = time.perf_counter()
-                    plan = plan_block(
-                        block.steps,
-                        block.columns,
+                    plan = plan_tracks(
+                        block,
                         settings,
                         fit=fit,
                         fit_options=fit_options,

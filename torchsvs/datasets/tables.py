@@ -14,13 +14,16 @@ from torchsvs.datasets.tracks import group_rows
 
 
 def block_of(data: Any, columns: Columns | None = None, block_rows: int = 1 << 18) -> TrackBlock:
-    """Track rows as a block: a table's (``pandas.DataFrame`` or ``pyarrow.Table``; columns
-    still open are settled on it, :func:`~torchsvs.datasets.describe.describe_table`) or the
-    first block of a ``.csv``/``.parquet`` file or Parquet dataset (a path): all of it where
-    ``torchsvs track`` reads it whole (:func:`~torchsvs.datasets.reading.reads_whole`), else
-    its first ``block_rows`` rows' complete tracks."""
+    """Track rows as a block (a block as it is): a table's (``pandas.DataFrame`` or
+    ``pyarrow.Table``; columns still open are settled on it,
+    :func:`~torchsvs.datasets.describe.describe_table`) or the first block of a
+    ``.csv``/``.parquet`` file or Parquet dataset (a path): all of it where ``torchsvs track``
+    reads it whole (:func:`~torchsvs.datasets.reading.reads_whole`), else its first
+    ``block_rows`` rows' complete tracks."""
     import pyarrow as pa
 
+    if isinstance(data, TrackBlock):
+        return data
     if isinstance(data, (str, Path)):
         return next(track_blocks(data, columns, block_rows=block_rows, whole=reads_whole(data)))
     if is_pandas(data):

@@ -36,7 +36,7 @@ from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
 from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
 from torchsvs.recipes import Settings
-from torchsvs.track_plan import TrackPlan, plan_block
+from torchsvs.track_plan import TrackPlan, plan_tracks
 from torchsvs.track_run import BlockEstimates, TrackRun, summary_path, write_summary
 from torchsvs.training.quiet import quiet_lightning, tool_trainer
 
@@ -219,9 +219,8 @@ class TrackPredictor(L.LightningModule):
         plan: TrackPlan | None = None
         if self.trainer.global_rank == 0:
             assert data.block is not None
-            plan = plan_block(
-                data.steps,
-                data.block.columns,
+            plan = plan_tracks(
+                data.block,
                 self.settings,
                 fit=self.fit,
                 fit_options=self.fit_options,
