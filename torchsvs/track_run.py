@@ -123,7 +123,6 @@ class TrackRun:
         """Adds what another run of the same settings did (another part of one dataset: the
         engines' partitions) to this one: rows, notes, error estimate, tracks, warnings."""
         self.report.add(other.report)
-        self.report.notes = +self.report.notes
         if self.risk is not None and other.risk is not None:
             self.risk.merge(other.risk)
         self.estimate_seconds += other.estimate_seconds
@@ -140,6 +139,7 @@ class TrackRun:
         """Counts a block's estimates: its notes, tracks' q factors, error estimate's terms."""
         self.report.add(steps.report)
         self.report.notes.update(found.notes)
+        self.report.notes = +self.report.notes  # counts of nothing are not notes
         own = np.isfinite(found.q_factor)
         self.q_factors.update(found.q_factor[own].tolist())
         if self.risk is not None:

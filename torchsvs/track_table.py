@@ -75,7 +75,6 @@ def track_table(
         max_cells=max_cells,
     )
     out = found.table(block, plan.precision)
-    run.report.notes = +run.report.notes
     if check:
         run.check()
     run.seconds = time.perf_counter() - start

@@ -148,7 +148,6 @@ def track_file(
     assert run is not None, "track_blocks yields a block or raises"
     phases["estimating"] = run.estimate_seconds
     run.phases = phases
-    run.report.notes = +run.report.notes
     run.check()
     run.seconds = time.perf_counter() - start
     if summary:

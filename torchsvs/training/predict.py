@@ -386,7 +386,6 @@ def predict_file(
         assert module.settings.meas_var is not None
         run.risk = RiskTotals(len(module.settings.meas_var))
     run.add_block(found, steps)
-    run.report.notes = +run.report.notes
     run.check()
     assert data.block is not None
     with EstimateWriter(target) as writer:
