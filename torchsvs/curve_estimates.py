@@ -90,19 +90,20 @@ def run_risk_terms(
     meas_std: Tensor,
     mean: Tensor,
     position_var: Tensor,
-    q: float,
+    q: float | Tensor,
     smoothed: bool,
     step: float,
 ) -> RiskTerms:
     """SURE's sums (:func:`~torchsvs.accuracy.risk_terms`) of the Kalman smoother (filter)
-    :func:`~torchsvs.fitting.noise.kalman` with ``q`` whose run on ``tracks`` gave ``mean [B, T,
-    2m]`` and ``position_var [B, T, m]``: the divergence exact from the covariances
-    (:func:`~torchsvs.accuracy.exact_divergence`, the estimator its own control) but at each
-    axis's first two observations, which the two-point prior reads; there the probe's (each
-    track's own signs, :func:`~torchsvs.accuracy.track_signs`, with ``step``). The estimate is
-    linear in the measurements (its two-point prior's mean too), so its run on the probed
-    measurements less its run on them is its run on the probe's shift alone: one run, in
-    ``meas_std``'s dtype (the estimator's; float32 at half a float64 run's cost)."""
+    :func:`~torchsvs.fitting.noise.kalman` with ``q`` (or each track's ``[B]``) whose run on
+    ``tracks`` gave ``mean [B, T, 2m]`` and ``position_var [B, T, m]``: the divergence exact
+    from the covariances (:func:`~torchsvs.accuracy.exact_divergence`, the estimator its own
+    control) but at each axis's first two observations, which the two-point prior reads;
+    there the probe's (each track's own signs, :func:`~torchsvs.accuracy.track_signs`, with
+    ``step``). The estimate is linear in the measurements (its two-point prior's mean too),
+    so its run on the probed measurements less its run on them is its run on the probe's shift
+    alone: one run, in ``meas_std``'s dtype (the estimator's; float32 at half a float64 run's
+    cost)."""
     z = tracks.z.double()
     std = meas_std.double()
     r = std.square()
@@ -110,9 +111,8 @@ def run_risk_terms(
     dtype = meas_std.dtype
     shift = (probe.step * std * probe.signs).masked_fill(torch.isnan(z), math.nan)
     moved = with_prior(replace(tracks.to(dtype), z=shift.to(dtype)), meas_std)
-    kalman = noise.kalman(z.shape[-1], q, r, smoothed).to(dtype)
-    with torch.no_grad():
-        response = kalman(moved.z, moved.x0, moved.P0, dt=moved.dt, keep="mean").mean
+    assert moved.x0 is not None and moved.P0 is not None
+    response = noise.kalman_positions(moved.z, moved.dt, moved.x0, moved.P0, r, q, smoothed)[0]
     positions = mean[..., 0::2]
     return risk_terms(
         lambda _: positions + response[..., 0::2].double(),  # (the probed run, as above)

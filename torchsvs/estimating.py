@@ -223,6 +223,10 @@ def _estimate_factors(
         return _estimate_part(estimator, batch, meas_std, covariance, risk, noise_range)
     reuse = not covariance and is_curves_estimator(estimator, settings)
     factors, runs = _q_factors(settings, batch.tracks, reuse)
+    if runs is not None and bool(runs.ran.all()):  # every track's pass at its own q
+        q = settings.q * factors
+        found = _estimate_from_run(estimator, batch, meas_std, risk, *runs[:2], q)
+        return found._replace(q_factor=factors.numpy())
     parts = []
     for factor in torch.unique(factors).tolist():
         index = torch.nonzero(factors == factor).flatten()
@@ -410,12 +414,12 @@ def _estimate_from_run(
     risk: bool,
     mean: Tensor,
     position_var: Tensor,
-    q: float,
+    q: float | Tensor,
 ) -> StepEstimates:
     """:func:`_estimate_part` of a Kalman smoother or filter
     (:func:`~torchsvs.curve_estimates.is_curves_estimator`) whose run on the group is given:
-    its ``mean [B, T, 2m]`` and ``position_var [B, T, m]`` (float64, at ``q``, from the SURE
-    curves' pass), the error terms from them
+    its ``mean [B, T, 2m]`` and ``position_var [B, T, m]`` (float64, at ``q``, one or one per
+    track ``[B]``, from the SURE curves' pass), the error terms from them
     (:func:`~torchsvs.curve_estimates.run_risk_terms`, the probe drawn as
     :func:`_estimate_part` draws it)."""
     tracks = with_prior(batch.tracks, meas_std)

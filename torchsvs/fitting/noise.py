@@ -23,6 +23,7 @@ from torchsvs.datasets import two_point_prior
 from torchsvs.estimator import prepare_inputs, threads_for
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.losses import innovation_nll
+from torchsvs.kernels import curves
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import RTSSmoother
 
@@ -119,6 +120,39 @@ def _sure_of(z: Tensor, r: Tensor, mean: Tensor, leverage: Tensor, clip: float) 
     return risk if clip == math.inf else risk.clamp_max(clip * r)
 
 
+def kalman_positions(
+    z: Tensor,
+    dt: Tensor,
+    x0: Tensor,
+    P0: Tensor,
+    r: Tensor,
+    q: float | Tensor,
+    smoothed: bool = True,
+) -> tuple[Tensor, Tensor]:
+    """The means ``[B, T, 2m]`` and the positions' variances ``[B, T, m]`` of :func:`kalman`
+    (the smoother, or with ``smoothed=False`` the filter) with ``q`` (a number, or one per
+    track ``[B]``) and variances ``r [m]`` on ``z`` from the prior ``x0 [B, 2m]``, ``P0 [B,
+    2m, 2m]``, in ``z``'s dtype: the compiled loop that writes nothing else
+    (:func:`torchsvs.kernels.curves.positions`), else the estimator's run (one per distinct
+    ``q``)."""
+    B, T, m = z.shape
+    dtype = z.dtype
+    qs = torch.as_tensor(q, dtype=dtype).expand(B).contiguous()
+    r = r.to(dtype)
+    found = curves.positions(z, dt, x0, P0, r, qs, smoothed)
+    if found is not None:
+        return found
+    mean, var = z.new_empty(B, T, 2 * m), z.new_empty(B, T, m)
+    for value in torch.unique(qs).tolist():
+        index = torch.nonzero(qs == value).flatten()
+        estimator = kalman(m, value, r.double(), smoothed).to(dtype)
+        with torch.no_grad():
+            out = estimator(z[index], x0[index], P0[index], dt=dt[index], keep="moments")
+        mean[index] = out.mean
+        var[index] = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
+    return mean, var
+
+
 def _sure(
     z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, smoothed: bool, clip: float = math.inf
 ) -> Tensor:
@@ -126,9 +160,8 @@ def _sure(
     Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
     ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
     outliers do not drive, as their terms stay at the clip whatever ``q``)."""
-    out = smoother_run(kalman(z.shape[-1], q, r, smoothed), z, dt, prior)
-    leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-    return _sure_of(z, r, out.mean[..., 0::2], leverage, clip)
+    mean, leverage = kalman_positions(z, dt, prior.x0, prior.P0, r, q, smoothed)
+    return _sure_of(z, r, mean[..., 0::2], leverage, clip)
 
 
 def smoother_q(
@@ -319,8 +352,11 @@ def q_curve_runs(
     :func:`track_q_factors`) each track's factor ``[B]``, and with ``keep`` the pass at it
     (:class:`CurveRuns`): :func:`kalman` with ``q`` times that factor on the tracks from their
     two-point prior (:func:`~torchsvs.datasets.with_prior`'s), which a Kalman smoother's
-    (filter's) run at that ``q`` need not repeat. The passes run a chunk of tracks at a time
-    (:data:`CHUNK_CELLS`), each from the whole batch's prior."""
+    (filter's) run at that ``q`` need not repeat: at each track's factor, on the grid or not
+    (every track's ``ran``). Compiled, every factor runs in one pass that writes each track's
+    sums alone (:func:`torchsvs.kernels.curves.sure_risks`), then the kept pass; else the
+    estimator runs a chunk of tracks at a time (:data:`CHUNK_CELLS`) at each factor, each
+    from the whole batch's prior, and keeps the tracks whose factor is on the grid."""
     m = z.shape[-1]
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
@@ -328,6 +364,20 @@ def q_curve_runs(
     prior = two_point_prior(z64, dt64, r)  # (whole: an axis seen once reads the batch)
     B, T, _ = z64.shape
     grid = torch.tensor(factors, dtype=torch.float64)
+    counts = counted.sum((1, 2)).to(torch.float64)
+    every = (q * grid).unsqueeze(0).expand(B, len(factors))
+    compiled = curves.sure_risks(z64, dt64, counted, prior.x0, prior.P0, r, every, smoothed)
+    if compiled is not None:  # every factor in one pass that writes the sums alone
+        found = QCurves(compiled, counts)
+        if choose is None:
+            return found, None, None
+        chosen = choose(found)
+        if not keep:
+            return found, chosen, None
+        # each track's pass at its own factor (on the grid or not)
+        mean, var = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * chosen, smoothed)
+        return found, chosen, CurveRuns(mean, var, torch.ones(B, dtype=torch.bool))
+    # the estimator's passes, factor by factor, a chunk of tracks at a time
     risk = z64.new_empty(len(factors), B)
     chosen = z64.new_empty(B) if choose is not None else None
     runs = None
@@ -362,7 +412,7 @@ def q_curve_runs(
             runs.position_var[part][pick] = kept[1][pick]
 
     over_chunks(B, T, chunk)
-    return QCurves(risk, counted.sum((1, 2)).to(torch.float64)), chosen, runs
+    return QCurves(risk, counts), chosen, runs
 
 
 def track_q_factors(

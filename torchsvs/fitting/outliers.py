@@ -44,7 +44,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
-from torchsvs.fitting.noise import kalman, over_chunks, smoother_run
+from torchsvs.fitting.noise import kalman_positions, over_chunks
 
 #: A row that fits the model is flagged with at most this probability (χ² tail): on a million
 #: rows about one. Residuals of a maneuver the smoother's ``q`` does not follow have heavier
@@ -97,13 +97,12 @@ def outlier_distances(
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     prior = two_point_prior(z64, dt64, r, inflation=DIFFUSE)
     d2 = z64.new_empty(z64.shape[:2])
-    smoother = kalman(m, q, r)
 
     def chunk(part: slice) -> None:  # (each from the whole batch's prior)
         zs = z64[part]
-        out = smoother_run(smoother, zs, dt64[part], type(prior)(*(x[part] for x in prior)))
-        leverage = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2] / r
-        fit = (zs - out.mean[..., 0::2]).square() / (r * (1.0 - leverage).clamp_min(1e-12))
+        mean, variance = kalman_positions(zs, dt64[part], prior.x0[part], prior.P0[part], r, q)
+        leverage = variance / r
+        fit = (zs - mean[..., 0::2]).square() / (r * (1.0 - leverage).clamp_min(1e-12))
         judged = ~torch.isnan(zs).any(-1) & (leverage <= MAX_LEVERAGE).all(-1)
         d2[part] = torch.where(judged, fit.sum(-1), torch.nan)
 

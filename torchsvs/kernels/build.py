@@ -166,6 +166,8 @@ def library() -> ctypes.CDLL | None:
         step = getattr(lib, f"dense_step_{suffix}")
         step.argtypes = [strides, ctypes.c_double, pointers]
         step.restype = ctypes.c_int
+        curves = getattr(lib, f"kalman_curves_{suffix}")
+        curves.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, vp, vp, vp]
     _state["library"] = lib
     return lib
 

@@ -176,8 +176,35 @@ inline void smooth_lanes(int64_t lanes, const R (*g)[kLanes], const R (*r)[kLane
     }
 }
 
-// axes_smoother._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
-// Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)).
+// One step back of axes_smoother._rts_interval: x̂ˢ_k = x̂_k + C_k (x̂ˢ_{k+1} − x̂_{k+1|k}),
+// Pˢ_k = P_k + C_k (Pˢ_{k+1} − P_{k+1|k}) C_kᵀ, C_k = P_k Fᵀ P_{k+1|k}⁻¹ (Eq. (17)): the
+// smoothed (ps, vs, [[sa, sb], [sb, sc]]) at k + 1 in, at k out, from the filtered moments at
+// k (p, v, a, b, c), the prediction into k + 1 (pp, vp, pa, pb, pc) and its interval dt.
+// X: a lane's scalar or a vector of lanes.
+template <typename X>
+inline void rts_back(X& ps, X& vs, X& sa, X& sb, X& sc, X p, X v, X a, X b, X c, X pp, X vp,
+                     X pa, X pb, X pc, X dt) {
+    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (blocks.inverse, blocks.matmul).
+    X det = pa * pc - pb * pb;
+    X ia = pc / det, ib = -pb / det, ic = pa / det;
+    X xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
+    X ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
+    X cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
+    X dp = ps - pp, dv = vs - vp;
+    ps = p + (ca * dp + cb * dv);
+    vs = v + (cc * dp + cd * dv);
+    // blocks.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
+    X da = sa - pa, db = sb - pb, dd = sc - pc;
+    X ma = ca * da + cb * db, mb = ca * db + cb * dd;
+    X mc = cc * da + cd * db, md = cc * db + cd * dd;
+    X ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
+    X ec = mc * ca + md * cb, ed = mc * cc + md * cd;
+    sa = a + ea;
+    sb = b + splat<X>(0.5) * (eb + ec);
+    sc = c + ed;
+}
+
+// axes_smoother._rts_interval over the filter's written record (rts_back at each step).
 // Inputs (11): p, v, a, b, c (filtered), p_pred, v_pred, a1, b1, c1 (predicted), T.
 // Outputs: the smoothed mean [B, T, 2m] and covariance [B, T, 2m, 2m] in the general layout.
 template <typename R>
@@ -201,28 +228,10 @@ void rts_interval(int64_t B, int64_t T, int64_t m, int threads, const void* cons
                 R sa = A.at(bi, T - 1, j), sb = Bc.at(bi, T - 1, j), sc = Cc.at(bi, T - 1, j);
                 write(bi, T - 1, j, ps, vs, sa, sb, sc);
                 for (int64_t k = T - 2; k >= 0; --k) {
-                    R dt = Ts.at(bi, k + 1, j);
-                    R a = A.at(bi, k, j), b = Bc.at(bi, k, j), c = Cc.at(bi, k, j);
-                    R pa = A1.at(bi, k + 1, j), pb = B1.at(bi, k + 1, j);
-                    R pc = C1.at(bi, k + 1, j);
-                    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (blocks.inverse, blocks.matmul).
-                    R det = pa * pc - pb * pb;
-                    R ia = pc / det, ib = -pb / det, ic = pa / det;
-                    R xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
-                    R ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
-                    R cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
-                    R dp = ps - Pp.at(bi, k + 1, j), dv = vs - Vp.at(bi, k + 1, j);
-                    ps = P.at(bi, k, j) + (ca * dp + cb * dv);
-                    vs = V.at(bi, k, j) + (cc * dp + cd * dv);
-                    // blocks.sandwich(C, Pˢ − Pp): C D Cᵀ, symmetrised.
-                    R da = sa - pa, db = sb - pb, dd = sc - pc;
-                    R ma = ca * da + cb * db, mb = ca * db + cb * dd;
-                    R mc = cc * da + cd * db, md = cc * db + cd * dd;
-                    R ea = ma * ca + mb * cb, eb = ma * cc + mb * cd;
-                    R ec = mc * ca + md * cb, ed = mc * cc + md * cd;
-                    sa = a + ea;
-                    sb = b + 0.5 * (eb + ec);
-                    sc = c + ed;
+                    rts_back(ps, vs, sa, sb, sc, P.at(bi, k, j), V.at(bi, k, j), A.at(bi, k, j),
+                             Bc.at(bi, k, j), Cc.at(bi, k, j), Pp.at(bi, k + 1, j),
+                             Vp.at(bi, k + 1, j), A1.at(bi, k + 1, j), B1.at(bi, k + 1, j),
+                             C1.at(bi, k + 1, j), Ts.at(bi, k + 1, j));
                     write(bi, k, j, ps, vs, sa, sb, sc);
                 }
             }

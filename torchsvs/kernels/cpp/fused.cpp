@@ -5,6 +5,7 @@
 //   axis_step.h      one predict-correct step of a lane (axes._forward_step's twin)
 //   axis_smoother.h  the backward recursions (axes_smoother's twins)
 //   axis_filter.h    the forward loops over all steps
+//   curves.h         the Kalman smoother's SURE curves (kernels/curves.py)
 //   adjoints.h       the hand-written reverse modes of the per-axis loops
 //   dense.h          the dense linear filters' step (online steps, dense runs)
 //
@@ -25,6 +26,7 @@
 #include "axis_step.h"
 #include "axis_smoother.h"
 #include "axis_filter.h"
+#include "curves.h"
 #include "adjoints.h"
 #include "dense.h"
 
@@ -87,6 +89,12 @@ extern "C" {
     }                                                                                          \
     int dense_step_##suffix(const int64_t* sizes, double gamma, void* const* a) {             \
         return dense_step<R>(sizes, gamma, a);                                                \
+    }                                                                                         \
+    void kalman_curves_##suffix(int64_t B, int64_t T, int64_t m, int64_t K, int smooth,       \
+                                int threads, const void* const* in, const int64_t* s,         \
+                                void* risk, void* mean, void* var) {                          \
+        kalman_curves<R>(B, T, m, K, smooth, threads, in, s, static_cast<R*>(risk),           \
+                         static_cast<R*>(mean), static_cast<R*>(var));                        \
     }
 
 TORCHSVS_ENTRIES(f32, float)

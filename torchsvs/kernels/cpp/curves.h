@@ -1,0 +1,84 @@
+// The nearly-constant-velocity Kalman smoother's SURE curves and positions (part of fused.cpp):
+// torchsvs/kernels/curves.py's loop. Per lane (a track's axis), for each of K values of q:
+// the Kalman filter, position-only (axis_step.h's predict_correct, Rule 0), then the fixed-
+// interval RTS recursion (axis_smoother.h's rts_back; without `smooth`, the filter's moments
+// stand), from the lane's prior. What it writes:
+//   risk [K, B, m]  Σ over the counted steps of (z − x̂ˢ)² − r + 2 Pˢ_pp: the exact SURE of
+//                   the smoother's positions (torchsvs/fitting/noise.py's _sure_of), per lane;
+//   mean [B, T, 2m] the means (general layout) and var [B, T, m] the positions' variances,
+//                   of the one q (K = 1).
+// Nothing else is written: a curve of K values costs K passes over registers and the lane's
+// own record of T steps, not K full results in memory.
+#pragma once
+
+#include "axis_smoother.h"
+
+namespace {
+
+// Inputs, each a [B, T, m] view: 0 z, 1 the interval, 2 the weight of a step in the risk (1
+// counted, 0 not), 3-7 the prior p, v, a, b, c (stride 0 in time), 8 r (per axis), 9 q (its
+// step stride the factor's).
+template <typename R>
+void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int threads,
+                   const void* const* in, const int64_t* in_strides, R* risk, R* mean_out,
+                   R* var_out) {
+    using V = typename Wide<R>::type;
+    constexpr int W = LaneBlock<R>::kWidth;
+    View<R> given[10];
+    for (int i = 0; i < 10; ++i) given[i] = view<R>(in, in_strides, i);
+    const int64_t n = 2 * m;
+    const V zero{}, nan = splat<V>(NAN), two = splat<V>(2), three = splat<V>(3);
+    over_tracks(B, threads, [&](int64_t first, int64_t last) {
+        std::vector<V> z(T), dt(T), weight(T), rec(10 * std::max<int64_t>(T, 1));
+        for (int64_t l = first * m; l < last * m; l += W) {
+            const LaneBlock<R> lanes(l, last * m, m);
+            for (int64_t t = 0; t < T; ++t)
+                z[t] = lanes.at(given[0], t), dt[t] = lanes.at(given[1], t),
+                weight[t] = lanes.at(given[2], t);
+            const V r = lanes.at(given[8], 0);
+            for (int64_t k = 0; k < K; ++k) {
+                const V q = lanes.at(given[9], k);
+                State<V> x{lanes.at(given[3], 0), lanes.at(given[4], 0), lanes.at(given[5], 0),
+                           lanes.at(given[6], 0), lanes.at(given[7], 0), zero, zero};
+                V g[kGiven] = {};
+                g[kYv] = nan, g[kRp] = r, g[kRvv] = splat<V>(1), g[kWp] = g[kWv] = splat<V>(1);
+                for (int64_t t = 0; t < T; ++t) {  // the filter (Rule 0: Kalman)
+                    const V d = dt[t];
+                    // blocks.process_noise: Q of Eq. (48), Chen et al. 2020
+                    g[kT] = d, g[kQa] = q * (d * d * d) / three, g[kQb] = q * (d * d) / two;
+                    g[kQc] = q * d, g[kYp] = z[t];
+                    const Step<V> s = predict_correct<V, 0>(x, g, zero);
+                    x = s.next;
+                    V* at = &rec[10 * t];
+                    at[0] = x.p, at[1] = x.v, at[2] = x.a, at[3] = x.b, at[4] = x.c;
+                    at[5] = s.p_pred, at[6] = s.v_pred, at[7] = s.a1, at[8] = s.b1, at[9] = s.c1;
+                }
+                // the smoother, from the last step (as filtered) back
+                V ps = x.p, vs = x.v, sa = x.a, sb = x.b, sc = x.c, total = zero;
+                for (int64_t t = T - 1; t >= 0; --t) {
+                    const V* at = &rec[10 * t];
+                    if (!smooth) {
+                        ps = at[0], vs = at[1], sa = at[2];
+                    } else if (t < T - 1) {
+                        const V* next = &rec[10 * (t + 1)];
+                        rts_back(ps, vs, sa, sb, sc, at[0], at[1], at[2], at[3], at[4], next[5],
+                                 next[6], next[7], next[8], next[9], dt[t + 1]);
+                    }
+                    const V e = z[t] - ps;
+                    total += weight[t] != zero ? e * e - r + two * sa : zero;
+                    if (!mean_out) continue;
+                    for (int w = 0; w < lanes.count; ++w) {
+                        const int64_t idx = lanes.b[w] * T + t, j = lanes.j[w];
+                        mean_out[idx * n + 2 * j] = ps[w], mean_out[idx * n + 2 * j + 1] = vs[w];
+                        var_out[idx * m + j] = sa[w];
+                    }
+                }
+                if (!risk) continue;
+                for (int w = 0; w < lanes.count; ++w)
+                    risk[(k * B + lanes.b[w]) * m + lanes.j[w]] = total[w];
+            }
+        }
+    });
+}
+
+}  // namespace

@@ -1,0 +1,108 @@
+"""The nearly-constant-velocity Kalman smoother's SURE curves and positions, compiled
+(``cpp/curves.h``): what :mod:`torchsvs.fitting.noise` reads off the smoother at many values
+of ``q`` (each track's SURE curve) and what the outlier screen and ``track``'s Kalman
+estimates read at one (the smoothed means and the positions' variances), without writing the
+full results the estimator's own pass writes (a ``[B, T, 2m, 2m]`` covariance a step, and one
+result per value of ``q``).
+
+Per axis (a position-only corrector with diagonal ``R``, a prior without cross-axis
+covariance: the axes decouple) the Kalman filter's step is ``axis_step.h``'s and the fixed-
+interval RTS recursion ``axis_smoother.h``'s: the formulas the estimator's compiled loops run
+(:class:`~torchsvs.smoothers.RTSSmoother` of :class:`~torchsvs.filters.KalmanFilter` on
+:class:`~torchsvs.models.ConstantVelocity`), held to it by ``tests/test_curves_kernel.py``.
+Both functions return ``None`` where the compiled loops are unavailable; callers then run the
+estimator.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+from torch import Tensor
+
+from torchsvs.kernels import build
+
+
+def _prior_axes(x0: Tensor, P0: Tensor) -> list[Tensor]:
+    """``[B, m]`` each: the prior's position, velocity, and covariance ``a, b, c`` per axis."""
+    diagonal = P0.diagonal(dim1=-2, dim2=-1)
+    above = P0.diagonal(offset=1, dim1=-2, dim2=-1)
+    return [x0[:, 0::2], x0[:, 1::2], diagonal[:, 0::2], above[:, 0::2], diagonal[:, 1::2]]
+
+
+def _call(
+    z: Tensor,
+    dt: Tensor,
+    weight: Tensor,
+    x0: Tensor,
+    P0: Tensor,
+    r: Tensor,
+    q: Tensor,
+    smoothed: bool,
+    risk: Tensor | None,
+    mean: Tensor | None,
+    var: Tensor | None,
+) -> None:
+    B, T, m = z.shape
+    K = q.shape[1]
+    shape = (B, T, m)
+    views = [
+        z,
+        dt.unsqueeze(-1).expand(shape),
+        weight,
+        *(x.unsqueeze(1).expand(shape) for x in _prior_axes(x0, P0)),
+        r.reshape(1, 1, m).expand(shape),
+        q.unsqueeze(-1).expand(B, K, m),  # (its step stride is the factor's)
+    ]
+    inputs = build.pointers(views)
+    strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
+    build.function("kalman_curves", z.dtype)(
+        B, T, m, K, int(smoothed), build.threads(B, T * K), inputs, strides,
+        *(None if x is None else x.data_ptr() for x in (risk, mean, var)),
+    )  # fmt: skip
+
+
+def _usable(*tensors: Tensor) -> bool:
+    with torch.no_grad():
+        return build.usable(*tensors)
+
+
+def sure_risks(
+    z: Tensor,
+    dt: Tensor,
+    counted: Tensor,
+    x0: Tensor,
+    P0: Tensor,
+    r: Tensor,
+    q: Tensor,
+    smoothed: bool = True,
+) -> Tensor | None:
+    """``[K, B]`` each track's SURE of the smoothed (else filtered) positions
+    (``noise._sure_of``'s terms summed over the ``counted [B, T, m]`` components) for each of
+    its ``q [B, K]``: ``z [B, T, m]`` (NaN: missing), intervals ``dt [B, T]``, the prior ``x0
+    [B, 2m]``, ``P0 [B, 2m, 2m]`` (block-diagonal by axis), measurement variances ``r [m]``;
+    all of one dtype. ``None`` where the compiled loops are unavailable."""
+    B, T, m = z.shape
+    weight = counted.to(z.dtype)
+    if not _usable(z, dt, weight, x0, P0, r, q):
+        return None
+    risk = torch.empty(q.shape[1], B, m, dtype=z.dtype)
+    _call(z, dt, weight, x0, P0, r, q, smoothed, risk, None, None)
+    return risk.sum(-1)
+
+
+def positions(
+    z: Tensor, dt: Tensor, x0: Tensor, P0: Tensor, r: Tensor, q: Tensor, smoothed: bool = True
+) -> tuple[Tensor, Tensor] | None:
+    """The smoother's (filter's) means ``[B, T, 2m]`` (position, velocity per axis) and the
+    positions' variances ``[B, T, m]`` with each track's ``q [B]`` (other arguments as
+    :func:`sure_risks`'); ``None`` where the compiled loops are unavailable."""
+    B, T, m = z.shape
+    if not _usable(z, dt, x0, P0, r, q):
+        return None
+    mean = build.fresh((B, T, 2 * m), z.dtype)
+    var = build.fresh((B, T, m), z.dtype)
+    weight = torch.zeros((), dtype=z.dtype).expand(B, T, m)
+    _call(z, dt, weight, x0, P0, r, q.reshape(B, 1), smoothed, None, mean, var)
+    return mean, var
