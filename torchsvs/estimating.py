@@ -223,6 +223,7 @@ def _estimate_factors(
         return _estimate_part(estimator, batch, meas_std, covariance, risk, noise_range)
     reuse = not covariance and is_curves_estimator(estimator, settings)
     factors, runs = _q_factors(settings, batch.tracks, reuse)
+    assert settings.q is not None
     if runs is not None and bool(runs.ran.all()):  # every track's pass at its own q
         q = settings.q * factors
         found = _estimate_from_run(estimator, batch, meas_std, risk, *runs[:2], q)

@@ -371,12 +371,12 @@ def q_curve_runs(
         found = QCurves(compiled, counts)
         if choose is None:
             return found, None, None
-        chosen = choose(found)
+        factor = choose(found)
         if not keep:
-            return found, chosen, None
+            return found, factor, None
         # each track's pass at its own factor (on the grid or not)
-        mean, var = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * chosen, smoothed)
-        return found, chosen, CurveRuns(mean, var, torch.ones(B, dtype=torch.bool))
+        mean, var = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * factor, smoothed)
+        return found, factor, CurveRuns(mean, var, torch.ones(B, dtype=torch.bool))
     # the estimator's passes, factor by factor, a chunk of tracks at a time
     risk = z64.new_empty(len(factors), B)
     chosen = z64.new_empty(B) if choose is not None else None
