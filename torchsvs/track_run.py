@@ -289,10 +289,23 @@ class TrackRun:
             f"{1e6 * self.estimate_seconds / max(steps, 1):.2f} µs per row placed)"
         )
         if self.phases:
-            rest = self.seconds - sum(self.phases.values())
-            timed = ", ".join(f"{k} {v:.1f} s" for k, v in self.phases.items())
-            lines.append(f"phases: {timed}, other {rest:.1f} s")
+            lines.append(self.phases_line())
         return "\n".join(lines)
+
+    def phases_line(self) -> str:
+        """The phases' seconds; with ``waiting`` (reading and writing beside the estimating,
+        :func:`~torchsvs.tracking.track_file`), how long the rest waited for them."""
+        phases = dict(self.phases)
+        waiting = phases.pop("waiting", None)
+        timed = ", ".join(f"{k} {v:.1f} s" for k, v in phases.items())
+        if waiting is None:
+            return f"phases: {timed}, other {self.seconds - sum(phases.values()):.1f} s"
+        beside = phases.get("reading", 0.0) + phases.get("writing", 0.0)
+        rest = self.seconds - (sum(phases.values()) - beside) - waiting
+        return (
+            f"phases: {timed} (reading and writing beside the estimating: waited for "
+            f"{waiting:.1f} s), other {rest:.1f} s"
+        )
 
 
 def short(value: Any) -> str:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -96,55 +97,68 @@ def track_file(
     check_output(target, "target", inputs=(source,), force=True)  # never over the input
     if whole is None:
         whole = reads_whole(source)
-    phases = dict.fromkeys(("reading", "settings", "estimating", "writing"), 0.0)
+    phases = dict.fromkeys(("reading", "settings", "estimating", "writing", "waiting"), 0.0)
     run: TrackRun | None = None
     plan: TrackPlan | None = None
     estimator: nn.Module | None = None
     bar: Any = None
-    try:
-        with EstimateWriter(target, source) as writer:
-            blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
-            for block in timed(blocks, phases, "reading"):
-                if plan is None:
+    # Reading the next block and writing the last one run beside the estimating, each in a
+    # thread of its own (Arrow's reading and writing, numpy and torch release the GIL).
+    with ThreadPoolExecutor(1) as reading, ThreadPoolExecutor(1) as writing:
+        try:
+            with EstimateWriter(target, source) as writer:
+                written: Future[None] | None = None
+
+                def write(found: Any, block: Any, precision: str) -> None:
                     tick = time.perf_counter()
-                    plan = plan_tracks(
-                        block,
-                        settings,
-                        fit=fit,
-                        fit_options=fit_options,
-                        checkpoint=checkpoint,
-                        save=save,
-                        dtype=dtype,
-                        precision=precision,
-                        log=say,
-                    )
-                    phases["settings"] += time.perf_counter() - tick
-                    estimator = plan.estimator()
-                    run = new_run(plan, accuracy)
-                    # disable=None: no bar where stderr is not a terminal (it would stay in a log)
-                    bar = tqdm(
-                        desc="tracks",
-                        unit=" tracks",
-                        disable=None if progress else True,
-                        leave=False,
-                    )
-                assert run is not None and estimator is not None
-                found = estimate_block(
-                    block,
-                    plan,
-                    estimator,
-                    run,
-                    covariance=covariance,
-                    accuracy=accuracy,
-                    max_cells=max_cells,
-                    progress=bar,
-                )
-                tick = time.perf_counter()
-                writer.write(found.table(block, plan.precision), block.path)
-                phases["writing"] += time.perf_counter() - tick
-    finally:  # the bar cleared before anything else is printed, an error too
-        if bar is not None:
-            bar.close()
+                    writer.write(found.table(block, precision), block.path)
+                    phases["writing"] += time.perf_counter() - tick
+
+                try:
+                    blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
+                    for block in read_ahead(blocks, reading, phases):
+                        if plan is None:
+                            tick = time.perf_counter()
+                            plan = plan_tracks(
+                                block,
+                                settings,
+                                fit=fit,
+                                fit_options=fit_options,
+                                checkpoint=checkpoint,
+                                save=save,
+                                dtype=dtype,
+                                precision=precision,
+                                log=say,
+                            )
+                            phases["settings"] += time.perf_counter() - tick
+                            estimator = plan.estimator()
+                            run = new_run(plan, accuracy)
+                            # disable=None: no bar where stderr is not a terminal (it would
+                            # stay in a log)
+                            bar = tqdm(
+                                desc="tracks",
+                                unit=" tracks",
+                                disable=None if progress else True,
+                                leave=False,
+                            )
+                        assert run is not None and estimator is not None
+                        found = estimate_block(
+                            block,
+                            plan,
+                            estimator,
+                            run,
+                            covariance=covariance,
+                            accuracy=accuracy,
+                            max_cells=max_cells,
+                            progress=bar,
+                        )
+                        waited(written, phases)  # one block in writing at a time, in order
+                        written = writing.submit(write, found, block, plan.precision)
+                finally:  # the writer closes after its last write (an error's too)
+                    waited(written, phases)
+        finally:  # the bar cleared before anything else is printed, an error too
+            if bar is not None:
+                bar.close()
     assert run is not None, "track_blocks yields a block or raises"
     phases["estimating"] = run.estimate_seconds
     run.phases = phases
@@ -155,13 +169,35 @@ def track_file(
     return run
 
 
-def timed(items: Iterable[Item], phases: dict[str, float], name: str) -> Iterator[Item]:
-    """The items of ``items``, adding the seconds spent producing each to ``phases[name]``."""
+def read_ahead(
+    items: Iterable[Item], pool: ThreadPoolExecutor, phases: dict[str, float]
+) -> Iterator[Item]:
+    """The items of ``items``, each next one produced in ``pool`` while the caller works on
+    the one before; ``phases["reading"]`` adds the seconds spent producing them,
+    ``phases["waiting"]`` the seconds the caller waited for one."""
     source = iter(items)
-    while True:
+
+    def produce() -> Item | None:
         tick = time.perf_counter()
         item = next(source, None)
-        phases[name] = phases.get(name, 0.0) + time.perf_counter() - tick
+        phases["reading"] += time.perf_counter() - tick
+        return item
+
+    pending = pool.submit(produce)
+    while True:
+        tick = time.perf_counter()
+        item = pending.result()
+        phases["waiting"] += time.perf_counter() - tick
         if item is None:
             return
+        pending = pool.submit(produce)
         yield item
+
+
+def waited(job: Future[None] | None, phases: dict[str, float]) -> None:
+    """Waits for ``job`` (raising its error), adding the seconds to ``phases["waiting"]``."""
+    if job is None:
+        return
+    tick = time.perf_counter()
+    job.result()
+    phases["waiting"] += time.perf_counter() - tick

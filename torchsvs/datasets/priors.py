@@ -29,11 +29,8 @@ class Prior(NamedTuple):
 def _first_two(observed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Indices of the first and second observed step per ``[B, m]`` and whether they exist."""
     T = observed.shape[1]
-    index = torch.arange(T).view(1, T, 1).expand_as(observed)
-    big = torch.full_like(index, T)
-    first = torch.where(observed, index, big).amin(dim=1)  # [B, m]
-    later = observed & (index > first.unsqueeze(1))
-    second = torch.where(later, index, big).amin(dim=1)
+    count = observed.cumsum(1, dtype=torch.int32)  # observed steps up to each step
+    first, second = (count == 0).sum(1), (count <= 1).sum(1)  # the steps before each
     return first.clamp_max(T - 1), second.clamp_max(T - 1), first < T, second < T
 
 
@@ -95,15 +92,14 @@ def two_point_prior(
         raise ValueError(f"meas_var: expected finite variances > 0, got {r.tolist()}")
     observed = ~torch.isnan(z)
     # Step times relative to the prior's time t_p = 0.
-    t = torch.cumsum(dt.to(torch.float64), dim=1).unsqueeze(-1).expand(B, T, m)
+    t = torch.cumsum(dt.to(torch.float64), dim=1)
     first, second, has_first, has_second = _first_two(observed)
+    t_a, t_b = t.gather(1, first), t.gather(1, second)  # [B, m]
 
-    def at(x: Tensor, index: Tensor) -> Tensor:
-        return x.gather(1, index.unsqueeze(1)).squeeze(1)  # [B, m]
+    def at(index: Tensor) -> Tensor:  # [B, m] (0 where the axis has no such step)
+        return z.gather(1, index.unsqueeze(1)).squeeze(1).nan_to_num(0.0)
 
-    t_a, t_b = at(t, first), at(t, second)
-    z_filled = z.nan_to_num(0.0)
-    z_a, z_b = at(z_filled, first), at(z_filled, second)
+    z_a, z_b = at(first), at(second)
 
     both = has_first & has_second
     delta = torch.where(both, t_b - t_a, torch.ones_like(t_a)).to(dtype)
@@ -113,9 +109,11 @@ def two_point_prior(
 
     if speed_std is None:
         speeds = v.abs()[both]
-        median_dt = dt.median(dim=1).values.to(dtype)
-        fallback = (10.0 * r.sqrt().unsqueeze(0) / median_dt.unsqueeze(1)).amax()
-        speed_std = float(speeds.max()) if speeds.numel() else float(fallback)
+        if speeds.numel():
+            speed_std = float(speeds.max())
+        else:
+            median_dt = dt.median(dim=1).values.to(dtype)
+            speed_std = float((10.0 * r.sqrt().unsqueeze(0) / median_dt.unsqueeze(1)).amax())
         speed_std = max(speed_std, 1e-12)
     var_p = torch.where(both, r * ((1 - c) ** 2 + c**2), r.expand(B, m))
     cov_pv = torch.where(both, r * (2 * c - 1) / delta, torch.zeros_like(delta))
