@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from torchsvs.datasets import two_point_prior
+from torchsvs.datasets.priors import _first_two
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting import noise
 from torchsvs.fitting.outliers import outlier_distances
@@ -74,7 +75,7 @@ def test_positions_with_each_tracks_q_equal_the_estimator() -> None:
     q = torch.logspace(-2, 1, 12, dtype=torch.float64)
     found = curves.positions(z, dt, prior.x0, prior.P0, r, q)
     assert found is not None
-    mean, var = found
+    mean, var, _ = found
     for b in range(len(q)):
         model = ConstantVelocity(ndim=2, q=float(q[b]), r=r.tolist()).double()
         with eager_loops(), torch.no_grad():
@@ -141,3 +142,38 @@ def test_curves_need_the_compiled_loops_else_none() -> None:
     with eager_loops():
         assert curves.sure_risks(z, dt, counted, prior.x0, prior.P0, r, q) is None
         assert curves.positions(z, dt, prior.x0, prior.P0, r, q[:, 0]) is None
+
+
+@pytest.mark.parametrize("smoothed", [True, False])
+def test_the_first_two_observations_divergence_is_autograds(smoothed: bool) -> None:
+    """The estimate's derivative by each axis's first and second measurement, through the
+    two-point prior too: the tangent runs of the compiled pass against autograd through the
+    prior and the estimator's tensor loops (a late first observation, an axis seen once, a
+    track of one row)."""
+    z, dt, r = _ragged(B=8, T=30, seed=5)
+    z[2, :5, 0] = math.nan
+    z[3, :, 1] = math.nan
+    z[3, 7, 1] = 5.0
+    prior = two_point_prior(z, dt, r, speed_std=50.0)
+    found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, 0.4, smoothed, first_two=True)
+    assert found.first_two is not None
+    first, second, has_first, has_second = _first_two(~torch.isnan(z))
+    checked = 0
+    for b in range(len(z)):
+        for j in range(2):
+            for i, (index, has) in enumerate(((first, has_first), (second, has_second))):
+                value = float(found.first_two[b, j, i])
+                if not has[b, j]:
+                    assert math.isnan(value)
+                    continue
+                t = int(index[b, j])
+                moved = z[b : b + 1].clone().requires_grad_(True)
+                start = two_point_prior(moved, dt[b : b + 1], r, speed_std=50.0)
+                with eager_loops():
+                    out = noise.kalman(2, 0.4, r, smoothed)(
+                        moved, start.x0, start.P0, dt=dt[b : b + 1]
+                    )
+                (grad,) = torch.autograd.grad(out.mean[0, t, 2 * j], moved)
+                assert value == pytest.approx(float(grad[0, t, j]), abs=1e-12)
+                checked += 1
+    assert checked > 20

@@ -242,28 +242,51 @@ def risk_terms(
                 found = divergence_of(reference.shifted, reference.estimate.double())
             unknown = reference.exact.isnan()
             control = torch.where(unknown, 0.0, found - reference.exact)
-    B, T, m = z.shape
-    pad = (-T) % chunk
-
-    def sums(x: Tensor) -> np.ndarray:
-        x = torch.nn.functional.pad(x, (0, 0, 0, pad))
-        return x.reshape(B, -1, chunk, m).sum(dim=2).reshape(-1, m).numpy()
-
-    count = sums(observed.double())
-    keep = count.sum(axis=1) > 0
-    track = np.repeat(np.arange(B), (T + pad) // chunk)
-    divergences = sums(divergence)
     if control is not None:
         assert reference is not None
-        ys = sums(control)
         beta = reference.beta
         if beta is None:  # the slope of the estimator's probe error on the reference's
+            ys = chunk_sums(control, chunk)
             spread = float((ys * ys).sum())
             centred = torch.where(reference.exact.isnan(), 0.0, divergence - reference.exact)
-            moved = float((sums(centred) * ys).sum())
+            moved = float((chunk_sums(centred, chunk) * ys).sum())
             beta = float(np.clip(moved / spread, 0.0, 1.0)) if spread else 0.0
-        divergences = divergences - beta * ys
-    return RiskTerms(sums(residual)[keep], divergences[keep], count[keep], track[keep])
+        divergence = divergence - beta * control
+    return chunk_terms(observed, residual, divergence, chunk)
+
+
+def chunk_sums(x: Tensor, chunk: int = CHUNK) -> np.ndarray:
+    """``[B·C, m]`` the sums of ``x [B, T, m]`` over each track's chunks of ``chunk`` steps
+    (the last padded with zeros), track by track."""
+    B, T, m = x.shape
+    x = torch.nn.functional.pad(x, (0, 0, 0, (-T) % chunk))
+    return x.reshape(B, -1, chunk, m).sum(dim=2).reshape(-1, m).numpy()
+
+
+def chunk_terms(
+    observed: Tensor, residual: Tensor, divergence: Tensor, chunk: int = CHUNK
+) -> RiskTerms:
+    """:class:`RiskTerms` of squared residuals and divergences per component ``[B, T, m]``
+    (0 where not ``observed``): their sums over each track's chunks of ``chunk`` steps, the
+    chunks without an observation left out."""
+    B, T, _ = observed.shape
+    count = chunk_sums(observed.double(), chunk)
+    keep = count.sum(axis=1) > 0
+    track = np.repeat(np.arange(B), (T + (-T) % chunk) // chunk)
+    sums = chunk_sums(residual, chunk), chunk_sums(divergence, chunk)
+    return RiskTerms(sums[0][keep], sums[1][keep], count[keep], track[keep])
+
+
+def exact_risk_terms(
+    z: Tensor, estimate: Tensor, divergence: Tensor, chunk: int = CHUNK
+) -> RiskTerms:
+    """:func:`risk_terms` of a linear estimator whose divergence is known exactly at every
+    observed component (``divergence [B, T, m]``; a Kalman smoother's or filter's,
+    :func:`exact_divergence` with the first two observations' own): no probe, no rerun."""
+    observed = ~torch.isnan(z)
+    zd = z.to(torch.float64)
+    residual = torch.where(observed, zd - estimate.to(torch.float64), 0.0).square()
+    return chunk_terms(observed, residual, torch.where(observed, divergence, 0.0), chunk)
 
 
 class RiskTotals:

@@ -18,8 +18,16 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchsvs.accuracy import Reference, RiskTerms, draw_probe, exact_divergence, risk_terms
+from torchsvs.accuracy import (
+    Reference,
+    RiskTerms,
+    draw_probe,
+    exact_divergence,
+    exact_risk_terms,
+    risk_terms,
+)
 from torchsvs.datasets import RecordedTracks, with_prior
+from torchsvs.datasets.priors import _first_two
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting import noise
 from torchsvs.models import ConstantVelocity
@@ -74,15 +82,30 @@ CURVE_MATCH = 1e-5
 
 def curve_run(
     runs: noise.CurveRuns, index: Tensor, steps: int, q: float
-) -> tuple[Tensor, Tensor, float] | None:
+) -> tuple[noise.CurveRuns, float] | None:
     """The tracks ``index``'s passes at their factor (one ``q`` for all of them) among the
-    curves': their mean and position variances over their first ``steps`` steps, and ``q``;
-    or None where the curves ran no such ``q``. (A smoother's estimates do not depend on the
-    padding after a track's last step, so the group's pass serves tracks trimmed to their own
-    longest length.)"""
+    curves', over their first ``steps`` steps, and ``q``; or None where the curves ran no such
+    ``q``. (A smoother's estimates do not depend on the padding after a track's last step, so
+    the group's pass serves tracks trimmed to their own longest length.)"""
     if not bool(runs.ran[index].all()):
         return None
-    return runs.mean[index, :steps], runs.position_var[index, :steps], q
+    first_two = None if runs.first_two is None else runs.first_two[index]
+    part = noise.CurveRuns(
+        runs.mean[index, :steps], runs.position_var[index, :steps], runs.ran[index], first_two
+    )
+    return part, q
+
+
+def with_first_two(divergence: Tensor, z: Tensor, first_two: Tensor) -> Tensor:
+    """``divergence [B, T, m]`` (:func:`~torchsvs.accuracy.exact_divergence`'s, NaN at each
+    axis's first two observations) with ``first_two [B, m, 2]`` there."""
+    first, second, has_first, has_second = _first_two(~torch.isnan(z))
+    out = divergence.clone()
+    for index, has, value in ((first, has_first, 0), (second, has_second, 1)):
+        known = torch.where(has, first_two[..., value].to(out.dtype), math.nan)
+        current = out.gather(1, index.unsqueeze(1)).squeeze(1)
+        out.scatter_(1, index.unsqueeze(1), torch.where(has, known, current).unsqueeze(1))
+    return out
 
 
 def run_risk_terms(
@@ -93,6 +116,7 @@ def run_risk_terms(
     q: float | Tensor,
     smoothed: bool,
     step: float,
+    first_two: Tensor | None = None,
 ) -> RiskTerms:
     """SURE's sums (:func:`~torchsvs.accuracy.risk_terms`) of the Kalman smoother (filter)
     :func:`~torchsvs.fitting.noise.kalman` with ``q`` (or each track's ``[B]``) whose run on
@@ -107,6 +131,9 @@ def run_risk_terms(
     z = tracks.z.double()
     std = meas_std.double()
     r = std.square()
+    if first_two is not None:  # the divergence there given (exact): no probe
+        exact = exact_divergence(z, position_var, r)
+        return exact_risk_terms(z, mean[..., 0::2], with_first_two(exact, z, first_two))
     probe = draw_probe(z, std, step, None, ids=tracks.ids)
     dtype = meas_std.dtype
     shift = (probe.step * std * probe.signs).masked_fill(torch.isnan(z), math.nan)

@@ -226,7 +226,7 @@ def _estimate_factors(
     assert settings.q is not None
     if runs is not None and bool(runs.ran.all()):  # every track's pass at its own q
         q = settings.q * factors
-        found = _estimate_from_run(estimator, batch, meas_std, risk, *runs[:2], q)
+        found = _estimate_from_run(estimator, batch, meas_std, risk, runs, q)
         return found._replace(q_factor=factors.numpy())
     parts = []
     for factor in torch.unique(factors).tolist():
@@ -258,20 +258,9 @@ def _estimate_one_q(
     plain run, the probed run and the Kalman reference's two took four."""
     assert settings.meas_var is not None and settings.q is not None
     tracks = batch.tracks
-    _, _, runs = noise.q_curve_runs(
-        tracks.z,
-        tracks.dt,
-        settings.meas_var,
-        settings.q,
-        settings.estimator not in FILTERS,
-        factors=(1.0,),
-        choose=lambda curves: torch.ones(curves.risk.shape[1], dtype=torch.float64),
-        keep=True,
-    )
-    assert runs is not None
-    run = curve_run(runs, torch.arange(len(tracks)), tracks.z.shape[1], settings.q)
-    assert run is not None
-    return _estimate_from_run(estimator, batch, meas_std, risk, *run)
+    smoothed = settings.estimator not in FILTERS
+    runs = noise.curve_runs(tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed)
+    return _estimate_from_run(estimator, batch, meas_std, risk, runs, settings.q)
 
 
 def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
@@ -413,22 +402,24 @@ def _estimate_from_run(
     batch: GroupBatch,
     meas_std: Tensor,
     risk: bool,
-    mean: Tensor,
-    position_var: Tensor,
+    run: noise.CurveRuns,
     q: float | Tensor,
 ) -> StepEstimates:
     """:func:`_estimate_part` of a Kalman smoother or filter
-    (:func:`~torchsvs.curve_estimates.is_curves_estimator`) whose run on the group is given:
-    its ``mean [B, T, 2m]`` and ``position_var [B, T, m]`` (float64, at ``q``, one or one per
-    track ``[B]``, from the SURE curves' pass), the error terms from them
-    (:func:`~torchsvs.curve_estimates.run_risk_terms`, the probe drawn as
-    :func:`_estimate_part` draws it)."""
+    (:func:`~torchsvs.curve_estimates.is_curves_estimator`) whose run on the group is given
+    (from the SURE curves' pass, float64, at ``q``: one, or one per track ``[B]``): its means,
+    position variances and, where compiled, the divergence at each axis's first two
+    observations; the error terms from them (:func:`~torchsvs.curve_estimates.
+    run_risk_terms`: exact, or with the probe drawn as :func:`_estimate_part` draws it)."""
     tracks = with_prior(batch.tracks, meas_std)
     terms = None
+    mean = run.mean
     if risk:
         step = getattr(estimator, "probe_step", PROBE_STEP)
         smoothed = isinstance(estimator, RTSSmoother)
-        terms = run_risk_terms(batch.tracks, meas_std, mean, position_var, q, smoothed, step)
+        terms = run_risk_terms(
+            batch.tracks, meas_std, mean, run.position_var, q, smoothed, step, run.first_two
+        )
     return _step_estimates(batch, tracks, mean, None, short_track_notes(tracks), terms)
 
 

@@ -34,6 +34,41 @@ def _first_two(observed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return first.clamp_max(T - 1), second.clamp_max(T - 1), first < T, second < T
 
 
+def _two_points(z: Tensor, dt: Tensor) -> tuple[Tensor, ...]:
+    """:func:`_first_two` of ``z``'s observed components, and their times ``t_a, t_b`` (float64
+    ``[B, m]``) from the prior's time ``t_p = 0``."""
+    t = torch.cumsum(dt.to(torch.float64), dim=1)
+    first, second, has_first, has_second = _first_two(~torch.isnan(z))
+    return first, second, has_first, has_second, t.gather(1, first), t.gather(1, second)
+
+
+def _weights(
+    has_first: Tensor, has_second: Tensor, t_a: Tensor, t_b: Tensor, dtype: torch.dtype
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Where both points exist, their interval ``Δ`` (else 1) and the weight ``c`` of the
+    second in the prior's position, ``p = (1 - c) z_a + c z_b`` (else 0)."""
+    both = has_first & has_second
+    delta = torch.where(both, t_b - t_a, torch.ones_like(t_a)).to(dtype)
+    c = torch.where(both, -t_a.to(dtype) / delta, torch.zeros_like(delta))
+    return both, delta, c
+
+
+def prior_tangents(z: Tensor, dt: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """How :func:`two_point_prior`'s mean moves with each axis's first and second observed
+    position: ``[B, m]`` each, ``∂p/∂z_a, ∂v/∂z_a, ∂p/∂z_b, ∂v/∂z_b`` (``p = (1 - c) z_a + c
+    z_b``, ``v = (z_b - z_a)/Δ``; an axis observed once has ``p = z_a``, ``v = 0``; one never
+    observed, zeros). Its covariance does not depend on the positions."""
+    _, _, has_first, has_second, t_a, t_b = _two_points(z, dt)
+    both, delta, c = _weights(has_first, has_second, t_a, t_b, z.dtype)
+    zero = torch.zeros_like(c)
+    return (
+        torch.where(both, 1 - c, has_first.to(z.dtype)),
+        torch.where(both, -1 / delta, zero),
+        c,
+        torch.where(both, 1 / delta, zero),
+    )
+
+
 def two_point_prior(
     z: Tensor,
     dt: Tensor,
@@ -90,21 +125,15 @@ def two_point_prior(
     r = torch.as_tensor(meas_var, dtype=dtype).expand(m)
     if not bool((r > 0).all()) or not bool(torch.isfinite(r).all()):
         raise ValueError(f"meas_var: expected finite variances > 0, got {r.tolist()}")
-    observed = ~torch.isnan(z)
-    # Step times relative to the prior's time t_p = 0.
-    t = torch.cumsum(dt.to(torch.float64), dim=1)
-    first, second, has_first, has_second = _first_two(observed)
-    t_a, t_b = t.gather(1, first), t.gather(1, second)  # [B, m]
+    first, second, has_first, has_second, t_a, t_b = _two_points(z, dt)
 
     def at(index: Tensor) -> Tensor:  # [B, m] (0 where the axis has no such step)
         return z.gather(1, index.unsqueeze(1)).squeeze(1).nan_to_num(0.0)
 
     z_a, z_b = at(first), at(second)
 
-    both = has_first & has_second
-    delta = torch.where(both, t_b - t_a, torch.ones_like(t_a)).to(dtype)
+    both, delta, c = _weights(has_first, has_second, t_a, t_b, dtype)
     v = torch.where(both, (z_b - z_a) / delta, torch.zeros_like(z_a))
-    c = torch.where(both, -t_a.to(dtype) / delta, torch.zeros_like(delta))
     pos = torch.where(both, (1 - c) * z_a + c * z_b, z_a)
 
     if speed_std is None:

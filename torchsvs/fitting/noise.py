@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
+from torchsvs.datasets.priors import prior_tangents
 from torchsvs.estimator import prepare_inputs, threads_for
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.losses import innovation_nll
@@ -128,18 +129,21 @@ def kalman_positions(
     r: Tensor,
     q: float | Tensor,
     smoothed: bool = True,
-) -> tuple[Tensor, Tensor]:
+    first_two: bool = False,
+) -> curves.Positions:
     """The means ``[B, T, 2m]`` and the positions' variances ``[B, T, m]`` of :func:`kalman`
     (the smoother, or with ``smoothed=False`` the filter) with ``q`` (a number, or one per
     track ``[B]``) and variances ``r [m]`` on ``z`` from the prior ``x0 [B, 2m]``, ``P0 [B,
     2m, 2m]``, in ``z``'s dtype: the compiled loop that writes nothing else
     (:func:`torchsvs.kernels.curves.positions`), else the estimator's run (one per distinct
-    ``q``)."""
+    ``q``). With ``first_two`` (``x0`` :func:`~torchsvs.datasets.two_point_prior`'s) and the
+    compiled loop, also the estimate's derivative by each axis's first two measurements."""
     B, T, m = z.shape
     dtype = z.dtype
     qs = torch.as_tensor(q, dtype=dtype).expand(B).contiguous()
     r = r.to(dtype)
-    found = curves.positions(z, dt, x0, P0, r, qs, smoothed)
+    tangents = prior_tangents(z, dt) if first_two else None
+    found = curves.positions(z, dt, x0, P0, r, qs, smoothed, tangents)
     if found is not None:
         return found
     mean, var = z.new_empty(B, T, 2 * m), z.new_empty(B, T, m)
@@ -150,7 +154,7 @@ def kalman_positions(
             out = estimator(z[index], x0[index], P0[index], dt=dt[index], keep="moments")
         mean[index] = out.mean
         var[index] = out.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-    return mean, var
+    return curves.Positions(mean, var)
 
 
 def _sure(
@@ -160,7 +164,7 @@ def _sure(
     Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
     ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
     outliers do not drive, as their terms stay at the clip whatever ``q``)."""
-    mean, leverage = kalman_positions(z, dt, prior.x0, prior.P0, r, q, smoothed)
+    mean, leverage, _ = kalman_positions(z, dt, prior.x0, prior.P0, r, q, smoothed)
     return _sure_of(z, r, mean[..., 0::2], leverage, clip)
 
 
@@ -293,6 +297,9 @@ class CurveRuns(NamedTuple):
     mean: Tensor  #: [B, T, 2m] the state's mean
     position_var: Tensor  #: [B, T, m] the positions' variances
     ran: Tensor  #: [B] bool the chosen factor is among the curves' (else mean, var unset)
+    #: [B, m, 2] the position estimate's derivative by each axis's first and second
+    #: measurement (:class:`~torchsvs.kernels.curves.Positions`), where compiled
+    first_two: Tensor | None = None
 
 
 #: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of
@@ -338,6 +345,31 @@ def q_curves(
     return q_curve_runs(z, dt, meas_var, q, smoothed, factors)[0]
 
 
+def _curve_inputs(
+    z: Tensor, dt: Tensor, meas_var: Tensor | float | Sequence[float]
+) -> tuple[Tensor, Tensor, Tensor, Any]:
+    """``z``, ``dt`` and the variances ``[m]`` in float64, and the tracks' two-point prior."""
+    m = z.shape[-1]
+    r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
+    z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
+    return z64, dt64, r, two_point_prior(z64, dt64, r)  # (whole: an axis seen once reads it)
+
+
+def curve_runs(
+    z: Tensor,
+    dt: Tensor,
+    meas_var: Tensor | float | Sequence[float],
+    q: float | Tensor,
+    smoothed: bool = True,
+) -> CurveRuns:
+    """What :func:`q_curve_runs` keeps, at ``q`` (one for all tracks, or each track's
+    ``[B]``) without the curves: :func:`kalman`'s pass on the tracks from their two-point
+    prior."""
+    z64, dt64, r, prior = _curve_inputs(z, dt, meas_var)
+    found = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q, smoothed, first_two=True)
+    return CurveRuns(*found[:2], torch.ones(z.shape[0], dtype=torch.bool), found.first_two)
+
+
 def q_curve_runs(
     z: Tensor,
     dt: Tensor,
@@ -357,12 +389,9 @@ def q_curve_runs(
     sums alone (:func:`torchsvs.kernels.curves.sure_risks`), then the kept pass; else the
     estimator runs a chunk of tracks at a time (:data:`CHUNK_CELLS`) at each factor, each
     from the whole batch's prior, and keeps the tracks whose factor is on the grid."""
-    m = z.shape[-1]
-    r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
-    z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
+    z64, dt64, r, prior = _curve_inputs(z, dt, meas_var)
     counted = ~torch.isnan(z64) & _scored(z64).unsqueeze(-1)
-    prior = two_point_prior(z64, dt64, r)  # (whole: an axis seen once reads the batch)
-    B, T, _ = z64.shape
+    B, T, m = z64.shape
     grid = torch.tensor(factors, dtype=torch.float64)
     counts = counted.sum((1, 2)).to(torch.float64)
     every = (q * grid).unsqueeze(0).expand(B, len(factors))
@@ -375,8 +404,9 @@ def q_curve_runs(
         if not keep:
             return found, factor, None
         # each track's pass at its own factor (on the grid or not)
-        mean, var = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * factor, smoothed)
-        return found, factor, CurveRuns(mean, var, torch.ones(B, dtype=torch.bool))
+        kept = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * factor, smoothed, True)
+        every = torch.ones(B, dtype=torch.bool)
+        return found, factor, CurveRuns(kept.mean, kept.var, every, kept.first_two)
     # the estimator's passes, factor by factor, a chunk of tracks at a time
     risk = z64.new_empty(len(factors), B)
     chosen = z64.new_empty(B) if choose is not None else None

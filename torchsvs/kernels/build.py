@@ -167,7 +167,7 @@ def library() -> ctypes.CDLL | None:
         step.argtypes = [strides, ctypes.c_double, pointers]
         step.restype = ctypes.c_int
         curves = getattr(lib, f"kalman_curves_{suffix}")
-        curves.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, vp, vp, vp]
+        curves.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, *(vp,) * 4]
     _state["library"] = lib
     return lib
 

@@ -17,6 +17,8 @@ estimator.
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -41,8 +43,10 @@ def _call(
     q: Tensor,
     smoothed: bool,
     risk: Tensor | None,
-    mean: Tensor | None,
-    var: Tensor | None,
+    mean: Tensor | None = None,
+    var: Tensor | None = None,
+    tangents: Sequence[Tensor] = (),
+    first_two: Tensor | None = None,
 ) -> None:
     B, T, m = z.shape
     K = q.shape[1]
@@ -54,12 +58,14 @@ def _call(
         *(x.unsqueeze(1).expand(shape) for x in _prior_axes(x0, P0)),
         r.reshape(1, 1, m).expand(shape),
         q.unsqueeze(-1).expand(B, K, m),  # (its step stride is the factor's)
+        *(x.unsqueeze(1).expand(shape) for x in tangents),
     ]
     inputs = build.pointers(views)
     strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
+    outputs = (risk, mean, var, first_two)
     build.function("kalman_curves", z.dtype)(
         B, T, m, K, int(smoothed), build.threads(B, T * K), inputs, strides,
-        *(None if x is None else x.data_ptr() for x in (risk, mean, var)),
+        *(None if x is None else x.data_ptr() for x in outputs),
     )  # fmt: skip
 
 
@@ -88,21 +94,44 @@ def sure_risks(
     if not _usable(z, dt, weight, x0, P0, r, q):
         return None
     risk = torch.empty(q.shape[1], B, m, dtype=z.dtype)
-    _call(z, dt, weight, x0, P0, r, q, smoothed, risk, None, None)
+    _call(z, dt, weight, x0, P0, r, q, smoothed, risk)
     return risk.sum(-1)
 
 
+class Positions(NamedTuple):
+    """What :func:`positions` gives."""
+
+    mean: Tensor  #: [B, T, 2m] the means (position, velocity per axis)
+    var: Tensor  #: [B, T, m] the positions' variances
+    #: [B, m, 2] with ``tangents``: the position estimate's derivative by the measurement at
+    #: each axis's first and second observation (through the prior too), NaN where none
+    first_two: Tensor | None = None
+
+
 def positions(
-    z: Tensor, dt: Tensor, x0: Tensor, P0: Tensor, r: Tensor, q: Tensor, smoothed: bool = True
-) -> tuple[Tensor, Tensor] | None:
-    """The smoother's (filter's) means ``[B, T, 2m]`` (position, velocity per axis) and the
-    positions' variances ``[B, T, m]`` with each track's ``q [B]`` (other arguments as
-    :func:`sure_risks`'); ``None`` where the compiled loops are unavailable."""
+    z: Tensor,
+    dt: Tensor,
+    x0: Tensor,
+    P0: Tensor,
+    r: Tensor,
+    q: Tensor,
+    smoothed: bool = True,
+    tangents: Sequence[Tensor] | None = None,
+) -> Positions | None:
+    """The smoother's (filter's) means and positions' variances with each track's ``q [B]``
+    (other arguments as :func:`sure_risks`'); with ``tangents`` (how the prior's mean moves
+    with each axis's first and second observation, :func:`~torchsvs.datasets.priors.
+    prior_tangents`) also the estimate's derivative by those two measurements. ``None``
+    where the compiled loops are unavailable."""
     B, T, m = z.shape
-    if not _usable(z, dt, x0, P0, r, q):
+    if not _usable(z, dt, x0, P0, r, q, *(tangents or ())):
         return None
     mean = build.fresh((B, T, 2 * m), z.dtype)
     var = build.fresh((B, T, m), z.dtype)
+    first_two = None if tangents is None else torch.empty(B, m, 2, dtype=z.dtype)
     weight = torch.zeros((), dtype=z.dtype).expand(B, T, m)
-    _call(z, dt, weight, x0, P0, r, q.reshape(B, 1), smoothed, None, mean, var)
-    return mean, var
+    _call(
+        z, dt, weight, x0, P0, r, q.reshape(B, 1), smoothed, None, mean, var,
+        tangents or (), first_two,
+    )  # fmt: skip
+    return Positions(mean, var, first_two)

@@ -181,15 +181,21 @@ inline void smooth_lanes(int64_t lanes, const R (*g)[kLanes], const R (*r)[kLane
 // smoothed (ps, vs, [[sa, sb], [sb, sc]]) at k + 1 in, at k out, from the filtered moments at
 // k (p, v, a, b, c), the prediction into k + 1 (pp, vp, pa, pb, pc) and its interval dt.
 // X: a lane's scalar or a vector of lanes.
+// Its gain C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (blocks.inverse, blocks.matmul), from
+// the filtered covariance at k and the predicted one at k + 1.
 template <typename X>
-inline void rts_back(X& ps, X& vs, X& sa, X& sb, X& sc, X p, X v, X a, X b, X c, X pp, X vp,
-                     X pa, X pb, X pc, X dt) {
-    // C = P Fᵀ Pp⁻¹ with Fᵀ = [[1, 0], [T, 1]] (blocks.inverse, blocks.matmul).
+inline M2<X> rts_gain(X a, X b, X c, X pa, X pb, X pc, X dt) {
     X det = pa * pc - pb * pb;
     X ia = pc / det, ib = -pb / det, ic = pa / det;
     X xa = a + dt * b, xb = b, xc = b + dt * c, xd = c;
-    X ca = xa * ia + xb * ib, cb = xa * ib + xb * ic;
-    X cc = xc * ia + xd * ib, cd = xc * ib + xd * ic;
+    return {xa * ia + xb * ib, xa * ib + xb * ic, xc * ia + xd * ib, xc * ib + xd * ic};
+}
+
+template <typename X>
+inline void rts_back(X& ps, X& vs, X& sa, X& sb, X& sc, X p, X v, X a, X b, X c, X pp, X vp,
+                     X pa, X pb, X pc, X dt) {
+    const M2<X> C = rts_gain(a, b, c, pa, pb, pc, dt);
+    const X ca = C.a, cb = C.b, cc = C.c, cd = C.d;
     X dp = ps - pp, dv = vs - vp;
     ps = p + (ca * dp + cb * dv);
     vs = v + (cc * dp + cd * dv);

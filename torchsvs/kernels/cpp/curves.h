@@ -6,7 +6,14 @@
 //   risk [K, B, m]  Σ over the counted steps of (z − x̂ˢ)² − r + 2 Pˢ_pp: the exact SURE of
 //                   the smoother's positions (torchsvs/fitting/noise.py's _sure_of), per lane;
 //   mean [B, T, 2m] the means (general layout) and var [B, T, m] the positions' variances,
-//                   of the one q (K = 1).
+//                   of the one q (K = 1);
+//   first_two [B, m, 2]  with them, the derivative of the position estimate at each axis's
+//                   first and second observation by the measurement there, through the
+//                   two-point prior too (whose mean moves with both: its tangent by each is
+//                   given), NaN where there is no such observation: the divergence that the
+//                   position variance over r gives everywhere else (accuracy.exact_divergence).
+//                   Each is a tangent run of the means (unit measurement there, the prior's
+//                   tangent) with the pass's own gains.
 // Nothing else is written: a curve of K values costs K passes over registers and the lane's
 // own record of T steps, not K full results in memory.
 #pragma once
@@ -17,19 +24,21 @@ namespace {
 
 // Inputs, each a [B, T, m] view: 0 z, 1 the interval, 2 the weight of a step in the risk (1
 // counted, 0 not), 3-7 the prior p, v, a, b, c (stride 0 in time), 8 r (per axis), 9 q (its
-// step stride the factor's).
+// step stride the factor's); with first_two, 10-13 the prior mean's tangents (p, v) by the
+// first and by the second observation (stride 0 in time).
 template <typename R>
 void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int threads,
                    const void* const* in, const int64_t* in_strides, R* risk, R* mean_out,
-                   R* var_out) {
+                   R* var_out, R* first_two) {
     using V = typename Wide<R>::type;
     constexpr int W = LaneBlock<R>::kWidth;
-    View<R> given[10];
-    for (int i = 0; i < 10; ++i) given[i] = view<R>(in, in_strides, i);
+    View<R> given[14];
+    for (int i = 0; i < (first_two ? 14 : 10); ++i) given[i] = view<R>(in, in_strides, i);
     const int64_t n = 2 * m;
     const V zero{}, nan = splat<V>(NAN), two = splat<V>(2), three = splat<V>(3);
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         std::vector<V> z(T), dt(T), weight(T), rec(10 * std::max<int64_t>(T, 1));
+        std::vector<V> tangent(first_two ? 8 * T : 0);  // filtered, predicted (p, v) of each
         for (int64_t l = first * m; l < last * m; l += W) {
             const LaneBlock<R> lanes(l, last * m, m);
             for (int64_t t = 0; t < T; ++t)
@@ -42,6 +51,12 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                            lanes.at(given[6], 0), lanes.at(given[7], 0), zero, zero};
                 V g[kGiven] = {};
                 g[kYv] = nan, g[kRp] = r, g[kRvv] = splat<V>(1), g[kWp] = g[kWv] = splat<V>(1);
+                // the tangents (first, second observation), the observations so far and the
+                // steps of the first two
+                V tp[2] = {}, tv[2] = {}, seen = zero, at_first = splat<V>(-1), at_second = at_first;
+                if (first_two)
+                    for (int i = 0; i < 2; ++i)
+                        tp[i] = lanes.at(given[10 + 2 * i], 0), tv[i] = lanes.at(given[11 + 2 * i], 0);
                 for (int64_t t = 0; t < T; ++t) {  // the filter (Rule 0: Kalman)
                     const V d = dt[t];
                     // blocks.process_noise: Q of Eq. (48), Chen et al. 2020
@@ -52,7 +67,23 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                     V* at = &rec[10 * t];
                     at[0] = x.p, at[1] = x.v, at[2] = x.a, at[3] = x.b, at[4] = x.c;
                     at[5] = s.p_pred, at[6] = s.v_pred, at[7] = s.a1, at[8] = s.b1, at[9] = s.c1;
+                    if (!first_two) continue;
+                    const auto observed = z[t] == z[t];
+                    seen += observed ? splat<V>(1) : zero;
+                    const V now = splat<V>(static_cast<double>(t));
+                    at_first = (observed & (seen == splat<V>(1))) ? now : at_first;
+                    at_second = (observed & (seen == splat<V>(2))) ? now : at_second;
+                    V* tan = &tangent[8 * t];
+                    for (int i = 0; i < 2; ++i) {
+                        const V unit = (i == 0 ? at_first : at_second) == now ? splat<V>(1) : zero;
+                        const V pp = tp[i] + d * tv[i], vp = tv[i];
+                        const V e = observed ? unit - pp : zero;  // (the gain is 0 where unseen)
+                        tp[i] = pp + s.kp * e, tv[i] = vp + s.kc * e;
+                        tan[4 * i] = tp[i], tan[4 * i + 1] = tv[i];
+                        tan[4 * i + 2] = pp, tan[4 * i + 3] = vp;
+                    }
                 }
+                V found[2] = {nan, nan};  // the tangents at their own observation
                 // the smoother, from the last step (as filtered) back
                 V ps = x.p, vs = x.v, sa = x.a, sb = x.b, sc = x.c, total = zero;
                 for (int64_t t = T - 1; t >= 0; --t) {
@@ -66,6 +97,26 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                     }
                     const V e = z[t] - ps;
                     total += weight[t] != zero ? e * e - r + two * sa : zero;
+                    if (first_two) {
+                        const V* tan = &tangent[8 * t];
+                        const V now = splat<V>(static_cast<double>(t));
+                        for (int i = 0; i < 2; ++i) {
+                            if (!smooth) {
+                                tp[i] = tan[4 * i], tv[i] = tan[4 * i + 1];
+                            } else if (t < T - 1) {
+                                const V* next = &rec[10 * (t + 1)];
+                                const M2<V> C = rts_gain(at[2], at[3], at[4], next[7], next[8],
+                                                         next[9], dt[t + 1]);
+                                const V dp = tp[i] - tan[8 + 4 * i + 2];
+                                const V dv = tv[i] - tan[8 + 4 * i + 3];
+                                tp[i] = tan[4 * i] + (C.a * dp + C.b * dv);
+                                tv[i] = tan[4 * i + 1] + (C.c * dp + C.d * dv);
+                            } else {
+                                tp[i] = tan[4 * i], tv[i] = tan[4 * i + 1];
+                            }
+                            found[i] = (i == 0 ? at_first : at_second) == now ? tp[i] : found[i];
+                        }
+                    }
                     if (!mean_out) continue;
                     for (int w = 0; w < lanes.count; ++w) {
                         const int64_t idx = lanes.b[w] * T + t, j = lanes.j[w];
@@ -73,6 +124,10 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                         var_out[idx * m + j] = sa[w];
                     }
                 }
+                if (first_two)
+                    for (int w = 0; w < lanes.count; ++w)
+                        for (int i = 0; i < 2; ++i)
+                            first_two[(lanes.b[w] * m + lanes.j[w]) * 2 + i] = found[i][w];
                 if (!risk) continue;
                 for (int w = 0; w < lanes.count; ++w)
                     risk[(k * B + lanes.b[w]) * m + lanes.j[w]] = total[w];
