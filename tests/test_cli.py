@@ -118,3 +118,12 @@ def test_a_built_wheel_ships_the_fit_configs(tmp_path):
     assert shipped_configs() == ["atc_svss", "complex_svss"]
     for config in shipped_configs():
         assert f"torchsvs/training/configs/{config}.yaml" in names
+
+
+def test_track_threads_default_to_the_cores_shared_by_the_processes():
+    from torchsvs.track_command import default_threads
+
+    cores = len(os.sched_getaffinity(0))
+    assert default_threads() == cores
+    assert default_threads(2) == max(1, cores // 2)
+    assert default_threads(10 * cores) == 1

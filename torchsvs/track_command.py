@@ -31,6 +31,8 @@ def track(argv: list[str]) -> None:
             "directory (a Parquet dataset); run it in one process (streamed file by file) or "
             "on Spark or Dask (torchsvs.engines)"
         )
+    if args.threads is None:
+        args.threads = default_threads(args.processes)
     if os.environ.get("LOCAL_RANK", "0") == "0":  # ranks 1..N-1 of --processes read no file
         try:
             args.columns = checked_columns(args)
@@ -158,6 +160,18 @@ class OtherRanks:
                     os.environ.pop(key, None)
                 else:
                     os.environ[key] = value
+
+
+def default_threads(processes: int = 1) -> int:
+    """``--threads`` by default: the cores this process may run on, shared by ``processes``.
+    The compiled passes split a group's tracks over them and reading and writing run beside
+    the estimating; the tensor step loops of small batches take one thread whatever this
+    says (:func:`~torchsvs.estimator.threads_for`)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # (not on every platform)
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(processes, 1))
 
 
 def _track(args: argparse.Namespace) -> None:

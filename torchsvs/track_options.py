@@ -296,7 +296,11 @@ def track_parser() -> argparse.ArgumentParser:
         "map coordinates and for latitude, longitude in degrees)",
     )
     parser.add_argument(
-        "--threads", type=_at_least_one, default=1, help="torch threads (default 1)"
+        "--threads",
+        type=_at_least_one,
+        default=None,
+        help="torch threads of each process (default: the cores this process may use, "
+        "divided by --processes)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return parser
