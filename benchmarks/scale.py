@@ -237,10 +237,14 @@ def whole_file(source: Path, target: Path) -> None:
 
 def working(found: Measured) -> float:
     """The seconds a run spent on its rows (reading, shuffling, estimating, writing): an
-    engine's action (``run``), or the phases ``torchsvs track`` reports; else its wall time."""
+    engine's action (``run``), or the phases ``torchsvs track`` reports (where reading and
+    writing run beside the estimating, its ``waiting`` for them in their place); else its wall
+    time."""
     if "run" in found.phases:
         return found.phases["run"]
     names = ("reading", "estimating", "gathering", "writing")
+    if "waiting" in found.phases:
+        names = ("estimating", "gathering", "waiting")
     spent = [found.phases[k] for k in names if k in found.phases]
     return sum(spent) if spent else found.seconds
 
@@ -266,6 +270,8 @@ def report(runs: list[Measured], options: str, path: Path) -> str:
         "and Dask's worker processes are separate and not included). × floor (wall): over the "
         "pyarrow child's wall time (its interpreter and imports included, as every child's); "
         "× floor (read + write): over the seconds pyarrow spends reading and writing alone. "
+        "`torchsvs track` reads the next file and writes the last one beside the estimating "
+        "(its phases overlap; `waiting`: the seconds the estimating waited for them). "
         "Machine: 2 cores, shared.",
         "",
         "| engine | rows | wall s | × floor (wall) | × floor (read + write) | µs per row "
