@@ -15,7 +15,7 @@ import torch
 from torchsvs.accuracy import RiskTerms, RiskTotals, accuracy, risk_terms
 from torchsvs.datasets import Columns
 from torchsvs.recipes import Settings
-from torchsvs.selection import caution_score
+from torchsvs.selection import SWITCH_ERRORS, caution_score
 from torchsvs.track_run import summary_path
 from torchsvs.tracking import track_file
 
@@ -189,10 +189,18 @@ def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
     assert skipped["svstps"] == "the same estimator as svss here"  # the variable layer
     chosen = summary["estimator"]
     assert chosen in rows and run.settings is not None and run.settings.chosen_from
-    score = {
-        k: caution_score(r["estimated_position_rmse"], r["standard_error"]) for k, r in rows.items()
-    }
-    assert score[chosen] == min(score.values())
+    # the rule replayed: a later candidate replaces the one chosen so far where its score is
+    # lower and its paired MSE difference below zero by more than SWITCH_ERRORS of its se
+    order = [r for r in summary["candidates"] if not r.get("skipped")]
+    kept = order[0]
+    for row in order[1:]:
+        assert {"mse_change", "mse_change_se"} <= set(row)
+        lower = caution_score(row["estimated_position_rmse"], row["standard_error"]) < (
+            caution_score(kept["estimated_position_rmse"], kept["standard_error"])
+        )
+        if lower and row["mse_change"] + SWITCH_ERRORS * row["mse_change_se"] < 0:
+            kept = row
+    assert kept["estimator"] == chosen
     # in the H⁺ mode svstps diverges (track refuses it there): auto skips it too
     hplus = Settings("auto", velocity=False)
     track_file(source, tmp_path / "h.csv", hplus, columns=Columns(), progress=False)
@@ -439,10 +447,10 @@ def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_b
 
     def counted(settings, tracks):
         scored.append((settings.estimator, len(tracks)))
-        return sample_accuracy(settings, tracks)
+        return sample_terms(settings, tracks)
 
-    sample_accuracy = selection.sample_accuracy
-    monkeypatch.setattr(selection, "sample_accuracy", counted)
+    sample_terms = selection.sample_terms
+    monkeypatch.setattr(selection, "sample_terms", counted)
     target = tmp_path / "out.csv"
     track_file(source, target, Settings("auto"), columns=Columns(), progress=False)
     summary = json.loads(summary_path(target).read_text())
@@ -471,3 +479,27 @@ def test_spread_tracks_keeps_the_most_tracks_within_the_points():
         assert kept.ids[0] == "t0" and (len(kept) == 1 or kept.ids[-1] == "t7")
     assert len(spread_tracks(tracks, 10_000)) == 8
     assert len(spread_tracks(tracks, 1)) == 1  # at least one track
+
+
+def test_paired_difference_of_two_estimators_on_the_same_chunks():
+    """RiskTerms.difference: the MSEs' difference (as mse() gives each), zero against itself,
+    and a standard error far below either's own where the two share what varies (the
+    measurements' noise, the path) and differ by little; chunks that are not the same are
+    refused, naming the argument."""
+    gen = np.random.default_rng(0)
+    C, m = 400, 2
+    count = np.full((C, m), 64.0)
+    count[3, 1] = 10.0
+    residual = gen.gamma(4.0, 900.0, (C, m)) * count / 64.0  # what the chunks share
+    divergence = gen.uniform(5.0, 15.0, (C, m))
+    a = RiskTerms(residual, divergence, count, np.arange(C) // 4)
+    b = RiskTerms(residual * 1.02 + gen.normal(0.0, 5.0, (C, m)), divergence, count, a.track)
+    r = [900.0, 400.0]
+    change, se = b.difference(a, r)
+    assert change == pytest.approx(b.mse(r)[0] - a.mse(r)[0], rel=1e-9)
+    assert change > 0 and se < 0.05 * min(a.mse(r)[1], b.mse(r)[1])
+    assert change > 5 * se  # b is surely worse
+    assert a.difference(a, r) == (0.0, 0.0)
+    other = RiskTerms(residual[1:], divergence[1:], count[1:], a.track[1:])
+    with pytest.raises(ValueError, match="other: expected the terms of the same chunks"):
+        a.difference(other, r)

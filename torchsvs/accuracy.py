@@ -86,6 +86,31 @@ class RiskTerms:
         totals.add(self)
         return totals.mse(meas_var)
 
+    def difference(self, other: RiskTerms, meas_var: Sequence[float]) -> tuple[float, float]:
+        r"""The estimated MSE per point of these terms less ``other``'s, two estimators' on
+        the same measurements (the same chunks), and its standard error: paired chunk by
+        chunk, so what the two share (the measurements' noise, the path) cancels and a
+        difference far smaller than either's own standard error can be sure,
+        :math:`D = \sum_c d_c / \bar N`, :math:`\mathrm{Var}\,D \approx \sum_c (d_c - D
+        n_c)^2 / \bar N^2` (:meth:`RiskTotals.mse`'s ratio estimator on the chunks'
+        differences)."""
+        if self.count.shape != other.count.shape or not np.array_equal(self.count, other.count):
+            raise ValueError("other: expected the terms of the same chunks")
+        counts = self.count.sum(axis=0)
+        if not len(self.count) or not (counts > 0).all():
+            return math.nan, math.nan
+        r = np.asarray(meas_var, dtype=np.float64)
+        mean_count = counts.mean()
+        scale = mean_count / counts  # each axis over its own observations
+
+        def error(t: RiskTerms) -> np.ndarray:
+            return t.residual + r * (2.0 * t.divergence - t.count)
+
+        d = ((error(self) - error(other)) * scale).sum(axis=1)
+        D = float(d.sum() / mean_count)
+        spread = float(((d - D * self.count.mean(axis=1)) ** 2).sum())
+        return D, math.sqrt(spread) / mean_count
+
     @property
     def points(self) -> int:
         return int(round(self.count.mean(axis=1).sum())) if len(self.count) else 0

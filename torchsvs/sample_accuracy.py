@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from torchsvs.accuracy import Accuracy
+from torchsvs.accuracy import Accuracy, RiskTerms
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import GUARD_ERRORS, GroupBatch, _estimate_part, centred
@@ -19,6 +19,12 @@ from torchsvs.recipes import Settings, make_estimator, make_model
 def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
     """The truth-free error estimate (:mod:`torchsvs.accuracy`) of the estimator of complete
     ``settings`` on padded ``tracks`` (run as ``torchsvs track`` runs it, in float64)."""
+    return accuracy_of_terms(settings, sample_terms(settings, tracks))
+
+
+def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
+    """:func:`sample_accuracy`'s SURE sums per chunk (the same chunks for every estimator on
+    the same ``tracks``: :meth:`~torchsvs.accuracy.RiskTerms.difference` pairs them)."""
     assert settings.meas_var is not None
     estimator = make_estimator(settings, make_model(settings)).double()
     moved, offset = centred(tracks.to(torch.float64))
@@ -27,8 +33,14 @@ def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
     noise_range = meas_var_range(settings, GUARD_ERRORS)  # as estimate_group's guard reads it
     part = _estimate_part(estimator, batch, meas_std, risk=True, noise_range=noise_range)
     assert part.risk is not None
+    return part.risk
+
+
+def accuracy_of_terms(settings: Settings, terms: RiskTerms) -> Accuracy:
+    """The error estimate of ``settings``' estimator from its SURE sums ``terms``."""
+    assert settings.meas_var is not None
     return accuracy_of(
-        part.risk,
+        terms,
         settings.meas_var,
         noise_estimated=settings.noise != "given",
         meas_var_range=meas_var_range(settings),
