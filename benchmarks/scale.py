@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from benchmarks.million_tracks import write_tracks
-from torchsvs.track_run import summary_path
 
 HERE = Path(__file__).resolve().parent
 ENGINES = ("floor", "one", "one-lean", "processes", "spark", "dask")
@@ -211,6 +210,9 @@ def measure(engine: str, source: Path, rows: int, work: Path, estimator: str) ->
         if engine == "processes":
             command += ["--processes", "2"]
         seconds, peak = timed_child(command)
+        from torchsvs.track_run import summary_path  # (not at the top: the floor's child
+        # imports this module, and torch would add a second to its wall time)
+
         summary = json.loads(summary_path(out).read_text())
         phases = {k: float(v) for k, v in summary["phases"].items()}
     else:
