@@ -287,3 +287,35 @@ def test_processes_refuse_a_dataset_naming_the_option(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "argument --processes" in err and "directory" in err and "Spark or Dask" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_write_that_fails_beside_the_estimating_stops_the_run_and_leaves_the_output(
+    tmp_path, monkeypatch
+):
+    """Writing runs in a thread of its own beside the estimating of the next file: a write's
+    error (a disk full at the second file) still stops the run with that error, and an
+    earlier output directory is left as it was, with no temporary one beside it."""
+    from torchsvs.datasets import EstimateWriter
+
+    source = tmp_path / "in"
+    source.mkdir()
+    for k in range(3):
+        pq.write_table(_table(2, first=2 * k, seed=k), source / f"part-{k}.parquet")
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "earlier.txt").write_text("kept")
+    calls = []
+    write = EstimateWriter.write
+
+    def failing(self, table, path=None):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        return write(self, table, path)
+
+    monkeypatch.setattr(EstimateWriter, "write", failing)
+    with pytest.raises(OSError, match="No space left on device"):
+        _track(source, "-o", target, "--force")
+    assert len(calls) == 2  # nothing written after the failure
+    assert [p.name for p in target.iterdir()] == ["earlier.txt"]
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

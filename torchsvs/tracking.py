@@ -104,59 +104,49 @@ def track_file(
     bar: Any = None
     # Reading the next block and writing the last one run beside the estimating, each in a
     # thread of its own (Arrow's reading and writing, numpy and torch release the GIL).
-    with ThreadPoolExecutor(1) as reading, ThreadPoolExecutor(1) as writing:
+    with ThreadPoolExecutor(1) as reading, EstimateWriter(target, source) as writer:
+        behind = WriteBehind(writer, phases)
         try:
-            with EstimateWriter(target, source) as writer:
-                written: Future[None] | None = None
-
-                def write(found: Any, block: Any, precision: str) -> None:
+            blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
+            for block in read_ahead(blocks, reading, phases):
+                if plan is None:
                     tick = time.perf_counter()
-                    writer.write(found.table(block, precision), block.path)
-                    phases["writing"] += time.perf_counter() - tick
-
-                try:
-                    blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
-                    for block in read_ahead(blocks, reading, phases):
-                        if plan is None:
-                            tick = time.perf_counter()
-                            plan = plan_tracks(
-                                block,
-                                settings,
-                                fit=fit,
-                                fit_options=fit_options,
-                                checkpoint=checkpoint,
-                                save=save,
-                                dtype=dtype,
-                                precision=precision,
-                                log=say,
-                            )
-                            phases["settings"] += time.perf_counter() - tick
-                            estimator = plan.estimator()
-                            run = new_run(plan, accuracy)
-                            # disable=None: no bar where stderr is not a terminal (it would
-                            # stay in a log)
-                            bar = tqdm(
-                                desc="tracks",
-                                unit=" tracks",
-                                disable=None if progress else True,
-                                leave=False,
-                            )
-                        assert run is not None and estimator is not None
-                        found = estimate_block(
-                            block,
-                            plan,
-                            estimator,
-                            run,
-                            covariance=covariance,
-                            accuracy=accuracy,
-                            max_cells=max_cells,
-                            progress=bar,
-                        )
-                        waited(written, phases)  # one block in writing at a time, in order
-                        written = writing.submit(write, found, block, plan.precision)
-                finally:  # the writer closes after its last write (an error's too)
-                    waited(written, phases)
-        finally:  # the bar cleared before anything else is printed, an error too
+                    plan = plan_tracks(
+                        block,
+                        settings,
+                        fit=fit,
+                        fit_options=fit_options,
+                        checkpoint=checkpoint,
+                        save=save,
+                        dtype=dtype,
+                        precision=precision,
+                        log=say,
+                    )
+                    phases["settings"] += time.perf_counter() - tick
+                    estimator = plan.estimator()
+                    run = new_run(plan, accuracy)
+                    # disable=None: no bar where stderr is not a terminal (it would stay in a log)
+                    bar = tqdm(
+                        desc="tracks",
+                        unit=" tracks",
+                        disable=None if progress else True,
+                        leave=False,
+                    )
+                assert run is not None and estimator is not None
+                found = estimate_block(
+                    block,
+                    plan,
+                    estimator,
+                    run,
+                    covariance=covariance,
+                    accuracy=accuracy,
+                    max_cells=max_cells,
+                    progress=bar,
+                )
+                behind.write(found, block, plan.precision)
+        finally:  # the last write done before the writer closes; the bar cleared before
+            # anything else is printed (an error's too)
+            behind.close()
             if bar is not None:
                 bar.close()
     assert run is not None, "track_blocks yields a block or raises"
@@ -194,10 +184,39 @@ def read_ahead(
         yield item
 
 
-def waited(job: Future[None] | None, phases: dict[str, float]) -> None:
-    """Waits for ``job`` (raising its error), adding the seconds to ``phases["waiting"]``."""
-    if job is None:
-        return
-    tick = time.perf_counter()
-    job.result()
-    phases["waiting"] += time.perf_counter() - tick
+class WriteBehind:
+    """Writes each block's estimates with ``writer`` in a thread of its own while the caller
+    goes on: one block in writing at a time, in order; ``phases["writing"]`` adds the writes'
+    seconds, ``phases["waiting"]`` the seconds the caller waited for one to end. A write's
+    error is raised at the next :meth:`write` or at :meth:`close`."""
+
+    def __init__(self, writer: EstimateWriter, phases: dict[str, float]) -> None:
+        self.writer, self.phases = writer, phases
+        self.pool = ThreadPoolExecutor(1)
+        self.pending: Future[None] | None = None
+
+    def write(self, found: Any, block: Any, precision: str) -> None:
+        self.wait()
+        self.pending = self.pool.submit(self._write, found, block, precision)
+
+    def _write(self, found: Any, block: Any, precision: str) -> None:
+        tick = time.perf_counter()
+        self.writer.write(found.table(block, precision), block.path)
+        self.phases["writing"] += time.perf_counter() - tick
+
+    def wait(self) -> None:
+        if self.pending is None:
+            return
+        tick = time.perf_counter()
+        pending, self.pending = self.pending, None
+        try:
+            pending.result()
+        finally:
+            self.phases["waiting"] += time.perf_counter() - tick
+
+    def close(self) -> None:
+        """Waits for the last write (raising its error) and ends the thread."""
+        try:
+            self.wait()
+        finally:
+            self.pool.shutdown()
