@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from torchsvs.datasets import two_point_prior
-from torchsvs.datasets.priors import _first_two
+from torchsvs.datasets.priors import first_observed_two
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting import noise
 from torchsvs.fitting.outliers import outlier_distances
@@ -75,7 +76,7 @@ def test_positions_with_each_tracks_q_equal_the_estimator() -> None:
     q = torch.logspace(-2, 1, 12, dtype=torch.float64)
     found = curves.positions(z, dt, prior.x0, prior.P0, r, q)
     assert found is not None
-    mean, var, _ = found
+    mean, var = found.mean, found.var
     for b in range(len(q)):
         model = ConstantVelocity(ndim=2, q=float(q[b]), r=r.tolist()).double()
         with eager_loops(), torch.no_grad():
@@ -157,7 +158,7 @@ def test_the_first_two_observations_divergence_is_autograds(smoothed: bool) -> N
     prior = two_point_prior(z, dt, r, speed_std=50.0)
     found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, 0.4, smoothed, first_two=True)
     assert found.first_two is not None
-    first, second, has_first, has_second = _first_two(~torch.isnan(z))
+    first, second, has_first, has_second = first_observed_two(~torch.isnan(z))
     checked = 0
     for b in range(len(z)):
         for j in range(2):
@@ -177,3 +178,27 @@ def test_the_first_two_observations_divergence_is_autograds(smoothed: bool) -> N
                 assert value == pytest.approx(float(grad[0, t, j]), abs=1e-12)
                 checked += 1
     assert checked > 20
+
+
+@pytest.mark.parametrize("smoothed", [True, False])
+def test_the_passes_chunk_sums_are_sures_terms(smoothed: bool) -> None:
+    """SURE's sums per chunk written by the compiled pass equal those of its outputs in
+    tensors (accuracy.exact_risk_terms of the means, the exact divergence from the variances
+    and the first two observations' tangents): the same chunks, the same sums to rounding."""
+    from torchsvs.accuracy import CHUNK, exact_divergence, exact_risk_terms, terms_of_sums
+    from torchsvs.curve_estimates import with_first_two
+
+    z, dt, r = _ragged(B=30, T=100, seed=6)  # ragged lengths: chunks past a track's end
+    prior = two_point_prior(z, dt, r)
+    found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, 0.3, smoothed, True, CHUNK)
+    assert found.sums is not None and found.first_two is not None
+    assert found.sums.shape == (30, -(-100 // CHUNK), 2, 3)
+    compiled = terms_of_sums(found.sums)
+    divergence = with_first_two(exact_divergence(z, found.var, r), z, found.first_two)
+    tensors = exact_risk_terms(z, found.mean[..., 0::2], divergence)
+    assert np.array_equal(compiled.track, tensors.track)
+    assert np.array_equal(compiled.count, tensors.count)
+    np.testing.assert_allclose(compiled.residual, tensors.residual, rtol=1e-10, atol=1e-6)
+    np.testing.assert_allclose(compiled.divergence, tensors.divergence, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="chunk: expected steps >= 1 with the tangents"):
+        curves.positions(z, dt, prior.x0, prior.P0, r, torch.ones(30, dtype=torch.float64), chunk=4)

@@ -294,12 +294,21 @@ def chunk_terms(
     """:class:`RiskTerms` of squared residuals and divergences per component ``[B, T, m]``
     (0 where not ``observed``): their sums over each track's chunks of ``chunk`` steps, the
     chunks without an observation left out."""
-    B, T, _ = observed.shape
-    count = chunk_sums(observed.double(), chunk)
-    keep = count.sum(axis=1) > 0
-    track = np.repeat(np.arange(B), (T + (-T) % chunk) // chunk)
-    sums = chunk_sums(residual, chunk), chunk_sums(divergence, chunk)
-    return RiskTerms(sums[0][keep], sums[1][keep], count[keep], track[keep])
+    B = observed.shape[0]
+    parts = (residual, divergence, observed.double())
+    sums = np.stack([chunk_sums(x, chunk) for x in parts], axis=-1)  # [B·C, m, 3]
+    return terms_of_sums(sums.reshape(B, -1, *sums.shape[1:]))
+
+
+def terms_of_sums(sums: np.ndarray | Tensor) -> RiskTerms:
+    """:class:`RiskTerms` of the sums ``[B, C, m, 3]`` (squared residual, divergence, count)
+    over each track's chunks, the chunks without an observation left out."""
+    sums = np.asarray(sums, dtype=np.float64)
+    B, C, m, _ = sums.shape
+    flat = sums.reshape(B * C, m, 3)
+    keep = flat[..., 2].sum(axis=1) > 0
+    track = np.repeat(np.arange(B), C)
+    return RiskTerms(flat[keep, :, 0], flat[keep, :, 1], flat[keep, :, 2], track[keep])
 
 
 def exact_risk_terms(

@@ -2,11 +2,12 @@
 passes.
 
 Where each track runs with its own ``q`` (:func:`torchsvs.estimating.estimate_group`), the
-curves that choose it (:func:`~torchsvs.fitting.noise.q_curve_runs`) have run the Kalman
-smoother at every factor on the very same tracks from the same prior: a Kalman smoother's
-estimate at a track's factor is that pass (:func:`is_curves_estimator`, :func:`curve_run`),
-and its error estimate's divergence is exact from the pass's covariances
-(:func:`run_risk_terms`). Only the probe's run at the first two observations remains.
+curves that choose it (:func:`~torchsvs.fitting.noise.q_curve_runs`) have scored the Kalman
+smoother at every factor on the very same tracks from the same prior, and kept its pass at
+each track's own: a Kalman smoother's estimate is that pass (:func:`is_curves_estimator`,
+:func:`curve_run`), and its error estimate's divergence is exact from the pass's covariances
+and, at each axis's first two observations, from its tangents (:func:`run_risk_terms`). Only
+where the compiled loops are unavailable does a probe's run estimate it there.
 """
 
 from __future__ import annotations
@@ -25,9 +26,10 @@ from torchsvs.accuracy import (
     exact_divergence,
     exact_risk_terms,
     risk_terms,
+    terms_of_sums,
 )
 from torchsvs.datasets import RecordedTracks, with_prior
-from torchsvs.datasets.priors import _first_two
+from torchsvs.datasets.priors import first_observed_two
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting import noise
 from torchsvs.models import ConstantVelocity
@@ -90,16 +92,15 @@ def curve_run(
     if not bool(runs.ran[index].all()):
         return None
     first_two = None if runs.first_two is None else runs.first_two[index]
-    part = noise.CurveRuns(
-        runs.mean[index, :steps], runs.position_var[index, :steps], runs.ran[index], first_two
-    )
-    return part, q
+    sums = None if runs.sums is None else runs.sums[index]  # (chunks past `steps`: empty)
+    mean, var = runs.mean[index, :steps], runs.position_var[index, :steps]
+    return noise.CurveRuns(mean, var, runs.ran[index], first_two, sums), q
 
 
 def with_first_two(divergence: Tensor, z: Tensor, first_two: Tensor) -> Tensor:
     """``divergence [B, T, m]`` (:func:`~torchsvs.accuracy.exact_divergence`'s, NaN at each
     axis's first two observations) with ``first_two [B, m, 2]`` there."""
-    first, second, has_first, has_second = _first_two(~torch.isnan(z))
+    first, second, has_first, has_second = first_observed_two(~torch.isnan(z))
     out = divergence.clone()
     for index, has, value in ((first, has_first, 0), (second, has_second, 1)):
         known = torch.where(has, first_two[..., value].to(out.dtype), math.nan)
@@ -117,20 +118,24 @@ def run_risk_terms(
     smoothed: bool,
     step: float,
     first_two: Tensor | None = None,
+    sums: Tensor | None = None,
 ) -> RiskTerms:
     """SURE's sums (:func:`~torchsvs.accuracy.risk_terms`) of the Kalman smoother (filter)
     :func:`~torchsvs.fitting.noise.kalman` with ``q`` (or each track's ``[B]``) whose run on
     ``tracks`` gave ``mean [B, T, 2m]`` and ``position_var [B, T, m]``: the divergence exact
     from the covariances (:func:`~torchsvs.accuracy.exact_divergence`, the estimator its own
-    control) but at each axis's first two observations, which the two-point prior reads;
-    there the probe's (each track's own signs, :func:`~torchsvs.accuracy.track_signs`, with
-    ``step``). The estimate is linear in the measurements (its two-point prior's mean too),
-    so its run on the probed measurements less its run on them is its run on the probe's shift
-    alone: one run, in ``meas_std``'s dtype (the estimator's; float32 at half a float64 run's
-    cost)."""
+    control) but at each axis's first two observations, which the two-point prior reads.
+    There it is ``first_two [B, m, 2]`` where given (the compiled pass's tangents: exact, no
+    probe; with the pass's own chunk sums ``sums``, :func:`~torchsvs.accuracy.terms_of_sums`,
+    nothing is left to compute), else the probe's (each track's own signs,
+    :func:`~torchsvs.accuracy.track_signs`, with ``step``): the estimate is linear in the
+    measurements (its two-point prior's mean too), so its run on the probed measurements less
+    its run on them is its run on the probe's shift alone, one run in ``meas_std``'s dtype."""
     z = tracks.z.double()
     std = meas_std.double()
     r = std.square()
+    if sums is not None:
+        return terms_of_sums(sums)
     if first_two is not None:  # the divergence there given (exact): no probe
         exact = exact_divergence(z, position_var, r)
         return exact_risk_terms(z, mean[..., 0::2], with_first_two(exact, z, first_two))

@@ -252,10 +252,10 @@ def _estimate_one_q(
     estimator: nn.Module, batch: GroupBatch, meas_std: Tensor, risk: bool, settings: Settings
 ) -> StepEstimates:
     """:func:`_estimate_factors` with one ``q`` for every track (``--shared-q``, or ``q``
-    given) for the Kalman smoother or filter: its pass as the curves run it, one factor
-    (:func:`~torchsvs.fitting.noise.q_curve_runs`), its error terms exact from that pass's
-    covariances (:func:`_estimate_from_run`): one float64 pass and the probe's, where the
-    plain run, the probed run and the Kalman reference's two took four."""
+    given) for the Kalman smoother or filter: its pass as the curves run it
+    (:func:`~torchsvs.fitting.noise.curve_runs`), its error terms exact from that pass
+    (:func:`_estimate_from_run`): one float64 pass, where the plain run, the probed run and
+    the Kalman reference's two took four."""
     assert settings.meas_var is not None and settings.q is not None
     tracks = batch.tracks
     smoothed = settings.estimator not in FILTERS
@@ -418,7 +418,7 @@ def _estimate_from_run(
         step = getattr(estimator, "probe_step", PROBE_STEP)
         smoothed = isinstance(estimator, RTSSmoother)
         terms = run_risk_terms(
-            batch.tracks, meas_std, mean, run.position_var, q, smoothed, step, run.first_two
+            batch.tracks, meas_std, mean, run.position_var, q, smoothed, step, *run[3:5]
         )
     return _step_estimates(batch, tracks, mean, None, short_track_notes(tracks), terms)
 

@@ -26,7 +26,7 @@ class Prior(NamedTuple):
     never_observed: Tensor  #: [B, m] bool: the axis is never observed
 
 
-def _first_two(observed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def first_observed_two(observed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Indices of the first and second observed step per ``[B, m]`` and whether they exist."""
     T = observed.shape[1]
     count = observed.cumsum(1, dtype=torch.int32)  # observed steps up to each step
@@ -35,10 +35,10 @@ def _first_two(observed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 
 
 def _two_points(z: Tensor, dt: Tensor) -> tuple[Tensor, ...]:
-    """:func:`_first_two` of ``z``'s observed components, and their times ``t_a, t_b`` (float64
-    ``[B, m]``) from the prior's time ``t_p = 0``."""
+    """:func:`first_observed_two` of ``z``'s observed components, and their times ``t_a,
+    t_b`` (float64 ``[B, m]``) from the prior's time ``t_p = 0``."""
     t = torch.cumsum(dt.to(torch.float64), dim=1)
-    first, second, has_first, has_second = _first_two(~torch.isnan(z))
+    first, second, has_first, has_second = first_observed_two(~torch.isnan(z))
     return first, second, has_first, has_second, t.gather(1, first), t.gather(1, second)
 
 

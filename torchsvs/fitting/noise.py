@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from torchsvs.accuracy import CHUNK
 from torchsvs.datasets import two_point_prior
 from torchsvs.datasets.priors import prior_tangents
 from torchsvs.estimator import prepare_inputs, threads_for
@@ -130,6 +131,7 @@ def kalman_positions(
     q: float | Tensor,
     smoothed: bool = True,
     first_two: bool = False,
+    chunk: int | None = None,
 ) -> curves.Positions:
     """The means ``[B, T, 2m]`` and the positions' variances ``[B, T, m]`` of :func:`kalman`
     (the smoother, or with ``smoothed=False`` the filter) with ``q`` (a number, or one per
@@ -137,13 +139,15 @@ def kalman_positions(
     2m, 2m]``, in ``z``'s dtype: the compiled loop that writes nothing else
     (:func:`torchsvs.kernels.curves.positions`), else the estimator's run (one per distinct
     ``q``). With ``first_two`` (``x0`` :func:`~torchsvs.datasets.two_point_prior`'s) and the
-    compiled loop, also the estimate's derivative by each axis's first two measurements."""
+    compiled loop, also the estimate's derivative by each axis's first two measurements, and
+    with ``chunk`` SURE's sums per chunk of that many steps (:class:`~torchsvs.kernels.curves.
+    Positions`)."""
     B, T, m = z.shape
     dtype = z.dtype
     qs = torch.as_tensor(q, dtype=dtype).expand(B).contiguous()
     r = r.to(dtype)
     tangents = prior_tangents(z, dt) if first_two else None
-    found = curves.positions(z, dt, x0, P0, r, qs, smoothed, tangents)
+    found = curves.positions(z, dt, x0, P0, r, qs, smoothed, tangents, chunk if first_two else None)
     if found is not None:
         return found
     mean, var = z.new_empty(B, T, 2 * m), z.new_empty(B, T, m)
@@ -164,7 +168,8 @@ def _sure(
     Kalman smoother (or filter) with ``q`` (:func:`smoother_q`'s formula), float64; with
     ``clip``, each term at most ``clip`` times ``r`` (no longer unbiased: a criterion that
     outliers do not drive, as their terms stay at the clip whatever ``q``)."""
-    mean, leverage, _ = kalman_positions(z, dt, prior.x0, prior.P0, r, q, smoothed)
+    found = kalman_positions(z, dt, prior.x0, prior.P0, r, q, smoothed)
+    mean, leverage = found.mean, found.var
     return _sure_of(z, r, mean[..., 0::2], leverage, clip)
 
 
@@ -300,6 +305,9 @@ class CurveRuns(NamedTuple):
     #: [B, m, 2] the position estimate's derivative by each axis's first and second
     #: measurement (:class:`~torchsvs.kernels.curves.Positions`), where compiled
     first_two: Tensor | None = None
+    #: [B, C, m, 3] SURE's sums over each track's chunks of :data:`~torchsvs.accuracy.CHUNK`
+    #: steps (:func:`~torchsvs.accuracy.terms_of_sums`), where compiled
+    sums: Tensor | None = None
 
 
 #: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of
@@ -366,8 +374,9 @@ def curve_runs(
     ``[B]``) without the curves: :func:`kalman`'s pass on the tracks from their two-point
     prior."""
     z64, dt64, r, prior = _curve_inputs(z, dt, meas_var)
-    found = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q, smoothed, first_two=True)
-    return CurveRuns(*found[:2], torch.ones(z.shape[0], dtype=torch.bool), found.first_two)
+    found = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q, smoothed, True, CHUNK)
+    every = torch.ones(z.shape[0], dtype=torch.bool)
+    return CurveRuns(found.mean, found.var, every, found.first_two, found.sums)
 
 
 def q_curve_runs(
@@ -404,9 +413,9 @@ def q_curve_runs(
         if not keep:
             return found, factor, None
         # each track's pass at its own factor (on the grid or not)
-        kept = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * factor, smoothed, True)
+        kept = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * factor, smoothed, True, CHUNK)
         every = torch.ones(B, dtype=torch.bool)
-        return found, factor, CurveRuns(kept.mean, kept.var, every, kept.first_two)
+        return found, factor, CurveRuns(kept.mean, kept.var, every, kept.first_two, kept.sums)
     # the estimator's passes, factor by factor, a chunk of tracks at a time
     risk = z64.new_empty(len(factors), B)
     chosen = z64.new_empty(B) if choose is not None else None

@@ -100,7 +100,8 @@ def outlier_distances(
 
     def chunk(part: slice) -> None:  # (each from the whole batch's prior)
         zs = z64[part]
-        mean, variance, _ = kalman_positions(zs, dt64[part], prior.x0[part], prior.P0[part], r, q)
+        found = kalman_positions(zs, dt64[part], prior.x0[part], prior.P0[part], r, q)
+        mean, variance = found.mean, found.var
         leverage = variance / r
         fit = (zs - mean[..., 0::2]).square() / (r * (1.0 - leverage).clamp_min(1e-12))
         judged = ~torch.isnan(zs).any(-1) & (leverage <= MAX_LEVERAGE).all(-1)

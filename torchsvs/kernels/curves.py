@@ -47,6 +47,8 @@ def _call(
     var: Tensor | None = None,
     tangents: Sequence[Tensor] = (),
     first_two: Tensor | None = None,
+    chunk: int = 1,
+    sums: Tensor | None = None,
 ) -> None:
     B, T, m = z.shape
     K = q.shape[1]
@@ -62,10 +64,10 @@ def _call(
     ]
     inputs = build.pointers(views)
     strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
-    outputs = (risk, mean, var, first_two)
+    pointer = [None if x is None else x.data_ptr() for x in (risk, mean, var, first_two, sums)]
     build.function("kalman_curves", z.dtype)(
-        B, T, m, K, int(smoothed), build.threads(B, T * K), inputs, strides,
-        *(None if x is None else x.data_ptr() for x in outputs),
+        B, T, m, K, int(smoothed), build.threads(B, T * K), inputs, strides, *pointer[:4],
+        chunk, pointer[4],
     )  # fmt: skip
 
 
@@ -106,6 +108,9 @@ class Positions(NamedTuple):
     #: [B, m, 2] with ``tangents``: the position estimate's derivative by the measurement at
     #: each axis's first and second observation (through the prior too), NaN where none
     first_two: Tensor | None = None
+    #: [B, C, m, 3] with ``chunk``: SURE's sums over each track's chunks of that many steps
+    #: (squared residual, divergence, count: :func:`~torchsvs.accuracy.terms_of_sums`)
+    sums: Tensor | None = None
 
 
 def positions(
@@ -117,21 +122,28 @@ def positions(
     q: Tensor,
     smoothed: bool = True,
     tangents: Sequence[Tensor] | None = None,
+    chunk: int | None = None,
 ) -> Positions | None:
     """The smoother's (filter's) means and positions' variances with each track's ``q [B]``
     (other arguments as :func:`sure_risks`'); with ``tangents`` (how the prior's mean moves
     with each axis's first and second observation, :func:`~torchsvs.datasets.priors.
-    prior_tangents`) also the estimate's derivative by those two measurements. ``None``
-    where the compiled loops are unavailable."""
+    prior_tangents`) also the estimate's derivative by those two measurements, and with them
+    and ``chunk`` SURE's sums over each track's chunks of ``chunk`` steps. ``None`` where the
+    compiled loops are unavailable."""
     B, T, m = z.shape
     if not _usable(z, dt, x0, P0, r, q, *(tangents or ())):
         return None
     mean = build.fresh((B, T, 2 * m), z.dtype)
     var = build.fresh((B, T, m), z.dtype)
     first_two = None if tangents is None else torch.empty(B, m, 2, dtype=z.dtype)
+    if chunk is not None and (tangents is None or chunk < 1):
+        raise ValueError(f"chunk: expected steps >= 1 with the tangents, got {chunk!r}")
+    sums = None
+    if chunk is not None:
+        sums = torch.empty(B, -(-T // chunk), m, 3, dtype=z.dtype)
     weight = torch.zeros((), dtype=z.dtype).expand(B, T, m)
     _call(
         z, dt, weight, x0, P0, r, q.reshape(B, 1), smoothed, None, mean, var,
-        tangents or (), first_two,
+        tangents or (), first_two, chunk or 1, sums,
     )  # fmt: skip
-    return Positions(mean, var, first_two)
+    return Positions(mean, var, first_two, sums)

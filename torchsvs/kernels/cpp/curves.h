@@ -13,7 +13,11 @@
 //                   given), NaN where there is no such observation: the divergence that the
 //                   position variance over r gives everywhere else (accuracy.exact_divergence).
 //                   Each is a tangent run of the means (unit measurement there, the prior's
-//                   tangent) with the pass's own gains.
+//                   tangent) with the pass's own gains;
+//   sums [B, C, m, 3]  with first_two, SURE's sums over each track's chunks of `chunk` steps
+//                   (C of them) of its observed components: (z − x̂)², the divergence (the
+//                   position variance over r, the tangents' at the first two observations) and
+//                   the count (accuracy.exact_risk_terms' sums, without a pass over [B, T, m]).
 // Nothing else is written: a curve of K values costs K passes over registers and the lane's
 // own record of T steps, not K full results in memory.
 #pragma once
@@ -29,7 +33,7 @@ namespace {
 template <typename R>
 void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int threads,
                    const void* const* in, const int64_t* in_strides, R* risk, R* mean_out,
-                   R* var_out, R* first_two) {
+                   R* var_out, R* first_two, int64_t chunk, R* sums) {
     using V = typename Wide<R>::type;
     constexpr int W = LaneBlock<R>::kWidth;
     View<R> given[14];
@@ -53,10 +57,12 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                 g[kYv] = nan, g[kRp] = r, g[kRvv] = splat<V>(1), g[kWp] = g[kWv] = splat<V>(1);
                 // the tangents (first, second observation), the observations so far and the
                 // steps of the first two
-                V tp[2] = {}, tv[2] = {}, seen = zero, at_first = splat<V>(-1), at_second = at_first;
+                V tp[2] = {}, tv[2] = {}, seen = zero;
+                V at_first = splat<V>(-1), at_second = at_first;
                 if (first_two)
                     for (int i = 0; i < 2; ++i)
-                        tp[i] = lanes.at(given[10 + 2 * i], 0), tv[i] = lanes.at(given[11 + 2 * i], 0);
+                        tp[i] = lanes.at(given[10 + 2 * i], 0),
+                        tv[i] = lanes.at(given[11 + 2 * i], 0);
                 for (int64_t t = 0; t < T; ++t) {  // the filter (Rule 0: Kalman)
                     const V d = dt[t];
                     // blocks.process_noise: Q of Eq. (48), Chen et al. 2020
@@ -84,6 +90,7 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                     }
                 }
                 V found[2] = {nan, nan};  // the tangents at their own observation
+                V residual = zero, divergence = zero, count = zero;  // of the chunk so far
                 // the smoother, from the last step (as filtered) back
                 V ps = x.p, vs = x.v, sa = x.a, sb = x.b, sc = x.c, total = zero;
                 for (int64_t t = T - 1; t >= 0; --t) {
@@ -116,12 +123,29 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                             }
                             found[i] = (i == 0 ? at_first : at_second) == now ? tp[i] : found[i];
                         }
+                        if (sums) {
+                            const auto observed = z[t] == z[t];
+                            const V own = at_first == now    ? tp[0]
+                                          : at_second == now ? tp[1]
+                                                             : sa / r;
+                            residual += observed ? e * e : zero;
+                            divergence += observed ? own : zero;
+                            count += observed ? splat<V>(1) : zero;
+                        }
+                    }
+                    if (sums && t % chunk == 0) {  // the chunk's first step: its sums are done
+                        const int64_t C = (T + chunk - 1) / chunk;
+                        for (int w = 0; w < lanes.count; ++w) {
+                            R* out = sums + ((lanes.b[w] * C + t / chunk) * m + lanes.j[w]) * 3;
+                            out[0] = residual[w], out[1] = divergence[w], out[2] = count[w];
+                        }
+                        residual = divergence = count = zero;
                     }
                     if (!mean_out) continue;
                     for (int w = 0; w < lanes.count; ++w) {
                         const int64_t idx = lanes.b[w] * T + t, j = lanes.j[w];
                         mean_out[idx * n + 2 * j] = ps[w], mean_out[idx * n + 2 * j + 1] = vs[w];
-                        var_out[idx * m + j] = sa[w];
+                        if (var_out) var_out[idx * m + j] = sa[w];
                     }
                 }
                 if (first_two)

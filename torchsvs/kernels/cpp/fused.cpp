@@ -92,10 +92,11 @@ extern "C" {
     }                                                                                         \
     void kalman_curves_##suffix(int64_t B, int64_t T, int64_t m, int64_t K, int smooth,       \
                                 int threads, const void* const* in, const int64_t* s,         \
-                                void* risk, void* mean, void* var, void* first_two) {         \
+                                void* risk, void* mean, void* var, void* first_two,           \
+                                int64_t chunk, void* sums) {                                  \
         kalman_curves<R>(B, T, m, K, smooth, threads, in, s, static_cast<R*>(risk),           \
                          static_cast<R*>(mean), static_cast<R*>(var),                         \
-                         static_cast<R*>(first_two));                                         \
+                         static_cast<R*>(first_two), chunk, static_cast<R*>(sums));           \
     }
 
 TORCHSVS_ENTRIES(f32, float)
