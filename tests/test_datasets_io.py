@@ -319,3 +319,20 @@ def test_a_write_that_fails_beside_the_estimating_stops_the_run_and_leaves_the_o
     assert len(calls) == 2  # nothing written after the failure
     assert [p.name for p in target.iterdir()] == ["earlier.txt"]
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_the_median_interval_is_numpys_nanmedian():
+    """The first step's interval (a track's median one): one sort of the padded rows, the
+    same numbers as np.nanmedian (the middle two's mean for an even count), 1 without any."""
+    import warnings
+
+    from torchsvs.datasets.tracks import _median_interval
+
+    gen = np.random.default_rng(1)
+    for _ in range(300):
+        dt = gen.exponential(3.0, (int(gen.integers(1, 20)), int(gen.integers(1, 12))))
+        dt[gen.random(dt.shape) < gen.random()] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # (all-NaN rows)
+            expected = np.where(np.isfinite(dt).any(axis=1), np.nanmedian(dt, axis=1), 1.0)
+        assert np.array_equal(_median_interval(dt), expected)

@@ -93,14 +93,16 @@ class TrackSteps:
 
 
 def _median_interval(dt: np.ndarray) -> np.ndarray:
-    """Each track's median interval between steps, ``1.0`` for a track of one step."""
+    """Each track's median interval between steps (of an even count, the mean of the middle
+    two, as ``np.nanmedian``), ``1.0`` for a track of one step. One sort of the rows, the
+    missing last: ``np.nanmedian`` is 3-20× slower on a padded batch."""
     finite = np.isfinite(dt)
-    out = np.ones(dt.shape[0])
-    has = finite.any(axis=1)
-    if has.any():
-        with np.errstate(all="ignore"):
-            out[has] = np.nanmedian(np.where(finite[has], dt[has], np.nan), axis=1)
-    return out
+    n = finite.sum(axis=1)
+    ordered = np.sort(np.where(finite, dt, np.inf), axis=1)
+    rows = np.arange(len(dt))
+    low = ordered[rows, np.maximum(n - 1, 0) // 2]
+    high = ordered[rows, n // 2]
+    return np.where(n > 0, (low + high) / 2, 1.0)
 
 
 def group_rows(rows: ParsedRows, contiguous: bool = False) -> TrackSteps:
