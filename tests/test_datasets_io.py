@@ -336,3 +336,4 @@ def test_the_median_interval_is_numpys_nanmedian():
             warnings.simplefilter("ignore", RuntimeWarning)  # (all-NaN rows)
             expected = np.where(np.isfinite(dt).any(axis=1), np.nanmedian(dt, axis=1), 1.0)
         assert np.array_equal(_median_interval(dt), expected)
+    assert np.array_equal(_median_interval(np.zeros((3, 0))), np.ones(3))  # one step each

@@ -96,6 +96,8 @@ def _median_interval(dt: np.ndarray) -> np.ndarray:
     """Each track's median interval between steps (of an even count, the mean of the middle
     two, as ``np.nanmedian``), ``1.0`` for a track of one step. One sort of the rows, the
     missing last: ``np.nanmedian`` is 3-20× slower on a padded batch."""
+    if dt.shape[1] == 0:  # tracks of one step: no interval
+        return np.ones(dt.shape[0])
     finite = np.isfinite(dt)
     n = finite.sum(axis=1)
     ordered = np.sort(np.where(finite, dt, np.inf), axis=1)
