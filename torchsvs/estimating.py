@@ -411,7 +411,9 @@ def _estimate_from_run(
     position variances and, where compiled, the divergence at each axis's first two
     observations; the error terms from them (:func:`~torchsvs.curve_estimates.
     run_risk_terms`: exact, or with the probe drawn as :func:`_estimate_part` draws it)."""
-    tracks = with_prior(batch.tracks, meas_std)
+    # what the output needs of a prior: the axes never observed (their estimates are NaN)
+    never = (~torch.isnan(batch.tracks.z)).sum(dim=1) == 0
+    tracks = replace(batch.tracks, never_observed=never)
     terms = None
     mean = run.mean
     if risk:
