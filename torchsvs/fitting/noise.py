@@ -310,13 +310,13 @@ class CurveRuns(NamedTuple):
     sums: Tensor | None = None
 
 
-#: Tracks × steps per pass of :func:`q_curve_runs` and the outlier screen (several passes of
-#: a large group in turn, :func:`over_chunks`): a pass's outputs (~200 bytes a cell) stay in
-#: cache for the sums read off them, in memory the allocator reuses and below the size that
-#: :func:`~torchsvs.kernels.build.fresh` advises as huge pages. The estimating stage of
-#: ``track --estimator ks`` on 10^6 rows (2 groups of 2^19 cells; a shared, loaded machine,
-#: one thread) took 3.05 s of CPU with a whole group a pass (1.69 s of it in the system: page
-#: faults), 1.63 s at 2^17 cells (0.24 s system), 1.46-1.55 s at 2^16, 1.60-1.67 s at 2^15.
+#: Tracks × steps per pass of the outlier screen and of :func:`q_curve_runs` where the
+#: compiled curves are unavailable (several passes of a large group in turn,
+#: :func:`over_chunks`): a pass's outputs stay in cache for what is read off them, in memory
+#: the allocator reuses. Measured with the estimator's passes (~200 bytes a cell), before the
+#: compiled curves: ``track --estimator ks`` on 10^6 rows (2 groups of 2^19 cells, one
+#: thread) took 3.05 s of CPU with a whole group a pass (1.69 s of it in the system: page
+#: faults), 1.63 s at 2^17 cells, 1.46-1.55 s at 2^16, 1.60-1.67 s at 2^15.
 CHUNK_CELLS = 1 << 16
 
 
