@@ -503,3 +503,44 @@ def test_paired_difference_of_two_estimators_on_the_same_chunks():
     other = RiskTerms(residual[1:], divergence[1:], count[1:], a.track[1:])
     with pytest.raises(ValueError, match="other: expected the terms of the same chunks"):
         a.difference(other, r)
+
+
+def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_gain(
+    monkeypatch,
+):
+    """The rule's behaviour, with the fits and the scores stubbed: a later candidate whose
+    estimate is lower, but by less than one standard error of the paired difference, does not
+    replace the Kalman smoother; one lower by far more does, and so does one whose small gain
+    is sure because the two share their chunks' variation."""
+    from types import SimpleNamespace
+
+    import torchsvs.selection as selection
+    from torchsvs.datasets import RecordedTracks
+
+    gen = np.random.default_rng(0)
+    C, m = 200, 2
+    count = np.full((C, m), 32.0)
+    shared = gen.gamma(20.0, 1600.0, (C, m))  # what every candidate's chunks share
+    divergence = np.full((C, m), 8.0)
+
+    def terms(residual):
+        return RiskTerms(residual, divergence, count, np.arange(C) // 4)
+
+    def choose(errors):
+        scored = {name: terms(residual) for name, residual in errors.items()}
+        monkeypatch.setattr(selection, "sample_terms", lambda s, t: scored[s.estimator])
+        monkeypatch.setattr(
+            selection, "self_tune", lambda s, *_, **__: SimpleNamespace(settings=s, stages=[])
+        )
+        z = torch.randn(4, 30, m, dtype=torch.float64)
+        dt = torch.ones(4, 30, dtype=torch.float64)
+        sample = RecordedTracks(z, dt, dt.cumsum(1), torch.full((4,), 30), list("abcd"))
+        given = Settings("auto", meas_var=[900.0, 900.0], noise="given")
+        chosen = selection.choose_estimator(given, sample, candidates=tuple(errors))
+        return chosen.settings.estimator
+
+    noisy = gen.normal(0.0, 400.0, (C, m))  # a difference lost in the chunks' own noise
+    noisy -= noisy.mean(axis=0)  # (of mean 0: the gain is the 5 m² a chunk given)
+    assert choose({"ks": shared, "svss": shared - 5.0 + noisy}) == "ks"
+    assert choose({"ks": shared, "svss": shared - 2000.0 + noisy}) == "svss"
+    assert choose({"ks": shared, "svss": shared - 5.0}) == "svss"  # small, but sure

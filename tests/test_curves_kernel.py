@@ -156,7 +156,7 @@ def test_the_first_two_observations_divergence_is_autograds(smoothed: bool) -> N
     z[3, :, 1] = math.nan
     z[3, 7, 1] = 5.0
     prior = two_point_prior(z, dt, r, speed_std=50.0)
-    found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, 0.4, smoothed, first_two=True)
+    found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, 0.4, smoothed, chunk=8)
     assert found.first_two is not None
     first, second, has_first, has_second = first_observed_two(~torch.isnan(z))
     checked = 0
@@ -186,15 +186,20 @@ def test_the_passes_chunk_sums_are_sures_terms(smoothed: bool) -> None:
     tensors (accuracy.exact_risk_terms of the means, the exact divergence from the variances
     and the first two observations' tangents): the same chunks, the same sums to rounding."""
     from torchsvs.accuracy import CHUNK, exact_divergence, exact_risk_terms, terms_of_sums
-    from torchsvs.curve_estimates import with_first_two
 
     z, dt, r = _ragged(B=30, T=100, seed=6)  # ragged lengths: chunks past a track's end
     prior = two_point_prior(z, dt, r)
-    found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, 0.3, smoothed, True, CHUNK)
+    found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, 0.3, smoothed, CHUNK)
     assert found.sums is not None and found.first_two is not None
     assert found.sums.shape == (30, -(-100 // CHUNK), 2, 3)
     compiled = terms_of_sums(found.sums)
-    divergence = with_first_two(exact_divergence(z, found.var, r), z, found.first_two)
+    # the variances' divergence, with the tangents (held to autograd above) placed at each
+    # axis's first two observations, where exact_divergence leaves NaN
+    divergence = exact_divergence(z, found.var, r)
+    first, second, has_first, has_second = first_observed_two(~torch.isnan(z))
+    for index, has, i in ((first, has_first, 0), (second, has_second, 1)):
+        for b, j in torch.nonzero(has).tolist():
+            divergence[b, index[b, j], j] = found.first_two[b, j, i]
     tensors = exact_risk_terms(z, found.mean[..., 0::2], divergence)
     assert np.array_equal(compiled.track, tensors.track)
     assert np.array_equal(compiled.count, tensors.count)

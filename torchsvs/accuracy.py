@@ -99,17 +99,19 @@ class RiskTerms:
         counts = self.count.sum(axis=0)
         if not len(self.count) or not (counts > 0).all():
             return math.nan, math.nan
-        r = np.asarray(meas_var, dtype=np.float64)
         mean_count = counts.mean()
         scale = mean_count / counts  # each axis over its own observations
-
-        def error(t: RiskTerms) -> np.ndarray:
-            return t.residual + r * (2.0 * t.divergence - t.count)
-
-        d = ((error(self) - error(other)) * scale).sum(axis=1)
+        d = ((self.errors(meas_var) - other.errors(meas_var)) * scale).sum(axis=1)
         D = float(d.sum() / mean_count)
         spread = float(((d - D * self.count.mean(axis=1)) ** 2).sum())
         return D, math.sqrt(spread) / mean_count
+
+    def errors(self, meas_var: Sequence[float]) -> np.ndarray:
+        r"""``[C, m]`` each chunk's SURE of the squared position error, :math:`\Sigma(z-f)^2
+        + r_j\,\Sigma(2\,\partial f/\partial z - 1)` (:meth:`RiskTotals.mse`'s
+        :math:`e_{c,j}`)."""
+        r = np.asarray(meas_var, dtype=np.float64)
+        return self.residual + r * (2.0 * self.divergence - self.count)
 
     @property
     def points(self) -> int:
@@ -118,8 +120,7 @@ class RiskTerms:
     def per_track(self, meas_var: Sequence[float], tracks: int) -> tuple[np.ndarray, np.ndarray]:
         """Each track's estimated position RMSE ``[tracks]`` (NaN without observations) and
         its observed points."""
-        r = np.asarray(meas_var, dtype=np.float64)
-        error = self.residual + r * (2.0 * self.divergence - self.count)
+        error = self.errors(meas_var)
         axes = range(error.shape[1])
         total = np.stack([np.bincount(self.track, error[:, j], tracks) for j in axes], 1)
         count = np.stack([np.bincount(self.track, self.count[:, j], tracks) for j in axes], 1)

@@ -24,12 +24,10 @@ from torchsvs.accuracy import (
     RiskTerms,
     draw_probe,
     exact_divergence,
-    exact_risk_terms,
     risk_terms,
     terms_of_sums,
 )
 from torchsvs.datasets import RecordedTracks, with_prior
-from torchsvs.datasets.priors import first_observed_two
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting import noise
 from torchsvs.models import ConstantVelocity
@@ -91,22 +89,9 @@ def curve_run(
     the group's pass serves tracks trimmed to their own longest length.)"""
     if not bool(runs.ran[index].all()):
         return None
-    first_two = None if runs.first_two is None else runs.first_two[index]
     sums = None if runs.sums is None else runs.sums[index]  # (chunks past `steps`: empty)
     mean, var = runs.mean[index, :steps], runs.position_var[index, :steps]
-    return noise.CurveRuns(mean, var, runs.ran[index], first_two, sums), q
-
-
-def with_first_two(divergence: Tensor, z: Tensor, first_two: Tensor) -> Tensor:
-    """``divergence [B, T, m]`` (:func:`~torchsvs.accuracy.exact_divergence`'s, NaN at each
-    axis's first two observations) with ``first_two [B, m, 2]`` there."""
-    first, second, has_first, has_second = first_observed_two(~torch.isnan(z))
-    out = divergence.clone()
-    for index, has, value in ((first, has_first, 0), (second, has_second, 1)):
-        known = torch.where(has, first_two[..., value].to(out.dtype), math.nan)
-        current = out.gather(1, index.unsqueeze(1)).squeeze(1)
-        out.scatter_(1, index.unsqueeze(1), torch.where(has, known, current).unsqueeze(1))
-    return out
+    return noise.CurveRuns(mean, var, runs.ran[index], sums), q
 
 
 def run_risk_terms(
@@ -117,7 +102,6 @@ def run_risk_terms(
     q: float | Tensor,
     smoothed: bool,
     step: float,
-    first_two: Tensor | None = None,
     sums: Tensor | None = None,
 ) -> RiskTerms:
     """SURE's sums (:func:`~torchsvs.accuracy.risk_terms`) of the Kalman smoother (filter)
@@ -125,20 +109,17 @@ def run_risk_terms(
     ``tracks`` gave ``mean [B, T, 2m]`` and ``position_var [B, T, m]``: the divergence exact
     from the covariances (:func:`~torchsvs.accuracy.exact_divergence`, the estimator its own
     control) but at each axis's first two observations, which the two-point prior reads.
-    There it is ``first_two [B, m, 2]`` where given (the compiled pass's tangents: exact, no
-    probe; with the pass's own chunk sums ``sums``, :func:`~torchsvs.accuracy.terms_of_sums`,
-    nothing is left to compute), else the probe's (each track's own signs,
+    Where the compiled pass gave its chunk sums ``sums`` (its tangents make the divergence
+    there exact too: :func:`~torchsvs.accuracy.terms_of_sums`), nothing is left to compute;
+    else the divergence there is the probe's (each track's own signs,
     :func:`~torchsvs.accuracy.track_signs`, with ``step``): the estimate is linear in the
     measurements (its two-point prior's mean too), so its run on the probed measurements less
     its run on them is its run on the probe's shift alone, one run in ``meas_std``'s dtype."""
+    if sums is not None:
+        return terms_of_sums(sums)
     z = tracks.z.double()
     std = meas_std.double()
     r = std.square()
-    if sums is not None:
-        return terms_of_sums(sums)
-    if first_two is not None:  # the divergence there given (exact): no probe
-        exact = exact_divergence(z, position_var, r)
-        return exact_risk_terms(z, mean[..., 0::2], with_first_two(exact, z, first_two))
     probe = draw_probe(z, std, step, None, ids=tracks.ids)
     dtype = meas_std.dtype
     shift = (probe.step * std * probe.signs).masked_fill(torch.isnan(z), math.nan)

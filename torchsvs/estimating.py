@@ -420,7 +420,7 @@ def _estimate_from_run(
         step = getattr(estimator, "probe_step", PROBE_STEP)
         smoothed = isinstance(estimator, RTSSmoother)
         terms = run_risk_terms(
-            batch.tracks, meas_std, mean, run.position_var, q, smoothed, step, *run[3:5]
+            batch.tracks, meas_std, mean, run.position_var, q, smoothed, step, run.sums
         )
     return _step_estimates(batch, tracks, mean, None, short_track_notes(tracks), terms)
 

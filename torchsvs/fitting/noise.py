@@ -130,7 +130,6 @@ def kalman_positions(
     r: Tensor,
     q: float | Tensor,
     smoothed: bool = True,
-    first_two: bool = False,
     chunk: int | None = None,
 ) -> curves.Positions:
     """The means ``[B, T, 2m]`` and the positions' variances ``[B, T, m]`` of :func:`kalman`
@@ -138,16 +137,15 @@ def kalman_positions(
     track ``[B]``) and variances ``r [m]`` on ``z`` from the prior ``x0 [B, 2m]``, ``P0 [B,
     2m, 2m]``, in ``z``'s dtype: the compiled loop that writes nothing else
     (:func:`torchsvs.kernels.curves.positions`), else the estimator's run (one per distinct
-    ``q``). With ``first_two`` (``x0`` :func:`~torchsvs.datasets.two_point_prior`'s) and the
-    compiled loop, also the estimate's derivative by each axis's first two measurements, and
-    with ``chunk`` SURE's sums per chunk of that many steps (:class:`~torchsvs.kernels.curves.
-    Positions`)."""
+    ``q``). With ``chunk`` (``x0`` :func:`~torchsvs.datasets.two_point_prior`'s) and the
+    compiled loop, also the estimate's derivative by each axis's first two measurements and
+    SURE's sums per chunk of that many steps (:class:`~torchsvs.kernels.curves.Positions`)."""
     B, T, m = z.shape
     dtype = z.dtype
     qs = torch.as_tensor(q, dtype=dtype).expand(B).contiguous()
     r = r.to(dtype)
-    tangents = prior_tangents(z, dt) if first_two else None
-    found = curves.positions(z, dt, x0, P0, r, qs, smoothed, tangents, chunk if first_two else None)
+    tangents = None if chunk is None else prior_tangents(z, dt)
+    found = curves.positions(z, dt, x0, P0, r, qs, smoothed, tangents, chunk)
     if found is not None:
         return found
     mean, var = z.new_empty(B, T, 2 * m), z.new_empty(B, T, m)
@@ -302,9 +300,6 @@ class CurveRuns(NamedTuple):
     mean: Tensor  #: [B, T, 2m] the state's mean
     position_var: Tensor  #: [B, T, m] the positions' variances
     ran: Tensor  #: [B] bool the chosen factor is among the curves' (else mean, var unset)
-    #: [B, m, 2] the position estimate's derivative by each axis's first and second
-    #: measurement (:class:`~torchsvs.kernels.curves.Positions`), where compiled
-    first_two: Tensor | None = None
     #: [B, C, m, 3] SURE's sums over each track's chunks of :data:`~torchsvs.accuracy.CHUNK`
     #: steps (:func:`~torchsvs.accuracy.terms_of_sums`), where compiled
     sums: Tensor | None = None
@@ -374,9 +369,9 @@ def curve_runs(
     ``[B]``) without the curves: :func:`kalman`'s pass on the tracks from their two-point
     prior."""
     z64, dt64, r, prior = _curve_inputs(z, dt, meas_var)
-    found = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q, smoothed, True, CHUNK)
+    found = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q, smoothed, CHUNK)
     every = torch.ones(z.shape[0], dtype=torch.bool)
-    return CurveRuns(found.mean, found.var, every, found.first_two, found.sums)
+    return CurveRuns(found.mean, found.var, every, found.sums)
 
 
 def q_curve_runs(
@@ -413,9 +408,9 @@ def q_curve_runs(
         if not keep:
             return found, factor, None
         # each track's pass at its own factor (on the grid or not)
-        kept = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * factor, smoothed, True, CHUNK)
+        kept = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q * factor, smoothed, CHUNK)
         every = torch.ones(B, dtype=torch.bool)
-        return found, factor, CurveRuns(kept.mean, kept.var, every, kept.first_two, kept.sums)
+        return found, factor, CurveRuns(kept.mean, kept.var, every, kept.sums)
     # the estimator's passes, factor by factor, a chunk of tracks at a time
     risk = z64.new_empty(len(factors), B)
     chosen = z64.new_empty(B) if choose is not None else None

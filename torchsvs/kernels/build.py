@@ -240,3 +240,9 @@ def function(name: str, dtype: torch.dtype) -> Any:
 
 def pointers(tensors: Sequence[Tensor | None]) -> ctypes.Array[ctypes.c_void_p]:
     return (ctypes.c_void_p * len(tensors))(*(None if x is None else x.data_ptr() for x in tensors))
+
+
+def strides(views: Sequence[Tensor]) -> ctypes.Array[ctypes.c_int64]:
+    """The element strides of 3-d ``views``, three each, in order (what the loops' ``View``
+    reads)."""
+    return (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))

@@ -16,7 +16,6 @@ estimator.
 
 from __future__ import annotations
 
-import ctypes
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -63,7 +62,7 @@ def _call(
         *(x.unsqueeze(1).expand(shape) for x in tangents),
     ]
     inputs = build.pointers(views)
-    strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
+    strides = build.strides(views)
     pointer = [None if x is None else x.data_ptr() for x in (risk, mean, var, first_two, sums)]
     build.function("kalman_curves", z.dtype)(
         B, T, m, K, int(smoothed), build.threads(B, T * K), inputs, strides, *pointer[:4],

@@ -19,7 +19,6 @@ tensor loops give the same numbers and gradients up to rounding (tested to 1e-10
 
 from __future__ import annotations
 
-import ctypes
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -37,7 +36,7 @@ class _Arrays:
         views = [self.view(x, shape) for x in tensors]
         self.tensors = views
         self.pointers = pointers(views)
-        self.strides = (ctypes.c_int64 * (3 * len(views)))(*(s for v in views for s in v.stride()))
+        self.strides = build.strides(views)
 
     @staticmethod
     def view(x: Tensor, shape: tuple[int, int, int]) -> Tensor:
