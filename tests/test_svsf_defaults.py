@@ -473,3 +473,93 @@ def test_svss_and_svstps_are_one_estimator_over_the_variable_layer():
             run_estimator(estimator, with_prior(moved, torch.tensor([4.0, 4.0]).double()))[0]
         )
     assert_close(means[0], means[1], atol=1e-9, rtol=0)
+
+
+# --- The layer's limit earns its place on the file, or the run goes without it ---
+
+
+def test_the_layer_check_keeps_the_limit_on_a_near_tie_and_drops_it_for_a_sure_cost(
+    monkeypatch,
+):
+    """:func:`~torchsvs.selection.checked_layer`'s rule, the SURE terms stubbed: the layer is
+    the incumbent; its Kalman twin replaces it only where the twin is lower by more than one
+    standard error of their paired difference (a lower twin within the chunks' own noise, or a
+    higher one, keeps the layer; a small gain that is sure does not)."""
+    import numpy as np
+
+    import torchsvs.selection as selection
+    from torchsvs.accuracy import RiskTerms
+
+    gen = np.random.default_rng(1)
+    C, m = 200, 2
+    count = np.full((C, m), 32.0)
+    shared = gen.gamma(20.0, 1600.0, (C, m))
+    noisy = gen.normal(0.0, 400.0, (C, m))
+    noisy -= noisy.mean(axis=0)
+
+    def check(twin_residual):
+        scored = {"svss": shared, "ks": twin_residual}
+        monkeypatch.setattr(
+            selection,
+            "sample_terms",
+            lambda s, t: RiskTerms(scored[s.estimator], np.full((C, m), 8.0), count, np.arange(C)),
+        )
+        layer = Settings("svss", meas_var=[900.0] * 2, q=1.0, psi=[4.0, 4.0], noise="given")
+        twin = Settings("ks", meas_var=[900.0] * 2, q=1.0, noise="given")
+        return selection.checked_layer(layer, twin, None)
+
+    near = check(shared - 5.0 + noisy)
+    assert near.kept and near.settings.estimator == "svss" and near.change < 0
+    assert check(shared + 500.0).kept
+    for sure in (shared - 5.0, shared - 2000.0 + noisy):
+        found = check(sure)
+        assert not found.kept and found.change + found.change_se < 0
+        assert found.settings.estimator == "ks" and found.settings.chosen_from == ["svss", "ks"]
+        assert "running without a limit, as the Kalman smoother" in found.line("svss")
+
+
+def test_an_svss_whose_limit_costs_runs_as_the_kalman_smoother(tmp_path):
+    """Simulated hard turns (3-6 deg/s, 2 s scans, σ 50 m; seed 3), where SURE finds the SVSS's
+    limit costly (its twin 31 ± 16 m² lower per point): ``--estimator svss`` writes the Kalman
+    smoother's estimates, to the last digit, and says so in its summary; ``--psi`` keeps the
+    layer the user gave."""
+    import json
+
+    import numpy as np
+    import pyarrow.csv as pcsv
+
+    from torchsvs.cli import main
+
+    B, T = 12, 150
+    ranges = ts.scenarios.ManeuverRanges(
+        steps=T,
+        dt=2.0,
+        speed=(100.0, 250.0),
+        segment_duration=(10.0, 60.0),
+        turn_rate_deg=(3.0, 6.0),
+        kind_weights=(0.35, 0.65, 0.0, 0.0),
+        meas_std=(50.0, 50.0),
+    )
+    z = ts.scenarios.random_maneuvers(B, ranges, torch.Generator().manual_seed(3)).z.numpy()
+    source = tmp_path / "turns.csv"
+    lines = [
+        f"k{b},{2.0 * (t + 1):.1f},{z[b, t, 0]:.3f},{z[b, t, 1]:.3f}"
+        for b in range(B)
+        for t in range(T)
+    ]
+    source.write_text("track_id,time,x,y\n" + "\n".join(lines) + "\n")
+
+    def run(name, *options):
+        out = tmp_path / f"{name}{len(options)}.csv"
+        main(["track", str(source), "-o", str(out), "--estimator", name, "--quiet", *options])
+        summary = json.loads(out.with_suffix(".summary.json").read_text())
+        table = pcsv.read_csv(out)
+        return np.stack([table.column(c).to_numpy() for c in ("x", "y")], 1), summary
+
+    ks, _ = run("ks")
+    svss, summary = run("svss")
+    assert summary["estimator"] == "ks" and summary["settings"]["chosen_from"] == ["svss", "ks"]
+    assert np.array_equal(svss, ks)
+    layered, summary = run("svss", "--psi", "4")
+    assert summary["estimator"] == "svss" and summary["settings"]["psi"] == [4.0, 4.0]
+    assert not np.array_equal(layered, ks)

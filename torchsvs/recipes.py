@@ -134,7 +134,9 @@ class Settings:
     #: beyond their own uncertainty (a relative spread, :func:`~torchsvs.datasets.noise_spread`;
     #: also in ``meas_std_se``)
     noise_spread: float | None = None
-    #: ``--estimator auto``: the candidates this estimator was chosen from
+    #: the estimators this one was chosen from: ``--estimator auto``'s candidates, or an SVSF
+    #: family's and its Kalman twin where the boundary layer's limit did not earn its place
+    #: (:func:`~torchsvs.selection.checked_layer`)
     chosen_from: list[str] | None = None
     #: the noise standard deviation per axis as read off the data, where the run took the low
     #: end of its uncertainty instead (:func:`~torchsvs.sample_accuracy.lowered_noise`)

@@ -31,9 +31,9 @@ from torchsvs.fitting.defaults import (
     with_q_curve,
 )
 from torchsvs.fitting.tuning import self_tune
-from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
+from torchsvs.recipes import LAGGED, Settings, compute_dtype, make_estimator, make_model
 from torchsvs.sample_accuracy import lowered_noise
-from torchsvs.selection import choose_estimator
+from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator
 from torchsvs.track_run import short
 
 #: ``precision`` of the estimates written: ``"auto"`` is float32 where it keeps positions to
@@ -229,7 +229,9 @@ def prepare_estimator(
     # (and fits) again, and its own lines replace these (each line once, none of settings
     # the run does not use).
     first: list[str] = []
-    settings, clean, summary = _settled(settings, sample, fit, options, first.append)
+    settings, clean, summary = _settled(
+        settings, sample, fit, options, first.append, checkpoint is None
+    )
     low = lowered_noise(settings, clean) if checkpoint is None else None
     if low is None:
         for line in first:
@@ -250,7 +252,7 @@ def prepare_estimator(
             noise_spread=settings.noise_spread,
             noise_lowered_from=read,
         )
-        settings, clean, summary = _settled(lowered, sample, fit, options, say)
+        settings, clean, summary = _settled(lowered, sample, fit, options, say, checkpoint is None)
     if open_q and checkpoint is None:
         settings = with_q_curve(settings, clean)
     estimator = make_estimator(settings, make_model(settings))
@@ -267,14 +269,21 @@ def _settled(
     fit: bool,
     options: dict[str, Any],
     say: Callable[[str], None],
+    check_layer: bool = True,
 ) -> tuple[Settings, RecordedTracks, Any]:
     """The settings left open read off ``sample`` without its isolated outliers, then fitted
-    or chosen (``--estimator auto``); the screened sample, and the fit's summary."""
+    or chosen (``--estimator auto``); the screened sample, and the fit's summary. With
+    ``check_layer``, an SVSF-family estimator whose boundary layer the user left open keeps its
+    limit only where the sample shows no cost of it (:func:`~torchsvs.selection.checked_layer`:
+    else it runs as its Kalman twin, the layer without a limit)."""
     settings, sample, _ = screened(settings, sample)
+    # the layer's limit read off the data too, where the user left it open
+    open_layer = check_layer and settings.estimator in KALMAN_TWINS and settings.psi is None
     if settings.estimator != "auto":
         settings = complete_settings(settings, sample)
         say(settings_note(settings))
     summary: Any = None
+    completed = settings
     if settings.estimator == "auto":
         auto_options = dict(options)
         auto_options.pop("known_noise", None)
@@ -285,6 +294,16 @@ def _settled(
         summary = self_tune(settings, sample, **options)
         settings = summary.settings
         say(summary.summary())
+    if open_layer and settings.velocity:
+        twin = replace(
+            completed,
+            estimator=KALMAN_TWINS[completed.estimator],
+            psi=None,
+            lag=completed.lag if KALMAN_TWINS[completed.estimator] in LAGGED else None,
+        )
+        check = checked_layer(settings, twin, sample)
+        say(check.line(completed.estimator))
+        settings = check.settings
     return settings, sample, summary
 
 
