@@ -301,6 +301,8 @@ def _settled(
             psi=None,
             lag=completed.lag if KALMAN_TWINS[completed.estimator] in LAGGED else None,
         )
+        if fit:  # the twin fitted as the layer was (a Kalman smoother's fit: a fraction of a s)
+            twin = self_tune(twin, sample, **options).settings
         check = checked_layer(settings, twin, sample)
         say(check.line(completed.estimator))
         settings = check.settings
