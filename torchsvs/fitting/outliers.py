@@ -101,11 +101,11 @@ def outlier_distances(
     def chunk(part: slice) -> None:  # (each from the whole batch's prior)
         zs = z64[part]
         found = kalman_positions(zs, dt64[part], prior.x0[part], prior.P0[part], r, q)
-        mean, variance = found.mean, found.var
-        leverage = variance / r
-        fit = (zs - mean[..., 0::2]).square() / (r * (1.0 - leverage).clamp_min(1e-12))
-        judged = ~torch.isnan(zs).any(-1) & (leverage <= MAX_LEVERAGE).all(-1)
-        d2[part] = torch.where(judged, fit.sum(-1), torch.nan)
+        leverage = found.var.div_(r)  # (in place: the pass's arrays are this chunk's own)
+        fit = torch.sub(zs, found.mean[..., 0::2]).square_()
+        fit.div_(leverage.neg().add_(1.0).clamp_min_(1e-12).mul_(r))
+        # a missing position's NaN carries into its sum; a row of high leverage is not judged
+        d2[part] = fit.sum(-1).masked_fill_(~(leverage <= MAX_LEVERAGE).all(-1), torch.nan)
 
     B, T = z64.shape[:2]
     over_chunks(B, T, chunk)
@@ -144,6 +144,9 @@ def screen_outliers(
         rows, dts = work[active], dt64[active]
         tail_low, d2 = below(rows, dts, p_false)
         candidate = tail_low & (d2 >= _largest_nearby(d2, NEIGHBOURS, tail_low))  # NaN: False
+        # the rest is judged on the tracks with a candidate alone (a few of a clean file's)
+        some = candidate.any(1)
+        active, rows, dts, candidate = active[some], rows[some], dts[some], candidate[some]
         seen = ~torch.isnan(rows).any(-1)
         before, after = _adjacent(seen)
         candidate &= _short_gaps(time[active], seen, before, after) & _inside(seen, NEIGHBOURS)
