@@ -351,3 +351,28 @@ def test_hplus_svss_defaults_to_lag_one_and_stays_below_the_measurements(tmp_pat
     assert errors[False][0] < errors[False][1], errors
     # and why the default is 1: at lag 5 the prior's velocity error reaches the positions
     assert errors[True][0] > 3 * errors[True][1], errors
+
+
+def test_the_summary_json_is_read_back_as_written_a_key_to_a_line():
+    """The summary's text (the C encoder, a line per key and per entry of a dict value) reads
+    back to the summary itself, numpy scalars as numbers, empty dicts and nested lists kept."""
+    import json
+
+    from torchsvs.track_run import _json_text
+
+    summary = {
+        "estimator": "ks",
+        "settings": {"q": 0.5, "psi": None, "q_curve": [1.0, 2.5], "nested": {"a": [1, {"b": 2}]}},
+        "rows": {},
+        "points": np.int64(7),
+        "tracks": {
+            f"t{k}": {"estimated_position_rmse": np.float64(k / 3), "points": k} for k in range(3)
+        },
+        "warnings": ['a "quoted" line\nand a break'],
+    }
+    text = _json_text(summary)
+    back = json.loads(text)
+    assert back == json.loads(json.dumps(summary, default=lambda v: v.item()))
+    lines = text.splitlines()
+    assert len(lines) == 17  # braces, 4 plain keys, 2 dicts of 4 and 3 entries between theirs
+    assert '  "t1": {"estimated_position_rmse": 0.3333333333333333, "points": 1},' in lines
