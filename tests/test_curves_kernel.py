@@ -133,6 +133,9 @@ def test_outlier_distances_equal_the_estimators() -> None:
         eager = outlier_distances(z, dt, r, 3.0)
     torch.testing.assert_close(compiled, eager, rtol=1e-8, atol=1e-10, equal_nan=True)
     assert float(compiled[b, t]) > 50.0
+    # rows not judged (a track of one row, rows between the ends of short tracks) are NaN alike
+    high = torch.isnan(compiled) & (~torch.isnan(z)).all(-1)
+    assert bool(high[0, 0]) and int(high.sum()) > 1
 
 
 def test_curves_need_the_compiled_loops_else_none() -> None:
@@ -143,6 +146,7 @@ def test_curves_need_the_compiled_loops_else_none() -> None:
     with eager_loops():
         assert curves.sure_risks(z, dt, counted, prior.x0, prior.P0, r, q) is None
         assert curves.positions(z, dt, prior.x0, prior.P0, r, q[:, 0]) is None
+        assert curves.studentized(z, dt, prior.x0, prior.P0, r, 0.5, 0.9) is None
 
 
 @pytest.mark.parametrize("smoothed", [True, False])

@@ -45,6 +45,7 @@ from torch import Tensor
 
 from torchsvs.datasets import two_point_prior
 from torchsvs.fitting.noise import kalman_positions, over_chunks
+from torchsvs.kernels import curves
 
 #: A row that fits the model is flagged with at most this probability (χ² tail): on a million
 #: rows about one. Residuals of a maneuver the smoother's ``q`` does not follow have heavier
@@ -100,7 +101,12 @@ def outlier_distances(
 
     def chunk(part: slice) -> None:  # (each from the whole batch's prior)
         zs = z64[part]
-        found = kalman_positions(zs, dt64[part], prior.x0[part], prior.P0[part], r, q)
+        given = (zs, dt64[part], prior.x0[part], prior.P0[part], r)
+        student = curves.studentized(*given, q, MAX_LEVERAGE)  # (the compiled pass's own sum)
+        if student is not None:
+            d2[part] = student.sum(-1)
+            return
+        found = kalman_positions(*given, q)
         leverage = found.var.div_(r)  # (in place: the pass's arrays are this chunk's own)
         fit = torch.sub(zs, found.mean[..., 0::2]).square_()
         fit.div_(leverage.neg().add_(1.0).clamp_min_(1e-12).mul_(r))

@@ -168,7 +168,8 @@ def library() -> ctypes.CDLL | None:
         step.restype = ctypes.c_int
         curves = getattr(lib, f"kalman_curves_{suffix}")
         curves.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, *(vp,) * 4]
-        curves.argtypes += [ctypes.c_int64, vp]  # the chunk and its sums
+        # the chunk and its sums, the studentized residuals and the leverage they stop at
+        curves.argtypes += [ctypes.c_int64, vp, vp, ctypes.c_double]
     _state["library"] = lib
     return lib
 

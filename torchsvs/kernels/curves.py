@@ -48,6 +48,8 @@ def _call(
     first_two: Tensor | None = None,
     chunk: int = 1,
     sums: Tensor | None = None,
+    student: Tensor | None = None,
+    max_leverage: float = 1.0,
 ) -> None:
     B, T, m = z.shape
     K = q.shape[1]
@@ -63,10 +65,11 @@ def _call(
     ]
     inputs = build.pointers(views)
     strides = build.strides(views)
-    pointer = [None if x is None else x.data_ptr() for x in (risk, mean, var, first_two, sums)]
+    outputs = (risk, mean, var, first_two, sums, student)
+    pointer = [None if x is None else x.data_ptr() for x in outputs]
     build.function("kalman_curves", z.dtype)(
         B, T, m, K, int(smoothed), build.threads(B, T * K), inputs, strides, *pointer[:4],
-        chunk, pointer[4],
+        chunk, pointer[4], pointer[5], max_leverage,
     )  # fmt: skip
 
 
@@ -146,3 +149,28 @@ def positions(
         tangents or (), first_two, chunk or 1, sums,
     )  # fmt: skip
     return Positions(mean, var, first_two, sums)
+
+
+def studentized(
+    z: Tensor,
+    dt: Tensor,
+    x0: Tensor,
+    P0: Tensor,
+    r: Tensor,
+    q: float,
+    max_leverage: float,
+) -> Tensor | None:
+    """``[B, T, m]`` the smoother's studentized squared residual per axis, ``(z − x̂)² / (r (1 −
+    h))`` with the leverage ``h = P_pp / r`` (``1 − h`` floored at 1e-12), NaN where ``z`` is
+    missing or ``h`` is above ``max_leverage``: what the outlier screen sums over the axes
+    (:func:`~torchsvs.fitting.outliers.outlier_distances`), without the means (arguments as
+    :func:`sure_risks`', one ``q`` for all tracks). ``None`` where the compiled loops are
+    unavailable."""
+    B, T, m = z.shape
+    q_all = torch.full((B, 1), float(q), dtype=z.dtype)
+    if not _usable(z, dt, x0, P0, r, q_all):
+        return None
+    student = build.fresh((B, T, m), z.dtype)
+    weight = torch.zeros((), dtype=z.dtype).expand(B, T, m)
+    _call(z, dt, weight, x0, P0, r, q_all, True, None, student=student, max_leverage=max_leverage)
+    return student

@@ -17,7 +17,11 @@
 //   sums [B, C, m, 3]  with first_two, SURE's sums over each track's chunks of `chunk` steps
 //                   (C of them) of its observed components: (z − x̂)², the divergence (the
 //                   position variance over r, the tangents' at the first two observations) and
-//                   the count (accuracy.exact_risk_terms' sums, without a pass over [B, T, m]).
+//                   the count (accuracy.exact_risk_terms' sums, without a pass over [B, T, m]);
+//   student [B, T, m]  of the one q, the studentized squared residual (z − x̂ˢ)² / (r (1 − h)),
+//                   h = Pˢ_pp / r (floored at 1e-12 below 1), NaN where z is missing or h is
+//                   above max_leverage: fitting/outliers.py's outlier_distances per axis, without
+//                   writing the means.
 // Nothing else is written: a curve of K values costs K passes over registers and the lane's
 // own record of T steps, not K full results in memory.
 #pragma once
@@ -33,13 +37,15 @@ namespace {
 template <typename R>
 void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int threads,
                    const void* const* in, const int64_t* in_strides, R* risk, R* mean_out,
-                   R* var_out, R* first_two, int64_t chunk, R* sums) {
+                   R* var_out, R* first_two, int64_t chunk, R* sums, R* student,
+                   double max_leverage) {
     using V = typename Wide<R>::type;
     constexpr int W = LaneBlock<R>::kWidth;
     View<R> given[14];
     for (int i = 0; i < (first_two ? 14 : 10); ++i) given[i] = view<R>(in, in_strides, i);
     const int64_t n = 2 * m;
     const V zero{}, nan = splat<V>(NAN), two = splat<V>(2), three = splat<V>(3);
+    const V one = splat<V>(1), tiny = splat<V>(1e-12), most = splat<V>(max_leverage);
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         std::vector<V> z(T), dt(T), weight(T), rec(10 * std::max<int64_t>(T, 1));
         std::vector<V> tangent(first_two ? 8 * T : 0);  // filtered, predicted (p, v) of each
@@ -140,6 +146,13 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                             out[0] = residual[w], out[1] = divergence[w], out[2] = count[w];
                         }
                         residual = divergence = count = zero;
+                    }
+                    if (student) {
+                        const V h = sa / r, rest = one - h;
+                        const V fit = (e * e) / (r * (rest > tiny ? rest : tiny));
+                        const V d2 = h <= most ? fit : nan;  // (NaN: not judged)
+                        for (int w = 0; w < lanes.count; ++w)
+                            student[(lanes.b[w] * T + t) * m + lanes.j[w]] = d2[w];
                     }
                     if (!mean_out) continue;
                     for (int w = 0; w < lanes.count; ++w) {

@@ -93,10 +93,12 @@ extern "C" {
     void kalman_curves_##suffix(int64_t B, int64_t T, int64_t m, int64_t K, int smooth,       \
                                 int threads, const void* const* in, const int64_t* s,         \
                                 void* risk, void* mean, void* var, void* first_two,           \
-                                int64_t chunk, void* sums) {                                  \
+                                int64_t chunk, void* sums, void* student,                     \
+                                double max_leverage) {                                        \
         kalman_curves<R>(B, T, m, K, smooth, threads, in, s, static_cast<R*>(risk),           \
                          static_cast<R*>(mean), static_cast<R*>(var),                         \
-                         static_cast<R*>(first_two), chunk, static_cast<R*>(sums));           \
+                         static_cast<R*>(first_two), chunk, static_cast<R*>(sums),            \
+                         static_cast<R*>(student), max_leverage);                             \
     }
 
 TORCHSVS_ENTRIES(f32, float)
