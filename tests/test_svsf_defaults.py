@@ -563,3 +563,14 @@ def test_an_svss_whose_limit_costs_runs_as_the_kalman_smoother(tmp_path):
     layered, summary = run("svss", "--psi", "4")
     assert summary["estimator"] == "svss" and summary["settings"]["psi"] == [4.0, 4.0]
     assert not np.array_equal(layered, ks)
+
+
+def test_the_kalman_twin_keeps_the_noise_and_a_smoothers_lag():
+    from torchsvs.selection import kalman_twin
+
+    layered = Settings("svss", meas_var=[4.0, 9.0], q=0.3, psi=[4.0, 4.0], lag=5, gamma=0.2)
+    twin = kalman_twin(layered)
+    assert (twin.estimator, twin.psi, twin.lag) == ("ks", None, 5)
+    assert (twin.meas_var, twin.q) == (layered.meas_var, layered.q)
+    svsf = kalman_twin(replace(layered, estimator="svsf", lag=None))
+    assert (svsf.estimator, svsf.psi, svsf.lag) == ("kf", None, None)

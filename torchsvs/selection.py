@@ -26,7 +26,7 @@ import torch
 from torchsvs.datasets import RecordedTracks
 from torchsvs.fitting.defaults import complete_settings, settings_note
 from torchsvs.fitting.tuning import self_tune
-from torchsvs.recipes import Settings
+from torchsvs.recipes import LAGGED, Settings
 from torchsvs.sample_accuracy import accuracy_of_terms, sample_terms
 
 #: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
@@ -189,9 +189,17 @@ def choose_estimator(
 
 #: The SVSF family's Kalman twins: with no limit on its variable boundary layer an SVSF is the
 #: Kalman filter and an SVSS (or SVSTPS) the Kalman smoother
-#: (:class:`~torchsvs.filters.VariableBoundarySVSF`; ``tests/test_variable_boundary.py``).
+#: (:class:`~torchsvs.filters.VariableBoundarySVSF`; ``tests/test_svsf_defaults.py``).
 KALMAN_TWINS = {"svsf": "kf", "svss": "ks", "svstps": "ks"}
 TWIN_NAMES = {"kf": "the Kalman filter", "ks": "the Kalman smoother"}
+
+
+def kalman_twin(settings: Settings) -> Settings:
+    """The settings of an SVSF-family estimator's Kalman twin (:data:`KALMAN_TWINS`): the
+    same noise and ``q``, no boundary layer (a smoother's lag kept)."""
+    twin = KALMAN_TWINS[settings.estimator]
+    lag = settings.lag if twin in LAGGED else None
+    return replace(settings, estimator=twin, psi=None, lag=lag)
 
 
 @dataclass

@@ -31,9 +31,9 @@ from torchsvs.fitting.defaults import (
     with_q_curve,
 )
 from torchsvs.fitting.tuning import self_tune
-from torchsvs.recipes import LAGGED, Settings, compute_dtype, make_estimator, make_model
+from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
 from torchsvs.sample_accuracy import lowered_noise
-from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator
+from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator, kalman_twin
 from torchsvs.track_run import short
 
 #: ``precision`` of the estimates written: ``"auto"`` is float32 where it keeps positions to
@@ -295,12 +295,7 @@ def _settled(
         settings = summary.settings
         say(summary.summary())
     if open_layer and settings.velocity:
-        twin = replace(
-            completed,
-            estimator=KALMAN_TWINS[completed.estimator],
-            psi=None,
-            lag=completed.lag if KALMAN_TWINS[completed.estimator] in LAGGED else None,
-        )
+        twin = kalman_twin(completed)
         if fit:  # the twin fitted as the layer was (a Kalman smoother's fit: a fraction of a s)
             twin = self_tune(twin, sample, **options).settings
         check = checked_layer(settings, twin, sample)
