@@ -616,13 +616,28 @@ def estimate_section(runs: Sequence[Run]) -> str:
     if not off:
         return _text("estimate_all_near", **counts)
     rows = table(
-        ["set", "estimator", "mode", "true RMSE m", "estimated m", "estimated / true"],
+        ["set", "estimator", "mode", "true RMSE m", "estimated m", "estimated / true", "warned"],
         [
-            [r.set, r.estimator, r.mode, _f(r.rmse), _f(r.estimated), f"{r.estimate_ratio:.2f}"]
+            [
+                r.set,
+                r.estimator,
+                r.mode,
+                _f(r.rmse),
+                _f(r.estimated),
+                f"{r.estimate_ratio:.2f}",
+                "yes" if warned_uncertain(r) else "**no**",
+            ]
             for r in sorted(off, key=lambda r: -abs(math.log(r.estimate_ratio)))
         ],
     )
+    counts["warned"] = sum(warned_uncertain(r) for r in off)
     return _text("estimate_some_off", table="\n".join(rows), **counts)
+
+
+def warned_uncertain(run: Run) -> bool:
+    """Whether the run warned that its error estimate is uncertain
+    (:func:`torchsvs.track_run.uncertain_estimate`)."""
+    return any("is uncertain" in w for w in run.warnings)
 
 
 #: The rows of issue 28's table that a set of this benchmark matches: (what was run, kind, σ,

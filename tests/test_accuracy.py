@@ -544,3 +544,66 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
     assert choose({"ks": shared, "svss": shared - 5.0 + noisy}) == "ks"
     assert choose({"ks": shared, "svss": shared - 2000.0 + noisy}) == "svss"
     assert choose({"ks": shared, "svss": shared - 5.0}) == "svss"  # small, but sure
+
+
+def test_an_uncertain_error_estimate_is_called_so_and_its_cause_named():
+    """The warning where the estimate's interval reaches beyond UNCERTAIN_REACH times it: none
+    for a narrow interval; the noise reading named (and --meas-std offered) where it makes the
+    interval over twice the sampling error's; else the sampling error, and the probe only for
+    an estimator whose divergence is probed. SURE at a noise read 4% high on 250 m: the terms'
+    r(2·div − n) moves the estimate from the truth's 70 m to 27 m (recorded_wide, taxi σ250)."""
+    from torchsvs.accuracy import Accuracy
+    from torchsvs.track_run import UNCERTAIN_REACH, uncertain_estimate
+
+    def found(interval, sampling, estimated=30.0, noise_estimated=True):
+        return Accuracy(
+            estimated, 1.0, 360.0, interval, 5000, noise_estimated, [260.0, 254.0], sampling
+        )
+
+    assert uncertain_estimate(found((20.0, 0.99 * UNCERTAIN_REACH * 30.0), (25.0, 35.0))) is None
+    noise = uncertain_estimate(found((0.0, 177.0), (10.0, 45.0)))
+    assert noise is not None and "30 m is uncertain" in noise and "0-177 m" in noise
+    assert "noise read off the data ([260, 254] m" in noise and "--meas-std" in noise
+    sampling = uncertain_estimate(found((0.0, 135.0), (0.0, 120.0)))
+    assert sampling is not None and "sampling error" in sampling and "--meas-std" not in sampling
+    assert "probed" not in sampling
+    assert "probed at random" in (
+        uncertain_estimate(found((0.0, 135.0), (0.0, 120.0)), False) or ""
+    )
+    given = uncertain_estimate(found((0.0, 177.0), (10.0, 45.0), noise_estimated=False))
+    assert given is not None and "sampling error" in given  # a given noise is not blamed
+    # the estimate's own: the sampling interval is the estimate ± 2 standard errors alone
+    terms = RiskTotals(2)
+    gen = np.random.default_rng(0)
+    residual = gen.gamma(20.0, 1600.0, (40, 2))
+    terms.add(RiskTerms(residual, np.full((40, 2), 8.0), np.full((40, 2), 32.0), np.arange(40)))
+    wide = accuracy(terms, [900.0, 900.0], True, ([700.0, 700.0], [1100.0, 1100.0]))
+    narrow = accuracy(terms, [900.0, 900.0])
+    assert wide.sampling_interval == narrow.sampling_interval == narrow.interval
+    assert wide.interval[0] < narrow.interval[0] and wide.interval[1] > narrow.interval[1]
+
+
+def test_track_warns_where_its_error_estimate_rests_on_a_noise_read_off_the_data(tmp_path):
+    """Slow tracks under 250 m of noise, read off the data: the smoother's error is a few tens
+    of metres, far below the noise, and the estimate (the residuals less the noise's share)
+    swings over the noise reading's uncertainty (0 m here: its MSE below zero, clipped); the
+    run says so and offers --meas-std; with the noise given the interval is the sampling
+    error's and narrower."""
+    gen = np.random.default_rng(1)
+    rows = []
+    for k in range(20):
+        t = np.arange(150.0)
+        path = np.cumsum(gen.normal(0, 0.5, (150, 2)), 0) + t[:, None] * gen.normal(0, 2, 2)
+        z = path + gen.normal(0, 250.0, (150, 2))
+        rows += [f"k{k},{t[i]:.1f},{z[i, 0]:.3f},{z[i, 1]:.3f}" for i in range(150)]
+    source = tmp_path / "slow.csv"
+    source.write_text("track_id,time,x,y\n" + "\n".join(rows) + "\n")
+    read = track_file(source, tmp_path / "read.csv", Settings("ks"), progress=False)
+    said = [w for w in read.warnings if "is uncertain" in w]
+    assert len(said) == 1 and "--meas-std" in said[0] and "noise read off the data" in said[0]
+    given = Settings("ks", meas_var=[250.0**2] * 2)
+    run = track_file(source, tmp_path / "given.csv", given, progress=False)
+    assert run.accuracy is not None and read.accuracy is not None
+    width = run.accuracy.interval[1] - run.accuracy.interval[0]
+    assert width < 0.5 * (read.accuracy.interval[1] - read.accuracy.interval[0])
+    assert not any("noise read off the data" in w for w in run.warnings)

@@ -391,6 +391,8 @@ class Accuracy:
     points: int  #: observed positions the estimate averages over
     noise_estimated: bool  #: r was read off the data (not given)
     meas_std: list[float]  #: the noise standard deviation per axis it assumes
+    #: the interval of its sampling error alone (2 standard errors), without the noise level's
+    sampling_interval: tuple[float, float] = (math.nan, math.nan)
 
     @property
     def ratio(self) -> float:
@@ -426,12 +428,17 @@ def accuracy(
         value, _ = terms.mse(variance)
         ends += [value - 2 * se, value + 2 * se]
     rmse = math.sqrt(max(mse, 0.0))
+
+    def root(value: float) -> float:
+        return math.sqrt(max(value, 0.0))
+
     return Accuracy(
         estimated_rmse=rmse,
         standard_error=se / (2 * rmse) if rmse > 0 else se,
         measurement_rmse=math.sqrt(sum(meas_var)),
-        interval=(math.sqrt(max(min(ends), 0.0)), math.sqrt(max(max(ends), 0.0))),
+        interval=(root(min(ends)), root(max(ends))),
         points=terms.points,
         noise_estimated=noise_estimated,
         meas_std=[math.sqrt(v) for v in meas_var],
+        sampling_interval=(root(mse - 2 * se), root(mse + 2 * se)),
     )
