@@ -515,7 +515,7 @@ def test_the_layer_check_keeps_the_limit_on_a_near_tie_and_drops_it_for_a_sure_c
         found = check(sure)
         assert not found.kept and found.change + found.change_se < 0
         assert found.settings.estimator == "ks" and found.settings.chosen_from == ["svss", "ks"]
-        assert "running without a limit, as the Kalman smoother" in found.line("svss")
+        assert "running without a limit, as the Kalman smoother" in found.line()
 
 
 def test_an_svss_whose_limit_costs_runs_as_the_kalman_smoother(tmp_path):

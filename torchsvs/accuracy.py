@@ -392,7 +392,7 @@ class Accuracy:
     noise_estimated: bool  #: r was read off the data (not given)
     meas_std: list[float]  #: the noise standard deviation per axis it assumes
     #: the interval of its sampling error alone (2 standard errors), without the noise level's
-    sampling_interval: tuple[float, float] = (math.nan, math.nan)
+    sampling_interval: tuple[float, float]
 
     @property
     def ratio(self) -> float:

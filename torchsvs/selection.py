@@ -207,13 +207,15 @@ class LayerCheck:
     """Whether the variable boundary layer's limit earned its place on the sample
     (:func:`checked_layer`)."""
 
+    estimator: str  #: the SVSF-family estimator asked for
     settings: Settings  #: what the run uses: the layer's, or its Kalman twin's
     kept: bool  #: the layer kept
     change: float  #: the twin's estimated MSE less the layer's, per point (m²)
     change_se: float  #: its standard error, paired chunk by chunk
 
-    def line(self, estimator: str) -> str:
-        twin = KALMAN_TWINS[estimator]
+    def line(self) -> str:
+        """What the run says of the check."""
+        estimator, twin = self.estimator, KALMAN_TWINS[self.estimator]
         without = f"without it ({TWIN_NAMES[twin]}, {twin}) the estimated MSE is"
         if self.kept:
             return (
@@ -243,10 +245,11 @@ def checked_layer(
     twin_terms = sample_terms(twin_settings, sample)
     assert settings.meas_var is not None
     change, change_se = twin_terms.difference(layer_terms, settings.meas_var)
+    name = settings.estimator
     if change + SWITCH_ERRORS * change_se < 0.0:  # (NaN: too little data to say; kept)
-        chosen = replace(twin_settings, chosen_from=[settings.estimator, twin_settings.estimator])
-        return LayerCheck(chosen, False, change, change_se)
-    return LayerCheck(settings, True, change, change_se)
+        chosen = replace(twin_settings, chosen_from=[name, twin_settings.estimator])
+        return LayerCheck(name, chosen, False, change, change_se)
+    return LayerCheck(name, settings, True, change, change_se)
 
 
 def spread_tracks(tracks: RecordedTracks, points: int) -> RecordedTracks:

@@ -299,7 +299,7 @@ def _settled(
         if fit:  # the twin fitted as the layer was (a Kalman smoother's fit: a fraction of a s)
             twin = self_tune(twin, sample, **options).settings
         check = checked_layer(settings, twin, sample)
-        say(check.line(completed.estimator))
+        say(check.line())
         settings = check.settings
     return settings, sample, summary
 
