@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide bias-detectability network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -75,6 +75,10 @@ recorded-faults: $(STAMP)
 recorded-wide: $(STAMP)
 	$(PY) -m experiments.recorded_tracks --kinds own,scan1,taxi,turning,scan10 --sigmas 3,250 \
 		--modes default --name recorded_wide
+
+# Whether the faults benchmark's sensor bias can be found in the measurements (NumPy, ~1 min):
+bias-detectability: $(STAMP)
+	$(PY) -m experiments.bias_detectability
 
 # ψ per step from a network trained by SURE (no truth) on recorded tracks, scored on held-out
 # halves of every kind: experiments/results/network_psi.md.
