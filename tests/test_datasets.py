@@ -263,3 +263,72 @@ def test_parquet_with_typed_columns_reads_like_csv(tmp_path):
     out = pq.read_table(tmp_path / "o.parquet")
     assert out.column("id").to_pylist() == [7, 7, 7, 9, 9]  # as stored, not as text
     assert out.column("when").type == table.column("when").type
+
+
+def test_shortcuts_of_a_group_equal_their_general_paths():
+    """The fast paths of padding, centring and the two-point prior (tracks of one length, first
+    steps observed) give what the general paths give, bit for bit."""
+    from dataclasses import replace
+
+    from torchsvs.datasets import priors
+    from torchsvs.datasets.tracks import RowReport, TrackSteps, _median_interval
+    from torchsvs.estimating import centred
+
+    rng = np.random.default_rng(3)
+    K, T = 30, 12
+    time = np.cumsum(rng.uniform(0.5, 3.0, K * T))
+    position = rng.normal(1e5, 1e3, (K * T, 2))
+    position[rng.random((K * T, 2)) < 0.1] = np.nan  # some missing, first steps too
+    steps = TrackSteps(
+        ids=[str(k) for k in range(K)],
+        start=np.arange(K) * T,
+        length=np.full(K, T),
+        time=time,
+        position=position,
+        extra={"alt": rng.normal(0, 1, K * T)},
+        row_step=np.arange(K * T),
+        report=RowReport(total=K * T),
+    )
+    group = np.arange(K)
+    fast = steps.pad(group)
+    # the general path: one track a step longer forces padding; the others are as before
+    longer = TrackSteps(
+        ids=[*steps.ids, "x"],
+        start=np.r_[steps.start, K * T],
+        length=np.r_[steps.length, T + 1],
+        time=np.r_[time, time[-1] + np.arange(1, T + 2)],
+        position=np.r_[position, np.zeros((T + 1, 2))],
+        extra={"alt": np.r_[steps.extra["alt"], np.zeros(T + 1)]},
+        row_step=np.arange(K * T + T + 1),
+        report=RowReport(total=K * T + T + 1),
+    )
+    general = longer.pad(np.arange(K + 1))
+    for name in ("z", "dt", "time", "steps"):
+        a, b = getattr(fast, name), getattr(general, name)[:K, :T]
+        assert torch.equal(a.isnan(), b.isnan()), name
+        assert torch.equal(a.nan_to_num(7.0), b.nan_to_num(7.0)), name
+    assert torch.equal(fast.extra["alt"], general.extra["alt"][:K, :T])
+
+    dt = np.diff(time.reshape(K, T), axis=1)
+    assert np.array_equal(_median_interval(dt), np.nanmedian(dt, axis=1))
+    dt[0, 3] = np.nan  # the sorting path
+    assert np.array_equal(_median_interval(dt), np.nanmedian(dt, axis=1))
+
+    def first_observed(z: torch.Tensor) -> torch.Tensor:  # the general path's offsets
+        first = (~torch.isnan(z)).to(torch.int64).argmax(dim=1, keepdim=True)
+        return z.nan_to_num(0.0).gather(1, first).squeeze(1)
+
+    z = fast.z
+    full = replace(fast, z=torch.nan_to_num(z, 5.0))  # every first step observed: the shortcut
+    assert bool(torch.isnan(z[:, 0]).any())  # (and the general path on the other)
+    for tracks in (fast, full):
+        moved, offset = centred(tracks)
+        assert torch.equal(offset, first_observed(tracks.z))
+        assert torch.equal(moved.z.nan_to_num(7.0), (tracks.z - offset[:, None]).nan_to_num(7.0))
+
+    for zs in (z, full.z, z[:, :1]):
+        dts = fast.dt[:, : zs.shape[1]]
+        got = priors._two_points(zs, dts)
+        want = priors._scanned_two_points(zs, dts.to(torch.float64))
+        for a, b in zip(got, want, strict=True):
+            assert torch.equal(a, b)

@@ -66,9 +66,11 @@ GUARD_ERRORS = 1.0
 def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:
     """The tracks moved so each starts near 0 (float32 keeps its resolution on large
     coordinates), and the offsets ``[B, m]`` to add back."""
-    observed = ~torch.isnan(tracks.z)
-    first = observed.to(torch.int64).argmax(dim=1, keepdim=True)  # [B, 1, m]
-    offset = tracks.z.nan_to_num(0.0).gather(1, first).squeeze(1)
+    offset = tracks.z[:, 0].clone()
+    if bool(torch.isnan(offset).any()):  # some track's first step misses an axis
+        observed = ~torch.isnan(tracks.z)
+        first = observed.to(torch.int64).argmax(dim=1, keepdim=True)  # [B, 1, m]
+        offset = tracks.z.nan_to_num(0.0).gather(1, first).squeeze(1)
     return replace(tracks, z=tracks.z - offset.unsqueeze(1)), offset
 
 
@@ -202,6 +204,8 @@ def screen_group(batch: GroupBatch, settings: Settings) -> tuple[GroupBatch, np.
     flagged = screen_outliers(tracks.z, tracks.dt, settings.meas_var, settings.outlier_q)
     assert tracks.steps is not None
     steps = tracks.steps[flagged & (tracks.steps >= 0)].numpy()
+    if not len(steps):
+        return batch, steps
     z = tracks.z.masked_fill(flagged.unsqueeze(-1), math.nan)
     return batch._replace(tracks=replace(tracks, z=z)), steps
 

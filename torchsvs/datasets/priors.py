@@ -36,8 +36,34 @@ def first_observed_two(observed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor
 
 def _two_points(z: Tensor, dt: Tensor) -> tuple[Tensor, ...]:
     """:func:`first_observed_two` of ``z``'s observed components, and their times ``t_a,
-    t_b`` (float64 ``[B, m]``) from the prior's time ``t_p = 0``."""
-    t = torch.cumsum(dt.to(torch.float64), dim=1)
+    t_b`` (float64 ``[B, m]``) from the prior's time ``t_p = 0``. Most tracks have their
+    first two steps observed on every axis: theirs are read off those two steps (the same
+    sums as the cumulative sum's), the whole track is scanned for the others only."""
+    B, T, m = z.shape
+    dt64 = dt.to(torch.float64)
+    if T < 2:
+        return _scanned_two_points(z, dt64)
+    plain = ~torch.isnan(z[:, :2]).any(2).any(1)  # [B]
+    t_a = dt64[:, 0]
+    t_b = t_a + dt64[:, 1]
+    found = (
+        torch.zeros(B, m, dtype=torch.int64),
+        torch.ones(B, m, dtype=torch.int64),
+        torch.ones(B, m, dtype=torch.bool),
+        torch.ones(B, m, dtype=torch.bool),
+        t_a.unsqueeze(1).repeat(1, m),
+        t_b.unsqueeze(1).repeat(1, m),
+    )
+    other = torch.nonzero(~plain).flatten()
+    if len(other):
+        for whole, part in zip(found, _scanned_two_points(z[other], dt64[other]), strict=True):
+            whole[other] = part
+    return found
+
+
+def _scanned_two_points(z: Tensor, dt64: Tensor) -> tuple[Tensor, ...]:
+    """:func:`_two_points` by scanning every step of every track."""
+    t = torch.cumsum(dt64, dim=1)
     first, second, has_first, has_second = first_observed_two(~torch.isnan(z))
     return first, second, has_first, has_second, t.gather(1, first), t.gather(1, second)
 

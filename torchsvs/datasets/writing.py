@@ -391,6 +391,11 @@ def flat_steps(
     the float64 values there (``mean [s, n]``, ``cov [s, n, n]`` or ``None``)."""
     assert tracks.steps is not None
     where = tracks.steps >= 0
+    if bool(where.all()):  # no padding (tracks of one length): views, not a masked copy
+        n = mean.shape[-1]
+        target = tracks.steps.reshape(-1).numpy()
+        covs = None if cov is None else cov.detach().reshape(-1, n, n).double().numpy()
+        return target, mean.detach().reshape(-1, n).double().numpy(), covs
     target = tracks.steps[where].numpy()
     covs = None if cov is None else cov.detach()[where].double().numpy()
     return target, mean.detach()[where].double().numpy(), covs

@@ -103,8 +103,11 @@ def outlier_distances(
         zs = z64[part]
         given = (zs, dt64[part], prior.x0[part], prior.P0[part], r)
         student = curves.studentized(*given, q, MAX_LEVERAGE)  # (the compiled pass's own sum)
-        if student is not None:
-            d2[part] = student.sum(-1)
+        if student is not None:  # (axis by axis: a sum over a last axis of 2 is slow)
+            total = d2[part]
+            torch.add(student[..., 0], student[..., 1] if m > 1 else 0.0, out=total)
+            for j in range(2, m):
+                total.add_(student[..., j])
             return
         found = kalman_positions(*given, q)
         leverage = found.var.div_(r)  # (in place: the pass's arrays are this chunk's own)
@@ -239,11 +242,14 @@ def _windows(d2: Tensor, k: int, at: tuple[Tensor, ...]) -> Tensor:
     """``[n, 2k+1]`` the ``d²`` of the ``k`` judged rows on either side of each row ``at``
     (track and step indices of ``n`` judged rows), the row itself in the middle, NaN past a
     track's judged rows (so "k judged rows away" is k places)."""
+    track, step = at
+    # only the tracks asked about are packed (a few of a clean file's)
+    tracks, track = torch.unique(track, return_inverse=True)
+    d2 = d2[tracks]
     seen = ~torch.isnan(d2)
     order = torch.argsort((~seen).to(torch.int8), dim=1, stable=True)  # judged rows first
     packed = torch.nn.functional.pad(d2.gather(1, order), (k, k), value=torch.nan)
     place = torch.empty_like(order).scatter_(1, order, torch.arange(d2.shape[1]).expand_as(order))
-    track, step = at
     columns = place[track, step].unsqueeze(1) + torch.arange(2 * k + 1)  # (padded by k)
     return packed[track.unsqueeze(1), columns]
 
