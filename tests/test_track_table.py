@@ -202,3 +202,27 @@ def test_one_track_tables_give_the_whole_tables_float64_estimates(rows):
     whole = _sorted(track_table(frame, plan).table)
     parts = [track_table(frame[frame["id"] == i], plan).table for i in frame["id"].unique()]
     pd.testing.assert_frame_equal(_sorted(pd.concat(parts)), whole, check_exact=True)
+
+
+@pytest.mark.parametrize("estimator", ["ks", "svss", "pf", "imm"])
+def test_groups_on_threads_give_the_estimates_of_one_thread(rows, estimator):
+    """A table's groups run on torch's intra-op count of threads at once
+    (:func:`~torchsvs.track_table.group_threads`); the estimates and the run's error estimate are
+    those of one group at a time, to the last bit (particle draws too: seeded per group)."""
+    import torch
+
+    frame, _ = rows
+    plan = _plan(frame, estimator)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        alone = track_table(frame, plan, max_cells=64)
+        torch.set_num_threads(3)
+        threaded = track_table(frame, plan, max_cells=64)
+        assert torch.get_num_threads() == 3  # restored
+    finally:
+        torch.set_num_threads(before)
+    pd.testing.assert_frame_equal(threaded.table, alone.table, check_exact=True)
+    a, b = threaded.run.summary_json(), alone.run.summary_json()
+    for key in ("estimated_position_rmse", "estimated_position_rmse_interval", "tracks", "rows"):
+        assert a[key] == b[key], key
