@@ -3,6 +3,7 @@ measurement noise is read from (:func:`~torchsvs.datasets.noise_estimate.estimat
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import torch
@@ -61,34 +62,58 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
     B, T, m = z.shape
     t = torch.cumsum(dt.to(torch.float64), dim=1)
     zc, tc, steps, count = _observed_first(z.to(torch.float64), t)
-    rows = torch.arange(B * m)
     out: dict[str, list[Tensor]] = {key: [] for key in Residuals._fields}
     for k in orders:
         if T <= k:
             continue
         n = T - k
         valid = torch.arange(n).unsqueeze(0) + k < count.unsqueeze(1)  # [B·m, n]
-        times = torch.stack([tc[:, j : j + n] for j in range(k + 1)], -1)[valid]  # [N, k+1]
-        values = torch.stack([zc[:, j : j + n] for j in range(k + 1)], -1)[valid]
-        times = times - times[:, :1]  # relative to the stencil's start (precision)
-        gaps = times.unsqueeze(-1) - times.unsqueeze(-2) + torch.eye(k + 1, dtype=times.dtype)
-        w = 1.0 / gaps.prod(dim=-1)  # (the diagonal's 1 stands for the missing l = j)
-        c = w / w.norm(dim=-1, keepdim=True)
-        later = torch.triu(torch.ones(k + 1, k + 1, dtype=c.dtype), diagonal=1)  # [l, j]: j > l
-        knots = (c.unsqueeze(-2) * (times.unsqueeze(-2) - times.unsqueeze(-1)) * later).sum(-1)
-        h = times[:, 1:] - times[:, :-1]
-        k0, k1 = knots[:, :-1], knots[:, 1:]
-        b = (h * (k0.square() + k0 * k1 + k1.square())).sum(-1) / 3.0
-        u = (c * values).sum(-1)
+        # Each stencil's k + 1 points as k + 1 vectors over the stencils ([N] each, in the
+        # order of ``valid``'s rows): the stencils as [N, k+1, k+1] tensors were hundreds of MB
+        # on a large sample, and its memory traffic most of the time.
+        row, col = valid.nonzero(as_tuple=True)
+        start = tc[row, col]
+        times = [tc[row, col + j] - start for j in range(k + 1)]  # from the stencil's start
+        values = [zc[row, col + j] for j in range(k + 1)]
+        w = []
+        for j in range(k + 1):  # w_j = 1 / prod_{l != j} (t_j - t_l)
+            product = None
+            for l in range(k + 1):
+                if l != j:
+                    gap = times[j] - times[l]
+                    product = gap if product is None else product * gap
+            assert product is not None
+            w.append(1.0 / product)
+        norm = functools.reduce(torch.add, [x * x for x in w]).sqrt()
+        c = [x / norm for x in w]
+        # the Peano kernel at each knot l: K_l = sum_{j > l} c_j (t_j - t_l)
+        knots = [
+            functools.reduce(torch.add, [c[j] * (times[j] - times[l]) for j in range(l + 1, k + 1)])
+            if l < k
+            else torch.zeros_like(start)
+            for l in range(k + 1)
+        ]
+        b = (
+            functools.reduce(
+                torch.add,
+                [
+                    (times[l + 1] - times[l])
+                    * (knots[l].square() + knots[l] * knots[l + 1] + knots[l + 1].square())
+                    for l in range(k)
+                ],
+            )
+            / 3.0
+        )
+        u = functools.reduce(torch.add, [cj * zj for cj, zj in zip(c, values, strict=True)])
         ok = torch.isfinite(u) & torch.isfinite(b)
-        row = rows.unsqueeze(1).expand(-1, n)[valid][ok]
+        row, col = row[ok], col[ok]
         out["u"].append(u[ok])
         out["b"].append(b[ok])
         out["axis"].append(row % m)
         out["order"].append(torch.full_like(row, k))
         out["track"].append(row // m)
-        out["first"].append(steps[:, :n][valid][ok])
-        out["last"].append(steps[:, k : k + n][valid][ok])
+        out["first"].append(steps[row, col])
+        out["last"].append(steps[row, col + k])
     if not out["u"]:
         empty, none = torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.int64)
         return Residuals(empty, empty, none, none, none, none, none)
