@@ -299,8 +299,9 @@ def track_parser() -> argparse.ArgumentParser:
         "--threads",
         type=_at_least_one,
         default=None,
-        help="torch threads of each process (default: the cores this process may use, "
-        "divided by --processes)",
+        help="threads of each process (default: the cores this process may use, divided by "
+        "--processes): torch's intra-op threads, and the groups of tracks estimated at once "
+        "(each on one thread)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return parser
