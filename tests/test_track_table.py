@@ -226,3 +226,38 @@ def test_groups_on_threads_give_the_estimates_of_one_thread(rows, estimator):
     a, b = threaded.run.summary_json(), alone.run.summary_json()
     for key in ("estimated_position_rmse", "estimated_position_rmse_interval", "tracks", "rows"):
         assert a[key] == b[key], key
+
+
+def test_a_failing_group_stops_the_groups_not_started():
+    """An error in one group (or an interrupt) ends the block: the groups queued behind it are
+    dropped, not run to completion before the error reaches the caller; torch's thread count is
+    restored."""
+    import threading
+    import time
+
+    import torch
+
+    from torchsvs.track_table import group_threads
+
+    ran = []
+    lock = threading.Lock()
+
+    def work(k: int) -> int:
+        if k == 0:
+            raise RuntimeError("group 0 failed")
+        time.sleep(0.01)
+        with lock:
+            ran.append(k)
+        return k
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with pytest.raises(RuntimeError, match="group 0 failed"):
+            with group_threads(200) as run_groups:
+                for _ in run_groups(work, range(200)):
+                    pass
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert len(ran) < 50, len(ran)

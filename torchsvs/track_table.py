@@ -147,10 +147,11 @@ def group_threads(groups: int) -> Iterator[Any]:
         return
     before = torch.get_num_threads()
     torch.set_num_threads(1)
+    pool = ThreadPoolExecutor(workers)
     try:
-        with ThreadPoolExecutor(workers) as pool:
-            yield pool.map
-    finally:
+        yield pool.map
+    finally:  # an error or an interrupt: the groups not started are dropped, not run
+        pool.shutdown(wait=True, cancel_futures=True)
         torch.set_num_threads(before)
 
 
