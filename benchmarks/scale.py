@@ -179,7 +179,7 @@ def _dask(source: Path, target: Path, settings: object) -> dict[str, float]:
     logging.getLogger("distributed").setLevel(logging.ERROR)
     tick = time.perf_counter()
     cluster = LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
     )
     client = Client(cluster)
     started = time.perf_counter() - tick

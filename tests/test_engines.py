@@ -192,11 +192,13 @@ def test_spark_bad_input_names_the_argument(spark, spark_rows, rows, plans):
 
 @pytest.fixture(scope="module")
 def dask_client():
-    """A distributed LocalCluster in this process (two worker threads)."""
+    """A distributed LocalCluster in this process (two worker threads). Its HTTP server on a
+    free port (":0"): without an address the scheduler tries 8787 and warns when another
+    test process holds it (an error here, under pytest -n 2)."""
     distributed = pytest.importorskip("distributed")
     with (
         distributed.LocalCluster(
-            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0"
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
