@@ -38,7 +38,14 @@ import numpy as np
 import pandas as pd
 
 from experiments.common import RESULTS
-from experiments.recorded_sets import BIAS_SHARE, BIAS_SIGMAS, build_sets, set_seed
+from experiments.recorded_sets import (
+    BIAS_SHARE,
+    BIAS_SIGMAS,
+    bias_stretch,
+    build_sets,
+    directions,
+    set_seed,
+)
 
 #: Rows on each side of a boundary, and the polynomial degrees, of the step tests.
 WINDOWS = (5, 10, 20, 40)
@@ -104,14 +111,6 @@ def paired(step: np.ndarray, variance: np.ndarray, w: int) -> np.ndarray:
     return np.where((j > i + w) & (inv[:, None] > 0) & (inv[None, :] > 0), stat, 0.0)
 
 
-def bias_rows(n: int, rng: np.random.Generator) -> tuple[int, int]:
-    """The benchmark's bias stretch on a track of ``n`` rows (as
-    :func:`~experiments.recorded_sets.add_faults` draws it): first row and row past its end."""
-    length = max(1, int(round(BIAS_SHARE * n)))
-    first = int(rng.integers(0, n - length + 1))
-    return first, first + length
-
-
 def study(rows: int, seed: int, kinds: Sequence[str] | None) -> pd.DataFrame:
     """One row per set × window × degree: thresholds and detection shares."""
     from tqdm.auto import tqdm
@@ -124,9 +123,9 @@ def study(rows: int, seed: int, kinds: Sequence[str] | None) -> pd.DataFrame:
         for _, g in bench.measurements.groupby("track_id", sort=False):
             t = g["time"].to_numpy(float)
             z = g[["x", "y"]].to_numpy(float)
-            first, end = bias_rows(len(t), rng)
+            first, end = bias_stretch(len(t), rng)
             biased = z.copy()
-            biased[first:end] += BIAS_SIGMAS * bench.sigma * _direction(rng)
+            biased[first:end] += BIAS_SIGMAS * bench.sigma * directions(rng, 1)[0]
             tracks.append((t, z, biased, first, end))
         for w in WINDOWS:
             for degree in DEGREES:
@@ -162,11 +161,6 @@ def study(rows: int, seed: int, kinds: Sequence[str] | None) -> pd.DataFrame:
                     )
                 )
     return pd.DataFrame(out)
-
-
-def _direction(rng: np.random.Generator) -> np.ndarray:
-    angle = rng.uniform(0.0, 2.0 * np.pi)
-    return np.array([np.cos(angle), np.sin(angle)])
 
 
 def best_per_set(table: pd.DataFrame) -> pd.DataFrame:

@@ -672,6 +672,20 @@ BIAS_SIGMAS = 3.0
 FAULT_MIN_ROWS = 10
 
 
+def directions(rng: np.random.Generator, size: int) -> np.ndarray:
+    """``[size, 2]`` unit vectors at uniform random angles."""
+    angle = rng.uniform(0.0, 2.0 * np.pi, size)
+    return np.stack([np.cos(angle), np.sin(angle)], 1)
+
+
+def bias_stretch(rows: int, rng: np.random.Generator) -> tuple[int, int]:
+    """The rows of a track of ``rows`` rows that :func:`add_faults`' bias covers: one stretch of
+    :data:`BIAS_SHARE` of them at a random place (its first row, and the row past its end)."""
+    length = max(1, int(round(BIAS_SHARE * rows)))
+    first = int(rng.integers(0, rows - length + 1))
+    return first, first + length
+
+
 def add_faults(
     truth: pd.DataFrame, measured: pd.DataFrame, sigma: float, seed: int
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -691,16 +705,10 @@ def add_faults(
     starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
     ends = np.r_[starts[1:], n]
 
-    def direction(size: int) -> np.ndarray:
-        angle = rng.uniform(0.0, 2.0 * np.pi, size)
-        return np.stack([np.cos(angle), np.sin(angle)], 1)
-
     keep = np.ones(n, dtype=bool)
     for a, b in zip(starts, ends, strict=True):
-        # bias over one stretch of the track
-        length = max(1, int(round(BIAS_SHARE * (b - a))))
-        first = a + int(rng.integers(0, b - a - length + 1))
-        xy[first : first + length] += BIAS_SIGMAS * sigma * direction(1)
+        first, end = bias_stretch(b - a, rng)
+        xy[a + first : a + end] += BIAS_SIGMAS * sigma * directions(rng, 1)
         # dropouts: runs that start at random, geometric lengths
         lost = np.zeros(b - a, dtype=bool)
         for k in np.flatnonzero(rng.random(b - a) < DROPOUT_SHARE / DROPOUT_RUN):
@@ -713,7 +721,7 @@ def add_faults(
         shift = np.clip(rng.normal(0.0, JITTER_STD, b - a), -room, room)
         time[a:b] += shift
     outliers = rng.random(n) < OUTLIER_SHARE
-    xy[outliers] += OUTLIER_SIGMAS * sigma * direction(int(outliers.sum()))
+    xy[outliers] += OUTLIER_SIGMAS * sigma * directions(rng, int(outliers.sum()))
     measured = measured.assign(time=time, x=xy[:, 0], y=xy[:, 1])
     truth = truth.assign(time=time)
     return truth[keep].reset_index(drop=True), measured[keep].reset_index(drop=True)

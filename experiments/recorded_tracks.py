@@ -631,6 +631,9 @@ def estimate_section(runs: Sequence[Run]) -> str:
         ],
     )
     counts["warned"] = sum(warned_uncertain(r) for r in off)
+    from torchsvs.track_run import UNCERTAIN_REACH
+
+    counts["reach"] = f"{UNCERTAIN_REACH:g}"
     return _text("estimate_some_off", table="\n".join(rows), **counts)
 
 

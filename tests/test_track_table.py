@@ -230,8 +230,8 @@ def test_groups_on_threads_give_the_estimates_of_one_thread(rows, estimator):
 
 def test_a_failing_group_stops_the_groups_not_started():
     """An error in one group (or an interrupt) ends the block: the groups queued behind it are
-    dropped, not run to completion before the error reaches the caller; torch's thread count is
-    restored."""
+    dropped, not run to completion before the error reaches the caller (``Executor.map``
+    cancels them; a pool fed with ``submit`` would not); torch's thread count is restored."""
     import threading
     import time
 

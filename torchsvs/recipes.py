@@ -100,6 +100,8 @@ def compute_dtype(estimator: str, dtype: torch.dtype) -> torch.dtype:
 #: Kalman filter's, the others' the Kalman smoother's
 #: (:func:`~torchsvs.fitting.defaults._sure_q`).
 FILTERS = ("kf", "ekf", "ukf", "rstkf", "pf", "spvsf", "svsf")
+#: The linear Kalman filter and smoother: their error estimate's divergence is exact.
+KALMAN = ("kf", "ks")
 
 
 @dataclass
@@ -278,7 +280,7 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
         )
         lag = settings.smoother_lag
         return turn if lag == 0 else TurnIMMSmoother(turn, lag)
-    if name in ("kf", "ks"):
+    if name in KALMAN:
         kf = KalmanFilter(model)
         return kf if name == "kf" else RTSSmoother(kf, lag=settings.smoother_lag)
     if name == "ekf":

@@ -18,7 +18,7 @@ from torchsvs.datasets import RowReport, TrackBlock, TrackSteps, estimate_table
 from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
-from torchsvs.recipes import Settings
+from torchsvs.recipes import KALMAN, Settings
 
 #: Share of a particle filter's steps with a degenerate sample above which a run warns.
 DEGENERATE_WARNING = 0.3
@@ -213,7 +213,7 @@ class TrackRun:
                 "high smooths away motion the model does not follow); give --meas-std with the "
                 "sensor's noise if known"
             )
-        uncertain = uncertain_estimate(found, exact=name in ("ks", "kf"))
+        uncertain = uncertain_estimate(found, exact=name in KALMAN)
         if uncertain is not None:
             self.warnings.append(f"{name}: {uncertain}")
         if not found.clearly_better:

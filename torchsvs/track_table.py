@@ -147,11 +147,12 @@ def group_threads(groups: int) -> Iterator[Any]:
         return
     before = torch.get_num_threads()
     torch.set_num_threads(1)
-    pool = ThreadPoolExecutor(workers)
     try:
-        yield pool.map
-    finally:  # an error or an interrupt: the groups not started are dropped, not run
-        pool.shutdown(wait=True, cancel_futures=True)
+        # (an error or an interrupt while its results are read: map cancels the groups not
+        # started, so they are dropped, not run)
+        with ThreadPoolExecutor(workers) as pool:
+            yield pool.map
+    finally:
         torch.set_num_threads(before)
 
 

@@ -75,15 +75,11 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
         start = tc[row, col]
         times = [tc[row, col + j] - start for j in range(k + 1)]  # from the stencil's start
         values = [zc[row, col + j] for j in range(k + 1)]
-        w = []
-        for j in range(k + 1):  # w_j = 1 / prod_{l != j} (t_j - t_l)
-            product = None
-            for l in range(k + 1):
-                if l != j:
-                    gap = times[j] - times[l]
-                    product = gap if product is None else product * gap
-            assert product is not None
-            w.append(1.0 / product)
+        # w_j = 1 / prod_{l != j} (t_j - t_l)
+        w = [
+            1.0 / functools.reduce(torch.mul, [times[j] - times[l] for l in range(k + 1) if l != j])
+            for j in range(k + 1)
+        ]
         norm = functools.reduce(torch.add, [x * x for x in w]).sqrt()
         c = [x / norm for x in w]
         # the Peano kernel at each knot l: K_l = sum_{j > l} c_j (t_j - t_l)

@@ -244,8 +244,8 @@ def _windows(d2: Tensor, k: int, at: tuple[Tensor, ...]) -> Tensor:
     track's judged rows (so "k judged rows away" is k places)."""
     track, step = at
     # only the tracks asked about are packed (a few of a clean file's)
-    tracks, track = torch.unique(track, return_inverse=True)
-    d2 = d2[tracks]
+    asked, track = torch.unique(track, return_inverse=True)
+    d2 = d2[asked]
     seen = ~torch.isnan(d2)
     order = torch.argsort((~seen).to(torch.int8), dim=1, stable=True)  # judged rows first
     packed = torch.nn.functional.pad(d2.gather(1, order), (k, k), value=torch.nan)
