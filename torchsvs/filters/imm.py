@@ -353,21 +353,26 @@ class IMM(SteppedEstimator[IMMResult]):
         return self._start(x0b, P0b, mode_probs, single)
 
     def _start(self, x0: Tensor, P0: Tensor, mode_probs: Any, single: bool) -> IMMState:
-        B, dtype = x0.shape[0], x0.dtype
-        M = self.num_modes
-        if mode_probs is None:
-            log_probs = self.log_initial_probs.to(dtype).expand(B, M)
-        else:
-            rank = mode_probs.ndim if isinstance(mode_probs, Tensor) else np.ndim(mode_probs)
-            shape = (M,) if single or rank == 1 else (B, M)
-            want = "mode probabilities [M]" if single else "mode probabilities [M] or [B, M]"
-            probs = check_probabilities(mode_probs, shape, "mode_probs", want)
-            log_probs = probs.log().to(dtype).expand(B, M)
+        log_probs = self.initial_log_probs(mode_probs, x0.shape[0], x0.dtype, single)
         modes = []
         for j, f in enumerate(self.mode_filters):
             x, P = self.embedding.project(j, x0, P0)
             modes.append(f.init(x, P[0] if P.shape[0] == 1 else P)._replace(single=False))
         return IMMState(tuple(modes), log_probs, single=single)
+
+    def initial_log_probs(
+        self, mode_probs: Any, B: int, dtype: torch.dtype, single: bool = False
+    ) -> Tensor:
+        """``log μ_j`` before the first step, ``[B, M]``: of ``mode_probs`` (``[M]`` or
+        ``[B, M]``, checked; ``[M]`` only for ``single``) or, for ``None``, ``initial_probs``."""
+        M = self.num_modes
+        if mode_probs is None:
+            return self.log_initial_probs.to(dtype).expand(B, M)
+        rank = mode_probs.ndim if isinstance(mode_probs, Tensor) else np.ndim(mode_probs)
+        shape = (M,) if single or rank == 1 else (B, M)
+        want = "mode probabilities [M]" if single else "mode probabilities [M] or [B, M]"
+        probs = check_probabilities(mode_probs, shape, "mode_probs", want)
+        return probs.log().to(dtype).expand(B, M)
 
     def state_prior(self, state: IMMState) -> tuple[Tensor, Tensor]:
         b, n = state.log_probs.shape[0], self.model.state_dim

@@ -15,9 +15,11 @@ from torchsvs.filters.imm import IMM, IMM_PROBE_STEP, IMMResult
 from torchsvs.filters.kalman import KalmanFilter
 from torchsvs.filters.nonlinear import ExtendedKalmanFilter, UnscentedKalmanFilter
 from torchsvs.kernels.compiled import outside_dynamo
+from torchsvs.kernels.fused_imm import TurnIMMPass, turn_imm_run
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.models.motion import ConstantVelocity, CoordinatedTurn
 from torchsvs.models.turn import CoordinatedTurn3D
+from torchsvs.types import FilterResult
 
 #: The mode switch probability per step of the default transition matrix.
 SWITCH_PROB = 0.05
@@ -79,7 +81,8 @@ class TurnIMM(Estimator[IMMResult]):
         IEEE Trans. Aerosp. Electron. Syst. 41(4), 2005. doi:10.1109/TAES.2005.1561886
     """
 
-    paired_probes = True  # a Python loop over steps of small tensors
+    paired_probes = True  # the plain and probed runs in one pass (one call of a step loop)
+    model: ConstantVelocity
     probe_step = IMM_PROBE_STEP
 
     def __init__(
@@ -176,8 +179,55 @@ class TurnIMM(Estimator[IMMResult]):
         return self._pass(inputs, None)
 
     def _pass(self, inputs: Inputs, mode_probs: Any) -> IMMResult:
-        result = self.imm.filter_pass(self.common_inputs(inputs), mode_probs)
-        return self.cv_part(result)
+        common = self.common_inputs(inputs)
+        compiled = self.compiled_pass(common, mode_probs, 0)
+        if compiled is None:
+            return self.cv_part(self.imm.filter_pass(common, mode_probs))
+        return self.cv_part(self.filtered_result(compiled))
+
+    def compiled_pass(self, common: Inputs, mode_probs: Any, lag: int | None) -> TurnIMMPass | None:
+        """The pass over checked inputs in the common state, compiled
+        (:func:`~torchsvs.kernels.fused_imm.turn_imm_run`: the filter for ``lag=0``, else Kim's
+        smoother of that lag, ``None`` the fixed interval), or ``None`` where only the tensor
+        path can run it: the UKF turn mode, gradients asked of the noises or the transition,
+        and the inputs :func:`~torchsvs.kernels.fused_imm.usable` refuses."""
+        if type(self.imm.mode_filters[1]) is not ExtendedKalmanFilter:  # (the UKF is one)
+            return None
+        if torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters()):
+            return None
+        with torch.no_grad():
+            plane = _plane(self.turn_model)
+            f64 = torch.float64
+            constants = torch.cat(
+                [
+                    torch.stack([self.model.q(), plane.q(), plane.q_turn()]).to(f64),
+                    self.imm.log_transition(f64).flatten(),
+                    self.model.R().to(f64).flatten(),
+                ]
+            )
+            log_p0 = self.imm.initial_log_probs(mode_probs, common.batch, f64)
+            return turn_imm_run(constants, self.model.dt, common, log_p0, lag)
+
+    def filtered_result(self, compiled: TurnIMMPass) -> IMMResult:
+        """The :class:`~torchsvs.filters.IMMResult` (in the common state) of a compiled pass:
+        each mode's filtered moments and total log-likelihood, no predicted mode probabilities
+        or per-step mode likelihoods (as ``keep`` other than ``"all"`` trims them)."""
+        nothing: Any = None
+        modes = tuple(
+            FilterResult(
+                mean, cov, *(nothing,) * 8, log_likelihood=compiled.mode_log_likelihood[:, j]
+            )
+            for j, (mean, cov) in enumerate(compiled.modes)
+        )
+        return IMMResult(
+            compiled.mean,
+            compiled.cov,
+            compiled.mode_probs,
+            None,
+            None,
+            modes,
+            compiled.log_likelihood,
+        )
 
     def common_inputs(self, inputs: Inputs) -> Inputs:
         """The checked inputs with the prior in the IMM's common state: the turn rate appended

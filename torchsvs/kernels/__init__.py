@@ -2,7 +2,8 @@
 general path). :func:`general_path` turns them off, for comparisons and benchmarks;
 :func:`eager_loops` keeps the per-axis kernel but runs its time loops as tensor operations
 instead of the compiled ones (:mod:`torchsvs.kernels.fused_axes`, built by
-:mod:`torchsvs.kernels.build`). :func:`compiled_steps` compiles
+:mod:`torchsvs.kernels.build`; also the IMM(CV, CT) and its smoother of ``track --estimator
+imm``, :mod:`torchsvs.kernels.fused_imm`). :func:`compiled_steps` compiles
 the general path's predict-correct step with ``torch.compile``
 (:mod:`torchsvs.kernels.compiled`)."""
 

@@ -170,6 +170,10 @@ def library() -> ctypes.CDLL | None:
         curves.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, *(vp,) * 4]
         # the chunk and its sums, the studentized residuals and the leverage they stop at
         curves.argtypes += [ctypes.c_int64, vp, vp, ctypes.c_double]
+    imm = lib.turn_imm_f64
+    imm.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_void_p, pointers]
+    imm.argtypes += [ctypes.c_int64, ctypes.c_int64, pointers]
+    imm.restype = ctypes.c_int
     _state["library"] = lib
     return lib
 

@@ -133,7 +133,7 @@ class IMMSmoother(Estimator[IMMSmootherResult]):
         Rauch, Tung, Striebel, AIAA J. 3(8), 1965. doi:10.2514/3.3166
     """
 
-    paired_probes = True  # a Python loop over steps of small tensors
+    paired_probes = True  # the plain and probed runs in one pass (one call of a step loop)
     probe_step = IMM_PROBE_STEP
 
     def __init__(self, imm: IMM, lag: int | None) -> None:
@@ -401,7 +401,17 @@ class TurnIMMSmoother(IMMSmoother):
 
     def _pass(self, inputs: Inputs, mode_probs: Any) -> IMMSmootherResult:
         common = self.turn.common_inputs(inputs)
-        return self.turn.cv_part(super()._pass(common, mode_probs))
+        compiled = self.turn.compiled_pass(common, mode_probs, self.lag)
+        if compiled is None:
+            return self.turn.cv_part(super()._pass(common, mode_probs))
+        result = IMMSmootherResult(
+            compiled.smoothed_mean,
+            compiled.smoothed_cov,
+            compiled.smoothed_mode_probs,
+            tuple(Moments(mean, cov) for mean, cov in compiled.smoothed_modes),
+            self.turn.filtered_result(compiled),
+        )
+        return self.turn.cv_part(result)
 
 
 def _trim(result: IMMSmootherResult, keep: str) -> IMMSmootherResult:

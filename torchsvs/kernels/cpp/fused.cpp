@@ -8,6 +8,7 @@
 //   curves.h         the Kalman smoother's SURE curves (kernels/curves.py)
 //   adjoints.h       the hand-written reverse modes of the per-axis loops
 //   dense.h          the dense linear filters' step (online steps, dense runs)
+//   imm.h            the IMM(CV, CT) of `track --estimator imm` and Kim's smoother (float64)
 //
 // The per-axis kernel: each (track, axis) pair is an independent lane of two-state steps;
 // blocks of lanes step together (a loop the compiler vectorises) and every step costs a few
@@ -29,6 +30,7 @@
 #include "curves.h"
 #include "adjoints.h"
 #include "dense.h"
+#include "imm.h"
 
 extern "C" {
 
@@ -104,5 +106,14 @@ extern "C" {
 TORCHSVS_ENTRIES(f32, float)
 TORCHSVS_ENTRIES(f64, double)
 #undef TORCHSVS_ENTRIES
+
+// The IMM(CV, CT) and its smoother, float64 only (imm.h; torchsvs/kernels/fused_imm.py).
+int turn_imm_f64(int64_t B, int64_t T, int64_t ndim, int64_t lag, int cov, int threads,
+                 const double* params, const void* const* in, int64_t dt_track, int64_t dt_step,
+                 void* const* out) {
+    if (ndim == 2) return turn_imm_of<2>(B, T, lag, cov, threads, params, in, dt_track, dt_step, out);
+    if (ndim == 3) return turn_imm_of<3>(B, T, lag, cov, threads, params, in, dt_track, dt_step, out);
+    return 3;
+}
 
 }  // extern "C"
