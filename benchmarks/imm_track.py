@@ -6,8 +6,9 @@ The file: the recorded-tracks benchmark's airliners on a 5 s grid and on 10 s sc
 (:func:`experiments.recorded_sets.build_sets`, seed 0, about 5,000 rows each). Each command runs
 as the user runs it (``python -m torchsvs.cli track ...``, a fresh process: import included),
 the commands alternating, best of ``--repeats``. Reported: the whole command's wall time, the
-``settings`` phase (noise reading, screen, ``--fit``) and the ``estimating`` phase per row, as
-``track`` prints them, and each ÷ the Kalman smoother's in the same run; the output's 2-D
+``settings`` phase (noise reading, screen, ``--fit``) and the ``estimating`` phase per row, from
+each run's summary (``track``'s phases to the millisecond), and each ÷ the Kalman smoother's in
+the same run; the output's 2-D
 position RMSE against the truth, and over the best of the commands. Writes
 ``benchmarks/imm_track.md``.
 
@@ -24,7 +25,7 @@ with their defaults, alternating, best of ``--repeats``.
 from __future__ import annotations
 
 import argparse
-import re
+import json
 import subprocess
 import sys
 import tempfile
@@ -35,6 +36,7 @@ import pandas as pd
 from benchmarks.timing import alternating_best
 from experiments.recorded_tracks import score
 from torchsvs.evaluation import markdown_table
+from torchsvs.track_run import summary_path
 
 RESULTS = Path(__file__).with_name("imm_track.md")
 KINDS = ("own", "scan10")
@@ -91,11 +93,12 @@ def large_table(folder: Path, rows: int, repeats: int) -> list[str]:
 
         def command(name: str, extra: list[str], source: Path = source, logs: dict = logs):
             argv = [sys.executable, "-m", "torchsvs.cli", "track", str(source)]
-            argv += ["-o", str(folder / f"{name}.parquet"), "--force", *extra]
+            target = folder / f"{name}.parquet"
+            argv += ["-o", str(target), "--force", *extra]
 
             def call() -> None:
-                done = subprocess.run(argv, capture_output=True, text=True, check=True)
-                found = phases(done.stderr + done.stdout)
+                subprocess.run(argv, capture_output=True, text=True, check=True)
+                found = phases(target)
                 best = logs.get(name)
                 if best is None or found["estimating"] < best["estimating"]:
                     logs[name] = found
@@ -109,8 +112,8 @@ def large_table(folder: Path, rows: int, repeats: int) -> list[str]:
             [
                 f"{kind} σ {SIGMA:g}",
                 f"{count:,}",
-                f"{ks:.2f} s",
-                f"{imm:.2f} s",
+                f"{ks:.3f} s",
+                f"{imm:.3f} s",
                 f"{ks / count * 1e6:.2f} µs",
                 f"{imm / count * 1e6:.2f} µs",
                 f"{imm / ks:.1f}×",
@@ -124,23 +127,18 @@ def large_table(folder: Path, rows: int, repeats: int) -> list[str]:
         f"{rows:,} rows (its tracks under new ids, each copy with fresh noise), Parquet in and "
         f"out, `track --estimator ks` and `track --estimator imm` with their defaults (the IMM "
         f"smoother of lag 5, the noise read off the data), alternating, the best estimating "
-        f"phase of {repeats}. The phase includes the truth-free error estimate's probed run "
-        "and, for the IMM, the per-track choice between its smoother and its filter.",
+        f"phase of {repeats} (from each run's summary). The phase includes the truth-free "
+        "error estimate's probed run and, for the IMM, the per-track choice between its "
+        "smoother and its filter.",
         "",
         markdown_table(header, table),
         "",
     ]
 
 
-def phases(log: str) -> dict[str, float]:
-    """``track``'s printed phases (s) and its cost per row placed (µs)."""
-    found = dict(re.findall(r"(\w+) ([\d.]+) s", log.split("phases:")[-1]))
-    per_row = re.search(r"([\d.]+) µs per row placed", log)
-    return {
-        "settings": float(found["settings"]),
-        "estimating": float(found["estimating"]),
-        "per_row": float(per_row.group(1)) if per_row else float("nan"),
-    }
+def phases(target: Path) -> dict[str, float]:
+    """The phases (s, to the millisecond) of the run that wrote ``target``, from its summary."""
+    return json.loads(summary_path(target).read_text())["phases"]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -163,8 +161,8 @@ def main(argv: list[str] | None = None) -> None:
             argv += ["-o", str(target), "--force", *extra]
 
             def call() -> None:
-                done = subprocess.run(argv, capture_output=True, text=True, check=True)
-                found = phases(done.stderr + done.stdout)
+                subprocess.run(argv, capture_output=True, text=True, check=True)
+                found = phases(target)
                 best = logs.get(name)
                 if best is None or found["estimating"] < best["estimating"]:
                     logs[name] = found
@@ -182,10 +180,10 @@ def main(argv: list[str] | None = None) -> None:
             f"`track --estimator {name}`",
             f"{wall[name]:.2f} s",
             f"{wall[name] / ks:.2f}×",
-            f"{logs[name]['settings']:.1f} s",
-            f"{logs[name]['estimating']:.1f} s",
-            f"{logs[name]['per_row']:.0f} µs",
-            f"{logs[name]['per_row'] / logs['ks']['per_row']:.1f}×",
+            f"{logs[name]['settings']:.2f} s",
+            f"{logs[name]['estimating']:.3f} s",
+            f"{logs[name]['estimating'] / rows * 1e6:.1f} µs",
+            f"{logs[name]['estimating'] / logs['ks']['estimating']:.1f}×",
             f"{rmse[name]:.1f}",
             f"{rmse[name] / best:.3f}",
         ]
@@ -208,7 +206,7 @@ def main(argv: list[str] | None = None) -> None:
         f"Generated by `python -m benchmarks.imm_track --repeats {args.repeats}`: {rows:,} rows "
         f"in {tracks} tracks (the recorded-tracks benchmark's {' and '.join(KINDS)} sets at "
         f"σ {SIGMA:g} m), each command a fresh process as a user runs it (import included), "
-        "the commands alternating, best of the repeats; the phases as `track` prints them "
+        "the commands alternating, best of the repeats; the phases from each run's summary "
         "(the best run's). The estimating phase includes the truth-free error estimate's "
         "probed run. Ratios are within this run only (the machine is shared). RMSE: the "
         "output's 2-D position error against the truth (the raw measurements': "

@@ -79,10 +79,10 @@ def both(est, z, x0, P0, **kwargs):
 @pytest.mark.parametrize("lag", [0, 1, 5, None, 400])
 @pytest.mark.parametrize("keep", ["mean", "moments"])
 def test_compiled_imm_equals_the_tensor_path(D, irregular, lag, keep):
-    # 7 tracks: a block of four lanes and a short block of three (its last lane repeated);
+    # 11 tracks: a block of eight lanes and a short block of three (its last lane repeated);
     # missing components and a step without measurement; lag 400 beyond the track's end is
     # the fixed interval
-    z, dt, x0, P0 = turning_tracks(7, 40, D, irregular, missing=True)
+    z, dt, x0, P0 = turning_tracks(11, 40, D, irregular, missing=True)
     turn = turn_imm(D)
     est = turn if lag == 0 else TurnIMMSmoother(turn, lag)
     compiled, tensors = both(est, z, x0, P0, dt=dt, keep=keep)

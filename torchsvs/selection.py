@@ -32,13 +32,13 @@ from torchsvs.sample_accuracy import accuracy_of_terms, sample_terms
 #: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
 CANDIDATES = ("ks", "svstps", "svss", "imm")
 #: The candidates are scored on the same tracks: the whole sample up to this many points, else
-#: tracks spread evenly over it up to this many. The IMM's run costs ~17× the KS's per point (a
-#: step loop of small tensor operations, ``benchmarks/imm_track.md``), so its score is kept to
-#: seconds; its noises are fitted on windows of the whole sample as the others' are (the search
-#: of :func:`~torchsvs.fitting.tuning.self_tune`, seconds). Unfitted, the IMM smoother left
-#: ``auto`` 1.095x ``imm --fit`` on simulated hard turns (recorded-tracks benchmark); skipped
-#: on samples over this size, it left ``auto`` 1.09x the IMM on 10,337 rows of airliners at
-#: 5 s and 10 s scans.
+#: tracks spread evenly over it up to this many. The IMM's scored run costs 4-8× the KS's per
+#: point (compiled: ``benchmarks/imm_track.md``; ~17× as tensor step loops, when this cap was
+#: set), so its score is kept to seconds; its noises are fitted on windows of the whole sample
+#: as the others' are (the search of :func:`~torchsvs.fitting.tuning.self_tune`, seconds).
+#: Unfitted, the IMM smoother left ``auto`` 1.095x ``imm --fit`` on simulated hard turns
+#: (recorded-tracks benchmark); skipped on samples over this size, it left ``auto`` 1.09x the
+#: IMM on 10,337 rows of airliners at 5 s and 10 s scans.
 IMM_POINTS = 10_000
 #: Each candidate is scored by its estimated error e times 1 + CAUTION·(se/e)², se its standard
 #: error. An estimate as uncertain as itself is penalised heavily (an estimator very sensitive

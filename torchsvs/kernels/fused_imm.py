@@ -12,7 +12,7 @@ formulas' home): ``tests/test_fused_imm.py`` holds both to 1e-9 in float64. It r
 tensor path's result is not needed whole: float64 on CPU, no gradients, the EKF turn mode, no
 control input, ``keep`` ``"mean"`` or ``"moments"`` (the predictions, innovations and gains
 of ``"all"`` stay the tensor path's); otherwise, and where a Cholesky factor fails (the tensor
-path adds jitter there), the caller takes the tensor path. Four tracks step together in a
+path adds jitter there), the caller takes the tensor path. Eight tracks step together in a
 vector of lanes (``cpp/imm.h``), blocks of them on threads.
 """
 
