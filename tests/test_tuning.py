@@ -157,3 +157,45 @@ def test_supervised_loss_on_recorded_tracks_needs_truth():
     )
     with pytest.raises(ValueError, match="^loss: 'supervised' needs truth"):
         module.training_step(data.batches["train"][0], 0)
+
+
+def test_eager_optimizers_fit_without_importing_dynamo_and_restore_the_markers():
+    """An L-BFGS fit inside ``eager_optimizers`` never imports ``torch._dynamo`` (1.1-1.4 s of
+    a fresh process), reaches the optimum it reaches outside, and leaves torch.optim's methods
+    as it found them (a fresh interpreter: other tests may have imported Dynamo already)."""
+    import subprocess
+    import sys
+
+    script = """
+import sys, torch
+from torchsvs.fitting.tuning import eager_optimizers
+
+def fit():
+    p = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.LBFGS([p], max_iter=20, line_search_fn="strong_wolfe")
+    def closure():
+        opt.zero_grad()
+        loss = ((p - torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)) ** 4).sum()
+        loss.backward()
+        return loss
+    opt.step(closure)
+    return p.detach().tolist()
+
+with eager_optimizers():
+    inside = fit()
+print("dynamo after the block:", "torch._dynamo" in sys.modules)
+zero_grad = torch.optim.Optimizer.zero_grad.__wrapped__
+print("marker left:", hasattr(zero_grad, "__dynamo_disable"))
+outside = fit()
+print("dynamo outside:", "torch._dynamo" in sys.modules)
+print("same:", inside == outside)
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=300
+    )
+    assert done.stdout.split("\n")[:4] == [
+        "dynamo after the block: False",
+        "marker left: False",
+        "dynamo outside: True",  # (torch's own path, as before)
+        "same: True",
+    ], done.stdout + done.stderr

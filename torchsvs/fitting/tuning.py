@@ -25,7 +25,10 @@ Measured on recorded flights (``experiments/results/real_flights.md``): seconds 
 from __future__ import annotations
 
 import math
+import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -57,6 +60,35 @@ class FitResult:
 
     def summary(self) -> str:
         return "fit: " + "; ".join(self.stages) + f" ({self.seconds:.1f} s)"
+
+
+@contextmanager
+def eager_optimizers() -> Iterator[None]:
+    """Within this block torch.optim's methods that are marked not to be traced by
+    ``torch.compile`` (``torch._disable_dynamo``: ``add_param_group``, ``zero_grad``, ...)
+    call their functions directly. Marked, each imports ``torch._dynamo`` at its first call to
+    say so (1.1-1.4 s here, a third of ``track --estimator imm --fit`` on ten thousand rows);
+    the fit runs eagerly, never under ``torch.compile``, so there is nothing to say. Each
+    method's cached wrapper (the marker's own ``__dynamo_disable`` attribute) is the function
+    itself until the block ends, then removed: a later call marks it as torch does. Nothing
+    changes where ``torch._dynamo`` is already imported or the marker is not torch's."""
+    marker = getattr(getattr(torch, "_compile", None), "_disable_dynamo", None)
+    set_here: list[Any] = []
+    if marker is not None and "torch._dynamo" not in sys.modules:
+        code = marker(lambda: None).__code__
+        for cls in (torch.optim.LBFGS, torch.optim.Adam):
+            for klass in cls.__mro__:
+                for value in vars(klass).values():
+                    fn = getattr(value, "__wrapped__", None)
+                    if getattr(value, "__code__", None) is code and fn is not None:
+                        if not hasattr(fn, "__dynamo_disable"):
+                            setattr(fn, "__dynamo_disable", fn)
+                            set_here.append(fn)
+    try:
+        yield
+    finally:
+        for fn in set_here:
+            delattr(fn, "__dynamo_disable")
 
 
 def _minimise(
@@ -92,15 +124,16 @@ def _minimise(
         return total
 
     if optimizer == "lbfgs":
-        lbfgs = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=steps, max_eval=steps, line_search_fn="strong_wolfe"
-        )
+        with eager_optimizers():
+            lbfgs = torch.optim.LBFGS(
+                params, lr=1.0, max_iter=steps, max_eval=steps, line_search_fn="strong_wolfe"
+            )
 
-        def closure() -> Tensor:
-            lbfgs.zero_grad()
-            return evaluate(torch.Generator().manual_seed(seed))
+            def closure() -> Tensor:
+                lbfgs.zero_grad()
+                return evaluate(torch.Generator().manual_seed(seed))
 
-        lbfgs.step(closure)
+            lbfgs.step(closure)
         return curve
     if optimizer != "adam":
         raise ValueError(f"optimizer: expected 'lbfgs' or 'adam', got {optimizer!r}")
