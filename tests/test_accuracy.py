@@ -432,6 +432,42 @@ def test_a_near_linear_estimators_estimate_moves_less_with_the_probe_under_the_c
     assert abs(np.mean(found[True]) - np.mean(found[False])) < 2 * spread[False], found
 
 
+def test_the_linear_reference_from_the_positions_loop_is_the_one_from_the_runs():
+    """``LinearReference`` of a Kalman smoother and of a filter, its means and position
+    variances from the compiled positions loop (``noise.kalman_positions``), equals the one
+    from the estimators' whole runs (the general path it takes where R is not diagonal), for
+    the smoother's pass and its filter's, on tracks with missing steps and their own
+    intervals."""
+    from dataclasses import replace
+
+    from torchsvs.accuracy import PROBE_STEP, draw_probe
+    from torchsvs.datasets import with_prior
+    from torchsvs.estimating import LinearReference
+    from torchsvs.filters import KalmanFilter
+    from torchsvs.models import ConstantVelocity
+    from torchsvs.smoothers import RTSSmoother
+
+    tracks, std, _, _ = _ks_tracks(B=5, T=60)
+    z = tracks.z.clone()
+    z[1, 10:14] = float("nan")
+    z[3, 30, 0] = float("nan")
+    tracks = with_prior(replace(tracks, z=z), std)
+    probe = draw_probe(tracks.z, std, PROBE_STEP, torch.Generator().manual_seed(3))
+    model = ConstantVelocity(ndim=2, dt=1.0, q=0.7, r=[900.0, 400.0]).double()
+    for kalman in (RTSSmoother(KalmanFilter(model)), KalmanFilter(model)):
+        fast = LinearReference(kalman, tracks, std, probe)
+        general = LinearReference(kalman, tracks, std, probe)
+        general.positions = False
+        assert fast.positions
+        passes = (False, True) if isinstance(kalman, RTSSmoother) else (False,)
+        for filtered in passes:
+            a, b = fast.reference(None, filtered), general.reference(None, filtered)
+            for name in ("exact", "shifted", "estimate"):
+                x, y = getattr(a, name), getattr(b, name)
+                assert torch.allclose(x, y, rtol=1e-10, atol=1e-8, equal_nan=True), name
+            assert a.beta == b.beta
+
+
 def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_budget(
     tmp_path, monkeypatch
 ):
