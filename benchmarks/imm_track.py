@@ -29,6 +29,7 @@ import json
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
@@ -90,22 +91,10 @@ def large_table(folder: Path, rows: int, repeats: int) -> list[str]:
         source = build_large_file(folder, kind, rows)
         count = len(pd.read_parquet(source, columns=["time"]))
         logs: dict[str, dict[str, float]] = {}
-
-        def command(name: str, extra: list[str], source: Path = source, logs: dict = logs):
-            argv = [sys.executable, "-m", "torchsvs.cli", "track", str(source)]
-            target = folder / f"{name}.parquet"
-            argv += ["-o", str(target), "--force", *extra]
-
-            def call() -> None:
-                subprocess.run(argv, capture_output=True, text=True, check=True)
-                found = phases(target)
-                best = logs.get(name)
-                if best is None or found["estimating"] < best["estimating"]:
-                    logs[name] = found
-
-            return call
-
-        calls = {name: command(name, extra) for name, extra in LARGE_CASES.items()}
+        calls = {
+            name: track_call(source, folder / f"{name}.parquet", extra, logs, name)
+            for name, extra in LARGE_CASES.items()
+        }
         alternating_best(calls, repeats, progress=f"imm_track {kind}", warm_up=False)
         ks, imm = logs["ks"]["estimating"], logs["imm"]["estimating"]
         table.append(
@@ -136,6 +125,32 @@ def large_table(folder: Path, rows: int, repeats: int) -> list[str]:
     ]
 
 
+def track_call(
+    source: Path,
+    target: Path,
+    extra: list[str],
+    logs: dict[str, dict[str, float]],
+    name: str,
+    after: Callable[[], None] | None = None,
+) -> Callable[[], None]:
+    """A call of ``torchsvs track source -o target extra`` as a user runs it (a fresh process)
+    that keeps in ``logs[name]`` the phases of its run with the shortest estimating phase,
+    then calls ``after``."""
+    argv = [sys.executable, "-m", "torchsvs.cli", "track", str(source)]
+    argv += ["-o", str(target), "--force", *extra]
+
+    def call() -> None:
+        subprocess.run(argv, capture_output=True, text=True, check=True)
+        found = phases(target)
+        best = logs.get(name)
+        if best is None or found["estimating"] < best["estimating"]:
+            logs[name] = found
+        if after is not None:
+            after()
+
+    return call
+
+
 def phases(target: Path) -> dict[str, float]:
     """The phases (s, to the millisecond) of the run that wrote ``target``, from its summary."""
     return json.loads(summary_path(target).read_text())["phases"]
@@ -155,20 +170,13 @@ def main(argv: list[str] | None = None) -> None:
         logs: dict[str, dict[str, float]] = {}
         rmse: dict[str, float] = {}
 
-        def command(name: str, extra: list[str]):
+        def command(name: str, extra: list[str]) -> Callable[[], None]:
             target = folder / f"{name.replace(' ', '_')}.csv"
-            argv = [sys.executable, "-m", "torchsvs.cli", "track", str(source)]
-            argv += ["-o", str(target), "--force", *extra]
 
-            def call() -> None:
-                subprocess.run(argv, capture_output=True, text=True, check=True)
-                found = phases(target)
-                best = logs.get(name)
-                if best is None or found["estimating"] < best["estimating"]:
-                    logs[name] = found
+            def scored() -> None:
                 rmse[name] = score(pd.read_csv(target), truth)[0]
 
-            return call
+            return track_call(source, target, extra, logs, name, after=scored)
 
         calls = {name: command(name, extra) for name, extra in CASES.items()}
         wall = alternating_best(calls, args.repeats, progress="imm_track", warm_up=False)

@@ -199,7 +199,7 @@ def test_a_factor_that_fails_hands_the_run_to_the_tensor_path():
     assert turn.compiled_pass(inputs(nan), None, 0) is None
 
 
-def test_compiled_imm_speeds_track_and_keeps_its_output(tmp_path):
+def test_track_imm_writes_the_same_estimates_through_either_path(tmp_path):
     """``track --estimator imm`` writes the same estimates through either path."""
     import pandas as pd
 

@@ -445,7 +445,6 @@ class LinearReference:
         self, kalman: nn.Module, tracks: RecordedTracks, meas_std: Tensor, probe: Probe
     ) -> None:
         self.meas_var = meas_var_of(kalman)
-        self.z = tracks.z
         self.kalman = kalman
         self.tracks = tracks
         self.shifted = with_prior(replace(tracks, z=probe.measurements), meas_std)
@@ -455,7 +454,7 @@ class LinearReference:
         R = model.meas_cov().detach() if isinstance(model, ConstantVelocity) else None
         #: the positions loop gives it (it takes a diagonal R and an interval per step)
         diagonal = R is not None and bool((R == torch.diag(R.diagonal())).all())
-        self.positions = diagonal and dt is not None and dt.shape == self.z.shape[:2]
+        self.positions = diagonal and dt is not None and dt.shape == tracks.z.shape[:2]
 
     def _pass(self, filtered: bool) -> tuple[Positions, Positions]:
         """The plain and the shifted runs' means and position variances: the smoother's, or
@@ -486,7 +485,7 @@ class LinearReference:
         """The reference for the estimator's positions (its filter pass's with ``filtered``:
         the reference's forward pass)."""
         plain, shifted = self._pass(filtered)
-        exact = exact_divergence(self.z, plain.var, self.meas_var)
+        exact = exact_divergence(self.tracks.z, plain.var, self.meas_var)
         return Reference(exact, shifted.mean[..., 0::2], plain.mean[..., 0::2])
 
 

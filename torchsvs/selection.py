@@ -32,7 +32,7 @@ from torchsvs.sample_accuracy import accuracy_of_terms, sample_terms
 #: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
 CANDIDATES = ("ks", "svstps", "svss", "imm")
 #: The candidates are scored on the same tracks: the whole sample up to this many points, else
-#: tracks spread evenly over it up to this many. The IMM's scored run costs 4-8× the KS's per
+#: tracks spread evenly over it up to this many. The IMM's scored run costs 5-7× the KS's per
 #: point (compiled: ``benchmarks/imm_track.md``; ~17× as tensor step loops, when this cap was
 #: set), so its score is kept to seconds; its noises are fitted on windows of the whole sample
 #: as the others' are (the search of :func:`~torchsvs.fitting.tuning.self_tune`, seconds).

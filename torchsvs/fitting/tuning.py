@@ -64,7 +64,7 @@ class FitResult:
 
 @contextmanager
 def eager_optimizers() -> Iterator[None]:
-    """Within this block torch.optim's methods that are marked not to be traced by
+    """Within this block torch.optim's L-BFGS methods that are marked not to be traced by
     ``torch.compile`` (``torch._disable_dynamo``: ``add_param_group``, ``zero_grad``, ...)
     call their functions directly. Marked, each imports ``torch._dynamo`` at its first call to
     say so (1.1-1.4 s here, a third of ``track --estimator imm --fit`` on ten thousand rows);
@@ -76,14 +76,13 @@ def eager_optimizers() -> Iterator[None]:
     set_here: list[Any] = []
     if marker is not None and "torch._dynamo" not in sys.modules:
         code = marker(lambda: None).__code__
-        for cls in (torch.optim.LBFGS, torch.optim.Adam):
-            for klass in cls.__mro__:
-                for value in vars(klass).values():
-                    fn = getattr(value, "__wrapped__", None)
-                    if getattr(value, "__code__", None) is code and fn is not None:
-                        if not hasattr(fn, "__dynamo_disable"):
-                            setattr(fn, "__dynamo_disable", fn)
-                            set_here.append(fn)
+        for klass in torch.optim.LBFGS.__mro__:  # (Adam's step imports Dynamo itself)
+            for value in vars(klass).values():
+                fn = getattr(value, "__wrapped__", None)
+                marked = getattr(value, "__code__", None) is code and fn is not None
+                if marked and not hasattr(fn, "__dynamo_disable"):
+                    setattr(fn, "__dynamo_disable", fn)
+                    set_here.append(fn)
     try:
         yield
     finally:

@@ -43,8 +43,9 @@ def general_path() -> Iterator[None]:
 @contextmanager
 def eager_loops() -> Iterator[None]:
     """Within this block the per-axis kernel runs its time loops as tensor operations, never
-    the compiled ones (the reference for the compiled loops and their gradients; and the path
-    for higher derivatives, which the compiled reverse mode does not give)."""
+    the compiled ones, and the IMM(CV, CT) runs its tensor path (the reference for the compiled
+    loops and their gradients; and the path for higher derivatives, which the compiled reverse
+    mode does not give)."""
     with _setting("fused", False):
         yield
 
