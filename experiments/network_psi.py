@@ -40,8 +40,7 @@ from experiments.common import render
 from experiments.recorded_sets import build_sets
 from torchsvs.accuracy import PROBE_STEP, draw_probe, risk_terms
 from torchsvs.accuracy import accuracy as accuracy_of
-from torchsvs.datasets.reading import read_tracks, with_prior
-from torchsvs.datasets.tracks import RecordedTracks
+from torchsvs.datasets.tracks import RecordedTracks, read_tracks, with_prior
 from torchsvs.estimating import centred, reference_for, run_result
 from torchsvs.evaluation import markdown_table
 from torchsvs.filters import KalmanFilter

@@ -49,7 +49,7 @@ from tqdm.auto import tqdm
 from experiments import traffic_baseline
 from experiments.common import RESULTS, render
 from experiments.flight_data import load_flights, noisy, score, split
-from torchsvs.datasets import RecordedTracks, with_prior
+from torchsvs.datasets import RecordedTracks, padded_batch, with_prior
 from torchsvs.datasets.flights import FlightReport, flight_steps
 from torchsvs.datasets.rows import RowReport
 from torchsvs.estimating import centred, run_estimator
@@ -354,7 +354,7 @@ def dirty_study() -> list[DirtyFile]:
     files = []
     for path in [p for p in sample_files() if p.parent.name == "noisy"]:
         steps, report = flight_steps([path])
-        tracks = steps.pad(np.arange(steps.num_tracks), torch.float64)
+        tracks = padded_batch(steps, np.arange(steps.num_tracks), torch.float64)
         finite = []
         for name in ("ks", "svss"):
             settings = complete_settings(Settings(estimator=name), tracks)

@@ -271,7 +271,8 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
     from dataclasses import replace
 
     from torchsvs.datasets import priors
-    from torchsvs.datasets.tracks import RowReport, TrackSteps, _median_interval
+    from torchsvs.datasets.steps import RowReport, TrackSteps, median_interval
+    from torchsvs.datasets.tracks import padded_batch
     from torchsvs.estimating import centred
 
     rng = np.random.default_rng(3)
@@ -290,7 +291,7 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
         report=RowReport(total=K * T),
     )
     group = np.arange(K)
-    fast = steps.pad(group)
+    fast = padded_batch(steps, group)
     # the general path: one track a step longer forces padding; the others are as before
     longer = TrackSteps(
         ids=[*steps.ids, "x"],
@@ -302,7 +303,7 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
         row_step=np.arange(K * T + T + 1),
         report=RowReport(total=K * T + T + 1),
     )
-    general = longer.pad(np.arange(K + 1))
+    general = padded_batch(longer, np.arange(K + 1))
     for name in ("z", "dt", "time", "steps"):
         a, b = getattr(fast, name), getattr(general, name)[:K, :T]
         assert torch.equal(a.isnan(), b.isnan()), name
@@ -310,9 +311,9 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
     assert torch.equal(fast.extra["alt"], general.extra["alt"][:K, :T])
 
     dt = np.diff(time.reshape(K, T), axis=1)
-    assert np.array_equal(_median_interval(dt), np.nanmedian(dt, axis=1))
+    assert np.array_equal(median_interval(dt), np.nanmedian(dt, axis=1))
     dt[0, 3] = np.nan  # the sorting path
-    assert np.array_equal(_median_interval(dt), np.nanmedian(dt, axis=1))
+    assert np.array_equal(median_interval(dt), np.nanmedian(dt, axis=1))
 
     def first_observed(z: torch.Tensor) -> torch.Tensor:  # the general path's offsets
         first = (~torch.isnan(z)).to(torch.int64).argmax(dim=1, keepdim=True)

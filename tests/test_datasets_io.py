@@ -1,7 +1,7 @@
 """Reading and writing at the speed of Arrow, and Parquet datasets in and out.
 
 The fast paths (:func:`~torchsvs.datasets.rows.track_codes` on dictionary-encoded ids,
-:func:`~torchsvs.datasets.tracks.group_rows` on a sorted block, :func:`~torchsvs.datasets.
+:func:`~torchsvs.datasets.steps.group_rows` on a sorted block, :func:`~torchsvs.datasets.
 writing.nan_as_null`) are checked against the plain computation they replace; a directory of
 Parquet files (``torchsvs track DIR -o OUTDIR``) against the same rows as one file."""
 
@@ -20,7 +20,7 @@ from torchsvs.cli import main
 from torchsvs.datasets.ids import track_codes
 from torchsvs.datasets.reading import track_blocks
 from torchsvs.datasets.rows import Columns, ParsedRows
-from torchsvs.datasets.tracks import group_rows
+from torchsvs.datasets.steps import group_rows
 from torchsvs.datasets.writing import nan_as_null
 
 # --- track ids: each distinct id read once ---
@@ -321,12 +321,12 @@ def test_a_write_that_fails_beside_the_estimating_stops_the_run_and_leaves_the_o
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
-def test_the_median_interval_is_numpys_nanmedian():
+def test_themedian_interval_is_numpys_nanmedian():
     """The first step's interval (a track's median one): one sort of the padded rows, the
     same numbers as np.nanmedian (the middle two's mean for an even count), 1 without any."""
     import warnings
 
-    from torchsvs.datasets.tracks import _median_interval
+    from torchsvs.datasets.steps import median_interval
 
     gen = np.random.default_rng(1)
     for _ in range(300):
@@ -335,5 +335,5 @@ def test_the_median_interval_is_numpys_nanmedian():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # (all-NaN rows)
             expected = np.where(np.isfinite(dt).any(axis=1), np.nanmedian(dt, axis=1), 1.0)
-        assert np.array_equal(_median_interval(dt), expected)
-    assert np.array_equal(_median_interval(np.zeros((3, 0))), np.ones(3))  # one step each
+        assert np.array_equal(median_interval(dt), expected)
+    assert np.array_equal(median_interval(np.zeros((3, 0))), np.ones(3))  # one step each

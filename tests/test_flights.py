@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchsvs.datasets import with_prior
+from torchsvs.datasets import padded_batch, with_prior
 from torchsvs.datasets.adsb import sample_files, samples_dir
 from torchsvs.datasets.flights import flight_steps
 from torchsvs.estimating import centred
@@ -52,7 +52,7 @@ def test_dirty_samples_run_through_loader_and_estimators(path):
     steps, report = flight_steps([path])
     report.rows.check()
     assert report.rows.total > 0 and steps.num_tracks >= 1
-    tracks = steps.pad(np.arange(steps.num_tracks), torch.float64)
+    tracks = padded_batch(steps, np.arange(steps.num_tracks), torch.float64)
     base = complete_settings(Settings(estimator="svss", lag=2), tracks)
     for name in ("ks", "svss"):
         settings = Settings(**{**base.__dict__, "estimator": name})

@@ -261,3 +261,70 @@ def test_a_failing_group_stops_the_groups_not_started():
     finally:
         torch.set_num_threads(before)
     assert len(ran) < 50, len(ran)
+
+
+def test_a_runs_worst_tracks_are_the_worst_of_all_its_blocks(monkeypatch):
+    """Blocks added one at a time (the tracks at or below the worst kept so far skipped, the
+    kept ones trimmed now and then) give the summary the worst ``TRACKS_KEPT`` of all the
+    tracks, the first added among equal errors, as sorting them all at once does."""
+    import torchsvs.track_run as track_run
+    from torchsvs.accuracy import RiskTerms
+    from torchsvs.track_run import TrackRun
+
+    monkeypatch.setattr(track_run, "TRACKS_KEPT", 7)
+    gen = np.random.default_rng(5)
+    run = TrackRun(settings=Settings(estimator="ks", meas_var=[1.0]))
+    added: list[tuple[str, float]] = []
+    for block in range(15):
+        tracks = int(gen.integers(1, 12))
+        error = np.round(gen.uniform(0, 3, tracks), 1)  # (ties among them)
+        ones = np.ones((tracks, 1))
+        terms = RiskTerms(error[:, None] ** 2, 0.5 * ones, ones, np.arange(tracks))
+        ids = [f"b{block}-{k}" for k in range(tracks)]
+        run.add_track_errors([terms], ids)
+        added += zip(ids, np.sqrt(error**2).tolist(), strict=True)
+    assert len(added) > 4 * 7  # (trimmed and skipped along the way)
+    expected = sorted(added, key=lambda kv: -kv[1])[:7]
+    written = run.summary_json()["tracks"]
+    assert [(k, v["estimated_position_rmse"]) for k, v in written.items()] == expected
+
+
+def test_steps_no_group_placed_are_written_empty():
+    """A block's estimates are placed group by group into unwritten arrays; a step that no
+    group placed comes out NaN, never what the memory held."""
+    from torchsvs.estimating import StepEstimates
+    from torchsvs.track_run import BlockEstimates
+
+    steps = _plan_block_steps()
+    found = BlockEstimates.empty(steps, covariance=True)
+    found.mean[:] = 7.0  # (what the memory might hold)
+    assert found.cov is not None
+    found.cov[:] = 7.0
+    first = np.arange(steps.length[0])
+    part = StepEstimates(
+        0,
+        np.array([0]),
+        first,
+        np.ones((len(first), 4)),
+        np.ones((len(first), 4, 4)),
+        np.zeros((1, 2), dtype=bool),
+        {},
+    )
+    found.add(part)
+    found.finish()
+    assert (found.mean[first] == 1.0).all() and (found.cov[first] == 1.0).all()
+    rest = np.setdiff1d(np.arange(len(found.mean)), first)
+    assert len(rest) and np.isnan(found.mean[rest]).all() and np.isnan(found.cov[rest]).all()
+
+
+def _plan_block_steps():
+    """Two tracks of two axes (four and three steps)."""
+    table = pa.table(
+        {
+            "id": ["a"] * 4 + ["b"] * 3,
+            "t": [0.0, 1, 2, 3, 0, 1, 2],
+            "x": np.arange(7.0),
+            "y": np.arange(7.0),
+        }
+    )
+    return block_of(table, COLUMNS).steps

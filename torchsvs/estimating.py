@@ -40,7 +40,7 @@ from torchsvs.curve_estimates import (
     run_risk_terms,
 )
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
-from torchsvs.datasets.reading import short_track_notes
+from torchsvs.datasets.tracks import padded_batch, short_track_notes
 from torchsvs.datasets.writing import flat_steps
 from torchsvs.estimator import split_batch
 from torchsvs.filters import KalmanFilter, ParticleFilter
@@ -120,7 +120,7 @@ class StepEstimates(NamedTuple):
     mean: np.ndarray  #: [s, 2m]
     cov: np.ndarray | None  #: [s, 2m, 2m], or None when not asked for
     never_observed: np.ndarray  #: [B, m] bool
-    notes: dict[str, int]  #: :func:`~torchsvs.datasets.reading.short_track_notes` of the group
+    notes: dict[str, int]  #: :func:`~torchsvs.datasets.tracks.short_track_notes` of the group
     #: SURE's sums (:mod:`torchsvs.accuracy`), chunks' ``track`` the block's track, or None
     risk: RiskTerms | None = None
     #: [B] each track's factor on the settings' ``q`` (:func:`settings_q_factors`), or None
@@ -160,7 +160,7 @@ def group_batch(
 ) -> GroupBatch:
     """The tracks ``group`` (the block's group number ``position``) padded (float64, so the
     offsets are exact), centred, then cast to ``dtype``."""
-    tracks, offset = centred(steps.pad(group, torch.float64))
+    tracks, offset = centred(padded_batch(steps, group, torch.float64))
     return GroupBatch(position, group, tracks.to(dtype), offset)
 
 

@@ -1,8 +1,8 @@
 """Recipes: what an estimator of ``torchsvs track`` is built from, by name.
 
-:data:`ESTIMATORS` names them; :class:`Settings` holds what one is built from (noise levels,
-``q``, the SVSF family's boundary layer, the IMM's mode noises, ...); :func:`make_model` and
-:func:`make_estimator` build it. Filling open settings from the data is
+:data:`~torchsvs.estimator_names.ESTIMATORS` names them; :class:`Settings` holds what one is
+built from (noise levels, ``q``, the SVSF family's boundary layer, the IMM's mode noises, ...);
+:func:`make_model` and :func:`make_estimator` build it. Filling open settings from the data is
 :mod:`torchsvs.fitting.defaults`' work, running the estimator over a file
 :mod:`torchsvs.estimating`'s and :mod:`torchsvs.tracking`'s.
 """
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from torchsvs.estimator import Estimator
+from torchsvs.estimator_names import ESTIMATORS
 from torchsvs.filters import (
     SPVSF,
     SVSF,
@@ -28,22 +29,6 @@ from torchsvs.filters.turn_imm import TurnIMM
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import SVSS, RTSSmoother, TurnIMMSmoother
 
-#: Estimator names of ``torchsvs track --estimator`` and what they are.
-ESTIMATORS = {
-    "auto": "the lowest estimated error of ks, svss, imm (small "
-    "files), each tuned on the file without truth (torchsvs.selection)",
-    "kf": "Kalman filter",
-    "ks": "Kalman smoother (RTS; fixed interval unless --lag)",
-    "svsf": "smooth variable structure filter",
-    "svss": "smooth variable structure smoother (fixed interval unless --lag)",
-    "svstps": "two-pass smoother: RTS over the SVSF (fixed interval unless --lag)",
-    "ekf": "extended Kalman filter (the KF on this linear model)",
-    "ukf": "unscented Kalman filter (the KF on this linear model)",
-    "rstkf": "robust Student's t Kalman filter",
-    "pf": "SIR particle filter",
-    "spvsf": "smooth particle variable structure filter",
-    "imm": "IMM of a KF on constant velocity and an EKF on a coordinated turn (horizontal)",
-}
 #: Lag of each smoother when none is given (``None``: fixed interval). The IMM's is Kim's
 #: fixed-lag smoother at 5 steps: on the recorded-tracks benchmark (``experiments.
 #: recorded_tracks``, σ 10-50) lag 5 took the IMM filter's 0.58-0.86x the raw measurements to

@@ -33,16 +33,21 @@ def track(argv: list[str]) -> None:
         )
     if args.threads is None:
         args.threads = default_threads(args.processes)
+    reader = None
     if os.environ.get("LOCAL_RANK", "0") == "0":  # ranks 1..N-1 of --processes read no file
         try:
-            args.columns = checked_columns(args)
+            check_paths(args)
+            if args.processes > 1:  # (rank 0 reads the file whole, once the others run)
+                args.columns = described_columns(args, input_description(args))
+            else:  # the input read from now on, beside torch's import
+                reader = start_reading(args)
         except (ValueError, TypeError, FileNotFoundError) as err:
             raise SystemExit(f"torchsvs track: {err}") from err
     if args.processes > 1 and not args.stream and "LOCAL_RANK" not in os.environ:
         with OtherRanks(argv, args.processes, args.threads):
             _track(args)
     else:
-        _track(args)
+        _track(args, reader)
 
 
 def _columns(args: argparse.Namespace) -> Any:
@@ -52,16 +57,9 @@ def _columns(args: argparse.Namespace) -> Any:
     return Columns(args.id_col, args.time_col, pos, time_unit=args.time_unit, frame=args.frame)
 
 
-def checked_columns(args: argparse.Namespace) -> Any:
-    """Checks the paths of ``torchsvs track`` before anything runs (the input readable, the
-    output and ``--save`` never an input, an existing file only with ``--force``), settles the
-    input's columns on its first block (:func:`~torchsvs.datasets.describe.describe_input`: the
-    frame, the time unit) and prints what was found (unless ``--quiet``) and any warning.
-
-    Returns:
-        The resolved :class:`~torchsvs.datasets.Columns`.
-    """
-    from torchsvs.datasets.describe import describe_input
+def check_paths(args: argparse.Namespace) -> None:
+    """Checks the paths of ``torchsvs track`` before anything runs: the input readable, the
+    output and ``--save`` never an input, an existing file only with ``--force``."""
     from torchsvs.datasets.paths import check_input, check_output
     from torchsvs.datasets.rows import file_format
 
@@ -80,7 +78,39 @@ def checked_columns(args: argparse.Namespace) -> Any:
         check_output(args.save, "save", inputs=(args.input,), force=args.force)
     if args.checkpoint is not None and not Path(args.checkpoint).is_file():
         raise FileNotFoundError(f"checkpoint: {args.checkpoint!r}: no such file")
-    described = describe_input(args.input, _columns(args), block_rows=args.block_rows, name="input")
+
+
+def input_description(args: argparse.Namespace) -> Any:
+    """The input's description (:func:`~torchsvs.datasets.describe.describe_input`)."""
+    from torchsvs.datasets.describe import describe_input
+
+    return describe_input(args.input, _columns(args), block_rows=args.block_rows, name="input")
+
+
+def start_reading(args: argparse.Namespace) -> Any:
+    """The input's description, then its blocks, read in a thread from now on
+    (:class:`~torchsvs.datasets.reading.ReadAhead`): torch's import and the plan run beside
+    it."""
+    from torchsvs.datasets.reading import ReadAhead
+
+    whole = True if args.in_memory else False if args.stream else None
+    return ReadAhead(
+        args.input,
+        _columns(args),
+        block_rows=args.block_rows,
+        whole=whole,
+        describe=True,
+        name="input",
+    )
+
+
+def described_columns(args: argparse.Namespace, described: Any) -> Any:
+    """Checks what the input's first block holds (:func:`input_description`: the frame, the
+    time unit), prints what was found (unless ``--quiet``) and any warning.
+
+    Returns:
+        The resolved :class:`~torchsvs.datasets.Columns`.
+    """
     if described.constant and args.checkpoint is None and None in (args.meas_std, args.q):
         raise ValueError(
             f"position: {described.constant} do not change within any track of the first "
@@ -174,7 +204,8 @@ def default_threads(processes: int = 1) -> int:
     return max(1, cores // max(processes, 1))
 
 
-def _track(args: argparse.Namespace) -> None:
+def _track(args: argparse.Namespace, reader: Any = None) -> None:
+    """The run, with ``reader`` the input's :func:`start_reading` (one process), if begun."""
     import torch
 
     from torchsvs.recipes import Settings
@@ -182,6 +213,12 @@ def _track(args: argparse.Namespace) -> None:
     from torchsvs.tracking import track_file
 
     torch.set_num_threads(args.threads)
+    try:
+        if reader is not None:  # (read while the lines above imported)
+            args.columns = described_columns(args, reader.description())
+    except (ValueError, TypeError, FileNotFoundError) as err:
+        reader.close()
+        raise SystemExit(f"torchsvs track: {err}") from err
     columns = getattr(args, "columns", None) or _columns(args)
     try:
         if args.checkpoint is not None and Path(args.checkpoint).is_file():
@@ -251,9 +288,13 @@ def _track(args: argparse.Namespace) -> None:
                 settings,
                 whole=True if args.in_memory else False if args.stream else None,
                 progress=not args.quiet,
+                blocks=reader,
                 **common,
             )
     except (ValueError, TypeError, FileNotFoundError) as err:
         raise SystemExit(f"torchsvs track: {err}") from err
+    finally:
+        if reader is not None:  # (an error before the run: the reading stops)
+            reader.close()
     if run is not None and not args.quiet:  # None: a process launched by rank 0
         print(run.summary(), file=sys.stderr)

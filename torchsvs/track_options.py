@@ -82,7 +82,7 @@ def _time_unit(text: str) -> float | str:
 
 
 def track_parser() -> argparse.ArgumentParser:
-    from torchsvs.recipes import ESTIMATORS
+    from torchsvs.estimator_names import ESTIMATORS
 
     parser = argparse.ArgumentParser(
         prog="torchsvs track",

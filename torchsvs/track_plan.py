@@ -12,6 +12,7 @@ on a table of tracks.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -23,6 +24,7 @@ from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
 from torchsvs.datasets.tables import block_of
+from torchsvs.datasets.tracks import padded_batch
 from torchsvs.datasets.writing import OUTPUT_TYPES
 from torchsvs.fitting.defaults import (
     complete_settings,
@@ -182,8 +184,17 @@ def _float32_keeps(
 
 
 def _spacing(values: np.ndarray, headroom: float) -> float:
-    finite = values[np.isfinite(values)]
-    largest = float(np.abs(finite).max(initial=0.0)) * headroom
+    # (the extremes without a copy of the finite values: checked on every block)
+    low, high = float(values.min(initial=np.inf)), float(values.max(initial=-np.inf))
+    if math.isnan(low) or math.isnan(high):  # (missing positions: the slower reductions)
+        low = float(np.nanmin(values, initial=np.inf))
+        high = float(np.nanmax(values, initial=-np.inf))
+    if math.isfinite(low) and math.isfinite(high):
+        largest = max(abs(low), abs(high))
+    else:  # nothing but NaN, or an infinity among the values
+        finite = values[np.isfinite(values)]
+        largest = float(np.abs(finite).max(initial=0.0))
+    largest *= headroom
     return float(np.spacing(np.float32(min(largest, 3e38))))
 
 
@@ -221,7 +232,7 @@ def prepare_estimator(
     """
     given = settings
     say = say or (lambda _: None)
-    sample = steps.pad(_sample_tracks(steps, fit_options), torch.float64)
+    sample = padded_batch(steps, _sample_tracks(steps, fit_options), torch.float64)
     open_q = settings.q is None
     options = dict(fit_options or {})
     options.pop("tracks", None)

@@ -39,9 +39,11 @@ UNCERTAIN_REACH = 1.8
 
 @dataclass
 class BlockEstimates:
-    """A block's estimates at its flat steps, filled group by group (:meth:`add`)."""
+    """A block's estimates at its flat steps, filled group by group: each group's arrays
+    placed (:meth:`place`, on the thread that estimated it) and its counts added (:meth:`add`),
+    then :meth:`finish`."""
 
-    mean: np.ndarray  #: [S, 2m] NaN until estimated
+    mean: np.ndarray  #: [S, 2m] NaN where not estimated (after :meth:`finish`)
     cov: np.ndarray | None  #: [S, 2m, 2m]
     never_observed: np.ndarray  #: [K, m] bool
     notes: Counter[str] = field(default_factory=Counter)
@@ -52,6 +54,8 @@ class BlockEstimates:
     #: [S] bool steps set aside as outliers (:func:`~torchsvs.estimating.screen_group`), or
     #: None where the groups are not screened
     outlier: np.ndarray | None = None
+    #: [S] bool the steps placed so far (the arrays are left unwritten until placed)
+    placed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     @classmethod
     def empty(
@@ -60,18 +64,34 @@ class BlockEstimates:
         """Nothing estimated yet; ``screened``: the groups will be screened for outliers (the
         output gets its ``outlier`` column, in every block alike)."""
         S, m = steps.position.shape
+        # (unwritten: each page is first written by the thread placing a group's estimates
+        # there, beside the other groups, not filled with NaN first; finish fills the rest)
         return cls(
-            np.full((S, 2 * m), np.nan),
-            np.full((S, 2 * m, 2 * m), np.nan) if covariance else None,
+            np.empty((S, 2 * m)),
+            np.empty((S, 2 * m, 2 * m)) if covariance else None,
             np.zeros((steps.num_tracks, m), dtype=bool),
             q_factor=np.full(steps.num_tracks, np.nan),
             outlier=np.zeros(S, dtype=bool) if screened else None,
+            placed=np.zeros(S, dtype=bool),
         )
 
-    def add(self, part: StepEstimates) -> None:
+    def place(self, part: StepEstimates) -> None:
+        """A group's estimates into the block's arrays. Groups hold apart steps, so the
+        threads estimating them may place theirs at once (numpy's indexed writes release the
+        GIL)."""
         self.mean[part.steps] = part.mean
         if self.cov is not None and part.cov is not None:
             self.cov[part.steps] = part.cov
+        if part.outliers is not None:
+            assert self.outlier is not None, "BlockEstimates.empty(..., screened=True)"
+            self.outlier[part.outliers] = True
+        self.placed[part.steps] = True
+
+    def add(self, part: StepEstimates, placed: bool = False) -> None:
+        """Counts a group's notes, error terms and factors; places its arrays too unless
+        ``placed`` already (:meth:`place`)."""
+        if not placed:
+            self.place(part)
         self.never_observed[part.group] = part.never_observed
         self.notes.update(part.notes)
         self.groups.add(part.position)
@@ -79,9 +99,15 @@ class BlockEstimates:
             self.risk.append(part.risk)
         if part.q_factor is not None:
             self.q_factor[part.group] = part.q_factor
-        if part.outliers is not None:
-            assert self.outlier is not None, "BlockEstimates.empty(..., screened=True)"
-            self.outlier[part.outliers] = True
+
+    def finish(self) -> None:
+        """NaN at the steps no group placed (every step, where nothing was estimated)."""
+        if self.placed.all():
+            return
+        missing = ~self.placed
+        self.mean[missing] = np.nan
+        if self.cov is not None:
+            self.cov[missing] = np.nan
 
     def table(self, block: TrackBlock, precision: str = "float64") -> Any:
         """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
@@ -112,6 +138,9 @@ class TrackRun:
     q_factors: Counter[float] = field(default_factory=Counter)
     #: the factor of the tracks in :attr:`track_errors` (id → factor)
     track_q: dict[str, float] = field(default_factory=dict)
+    #: the least error of the worst :data:`TRACKS_KEPT` as last kept (:meth:`keep_worst`): a
+    #: track's at or below it is not among the run's worst (None until there were more)
+    error_floor: float | None = None
 
     @property
     def accuracy(self) -> Accuracy | None:
@@ -163,6 +192,8 @@ class TrackRun:
         m = len(self.settings.meas_var)
         rmse, points = RiskTerms.concat(terms, m).per_track(self.settings.meas_var, len(ids))
         seen = np.flatnonzero(points > 0)  # (whole arrays to Python at once: 10⁵ tracks a block)
+        if self.error_floor is not None:  # (the tracks that may be among the worst kept)
+            seen = seen[rmse[seen] > self.error_floor]
         names = [ids[k] for k in seen.tolist()]
         values = zip(rmse[seen].tolist(), points[seen].astype(np.int64).tolist(), strict=True)
         self.track_errors.update(zip(names, values, strict=True))
@@ -176,9 +207,19 @@ class TrackRun:
         """Per-track error estimates: the worst :data:`TRACKS_KEPT` once there are twice as
         many (memory bounded whatever the run's size)."""
         if len(self.track_errors) > 2 * TRACKS_KEPT:
-            worst = sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
-            self.track_errors = dict(worst)
-            self.track_q = {k: v for k, v in self.track_q.items() if k in self.track_errors}
+            self.keep_worst(TRACKS_KEPT)
+
+    def keep_worst(self, count: int = TRACKS_KEPT) -> None:
+        """Keeps the worst ``count`` per-track error estimates (the first added among equal
+        ones)."""
+        if len(self.track_errors) <= count:
+            return
+        worst = sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:count]
+        self.track_errors = dict(worst)
+        self.track_q = {k: v for k, v in self.track_q.items() if k in self.track_errors}
+        if count >= TRACKS_KEPT:  # (a floor for keeping the worst TRACKS_KEPT, not fewer)
+            floor = worst[-1][1][0]
+            self.error_floor = floor if self.error_floor is None else max(self.error_floor, floor)
 
     def check(self) -> None:
         """Warns where the estimate is not clearly better than the raw measurements."""
@@ -260,7 +301,7 @@ class TrackRun:
         out["tracks"] = {
             k: {"estimated_position_rmse": v[0], "points": v[1]}
             | ({"q_factor": self.track_q[k]} if k in self.track_q else {})
-            for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])
+            for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
         }
         if self.q_factors:
             out["q_per_track"] = {

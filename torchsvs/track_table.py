@@ -118,14 +118,17 @@ def estimate_block(
     def one(item: tuple[int, np.ndarray]) -> StepEstimates:
         position, group = item
         batch = group_batch(steps, group, position, plan.dtype)
-        return estimate_group(estimator, batch, meas_std, covariance, accuracy, plan.settings)
+        estimates = estimate_group(estimator, batch, meas_std, covariance, accuracy, plan.settings)
+        found.place(estimates)  # (on this group's thread, beside the others)
+        return estimates
 
     groups = list(enumerate(steps.batches(max_cells)))
     with group_threads(len(groups)) as run_groups:
         for (_, group), estimates in zip(groups, run_groups(one, groups), strict=True):
-            found.add(estimates)
+            found.add(estimates, placed=True)
             if progress is not None:
                 progress.update(len(group))
+    found.finish()
     run.estimate_seconds += time.perf_counter() - tick
     run.estimate_cpu_seconds += time.process_time() - cpu
     run.add_block(found, steps)

@@ -12,23 +12,21 @@ the run's summary).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import torch
 from torch import nn
 
-from torchsvs.datasets import Columns, EstimateWriter, track_blocks
+from torchsvs.datasets import Columns, EstimateWriter
 from torchsvs.datasets.paths import check_output
-from torchsvs.datasets.reading import reads_whole
+from torchsvs.datasets.reading import ReadAhead
 from torchsvs.recipes import Settings
 from torchsvs.track_plan import TrackPlan, plan_tracks
 from torchsvs.track_run import TrackRun, summary_path, write_summary
 from torchsvs.track_table import estimate_block, new_run
-
-Item = TypeVar("Item")
 
 
 def track_file(
@@ -51,6 +49,7 @@ def track_file(
     log: Callable[[str], None] | None = None,
     accuracy: bool = True,
     summary: bool = True,
+    blocks: ReadAhead | None = None,
 ) -> TrackRun:
     """Estimates every track of a file and writes one output row per input row.
 
@@ -89,26 +88,28 @@ def track_file(
             more estimator pass on probed measurements) and warn where it is not clearly
             below the measurements'.
         summary: write the run's summary as JSON next to the output (:func:`summary_path`).
+        blocks: ``source``'s blocks, already being read (a :class:`~torchsvs.datasets.reading.
+            ReadAhead` started before torch was imported: ``torchsvs track``); else read here
+            with ``columns``, ``whole`` and ``block_rows``.
     """
     from tqdm.auto import tqdm
 
     start = time.perf_counter()
     say = log or (lambda _: None)
     check_output(target, "target", inputs=(source,), force=True)  # never over the input
-    if whole is None:
-        whole = reads_whole(source)
     phases = dict.fromkeys(("reading", "settings", "estimating", "writing", "waiting"), 0.0)
     run: TrackRun | None = None
     plan: TrackPlan | None = None
     estimator: nn.Module | None = None
     bar: Any = None
-    # Reading the next block and writing the last one run beside the estimating, each in a
+    # Reading the next blocks and writing the last one run beside the estimating, each in a
     # thread of its own (Arrow's reading and writing, numpy and torch release the GIL).
-    with ThreadPoolExecutor(1) as reading, EstimateWriter(target, source) as writer:
+    if blocks is None:
+        blocks = ReadAhead(source, columns, block_rows=block_rows, whole=whole)
+    with blocks, EstimateWriter(target, source) as writer:
         behind = WriteBehind(writer, phases)
         try:
-            blocks = track_blocks(source, columns, block_rows=block_rows, whole=whole)
-            for block in read_ahead(blocks, reading, phases):
+            for block in blocks:
                 if plan is None:
                     tick = time.perf_counter()
                     plan = plan_tracks(
@@ -150,6 +151,8 @@ def track_file(
             if bar is not None:
                 bar.close()
     assert run is not None, "track_blocks yields a block or raises"
+    phases["reading"] = blocks.reading
+    phases["waiting"] += blocks.waiting
     phases["estimating"] = run.estimate_seconds
     run.phases = phases
     run.check()
@@ -157,31 +160,6 @@ def track_file(
     if summary:
         write_summary(run, summary_path(target))
     return run
-
-
-def read_ahead(
-    items: Iterable[Item], pool: ThreadPoolExecutor, phases: dict[str, float]
-) -> Iterator[Item]:
-    """The items of ``items``, each next one produced in ``pool`` while the caller works on
-    the one before; ``phases["reading"]`` adds the seconds spent producing them,
-    ``phases["waiting"]`` the seconds the caller waited for one."""
-    source = iter(items)
-
-    def produce() -> Item | None:
-        tick = time.perf_counter()
-        item = next(source, None)
-        phases["reading"] += time.perf_counter() - tick
-        return item
-
-    pending = pool.submit(produce)
-    while True:
-        tick = time.perf_counter()
-        item = pending.result()
-        phases["waiting"] += time.perf_counter() - tick
-        if item is None:
-            return
-        pending = pool.submit(produce)
-        yield item
 
 
 class WriteBehind:

@@ -6,20 +6,84 @@ measurements, ids and times) and a :class:`RowReport` saying what happened to ev
 ``write_estimates`` writes one output row per input row.
 """
 
-from torchsvs.datasets.describe import InputDescription, describe_input
-from torchsvs.datasets.noise_estimate import NoiseEstimate, estimate_noise, noise_spread
-from torchsvs.datasets.paths import check_output
-from torchsvs.datasets.priors import Prior, two_point_prior
-from torchsvs.datasets.reading import (
-    TrackBlock,
-    meas_variance,
-    read_tracks,
-    track_blocks,
-    with_prior,
-)
-from torchsvs.datasets.rows import NOTES, SET_ASIDE, TIME_UNITS, Columns, InputWarning, RowReport
-from torchsvs.datasets.tracks import RecordedTracks, TrackSteps, group_rows
-from torchsvs.datasets.writing import EstimateWriter, estimate_table, state_names, write_estimates
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from torchsvs.datasets.describe import InputDescription, describe_input
+    from torchsvs.datasets.noise_estimate import NoiseEstimate, estimate_noise, noise_spread
+    from torchsvs.datasets.paths import check_output
+    from torchsvs.datasets.priors import Prior, two_point_prior
+    from torchsvs.datasets.reading import TrackBlock, track_blocks
+    from torchsvs.datasets.rows import (
+        NOTES,
+        SET_ASIDE,
+        TIME_UNITS,
+        Columns,
+        InputWarning,
+        RowReport,
+    )
+    from torchsvs.datasets.steps import TrackSteps, group_rows
+    from torchsvs.datasets.tracks import (
+        RecordedTracks,
+        meas_variance,
+        padded_batch,
+        read_tracks,
+        with_prior,
+    )
+    from torchsvs.datasets.writing import (
+        EstimateWriter,
+        estimate_table,
+        state_names,
+        write_estimates,
+    )
+
+#: Where each name lives: imported when first used, so reading a file (``rows``, ``steps``,
+#: ``reading``, ``describe``: numpy and Arrow) does not import torch
+#: (:class:`~torchsvs.datasets.reading.ReadAhead`).
+_HOMES = {
+    "InputDescription": "describe",
+    "describe_input": "describe",
+    "NoiseEstimate": "noise_estimate",
+    "estimate_noise": "noise_estimate",
+    "noise_spread": "noise_estimate",
+    "check_output": "paths",
+    "Prior": "priors",
+    "two_point_prior": "priors",
+    "TrackBlock": "reading",
+    "track_blocks": "reading",
+    "NOTES": "rows",
+    "SET_ASIDE": "rows",
+    "TIME_UNITS": "rows",
+    "Columns": "rows",
+    "InputWarning": "rows",
+    "RowReport": "rows",
+    "TrackSteps": "steps",
+    "group_rows": "steps",
+    "RecordedTracks": "tracks",
+    "meas_variance": "tracks",
+    "read_tracks": "tracks",
+    "with_prior": "tracks",
+    "padded_batch": "tracks",
+    "EstimateWriter": "writing",
+    "estimate_table": "writing",
+    "state_names": "writing",
+    "write_estimates": "writing",
+}
+
+
+def __getattr__(name: str) -> Any:
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{home}"), name)
+    globals()[name] = value  # (found directly from now on)
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})
+
 
 __all__ = [
     "NOTES",
@@ -39,6 +103,7 @@ __all__ = [
     "describe_input",
     "estimate_noise",
     "noise_spread",
+    "padded_batch",
     "estimate_table",
     "group_rows",
     "meas_variance",

@@ -23,7 +23,7 @@ from torchsvs.datasets.rows import (
     read_blocks,
     to_float,
 )
-from torchsvs.datasets.tracks import TrackSteps, group_rows
+from torchsvs.datasets.steps import TrackSteps, group_rows
 
 
 @dataclass

@@ -20,7 +20,7 @@ import numpy as np
 
 from torchsvs.datasets import geodesy
 from torchsvs.datasets.rows import ParsedRows, RowReport
-from torchsvs.datasets.tracks import TrackSteps, group_rows
+from torchsvs.datasets.steps import TrackSteps, group_rows
 
 
 @dataclass

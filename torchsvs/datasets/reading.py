@@ -1,27 +1,30 @@
-"""Track files in: whole, as one padded batch with priors (:func:`read_tracks`, for Python
-use and training), or as a stream of blocks of *complete* tracks in bounded memory
-(:func:`track_blocks`: a track's rows must then be contiguous in the file, any order within the
-track)."""
+"""Track files in as blocks of *complete* tracks (:func:`track_blocks`: a file whole, or
+streamed in bounded memory, a track's rows then contiguous in the file, any order within the
+track), read in a thread of their own ahead of the caller (:class:`ReadAhead`). A whole file as
+one padded batch with priors, for Python use and training, is
+:func:`~torchsvs.datasets.tracks.read_tracks`.
+
+Reading needs numpy and Arrow alone, not torch: ``torchsvs track`` reads its input while torch
+is imported."""
 
 from __future__ import annotations
 
+import threading
+import time
 import warnings
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, replace
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
-from torch import Tensor
 
-from torchsvs.datasets.describe import open_blocks
+from torchsvs.datasets.describe import InputDescription, describe_input, open_blocks
 from torchsvs.datasets.paths import dataset_files
-from torchsvs.datasets.priors import two_point_prior
 from torchsvs.datasets.rows import (
     Columns,
     InputWarning,
-    RowReport,
     file_columns,
     file_format,
     parquet_id_type,
@@ -29,13 +32,7 @@ from torchsvs.datasets.rows import (
     read_blocks,
     slice_rows,
 )
-from torchsvs.datasets.tracks import (
-    RecordedTracks,
-    TrackSteps,
-    check_contiguous,
-    group_rows,
-    track_runs,
-)
+from torchsvs.datasets.steps import TrackSteps, check_contiguous, group_rows, track_runs
 
 
 @dataclass
@@ -201,80 +198,127 @@ def _record(rows: Any, done: dict[str, Path], file: Path) -> None:
     done.update(dict.fromkeys(present, file))
 
 
-@dataclass
-class TrackSource:
-    """Where a padded batch came from, to write estimates back row by row."""
+class ReadAhead:
+    """A track file's blocks of complete tracks (:func:`track_blocks`), read in a thread of its
+    own from the moment this is made (``whole=None``: whole where :func:`reads_whole` says),
+    ahead of the caller by up to ``ahead_rows`` rows (at least one block): what the caller does
+    meanwhile (importing torch, settling the plan, estimating the block before) runs beside the
+    reading. With ``describe``, the thread first describes the file
+    (:func:`~torchsvs.datasets.describe.describe_input`, with ``name``): :meth:`description`
+    waits for it, and the blocks are read with its resolved columns.
 
-    block: TrackBlock
-    tracks: np.ndarray  #: [B] the batch's tracks among the block's
+    Iterate once; :meth:`close` (or ``with``) stops the thread after the block it is reading.
+    An error of the reading is raised where its block (or the description) is asked for.
+    :attr:`reading` adds the seconds spent reading blocks, :attr:`waiting` the seconds the
+    caller waited for one."""
 
-
-def read_tracks(
-    path: str | Path,
-    columns: Columns | None = None,
-    meas_std: float | Sequence[float] | None = None,
-    dtype: torch.dtype = torch.float64,
-) -> tuple[RecordedTracks, RowReport]:
-    """A whole track file as one padded batch with priors from its first measurements.
-
-    Args:
-        path: a ``.csv`` or ``.parquet`` file.
-        columns: its column names (default ``track_id, time, x, y[, z]``).
-        meas_std: measurement noise standard deviation (one number or one per axis) for the
-            priors; ``None`` estimates it from the data (:func:`~torchsvs.datasets.estimate_noise`).
-        dtype: of the measurement tensors.
-
-    Returns:
-        The tracks (``source`` set, for :func:`~torchsvs.datasets.write_estimates`) and the row
-        report.
-    """
-    block = next(track_blocks(path, columns, whole=True))
-    everything = np.arange(block.steps.num_tracks)
-    tracks = with_prior(block.steps.pad(everything, dtype), meas_std)
-    tracks.source = TrackSource(block, everything)
-    report = block.steps.report
-    report.notes.update(short_track_notes(tracks))
-    report.notes = +report.notes
-    return tracks, report
-
-
-def short_track_notes(tracks: RecordedTracks) -> dict[str, int]:
-    """How many tracks observe an axis only once, or never (the prior's fix-ups)."""
-    seen = (~torch.isnan(tracks.z)).sum(dim=1)  # [B, m] observations per axis
-    return {
-        "tracks_single_point_axis": int((seen == 1).any(dim=-1).sum()),
-        "tracks_axis_never_observed": int((seen == 0).any(dim=-1).sum()),
-    }
-
-
-def meas_variance(tracks: RecordedTracks, meas_std: float | Sequence[float] | None) -> Tensor:
-    """Measurement variance per axis ``[m]``: from ``meas_std``, or estimated from the data."""
-    m = tracks.z.shape[-1]
-    if meas_std is None:
-        from torchsvs.datasets.noise_estimate import estimate_noise
-
-        return estimate_noise(tracks.z, tracks.dt).meas_var
-    std = torch.as_tensor(meas_std, dtype=tracks.z.dtype).reshape(-1)
-    if (
-        std.numel() not in (1, m)
-        or not bool((std > 0).all())
-        or not bool(torch.isfinite(std).all())
-    ):
-        raise ValueError(
-            f"meas_std: expected one standard deviation > 0 or one per axis ({m}), "
-            f"got {std.tolist()}"
+    def __init__(
+        self,
+        path: str | Path,
+        columns: Columns | None = None,
+        *,
+        block_rows: int = 1 << 20,
+        whole: bool | None = False,
+        ahead_rows: int = 1,
+        describe: bool = False,
+        name: str = "path",
+    ) -> None:
+        self.reading = self.waiting = 0.0
+        self._ready = threading.Condition()
+        self._blocks: deque[TrackBlock] = deque()
+        self._rows = 0  # rows of the blocks read and not yet taken
+        self._described: InputDescription | None = None
+        self._error: BaseException | None = None
+        self._done = self._closed = False
+        self._thread = threading.Thread(
+            target=self._read,
+            args=(path, columns, block_rows, whole, ahead_rows, describe, name),
+            name="read-ahead",
+            daemon=True,  # (a caller that fails leaves it at its next block)
         )
-    return std.expand(m).square()
+        self._thread.start()
 
+    def _read(
+        self,
+        path: str | Path,
+        columns: Columns | None,
+        block_rows: int,
+        whole: bool | None,
+        ahead_rows: int,
+        describe: bool,
+        name: str,
+    ) -> None:
+        try:
+            if describe:
+                described = describe_input(path, columns, block_rows=block_rows, name=name)
+                with self._ready:
+                    self._described = described
+                    self._ready.notify_all()
+                columns = described.columns
+            if whole is None:
+                whole = reads_whole(path)
+            blocks = track_blocks(path, columns, block_rows=block_rows, whole=whole)
+            while True:
+                with self._ready:  # room for one more block (or the caller has all read)
+                    self._ready.wait_for(
+                        lambda: self._closed or self._rows < ahead_rows or not self._blocks
+                    )
+                    if self._closed:
+                        return
+                tick = time.perf_counter()
+                block = next(blocks, None)
+                self.reading += time.perf_counter() - tick
+                with self._ready:
+                    if block is None:
+                        break
+                    self._blocks.append(block)
+                    self._rows += len(block.table)
+                    self._ready.notify_all()
+        except BaseException as error:  # (handed to the caller: raised where it asks)
+            with self._ready:
+                self._error = error
+        finally:
+            with self._ready:
+                self._done = True
+                self._ready.notify_all()
 
-def with_prior(
-    tracks: RecordedTracks,
-    meas_std: float | Sequence[float] | Tensor | None = None,
-    inflation: float | None = None,
-) -> RecordedTracks:
-    """The tracks with ``x0, P0`` from two-point differencing (:func:`two_point_prior`);
-    ``meas_std`` as for :func:`read_tracks`, or a tensor of standard deviations per axis."""
-    var = meas_std.square() if isinstance(meas_std, Tensor) else meas_variance(tracks, meas_std)
-    kwargs = {} if inflation is None else {"inflation": inflation}
-    prior = two_point_prior(tracks.z, tracks.dt, var, **kwargs)
-    return replace(tracks, x0=prior.x0, P0=prior.P0, never_observed=prior.never_observed)
+    def description(self) -> InputDescription:
+        """The file's description (``describe=True``), once read; raises the reading's
+        error."""
+        with self._ready:
+            self._ready.wait_for(lambda: self._described is not None or self._done)
+            if self._described is None:
+                self._raise()
+            assert self._described is not None, "ReadAhead(..., describe=True)"
+            return self._described
+
+    def __iter__(self) -> Iterator[TrackBlock]:
+        while True:
+            tick = time.perf_counter()
+            with self._ready:
+                self._ready.wait_for(lambda: bool(self._blocks) or self._done)
+                self.waiting += time.perf_counter() - tick
+                if not self._blocks:
+                    self._raise()
+                    return
+                block = self._blocks.popleft()
+                self._rows -= len(block.table)
+                self._ready.notify_all()
+            yield block
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def close(self) -> None:
+        """Stops reading (after the block being read) and drops the blocks read."""
+        with self._ready:
+            self._closed = True
+            self._blocks.clear()
+            self._ready.notify_all()
+
+    def __enter__(self) -> ReadAhead:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -10,7 +10,7 @@ from typing import Any
 from torchsvs.datasets.describe import describe_table
 from torchsvs.datasets.reading import TrackBlock, reads_whole, track_blocks
 from torchsvs.datasets.rows import Columns, parse_block
-from torchsvs.datasets.tracks import group_rows
+from torchsvs.datasets.steps import group_rows
 
 
 def block_of(data: Any, columns: Columns | None = None, block_rows: int = 1 << 18) -> TrackBlock:

@@ -18,7 +18,8 @@ from torch import Tensor
 from torchsvs.datasets.paths import check_output, dataset_files
 from torchsvs.datasets.reading import TrackBlock
 from torchsvs.datasets.rows import Columns, file_format
-from torchsvs.datasets.tracks import RecordedTracks, TrackSteps
+from torchsvs.datasets.steps import TrackSteps
+from torchsvs.datasets.tracks import RecordedTracks
 
 
 def state_names(position: Sequence[str]) -> list[str]:

@@ -93,16 +93,8 @@ def estimate_part(
         check=False,
     )
     run = result.run
-    worst(run, TRACKS_PER_PART)
+    run.keep_worst(TRACKS_PER_PART)
     return result.table, run
-
-
-def worst(run: TrackRun, count: int) -> None:
-    """Keeps ``run``'s worst ``count`` per-track error estimates."""
-    if len(run.track_errors) > count:
-        kept = sorted(run.track_errors.items(), key=lambda kv: -kv[1][0])[:count]
-        run.track_errors = dict(kept)
-        run.track_q = {k: v for k, v in run.track_q.items() if k in run.track_errors}
 
 
 def merged_run(plan: TrackPlan, runs: Iterable[TrackRun], accuracy: bool = True) -> TrackRun:
@@ -112,6 +104,6 @@ def merged_run(plan: TrackPlan, runs: Iterable[TrackRun], accuracy: bool = True)
     for run in runs:
         total.merge(run)
         total.seconds += run.seconds
-    worst(total, TRACKS_PER_PART)
+    total.keep_worst(TRACKS_PER_PART)
     total.check()
     return total
