@@ -41,13 +41,15 @@ from experiments.recorded_sets import build_sets
 from torchsvs.accuracy import PROBE_STEP, draw_probe, risk_terms
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets.tracks import RecordedTracks, read_tracks, with_prior
-from torchsvs.estimating import centred, reference_for, run_result
+from torchsvs.error_references import reference_for
+from torchsvs.estimating import centred
 from torchsvs.evaluation import markdown_table
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.batches import batch_loss, recorded_batches
 from torchsvs.fitting.defaults import complete_settings
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, make_estimator, make_model
+from torchsvs.runs import run_result
 from torchsvs.smoothers import SVSS
 
 #: The sets (kind, σ m) the network is trained and scored on.

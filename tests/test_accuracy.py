@@ -391,14 +391,14 @@ def test_a_kalman_smoothers_estimate_is_its_own_control_and_nearly_free_of_the_p
 
 def test_a_near_linear_estimators_estimate_moves_less_with_the_probe_under_the_control():
     """An SVSS (the Kalman gain inside its boundary layer) controlled by the Kalman smoother
-    on its model (``estimating.LinearReference``, weight fitted): over six probe seeds its
+    on its model (``error_references.LinearReference``, weight fitted): over six probe seeds its
     estimated error spreads less than half as much as without the control, around the same
     value."""
     from dataclasses import replace
 
     from torchsvs.accuracy import PROBE_STEP, draw_probe
     from torchsvs.datasets import with_prior
-    from torchsvs.estimating import LinearReference, reference_for
+    from torchsvs.error_references import LinearReference, reference_for
     from torchsvs.recipes import make_estimator, make_model
 
     tracks, std, _, _ = _ks_tracks(B=4, T=120)
@@ -442,7 +442,7 @@ def test_the_linear_reference_from_the_positions_loop_is_the_one_from_the_runs()
 
     from torchsvs.accuracy import PROBE_STEP, draw_probe
     from torchsvs.datasets import with_prior
-    from torchsvs.estimating import LinearReference
+    from torchsvs.error_references import LinearReference
     from torchsvs.filters import KalmanFilter
     from torchsvs.models import ConstantVelocity
     from torchsvs.smoothers import RTSSmoother

@@ -16,9 +16,9 @@ from experiments.network_psi import (
 )
 from tests.conftest import simulate_cv
 from torchsvs.datasets import RecordedTracks
-from torchsvs.estimating import run_result
 from torchsvs.fitting.batches import batch_loss, recorded_batches
 from torchsvs.recipes import Settings
+from torchsvs.runs import run_result
 
 
 def _half(q_factor: float, B: int = 12, T: int = 120, seed: int = 0):

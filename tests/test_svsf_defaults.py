@@ -13,7 +13,7 @@ import torch
 import torchsvs as ts
 from tests.conftest import assert_close
 from torchsvs.datasets import RecordedTracks, with_prior
-from torchsvs.estimating import centred, run_estimator
+from torchsvs.estimating import centred
 from torchsvs.fitting.defaults import complete_settings
 from torchsvs.kernels import eager_loops, general_path
 from torchsvs.recipes import (
@@ -25,6 +25,7 @@ from torchsvs.recipes import (
     make_model,
     rule_of_thumb_psi,
 )
+from torchsvs.runs import run_estimator
 
 FIELDS = ("mean", "cov", "pred_cov", "innovation", "gain", "post_innovation", "innovation_cov")
 

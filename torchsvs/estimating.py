@@ -26,34 +26,29 @@ from torch import Tensor, nn
 from torchsvs.accuracy import (
     PROBE_STEP,
     Probe,
-    Reference,
     RiskTerms,
     draw_probe,
-    exact_divergence,
     risk_terms,
 )
 from torchsvs.curve_estimates import (
     curve_run,
     is_curves_estimator,
-    linear_gaussian,
-    meas_var_of,
     run_risk_terms,
 )
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
 from torchsvs.datasets.tracks import padded_batch, short_track_notes
 from torchsvs.datasets.writing import flat_steps
+from torchsvs.error_references import LinearReference, SelfReference, reference_for
 from torchsvs.estimator import split_batch
-from torchsvs.filters import KalmanFilter, ParticleFilter
 from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise
 from torchsvs.fitting.defaults import meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
-from torchsvs.kernels.curves import Positions
 from torchsvs.models import ConstantVelocity
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings
+from torchsvs.runs import run_result
 from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
-from torchsvs.types import SmootherResult
 
 #: :func:`smoothed_or_filtered` keeps a track's smoothed pass where it is the better at every
 #: noise level within this many standard errors of the noise read off the data. Measured with
@@ -73,32 +68,6 @@ def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:
         first = observed.to(torch.int64).argmax(dim=1, keepdim=True)  # [B, 1, m]
         offset = tracks.z.nan_to_num(0.0).gather(1, first).squeeze(1)
     return replace(tracks, z=tracks.z - offset.unsqueeze(1)), offset
-
-
-def run_result(
-    estimator: nn.Module,
-    tracks: RecordedTracks,
-    generator: torch.Generator | None = None,
-    keep: str = "all",
-) -> Any:
-    """An estimator's result on tracks with priors (no gradients; ``keep`` as every estimator
-    takes it)."""
-    assert tracks.x0 is not None and tracks.P0 is not None
-    kwargs: dict[str, Any] = {"dt": tracks.dt, "keep": keep}
-    if isinstance(estimator, ParticleFilter):
-        kwargs["generator"] = (
-            generator if generator is not None else torch.Generator().manual_seed(0)
-        )
-    with torch.no_grad():
-        return estimator(tracks.z, tracks.x0, tracks.P0, **kwargs)
-
-
-def run_estimator(
-    estimator: nn.Module, tracks: RecordedTracks, generator: torch.Generator | None = None
-) -> tuple[Tensor, Tensor]:
-    """Mean ``[B, T, 2m]`` and covariance of an estimator on tracks with priors (no gradients)."""
-    out = run_result(estimator, tracks, generator)
-    return out.mean, out.cov
 
 
 class GroupBatch(NamedTuple):
@@ -430,102 +399,6 @@ def _estimate_from_run(
     return _step_estimates(batch, tracks, mean, None, short_track_notes(tracks), terms)
 
 
-class LinearReference:
-    """The truth-free error estimate's control variate (:class:`~torchsvs.accuracy.Reference`)
-    from a Kalman smoother (or filter) on the tracks and on a probe's measurements
-    (:func:`reference_for`).
-
-    It needs the reference's means and position variances alone: on a nearly-constant-velocity
-    model with a diagonal ``R`` they come from the compiled loop that writes nothing else
-    (:func:`~torchsvs.fitting.noise.kalman_positions`, the per-axis Kalman smoother's twin), a
-    pass for each of the smoother and its filter when asked; else from the estimator's run
-    (its whole covariances, several times the memory traffic)."""
-
-    def __init__(
-        self, kalman: nn.Module, tracks: RecordedTracks, meas_std: Tensor, probe: Probe
-    ) -> None:
-        self.meas_var = meas_var_of(kalman)
-        self.kalman = kalman
-        self.tracks = tracks
-        self.shifted = with_prior(replace(tracks, z=probe.measurements), meas_std)
-        self.smoother = isinstance(kalman, RTSSmoother)
-        self.runs: dict[bool, tuple[Positions, Positions]] = {}  # (plain, shifted) by `filtered`
-        model, dt = getattr(kalman, "model", None), tracks.dt
-        R = model.meas_cov().detach() if isinstance(model, ConstantVelocity) else None
-        #: the positions loop gives it (it takes a diagonal R and an interval per step)
-        diagonal = R is not None and bool((R == torch.diag(R.diagonal())).all())
-        self.positions = diagonal and dt is not None and dt.shape == tracks.z.shape[:2]
-
-    def _pass(self, filtered: bool) -> tuple[Positions, Positions]:
-        """The plain and the shifted runs' means and position variances: the smoother's, or
-        its filter's with ``filtered`` (a filter's reference has its own pass alone)."""
-        filtered = filtered and self.smoother
-        if filtered not in self.runs:
-            if self.positions:
-                model: Any = self.kalman.model
-                q, r = model.q().detach(), model.meas_cov().detach().diagonal()
-                found = []
-                for t in (self.tracks, self.shifted):
-                    assert t.dt is not None and t.x0 is not None and t.P0 is not None
-                    smoothed = self.smoother and not filtered
-                    found.append(noise.kalman_positions(t.z, t.dt, t.x0, t.P0, r, q, smoothed))
-                self.runs[filtered] = (found[0], found[1])
-            else:  # the estimator's runs: one for both passes
-                plain = run_result(self.kalman, self.tracks, keep="moments")
-                shifted = run_result(self.kalman, self.shifted, keep="mean")
-                self.runs[False] = (_positions_of(plain), _positions_of(shifted))
-                if self.smoother:
-                    self.runs[True] = (
-                        _positions_of(plain.filtered),
-                        _positions_of(shifted.filtered),
-                    )
-        return self.runs[filtered]
-
-    def reference(self, result: Any = None, filtered: bool = False) -> Reference:
-        """The reference for the estimator's positions (its filter pass's with ``filtered``:
-        the reference's forward pass)."""
-        plain, shifted = self._pass(filtered)
-        exact = exact_divergence(self.tracks.z, plain.var, self.meas_var)
-        return Reference(exact, shifted.mean[..., 0::2], plain.mean[..., 0::2])
-
-
-def _positions_of(result: Any) -> Positions:
-    """A run's means and position variances (``None`` where it kept no covariance)."""
-    var = None if result.cov is None else result.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-    return Positions(result.mean, var)  # type: ignore[arg-type]
-
-
-class SelfReference:
-    """The control variate of a Kalman filter or smoother: its own divergence, exact."""
-
-    def __init__(self, estimator: nn.Module, tracks: RecordedTracks) -> None:
-        self.meas_var = meas_var_of(estimator)
-        self.z = tracks.z
-
-    def reference(self, result: Any, filtered: bool = False) -> Reference:
-        position_var = result.cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]
-        return Reference(exact_divergence(self.z, position_var, self.meas_var), beta=1.0)
-
-
-def reference_for(
-    estimator: nn.Module, out: Any, tracks: RecordedTracks, meas_std: Tensor, probe: Probe
-) -> LinearReference | SelfReference | None:
-    """The control variate of an estimator's error estimate: the estimator itself where it is
-    a Kalman filter or smoother (its divergence exact); else, for a deterministic estimator on
-    a constant-velocity model (the SVSF family, the IMM, the other Gaussian filters), the
-    Kalman smoother (the Kalman filter for a filter's output ``out``) on the estimator's own
-    model, run on the same tracks and ``probe``; ``None`` for the particle filters (their
-    draws differ between runs)."""
-    if linear_gaussian(estimator):
-        return SelfReference(estimator, tracks)
-    model = getattr(estimator, "model", None)
-    if isinstance(estimator, ParticleFilter) or not isinstance(model, ConstantVelocity):
-        return None
-    kf = KalmanFilter(model)
-    smoothed = isinstance(out, (SmootherResult, IMMSmootherResult))
-    return LinearReference(RTSSmoother(kf) if smoothed else kf, tracks, meas_std, probe)
-
-
 def _paired_run(
     positions: Callable[..., Any], tracks: RecordedTracks, probe: Probe, keep: str
 ) -> tuple[Any, Any]:
@@ -550,12 +423,12 @@ def smoothed_or_filtered(
     """Each track's smoothed pass of ``out`` (a result with a ``filtered`` pass: the IMM's
     smoother), or its filter pass where that has the lower SURE (:mod:`torchsvs.accuracy`, both
     from one run ``rerun`` on the ``probe``'s measurements; ``control``: the estimate's control
-    variate, :func:`reference_for`): a guard where the smoother's backward pass fails. Kim's
-    smoother links a mode's estimates by the mode's own dynamics, and on tracks whose motion
-    at their report times neither mode follows (gliders and survey aircraft at 7-33 s,
-    speed jumps in the record) the IMM's fixed-lag smoother was 1.25x the raw measurements
-    (the filter 1.01x) on the recorded-tracks benchmark's irregular set, while it was
-    0.31-0.57x raw elsewhere. Where the noise was read off the data, the smoother is kept
+    variate, :func:`~torchsvs.error_references.reference_for`): a guard where the smoother's
+    backward pass fails. Kim's smoother links a mode's estimates by the mode's own dynamics,
+    and on tracks whose motion at their report times neither mode follows (gliders and survey
+    aircraft at 7-33 s, speed jumps in the record) the IMM's fixed-lag smoother was 1.25x the
+    raw measurements (the filter 1.01x) on the recorded-tracks benchmark's irregular set, while
+    it was 0.31-0.57x raw elsewhere. Where the noise was read off the data, the smoother is kept
     only where it is the better at both ends of the interval ``noise_range`` too (SURE is
     linear in the noise variance; :data:`GUARD_ERRORS` standard errors wide in ``track``):
     motion the report times cannot resolve reads as noise (71.8 m for 50 on that set), and the
