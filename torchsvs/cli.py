@@ -61,6 +61,10 @@ def command() -> None:
     """The ``torchsvs`` program: :func:`main`, then an exit that skips tearing down the
     interpreter's modules (torch, Lightning: about a second, paid by every process of a run)
     once the exit handlers have run and the output is flushed."""
+    if sys.argv[1:2] == ["track"]:
+        from torchsvs.track_command import set_up_process
+
+        set_up_process()
     try:
         main()
         code = 0
