@@ -70,7 +70,8 @@ def set_up_process() -> None:
       for the next parallel region, on cores the reading, writing and groups' threads need:
       CPU 0.93x, wall 0.95x.
 
-    Both: system time 1.43 -> 1.02 s, CPU 0.90x, wall 0.91x (n = 10). Environment variables the user set are kept."""
+    Both: system time 1.43 -> 1.02 s, CPU 0.90x, wall 0.91x (n = 10). Environment variables
+    the user set are kept."""
     for name, value in (
         ("MIMALLOC_PURGE_DELAY", "-1"),
         ("OMP_WAIT_POLICY", "PASSIVE"),
