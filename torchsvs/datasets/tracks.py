@@ -1,6 +1,6 @@
 """Recorded tracks as padded batches ``[B, T, m]`` (:class:`RecordedTracks`), made from the
-steps of a file's rows (:func:`padded_batch`), with priors from
-their first measurements (:func:`with_prior`); a whole file as one batch (:func:`read_tracks`).
+steps of a file's rows (:func:`padded_batch`), with priors from their first measurements
+(:func:`with_prior`); a whole file as one batch (:func:`read_tracks`).
 
 Tracks of different lengths are padded at the end with missing measurements, which no estimator
 reads as information (a padded step is a pure prediction after the track's last step, so
