@@ -43,10 +43,10 @@ class TurnIMMPass(NamedTuple):
     modes: tuple[tuple[Tensor, Tensor], ...]  #: each mode's filtered (mean, cov)
     log_likelihood: Tensor  #: [B]
     mode_log_likelihood: Tensor  #: each mode filter's own total [B, 2]
-    smoothed_mean: Tensor  #: [B, T, N]
-    smoothed_cov: Tensor
-    smoothed_mode_probs: Tensor  #: [B, T, 2]
-    smoothed_modes: tuple[tuple[Tensor, Tensor], ...]
+    smoothed_mean: Tensor | None  #: [B, T, N]
+    smoothed_cov: Tensor  #: (as cov: None unless keep is "moments")
+    smoothed_mode_probs: Tensor | None  #: [B, T, 2]
+    smoothed_modes: tuple[tuple[Tensor, Tensor], ...] | None
 
 
 def usable(inputs: Inputs) -> bool:
@@ -137,7 +137,7 @@ def turn_imm_run(
         smean,
         scov,
         sprob,
-        ((sx0, sP0), (sx1, sP1)) if smooth else outs[9],
+        ((sx0, sP0), (sx1, sP1)) if smooth else None,
     )
 
 

@@ -404,11 +404,14 @@ class TurnIMMSmoother(IMMSmoother):
         compiled = self.turn.compiled_pass(common, mode_probs, self.lag)
         if compiled is None:
             return self.turn.cv_part(super()._pass(common, mode_probs))
+        smoothed = compiled.smoothed_modes  # (a smoother's lag is never 0: always there)
+        assert compiled.smoothed_mean is not None and compiled.smoothed_mode_probs is not None
+        assert smoothed is not None
         result = IMMSmootherResult(
             compiled.smoothed_mean,
             compiled.smoothed_cov,
             compiled.smoothed_mode_probs,
-            tuple(Moments(mean, cov) for mean, cov in compiled.smoothed_modes),
+            tuple(Moments(mean, cov) for mean, cov in smoothed),
             self.turn.filtered_result(compiled),
         )
         return self.turn.cv_part(result)

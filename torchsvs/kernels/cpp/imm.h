@@ -29,17 +29,16 @@
 namespace {
 namespace imm {
 
-// A vector of lanes, one track each: 8 float64 (one AVX-512 register where the machine has
-// them, two AVX ones or four SSE2 ones elsewhere).
-#define TORCHSVS_IMM_LANES 8
-typedef double X __attribute__((vector_size(8 * TORCHSVS_IMM_LANES)));
-constexpr int kW = sizeof(X) / sizeof(double);
+// A vector of lanes, one track each: lanes.h's Wide<double>, 8 float64 (one AVX-512 register
+// where the machine has them, two AVX ones or four SSE2 ones elsewhere).
+typedef Wide<double>::type X;
+constexpr int kW = LaneBlock<double>::kWidth;
 typedef decltype(X{} < X{}) Mask;
 
 constexpr double kLog2Pi = 1.8378770664093453;
 constexpr double kNegInf = -std::numeric_limits<double>::infinity();
 
-inline X all(double c) { return X{} + c; }
+inline X all(double c) { return splat<X>(c); }
 // f applied lane by lane (the library functions have no vector forms here).
 template <typename F>
 inline X each(X x, F f) {
@@ -48,10 +47,9 @@ inline X each(X x, F f) {
     return out;
 }
 inline X sqrt_of(X x) {  // (correctly rounded either way: the same numbers)
-#if TORCHSVS_IMM_LANES == 8 && defined(__AVX512F__)
+#if defined(__AVX512F__)
+    static_assert(sizeof(X) == sizeof(__m512d), "one AVX-512 register of lanes");
     return reinterpret_cast<X>(_mm512_sqrt_pd(reinterpret_cast<__m512d>(x)));
-#elif TORCHSVS_IMM_LANES == 4 && defined(__AVX__)
-    return reinterpret_cast<X>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x)));
 #else
     return each(x, [](double v) { return std::sqrt(v); });
 #endif
@@ -111,24 +109,20 @@ inline bool every(Mask m) {
     return true;
 }
 
-// C = A B (r × k times k × c), summed in k order; C = A Bᵀ with B stored c × k.
-template <int r, int k, int c>
+// C = A B (r × k times k × c), summed in k order; with `transposed`, C = A Bᵀ for B stored
+// c × k (mul_t).
+template <int r, int k, int c, bool transposed = false>
 inline void mul(const X* A, const X* B, X* C) {
     for (int i = 0; i < r; ++i)
         for (int j = 0; j < c; ++j) {
             X a{};
-            for (int l = 0; l < k; ++l) a += A[i * k + l] * B[l * c + j];
+            for (int l = 0; l < k; ++l) a += A[i * k + l] * B[transposed ? j * k + l : l * c + j];
             C[i * c + j] = a;
         }
 }
 template <int r, int k, int c>
 inline void mul_t(const X* A, const X* B, X* C) {
-    for (int i = 0; i < r; ++i)
-        for (int j = 0; j < c; ++j) {
-            X a{};
-            for (int l = 0; l < k; ++l) a += A[i * k + l] * B[j * k + l];
-            C[i * c + j] = a;
-        }
+    mul<r, k, c, true>(A, B, C);
 }
 
 // Where the models' transitions can be nonzero, row by row (column indices in order): the
@@ -580,10 +574,9 @@ struct Outputs {
 };
 
 // A block of lanes: each lane's track (a short last block repeats its last track) and how many
-// are real.
-struct Lanes {
-    int64_t b[kW];
-    int count;
+// are real: lanes.h's LaneBlock of tracks with one "axis" each.
+struct Lanes : LaneBlock<double> {
+    Lanes(int64_t first, int64_t B) : LaneBlock<double>(first, B, 1) {}
     // Writes `size` values of every real lane at step t of a [B, T, size] output.
     void put(double* out, int64_t T, int64_t t, const X* from, int size) const {
         if (out == nullptr) return;
@@ -752,9 +745,7 @@ int run(int64_t B, int64_t T, int64_t lag, bool cov, int threads, const Constant
         std::vector<Moments<D>> filt;
         std::vector<Pairs<D>> pairs;
         for (int64_t i = first; i < last && !failed.load(std::memory_order_relaxed); ++i) {
-            Lanes lanes;
-            lanes.count = static_cast<int>(std::min<int64_t>(kW, B - i * kW));
-            for (int w = 0; w < kW; ++w) lanes.b[w] = i * kW + std::min(w, lanes.count - 1);
+            const Lanes lanes(i * kW, B);
             Mask ok = X{} == X{};
             block<D>(k, lanes, T, lag, cov, x0, P0, z, dt, dt_track, dt_step, log_p0, o, filt,
                      pairs, ok);
