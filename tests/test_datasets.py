@@ -271,7 +271,7 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
     from dataclasses import replace
 
     from torchsvs.datasets import priors
-    from torchsvs.datasets.steps import RowReport, TrackSteps, median_interval
+    from torchsvs.datasets.steps import RowReport, TrackSteps, as_rows, median_interval
     from torchsvs.datasets.tracks import padded_batch
     from torchsvs.estimating import centred
 
@@ -309,6 +309,17 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
         assert torch.equal(a.isnan(), b.isnan()), name
         assert torch.equal(a.nan_to_num(7.0), b.nan_to_num(7.0)), name
     assert torch.equal(fast.extra["alt"], general.extra["alt"][:K, :T])
+    # the padded cells (the step past each shorter track's end): missing, at no flat step
+    assert bool(general.z[:K, T].isnan().all()) and bool(general.time[:K, T].isnan().all())
+    assert bool(general.extra["alt"][:K, T].isnan().all())
+    assert bool((general.steps[:K, T] == -1).all()) and not bool(general.z[K].isnan().any())
+    assert torch.equal(general.dt[:K, T], general.dt[:K, 1:T].median(1).values)  # (11: odd)
+
+    with pytest.raises(ValueError, match="C-contiguous"):  # (a copy would lose the writes)
+        as_rows(np.zeros((4, 6))[:, :2])
+    rows = np.zeros((5, 2, 2))
+    as_rows(rows)[[1, 3]] = as_rows(np.arange(8.0).reshape(2, 2, 2))
+    assert np.array_equal(rows[[1, 3]], np.arange(8.0).reshape(2, 2, 2)) and rows[0].sum() == 0
 
     dt = np.diff(time.reshape(K, T), axis=1)
     assert np.array_equal(median_interval(dt), np.nanmedian(dt, axis=1))

@@ -15,6 +15,7 @@ import numpy as np
 from torchsvs.accuracy import Accuracy, RiskTerms, RiskTotals
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import RowReport, TrackBlock, TrackSteps, estimate_table
+from torchsvs.datasets.steps import as_rows
 from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
@@ -78,10 +79,10 @@ class BlockEstimates:
     def place(self, part: StepEstimates) -> None:
         """A group's estimates into the block's arrays. Groups hold apart steps, so the
         threads estimating them may place theirs at once (numpy's indexed writes release the
-        GIL)."""
-        self.mean[part.steps] = part.mean
+        GIL; rows as items, :func:`~torchsvs.datasets.steps.as_rows`: twice as fast)."""
+        as_rows(self.mean)[part.steps] = as_rows(np.ascontiguousarray(part.mean, self.mean.dtype))
         if self.cov is not None and part.cov is not None:
-            self.cov[part.steps] = part.cov
+            as_rows(self.cov)[part.steps] = as_rows(np.ascontiguousarray(part.cov, self.cov.dtype))
         if part.outliers is not None:
             assert self.outlier is not None, "BlockEstimates.empty(..., screened=True)"
             self.outlier[part.outliers] = True

@@ -21,7 +21,7 @@ from torch import Tensor
 from torchsvs.datasets.priors import two_point_prior
 from torchsvs.datasets.reading import TrackBlock, track_blocks
 from torchsvs.datasets.rows import Columns, RowReport
-from torchsvs.datasets.steps import TrackSteps, median_interval
+from torchsvs.datasets.steps import TrackSteps, as_rows, median_interval
 
 
 @dataclass
@@ -111,16 +111,18 @@ def padded_batch(
     # flat[b, t]: flat step index, or -1 past the end of track b
     offsets = np.arange(T)[None, :]
     flat = steps.start[index][:, None] + offsets
-    if bool((lengths == T).all()):  # tracks of one length (a group's usual case): no padding
-        z, time = steps.position[flat], steps.time[flat]
-        extra = {k: v[flat] for k, v in steps.extra.items()}
-    else:
+    if not bool((lengths == T).all()):  # (tracks of one length, a group's usual case: none)
         flat = np.where(offsets < lengths[:, None], flat, -1)
-        valid = flat >= 0
-        inside = np.where(valid, flat, 0)
-        z = np.where(valid[..., None], steps.position[inside], np.nan)
-        time = np.where(valid, steps.time[inside], np.nan)
-        extra = {k: np.where(valid, v[inside], np.nan) for k, v in steps.extra.items()}
+    pad = np.flatnonzero(flat < 0)  # the padded cells of [B × T]
+    # (np.take, and the padding set by index: several times faster than indexing the rows of
+    # a 2-D array and choosing by a mask)
+    inside = np.maximum(flat, 0)
+    z = np.take(steps.position, inside, axis=0)
+    as_rows(z.reshape(-1, z.shape[-1]))[pad] = as_rows(np.full((1, z.shape[-1]), np.nan))
+    time = np.take(steps.time, inside)
+    extra = {k: np.take(v, inside) for k, v in steps.extra.items()}
+    for values in (time, *extra.values()):
+        values.reshape(-1)[pad] = np.nan
     dt = np.diff(time, axis=1)
     first = median_interval(dt)
     dt = np.concatenate([first[:, None], dt], axis=1)
