@@ -606,6 +606,45 @@ def best_section(
     return table(header, rows)
 
 
+#: The SVSF family (issue 29: its best at most 1.00x the Kalman smoother on every set and mode).
+FAMILY = ("svsf", "svss", "svstps")
+
+
+def family_section(runs: Sequence[Run], sets: Sequence[str], modes: Sequence[str]) -> str:
+    """Per set and mode: the best of the SVSF family's RMSE over the Kalman smoother's (``ks``),
+    bold above 1, and a line on all of them; empty where neither ran."""
+    index = by_key(runs)
+    rows, ratios = [], []
+    for s in sets:
+        cells: list[object] = [s]
+        for mode in modes:
+            ks = index.get((s, "ks", mode))
+            done = [index.get((s, e, mode)) for e in FAMILY]
+            usable = [r for r in done if r is not None and r.ok and not r.missing]
+            if ks is None or not ks.ok or ks.missing or not usable:
+                cells.append("—")
+                continue
+            best = min(usable, key=lambda r: r.rmse)
+            ratio = round(best.rmse / ks.rmse, 4)  # (as printed: a twin's float noise is 1)
+            ratios.append((ratio, s, mode))
+            text = f"{ratio:.4f} ({best.estimator})"
+            cells.append(f"**{text}**" if ratio > 1.0 else text)
+        rows.append(cells)
+    if not ratios:
+        return ""
+    worst = max(ratios)
+    above = sum(r > 1.0 for r, _, _ in ratios)
+    return _text(
+        "family",
+        table="\n".join(table(["set", *modes], rows)),
+        above=above,
+        count=len(ratios),
+        worst=f"{worst[0]:.4f}",
+        where=f"{worst[1]}, {worst[2]}",
+        mean=f"{sum(r for r, _, _ in ratios) / len(ratios):.4f}",
+    )
+
+
 def estimate_section(runs: Sequence[Run]) -> str:
     """How many runs wrote a truth-free estimate, and those more than 15% off the true RMSE."""
     with_estimate = [r for r in runs if r.ok and math.isfinite(r.estimated)]
@@ -1005,6 +1044,7 @@ def report(
             else _text("best_no_auto")
         ),
         best="\n".join(best_section(runs, [b.name for b in sets], estimators, modes)),
+        family=family_section(runs, [b.name for b in sets], modes),
         estimate=estimate_section(runs),
         issue="\n".join(issue_section(runs, sets)),
         sets_section=sets_section(sets),

@@ -267,3 +267,29 @@ def test_the_command_line_gives_what_the_in_process_run_gives(tmp_path: Path) ->
     assert inprocess.ok and cli.ok
     assert cli.rmse == pytest.approx(inprocess.rmse, rel=1e-12)
     assert cli.sigma_used == pytest.approx(inprocess.sigma_used)
+
+
+def test_the_family_section_sets_the_best_of_the_svsf_family_against_the_smoother() -> None:
+    """Issue 29's measure in the report: the best of svsf, svss and svstps over ks per set and
+    mode, bold above 1 as printed (a Kalman twin's float noise reads 1.0000, not above), with
+    the count above 1, the worst and the mean; nothing where the smoother or the family is
+    missing."""
+
+    def run(s: str, estimator: str, mode: str, rmse: float) -> rt.Run:
+        return rt.Run(s, estimator, mode, [], rmse=rmse, raw=100.0)
+
+    runs = [
+        run("a", "ks", "default", 50.0),
+        run("a", "svss", "default", 50.0 * (1 + 1e-9)),  # a twin: 1.0000
+        run("a", "svsf", "default", 70.0),
+        run("a", "ks", "--fit", 50.0),
+        run("a", "svstps", "--fit", 51.0),  # 1.0200, bold
+        run("b", "ks", "default", 40.0),
+        run("b", "svss", "default", 38.0),  # 0.9500
+        run("b", "ks", "--fit", 40.0),  # (no family run: —)
+    ]
+    text = rt.family_section(runs, ["a", "b"], ["default", "--fit"])
+    assert "| a | 1.0000 (svss) | **1.0200 (svstps)** |" in text
+    assert "| b | 0.9500 (svss) | — |" in text
+    assert "Above 1 on 1 of 3; the worst 1.0200 (a, --fit); the mean 0.9900." in text
+    assert rt.family_section([run("a", "ks", "default", 5.0)], ["a"], ["default"]) == ""

@@ -476,16 +476,16 @@ def test_svss_and_svstps_are_one_estimator_over_the_variable_layer():
     assert_close(means[0], means[1], atol=1e-9, rtol=0)
 
 
-# --- The layer's limit earns its place on the file, or the run goes without it ---
+# --- The layer's limit earns its place on the file (surely), or the run goes without it ---
 
 
-def test_the_layer_check_keeps_the_limit_on_a_near_tie_and_drops_it_for_a_sure_cost(
+def test_the_layer_check_runs_the_twin_on_a_near_tie_and_keeps_the_limit_for_a_sure_gain(
     monkeypatch,
 ):
-    """:func:`~torchsvs.selection.checked_layer`'s rule, the SURE terms stubbed: the layer is
-    the incumbent; its Kalman twin replaces it only where the twin is lower by more than one
-    standard error of their paired difference (a lower twin within the chunks' own noise, or a
-    higher one, keeps the layer; a small gain that is sure does not)."""
+    """:func:`~torchsvs.selection.checked_layer`'s rule, the SURE terms stubbed: the Kalman twin
+    is the incumbent; the layer keeps its limit only where it is lower by more than one
+    standard error of their paired difference (a lower layer within the chunks' own noise, a
+    higher one, or too little data to say run the twin; a small gain that is sure keeps it)."""
     import numpy as np
 
     import torchsvs.selection as selection
@@ -498,25 +498,34 @@ def test_the_layer_check_keeps_the_limit_on_a_near_tie_and_drops_it_for_a_sure_c
     noisy = gen.normal(0.0, 400.0, (C, m))
     noisy -= noisy.mean(axis=0)
 
-    def check(twin_residual):
-        scored = {"svss": shared, "ks": twin_residual}
+    def check(twin_residual, chunks=C):
+        scored = {"svss": shared[:chunks], "ks": twin_residual[:chunks]}
         monkeypatch.setattr(
             selection,
             "sample_terms",
-            lambda s, t: RiskTerms(scored[s.estimator], np.full((C, m), 8.0), count, np.arange(C)),
+            lambda s, t: RiskTerms(
+                scored[s.estimator],
+                np.full((chunks, m), 8.0),
+                count[:chunks],
+                np.arange(chunks),
+            ),
         )
         layer = Settings("svss", meas_var=[900.0] * 2, q=1.0, psi=[4.0, 4.0], noise="given")
         twin = Settings("ks", meas_var=[900.0] * 2, q=1.0, noise="given")
         return selection.checked_layer(layer, twin, None)
 
-    near = check(shared - 5.0 + noisy)
-    assert near.kept and near.settings.estimator == "svss" and near.change < 0
-    assert check(shared + 500.0).kept
-    for sure in (shared - 5.0, shared - 2000.0 + noisy):
-        found = check(sure)
-        assert not found.kept and found.change + found.change_se < 0
+    for tie in (shared + 5.0 + noisy, shared - 500.0, shared + 500.0 + 40 * noisy):
+        found = check(tie)
+        assert not found.kept and found.change - found.change_se <= 0
         assert found.settings.estimator == "ks" and found.settings.chosen_from == ["svss", "ks"]
         assert "running without a limit, as the Kalman smoother" in found.line()
+    assert check(shared + 5.0 + noisy).change > 0  # (the layer lower, but not surely)
+    for sure in (shared + 5.0, shared + 2000.0 + noisy):
+        found = check(sure)
+        assert found.kept and found.settings.estimator == "svss" and found.change > 0
+        assert "limit kept" in found.line() and "higher, surely" in found.line()
+    one = check(shared + 2000.0, chunks=1)  # one chunk: no error to judge by (NaN, not 0)
+    assert not one.kept and one.change > 0 and math.isnan(one.change_se)
 
 
 def test_an_svss_whose_limit_costs_runs_as_the_kalman_smoother(tmp_path):

@@ -93,7 +93,7 @@ class RiskTerms:
         difference far smaller than either's own standard error can be sure,
         :math:`D = \sum_c d_c / \bar N`, :math:`\mathrm{Var}\,D \approx \sum_c (d_c - D
         n_c)^2 / \bar N^2` (:meth:`RiskTotals.mse`'s ratio estimator on the chunks'
-        differences)."""
+        differences). Of one chunk the error is unknown (NaN), not 0: nothing to spread."""
         if self.count.shape != other.count.shape or not np.array_equal(self.count, other.count):
             raise ValueError("other: expected the terms of the same chunks")
         counts = self.count.sum(axis=0)
@@ -103,6 +103,8 @@ class RiskTerms:
         scale = mean_count / counts  # each axis over its own observations
         d = ((self.errors(meas_var) - other.errors(meas_var)) * scale).sum(axis=1)
         D = float(d.sum() / mean_count)
+        if len(d) < 2:
+            return D, math.nan
         spread = float(((d - D * self.count.mean(axis=1)) ** 2).sum())
         return D, math.sqrt(spread) / mean_count
 

@@ -204,8 +204,8 @@ def kalman_twin(settings: Settings) -> Settings:
 
 @dataclass
 class LayerCheck:
-    """Whether the variable boundary layer's limit earned its place on the sample
-    (:func:`checked_layer`)."""
+    """Whether the variable boundary layer's limit earned its place on the sample: surely lower
+    than its Kalman twin (:func:`checked_layer`)."""
 
     estimator: str  #: the SVSF-family estimator asked for
     settings: Settings  #: what the run uses: the layer's, or its Kalman twin's
@@ -220,36 +220,42 @@ class LayerCheck:
         if self.kept:
             return (
                 f"{estimator}: the boundary layer's limit kept: {without} "
-                f"{self.change:+.3g} ± {self.change_se:.2g} m² per point against it"
+                f"{self.change:.3g} ± {self.change_se:.2g} m² per point higher, surely (SURE, "
+                "paired)"
             )
         return (
-            f"{estimator}: the boundary layer's limit costs on these tracks: {without} "
-            f"{-self.change:.3g} ± {self.change_se:.2g} m² per point lower, surely (SURE, "
-            f"paired); running without a limit, as {TWIN_NAMES[twin]} (--psi keeps a limit)"
+            f"{estimator}: the boundary layer's limit does not surely help on these tracks: "
+            f"{without} {self.change:+.3g} ± {self.change_se:.2g} m² per point against it; "
+            f"running without a limit, as {TWIN_NAMES[twin]} (--psi keeps a limit)"
         )
 
 
 def checked_layer(
     settings: Settings, twin_settings: Settings, sample: RecordedTracks
 ) -> LayerCheck:
-    """The settings of an SVSF-family estimator in the variable boundary layer's mode, or its
-    Kalman twin's (``twin_settings``, the layer without a limit: :data:`KALMAN_TWINS`) where the
-    twin's estimated MSE on ``sample`` is below the layer's by more than
-    :data:`SWITCH_ERRORS` standard errors of their paired difference (the rule ``auto`` keeps
-    its incumbent by, here with the layer as the incumbent). The limit acts only on innovations
-    the model does not explain; where the tracks have none that it helps with, it only
-    inflates the covariance at noise (simulated hard turns at σ 50 m: the SVSS 1.02× the Kalman
-    smoother, SURE's paired difference 2.2 standard errors in the smoother's favour).
-    ``chosen_from`` of the returned twin's settings names both."""
+    """The settings of an SVSF-family estimator in the variable boundary layer's mode where its
+    estimated MSE on ``sample`` is below its Kalman twin's (``twin_settings``, the layer without
+    a limit: :data:`KALMAN_TWINS`) by more than :data:`SWITCH_ERRORS` standard errors of their
+    paired difference, else the twin's (the rule ``auto`` keeps its incumbent by, here with the
+    twin as the incumbent: the simpler model, which the layer without a limit is). The limit
+    acts only on innovations the model does not explain; where the tracks have none it helps
+    with, it only inflates the covariance at noise (simulated hard turns at σ 50 m: the SVSS
+    1.02x the Kalman smoother). Measured on the recorded-tracks benchmark (11 sets × 4 modes,
+    the best of the family over the Kalman smoother): with the layer the incumbent (kept unless
+    SURE found it costly) 16 of the 44 above 1, the worst 1.0066, mean 0.9982; with the twin the
+    incumbent, 3 above 1, the worst 1.0023, mean 0.9986 (near-ties of 1% gains on two sets go
+    to the twin); by SURE alone (no margin) 6 above 1, the worst 1.0049, mean 0.9975. Too
+    little data to say (NaN): the twin. ``chosen_from`` of the returned twin's settings names
+    both."""
     layer_terms = sample_terms(settings, sample)
     twin_terms = sample_terms(twin_settings, sample)
     assert settings.meas_var is not None
     change, change_se = twin_terms.difference(layer_terms, settings.meas_var)
     name = settings.estimator
-    if change + SWITCH_ERRORS * change_se < 0.0:  # (NaN: too little data to say; kept)
-        chosen = replace(twin_settings, chosen_from=[name, twin_settings.estimator])
-        return LayerCheck(name, chosen, False, change, change_se)
-    return LayerCheck(name, settings, True, change, change_se)
+    if change - SWITCH_ERRORS * change_se > 0.0:  # the layer surely lower (NaN: not)
+        return LayerCheck(name, settings, True, change, change_se)
+    chosen = replace(twin_settings, chosen_from=[name, twin_settings.estimator])
+    return LayerCheck(name, chosen, False, change, change_se)
 
 
 def spread_tracks(tracks: RecordedTracks, points: int) -> RecordedTracks:

@@ -181,8 +181,9 @@ def track_parser() -> argparse.ArgumentParser:
         default=None,
         help="SVSF family's boundary layer, one value or one per axis: the variable boundary "
         "layer's limit in innovation standard deviations (default 2 for svsf and spvsf, 4 for "
-        "the smoothers svss and svstps); with --no-velocity the "
-        "width in measurement noise standard deviations (default 5)",
+        "the smoothers svss and svstps, kept where the sample shows it surely helps, else "
+        "the run goes as the Kalman twin); with --no-velocity the width in measurement noise "
+        "standard deviations (default 5)",
     )
     parser.add_argument(
         "--gamma", type=_fraction, default=0.1, help="SVSF memory in [0, 1) (default 0.1)"

@@ -285,7 +285,7 @@ def _settled(
     """The settings left open read off ``sample`` without its isolated outliers, then fitted
     or chosen (``--estimator auto``); the screened sample, and the fit's summary. With
     ``check_layer``, an SVSF-family estimator whose boundary layer the user left open keeps its
-    limit only where the sample shows no cost of it (:func:`~torchsvs.selection.checked_layer`:
+    limit only where the sample shows it surely helps (:func:`~torchsvs.selection.checked_layer`:
     else it runs as its Kalman twin, the layer without a limit)."""
     settings, sample, _ = screened(settings, sample)
     # the layer's limit read off the data too, where the user left it open
