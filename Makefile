@@ -54,6 +54,7 @@ bench-million: $(STAMP)
 # beside pyarrow's floor, with the cost model: benchmarks/scale.md (about half an hour).
 bench-scale: $(STAMP)
 	$(PY) -m benchmarks.scale --rows 100000000 --small 10000000 --files 100
+	$(PY) -m benchmarks.floor_pairs --rows 10000000 --files 10 --pairs 12
 
 real: $(STAMP)
 	$(PY) -m experiments.real_flights
