@@ -67,14 +67,12 @@ def report(found: list[tuple[Measured, Measured]], options: str, path: Path) -> 
     ]
     for name, values in ratios.items():
         lines.append(
-            f"| {name} | {statistics.median(values):.2f} | {min(values):.2f} | "
-            f"{max(values):.2f} |"
+            f"| {name} | {statistics.median(values):.2f} | {min(values):.2f} | {max(values):.2f} |"
         )
     lines += ["", "| seconds | median | min | max |", "|---|---|---|---|"]
     for name, values in seconds.items():
         lines.append(
-            f"| {name} | {statistics.median(values):.2f} | {min(values):.2f} | "
-            f"{max(values):.2f} |"
+            f"| {name} | {statistics.median(values):.2f} | {min(values):.2f} | {max(values):.2f} |"
         )
     peak = max(one.peak_gib for _, one in found)
     lines += ["", f"`torchsvs track`'s peak resident memory: at most {peak:.2f} GiB."]
