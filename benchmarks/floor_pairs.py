@@ -62,20 +62,16 @@ def report(found: list[tuple[Measured, Measured]], options: str, path: Path) -> 
         "after the other, the first of a pair alternating; each run a child process. Machine: "
         "2 cores, shared.",
         "",
-        "| ratio, pair by pair | median | min | max |",
-        "|---|---|---|---|",
     ]
-    for name, values in ratios.items():
-        lines.append(
-            f"| {name} | {statistics.median(values):.2f} | {min(values):.2f} | {max(values):.2f} |"
-        )
-    lines += ["", "| seconds | median | min | max |", "|---|---|---|---|"]
-    for name, values in seconds.items():
-        lines.append(
-            f"| {name} | {statistics.median(values):.2f} | {min(values):.2f} | {max(values):.2f} |"
-        )
+    for title, table in (("ratio, pair by pair", ratios), ("seconds", seconds)):
+        lines += [f"| {title} | median | min | max |", "|---|---|---|---|"]
+        lines += [
+            f"| {name} | {statistics.median(v):.2f} | {min(v):.2f} | {max(v):.2f} |"
+            for name, v in table.items()
+        ]
+        lines.append("")
     peak = max(one.peak_gib for _, one in found)
-    lines += ["", f"`torchsvs track`'s peak resident memory: at most {peak:.2f} GiB."]
+    lines.append(f"`torchsvs track`'s peak resident memory: at most {peak:.2f} GiB.")
     text = "\n".join(lines) + "\n"
     path.write_text(text)
     return text
