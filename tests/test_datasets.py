@@ -344,3 +344,37 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
         want = priors._scanned_two_points(zs, dts.to(torch.float64))
         for a, b in zip(got, want, strict=True):
             assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_estimate_table_gives_each_row_its_steps_estimates(tmp_path, shuffled):
+    """Each output row carries its step's estimates (rows of one step share them; a row set
+    aside has none), whether the rows are their steps in order (nothing taken) or not (the
+    rows taken as items): against a row-by-row reference, covariances and outliers too."""
+    import pyarrow as pa
+
+    from torchsvs.datasets import track_blocks
+    from torchsvs.datasets.writing import estimate_table
+
+    rng = np.random.default_rng(5)
+    rows = [(f"t{k}", float(t), *rng.normal(0, 100, 2)) for k in range(6) for t in range(9)]
+    if shuffled:
+        rows += [rows[3], ("t2", math.nan, 1.0, 2.0)]  # a duplicate time, a row without time
+        rows = [rows[i] for i in rng.permutation(len(rows))]
+    path = tmp_path / "rows.csv"
+    path.write_text("id,time,x,y\n" + "\n".join(",".join(map(str, r)) for r in rows) + "\n")
+    (block,) = track_blocks(path, Columns(track_id="id"), whole=True)
+    S = block.steps.position.shape[0]
+    mean = rng.normal(size=(S, 4))
+    cov = rng.normal(size=(S, 4, 4))
+    outlier = rng.random(S) < 0.3
+    out = estimate_table(block, mean, cov, outlier=outlier, precision="float32")
+    step = block.steps.row_step
+    assert (step >= 0).all() != shuffled  # (the shuffled file has a row set aside)
+    for name, j in (("x", 0), ("vx", 1), ("y", 2), ("vy", 3)):
+        expected = [None if s < 0 else float(np.float32(mean[s, j])) for s in step]
+        assert out.column(name).to_pylist() == expected, name
+    expected = [None if s < 0 else float(np.float32(cov[s, 1, 2])) for s in step]
+    assert out.column("cov_vx_y").to_pylist() == expected
+    assert out.column("outlier").to_pylist() == [bool(s >= 0 and outlier[s]) for s in step]
+    assert out.column("x").type == pa.float32() and len(out) == len(rows)

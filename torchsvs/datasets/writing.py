@@ -18,7 +18,7 @@ from torch import Tensor
 from torchsvs.datasets.paths import check_output, dataset_files
 from torchsvs.datasets.reading import TrackBlock
 from torchsvs.datasets.rows import Columns, file_format
-from torchsvs.datasets.steps import TrackSteps
+from torchsvs.datasets.steps import TrackSteps, as_rows
 from torchsvs.datasets.tracks import RecordedTracks
 
 
@@ -126,16 +126,29 @@ def estimate_table(
         mean, cov = to_geodetic(steps, mean, cov)
     row_step = steps.row_step
     placed = row_step >= 0
-    index = np.where(placed, row_step, 0)
-
     everywhere = bool(placed.all())
+    # each row's step's estimates, the rows taken once as items (as_rows: not column by
+    # column); rows that are their steps in order (a sorted file's usual case) need none taken
+    if everywhere and len(row_step) == len(mean) and _counts_up(row_step):
+        rows, row_cov = mean, cov
+    else:
+        index = np.where(placed, row_step, 0)
+
+        def take(values: np.ndarray) -> np.ndarray:
+            picked = as_rows(np.ascontiguousarray(values))[index]
+            picked = picked.view(values.dtype).reshape(len(index), *values.shape[1:])
+            if not everywhere:
+                picked[~placed] = np.nan
+            return picked
+
+        rows = take(mean) if len(mean) else mean
+        row_cov = cov if cov is None or not len(cov) else take(cov)
 
     def per_row(values: np.ndarray) -> Any:
-        # NaN (not estimated) becomes an empty field
-        picked = values[index]
-        if not everywhere:
-            picked[~placed] = np.nan
-        return nan_as_null(picked.astype(kind, copy=False))
+        # NaN (not estimated) becomes an empty field; no step at all: every field
+        if not len(values):
+            return pa.nulls(len(row_step), pa.from_numpy_dtype(kind))
+        return nan_as_null(values.astype(kind, copy=False))
 
     ids = block.table.column(cols.track_id)
     out = {
@@ -145,17 +158,21 @@ def estimate_table(
     # metric: x, vx, y, vy, ...; WGS 84: the positions, then the velocities
     order = range(2 * m) if not cols.geodetic else [*range(0, 2 * m, 2), *range(1, 2 * m, 2)]
     for j in order:
-        out[names[j]] = (
-            per_row(mean[:, j]) if len(mean) else pa.nulls(len(row_step), pa.from_numpy_dtype(kind))
-        )
-    if cov is not None:
+        out[names[j]] = per_row(rows[:, j])
+    if row_cov is not None:
         for a in range(2 * m):
             for b in range(a, 2 * m):
-                out[f"cov_{cov_names[a]}_{cov_names[b]}"] = per_row(cov[:, a, b])
+                out[f"cov_{cov_names[a]}_{cov_names[b]}"] = per_row(row_cov[:, a, b])
     if outlier is not None:
+        index = np.where(placed, row_step, 0)
         flags = outlier[index] if len(outlier) else np.zeros(len(row_step), dtype=bool)
         out["outlier"] = pa.array(placed & flags, type=pa.bool_())
     return pa.table(out)
+
+
+def _counts_up(values: np.ndarray) -> bool:
+    """Whether ``values`` is ``0, 1, 2, ...``."""
+    return len(values) == 0 or (values[0] == 0 and bool((np.diff(values) == 1).all()))
 
 
 def nan_as_null(values: np.ndarray) -> Any:
