@@ -124,9 +124,9 @@ class Run:
 
 def estimator_choices(parser: argparse.ArgumentParser | None = None) -> tuple[list[str], str]:
     """The ``--estimator`` choices of ``torchsvs track`` (those of
-    :data:`torchsvs.recipes.ESTIMATORS` first, in its order, then any other, such as ``auto``)
+    :data:`torchsvs.estimator_names.ESTIMATORS` first, in its order, then any other, such as ``auto``)
     and its default."""
-    from torchsvs.recipes import ESTIMATORS
+    from torchsvs.estimator_names import ESTIMATORS
     from torchsvs.track_options import track_parser
 
     parser = parser or track_parser()
@@ -571,6 +571,16 @@ def _short(text: str, size: int) -> str:
     return text if len(text) <= size else text[: size - 1] + "…"
 
 
+def best_run(
+    index: dict[tuple[str, str, str], Run], s: str, estimators: Sequence[str], mode: str
+) -> Run | None:
+    """The run of the lowest RMSE among ``estimators`` on set ``s`` in ``mode`` (runs that
+    failed or left rows without an estimate do not count), or None."""
+    done = [index.get((s, e, mode)) for e in estimators]
+    usable = [r for r in done if r is not None and r.ok and not r.missing]
+    return min(usable, key=lambda r: r.rmse) if usable else None
+
+
 def best_section(
     runs: Sequence[Run], sets: Sequence[str], estimators: Sequence[str], modes: Sequence[str]
 ) -> list[str]:
@@ -582,12 +592,10 @@ def best_section(
     for s in sets:
         cells: list[object] = [s]
         for mode in modes:
-            done = [index.get((s, e, mode)) for e in singles]
-            usable = [r for r in done if r is not None and r.ok and not r.missing]
-            if not usable:
+            best = best_run(index, s, singles, mode)
+            if best is None:
                 cells += ["—"] + (["—"] if has_auto else [])
                 continue
-            best = min(usable, key=lambda r: r.rmse)
             cells.append(f"{best.estimator} {_f(best.rmse)} ({best.ratio:.2f})")
             if not has_auto:
                 continue
@@ -618,13 +626,10 @@ def family_section(runs: Sequence[Run], sets: Sequence[str], modes: Sequence[str
     for s in sets:
         cells: list[object] = [s]
         for mode in modes:
-            ks = index.get((s, "ks", mode))
-            done = [index.get((s, e, mode)) for e in FAMILY]
-            usable = [r for r in done if r is not None and r.ok and not r.missing]
-            if ks is None or not ks.ok or ks.missing or not usable:
+            ks, best = best_run(index, s, ["ks"], mode), best_run(index, s, FAMILY, mode)
+            if ks is None or best is None:
                 cells.append("—")
                 continue
-            best = min(usable, key=lambda r: r.rmse)
             ratio = round(best.rmse / ks.rmse, 4)  # (as printed: a twin's float noise is 1)
             ratios.append((ratio, s, mode))
             text = f"{ratio:.4f} ({best.estimator})"

@@ -5,7 +5,6 @@ estimators' own argument checks."""
 
 from __future__ import annotations
 
-import inspect
 import math
 import os
 import re
@@ -701,7 +700,7 @@ def _option_help(name: str) -> str:
     return " ".join(str(action.help).split())
 
 
-def test_readme_and_help_say_who_reads_the_file_and_in_what_order():
+def test_readme_and_help_say_who_reads_the_file_and_in_what_order(tmp_path):
     """``--processes``: rank 0 alone reads the file (torchsvs.training.predict reads it on rank
     0 and broadcasts the steps); streaming (files of more than 2^22 rows) needs contiguous tracks,
     and the help of both reading modes and the track-file guide say so."""
@@ -712,7 +711,18 @@ def test_readme_and_help_say_who_reads_the_file_and_in_what_order():
     assert "rank 0 alone reads the whole file" in _option_help("--processes")
     assert "rank 0 alone reads the whole file" in readme
     assert "Only rank 0 reads the file" in predict.TrackFileDataModule.__doc__
-    assert "reads_whole(path)" in inspect.getsource(ReadAhead._read)  # track_file's reading
+    # track_file's reading: whole where the file is small enough (whole=None), so a small
+    # file's tracks need not be contiguous; streamed, they must be
+    scattered = tmp_path / "scattered.csv"
+    scattered.write_text("track_id,time,x,y\na,1,0,0\nb,1,5,5\na,2,1,1\nb,2,6,6\na,3,2,2\n")
+    with ReadAhead(scattered, Columns(time_unit="s"), whole=None) as reader:
+        (block,) = list(reader)
+    assert block.steps.ids == ["a", "b"] and list(block.steps.length) == [3, 2]
+    with (
+        ReadAhead(scattered, Columns(time_unit="s"), whole=False) as reader,
+        pytest.raises(ValueError, match="'a': its rows are not contiguous"),
+    ):
+        list(reader)
     assert WHOLE_ROWS == 1 << 22
     for text in (_option_help("--stream"), readme):
         assert "2^22 rows" in text and "contiguous" in text and "--in-memory" in text

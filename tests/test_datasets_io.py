@@ -321,7 +321,7 @@ def test_a_write_that_fails_beside_the_estimating_stops_the_run_and_leaves_the_o
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
-def test_themedian_interval_is_numpys_nanmedian():
+def test_the_median_interval_is_numpys_nanmedian():
     """The first step's interval (a track's median one): one sort of the padded rows, the
     same numbers as np.nanmedian (the middle two's mean for an even count), 1 without any."""
     import warnings

@@ -15,6 +15,7 @@ import pytest
 
 import torchsvs
 import torchsvs.datasets
+import torchsvs.training
 from tests.test_datasets_io import _table
 from torchsvs.datasets import Columns, describe_input, track_blocks
 from torchsvs.datasets import reading as reading_module
@@ -41,13 +42,14 @@ def _same_blocks(got, expected) -> None:
         np.testing.assert_array_equal(a.steps.row_step, b.steps.row_step)
 
 
-@pytest.mark.parametrize("ahead_rows", [1, 100, 10**6])
-def test_read_ahead_gives_the_blocks_of_track_blocks(dataset, ahead_rows):
+def test_read_ahead_gives_the_blocks_of_track_blocks(dataset):
     expected = list(track_blocks(dataset, COLUMNS, block_rows=64))
-    with ReadAhead(dataset, COLUMNS, block_rows=64, ahead_rows=ahead_rows) as reader:
+    with ReadAhead(dataset, COLUMNS, block_rows=64) as reader:
         got = list(reader)
     _same_blocks(got, expected)
     assert reader.reading > 0.0 and reader.waiting >= 0.0
+    with pytest.raises(ValueError, match="describe: .*describe=True"):  # (not a wait forever)
+        reader.description()
 
 
 def test_read_ahead_describes_first_and_reads_with_the_resolved_columns(dataset):
@@ -75,7 +77,7 @@ def test_read_ahead_reads_no_more_than_asked_ahead(dataset, monkeypatch):
 
     monkeypatch.setattr(reading_module, "track_blocks", counted)
     taken = 0
-    with ReadAhead(dataset, COLUMNS, block_rows=64, ahead_rows=1) as reader:
+    with ReadAhead(dataset, COLUMNS, block_rows=64) as reader:
         for _ in reader:
             taken += 1
             time.sleep(0.05)  # (the thread would read everything meanwhile, unbounded)
@@ -109,11 +111,12 @@ def test_read_ahead_hands_its_errors_to_the_caller(tmp_path, dataset, monkeypatc
 
 
 def test_closing_stops_the_thread(dataset):
-    reader = ReadAhead(dataset, COLUMNS, block_rows=64, ahead_rows=1)
+    reader = ReadAhead(dataset, COLUMNS, block_rows=64)
     next(iter(reader))
     reader.close()
     reader._thread.join(timeout=10)
     assert not reader._thread.is_alive()
+    assert list(reader) == []  # (the blocks read, and one in reading as it closed, dropped)
     assert not any(t.name == "read-ahead" and t is reader._thread for t in threading.enumerate())
 
 
@@ -138,8 +141,21 @@ def test_reading_and_the_command_line_import_no_torch():
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
 
 
-@pytest.mark.parametrize("package", [torchsvs, torchsvs.datasets])
+@pytest.mark.parametrize("package", [torchsvs, torchsvs.datasets, torchsvs.training])
 def test_every_public_name_of_a_lazy_package_resolves(package):
+    """Each name of ``__all__`` resolves, and the three lists of a lazy package agree: its
+    homes, its ``__all__`` and the names it imports for the type checker (``TYPE_CHECKING``),
+    so a name added to one and not the others fails here."""
+    import ast
+    import inspect
+
+    checked: set[str] = set()
+    for node in ast.walk(ast.parse(inspect.getsource(package))):
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            for statement in ast.walk(node):
+                if isinstance(statement, ast.ImportFrom):
+                    checked |= {alias.asname or alias.name for alias in statement.names}
+    assert checked == set(package._HOMES) == set(package.__all__)
     for name in package.__all__:
         assert getattr(package, name) is not None, name
     assert set(package.__all__) <= set(dir(package))
@@ -147,3 +163,18 @@ def test_every_public_name_of_a_lazy_package_resolves(package):
         package.no_such_name  # noqa: B018
     assert torchsvs.SVSF is torchsvs.filters.SVSF
     assert torchsvs.datasets.read_tracks is torchsvs.datasets.tracks.read_tracks
+
+
+def test_track_file_refuses_the_reading_of_another_file(dataset, tmp_path):
+    """A run handed blocks already being read (``torchsvs track``) checks they are its
+    source's: estimates of one file written as another's rows would be silently wrong."""
+    from torchsvs.recipes import Settings
+    from torchsvs.tracking import track_file
+
+    other = tmp_path / "other.parquet"
+    other.write_bytes(next(dataset.iterdir()).read_bytes())
+    with (
+        ReadAhead(dataset) as reader,
+        pytest.raises(ValueError, match="blocks: expected the reading of .*other.parquet"),
+    ):
+        track_file(other, tmp_path / "out.csv", Settings("ks"), blocks=reader)

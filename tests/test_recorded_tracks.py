@@ -176,7 +176,7 @@ def test_roughness_reads_white_error_off_one_second_reports() -> None:
 
 
 def test_estimator_choices_follow_the_command_including_auto() -> None:
-    from torchsvs.recipes import ESTIMATORS
+    from torchsvs.estimator_names import ESTIMATORS
     from torchsvs.track_options import track_parser
 
     names, default = rt.estimator_choices()

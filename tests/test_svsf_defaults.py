@@ -526,6 +526,7 @@ def test_the_layer_check_runs_the_twin_on_a_near_tie_and_keeps_the_limit_for_a_s
         assert "limit kept" in found.line() and "higher, surely" in found.line()
     one = check(shared + 2000.0, chunks=1)  # one chunk: no error to judge by (NaN, not 0)
     assert not one.kept and one.change > 0 and math.isnan(one.change_se)
+    assert "± ? (too little data)" in one.line() and "nan" not in one.line()
 
 
 def test_an_svss_whose_limit_costs_runs_as_the_kalman_smoother(tmp_path):

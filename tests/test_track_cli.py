@@ -376,3 +376,20 @@ def test_the_summary_json_is_read_back_as_written_a_key_to_a_line():
     lines = text.splitlines()
     assert len(lines) == 17  # braces, 4 plain keys, 2 dicts of 4 and 3 entries between theirs
     assert '  "t1": {"estimated_position_rmse": 0.3333333333333333, "points": 1},' in lines
+
+
+def test_the_summary_json_writes_an_unknown_number_as_null():
+    """A number that is not finite (an unknown standard error: NaN, of a one-chunk sample) is
+    written ``null``: strict JSON readers refuse ``NaN``; the finite numbers beside it stay."""
+    import json
+
+    from torchsvs.track_run import _json_text
+
+    summary = {
+        "candidates": [{"estimator": "svss", "mse_change": -3.5, "mse_change_se": math.nan}],
+        "fit": {"se": np.float64(np.inf), "q": 0.25},
+        "seconds": 1.5,
+    }
+    back = json.loads(_json_text(summary), parse_constant=lambda c: pytest.fail(f"{c} written"))
+    assert back["candidates"] == [{"estimator": "svss", "mse_change": -3.5, "mse_change_se": None}]
+    assert back["fit"] == {"se": None, "q": 0.25} and back["seconds"] == 1.5

@@ -289,13 +289,25 @@ def test_a_runs_worst_tracks_are_the_worst_of_all_its_blocks(monkeypatch):
     assert [(k, v["estimated_position_rmse"]) for k, v in written.items()] == expected
 
 
-def test_steps_no_group_placed_are_written_empty():
-    """A block's estimates are placed group by group into unwritten arrays; a step that no
-    group placed comes out NaN, never what the memory held."""
+@pytest.mark.parametrize("placed_by_its_thread", [False, True])
+def test_steps_no_group_placed_are_written_empty(placed_by_its_thread):
+    """A block's estimates are placed group by group into unwritten arrays (by ``add``, or by
+    ``place`` on the group's thread, then counted by ``add(placed=True)``, as ``estimate_block``
+    does); a step that no group placed comes out NaN, never what the memory held, in the
+    arrays once finished and in the output table whether finished or not."""
     from torchsvs.estimating import StepEstimates
     from torchsvs.track_run import BlockEstimates
 
-    steps = _plan_block_steps()
+    table = pa.table(
+        {
+            "id": ["a"] * 4 + ["b"] * 3,
+            "t": [0.0, 1, 2, 3, 0, 1, 2],
+            "x": np.arange(7.0),
+            "y": np.arange(7.0),
+        }
+    )
+    block = block_of(table, COLUMNS)
+    steps = block.steps
     found = BlockEstimates.empty(steps, covariance=True)
     found.mean[:] = 7.0  # (what the memory might hold)
     assert found.cov is not None
@@ -310,21 +322,14 @@ def test_steps_no_group_placed_are_written_empty():
         np.zeros((1, 2), dtype=bool),
         {},
     )
-    found.add(part)
+    if placed_by_its_thread:
+        found.place(part)
+        found.add(part, placed=True)
+    else:
+        found.add(part)
+    out = found.table(block)  # (finishes first)
+    assert out.column("x").to_pylist() == [1.0] * len(first) + [None] * (7 - len(first))
     found.finish()
     assert (found.mean[first] == 1.0).all() and (found.cov[first] == 1.0).all()
     rest = np.setdiff1d(np.arange(len(found.mean)), first)
     assert len(rest) and np.isnan(found.mean[rest]).all() and np.isnan(found.cov[rest]).all()
-
-
-def _plan_block_steps():
-    """Two tracks of two axes (four and three steps)."""
-    table = pa.table(
-        {
-            "id": ["a"] * 4 + ["b"] * 3,
-            "t": [0.0, 1, 2, 3, 0, 1, 2],
-            "x": np.arange(7.0),
-            "y": np.arange(7.0),
-        }
-    )
-    return block_of(table, COLUMNS).steps

@@ -56,6 +56,20 @@ CAUTION = 2.0
 SWITCH_ERRORS = 1.0
 
 
+def surely_lower(change: float, change_se: float) -> bool:
+    """Whether a challenger's estimated MSE is surely below the incumbent's: ``change`` (the
+    challenger's less the incumbent's, m² per point, paired) below 0 by more than
+    :data:`SWITCH_ERRORS` standard errors ``change_se``; too little data to say (NaN): not. The
+    rule of ``auto`` (the Kalman smoother the first incumbent) and of :func:`checked_layer` (the
+    Kalman twin the incumbent)."""
+    return change + SWITCH_ERRORS * change_se < 0.0
+
+
+def _error_text(change_se: float) -> str:
+    """A paired difference's standard error as printed (of one chunk it is unknown)."""
+    return f"{change_se:.2g}" if math.isfinite(change_se) else "? (too little data)"
+
+
 def caution_score(estimate: float, standard_error: float) -> float:
     """The score ``--estimator auto`` ranks candidates by (lower is better, see CAUTION)."""
     if not estimate > 0:
@@ -84,7 +98,8 @@ class Choice:
             mark = " <- chosen" if row["estimator"] == self.settings.estimator else ""
             change = ""
             if "mse_change" in row:  # against the candidate chosen before it, paired
-                change = f"  (MSE {row['mse_change']:+.3g} ± {row['mse_change_se']:.2g} m²)"
+                se = _error_text(row["mse_change_se"])
+                change = f"  (MSE {row['mse_change']:+.3g} ± {se} m²)"
             lines.append(
                 f"{row['estimator']:<10} {row['estimated_position_rmse']:8.3g} ± "
                 f"{row['standard_error']:<8.2g}            {row['seconds']:6.1f}  "
@@ -112,7 +127,7 @@ def choose_estimator(
         settings: what the user gave (``estimator`` is ignored; a given ``meas_var`` is the
             sensor's noise, else it is read off the data once for every candidate).
         sample: the tracks to fit and score on (float64).
-        candidates: estimator names of :data:`~torchsvs.recipes.ESTIMATORS`.
+        candidates: estimator names of :data:`~torchsvs.estimator_names.ESTIMATORS`.
         say: where to print progress.
         fit_options: keyword arguments of :func:`~torchsvs.fitting.tuning.self_tune`.
     """
@@ -174,7 +189,7 @@ def choose_estimator(
             assert fitted.meas_var is not None
             change, change_se = terms.difference(best_terms, fitted.meas_var)
             row["mse_change"], row["mse_change_se"] = change, change_se
-            surely = change + SWITCH_ERRORS * change_se < 0.0
+            surely = surely_lower(change, change_se)
         rows.append(row)
         if score < best_rmse and surely:
             best, best_rmse, best_terms = fitted, score, terms
@@ -217,15 +232,15 @@ class LayerCheck:
         """What the run says of the check."""
         estimator, twin = self.estimator, KALMAN_TWINS[self.estimator]
         without = f"without it ({TWIN_NAMES[twin]}, {twin}) the estimated MSE is"
+        se = _error_text(self.change_se)
         if self.kept:
             return (
                 f"{estimator}: the boundary layer's limit kept: {without} "
-                f"{self.change:.3g} ± {self.change_se:.2g} m² per point higher, surely (SURE, "
-                "paired)"
+                f"{self.change:.3g} ± {se} m² per point higher, surely (SURE, paired)"
             )
         return (
             f"{estimator}: the boundary layer's limit does not surely help on these tracks: "
-            f"{without} {self.change:+.3g} ± {self.change_se:.2g} m² per point against it; "
+            f"{without} {self.change:+.3g} ± {se} m² per point against it; "
             f"running without a limit, as {TWIN_NAMES[twin]} (--psi keeps a limit)"
         )
 
@@ -252,7 +267,7 @@ def checked_layer(
     assert settings.meas_var is not None
     change, change_se = twin_terms.difference(layer_terms, settings.meas_var)
     name = settings.estimator
-    if change - SWITCH_ERRORS * change_se > 0.0:  # the layer surely lower (NaN: not)
+    if surely_lower(-change, change_se):  # (the layer the challenger)
         return LayerCheck(name, settings, True, change, change_se)
     chosen = replace(twin_settings, chosen_from=[name, twin_settings.estimator])
     return LayerCheck(name, chosen, False, change, change_se)

@@ -149,15 +149,19 @@ def start_reading(args: argparse.Namespace) -> Any:
     it."""
     from torchsvs.datasets.reading import ReadAhead
 
-    whole = True if args.in_memory else False if args.stream else None
     return ReadAhead(
         args.input,
         _columns(args),
         block_rows=args.block_rows,
-        whole=whole,
+        whole=_whole(args),
         describe=True,
         name="input",
     )
+
+
+def _whole(args: argparse.Namespace) -> bool | None:
+    """The input read whole (``--in-memory``), streamed (``--stream``), or as its size says."""
+    return True if args.in_memory else False if args.stream else None
 
 
 def described_columns(args: argparse.Namespace, described: Any) -> Any:
@@ -275,11 +279,7 @@ def _track(args: argparse.Namespace, reader: Any = None) -> None:
     try:
         if reader is not None:  # (read while the lines above imported)
             args.columns = described_columns(args, reader.description())
-    except (ValueError, TypeError, FileNotFoundError) as err:
-        reader.close()
-        raise SystemExit(f"torchsvs track: {err}") from err
-    columns = getattr(args, "columns", None) or _columns(args)
-    try:
+        columns = getattr(args, "columns", None) or _columns(args)
         if args.checkpoint is not None and Path(args.checkpoint).is_file():
             try:
                 base = saved_settings(args.checkpoint)
@@ -345,7 +345,7 @@ def _track(args: argparse.Namespace, reader: Any = None) -> None:
                 args.input,
                 args.output,
                 settings,
-                whole=True if args.in_memory else False if args.stream else None,
+                whole=_whole(args),
                 progress=not args.quiet,
                 blocks=reader,
                 **common,

@@ -111,7 +111,9 @@ class BlockEstimates:
             self.cov[missing] = np.nan
 
     def table(self, block: TrackBlock, precision: str = "float64") -> Any:
-        """The block's output rows (:func:`~torchsvs.datasets.estimate_table`)."""
+        """The block's output rows (:func:`~torchsvs.datasets.estimate_table`), NaN where no
+        group placed estimates (:meth:`finish`: never what the unwritten memory held)."""
+        self.finish()
         return estimate_table(
             block, self.mean, self.cov, self.never_observed, self.outlier, precision
         )
@@ -218,9 +220,9 @@ class TrackRun:
         worst = sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:count]
         self.track_errors = dict(worst)
         self.track_q = {k: v for k, v in self.track_q.items() if k in self.track_errors}
-        if count >= TRACKS_KEPT:  # (a floor for keeping the worst TRACKS_KEPT, not fewer)
-            floor = worst[-1][1][0]
-            self.error_floor = floor if self.error_floor is None else max(self.error_floor, floor)
+        if count >= TRACKS_KEPT:  # (a floor for keeping the worst TRACKS_KEPT, not fewer;
+            # the worst of a larger set: it never falls)
+            self.error_floor = worst[-1][1][0]
 
     def check(self) -> None:
         """Warns where the estimate is not clearly better than the raw measurements."""
@@ -414,10 +416,17 @@ def _json_text(summary: dict[str, Any]) -> str:
     """``summary`` as JSON a key to a line, and a line to each of a dict value's entries
     (the tracks' error estimates: 20,000 of them): what ``json.dumps(indent=1)`` shows, by the
     C encoder (the indented one is Python's, 0.4 s on 20,000 tracks), one encoder for all
-    (a call of ``json.dumps`` makes one: twice the time)."""
+    (a call of ``json.dumps`` makes one: twice the time). A number that is not finite (an
+    error unknown: NaN) is written ``null``: strict JSON has no NaN, and readers refuse it."""
     import json
 
-    dump = json.JSONEncoder(default=_json_default).encode
+    strict = json.JSONEncoder(default=_json_default, allow_nan=False).encode
+
+    def dump(value: Any) -> str:
+        try:
+            return strict(value)
+        except ValueError:  # (a NaN or an infinity inside)
+            return strict(_finite(value))
 
     lines = []
     for key, value in summary.items():
@@ -427,6 +436,17 @@ def _json_text(summary: dict[str, Any]) -> str:
         else:
             lines.append(f" {dump(key)}: {dump(value)}")
     return "{\n" + ",\n".join(lines) + "\n}"
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with each number that is not finite (within dicts and lists too) as None."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    return value
 
 
 def _json_default(value: Any) -> Any:

@@ -128,7 +128,6 @@ def estimate_block(
             found.add(estimates, placed=True)
             if progress is not None:
                 progress.update(len(group))
-    found.finish()
     run.estimate_seconds += time.perf_counter() - tick
     run.estimate_cpu_seconds += time.process_time() - cpu
     run.add_block(found, steps)

@@ -89,7 +89,8 @@ def track_file(
             below the measurements'.
         summary: write the run's summary as JSON next to the output (:func:`summary_path`).
         blocks: ``source``'s blocks, already being read (a :class:`~torchsvs.datasets.reading.
-            ReadAhead` started before torch was imported: ``torchsvs track``); else read here
+            ReadAhead` started before torch was imported: ``torchsvs track``), which then set
+            the columns, ``whole`` and ``block_rows``, and which the run closes; else read here
             with ``columns``, ``whole`` and ``block_rows``.
     """
     from tqdm.auto import tqdm
@@ -106,6 +107,10 @@ def track_file(
     # thread of its own (Arrow's reading and writing, numpy and torch release the GIL).
     if blocks is None:
         blocks = ReadAhead(source, columns, block_rows=block_rows, whole=whole)
+    elif blocks.path != Path(source):
+        raise ValueError(
+            f"blocks: expected the reading of {str(source)!r}, got {str(blocks.path)!r}"
+        )
     with blocks, EstimateWriter(target, source) as writer:
         behind = WriteBehind(writer, phases)
         try:

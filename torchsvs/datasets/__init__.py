@@ -6,8 +6,9 @@ measurements, ids and times) and a :class:`RowReport` saying what happened to ev
 ``write_estimates`` writes one output row per input row.
 """
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from torchsvs.lazy_names import lazy_names
 
 if TYPE_CHECKING:
     from torchsvs.datasets.describe import InputDescription, describe_input
@@ -72,17 +73,7 @@ _HOMES = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{home}"), name)
-    globals()[name] = value  # (found directly from now on)
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+__getattr__, __dir__ = lazy_names(__name__, _HOMES, globals())
 
 
 __all__ = [

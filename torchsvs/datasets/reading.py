@@ -201,9 +201,10 @@ def _record(rows: Any, done: dict[str, Path], file: Path) -> None:
 class ReadAhead:
     """A track file's blocks of complete tracks (:func:`track_blocks`), read in a thread of its
     own from the moment this is made (``whole=None``: whole where :func:`reads_whole` says),
-    ahead of the caller by up to ``ahead_rows`` rows (at least one block): what the caller does
-    meanwhile (importing torch, settling the plan, estimating the block before) runs beside the
-    reading. With ``describe``, the thread first describes the file
+    one block ahead of the caller (memory for two blocks: reading more ahead gained nothing and
+    cost 240 MB on 10 M rows): what the caller does meanwhile (importing torch, settling the
+    plan, estimating the block before) runs beside the reading. With ``describe``, the thread
+    first describes the file
     (:func:`~torchsvs.datasets.describe.describe_input`, with ``name``): :meth:`description`
     waits for it, and the blocks are read with its resolved columns.
 
@@ -219,20 +220,20 @@ class ReadAhead:
         *,
         block_rows: int = 1 << 20,
         whole: bool | None = False,
-        ahead_rows: int = 1,
         describe: bool = False,
         name: str = "path",
     ) -> None:
+        self.path = Path(path)  #: the file read
+        self.describes = describe  #: :meth:`description` is made
         self.reading = self.waiting = 0.0
         self._ready = threading.Condition()
         self._blocks: deque[TrackBlock] = deque()
-        self._rows = 0  # rows of the blocks read and not yet taken
         self._described: InputDescription | None = None
         self._error: BaseException | None = None
         self._done = self._closed = False
         self._thread = threading.Thread(
             target=self._read,
-            args=(path, columns, block_rows, whole, ahead_rows, describe, name),
+            args=(path, columns, block_rows, whole, describe, name),
             name="read-ahead",
             daemon=True,  # (a caller that fails leaves it at its next block)
         )
@@ -244,7 +245,6 @@ class ReadAhead:
         columns: Columns | None,
         block_rows: int,
         whole: bool | None,
-        ahead_rows: int,
         describe: bool,
         name: str,
     ) -> None:
@@ -259,20 +259,17 @@ class ReadAhead:
                 whole = reads_whole(path)
             blocks = track_blocks(path, columns, block_rows=block_rows, whole=whole)
             while True:
-                with self._ready:  # room for one more block (or the caller has all read)
-                    self._ready.wait_for(
-                        lambda: self._closed or self._rows < ahead_rows or not self._blocks
-                    )
+                with self._ready:  # the caller has taken the block before
+                    self._ready.wait_for(lambda: self._closed or not self._blocks)
                     if self._closed:
                         return
                 tick = time.perf_counter()
                 block = next(blocks, None)
                 self.reading += time.perf_counter() - tick
                 with self._ready:
-                    if block is None:
+                    if block is None or self._closed:  # (closed meanwhile: dropped)
                         break
                     self._blocks.append(block)
-                    self._rows += len(block.table)
                     self._ready.notify_all()
         except BaseException as error:  # (handed to the caller: raised where it asks)
             with self._ready:
@@ -285,11 +282,13 @@ class ReadAhead:
     def description(self) -> InputDescription:
         """The file's description (``describe=True``), once read; raises the reading's
         error."""
+        if not self.describes:
+            raise ValueError("describe: this ReadAhead was made without describe=True")
         with self._ready:
             self._ready.wait_for(lambda: self._described is not None or self._done)
             if self._described is None:
                 self._raise()
-            assert self._described is not None, "ReadAhead(..., describe=True)"
+            assert self._described is not None, "a description, or the reading's error"
             return self._described
 
     def __iter__(self) -> Iterator[TrackBlock]:
@@ -302,7 +301,6 @@ class ReadAhead:
                     self._raise()
                     return
                 block = self._blocks.popleft()
-                self._rows -= len(block.table)
                 self._ready.notify_all()
             yield block
 

@@ -116,7 +116,7 @@ def padded_batch(
     pad = np.flatnonzero(flat < 0)  # the padded cells of [B × T]
     # (np.take, and the padding set by index: several times faster than indexing the rows of
     # a 2-D array and choosing by a mask)
-    inside = np.maximum(flat, 0)
+    inside = np.maximum(flat, 0) if len(pad) else flat
     z = np.take(steps.position, inside, axis=0)
     as_rows(z.reshape(-1, z.shape[-1]))[pad] = as_rows(np.full((1, z.shape[-1]), np.nan))
     time = np.take(steps.time, inside)

@@ -130,7 +130,7 @@ def estimate_table(
     # each row's step's estimates, the rows taken once as items (as_rows: not column by
     # column); rows that are their steps in order (a sorted file's usual case) need none taken
     if everywhere and len(row_step) == len(mean) and _counts_up(row_step):
-        rows, row_cov = mean, cov
+        index, rows, row_cov = row_step, mean, cov
     else:
         index = np.where(placed, row_step, 0)
 
@@ -164,7 +164,6 @@ def estimate_table(
             for b in range(a, 2 * m):
                 out[f"cov_{cov_names[a]}_{cov_names[b]}"] = per_row(row_cov[:, a, b])
     if outlier is not None:
-        index = np.where(placed, row_step, 0)
         flags = outlier[index] if len(outlier) else np.zeros(len(row_step), dtype=bool)
         out["outlier"] = pa.array(placed & flags, type=pa.bool_())
     return pa.table(out)

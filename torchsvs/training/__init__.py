@@ -15,8 +15,9 @@
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from torchsvs.lazy_names import lazy_names
 
 # Names resolved on first use (PEP 562), so that importing a Lightning-free part, e.g.
 # ``torchsvs.training.configs``, does not import Lightning (~2 s); the truth-free fits live in
@@ -60,16 +61,7 @@ if TYPE_CHECKING:
     from torchsvs.training.module import EstimatorModule, boundary_layer_modules
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _HOMES:
-        raise AttributeError(f"module 'torchsvs.training' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_HOMES[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_HOMES))
+__getattr__, __dir__ = lazy_names(__name__, _HOMES, globals())
 
 
 __all__ = [

@@ -381,7 +381,6 @@ def predict_file(
             found.add(part)
     if len(found.groups) != len(data.groups):
         raise RuntimeError(f"estimated {len(found.groups)} of {len(data.groups)} groups of tracks")
-    found.finish()
     run = TrackRun(settings=module.settings, fit=module.fit_summary)
     if found.risk:
         assert module.settings.meas_var is not None
