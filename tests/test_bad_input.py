@@ -111,7 +111,6 @@ def test_single_track_needs_unbatched_prior(atc):
         ({"psi": "wide"}, "^psi: expected a number"),
         ({"psi": 800.0, "gamma": 1.0}, r"^gamma: expected values in \[0, 1\)"),
         ({"psi": 800.0, "gamma": -0.1}, r"^gamma: expected values in \[0, 1\)"),
-        ({"psi": 800.0, "gamma": 0.0}, r"^gamma: a learnable value lives in \(0, 1\)"),
         ({"psi": 800.0, "gamma": [0.1, 0.2]}, "^gamma: expected a scalar"),
         ({"psi": 800.0, "artificial": 3}, "^artificial: expected 'auto', a callable or None"),
     ],
@@ -119,6 +118,15 @@ def test_single_track_needs_unbatched_prior(atc):
 def test_bad_svsf_settings(atc, kwargs, pattern):
     with pytest.raises((ValueError, TypeError), match=pattern):
         ts.SVSF(atc.model, **kwargs)
+
+
+def test_an_svsf_without_memory_keeps_it_fixed(atc):
+    """γ = 0 (no memory) is a valid setting (``track --gamma 0``) that logit space cannot
+    learn: it stays fixed at 0 while ψ is learned."""
+    svsf = ts.SVSF(atc.model, psi=800.0, gamma=0.0)
+    assert float(svsf.gamma) == 0.0
+    learned = {name for name, p in svsf.named_parameters() if p.requires_grad}
+    assert "boundary_layer.raw" in learned and not any("memory" in n for n in learned)
 
 
 def test_psi_width_count_must_match_corrector(atc):

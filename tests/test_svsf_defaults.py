@@ -479,6 +479,19 @@ def test_svss_and_svstps_are_one_estimator_over_the_variable_layer():
 # --- The layer's limit earns its place on the file (surely), or the run goes without it ---
 
 
+def _chunk_sums(seed: int, noise: float) -> tuple:
+    """Stubbed SURE sums of 200 chunks of 32 steps on 2 axes: the chunks, the axes, their
+    counts, residuals two estimators share, and zero-mean noise of standard deviation
+    ``noise`` to set one apart by."""
+    import numpy as np
+
+    gen = np.random.default_rng(seed)
+    C, m = 200, 2
+    shared = gen.gamma(20.0, 1600.0, (C, m))
+    noisy = gen.normal(0.0, noise, (C, m))
+    return C, m, np.full((C, m), 32.0), shared, noisy - noisy.mean(axis=0)
+
+
 def test_the_layer_check_runs_the_twin_on_a_near_tie_and_keeps_the_limit_for_a_sure_gain(
     monkeypatch,
 ):
@@ -491,25 +504,18 @@ def test_the_layer_check_runs_the_twin_on_a_near_tie_and_keeps_the_limit_for_a_s
     import torchsvs.selection as selection
     from torchsvs.accuracy import RiskTerms
 
-    gen = np.random.default_rng(1)
-    C, m = 200, 2
-    count = np.full((C, m), 32.0)
-    shared = gen.gamma(20.0, 1600.0, (C, m))
-    noisy = gen.normal(0.0, 400.0, (C, m))
-    noisy -= noisy.mean(axis=0)
+    C, m, count, shared, noisy = _chunk_sums(1, 400.0)
 
     def check(twin_residual, chunks=C):
         scored = {"svss": shared[:chunks], "ks": twin_residual[:chunks]}
-        monkeypatch.setattr(
-            selection,
-            "sample_terms",
-            lambda s, t: RiskTerms(
-                scored[s.estimator],
-                np.full((chunks, m), 8.0),
-                count[:chunks],
-                np.arange(chunks),
-            ),
-        )
+
+        def stub(s, t):
+            return RiskTerms(
+                scored[s.estimator], np.full((chunks, m), 8.0), count[:chunks], np.arange(chunks)
+            )
+
+        monkeypatch.setattr(selection, "sample_terms", stub)
+        monkeypatch.setattr(selection, "probed_terms", lambda s, t, k: [stub(s, t)] * k)
         layer = Settings("svss", meas_var=[900.0] * 2, q=1.0, psi=[4.0, 4.0], noise="given")
         twin = Settings("ks", meas_var=[900.0] * 2, q=1.0, noise="given")
         return selection.checked_layer(layer, twin, None)
@@ -527,6 +533,158 @@ def test_the_layer_check_runs_the_twin_on_a_near_tie_and_keeps_the_limit_for_a_s
     one = check(shared + 2000.0, chunks=1)  # one chunk: no error to judge by (NaN, not 0)
     assert not one.kept and one.change > 0 and math.isnan(one.change_se)
     assert "± ? (too little data)" in one.line() and "nan" not in one.line()
+
+
+def test_the_layer_check_holds_the_noise_readings_uncertainty_and_the_fits_values_against_it(
+    monkeypatch,
+):
+    """What the sample's SURE does not know counts against the layer: a gain sure at the noise
+    read off the data but not at the low end of the reading's uncertainty runs the twin (the
+    same gain at a given noise keeps the limit), and a gain smaller than what the values the
+    layer's fit learned on the same tracks owe (2 mean variances each over the points) runs
+    the twin where it learned them and keeps the limit where nothing was learned."""
+    import numpy as np
+
+    import torchsvs.selection as selection
+    from torchsvs.accuracy import RiskTerms
+
+    C, m, count, shared, noisy = _chunk_sums(2, 100.0)
+    # The layer follows the measurements less than its twin (divergence 6 against 8 a chunk):
+    # the twin's SURE grows with the noise by 4 r a chunk more, so a high reading flatters the
+    # layer. The twin's residuals are 3000 lower: at r = 900 the layer is 600 lower a chunk
+    # and axis (37.5 m² per point), at the reading's low end (std 20, r = 400) 1400 higher.
+    terms = {
+        "svss": (shared, 6.0),
+        "ks": (shared - 3000.0 + noisy, 8.0),
+    }
+
+    def check(noise, learned=0, twin_shift=0.0):
+        def stub(s, t):
+            residual, divergence = terms[s.estimator]
+            shift = twin_shift if s.estimator == "ks" else 0.0
+            return RiskTerms(residual + shift, np.full((C, m), divergence), count, np.arange(C))
+
+        monkeypatch.setattr(selection, "sample_terms", stub)
+        monkeypatch.setattr(selection, "probed_terms", lambda s, t, k: [stub(s, t)] * k)
+        read = dict(meas_std_se=[10.0, 10.0]) if noise == "data" else {}
+        kind = dict(meas_var=[900.0] * 2, q=1.0, noise=noise, **read)
+        layer = Settings("svss", psi=[4.0, 4.0], **kind)
+        twin = Settings("ks", **kind)
+        return selection.checked_layer(layer, twin, None, learned)
+
+    given = check("given")
+    assert given.kept and abs(given.change - 37.5) < 1.0 and not given.over_noise
+    read = check("data")
+    assert not read.kept and read.over_noise and read.change < 0
+    assert read.settings.estimator == "ks"
+    assert "the least over the noise reading's uncertainty" in read.line()
+    # a sure gain of 0.75 m² per point (12 a chunk and axis, the divergences' 3600 taken
+    # back), within what 3 learned values owe (2 · 3 · 900 / 6400 points = 0.84 m²), beyond
+    # what 1 owes (0.28)
+    small = dict(twin_shift=3000.0 - noisy - 3600.0 + 12.0)
+    sure = check("given", **small)
+    assert sure.kept and abs(sure.change - 0.75) < 1e-9 and sure.optimism == 0.0
+    owed = check("given", learned=3, **small)
+    assert not owed.kept and abs(owed.optimism - 2 * 3 * 900 / 6400) < 1e-9
+    assert "less 0.84 m² for the values the fit learned" in owed.line()
+    assert check("given", learned=1, **small).kept
+
+
+def test_the_layer_check_counts_the_spread_of_its_probes(monkeypatch):
+    """The layer's SURE is the mean over :data:`~torchsvs.selection.LAYER_PROBES` probes of
+    its divergence, and their spread counts in the difference's error: a gain that one probe
+    shows surely but the probes together do not runs the twin; the same gain with probes that
+    agree keeps the limit. The spread is each draw's difference's variance over the draws,
+    over their number, beside the chunks' own error of the mean."""
+    import numpy as np
+
+    import torchsvs.selection as selection
+    from torchsvs.accuracy import RiskTerms
+
+    C, m, count, shared, noisy = _chunk_sums(3, 50.0)
+    # The layer's divergence a chunk and axis: the twin's 8 less 0.1 (at r = 900, 180 m² a
+    # chunk and axis, 11.25 m² per point lower), each probe's off by ±0.2 · ``spread`` (±22.5
+    # m² per point at 1), in turn: the draws' mean is the same either way.
+    drawn = []
+
+    def check(spread):
+        def twin_terms(s, t):
+            return RiskTerms(shared + noisy, np.full((C, m), 8.0), count, np.arange(C))
+
+        def layer_draws(s, t, probes):
+            drawn.append(probes)
+            apart = [(-1.0) ** (k + 1) for k in range(probes)]
+            return [
+                RiskTerms(shared, np.full((C, m), 7.9 + 0.2 * spread * a), count, np.arange(C))
+                for a in apart
+            ]
+
+        monkeypatch.setattr(selection, "sample_terms", twin_terms)
+        monkeypatch.setattr(selection, "probed_terms", layer_draws)
+        kind = dict(meas_var=[900.0] * 2, q=1.0, noise="given")
+        return selection.checked_layer(
+            Settings("svss", psi=[4.0, 4.0], **kind), Settings("ks", **kind), None
+        )
+
+    agreeing = check(0.0)
+    assert agreeing.kept and abs(agreeing.change - 11.25) < 1e-6
+    # draws ±67.5 m² per point apart: the probes' error 67.5 · √(16/15) / √16 = 17 m²
+    spread = check(3.0)
+    assert not spread.kept and abs(spread.change - 11.25) < 1e-6
+    assert abs(spread.change_se**2 - agreeing.change_se**2 - 67.5**2 / 15) < 1e-6
+    assert drawn == [selection.LAYER_PROBES] * 2  # (6,400 points: as many as are drawn)
+
+
+def test_the_layer_check_compares_with_each_tracks_own_q_as_the_run_runs():
+    """With the file's curve of ``q`` in the settings (``q_curve``), the sample's SURE terms
+    are those of each track at its own ``q``, in track order whatever parts the tracks ran in:
+    the twin's (one exact pass) and the layer's (a part per factor) pair chunk by chunk, and
+    each equals the run's own terms (:func:`~torchsvs.estimating.estimate_group`). Copies of
+    the tracks side by side give other probes (:func:`~torchsvs.sample_accuracy.
+    probed_terms`), of the same chunks."""
+    import numpy as np
+
+    from tests.conftest import simulate_cv
+    from torchsvs.estimating import GroupBatch, estimate_group, settings_q_factors
+    from torchsvs.fitting.defaults import with_q_curve
+    from torchsvs.sample_accuracy import probed_terms, sample_terms
+
+    gen = torch.Generator().manual_seed(4)
+    B, T = 12, 120
+    dt = torch.full((B, T), 2.0, dtype=torch.float64)
+    z = torch.cat([simulate_cv(dt[:6], q, 900.0, gen, 30.0)[1] for q in (0.05, 20.0)])
+    tracks = RecordedTracks(
+        z=z,
+        dt=dt,
+        time=dt.cumsum(1),
+        lengths=torch.full((B,), T),
+        ids=[f"t{b}" for b in range(B)],
+        steps=torch.arange(B * T).reshape(B, T),  # (each cell's row, as a file's batch has)
+    )
+    base = Settings("ks", meas_var=[900.0, 900.0], q=1.0, noise="given", outliers=False)
+    twin = with_q_curve(base, tracks)
+    layer = replace(twin, estimator="svss")
+    assert len(torch.unique(settings_q_factors(twin, tracks))) > 1  # parts of several q
+    twin_terms, layer_terms = sample_terms(twin, tracks), sample_terms(layer, tracks)
+    assert (np.diff(layer_terms.track) >= 0).all()
+    change, change_se = twin_terms.difference(layer_terms, base.meas_var)  # the same chunks
+    assert math.isfinite(change) and change_se > 0
+    moved, offset = centred(tracks)
+    meas_std = torch.tensor(base.meas_var, dtype=torch.float64).sqrt()
+    for settings, terms in ((twin, twin_terms), (layer, layer_terms)):
+        estimator = make_estimator(settings, make_model(settings)).double()
+        batch = GroupBatch(0, np.arange(B), moved, offset)
+        run = estimate_group(estimator, batch, meas_std, settings=settings).risk.in_track_order()
+        assert np.allclose(run.residual, terms.residual) and np.allclose(run.count, terms.count)
+        assert np.allclose(run.divergence, terms.divergence)
+    # several probes in one run, each copy its own draw (the control's weight fitted over all)
+    draws = probed_terms(layer, tracks, 3)
+    for other in draws:
+        assert np.allclose(other.residual, layer_terms.residual)
+        assert np.array_equal(other.count, layer_terms.count)
+        assert np.array_equal(other.track, layer_terms.track)
+    for one, other in ((0, 1), (0, 2), (1, 2)):
+        assert not np.allclose(draws[one].divergence, draws[other].divergence)
 
 
 def test_an_svss_whose_limit_costs_runs_as_the_kalman_smoother(tmp_path):

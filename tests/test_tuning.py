@@ -74,6 +74,7 @@ def test_fit_finds_the_true_q_without_truth():
     fit = self_tune(start, tracks, known_noise=True)
     assert 2.0 < fit.settings.q < 8.0
     assert fit.curve[-1] < fit.curve[0]
+    assert fit.parameters == 1  # q
 
 
 @pytest.mark.parametrize("lag", [None, 5])
@@ -97,6 +98,9 @@ def test_fit_of_an_svss_lowers_its_true_error():
     fit = self_tune(start, tracks, known_noise=True, steps=10)
     assert _position_rmse(fit.settings, tracks) < 0.9 * _position_rmse(start, tracks)
     assert len(fit.settings.psi) == 2 and fit.settings.psi[0] == fit.settings.psi[1]  # tied axes
+    assert fit.parameters == 3  # q, one ψ for both axes, γ (what the layer check counts)
+    fixed = self_tune(replace(start, gamma=0.0), tracks, known_noise=True, steps=2)
+    assert fixed.parameters == 2 and fixed.settings.gamma == 0.0
 
 
 @pytest.mark.parametrize("estimator", ["pf", "spvsf"])

@@ -80,6 +80,14 @@ class RiskTerms:
             np.concatenate([p.track for p in parts]),
         )
 
+    def in_track_order(self) -> RiskTerms:
+        """The chunks ordered by track, each track's in their own order (the order of a run of
+        all the tracks at once, whatever parts they ran in)."""
+        order = np.argsort(self.track, kind="stable")
+        return RiskTerms(
+            self.residual[order], self.divergence[order], self.count[order], self.track[order]
+        )
+
     def mse(self, meas_var: Sequence[float]) -> tuple[float, float]:
         """The position MSE per point (the axes' MSEs summed) and its standard error."""
         totals = RiskTotals(self.residual.shape[1])

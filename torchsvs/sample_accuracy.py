@@ -5,13 +5,21 @@ smoother on the reading is not clearly below the measurements (:func:`lowered_no
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from torchsvs.accuracy import Accuracy, RiskTerms
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import RecordedTracks
-from torchsvs.estimating import GUARD_ERRORS, GroupBatch, _estimate_part, centred
+from torchsvs.estimating import (
+    GUARD_ERRORS,
+    GroupBatch,
+    _estimate_factors,
+    _estimate_part,
+    centred,
+)
 from torchsvs.fitting.defaults import complete_settings, meas_var_range
 from torchsvs.recipes import Settings, make_estimator, make_model
 
@@ -24,16 +32,46 @@ def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
 
 def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     """:func:`sample_accuracy`'s SURE sums per chunk (the same chunks for every estimator on
-    the same ``tracks``: :meth:`~torchsvs.accuracy.RiskTerms.difference` pairs them)."""
+    the same ``tracks``: :meth:`~torchsvs.accuracy.RiskTerms.difference` pairs them). Where
+    the settings carry the file's curve of ``q`` (``q_curve``), each track runs with its own
+    ``q``, as ``track`` runs it (the chunks in track order either way)."""
     assert settings.meas_var is not None
     estimator = make_estimator(settings, make_model(settings)).double()
     moved, offset = centred(tracks.to(torch.float64))
     batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
     meas_std = torch.tensor(settings.meas_var, dtype=torch.float64).sqrt()
+    if settings.q_curve is not None:
+        part = _estimate_factors(estimator, batch, meas_std, False, True, settings)
+        assert part.risk is not None
+        return part.risk.in_track_order()
     noise_range = meas_var_range(settings, GUARD_ERRORS)  # as estimate_group's guard reads it
     part = _estimate_part(estimator, batch, meas_std, risk=True, noise_range=noise_range)
     assert part.risk is not None
     return part.risk
+
+
+def probed_terms(settings: Settings, tracks: RecordedTracks, probes: int) -> list[RiskTerms]:
+    """:func:`sample_terms` with ``probes`` probes of the divergence, in one run: the tracks
+    repeated, each copy under its own id and so with its own probe
+    (:func:`~torchsvs.accuracy.track_signs`; the first copy's the run's own), the control
+    variate's weight fitted over them all (:class:`~torchsvs.accuracy.Reference`). A run of
+    the copies side by side costs little more than one: an estimator's steps cost per step,
+    not per track."""
+    B = len(tracks)
+    names = tracks.ids if tracks.ids is not None else [str(b) for b in range(B)]
+    ids = [str(i) if k == 0 else f"{i}\0probe {k}" for k in range(probes) for i in names]
+    copies = replace(tracks.subset(torch.arange(B).repeat(probes)), ids=ids)
+    terms = sample_terms(settings, copies)
+    copy = terms.track // B
+    return [
+        RiskTerms(
+            terms.residual[copy == k],
+            terms.divergence[copy == k],
+            terms.count[copy == k],
+            terms.track[copy == k] % B,
+        )
+        for k in range(probes)
+    ]
 
 
 def accuracy_of_terms(settings: Settings, terms: RiskTerms) -> Accuracy:

@@ -240,8 +240,9 @@ def prepare_estimator(
     # (and fits) again, and its own lines replace these (each line once, none of settings
     # the run does not use).
     first: list[str] = []
+    own = checkpoint is None  # (a checkpoint's settings are its own: nothing read or checked)
     settings, clean, summary = _settled(
-        settings, sample, fit, options, first.append, checkpoint is None
+        settings, sample, fit, options, first.append, own, own and open_q
     )
     low = lowered_noise(settings, clean) if checkpoint is None else None
     if low is None:
@@ -263,7 +264,7 @@ def prepare_estimator(
             noise_spread=settings.noise_spread,
             noise_lowered_from=read,
         )
-        settings, clean, summary = _settled(lowered, sample, fit, options, say, checkpoint is None)
+        settings, clean, summary = _settled(lowered, sample, fit, options, say, own, own and open_q)
     if open_q and checkpoint is None:
         settings = with_q_curve(settings, clean)
     estimator = make_estimator(settings, make_model(settings))
@@ -281,12 +282,14 @@ def _settled(
     options: dict[str, Any],
     say: Callable[[str], None],
     check_layer: bool = True,
+    q_curves: bool = False,
 ) -> tuple[Settings, RecordedTracks, Any]:
     """The settings left open read off ``sample`` without its isolated outliers, then fitted
     or chosen (``--estimator auto``); the screened sample, and the fit's summary. With
     ``check_layer``, an SVSF-family estimator whose boundary layer the user left open keeps its
     limit only where the sample shows it surely helps (:func:`~torchsvs.selection.checked_layer`:
-    else it runs as its Kalman twin, the layer without a limit)."""
+    else it runs as its Kalman twin, the layer without a limit), both compared with their own
+    ``q`` per track where ``q_curves`` (the run's ``q`` left open: each track will run so)."""
     settings, sample, _ = screened(settings, sample)
     # the layer's limit read off the data too, where the user left it open
     open_layer = check_layer and settings.estimator in KALMAN_TWINS and settings.psi is None
@@ -307,9 +310,17 @@ def _settled(
         say(summary.summary())
     if open_layer and settings.velocity:
         twin = kalman_twin(completed)
+        learned = 0  # how many more values the layer's fit learned on the sample than the twin's
         if fit:  # the twin fitted as the layer was (a Kalman smoother's fit: a fraction of a s)
-            twin = self_tune(twin, sample, **options).settings
-        check = checked_layer(settings, twin, sample)
+            twin_fit = self_tune(twin, sample, **options)
+            twin, learned = twin_fit.settings, summary.parameters - twin_fit.parameters
+        if q_curves:  # each compared with its own q per track, as the run runs them
+            check = checked_layer(
+                with_q_curve(settings, sample), with_q_curve(twin, sample), sample, learned
+            )
+            check.settings = replace(check.settings, q_curve=None)  # (the run reads it again)
+        else:
+            check = checked_layer(settings, twin, sample, learned)
         say(check.line())
         settings = check.settings
     return settings, sample, summary

@@ -8,7 +8,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsvs.constraints import ArrayLike, Positive, UnitInterval
+from torchsvs.constraints import ArrayLike, Positive, UnitInterval, as_tensor
 from torchsvs.estimator import Inputs
 from torchsvs.filters import factored
 from torchsvs.filters.adaptive import AdaptiveNoise, check_adaptive_noise
@@ -88,7 +88,8 @@ class SVSF(FastPathFilter):
             corrector measurement component.
         gamma: memory (convergence rate) γ in ``[0, 1)``.
         learn: hold ψ and γ as ``nn.Parameter`` s (stored as ``log ψ`` and ``logit γ``); ``False``
-            makes them fixed buffers.
+            makes them fixed buffers. A γ of exactly 0 (no memory) is fixed either way: a
+            learnable γ lives in (0, 1).
         artificial: ``"auto"`` (default: finite-difference velocity where the model has
             positions and velocities, else none), an artificial measurement callable (see
             :mod:`torchsvs.filters.artificial`), or ``None`` for the ``H⁺`` mode.
@@ -143,7 +144,9 @@ class SVSF(FastPathFilter):
             artificial = auto_artificial(model)
         self.adaptive_noise = check_adaptive_noise(adaptive_noise)
         self.boundary_layer = Positive(psi, "psi", learn=learn)
-        self.memory = UnitInterval(gamma, "gamma", learn=learn)
+        # No memory (γ = 0) cannot be learned in logit space: it stays fixed at 0.
+        no_memory = bool((as_tensor(gamma, "gamma") == 0).all())
+        self.memory = UnitInterval(gamma, "gamma", learn=learn and not no_memory)
         if self.boundary_layer.raw.ndim > 1:
             raise ValueError(
                 "psi: expected a scalar or a vector [m], got shape "

@@ -57,6 +57,10 @@ class FitResult:
     seconds: float = 0.0
     stages: list[str] = field(default_factory=list)  #: one line per stage
     curve: list[float] = field(default_factory=list)  #: the last stage's loss per step
+    #: how many values the SURE descent learned on the tracks (ψ tied over the axes counts
+    #: once): what a comparison on the same tracks owes for them (:func:`~torchsvs.selection.
+    #: checked_layer`)
+    parameters: int = 0
 
     def summary(self) -> str:
         return "fit: " + "; ".join(self.stages) + f" ({self.seconds:.1f} s)"
@@ -270,9 +274,8 @@ def self_tune(
         if tie_axes:
             kinds = 2 if svsf.artificial is not None else 1  # (position, velocity) or position
             parametrize.register_parametrization(svsf.boundary_layer, "raw", _TiedAxes(kinds))
-        if settings.gamma == 0.0:
-            svsf.memory.raw.requires_grad_(False)  # a fixed γ = 0 stays fixed
     start_settings = settings
+    result.parameters = sum(p.numel() for p in estimator.parameters() if p.requires_grad)
     curve = _minimise(
         estimator, batches, "sure", steps, lr, meas_cov=meas_cov, seed=seed, optimizer=optimizer
     )
