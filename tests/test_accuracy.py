@@ -184,9 +184,11 @@ def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
     run = track_file(source, target, Settings("auto"), columns=Columns(), progress=False)
     summary = json.loads(summary_path(target).read_text())
     rows = {r["estimator"]: r for r in summary["candidates"] if not r.get("skipped")}
-    assert {"ks", "svss"} <= set(rows)
     skipped = {r["estimator"]: r["skipped"] for r in summary["candidates"] if r.get("skipped")}
     assert skipped["svstps"] == "the same estimator as svss here"  # the variable layer
+    # the SVSS scored, or the Kalman smoother where its limit does not surely help
+    assert "ks" in rows and ("svss" in rows) != ("svss" in skipped)
+    assert "svss" in rows or skipped["svss"].startswith("ks here: its boundary layer's limit")
     chosen = summary["estimator"]
     assert chosen in rows and run.settings is not None and run.settings.chosen_from
     # the rule replayed: a later candidate replaces the one chosen so far where its score is
@@ -487,6 +489,11 @@ def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_b
 
     sample_terms = selection.sample_terms
     monkeypatch.setattr(selection, "sample_terms", counted)
+    monkeypatch.setattr(  # (the SVSS's own layer check reads the whole sample: not a score)
+        selection,
+        "checked_layer",
+        lambda s, *_: selection.LayerCheck(s.estimator, s, True, 1.0, 0.1),
+    )
     target = tmp_path / "out.csv"
     track_file(source, target, Settings("auto"), columns=Columns(), progress=False)
     summary = json.loads(summary_path(target).read_text())
@@ -547,7 +554,8 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
     """The rule's behaviour, with the fits and the scores stubbed: a later candidate whose
     estimate is lower, but by less than one standard error of the paired difference, does not
     replace the Kalman smoother; one lower by far more does, and so does one whose small gain
-    is sure because the two share their chunks' variation."""
+    is sure because the two share their chunks' variation. An SVSF-family candidate whose
+    layer check (:func:`~torchsvs.selection.checked_layer`) runs its twin is skipped."""
     from types import SimpleNamespace
 
     import torchsvs.selection as selection
@@ -562,17 +570,33 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
     def terms(residual):
         return RiskTerms(residual, divergence, count, np.arange(C) // 4)
 
-    def choose(errors):
+    def choose(errors, layer_kept=True):
         scored = {name: terms(residual) for name, residual in errors.items()}
         monkeypatch.setattr(selection, "sample_terms", lambda s, t: scored[s.estimator])
         monkeypatch.setattr(
-            selection, "self_tune", lambda s, *_, **__: SimpleNamespace(settings=s, stages=[])
+            selection,
+            "self_tune",
+            lambda s, *_, **__: SimpleNamespace(settings=s, stages=[], parameters=1),
+        )
+        monkeypatch.setattr(  # the layer's own check, stubbed (its rule: test_svsf_defaults)
+            selection,
+            "checked_layer",
+            lambda s, twin, *_: selection.LayerCheck(s.estimator, s, layer_kept, 1.0, 2.0),
         )
         z = torch.randn(4, 30, m, dtype=torch.float64)
         dt = torch.ones(4, 30, dtype=torch.float64)
         sample = RecordedTracks(z, dt, dt.cumsum(1), torch.full((4,), 30), list("abcd"))
         given = Settings("auto", meas_var=[900.0, 900.0], noise="given")
         chosen = selection.choose_estimator(given, sample, candidates=tuple(errors))
+        assert [r["estimator"] for r in chosen.candidates] == list(errors)
+        skipped = [r["skipped"] for r in chosen.candidates if "skipped" in r]
+        assert skipped == (
+            []
+            if layer_kept
+            else [
+                "ks here: its boundary layer's limit does not surely help (MSE +1 ± 2 m² per point)"
+            ]
+        )
         return chosen.settings.estimator
 
     noisy = gen.normal(0.0, 400.0, (C, m))  # a difference lost in the chunks' own noise
@@ -580,6 +604,9 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
     assert choose({"ks": shared, "svss": shared - 5.0 + noisy}) == "ks"
     assert choose({"ks": shared, "svss": shared - 2000.0 + noisy}) == "svss"
     assert choose({"ks": shared, "svss": shared - 5.0}) == "svss"  # small, but sure
+    # an SVSS whose boundary layer's limit does not surely help is the Kalman smoother, as
+    # `--estimator svss` would run it: not scored again, however low its own estimate
+    assert choose({"ks": shared, "svss": shared - 2000.0}, layer_kept=False) == "ks"
 
 
 def test_an_uncertain_error_estimate_is_called_so_and_its_cause_named():

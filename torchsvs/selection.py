@@ -27,8 +27,13 @@ import torch
 from torchsvs.accuracy import RiskTerms
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import GUARD_ERRORS
-from torchsvs.fitting.defaults import complete_settings, meas_var_range, settings_note
-from torchsvs.fitting.tuning import self_tune
+from torchsvs.fitting.defaults import (
+    complete_settings,
+    meas_var_range,
+    settings_note,
+    with_q_curve,
+)
+from torchsvs.fitting.tuning import FitResult, self_tune
 from torchsvs.recipes import LAGGED, Settings
 from torchsvs.sample_accuracy import accuracy_of_terms, probed_terms, sample_terms
 
@@ -122,6 +127,8 @@ def choose_estimator(
     sample: RecordedTracks,
     candidates: tuple[str, ...] = CANDIDATES,
     say: Callable[[str], None] | None = None,
+    check_layer: bool = True,
+    own_q: bool = False,
     **fit_options: Any,
 ) -> Choice:
     """The candidate of the lowest truth-free error estimate on ``sample``, each tuned by SURE.
@@ -132,6 +139,11 @@ def choose_estimator(
         sample: the tracks to fit and score on (float64).
         candidates: estimator names of :data:`~torchsvs.estimator_names.ESTIMATORS`.
         say: where to print progress.
+        check_layer: an SVSF-family candidate whose boundary layer the user left open is
+            what ``--estimator svss --fit`` would run: where its limit does not surely help
+            against its Kalman twin, a candidate before it (:func:`checked_layer`), it is that
+            twin and not scored again.
+        own_q: the run gives each track its own ``q`` (the layer check compares so).
         fit_options: keyword arguments of :func:`~torchsvs.fitting.tuning.self_tune`.
     """
     say = say or (lambda _: None)
@@ -153,6 +165,7 @@ def choose_estimator(
     options = dict(fit_options)
     options["known_noise"] = True  # read once above (or given): SURE in its units
     rows: list[dict[str, Any]] = []
+    fits: dict[str, FitResult] = {}  # the candidates' fits, by name
     best, best_rmse, best_terms = None, math.inf, None
     for name in candidates:
         if name == "imm" and sample.z.shape[-1] not in (2, 3):
@@ -174,6 +187,22 @@ def choose_estimator(
         candidate = complete_settings(open_settings, sample)
         fit = self_tune(candidate, sample, **options)
         fitted = fit.settings
+        twin = fits.get(KALMAN_TWINS.get(name, ""))
+        if check_layer and twin is not None and settings.psi is None and fitted.velocity:
+            extra = fit.parameters - twin.parameters
+            check = checked_layer(fitted, twin.settings, sample, extra, own_q)
+            say(check.line())
+            if not check.kept:
+                se = _error_text(check.change_se)
+                rows.append(
+                    {
+                        "estimator": name,
+                        "skipped": f"{twin.settings.estimator} here: its boundary layer's limit "
+                        f"does not surely help (MSE {check.change:+.3g} ± {se} m² per point)",
+                    }
+                )
+                continue
+        fits[name] = fit
         learned = fit.stages[-1].split(": ", 1)[-1] if fit.stages else ""
         terms = sample_terms(fitted, scored)
         found = accuracy_of_terms(fitted, terms)
@@ -281,7 +310,11 @@ class LayerCheck:
 
 
 def checked_layer(
-    settings: Settings, twin_settings: Settings, sample: RecordedTracks, learned: int = 0
+    settings: Settings,
+    twin_settings: Settings,
+    sample: RecordedTracks,
+    learned: int = 0,
+    own_q: bool = False,
 ) -> LayerCheck:
     """The settings of an SVSF-family estimator in the variable boundary layer's mode where its
     estimated MSE on ``sample`` is below its Kalman twin's (``twin_settings``, the layer without
@@ -305,11 +338,12 @@ def checked_layer(
       (:attr:`~torchsvs.fitting.tuning.FitResult.parameters`), each owing
       :data:`OPTIMISM_PER_PARAMETER` mean measurement variances over the sample's points.
 
-    The two are compared as the run runs them: each track with its own ``q`` where the
-    settings carry the file's curve (``q_curve``; the layer makes up for a ``q`` too low on
-    some tracks, which their own ``q`` does too: airliners at σ 3 m, 1.32 ± 0.91 m² per point
-    "lower" at one ``q``, -0.17 ± 0.18 at their own, truly 1.007x the smoother), the layer's
-    divergence the mean of several probes (:data:`LAYER_PROBES`).
+    The two are compared as the run runs them: each track with its own ``q`` with ``own_q``
+    (the run's ``q`` left open; the file's curve read off ``sample``, :func:`~torchsvs.fitting.
+    defaults.with_q_curve`, not kept in the returned settings; the layer makes up for a ``q``
+    too low on some tracks, which their own ``q`` does too: airliners at σ 3 m, 1.32 ± 0.91 m²
+    per point "lower" at one ``q``, -0.17 ± 0.18 at their own, truly 1.007x the smoother), the
+    layer's divergence the mean of several probes (:data:`LAYER_PROBES`).
 
     Measured on the recorded-tracks benchmark (the best of the family over the Kalman smoother,
     11 sets × 4 modes, and 10 more at σ 3 and 250 m × 4): with the layer the incumbent (kept
@@ -319,6 +353,12 @@ def checked_layer(
     0.96 on airliners at 10 s scans with ``--fit``, 0.99 on taxiing aircraft at σ 10 m and at
     irregular times, 0.98-0.99 at σ 3 m)."""
     assert settings.meas_var is not None
+    if own_q:
+        check = checked_layer(
+            with_q_curve(settings, sample), with_q_curve(twin_settings, sample), sample, learned
+        )
+        check.settings = replace(check.settings, q_curve=None)  # (the run reads it again)
+        return check
     twin_terms = sample_terms(twin_settings, sample)  # (exact: no probe)
     points = twin_terms.points
     probes = min(LAYER_PROBES, max(2, LAYER_PROBE_POINTS // max(points, 1)))

@@ -301,7 +301,9 @@ def _settled(
     if settings.estimator == "auto":
         auto_options = dict(options)
         auto_options.pop("known_noise", None)
-        summary = choose_estimator(settings, sample, say=say, **auto_options)
+        summary = choose_estimator(
+            settings, sample, say=say, check_layer=check_layer, own_q=q_curves, **auto_options
+        )
         settings = summary.settings
         say(summary.summary())
     elif fit:
@@ -314,13 +316,7 @@ def _settled(
         if fit:  # the twin fitted as the layer was (a Kalman smoother's fit: a fraction of a s)
             twin_fit = self_tune(twin, sample, **options)
             twin, learned = twin_fit.settings, summary.parameters - twin_fit.parameters
-        if q_curves:  # each compared with its own q per track, as the run runs them
-            check = checked_layer(
-                with_q_curve(settings, sample), with_q_curve(twin, sample), sample, learned
-            )
-            check.settings = replace(check.settings, q_curve=None)  # (the run reads it again)
-        else:
-            check = checked_layer(settings, twin, sample, learned)
+        check = checked_layer(settings, twin, sample, learned, q_curves)
         say(check.line())
         settings = check.settings
     return settings, sample, summary
