@@ -573,6 +573,7 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
     def choose(errors, layer_kept=True):
         scored = {name: terms(residual) for name, residual in errors.items()}
         monkeypatch.setattr(selection, "sample_terms", lambda s, t: scored[s.estimator])
+        monkeypatch.setattr(selection, "probed_terms", lambda s, t, k: [scored[s.estimator]] * k)
         monkeypatch.setattr(
             selection,
             "self_tune",

@@ -479,6 +479,13 @@ def test_svss_and_svstps_are_one_estimator_over_the_variable_layer():
 # --- The layer's limit earns its place on the file (surely), or the run goes without it ---
 
 
+def _points(count: int) -> RecordedTracks:
+    """A stand-in sample of ``count`` observed points (what the stubbed checks read of it)."""
+    dt = torch.ones(1, count, dtype=torch.float64)
+    z = torch.zeros(1, count, 2, dtype=torch.float64)
+    return RecordedTracks(z, dt, dt.cumsum(1), torch.tensor([count]), ["a"])
+
+
 def _chunk_sums(seed: int, noise: float) -> tuple:
     """Stubbed SURE sums of 200 chunks of 32 steps on 2 axes: the chunks, the axes, their
     counts, residuals two estimators share, and zero-mean noise of standard deviation
@@ -514,11 +521,10 @@ def test_the_layer_check_runs_the_twin_on_a_near_tie_and_keeps_the_limit_for_a_s
                 scored[s.estimator], np.full((chunks, m), 8.0), count[:chunks], np.arange(chunks)
             )
 
-        monkeypatch.setattr(selection, "sample_terms", stub)
         monkeypatch.setattr(selection, "probed_terms", lambda s, t, k: [stub(s, t)] * k)
         layer = Settings("svss", meas_var=[900.0] * 2, q=1.0, psi=[4.0, 4.0], noise="given")
         twin = Settings("ks", meas_var=[900.0] * 2, q=1.0, noise="given")
-        return selection.checked_layer(layer, twin, None)
+        return selection.checked_layer(layer, twin, _points(int(count[:chunks, 0].sum())))
 
     for tie in (shared + 5.0 + noisy, shared - 500.0, shared + 500.0 + 40 * noisy):
         found = check(tie)
@@ -564,13 +570,12 @@ def test_the_layer_check_holds_the_noise_readings_uncertainty_and_the_fits_value
             shift = twin_shift if s.estimator == "ks" else 0.0
             return RiskTerms(residual + shift, np.full((C, m), divergence), count, np.arange(C))
 
-        monkeypatch.setattr(selection, "sample_terms", stub)
         monkeypatch.setattr(selection, "probed_terms", lambda s, t, k: [stub(s, t)] * k)
         read = dict(meas_std_se=[10.0, 10.0]) if noise == "data" else {}
         kind = dict(meas_var=[900.0] * 2, q=1.0, noise=noise, **read)
         layer = Settings("svss", psi=[4.0, 4.0], **kind)
         twin = Settings("ks", **kind)
-        return selection.checked_layer(layer, twin, None, learned)
+        return selection.checked_layer(layer, twin, _points(C * 32), learned)
 
     given = check("given")
     assert given.kept and abs(given.change - 37.5) < 1.0 and not given.over_noise
@@ -608,10 +613,11 @@ def test_the_layer_check_counts_the_spread_of_its_probes(monkeypatch):
     drawn = []
 
     def check(spread):
-        def twin_terms(s, t):
-            return RiskTerms(shared + noisy, np.full((C, m), 8.0), count, np.arange(C))
-
-        def layer_draws(s, t, probes):
+        def draws(s, t, probes):
+            if s.estimator == "ks":
+                return [
+                    RiskTerms(shared + noisy, np.full((C, m), 8.0), count, np.arange(C))
+                ] * probes
             drawn.append(probes)
             apart = [(-1.0) ** (k + 1) for k in range(probes)]
             return [
@@ -619,11 +625,10 @@ def test_the_layer_check_counts_the_spread_of_its_probes(monkeypatch):
                 for a in apart
             ]
 
-        monkeypatch.setattr(selection, "sample_terms", twin_terms)
-        monkeypatch.setattr(selection, "probed_terms", layer_draws)
+        monkeypatch.setattr(selection, "probed_terms", draws)
         kind = dict(meas_var=[900.0] * 2, q=1.0, noise="given")
         return selection.checked_layer(
-            Settings("svss", psi=[4.0, 4.0], **kind), Settings("ks", **kind), None
+            Settings("svss", psi=[4.0, 4.0], **kind), Settings("ks", **kind), _points(C * 32)
         )
 
     agreeing = check(0.0)

@@ -393,6 +393,7 @@ def _imm_search(
         factor = min(scores, key=scores.__getitem__)
         best, risk = scale(best, factor), scores[factor]
         chosen.append(factor)
+    result.parameters = len(chosen)  # (three values chosen on the tracks, as a descent learns)
     fresh = seed + VALIDATION_SEED
     began, ended = risk_of(settings, fresh), risk_of(best, fresh)
     result.stages.append(
