@@ -640,6 +640,43 @@ def test_the_layer_check_counts_the_spread_of_its_probes(monkeypatch):
     assert drawn == [selection.LAYER_PROBES] * 2  # (6,400 points: as many as are drawn)
 
 
+def test_a_comparison_judges_on_tracks_spread_over_a_large_sample(monkeypatch):
+    """Over :data:`~torchsvs.selection.COMPARED_POINTS` points, both estimators are judged on
+    tracks spread evenly over the sample up to that many (a million rows' probes took 4.4 GB),
+    with as many probes as fit in :data:`~torchsvs.selection.LAYER_PROBE_POINTS`."""
+    import numpy as np
+
+    import torchsvs.selection as selection
+    from torchsvs.accuracy import RiskTerms
+
+    seen = []
+
+    def draws(s, tracks, probes):
+        seen.append((s.estimator, len(tracks), probes))
+        n = int((~tracks.z[..., 0].isnan()).sum())
+        one = RiskTerms(np.full((1, 2), 2.0 * n), np.full((1, 2), 0.5), np.full((1, 2), n), [0])
+        return [one] * probes
+
+    monkeypatch.setattr(selection, "probed_terms", draws)
+    monkeypatch.setattr(selection, "COMPARED_POINTS", 1_000)
+    monkeypatch.setattr(selection, "LAYER_PROBE_POINTS", 4_000)
+    kind = dict(meas_var=[1.0, 1.0], q=1.0, noise="given")
+    twin, layer = Settings("ks", **kind), Settings("svss", psi=[4.0, 4.0], **kind)
+    dt = torch.ones(40, 100, dtype=torch.float64)
+    tracks = RecordedTracks(
+        torch.zeros(40, 100, 2, dtype=torch.float64),
+        dt,
+        dt.cumsum(1),
+        torch.full((40,), 100),
+        [f"t{b}" for b in range(40)],
+    )
+    selection.compared(twin, layer, tracks)
+    assert seen == [("ks", 10, 4), ("svss", 10, 4)]  # 10 tracks of 100 points: 4 probes
+    seen.clear()
+    selection.compared(twin, layer, tracks.subset(torch.arange(5)))
+    assert seen == [("ks", 5, 8), ("svss", 5, 8)]  # under the cap: all of it
+
+
 def test_the_layer_check_compares_with_each_tracks_own_q_as_the_run_runs():
     """With the file's curve of ``q`` in the settings (``q_curve``), the sample's SURE terms
     are those of each track at its own ``q``, in track order whatever parts the tracks ran in:
