@@ -492,7 +492,7 @@ def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_b
     monkeypatch.setattr(  # (the SVSS's own layer check reads the whole sample: not a score)
         selection,
         "checked_layer",
-        lambda s, *_: selection.LayerCheck(s.estimator, s, True, 1.0, 0.1),
+        lambda s, *_: selection.LayerCheck(1.0, 0.1, 0.0, False, s.estimator, s),
     )
     target = tmp_path / "out.csv"
     track_file(source, target, Settings("auto"), columns=Columns(), progress=False)
@@ -555,7 +555,8 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
     estimate is lower, but by less than one standard error of the paired difference, does not
     replace the Kalman smoother; one lower by far more does, and so does one whose small gain
     is sure because the two share their chunks' variation. An SVSF-family candidate whose
-    layer check (:func:`~torchsvs.selection.checked_layer`) runs its twin is skipped."""
+    layer check (:func:`~torchsvs.selection.checked_layer`) runs its twin is skipped; one it
+    keeps is compared with the smoother by that check."""
     from types import SimpleNamespace
 
     import torchsvs.selection as selection
@@ -582,7 +583,9 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
         monkeypatch.setattr(  # the layer's own check, stubbed (its rule: test_svsf_defaults)
             selection,
             "checked_layer",
-            lambda s, twin, *_: selection.LayerCheck(s.estimator, s, layer_kept, 1.0, 2.0),
+            lambda s, twin, *_: selection.LayerCheck(
+                3.0 if layer_kept else 1.0, 2.0, 0.0, False, s.estimator, s
+            ),
         )
         z = torch.randn(4, 30, m, dtype=torch.float64)
         dt = torch.ones(4, 30, dtype=torch.float64)
@@ -602,9 +605,12 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
 
     noisy = gen.normal(0.0, 400.0, (C, m))  # a difference lost in the chunks' own noise
     noisy -= noisy.mean(axis=0)  # (of mean 0: the gain is the 5 m² a chunk given)
-    assert choose({"ks": shared, "svss": shared - 5.0 + noisy}) == "ks"
-    assert choose({"ks": shared, "svss": shared - 2000.0 + noisy}) == "svss"
-    assert choose({"ks": shared, "svss": shared - 5.0}) == "svss"  # small, but sure
+    assert choose({"ks": shared, "imm": shared - 5.0 + noisy}) == "ks"
+    assert choose({"ks": shared, "imm": shared - 2000.0 + noisy}) == "imm"
+    assert choose({"ks": shared, "imm": shared - 5.0}) == "imm"  # small, but sure
+    # an SVSS whose limit its own check keeps: that check is its comparison with the smoother
+    # (here a sure 3 ± 2 m², whatever the near-tie of the scores)
+    assert choose({"ks": shared, "svss": shared - 5.0 + noisy}) == "svss"
     # an SVSS whose boundary layer's limit does not surely help is the Kalman smoother, as
     # `--estimator svss` would run it: not scored again, however low its own estimate
     assert choose({"ks": shared, "svss": shared - 2000.0}, layer_kept=False) == "ks"

@@ -521,6 +521,7 @@ def test_the_layer_check_runs_the_twin_on_a_near_tie_and_keeps_the_limit_for_a_s
                 scored[s.estimator], np.full((chunks, m), 8.0), count[:chunks], np.arange(chunks)
             )
 
+        monkeypatch.setattr(selection, "sample_terms", stub)  # (the twin: exact, one run)
         monkeypatch.setattr(selection, "probed_terms", lambda s, t, k: [stub(s, t)] * k)
         layer = Settings("svss", meas_var=[900.0] * 2, q=1.0, psi=[4.0, 4.0], noise="given")
         twin = Settings("ks", meas_var=[900.0] * 2, q=1.0, noise="given")
@@ -570,6 +571,7 @@ def test_the_layer_check_holds_the_noise_readings_uncertainty_and_the_fits_value
             shift = twin_shift if s.estimator == "ks" else 0.0
             return RiskTerms(residual + shift, np.full((C, m), divergence), count, np.arange(C))
 
+        monkeypatch.setattr(selection, "sample_terms", stub)  # (the twin: exact, one run)
         monkeypatch.setattr(selection, "probed_terms", lambda s, t, k: [stub(s, t)] * k)
         read = dict(meas_std_se=[10.0, 10.0]) if noise == "data" else {}
         kind = dict(meas_var=[900.0] * 2, q=1.0, noise=noise, **read)
@@ -596,7 +598,7 @@ def test_the_layer_check_holds_the_noise_readings_uncertainty_and_the_fits_value
 
 
 def test_the_layer_check_counts_the_spread_of_its_probes(monkeypatch):
-    """The layer's SURE is the mean over :data:`~torchsvs.selection.LAYER_PROBES` probes of
+    """The layer's SURE is the mean over :data:`~torchsvs.selection.COMPARED_PROBES` probes of
     its divergence, and their spread counts in the difference's error: a gain that one probe
     shows surely but the probes together do not runs the twin; the same gain with probes that
     agree keeps the limit. The spread is each draw's difference's variance over the draws,
@@ -625,6 +627,7 @@ def test_the_layer_check_counts_the_spread_of_its_probes(monkeypatch):
                 for a in apart
             ]
 
+        monkeypatch.setattr(selection, "sample_terms", lambda s, t: draws(s, t, 1)[0])
         monkeypatch.setattr(selection, "probed_terms", draws)
         kind = dict(meas_var=[900.0] * 2, q=1.0, noise="given")
         return selection.checked_layer(
@@ -637,13 +640,13 @@ def test_the_layer_check_counts_the_spread_of_its_probes(monkeypatch):
     spread = check(3.0)
     assert not spread.kept and abs(spread.change - 11.25) < 1e-6
     assert abs(spread.change_se**2 - agreeing.change_se**2 - 67.5**2 / 15) < 1e-6
-    assert drawn == [selection.LAYER_PROBES] * 2  # (6,400 points: as many as are drawn)
+    assert drawn == [selection.COMPARED_PROBES] * 2  # (6,400 points: as many as are drawn)
 
 
 def test_a_comparison_judges_on_tracks_spread_over_a_large_sample(monkeypatch):
     """Over :data:`~torchsvs.selection.COMPARED_POINTS` points, both estimators are judged on
     tracks spread evenly over the sample up to that many (a million rows' probes took 4.4 GB),
-    with as many probes as fit in :data:`~torchsvs.selection.LAYER_PROBE_POINTS`."""
+    with as many probes as fit in :data:`~torchsvs.selection.COMPARED_PROBE_POINTS`."""
     import numpy as np
 
     import torchsvs.selection as selection
@@ -658,8 +661,9 @@ def test_a_comparison_judges_on_tracks_spread_over_a_large_sample(monkeypatch):
         return [one] * probes
 
     monkeypatch.setattr(selection, "probed_terms", draws)
+    monkeypatch.setattr(selection, "sample_terms", lambda s, t: draws(s, t, 1)[0])
     monkeypatch.setattr(selection, "COMPARED_POINTS", 1_000)
-    monkeypatch.setattr(selection, "LAYER_PROBE_POINTS", 4_000)
+    monkeypatch.setattr(selection, "COMPARED_PROBE_POINTS", 4_000)
     kind = dict(meas_var=[1.0, 1.0], q=1.0, noise="given")
     twin, layer = Settings("ks", **kind), Settings("svss", psi=[4.0, 4.0], **kind)
     dt = torch.ones(40, 100, dtype=torch.float64)
@@ -671,10 +675,11 @@ def test_a_comparison_judges_on_tracks_spread_over_a_large_sample(monkeypatch):
         [f"t{b}" for b in range(40)],
     )
     selection.compared(twin, layer, tracks)
-    assert seen == [("ks", 10, 4), ("svss", 10, 4)]  # 10 tracks of 100 points: 4 probes
+    # 10 tracks of 100 points: 4 probes (one run of the Kalman smoother: its terms are exact)
+    assert seen == [("ks", 10, 1), ("svss", 10, 4)]
     seen.clear()
     selection.compared(twin, layer, tracks.subset(torch.arange(5)))
-    assert seen == [("ks", 5, 8), ("svss", 5, 8)]  # under the cap: all of it
+    assert seen == [("ks", 5, 1), ("svss", 5, 8)]  # under the cap: all of it
 
 
 def test_the_layer_check_compares_with_each_tracks_own_q_as_the_run_runs():

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -193,9 +193,10 @@ def choose_estimator(
         fit = self_tune(candidate, sample, **options)
         fitted = fit.settings
         twin = fits.get(KALMAN_TWINS.get(name, ""))
+        check = None
         if check_layer and twin is not None and settings.psi is None and fitted.velocity:
             extra = fit.parameters - twin.parameters
-            check = checked_layer(fitted, twin.settings, sample, extra, own_q)
+            check = checked_layer(fitted, twin.settings, scored, extra, own_q)
             say(check.line())
             if not check.kept:
                 se = _error_text(check.change_se)
@@ -224,7 +225,11 @@ def choose_estimator(
         surely = True
         if best is not None:
             extra = fit.parameters - fits[best.estimator].parameters
-            against = compared(best, fitted, scored, extra, own_q)
+            against: Comparison
+            if check is not None and twin is not None and best is twin.settings:
+                against = check  # (the layer check compared it with the one chosen so far)
+            else:
+                against = compared(best, fitted, scored, extra, own_q)
             row["mse_change"], row["mse_change_se"] = -against.change, against.change_se
             surely = against.sure
         rows.append(row)
@@ -263,15 +268,16 @@ def kalman_twin(settings: Settings) -> Settings:
 #: sample without this, it kept its limit on airliners at 1 s with σ 50 m at 4.4 ± 3.9 m² per
 #: point "lower", truly 0.8-1.9 higher (1.002x the smoother).
 OPTIMISM_PER_PARAMETER = 2.0
-#: The layer's SURE on the sample is the mean over up to this many probes of its divergence
-#: (copies of the tracks side by side, :func:`~torchsvs.sample_accuracy.probed_terms`), their
-#: spread counted in its error (:func:`probed_difference`), as many as fit in
-#: :data:`LAYER_PROBE_POINTS` (at least 2). One probe's estimate of the difference moved with
+#: :func:`compared` takes each estimator's SURE on the sample as the mean over up to this many
+#: probes of its divergence (copies of the tracks side by side, :func:`~torchsvs.
+#: sample_accuracy.probed_terms`), their spread counted in the error (:func:`probed_difference`),
+#: as many as fit in
+#: :data:`COMPARED_PROBE_POINTS` (at least 2). One probe's estimate of the difference moved with
 #: the draw by ±250 m² per point on airliners at σ 250 m (-265 to +423 over eight draws; the
 #: run's own, +423 ± 174, kept a limit that truly cost 40), by 0-40 at σ 10-50 m against gains
 #: of 1-400; with 4 probes that file still kept its limit (+196 ± 160), with 16 not (+38 ± 140).
-LAYER_PROBES = 16
-LAYER_PROBE_POINTS = 200_000
+COMPARED_PROBES = 16
+COMPARED_PROBE_POINTS = 200_000
 #: :func:`compared` judges on tracks spread evenly over the sample up to this many points (a
 #: paired difference's error on 50,000 points is a fraction of the gains at stake; on a million
 #: rows the whole sample's probes took 4.4 GB and 4 s more).
@@ -279,19 +285,34 @@ COMPARED_POINTS = 50_000
 
 
 @dataclass
-class LayerCheck:
+class Comparison:
+    """A challenger's estimated MSE on a sample against an incumbent's (:func:`compared`)."""
+
+    #: the incumbent's estimated MSE less the challenger's, per point (m²): the least over the
+    #: noise reading's range, less what the challenger's fit owes (``optimism``)
+    change: float
+    change_se: float  #: its standard error: the chunks' and the probes' together
+    optimism: float  #: m² per point taken off for the values the challenger's fit learned more
+    over_noise: bool  #: ``change`` the least over the noise reading's range
+
+    @property
+    def sure(self) -> bool:
+        """The challenger surely lower (:func:`surely_lower`)."""
+        return surely_lower(-self.change, self.change_se)
+
+
+@dataclass
+class LayerCheck(Comparison):
     """Whether the variable boundary layer's limit earned its place on the sample: surely lower
-    than its Kalman twin (:func:`checked_layer`)."""
+    than its Kalman twin (:func:`checked_layer`; the twin the incumbent)."""
 
     estimator: str  #: the SVSF-family estimator asked for
     settings: Settings  #: what the run uses: the layer's, or its Kalman twin's
-    kept: bool  #: the layer kept
-    #: the twin's estimated MSE less the layer's, per point (m²): the least over the noise
-    #: reading's range, less what the layer's fit owes (``optimism``)
-    change: float
-    change_se: float  #: its standard error, paired chunk by chunk
-    optimism: float = 0.0  #: m² per point taken off for the values the layer's fit learned
-    over_noise: bool = False  #: ``change`` the least over the noise reading's range
+
+    @property
+    def kept(self) -> bool:
+        """The layer kept."""
+        return self.sure
 
     def line(self) -> str:
         """What the run says of the check."""
@@ -352,7 +373,7 @@ def checked_layer(
     defaults.with_q_curve`, not kept in the returned settings; the layer makes up for a ``q``
     too low on some tracks, which their own ``q`` does too: airliners at σ 3 m, 1.32 ± 0.91 m²
     per point "lower" at one ``q``, -0.17 ± 0.18 at their own, truly 1.007x the smoother), the
-    layer's divergence the mean of several probes (:data:`LAYER_PROBES`).
+    layer's divergence the mean of several probes (:data:`COMPARED_PROBES`).
 
     Measured on the recorded-tracks benchmark (the best of the family over the Kalman smoother,
     11 sets × 4 modes, and 10 more at σ 3 and 250 m × 4): with the layer the incumbent (kept
@@ -366,26 +387,7 @@ def checked_layer(
     chosen = settings
     if not found.sure:
         chosen = replace(twin_settings, chosen_from=[name, twin_settings.estimator])
-    return LayerCheck(
-        name, chosen, found.sure, found.change, found.change_se, found.optimism, found.over_noise
-    )
-
-
-@dataclass
-class Comparison:
-    """A challenger's estimated MSE on a sample against an incumbent's (:func:`compared`)."""
-
-    #: the incumbent's estimated MSE less the challenger's, per point (m²): the least over the
-    #: noise reading's range, less what the challenger's fit owes (``optimism``)
-    change: float
-    change_se: float  #: its standard error: the chunks' and the probes' together
-    optimism: float  #: m² per point taken off for the values the challenger's fit learned more
-    over_noise: bool  #: ``change`` the least over the noise reading's range
-
-    @property
-    def sure(self) -> bool:
-        """The challenger surely lower (:func:`surely_lower`)."""
-        return surely_lower(-self.change, self.change_se)
+    return LayerCheck(**asdict(found), estimator=name, settings=chosen)
 
 
 def compared(
@@ -401,8 +403,8 @@ def compared(
 
     * on tracks spread over ``sample`` up to :data:`COMPARED_POINTS` points;
     * each track with its own ``q`` with ``own_q`` (the file's curve read off them);
-    * both estimators' divergences the mean of up to :data:`LAYER_PROBES` probes (as many as
-      fit in :data:`LAYER_PROBE_POINTS`, at least 2), their spread in the error
+    * both estimators' divergences the mean of up to :data:`COMPARED_PROBES` probes (as many as
+      fit in :data:`COMPARED_PROBE_POINTS`, at least 2), their spread in the error
       (:func:`probed_difference`; a Kalman smoother's is exact, the same at every probe);
     * where the noise was read off the data, the least sure difference over every noise level
       within :data:`~torchsvs.estimating.GUARD_ERRORS` standard errors of the reading;
@@ -416,9 +418,8 @@ def compared(
     if own_q:
         incumbent, challenger = with_q_curve(incumbent, sample), with_q_curve(challenger, sample)
     assert challenger.meas_var is not None
-    probes = min(LAYER_PROBES, max(2, LAYER_PROBE_POINTS // max(points, 1)))
-    held = probed_terms(incumbent, sample, probes)
-    drawn = probed_terms(challenger, sample, probes)
+    probes = min(COMPARED_PROBES, max(2, COMPARED_PROBE_POINTS // max(points, 1)))
+    held, drawn = (_draws(settings, sample, probes) for settings in (incumbent, challenger))
     ends = meas_var_range(challenger, GUARD_ERRORS)
     levels = [challenger.meas_var, *(ends or ())]
     # the level the challenger is least surely lower at (an unknown error: unsure at any)
@@ -429,6 +430,14 @@ def compared(
     mean_var = sum(challenger.meas_var) / len(challenger.meas_var)
     optimism = OPTIMISM_PER_PARAMETER * learned * mean_var / points if learned > 0 else 0.0
     return Comparison(change - optimism, change_se, optimism, ends is not None)
+
+
+def _draws(settings: Settings, sample: RecordedTracks, probes: int) -> list[RiskTerms]:
+    """The estimator's SURE terms on ``sample`` for each of ``probes`` probes: one run for a
+    Kalman filter or smoother (its divergence exact, the same at every probe)."""
+    if settings.estimator in TWIN_NAMES:
+        return [sample_terms(settings, sample)] * probes
+    return probed_terms(settings, sample, probes)
 
 
 def probed_difference(
