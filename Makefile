@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family bias-detectability network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles bias-detectability network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -82,6 +82,12 @@ recorded-wide: $(STAMP)
 recorded-wide-family: $(STAMP)
 	$(PY) -m experiments.recorded_tracks --kinds own,scan10,scan1,taxi,turning --sigmas 3,250 \
 		--estimators ks,svss,svstps --jobs 2 --name recorded_wide_family
+
+# Simulated other vehicles (people walking, cars, ships by AIS, drones at 10 Hz): every
+# estimator and mode (~25 min)
+recorded-vehicles: $(STAMP)
+	$(PY) -m experiments.recorded_tracks --kinds walker,car,ship,drone --jobs 2 \
+		--name recorded_vehicles
 
 # Whether the faults benchmark's sensor bias can be found in the measurements (NumPy, ~1 min):
 bias-detectability: $(STAMP)

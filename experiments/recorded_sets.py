@@ -582,6 +582,13 @@ def turning(rows: int, seed: int) -> Truth:
     return Truth("turning", truth_rows(pieces), ["simulation"], counts, {})
 
 
+def simulated(name: str, rows: int, seed: int) -> Truth:
+    """A simulated vehicle's truth (:func:`experiments.vehicle_sets.simulated_truth`)."""
+    from experiments.vehicle_sets import simulated_truth  # (it builds on this module)
+
+    return simulated_truth(name, rows, seed)
+
+
 KINDS: dict[str, Kind] = {
     k.name: k
     for k in (
@@ -613,8 +620,39 @@ KINDS: dict[str, Kind] = {
             irregular,
         ),
         Kind("turning", "simulated hard turns (3-6 deg/s, 2 s scans)", (50.0,), turning),
+        Kind(
+            "walker",
+            "simulated people walking (1 s GPS)",
+            (3.0, 10.0),
+            functools.partial(simulated, "walker"),
+            "1-1.6 m/s, waits and corners",
+        ),
+        Kind(
+            "car",
+            "simulated cars in town (1 s GPS, tunnels)",
+            (3.0, 10.0),
+            functools.partial(simulated, "car"),
+            "stop-and-go at 8-20 m/s, right-angle turns, dropouts of 10-30 s",
+        ),
+        Kind(
+            "ship",
+            "simulated ships (AIS, 2-180 s apart)",
+            (10.0, 50.0),
+            functools.partial(simulated, "ship"),
+            "3-10 m/s, course changes of 10-60 deg",
+        ),
+        Kind(
+            "drone",
+            "simulated multirotor drones (10 Hz GPS)",
+            (1.0, 3.0),
+            functools.partial(simulated, "drone"),
+            "hovering and 3-15 m/s, sharp turns",
+        ),
     )
 }
+#: The kinds a benchmark runs unless told (the simulated vehicles of :mod:`experiments.
+#: vehicle_sets` are their own benchmark: ``make recorded-vehicles``).
+DEFAULT_KINDS = ("own", "scan10", "scan1", "taxi", "irregular", "turning")
 
 
 # --- sets --------------------------------------------------------------------------------------
@@ -741,12 +779,12 @@ def build_sets(
     progress: bool = False,
     faults: bool = False,
 ) -> list[BenchSet]:
-    """The benchmark sets: every kind of ``kinds`` (default :data:`KINDS`) at its noise levels
+    """The benchmark sets: every kind of ``kinds`` (default :data:`DEFAULT_KINDS`) at its noise levels
     (or at ``sigmas``), about ``rows`` rows each; with ``faults``, measured with
     :func:`add_faults` too."""
     from tqdm.auto import tqdm
 
-    names = list(KINDS) if kinds is None else list(kinds)
+    names = list(DEFAULT_KINDS) if kinds is None else list(kinds)
     unknown = [k for k in names if k not in KINDS]
     if unknown:
         raise ValueError(f"kinds: expected names among {sorted(KINDS)}, got {unknown}")

@@ -48,6 +48,7 @@ import pandas as pd
 
 from experiments.common import render
 from experiments.recorded_sets import (
+    DEFAULT_KINDS,
     DEJITTER_WINDOW,
     KINDS,
     TURN_DT,
@@ -1077,7 +1078,9 @@ def save_runs(path: Path, options: dict[str, Any], runs: Sequence[Run]) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--kinds", default=",".join(KINDS), help="kinds of track (comma-separated)")
+    parser.add_argument(
+        "--kinds", default=",".join(DEFAULT_KINDS), help="kinds of track (comma-separated)"
+    )
     parser.add_argument(
         "--sigmas", default=None, help="noise levels for every kind (default: each kind's own)"
     )
