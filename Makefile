@@ -84,10 +84,13 @@ recorded-wide-family: $(STAMP)
 		--estimators ks,svss,svstps --jobs 2 --name recorded_wide_family
 
 # Simulated other vehicles (people walking, cars, ships by AIS, drones at 10 Hz): every
-# estimator and mode (~25 min)
+# estimator and mode, then with faults (~35 min)
 recorded-vehicles: $(STAMP)
 	$(PY) -m experiments.recorded_tracks --kinds walker,car,ship,drone --jobs 2 \
 		--name recorded_vehicles
+	$(PY) -m experiments.recorded_tracks --faults --kinds walker,car,ship,drone --jobs 2 \
+		--estimators ks,svsf,svss,svstps,rstkf,auto --modes default,--fit \
+		--name recorded_vehicles_faults
 
 # Whether the faults benchmark's sensor bias can be found in the measurements (NumPy, ~1 min):
 bias-detectability: $(STAMP)
