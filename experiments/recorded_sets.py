@@ -35,7 +35,7 @@ import math
 import zlib
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -43,6 +43,8 @@ import numpy as np
 import pandas as pd
 
 from experiments.flight_data import _thin
+from experiments.track_truth import Piece, Truth, truth_rows
+from experiments.vehicle_sets import simulated_truth
 from torchsvs.datasets.adsb import sample_files
 from torchsvs.datasets.flights import MAX_SPEED, flight_steps
 
@@ -78,45 +80,6 @@ TAXI_SPEED = (2.0, 15.0)
 #: Taxiing, 1 s scans: a piece is cut at a gap between reports longer than this (s).
 TAXI_MAX_GAP = 30.0
 SCAN1_MAX_GAP = 1.5
-
-
-@dataclass
-class Piece:
-    """A stretch of one recorded track: report times and truth positions (local frame, m)."""
-
-    track_id: str
-    time: np.ndarray  #: [n] s
-    position: np.ndarray  #: [n, 2] east, north (m)
-    groundspeed_kt: np.ndarray  #: [n] reported ground speed (kt), NaN where not reported
-    origin: str = ""  #: the recorded track it is cut from (default: ``track_id``)
-    source: str = ""  #: the sample file or folder it comes from (sampling is stratified by it)
-
-    def __post_init__(self) -> None:
-        self.origin = self.origin or self.track_id
-
-    def __len__(self) -> int:
-        return len(self.time)
-
-    def take(self, index: np.ndarray, suffix: str = "") -> Piece:
-        return Piece(
-            self.track_id + suffix,
-            self.time[index],
-            self.position[index],
-            self.groundspeed_kt[index],
-            self.origin,
-            self.source,
-        )
-
-
-@dataclass
-class Truth:
-    """The truth of one kind: rows ``track_id, time, x, y`` and how it was made."""
-
-    kind: str
-    rows: pd.DataFrame  #: track_id, time, x, y; sorted by track then time
-    sources: list[str]  #: files (folder/name) or "simulation"
-    counts: Counter[str] = field(default_factory=Counter)  #: what the cleaning did
-    roughness: dict[str, float] = field(default_factory=dict)  #: :func:`roughness` as recorded
 
 
 @dataclass(frozen=True)
@@ -436,20 +399,6 @@ def sample_pieces(
     return sorted(chosen, key=lambda p: p.track_id)
 
 
-def truth_rows(pieces: Sequence[Piece]) -> pd.DataFrame:
-    """Rows ``track_id, time, x, y`` of pieces (in order)."""
-    if not pieces:
-        return pd.DataFrame({"track_id": [], "time": [], "x": [], "y": []})
-    return pd.DataFrame(
-        {
-            "track_id": np.concatenate([[p.track_id] * len(p) for p in pieces]),
-            "time": np.concatenate([p.time for p in pieces]),
-            "x": np.concatenate([p.position[:, 0] for p in pieces]),
-            "y": np.concatenate([p.position[:, 1] for p in pieces]),
-        }
-    )
-
-
 # --- kinds -------------------------------------------------------------------------------------
 
 
@@ -582,13 +531,6 @@ def turning(rows: int, seed: int) -> Truth:
     return Truth("turning", truth_rows(pieces), ["simulation"], counts, {})
 
 
-def simulated(name: str, rows: int, seed: int) -> Truth:
-    """A simulated vehicle's truth (:func:`experiments.vehicle_sets.simulated_truth`)."""
-    from experiments.vehicle_sets import simulated_truth  # (it builds on this module)
-
-    return simulated_truth(name, rows, seed)
-
-
 KINDS: dict[str, Kind] = {
     k.name: k
     for k in (
@@ -624,28 +566,28 @@ KINDS: dict[str, Kind] = {
             "walker",
             "simulated people walking (1 s GPS)",
             (3.0, 10.0),
-            functools.partial(simulated, "walker"),
+            functools.partial(simulated_truth, "walker"),
             "1-1.6 m/s, waits and corners",
         ),
         Kind(
             "car",
             "simulated cars in town (1 s GPS, tunnels)",
             (3.0, 10.0),
-            functools.partial(simulated, "car"),
+            functools.partial(simulated_truth, "car"),
             "stop-and-go at 8-20 m/s, right-angle turns, dropouts of 10-30 s",
         ),
         Kind(
             "ship",
             "simulated ships (AIS, 2-180 s apart)",
             (10.0, 50.0),
-            functools.partial(simulated, "ship"),
+            functools.partial(simulated_truth, "ship"),
             "3-10 m/s, course changes of 10-60 deg",
         ),
         Kind(
             "drone",
             "simulated multirotor drones (10 Hz GPS)",
             (1.0, 3.0),
-            functools.partial(simulated, "drone"),
+            functools.partial(simulated_truth, "drone"),
             "hovering and 3-15 m/s, sharp turns",
         ),
     )

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from experiments.recorded_sets import MAX_ROWS, MIN_ROWS, Piece, Truth, truth_rows
+from experiments.track_truth import Piece, Truth, truth_rows
 
 
 @dataclass(frozen=True)
@@ -70,8 +70,9 @@ VEHICLES = {
     )
 }  # fmt: skip
 
-#: Reports per track are drawn from this range (the recorded kinds' pieces are this long).
-REPORTS = (MIN_ROWS * 4, MAX_ROWS)
+#: Reports per track are drawn from this range (the recorded kinds' pieces are at most 400
+#: rows long: ``recorded_sets.MAX_ROWS``).
+REPORTS = (120, 400)
 
 
 def held(rng: np.random.Generator, v: Vehicle, steps: int) -> np.ndarray:
