@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles bias-detectability network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles bias-detectability per-track-choice network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -95,6 +95,11 @@ recorded-vehicles: $(STAMP)
 # Whether the faults benchmark's sensor bias can be found in the measurements (NumPy, ~1 min):
 bias-detectability: $(STAMP)
 	$(PY) -m experiments.bias_detectability
+
+# The Kalman smoother or the IMM smoother chosen per track: the room (truth) and a truth-free
+# rule's share of it, on the recorded and simulated sets (~1 min)
+per-track-choice: $(STAMP)
+	$(PY) -m experiments.per_track_choice
 
 # ψ per step from a network trained by SURE (no truth) on recorded tracks, scored on held-out
 # halves of every kind: experiments/results/network_psi.md.
