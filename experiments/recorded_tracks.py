@@ -676,16 +676,18 @@ def estimate_section(runs: Sequence[Run]) -> str:
         ],
     )
     counts["warned"] = sum(warned_uncertain(r) for r in off)
-    from torchsvs.track_run import UNCERTAIN_REACH
+    from torchsvs.track_run import GROSS_ERROR_SHARE, UNCERTAIN_REACH
 
     counts["reach"] = f"{UNCERTAIN_REACH:g}"
+    counts["gross"] = f"{GROSS_ERROR_SHARE:.1%}"
     return _text("estimate_some_off", table="\n".join(rows), **counts)
 
 
 def warned_uncertain(run: Run) -> bool:
     """Whether the run warned that its error estimate is uncertain
-    (:func:`torchsvs.track_run.uncertain_estimate`)."""
-    return any("is uncertain" in w for w in run.warnings)
+    (:func:`torchsvs.track_run.uncertain_estimate`) or may be low, the sensor erring grossly
+    (:func:`torchsvs.track_run.gross_errors`)."""
+    return any("is uncertain" in w or "counts white noise only" in w for w in run.warnings)
 
 
 #: The rows of issue 28's table that a set of this benchmark matches: (what was run, kind, σ,

@@ -135,6 +135,10 @@ def test_track_sets_outliers_aside_flags_and_counts_them(tmp_path, capsys):
             assert summary["points"] == 6 * 200 - len(rows)
             true_rmse = errors[mode]
             assert summary["estimated_position_rmse"] == pytest.approx(true_rmse, rel=0.25)
+            # 1% of the positions grossly off: the run says the estimate may miss such a
+            # sensor's other errors
+            gross = [w for w in summary["warnings"] if w.startswith("measurements: 12 ")]
+            assert len(gross) == 1 and "counts white noise only" in gross[0]
         else:
             assert "outlier" not in table.column_names
             assert "outliers" not in summary["rows"]
@@ -227,3 +231,23 @@ def test_local_median_and_largest_nearby_are_those_of_the_judged_neighbours():
     for p in (1e-6, 1e-3, 0.2):
         assert torch.equal(_tail_below(d2, 2, p), tail < p)
     assert (tail < 1e-3).any()
+
+
+def test_gross_errors_are_warned_of_above_a_thousand_times_their_chance():
+    from torchsvs.datasets import RowReport
+    from torchsvs.track_run import GROSS_ERROR_COUNT, GROSS_ERROR_SHARE, gross_errors
+
+    def report(outliers: int, measured: int) -> RowReport:
+        found = RowReport(total=measured, measurement=measured)
+        found.notes["outliers"] = outliers
+        return found
+
+    assert gross_errors(RowReport(total=100, measurement=100)) is None  # no screen ran
+    assert gross_errors(report(0, 5000)) is None
+    limit = int(GROSS_ERROR_SHARE * 100_000)
+    assert gross_errors(report(limit, 100_000)) is None  # at the share: not above it
+    assert "101 positions (0.10%)" in (gross_errors(report(limit + 1, 100_000)) or "")
+    # a few outliers in a small file are not a faulty sensor
+    assert gross_errors(report(GROSS_ERROR_COUNT - 1, 100)) is None
+    assert gross_errors(report(GROSS_ERROR_COUNT, 100)) is not None
+    assert gross_errors(report(7, 10_000_000)) is None  # a clean 10 M-row run's count
