@@ -69,7 +69,7 @@ recorded: $(STAMP)
 # KS, RSTKF, SVSS and auto at σ 50, experiments/results/recorded_faults.md.
 recorded-faults: $(STAMP)
 	$(PY) -m experiments.recorded_tracks --faults --kinds own,scan10,taxi,turning --sigmas 50 \
-		--estimators ks,rstkf,svss,auto --modes default,--fit --jobs 2
+		--estimators ks,svsf,svss,svstps,rstkf,auto --modes default,--fit --jobs 2
 
 # The same kinds beyond the benchmark's noise levels (σ 3 m and 250 m), defaults only:
 # experiments/results/recorded_wide.md (where the defaults meet their limits).
