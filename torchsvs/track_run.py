@@ -33,7 +33,7 @@ NOISE_SPREAD_WARNING = 0.2
 #: that. Of the recorded-tracks and vehicles benchmarks' 29 clean sets (about 5,000 rows each,
 #: σ 1-250 m) none has more than one position flagged, 7 of 10 M simulated rows; of the faults
 #: benchmarks' 12 sets (1% of positions off by 10σ, and a sensor bias), where the error estimate
-#: was a third to a half of the truth, 11 have 0.46-1.0% flagged (``experiments/results/
+#: was 0.31-0.70 of the truth, 11 have 0.46-1.0% flagged (``experiments/results/
 #: recorded_faults.md``, ``recorded_vehicles_faults.md``). Airliners on 10 s scans have 2 of
 #: their ~49 outliers flagged (0.04%: 500 m off is within what their motion over 10 s allows)
 #: and no warning.
