@@ -6,9 +6,10 @@ a per-track choice could add and how much of it a truth-free rule finds:
 
 * **per file**: the better of the two over the file, by the truth;
 * **per-track oracle**: each track's better one, by the truth (the room);
-* **truth-free**: the file's choice by its SURE (the difference beyond ``2`` standard errors
-  of its chunks), then a track switched to the other where its own SURE difference is beyond
-  ``margin`` standard errors (:data:`MARGIN`).
+* **truth-free**: the file's choice by its SURE (the difference beyond :data:`FILE_MARGIN`
+  standard errors, paired chunk by chunk), then a track switched to the other where its own
+  SURE difference is beyond ``margin`` standard errors (:data:`MARGIN`; a track of one chunk
+  has no error to judge by and keeps the file's).
 
 Both run as ``torchsvs track`` runs them (:func:`~torchsvs.track_table.estimate_block` with
 the plan read off the set, the IMM with the smoother's noise so their SUREs pair). Not a
@@ -48,11 +49,11 @@ FILE_MARGIN = 2.0
 
 @dataclass
 class Passes:
-    """One estimator's run on a set: each track's SURE terms and squared errors by the truth."""
+    """One estimator's run on a set: its SURE terms and each track's squared errors by the
+    truth."""
 
     ids: list[str]
-    chunk_track: np.ndarray  #: [C] the track of each SURE chunk
-    chunk_sure: np.ndarray  #: [C] each chunk's SURE sum over the axes (m²)
+    terms: RiskTerms  #: SURE's sums per chunk (the chunks' ``track``: an index into ``ids``)
     truth_sq: pd.Series  #: per track id: the squared 2-D errors' sum by the truth (m²)
 
 
@@ -64,38 +65,41 @@ def run(bench: BenchSet, settings: Settings) -> tuple[Passes, list[float]]:
     assert plan.settings.meas_var is not None
     block = block_of(data, plan.columns)
     found = estimate_block(block, plan, plan.estimator(), new_run(plan))
-    m = len(plan.settings.meas_var)
-    terms = RiskTerms.concat(found.risk, m)
-    sure = terms.errors(plan.settings.meas_var).sum(1)
+    terms = RiskTerms.concat(found.risk, len(plan.settings.meas_var))
     out = found.table(block, "float64").to_pandas()
     both = bench.truth.rows.merge(out, on=["track_id", "time"], suffixes=("", "_e"))
     assert len(both) == len(bench.truth.rows), "every row estimated"
     square = (both["x_e"] - both["x"]) ** 2 + (both["y_e"] - both["y"]) ** 2
-    ids = list(block.steps.ids)
-    passes = Passes(ids, terms.track, sure, square.groupby(both["track_id"]).sum())
+    passes = Passes(list(block.steps.ids), terms, square.groupby(both["track_id"]).sum())
     return passes, list(plan.settings.meas_var)
 
 
-def paired(ks: Passes, imm: Passes) -> tuple[np.ndarray, np.ndarray]:
-    """``[B]`` each track's SURE of the smoother less the IMM's (positive: the IMM lower) and
-    its standard error from the chunks' differences (the chunks pair: same tracks, steps)."""
-    if not np.array_equal(ks.chunk_track, imm.chunk_track):
-        raise ValueError("ks, imm: their SURE chunks do not pair")
-    B = len(ks.ids)
-    d = ks.chunk_sure - imm.chunk_sure
-    n = np.bincount(ks.chunk_track, None, B)
-    total = np.bincount(ks.chunk_track, d, B)
-    spread = np.bincount(ks.chunk_track, d * d, B) - total**2 / np.maximum(n, 1)
-    se = np.sqrt(np.maximum(spread, 0.0) * n / np.maximum(n - 1, 1))
-    return total, se
+def paired(
+    ks: Passes, imm: Passes, meas_var: list[float]
+) -> tuple[tuple[float, float], np.ndarray, np.ndarray]:
+    """The file's and each track's estimated MSE per point of the smoother less the IMM's
+    (positive: the IMM lower) with standard errors, paired chunk by chunk
+    (:meth:`~torchsvs.accuracy.RiskTerms.difference`; NaN for a track of one chunk)."""
+    whole = ks.terms.difference(imm.terms, meas_var)
+    change, error = np.full(len(ks.ids), np.nan), np.full(len(ks.ids), np.nan)
+    for b in range(len(ks.ids)):
+        mine = ks.terms.track == b
+        if mine.any():
+            change[b], error[b] = ks.terms.select(mine).difference(imm.terms.select(mine), meas_var)
+    return whole, change, error
 
 
-def choose(total: np.ndarray, se: np.ndarray, margin: float) -> tuple[bool, np.ndarray]:
-    """The file's choice (IMM or not) and ``[B]`` each track's (True: the IMM)."""
-    file_imm = bool(total.sum() > FILE_MARGIN * np.sqrt((se**2).sum()))
-    if file_imm:
-        return True, ~(-total > margin * se)
-    return False, total > margin * se
+def choose(
+    whole: tuple[float, float], change: np.ndarray, error: np.ndarray, margin: float
+) -> tuple[bool, np.ndarray]:
+    """The file's choice (the IMM or not: its difference beyond :data:`FILE_MARGIN` standard
+    errors) and ``[B]`` each track's (True: the IMM), the file's unless the track's own
+    difference is beyond ``margin`` the other way (an unknown error: the file's)."""
+    file_imm = bool(whole[0] > FILE_MARGIN * whole[1])
+    with np.errstate(invalid="ignore"):
+        if file_imm:
+            return True, ~(-change > margin * error)
+        return False, change > margin * error
 
 
 class Choice(NamedTuple):
@@ -118,8 +122,7 @@ def measure(bench: BenchSet, margin: float) -> Choice:
     imm, _ = run(bench, Settings(estimator="imm", meas_var=meas_var))
     if ks.ids != imm.ids:
         raise ValueError("ks, imm: not the same tracks")
-    total, se = paired(ks, imm)
-    file_imm, pick = choose(total, se, margin)
+    file_imm, pick = choose(*paired(ks, imm, meas_var), margin)
     a = ks.truth_sq.reindex(ks.ids).to_numpy()
     b = imm.truth_sq.reindex(ks.ids).to_numpy()
     rows = len(bench.truth.rows)

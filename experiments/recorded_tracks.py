@@ -670,12 +670,12 @@ def estimate_section(runs: Sequence[Run]) -> str:
                 _f(r.rmse),
                 _f(r.estimated),
                 f"{r.estimate_ratio:.2f}",
-                "yes" if warned_uncertain(r) else "**no**",
+                "yes" if warned_of_estimate(r) else "**no**",
             ]
             for r in sorted(off, key=lambda r: -abs(math.log(r.estimate_ratio)))
         ],
     )
-    counts["warned"] = sum(warned_uncertain(r) for r in off)
+    counts["warned"] = sum(warned_of_estimate(r) for r in off)
     from torchsvs.track_run import GROSS_ERROR_SHARE, UNCERTAIN_REACH
 
     counts["reach"] = f"{UNCERTAIN_REACH:g}"
@@ -683,7 +683,7 @@ def estimate_section(runs: Sequence[Run]) -> str:
     return _text("estimate_some_off", table="\n".join(rows), **counts)
 
 
-def warned_uncertain(run: Run) -> bool:
+def warned_of_estimate(run: Run) -> bool:
     """Whether the run warned that its error estimate is uncertain
     (:func:`torchsvs.track_run.uncertain_estimate`) or may be low, the sensor erring grossly
     (:func:`torchsvs.track_run.gross_errors`)."""

@@ -80,13 +80,16 @@ class RiskTerms:
             np.concatenate([p.track for p in parts]),
         )
 
+    def select(self, chunks: np.ndarray) -> RiskTerms:
+        """These chunks (``[C]`` bool, or indices in the order wanted)."""
+        return RiskTerms(
+            self.residual[chunks], self.divergence[chunks], self.count[chunks], self.track[chunks]
+        )
+
     def in_track_order(self) -> RiskTerms:
         """The chunks ordered by track, each track's in their own order (the order of a run of
         all the tracks at once, whatever parts they ran in)."""
-        order = np.argsort(self.track, kind="stable")
-        return RiskTerms(
-            self.residual[order], self.divergence[order], self.count[order], self.track[order]
-        )
+        return self.select(np.argsort(self.track, kind="stable"))
 
     def mse(self, meas_var: Sequence[float]) -> tuple[float, float]:
         """The position MSE per point (the axes' MSEs summed) and its standard error."""

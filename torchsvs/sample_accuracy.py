@@ -63,15 +63,8 @@ def probed_terms(settings: Settings, tracks: RecordedTracks, probes: int) -> lis
     copies = replace(tracks.subset(torch.arange(B).repeat(probes)), ids=ids)
     terms = sample_terms(settings, copies)
     copy = terms.track // B
-    return [
-        RiskTerms(
-            terms.residual[copy == k],
-            terms.divergence[copy == k],
-            terms.count[copy == k],
-            terms.track[copy == k] % B,
-        )
-        for k in range(probes)
-    ]
+    draws = [terms.select(copy == k) for k in range(probes)]
+    return [replace(draw, track=draw.track % B) for draw in draws]
 
 
 def accuracy_of_terms(settings: Settings, terms: RiskTerms) -> Accuracy:
