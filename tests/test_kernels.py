@@ -44,6 +44,12 @@ def _estimators(model):
         "SVSS H+ lag 3": ts.SVSS(ts.SVSF(model, psi=hplus, gamma=0.2, artificial=None), lag=3),
         "SVSS interval": ts.SVSS(ts.SVSF(model, psi=fd, gamma=0.2), lag=None),
         "SVSTPS": ts.RTSSmoother(ts.SVSF(model, psi=3.0, gamma=0.2), lag=1),
+        # The variable boundary layer, its limit low enough to inflate at a third of the steps.
+        "VBL": ts.VariableBoundarySVSF(model, psi=[1.2, 0.9], gamma=0.2),
+        "VBL SVSS lag 1": ts.SVSS(ts.VariableBoundarySVSF(model, psi=1.1, gamma=0.2), lag=1),
+        "VBL SVSS lag 2": ts.SVSS(ts.VariableBoundarySVSF(model, psi=1.1, gamma=0.2), lag=2),
+        "VBL SVSS interval": ts.SVSS(ts.VariableBoundarySVSF(model, psi=1.1), lag=None),
+        "VBL SVSTPS": ts.RTSSmoother(ts.VariableBoundarySVSF(model, psi=1.1), lag=1),
     }
 
 
@@ -558,6 +564,9 @@ def test_compiled_gradients_of_sums_equal_tensor_loop_gradients(name, spy):
         ("svsf", "moments", ("projection", 2)),
         ("svsf velocity", "mean", ("projection", None)),
         ("svsf velocity", "moments", ("gain", 3)),
+        ("vbl-innovation", "all", None),
+        ("vbl-innovation", "all", "projection"),
+        ("vbl-innovation", "moments", ("projection", 2)),
     ],
 )
 def test_compiled_reverse_mode_passes_gradcheck(rule, keep, smoothing):
@@ -607,7 +616,7 @@ def test_compiled_reverse_mode_passes_gradcheck(rule, keep, smoothing):
     inputs[4].requires_grad_(False)  # y with NaN gaps: gradcheck perturbs the NaNs too
     inputs[5].requires_grad_(False)
     gamma.requires_grad_(rule != "kalman")
-    name = "kalman" if rule == "kalman" else "svsf"
+    name = "svsf" if velocity else rule
 
     def run(gamma, *inputs):
         shape = (B, T, m)
@@ -648,6 +657,60 @@ def test_compiled_gradients_on_threads_for_any_axis_count(spy, on_two_threads):
     assert (
         on_two_threads == [2] * 8
     )  # every compiled call (forward and reverse, filter and smoother)
+
+
+@needs_compiler
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+def test_compiled_variable_boundary_layer_couples_each_tracks_axes(dtype, spy, on_two_threads):
+    """The variable boundary layer inflates a track's axes by one λ, the largest any of them
+    asks for: the compiled loops keep each vector's tracks whole (8 lanes of float64, 16 of
+    float32), so 1, 3 and 5 axes (tracks that would straddle vectors) and ties between axes
+    (identical axes ask for the same λ: torch splits the gradient between them) give the tensor
+    loops' numbers and gradients, on threads, in the filter, the SVSS of lag 1 in its loop
+    and of lag 3 through the recursion. More than 8 axes take the tensor loops."""
+    tol = {"atol": 1e-10, "rtol": 1e-10} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 2e-3}
+    for ndim, twins in ((1, False), (3, False), (5, False), (2, True), (9, False)):
+        B, T = (2100, 48) if ndim == 3 else (60, 30)  # ≥ 100k track-steps: on threads
+        gen = torch.Generator().manual_seed(ndim)
+        z = torch.randn(B, T, ndim, generator=gen, dtype=dtype) * 3
+        z[torch.rand(B, T, ndim, generator=gen) < 0.1] = float("nan")
+        if twins:
+            z[..., 1] = z[..., 0]
+        dt = torch.rand(B, T, generator=gen, dtype=dtype) + 0.5
+        x0 = torch.zeros(B, 2 * ndim, dtype=dtype)
+        P0 = torch.eye(2 * ndim, dtype=dtype) * 4
+        r = [2.0] * ndim if twins else [2.0 + i for i in range(ndim)]
+        model = ts.models.ConstantVelocity(ndim=ndim, q=0.5, r=r, learn_q=True).to(dtype)
+        for est in (
+            ts.VariableBoundarySVSF(model, psi=1.0, gamma=0.2),
+            ts.SVSS(ts.VariableBoundarySVSF(model, psi=1.0, gamma=0.2), lag=1),
+            ts.SVSS(ts.VariableBoundarySVSF(model, psi=1.0, gamma=0.2), lag=3),
+        ):
+            est = est.to(dtype)
+            before = spy["forward"] + spy["together"]
+            compiled = _gradients(est, dtype, z, dt, x0, P0)
+            assert spy["forward"] + spy["together"] == before + (ndim <= 8)
+            with eager_loops():
+                eager = _gradients(est, dtype, z, dt, x0, P0)
+            for i, (a, b) in enumerate(zip(compiled, eager, strict=True)):
+                if a is None:
+                    continue
+                if dtype == torch.float64:
+                    assert_close(a, b, msg=f"{ndim} axes, gradient {i}", **tol)
+                else:  # a near-tie in float32 may pick the other axis (a kink): a few entries
+                    close = torch.isclose(a, b, atol=tol["atol"], rtol=tol["rtol"])
+                    assert close.double().mean() > 0.9999, (ndim, i)
+            with torch.no_grad():
+                inferred = est(z, x0, P0, dt=dt)
+                with eager_loops():
+                    reference = est(z, x0, P0, dt=dt)
+            assert_close(inferred.mean, reference.mean, msg=f"{ndim} axes", **tol)
+            assert_close(inferred.cov, reference.cov, msg=f"{ndim} axes", **tol)
+            inflated = _filtered(reference).pred_cov.diagonal(dim1=-2, dim2=-1)
+            if ndim == 3:  # the layer acted: some priors grew beyond the model's
+                model_only = ts.KalmanFilter(model)(z, x0, P0, dt=dt).pred_cov
+                assert (inflated > model_only.diagonal(dim1=-2, dim2=-1) * 1.01).any()
+    assert 2 in on_two_threads
 
 
 @needs_compiler

@@ -437,7 +437,9 @@ class VariableBoundarySVSF(SVSF):
 
     @property
     def paths(self) -> FastPaths:  # type: ignore[override]
-        """The per-axis kernel's rule (its tensor loop: no compiled one yet)."""
+        """The per-axis kernel's rule: compiled, with its reverse mode, for the default
+        ``"innovation"`` inflation of up to :data:`~torchsvs.kernels.fused_axes.MAX_COUPLED_AXES`
+        axes (one λ per track couples its axes), else its tensor loop."""
         return FastPaths(axis=f"vbl-{self.inflation}")
 
     def filter_step(

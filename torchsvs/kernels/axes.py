@@ -204,8 +204,11 @@ def run_axes(
         q: process noise spectral density (0-d).
         interval: ``T`` per step, 0-d or ``[B, T]``.
         rule: ``"kalman"`` (position-only corrector, gain ``P Hᵀ S⁻¹``, Eqs. (14)-(16), Chen et
-            al. 2020) or ``"svsf"`` (``K = diag(ratio)`` on the observed components, Eq. (23)
-            with ``H⁺ = I``; the ``H⁺`` mode has no velocity measurements).
+            al. 2020), ``"svsf"`` (``K = diag(ratio)`` on the observed components, Eq. (23)
+            with ``H⁺ = I``; the ``H⁺`` mode has no velocity measurements) or ``"vbl-*"`` (the
+            Kalman rule on the prior inflated by the variable boundary layer's one λ per track,
+            :func:`~torchsvs.linalg.boundary_inflation`; compiled where
+            :func:`fused_axes.compiles`).
         psi: boundary layer ``[2, m]`` (rows: position, velocity widths) or per step
             ``[B, T, 2, m]``; gamma: memory (0-d). For ``"svsf"``.
         velocity: the corrector measures velocities (``H = I``), else positions only.
@@ -233,12 +236,7 @@ def run_axes(
     noise = Sym2(*(per_step(x) for x in y.noise))
     prior = (x0[0], x0[1], P0.a, P0.b, P0.c)
     raw = given(T_all, *Q_all, y.position, y.velocity, *y.noise, width_p, width_v)
-    compiled = rule in ("kalman", "svsf")  # (the variable boundary layer: tensor loops)
-    if (
-        compiled
-        and m <= fused_axes.MAX_AXES
-        and build.usable(*raw, *prior, gamma, differentiable=True)
-    ):
+    if fused_axes.compiles(rule, m) and build.usable(*raw, *prior, gamma, differentiable=True):
         inputs = (*raw, *prior)
         shape = (B, steps, m)
         training = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma))

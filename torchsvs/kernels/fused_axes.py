@@ -51,6 +51,19 @@ class _Arrays:
 #: Most axes the compiled forward loop steps (``kLanes`` in ``cpp/axis_step.h``); more take the
 #: tensor loops.
 MAX_AXES = 64
+#: The compiled loops' codes of the per-axis rules (``Rule`` in ``cpp/axis_step.h``); the
+#: variable boundary layer's ``"gain"`` inflation has tensor loops only.
+RULES = {"kalman": 0, "svsf": 1, "vbl-innovation": 2}
+#: Most axes of a rule that couples a track's axes (the variable boundary layer's one λ per
+#: track): a vector of lanes holds a track whole (``lanes_per_vector`` in ``cpp/lanes.h``; 8
+#: lanes of float64).
+MAX_COUPLED_AXES = 8
+
+
+def compiles(rule: str, axes: int) -> bool:
+    """Whether the compiled loops run ``rule`` on tracks of ``axes`` axes."""
+    coupled = rule.startswith("vbl-")
+    return rule in RULES and axes <= (MAX_COUPLED_AXES if coupled else MAX_AXES)
 
 
 class Last(NamedTuple):
@@ -100,16 +113,17 @@ def forward(
     B, T, m = shape
     n, mz = 2 * m, 2 * m if velocity else m
     dtype = prior[0].dtype
-    svsf = rule != "kalman"
+    # The a-posteriori innovation of the SVSF family, the log-likelihood of the Kalman rules.
+    post, likelihood = rule != "kalman", rule != "svsf"
     kept = KEPT[keep]
     shapes = ((n,), (n, n), (n,), (n, n), (mz,), (n, mz), (mz, mz), (mz,))
     per_step: list[Tensor | None] = [
-        fresh((B, T, *tail), dtype) if i in kept and (svsf or i < 7) else None
+        fresh((B, T, *tail), dtype) if i in kept and (post or i < 7) else None
         for i, tail in enumerate(shapes)
     ]
-    loglik = None if svsf else torch.empty(B, dtype=dtype)
+    loglik = torch.empty(B, dtype=dtype) if likelihood else None
     mask = fresh((B, T, mz), torch.bool) if keep == "all" else None
-    last = Last.empty(B, n, mz if svsf else None, dtype)
+    last = Last.empty(B, n, mz if post else None, dtype)
     smoothed = None
     if smoothing is not None:
         smoothed = fresh((B, T, n), dtype), fresh((B, T, n, n), dtype)
@@ -165,7 +179,7 @@ def filter_smoother(
     last = Last.empty(B, n, mz if rule != "kalman" else None, dtype)
     smoothed = fresh((B, T, n), dtype), fresh((B, T, n, n), dtype)
     per_step = (mean, cov, *(None,) * 6)
-    loglik = torch.empty(B, dtype=dtype) if rule == "kalman" else None
+    loglik = torch.empty(B, dtype=dtype) if rule != "svsf" else None
     outputs = (*per_step, loglik, None, *last, *smoothed)
     sweeps, projection = _backward_settings(shape, lag, smoothing == "projection")
     _forward_loop(
@@ -191,7 +205,7 @@ def _forward_loop(
     inputs, start = _Arrays(given, shape), _Arrays(prior, (B, 1, m))
     build.function(name, prior[0].dtype)(
         *shape,
-        int(rule != "kalman"),
+        RULES[rule],
         int(velocity),
         float(gamma),
         build.threads(B, T),

@@ -258,10 +258,13 @@ inline void gain_ratio_adjoint(X e, X memory, X width, X gamma, X dk, X& de, X& 
 
 // predict_correct's adjoint: from the adjoints of the state after the step (dn) and of its
 // records (o), those of the state before (returned), of the step's inputs (dg, Given's
-// order, overwritten) and of γ (added to dgamma). Branch-free, as predict_correct.
-template <typename X, int Rule>
+// order, overwritten) and of γ (added to dgamma). Branch-free, as predict_correct. Rule 2:
+// `share` maps each lane's part of dλ to the adjoint of what it wanted (track_inflation_adjoint
+// over the lanes' vector), the other rules never call it.
+template <typename X, int Rule, typename Share>
 inline State<X> step_adjoint(const State<X>& x, const X* g, X gamma, const Step<X>& s,
-                             const State<X>& dn, const Recorded<X>& o, X* dg, X& dgamma) {
+                             const State<X>& dn, const Recorded<X>& o, X* dg, X& dgamma,
+                             const Share& share) {
     const X zero{};
     const X dt = g[kT];
     const auto seen_p = s.fp > zero, seen_v = s.fv > zero;
@@ -270,11 +273,17 @@ inline State<X> step_adjoint(const State<X>& x, const X* g, X gamma, const Step<
     X da1 = o.a1, db1 = o.b1, dc1 = o.c1, dep = o.ep, dev = o.ev;
     X dpp = o.p_pred, dvp = o.v_pred, dkp = o.kp, dkc = o.kc, dkv = o.kv, dSp = o.Sp;
     for (int q = 0; q < kGiven; ++q) dg[q] = zero;
-    if (Rule == 0) {
+    if (Rule != 1) {
         const X kp = s.kp, kvp = s.kc, one_k = 1 - kp;
+        X dp = dn.p;
+        d.mem_p = dn.mem_p, d.mem_v = dn.mem_v;
+        if (Rule == 2) {  // mem' = y − p' where observed, else mem
+            const X held = seen_p ? dn.mem_p : zero;
+            dyp += held, dp -= held, d.mem_p -= held;
+        }
         // p' = p_pred + kp ep, v' = v_pred + kvp ep
-        dpp += dn.p, dvp += dn.v;
-        dkp += dn.p * s.ep, dkc += dn.v * s.ep, dep += dn.p * kp + dn.v * kvp;
+        dpp += dp, dvp += dn.v;
+        dkp += dp * s.ep, dkc += dn.v * s.ep, dep += dp * kp + dn.v * kvp;
         // c' = c1 − 2 kvp b1 + kvp² (a1 + rp)
         dc1 += dn.c, db1 -= 2 * kvp * dn.c, da1 += kvp * kvp * dn.c, drp += kvp * kvp * dn.c;
         dkc += dn.c * (2 * kvp * (s.a1 + s.rp) - 2 * s.b1);
@@ -293,7 +302,6 @@ inline State<X> step_adjoint(const State<X>& x, const X* g, X gamma, const Step<
         // ll = −(ep²/Sp + log Sp)/2 + const
         dep -= o.ll * s.ep / s.Sp;
         dSp += splat<X>(0.5) * o.ll * (s.ep * s.ep / (s.Sp * s.Sp) - 1 / s.Sp);
-        d.mem_p = dn.mem_p, d.mem_v = dn.mem_v;
     } else {
         const X kp = s.kp, kv = s.kv, one_p = 1 - kp, one_v = 1 - kv;
         X dp = dn.p, dv = dn.v;
@@ -326,8 +334,15 @@ inline State<X> step_adjoint(const State<X>& x, const X* g, X gamma, const Step<
         const X seen_dev = seen_v ? dev : zero;
         dyv += seen_dev, dvp -= seen_dev;
     }
-    // Sp = a1 fp + rp; ep = yp − p_pred where observed
+    // Sp = a1 fp + rp
     da1 += s.fp * dSp, drp += dSp;
+    if (Rule == 2) {  // (a1, b1, c1) = λ (a1r, b1r, c1r), λ the track's (track_inflation)
+        const X dwanted = share(s.a1r * da1 + s.b1r * db1 + s.c1r * dc1);
+        da1 = s.inflation * da1, db1 = s.inflation * db1, dc1 = s.inflation * dc1;
+        wanted_inflation_adjoint(x, g, gamma, s, dwanted, da1, dep, drp, d.mem_p, dg[kWp],
+                                 dgamma);
+    }
+    // ep = yp − p_pred where observed
     const X seen_dep = seen_p ? dep : zero;
     dyp += seen_dep, dpp -= seen_dep;
     // The masked noise: the inputs count where observed only.
@@ -421,6 +436,11 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
     const bool in_loop = smoothing && !general;  // the one-step-lag smoothing of `forward`
     const V gam = splat<V>(gamma);
     const int64_t fits = (int64_t(1) << 19) / ((T + 1) * int64_t(sizeof(State<V>)));
+    const int64_t per = lanes_per_vector<R>(m, Rule == 2);
+    // Rule 2's λ of a vector's tracks (track_inflation) from the state before a step.
+    auto inflation_of = [&gam](const Lanes& at, const State<V>& x, const V* g) {
+        return Rule == 2 ? track_inflation(at, wanted_inflation<V>(x, g, gam)) : splat<V>(1.0);
+    };
     // The general recursion's buffers hold a vector's whole record: one vector at a time.
     const int64_t G =
         general ? 1 : std::max<int64_t>(1, std::min<int64_t>(kAdjointVectors, fits));
@@ -444,10 +464,10 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
         std::vector<V> rec(general ? 20 * T : 0);
         SmootherBuffers<V> buffers(general ? T : 1, general ? lag : 1);
         const std::vector<V>& acc = buffers.acc;
-        for (int64_t l0 = first * m; l0 < end; l0 += G * W) {
+        for (int64_t l0 = first * m; l0 < end; l0 += G * per) {
             lanes.clear(), inputs.clear();
-            for (int64_t l = l0; l < end && l < l0 + G * W; l += W) {
-                lanes.emplace_back(l, end, m);
+            for (int64_t l = l0; l < end && l < l0 + G * per; l += per) {
+                lanes.emplace_back(l, end, m, per);
                 inputs.emplace_back(lanes.back(), given);
             }
             const int64_t count = static_cast<int64_t>(lanes.size());
@@ -466,8 +486,10 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                     for (int64_t v = 0; v < count; ++v) {
                         V g[kGiven];
                         inputs[v].at(t, g);
+                        const State<V>& x = states[t * G + v];
                         states[(t + 1) * G + v] =
-                            predict_correct<V, Rule>(states[t * G + v], g, gam).next;
+                            predict_correct<V, Rule>(x, g, gam, inflation_of(lanes[v], x, g))
+                                .next;
                     }
             }
             // The state after the last step: its own gradient and, smoothing in the loop, that
@@ -501,7 +523,9 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                     V g[kGiven], dg[kGiven];
                     inputs[v].at(t, g);
                     const State<V>& before = states[t * G + v];
-                    const Step<V> s = predict_correct<V, Rule>(before, g, gam);
+                    const V wanted = Rule == 2 ? wanted_inflation<V>(before, g, gam) : zero;
+                    const V inflation = Rule == 2 ? track_inflation(at, wanted) : splat<V>(1.0);
+                    const Step<V> s = predict_correct<V, Rule>(before, g, gam, inflation);
                     // The outputs' gradients at this step, read from the general layout.
                     State<V>& d = dx[v];
                     Recorded<V> o{};
@@ -563,7 +587,10 @@ void adjoint(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int smoothi
                         o.ep += entry(16), o.ev += entry(17);
                         extra = {entry(15), entry(10), entry(11), entry(12)};  // unmasked noise
                     }
-                    d = step_adjoint<V, Rule>(before, g, gam, s, d, o, dg, dgam[v]);
+                    auto share = [&at, &wanted](V dlam) {
+                        return track_inflation_adjoint(at, wanted, dlam);
+                    };
+                    d = step_adjoint<V, Rule>(before, g, gam, s, d, o, dg, dgam[v], share);
                     d.p += dsmooth.p, d.v += dsmooth.v;
                     d.a += dsmooth.a, d.b += dsmooth.b, d.c += dsmooth.c;
                     dg[kT] += extra.dt, dg[kRp] += extra.rp;
@@ -609,8 +636,11 @@ void adjoint_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, doub
     if (rule == 0)
         adjoint<R, 0>(B, T, m, velocity, gm, smoothing, lag, threads, in, s, prior, ps, g, dg, dp,
                       dgm);
-    else
+    else if (rule == 1)
         adjoint<R, 1>(B, T, m, velocity, gm, smoothing, lag, threads, in, s, prior, ps, g, dg, dp,
+                      dgm);
+    else
+        adjoint<R, 2>(B, T, m, velocity, gm, smoothing, lag, threads, in, s, prior, ps, g, dg, dp,
                       dgm);
 }
 

@@ -34,8 +34,8 @@ struct Likelihood {
     }
 };
 
-// axes._forward_step over all steps, writing the general layout. rule 0: Kalman
-// (position-only), 1: SVSF. `velocity`: the corrector measures velocities too (H = I, m_z = n),
+// axes._forward_step over all steps, writing the general layout. Rule (axis_step.h): 0
+// Kalman (position-only), 1 SVSF, 2 the variable boundary layer. `velocity`: the corrector measures velocities too (H = I, m_z = n),
 // else positions only (m_z = m). M: the number of axes when known at compile time (1-3: the
 // record loops unroll), else 0 and `m` says.
 // Inputs (11, [B, T, m] views, in Given's order): T, Qa, Qb, Qc, yp, yv (NaN: missing), rp,
@@ -102,14 +102,14 @@ void forward(int64_t B, int64_t T, int64_t m_runtime, int velocity, R gamma, int
                     }
                     if (smoothing)
                         for (int q = 0; q < 5; ++q) std::copy_n(r[kP + q], lanes, moments[q]);
-                    step_lanes<R, Rule>(lanes, gamma, g, r);
+                    step_lanes<R, Rule>(lanes, m, gamma, g, r);
                     if (smoothing && t > 0) {
                         if (projection)
                             smooth_lanes<R, true>(lanes, g, r, moments);
                         else
                             smooth_lanes<R, false>(lanes, g, r, moments);
                     }
-                    if (Rule == 0)
+                    if (Rule != 1)
                         for (int64_t l = 0; l < lanes; ++l) logs[l].add(r[kLl][l], r[kSp][l]);
                     for (int64_t bi = b0, l = 0; bi < b1; ++bi) {
                         // This track-step's records in the staging area: per output, its
@@ -240,8 +240,10 @@ void forward_entry(int64_t B, int64_t T, int64_t m, int rule, int velocity, doub
     R g = static_cast<R>(gamma);
     if (rule == 0)
         forward_axes<R, 0>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
-    else
+    else if (rule == 1)
         forward_axes<R, 1>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
+    else
+        forward_axes<R, 2>(B, T, m, velocity, g, threads, in, s, prior, ps, out);
 }
 
 // The filter's steps for a vector of lanes with the record the smoother's recursion reads:
@@ -261,13 +263,16 @@ void filter_record(const LaneBlock<R>& lanes, const View<R>* given, const View<R
     for (int64_t t = 0; t < T; ++t) {
         V g[kGiven];
         inputs.at(t, g);
-        const Step<V> s = predict_correct<V, Rule>(xs[t], g, gamma);
+        const V inflation = Rule == 2
+                                ? track_inflation(lanes, wanted_inflation<V>(xs[t], g, gamma))
+                                : splat<V>(1.0);
+        const Step<V> s = predict_correct<V, Rule>(xs[t], g, gamma, inflation);
         xs[t + 1] = s.next;
         const V row[20] = {s.next.a, s.next.b, s.next.c, s.a1,    s.b1,    s.c1,    s.kp,
                            zero,     s.kc,     s.kv,     g[kRp],  g[kRpv], g[kRvv], s.fp,
                            s.fv,     g[kT],    s.ep,     s.ev,    s.next.p, s.next.v};
         for (int i = 0; i < 20; ++i) rec[i * T + t] = row[i];
-        if (Rule == 0 && logs)
+        if (Rule != 1 && logs)
             for (int w = 0; w < lanes.kWidth; ++w) logs[w].add(s.ll[w], s.Sp[w]);
     }
 }
@@ -296,8 +301,9 @@ void filter_smoother(int64_t B, int64_t T, int64_t m, int velocity, R gamma, int
         std::vector<V> rec(20 * T), terms(22 * std::max<int64_t>(T - 1, 1));
         std::vector<Backward<V>> states((sweeps_of(T - 1, lag) + 1) * T, Backward<V>{});
         std::vector<double> totals(last - first, 0.0);  // the tracks' log-likelihoods
-        for (int64_t l = first * m; l < last * m; l += LaneBlock<R>::kWidth) {
-            const LaneBlock<R> lanes(l, last * m, m);
+        const int64_t per = lanes_per_vector<R>(m, Rule == 2);
+        for (int64_t l = first * m; l < last * m; l += per) {
+            const LaneBlock<R> lanes(l, last * m, m, per);
             Likelihood logs[LaneBlock<R>::kWidth];
             filter_record<R, Rule>(lanes, given, start, T, gam, xs.data(), rec.data(),
                                    out.loglik ? logs : nullptr);
@@ -353,8 +359,11 @@ void filter_smoother_entry(int64_t B, int64_t T, int64_t m, int rule, int veloci
     if (rule == 0)
         filter_smoother<R, 0>(B, T, m, velocity, g, lag, projection, threads, in, s, prior, ps,
                               out);
-    else
+    else if (rule == 1)
         filter_smoother<R, 1>(B, T, m, velocity, g, lag, projection, threads, in, s, prior, ps,
+                              out);
+    else
+        filter_smoother<R, 2>(B, T, m, velocity, g, lag, projection, threads, in, s, prior, ps,
                               out);
 }
 

@@ -2,6 +2,12 @@
 // twin of torchsvs/kernels/axes.py's _forward_step (its Kalman rule the Kalman update on 2×2
 // blocks), transcribed line by line: tests/test_kernels.py (test_compiled_loops_equal_tensor_loops,
 // test_compiled_loops_for_any_axis_count_on_threads) holds both to 1e-10 in float64.
+//
+// Rules: 0 Kalman (position-only), 1 SVSF, 2 the variable boundary layer ("vbl-innovation":
+// the Kalman rule on the prior inflated by λ, one λ per track, the largest any of its axes asks
+// for). Rule 2 couples a track's axes through λ only: each lane says what it asks for
+// (wanted_inflation), the caller takes the track's largest (track_inflation) and the lane steps
+// with it.
 #pragma once
 
 #include "lanes.h"
@@ -64,33 +70,141 @@ struct Step {
     State<X> next;
     X fp, fv;           // 1 where the position / velocity is observed, else 0
     X rp, rpv, rvv;     // R masked: an identity on missing components (blocks.masked_noise)
-    X p_pred, v_pred, bT, a1, b1, c1;
+    X p_pred, v_pred, bT, a1, b1, c1;  // a1, b1, c1: the prior the gain is for (Rule 2: λ P)
     X ep, ev, Sp, Spv, Sv;
     X kp, kc, kv;       // the axis's gain [[kp, 0], [kc, kv]] (Kalman: kv = 0; SVSF: kc = 0)
     X ll;               // the log-likelihood's term without log S (Kalman)
+    X a1r, b1r, c1r;    // Rule 2: the prior before its inflation
+    X inflation;        // Rule 2: λ
 };
 
-// axes._forward_step for one lane (or a vector of lanes): Rule 0 Kalman (position-only),
-// 1 SVSF. g: the step's inputs in Given's order. Branch-free: a missing measurement's lane
-// picks its values (NaN: missing).
+// The prediction, Eqs. (11)-(12): F x and F P Fᵀ + Q with F = [[1, T], [0, 1]].
+template <typename X>
+struct Prediction {
+    X p_pred, v_pred, bT, a1, b1, c1;
+};
+template <typename X>
+inline Prediction<X> predict(const State<X>& x, const X* g) {
+    const X dt = g[kT];
+    Prediction<X> f;
+    f.p_pred = x.p + dt * x.v, f.v_pred = x.v;
+    f.bT = x.b + dt * x.c;
+    f.a1 = x.a + dt * (x.b + f.bT) + g[kQa];
+    f.b1 = f.bT + g[kQb];
+    f.c1 = x.c + g[kQc];
+    return f;
+}
+
+// linalg.boundary_inflation's max_gain: a gain of 1 would take an infinite prior.
+constexpr double kMaxGain = 0.999;
+
+// The inflation a lane asks for under the variable boundary layer (linalg.boundary_inflation,
+// "innovation": covariance matching), before the largest over the track's axes and the clamp
+// at 1: (Ē²/ψ² − r)/a with Ē = |e| + γ|e_post|, at most the λ of kMaxGain; 0 where missing.
+template <typename X>
+inline X wanted_inflation(const State<X>& x, const X* g, X gamma) {
+    const X zero{};
+    const Prediction<X> f = predict(x, g);
+    const X yp = g[kYp], r = g[kRp];
+    const auto seen = yp == yp;
+    const X ep = seen ? yp - f.p_pred : zero;
+    const X u = (magnitude_of(ep) + gamma * magnitude_of(x.mem_p)) / g[kWp];
+    const X each = (u * u - r) / f.a1;
+    const X most = r * splat<X>(kMaxGain) / (splat<X>(1.0 - kMaxGain) * f.a1);
+    return seen ? (each < most ? each : most) : zero;
+}
+
+// wanted_inflation's adjoint: from `dwanted`, adds to the adjoints of the uninflated prior's
+// a (da1), the innovation (dep), R (drp, where observed), the memory (dmem), ψ (dwp) and γ.
+// torch's conventions: minimum splits a tie, d|x|/dx = 0 at 0.
+template <typename X>
+inline void wanted_inflation_adjoint(const State<X>& x, const X* g, X gamma, const Step<X>& s,
+                                     X dwanted, X& da1, X& dep, X& drp, X& dmem, X& dwp,
+                                     X& dgamma) {
+    const X zero{};
+    const X a1 = s.a1r, r = g[kRp], w = g[kWp], held = magnitude_of(x.mem_p);
+    const X u = (magnitude_of(s.ep) + gamma * held) / w;
+    const X each = (u * u - r) / a1;
+    const X most = r * splat<X>(kMaxGain) / (splat<X>(1.0 - kMaxGain) * a1);
+    const X dw = s.fp > zero ? dwanted : zero;
+    const X to_each = each < most ? dw : (each == most ? splat<X>(0.5) * dw : zero);
+    const X to_most = dw - to_each;
+    // each = (u² − r)/a, most = r c/a
+    const X du = to_each * 2 * u / a1;
+    drp += (to_most * splat<X>(kMaxGain) / splat<X>(1.0 - kMaxGain) - to_each) / a1;
+    da1 -= (to_each * each + to_most * most) / a1;
+    // u = (|e| + γ|e_post|)/ψ
+    const X dexcess = du / w;
+    dwp -= du * u / w;
+    dep += dexcess * sign_of(s.ep);
+    dmem += dexcess * gamma * sign_of(x.mem_p);
+    dgamma += dexcess * held;
+}
+
+// The inflation λ of each lane's track (boundary_inflation's amax and clamp_min): the largest
+// its axes want, at least 1. The vector's lanes hold whole tracks from its first lane
+// (lanes_per_vector); lanes past `count` repeat the last real one.
+template <typename R>
+inline typename Wide<R>::type track_inflation(const LaneBlock<R>& lanes,
+                                              typename Wide<R>::type wanted) {
+    typename Wide<R>::type out{};
+    for (int w = 0; w < lanes.count; ++w) {
+        const int64_t first = w - lanes.j[w];
+        R most = wanted[first];
+        for (int64_t i = first + 1; i < first + lanes.m; ++i) most = std::max(most, wanted[i]);
+        out[w] = std::max(most, R(1));
+    }
+    for (int w = lanes.count; w < LaneBlock<R>::kWidth; ++w) out[w] = out[lanes.count - 1];
+    return out;
+}
+
+// track_inflation's adjoint: from each lane's share of dλ (a track's lanes share one λ, so
+// their shares add), the adjoint of each lane's wanted inflation: all to the axes that want
+// the most (a tie split evenly, as torch's amax), none where the clamp holds λ at 1 (torch's
+// clamp_min passes the gradient at equality).
+template <typename R>
+inline typename Wide<R>::type track_inflation_adjoint(const LaneBlock<R>& lanes,
+                                                      typename Wide<R>::type wanted,
+                                                      typename Wide<R>::type dlam) {
+    typename Wide<R>::type out{};
+    for (int w = 0; w < lanes.count; ++w) {
+        const int64_t first = w - lanes.j[w];
+        R most = wanted[first], total = 0;
+        for (int64_t i = first + 1; i < first + lanes.m; ++i) most = std::max(most, wanted[i]);
+        if (most < R(1) || wanted[w] != most) continue;
+        int ties = 0;
+        for (int64_t i = first; i < first + lanes.m; ++i) {
+            ties += wanted[i] == most;
+            total += dlam[i];
+        }
+        out[w] = total / R(ties);
+    }
+    return out;
+}
+
+// axes._forward_step for one lane (or a vector of lanes) under Rule (above); `inflation`: the
+// λ of Rule 2 (track_inflation). g: the step's inputs in Given's order. Branch-free: a missing
+// measurement's lane picks its values (NaN: missing).
 template <typename X, int Rule>
-inline Step<X> predict_correct(const State<X>& x, const X* g, X gamma) {
+inline Step<X> predict_correct(const State<X>& x, const X* g, X gamma,
+                               X inflation = splat<X>(1.0)) {
     const X zero{}, one = zero + 1;
     Step<X> s;
-    X dt = g[kT], yp = g[kYp], yv = g[kYv];
+    X yp = g[kYp], yv = g[kYv];
     const auto seen_p = yp == yp;
     s.fp = seen_p ? one : zero;
     s.rp = seen_p ? g[kRp] : one;
-    // Prediction, Eqs. (11)-(12): F P Fᵀ + Q with F = [[1, T], [0, 1]].
-    s.p_pred = x.p + dt * x.v, s.v_pred = x.v;
-    s.bT = x.b + dt * x.c;
-    s.a1 = x.a + dt * (x.b + s.bT) + g[kQa];
-    s.b1 = s.bT + g[kQb];
-    s.c1 = x.c + g[kQc];
+    const Prediction<X> f = predict(x, g);
+    s.p_pred = f.p_pred, s.v_pred = f.v_pred, s.bT = f.bT;
+    s.a1 = f.a1, s.b1 = f.b1, s.c1 = f.c1;
+    if (Rule == 2) {  // the Kalman rule on the inflated prior λ P
+        s.a1r = s.a1, s.b1r = s.b1, s.c1r = s.c1, s.inflation = inflation;
+        s.a1 = inflation * s.a1, s.b1 = inflation * s.b1, s.c1 = inflation * s.c1;
+    }
     s.ep = seen_p ? yp - s.p_pred : zero;
     s.Sp = s.a1 * s.fp + s.rp;
     State<X>& n = s.next;
-    if (Rule == 0) {
+    if (Rule != 1) {
         s.fv = zero, s.rpv = zero, s.rvv = one, s.ev = zero, s.Spv = zero, s.Sv = one;
         X kp = s.a1 * s.fp / s.Sp, kv_p = s.b1 * s.fp / s.Sp;
         X one_k = 1 - kp;
@@ -99,7 +213,8 @@ inline Step<X> predict_correct(const State<X>& x, const X* g, X gamma) {
         n.c = s.c1 - 2 * kv_p * s.b1 + kv_p * kv_p * (s.a1 + s.rp);
         n.p = s.p_pred + kp * s.ep;
         n.v = s.v_pred + kv_p * s.ep;
-        n.mem_p = x.mem_p, n.mem_v = x.mem_v;
+        // Rule 2: Eq. (24)'s a-posteriori innovation, carried where missing.
+        n.mem_p = Rule == 2 ? (seen_p ? yp - n.p : x.mem_p) : x.mem_p, n.mem_v = x.mem_v;
         s.kp = kp, s.kc = kv_p, s.kv = zero;
         // log N(e; 0, S) over the observed positions (axes.run_axes), but log S.
         s.ll = splat<X>(-0.5) * (s.ep * s.ep / s.Sp + s.fp * splat<X>(1.8378770664093453));
@@ -126,17 +241,37 @@ inline Step<X> predict_correct(const State<X>& x, const X* g, X gamma) {
     return s;
 }
 
-// predict_correct for `lanes` independent lanes at once. Every lane runs the same branch-free
-// arithmetic, so the compiler vectorises the loop across lanes and the processor overlaps the
-// lanes' dependent chains. g: the step's inputs, r: the state before (r[kP..kMemV]) and the
-// results after; r[kLl] is the step's log-likelihood without log S (Likelihood adds it).
+// predict_correct for `lanes` lanes at once, whole tracks of m lanes each. Every lane runs the
+// same branch-free arithmetic, so the compiler vectorises the loop across lanes and the
+// processor overlaps the lanes' dependent chains. g: the step's inputs, r: the state before
+// (r[kP..kMemV]) and the results after; r[kLl] is the step's log-likelihood without log S
+// (Likelihood adds it).
 template <typename R, int Rule>
-inline void step_lanes(int64_t lanes, R gamma, const R (*g)[kLanes], R (*r)[kLanes]) {
+inline void step_lanes(int64_t lanes, int64_t m, R gamma, const R (*g)[kLanes],
+                       R (*r)[kLanes]) {
+    auto state = [r](int64_t l) {
+        return State<R>{r[kP][l], r[kV][l], r[kA][l],   r[kB][l],
+                        r[kC][l], r[kMemP][l], r[kMemV][l]};
+    };
+    auto inputs = [g](int64_t l, R* given) {
+        for (int q = 0; q < kGiven; ++q) given[q] = g[q][l];
+    };
+    R inflation[kLanes];
+    if (Rule == 2)  // each track's λ: the largest its axes want, at least 1 (track_inflation)
+        for (int64_t l0 = 0; l0 < lanes; l0 += m) {
+            R most = 1;
+            for (int64_t l = l0; l < l0 + m; ++l) {
+                R given[kGiven];
+                inputs(l, given);
+                most = std::max(most, wanted_inflation<R>(state(l), given, gamma));
+            }
+            std::fill_n(inflation + l0, m, most);
+        }
     for (int64_t l = 0; l < lanes; ++l) {
         R given[kGiven];
-        for (int q = 0; q < kGiven; ++q) given[q] = g[q][l];
-        State<R> x{r[kP][l], r[kV][l], r[kA][l], r[kB][l], r[kC][l], r[kMemP][l], r[kMemV][l]};
-        Step<R> s = predict_correct<R, Rule>(x, given, gamma);
+        inputs(l, given);
+        Step<R> s = predict_correct<R, Rule>(state(l), given, gamma,
+                                             Rule == 2 ? inflation[l] : R(1));
         r[kP][l] = s.next.p, r[kV][l] = s.next.v;
         r[kA][l] = s.next.a, r[kB][l] = s.next.b, r[kC][l] = s.next.c;
         r[kMemP][l] = s.next.mem_p, r[kMemV][l] = s.next.mem_v;

@@ -50,10 +50,11 @@ struct LaneBlock {
     static constexpr int kWidth = sizeof(typename Wide<R>::type) / sizeof(R);
     int64_t b[kWidth], j[kWidth];  // each lane's track and axis
     int count;                     // lanes that are real (the rest repeat the last)
+    int64_t m;                     // axes per track
 
-    // The lanes [l, min(l + width, end)) of lane index track · m + axis.
-    LaneBlock(int64_t l, int64_t end, int64_t m)
-        : count(static_cast<int>(std::min<int64_t>(kWidth, end - l))) {
+    // The lanes [l, min(l + per, end)) of lane index track · m + axis (per: lanes_per_vector).
+    LaneBlock(int64_t l, int64_t end, int64_t m, int64_t per = kWidth)
+        : count(static_cast<int>(std::min<int64_t>(per, end - l))), m(m) {
         for (int w = 0; w < kWidth; ++w) {
             const int64_t lane = l + std::min(w, count - 1);
             b[w] = lane / m, j[w] = lane % m;
@@ -66,6 +67,14 @@ struct LaneBlock {
         return out;
     }
 };
+
+// The lanes a vector takes: all kWidth, or (`whole_tracks`: a rule that couples a track's axes,
+// the variable boundary layer's) the most whole tracks that fit, so that a vector started at a
+// track's first lane holds each of its tracks whole (m <= kWidth).
+template <typename R>
+inline int64_t lanes_per_vector(int64_t m, bool whole_tracks) {
+    return whole_tracks ? LaneBlock<R>::kWidth / m * m : LaneBlock<R>::kWidth;
+}
 
 // Lane values X: a scalar R, or a Wide vector of lanes that runs the same code lane by lane
 // (conditions are masks, `mask ? a : b` picks per lane; GCC/Clang vector extensions).
