@@ -30,6 +30,7 @@ from torchsvs.accuracy import (
     draw_probe,
     risk_terms,
 )
+from torchsvs.blending import blended_terms, cross_terms
 from torchsvs.curve_estimates import (
     curve_run,
     is_curves_estimator,
@@ -45,7 +46,7 @@ from torchsvs.fitting import noise
 from torchsvs.fitting.defaults import meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
-from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Settings
+from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Blend, Settings
 from torchsvs.runs import run_result
 from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
@@ -189,7 +190,11 @@ def _estimate_factors(
     settings: Settings | None,
 ) -> StepEstimates:
     """:func:`estimate_group` after the screen: each track with its own ``q`` where the
-    settings carry the file's curve."""
+    settings carry the file's curve; a :class:`~torchsvs.recipes.Blend`'s two estimators each
+    so, their estimates blended (:func:`_estimate_blend`)."""
+    if isinstance(estimator, Blend):
+        assert settings is not None, "a blend's settings say how each of its estimators runs"
+        return _estimate_blend(estimator, batch, meas_std, covariance, risk, settings)
     noise_range = None if settings is None else meas_var_range(settings, GUARD_ERRORS)
     if settings is None or settings.q_curve is None:
         if settings is not None and not covariance and is_curves_estimator(estimator, settings):
@@ -220,6 +225,75 @@ def _estimate_factors(
                 found = _estimate_part(scaled, part, meas_std, covariance, risk, noise_range)
         parts.append(found._replace(q_factor=np.full(len(index), factor)))
     return StepEstimates.merge(parts, len(meas_std))
+
+
+def _estimate_blend(
+    blend: Blend,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool,
+    risk: bool,
+    settings: Settings,
+) -> StepEstimates:
+    """The blend ``(1 − w) x̂₁ + w x̂₂`` of its two estimators' runs on the group, each as
+    :func:`_estimate_factors` runs it with its own settings, and the blend's error terms
+    (:func:`~torchsvs.blending.blended_terms`). Its covariance is the blend of theirs, a
+    bound: the error covariance of ``(1 − w) e₁ + w e₂`` is at most that in every direction
+    (the cross term of two errors is at most the geometric mean of their variances). Notes and
+    each track's ``q`` factor are the first's."""
+    pair = settings.blended
+    assert pair is not None
+    parts = [
+        _estimate_factors(estimator, batch, meas_std, covariance, risk, own)
+        for estimator, own in zip((blend.first, blend.second), pair, strict=True)
+    ]
+    w = blend.weight
+    means = [in_batch_order(part, batch, part.mean) for part in parts]
+    mean = (1 - w) * means[0] + w * means[1]
+    cov = None
+    if covariance:
+        covs = [in_batch_order(part, batch, part.cov) for part in parts if part.cov is not None]
+        cov = (1 - w) * covs[0] + w * covs[1]
+    tracks = batch.tracks
+    target, values, covs_flat = flat_steps(tracks, mean, cov)
+    terms = None
+    if risk:
+        first, second = (part.risk for part in parts)
+        assert first is not None and second is not None
+        observed = ~torch.isnan(tracks.z)
+        cross = cross_terms(observed, means[0][..., 0::2], means[1][..., 0::2], batch.group)
+        terms = blended_terms(first.in_track_order(), second.in_track_order(), cross, w)
+    never = ((~torch.isnan(tracks.z)).sum(dim=1) == 0).numpy()
+    q_factor = parts[0].q_factor
+    if q_factor is not None:
+        q_factor = in_batch_order(parts[0], batch, q_factor, per_track=True).numpy()
+    notes = {**parts[1].notes, **parts[0].notes}
+    return StepEstimates(
+        batch.position, batch.group, target, values, covs_flat, never, notes, terms, q_factor
+    )
+
+
+def in_batch_order(
+    found: StepEstimates, batch: GroupBatch, values: np.ndarray, per_track: bool = False
+) -> Tensor:
+    """``values`` given at ``found``'s steps (``[s, ...]``, in the order of its tracks, which
+    its parts may have changed) as the batch's padded ``[B, T, ...]`` float64 (NaN past a
+    track's end); ``per_track``: one value per track ``[B, ...]``, in the batch's order."""
+    order = np.argsort(batch.group)
+    local = torch.from_numpy(order[np.searchsorted(batch.group, found.group, sorter=order)])
+    steps = batch.tracks.steps
+    assert steps is not None
+    rows = torch.from_numpy(np.ascontiguousarray(values)).double()
+    if per_track:
+        out = rows.new_full(rows.shape, math.nan)
+        out[local] = rows
+        return out
+    mine = steps[local] >= 0
+    part = rows.new_full((*mine.shape, *rows.shape[1:]), math.nan)
+    part[mine] = rows
+    out = part.new_full(part.shape, math.nan)
+    out[local] = part
+    return out
 
 
 def _estimate_one_q(

@@ -9,9 +9,11 @@ built from (noise levels, ``q``, the SVSF family's boundary layer, the IMM's mod
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
+from torch import nn
 
 from torchsvs.estimator import Estimator
 from torchsvs.estimator_names import ESTIMATORS
@@ -75,10 +77,11 @@ PSI_SMOOTHER_LIMIT_IN_SIGMAS = 4.0
 FLOAT64 = frozenset({"imm"})
 
 
-def compute_dtype(estimator: str, dtype: torch.dtype) -> torch.dtype:
-    """The dtype ``torchsvs track`` runs ``estimator`` in when ``dtype`` is asked for
-    (:data:`FLOAT64`)."""
-    return torch.float64 if estimator in FLOAT64 else dtype
+def compute_dtype(settings: Settings, dtype: torch.dtype) -> torch.dtype:
+    """The dtype ``torchsvs track`` runs the estimator of ``settings`` (and of its blend) in
+    when ``dtype`` is asked for (:data:`FLOAT64`)."""
+    names = {settings.estimator} | ({settings.blend.estimator} if settings.blend else set())
+    return torch.float64 if names & FLOAT64 else dtype
 
 
 #: Estimators whose output is a filter's (each step from the past alone): their q is the
@@ -141,8 +144,29 @@ class Settings:
     #: the ``q`` of the Kalman smoother that judges outliers (read off the data with them set
     #: aside); None until :func:`~torchsvs.fitting.defaults.screened`
     outlier_q: float | None = None
+    #: a second estimator's complete settings whose estimates are blended with this one's
+    #: (``--estimator auto`` where SURE finds the blend surely lower: :mod:`torchsvs.blending`);
+    #: a dict (as saved) is read back as settings
+    blend: Settings | None = None
+    #: the weight of ``blend``'s estimates, in (0, 1): ``(1 − w) x̂ + w x̂_blend``
+    blend_weight: float = 0.0
 
     def __post_init__(self) -> None:
+        if isinstance(self.blend, dict):  # as asdict (a --save file, a summary) holds it
+            self.blend = Settings(**self.blend)
+        if self.blend is not None:
+            if self.blend.blend is not None:
+                raise ValueError("blend: expected the settings of one estimator, not a blend")
+            if not 0.0 < self.blend_weight < 1.0:
+                raise ValueError(
+                    f"blend_weight: expected a weight in (0, 1), got {self.blend_weight!r}"
+                )
+            if self.blend.meas_var != self.meas_var:
+                raise ValueError(
+                    "blend: expected the same meas_var as the settings it blends with (SURE "
+                    f"pairs them at one noise), got {self.blend.meas_var!r} and "
+                    f"{self.meas_var!r}"
+                )
         if self.estimator not in ESTIMATORS:
             raise ValueError(
                 f"estimator: expected one of {sorted(ESTIMATORS)}, got {self.estimator!r}"
@@ -185,6 +209,14 @@ class Settings:
             )
         if not 0.0 <= self.switch_prob < 1.0:
             raise ValueError(f"switch_prob: expected a value in [0, 1), got {self.switch_prob!r}")
+
+    @property
+    def blended(self) -> tuple[Settings, Settings] | None:
+        """The two estimators' settings of a blend (this one's without the blend first), or
+        None."""
+        if self.blend is None:
+            return None
+        return replace(self, blend=None, blend_weight=0.0), self.blend
 
     @property
     def screens(self) -> bool:
@@ -236,9 +268,31 @@ def make_model(
     )
 
 
-def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator:
+class Blend(nn.Module):
+    """Two estimators whose estimates are blended, ``(1 − w) x̂₁ + w x̂₂``: what ``track``
+    runs for settings with a ``blend`` (:func:`torchsvs.blending.estimate_blend` runs it; a
+    container, not called itself)."""
+
+    def __init__(self, first: nn.Module, second: nn.Module, weight: float) -> None:
+        super().__init__()
+        self.first, self.second, self.weight = first, second, weight
+
+    def forward(self, *args: Any, **kwargs: Any) -> Any:
+        raise TypeError("Blend: its estimators run apart; torchsvs.blending.estimate_blend")
+
+
+def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator | Blend:
     """The estimator ``settings.estimator`` on ``model`` (the IMM's turn settings must be set;
-    its turn noises are learnable when ``model``'s ``q`` is)."""
+    its turn noises are learnable when ``model``'s ``q`` is); with a ``blend``, both (the
+    second on its own model) in a :class:`Blend`."""
+    pair = settings.blended
+    if pair is not None:
+        first, second = pair
+        return Blend(
+            make_estimator(first, model),
+            make_estimator(second, make_model(second)),
+            settings.blend_weight,
+        )
     name = settings.estimator
     if name == "auto":
         raise ValueError(

@@ -9,9 +9,11 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from torchsvs.accuracy import Accuracy, RiskTerms
 from torchsvs.accuracy import accuracy as accuracy_of
+from torchsvs.blending import best_weight, cross_terms
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import (
     GUARD_ERRORS,
@@ -19,6 +21,7 @@ from torchsvs.estimating import (
     _estimate_factors,
     _estimate_part,
     centred,
+    in_batch_order,
 )
 from torchsvs.fitting.defaults import complete_settings, meas_var_range
 from torchsvs.recipes import Settings, make_estimator, make_model
@@ -37,10 +40,8 @@ def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     ``q``, as ``track`` runs it (the chunks in track order either way)."""
     assert settings.meas_var is not None
     estimator = make_estimator(settings, make_model(settings)).double()
-    moved, offset = centred(tracks.to(torch.float64))
-    batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
-    meas_std = torch.tensor(settings.meas_var, dtype=torch.float64).sqrt()
-    if settings.q_curve is not None:
+    batch, meas_std = _sample_batch(settings, tracks)
+    if settings.q_curve is not None or settings.blend is not None:
         part = _estimate_factors(estimator, batch, meas_std, False, True, settings)
         assert part.risk is not None
         return part.risk.in_track_order()
@@ -48,6 +49,33 @@ def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     part = _estimate_part(estimator, batch, meas_std, risk=True, noise_range=noise_range)
     assert part.risk is not None
     return part.risk
+
+
+def _sample_batch(settings: Settings, tracks: RecordedTracks) -> tuple[GroupBatch, Tensor]:
+    """``tracks`` as one group (float64, centred) and the settings' noise ``[m]``."""
+    assert settings.meas_var is not None
+    moved, offset = centred(tracks.to(torch.float64))
+    batch = GroupBatch(0, np.arange(len(tracks)), moved, offset)
+    return batch, torch.tensor(settings.meas_var, dtype=torch.float64).sqrt()
+
+
+def sample_blend_weight(first: Settings, second: Settings, tracks: RecordedTracks) -> float:
+    """The weight of ``second``'s estimates in the blend with ``first``'s of the least
+    estimated MSE on ``tracks`` (:func:`~torchsvs.blending.best_weight`), both run as
+    ``track`` runs them (the same noise)."""
+    assert first.meas_var is not None
+    batch, meas_std = _sample_batch(first, tracks)
+    runs = []
+    for settings in (first, second):
+        estimator = make_estimator(settings, make_model(settings)).double()
+        runs.append(_estimate_factors(estimator, batch, meas_std, False, True, settings))
+    g, f = (in_batch_order(run, batch, run.mean)[..., 0::2] for run in runs)
+    cross = cross_terms(~torch.isnan(batch.tracks.z), g, f, batch.group)
+    first_terms, second_terms = (run.risk for run in runs)
+    assert first_terms is not None and second_terms is not None
+    return best_weight(
+        first_terms.in_track_order(), second_terms.in_track_order(), cross, first.meas_var
+    )
 
 
 def probed_terms(settings: Settings, tracks: RecordedTracks, probes: int) -> list[RiskTerms]:

@@ -35,7 +35,12 @@ from torchsvs.fitting.defaults import (
 )
 from torchsvs.fitting.tuning import FitResult, self_tune
 from torchsvs.recipes import LAGGED, Settings
-from torchsvs.sample_accuracy import accuracy_of_terms, probed_terms, sample_terms
+from torchsvs.sample_accuracy import (
+    accuracy_of_terms,
+    probed_terms,
+    sample_blend_weight,
+    sample_terms,
+)
 
 #: Candidates of ``--estimator auto``, in the order they are tried (ties keep the first).
 CANDIDATES = ("ks", "svstps", "svss", "imm")
@@ -101,13 +106,18 @@ class Choice:
     candidates: list[dict[str, Any]] = field(default_factory=list)
     stages: list[str] = field(default_factory=list)
 
+    @property
+    def chosen(self) -> str:
+        """The chosen candidate's name in the table (a blend's: both, :func:`blend_name`)."""
+        return blend_name(self.settings)
+
     def table(self) -> str:
         lines = ["candidate  estimated position error (m)   fit (s)  settings"]
         for row in self.candidates:
             if row.get("skipped"):
                 lines.append(f"{row['estimator']:<10} skipped: {row['skipped']}")
                 continue
-            mark = " <- chosen" if row["estimator"] == self.settings.estimator else ""
+            mark = " <- chosen" if row["estimator"] == self.chosen else ""
             change = ""
             if "mse_change" in row:  # against the candidate chosen before it, paired
                 se = _error_text(row["mse_change_se"])
@@ -120,10 +130,21 @@ class Choice:
         return "\n".join(lines)
 
     def summary(self) -> str:
+        blend = self.settings.blend
+        chosen = self.settings.estimator
+        if blend is not None:
+            chosen += f" blended with {blend.estimator} (weight {self.settings.blend_weight:.2f})"
         return (
-            f"auto: {self.settings.estimator} chosen of {len(self.candidates)} candidates by "
+            f"auto: {chosen} chosen of {len(self.candidates)} candidates by "
             f"estimated position error ({self.seconds:.1f} s)\n" + self.table()
         )
+
+
+def blend_name(settings: Settings) -> str:
+    """An estimator's name, or a blend's ``first+second``."""
+    if settings.blend is None:
+        return settings.estimator
+    return f"{settings.estimator}+{settings.blend.estimator}"
 
 
 def choose_estimator(
@@ -133,6 +154,7 @@ def choose_estimator(
     say: Callable[[str], None] | None = None,
     check_layer: bool = True,
     own_q: bool = False,
+    blend: bool = True,
     **fit_options: Any,
 ) -> Choice:
     """The candidate of the lowest truth-free error estimate on ``sample``, each tuned by SURE.
@@ -148,6 +170,7 @@ def choose_estimator(
             against its Kalman twin, a candidate before it (:func:`checked_layer`), it is that
             twin and not scored again.
         own_q: the run gives each track its own ``q`` (the layer check compares so).
+        blend: try the chosen candidate blended with the next best (:func:`blend_candidate`).
         fit_options: keyword arguments of :func:`~torchsvs.fitting.tuning.self_tune`.
     """
     say = say or (lambda _: None)
@@ -240,8 +263,76 @@ def choose_estimator(
             "tracks: no candidate of --estimator auto could be scored (too few observed "
             "positions); choose an estimator (--estimator ks)"
         )
+    partner = _partner(best, rows, fits)
+    if blend and partner is not None:
+        tick = time.perf_counter()
+        tried = blend_candidate(best, partner, scored, own_q)
+        if tried is not None:
+            blended, row, sure = tried
+            row["seconds"] = time.perf_counter() - tick
+            say(f"auto: {row['estimator']} estimated {row['estimated_position_rmse']:.3g} m")
+            rows.append(row)
+            if sure:
+                best = blended
     chosen = replace(best, chosen_from=[r["estimator"] for r in rows if not r.get("skipped")])
     return Choice(chosen, time.perf_counter() - start, rows)
+
+
+def _partner(
+    best: Settings, rows: Sequence[dict[str, Any]], fits: dict[str, FitResult]
+) -> Settings | None:
+    """The scored candidate of the lowest score other than ``best``, with ``best``'s outlier
+    screen (a blend's estimators see the same measurements), or None."""
+    others = [
+        row
+        for row in rows
+        if not row.get("skipped")
+        and row["estimator"] != best.estimator
+        and row["estimator"] in fits
+    ]
+    if not others:
+        return None
+    row = min(
+        others,
+        key=lambda r: caution_score(r["estimated_position_rmse"], r["standard_error"]),
+    )
+    found = fits[row["estimator"]].settings
+    return replace(found, outliers=best.outliers, outlier_q=best.outlier_q)
+
+
+#: A blend's weight below this, or above 1 less it, is not tried: its gain is within the
+#: estimate's noise, and the blend costs both estimators' runs.
+LEAST_BLEND_WEIGHT = 0.05
+
+
+def blend_candidate(
+    chosen: Settings, partner: Settings, sample: RecordedTracks, own_q: bool = False
+) -> tuple[Settings, dict[str, Any], bool] | None:
+    """The blend of ``chosen`` with ``partner`` at the weight of the least estimated MSE on
+    ``sample`` (:func:`~torchsvs.sample_accuracy.sample_blend_weight`; each track with its own
+    ``q`` with ``own_q``), its row of the candidates' table, and whether it is surely below
+    ``chosen`` (:func:`compared`, the weight a value learned on ``sample``); None where the
+    weight is within :data:`LEAST_BLEND_WEIGHT` of 0 or 1 (one of them alone)."""
+    first, second = chosen, partner
+    if own_q:
+        first, second = with_q_curve(first, sample), with_q_curve(second, sample)
+    weight = sample_blend_weight(first, second, sample)
+    if not LEAST_BLEND_WEIGHT <= weight <= 1.0 - LEAST_BLEND_WEIGHT:
+        return None
+    blended = replace(chosen, blend=partner, blend_weight=weight)
+    run = with_q_curve(blended, sample) if own_q else blended
+    found = accuracy_of_terms(blended, sample_terms(run, sample))
+    against = compared(chosen, blended, sample, learned=1, own_q=own_q)
+    row = {
+        "estimator": blend_name(blended),
+        "estimated_position_rmse": found.estimated_rmse,
+        "standard_error": found.standard_error,
+        "seconds": 0.0,
+        "learned": f"weight {weight:.2f} on {partner.estimator}",
+        "mse_change": -against.change,
+        "mse_change_se": against.change_se,
+    }
+    return blended, row, against.sure
 
 
 #: The SVSF family's Kalman twins: with no limit on its variable boundary layer an SVSF is the
@@ -435,7 +526,7 @@ def compared(
 def _draws(settings: Settings, sample: RecordedTracks, probes: int) -> list[RiskTerms]:
     """The estimator's SURE terms on ``sample`` for each of ``probes`` probes: one run for a
     Kalman filter or smoother (its divergence exact, the same at every probe)."""
-    if settings.estimator in TWIN_NAMES:
+    if settings.estimator in TWIN_NAMES and settings.blend is None:
         return [sample_terms(settings, sample)] * probes
     return probed_terms(settings, sample, probes)
 

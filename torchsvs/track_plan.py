@@ -135,7 +135,7 @@ def plan_tracks(
         block.columns,
         settings,
         estimator.state_dict(),
-        compute_dtype(settings.estimator, dtype),
+        compute_dtype(settings, dtype),
         precision,
         summary,
     )

@@ -346,9 +346,7 @@ class TrackRun:
     def summary(self) -> str:
         lines = [self.report.summary()]
         if self.settings is not None:
-            shown = {k: v for k, v in asdict(self.settings).items() if v is not None}
-            shown.pop("q_curve", None)  # thirteen numbers: the summary file has them
-            lines.append("settings: " + ", ".join(f"{k}={short(v)}" for k, v in shown.items()))
+            lines.append("settings: " + settings_line(self.settings))
         if self.q_factors:
             lines.append(self.q_factor_line())
         found = self.accuracy
@@ -395,6 +393,28 @@ def gross_errors(report: RowReport) -> str | None:
         "cannot see (a bias, errors shared between rows): it counts white noise only, and the "
         "true error may be well above it"
     )
+
+
+def settings_line(settings: Settings) -> str:
+    """The settings as the run's summary prints them: those set, a blend's second estimator by
+    what it sets otherwise (the summary file has them all)."""
+    shown = {k: v for k, v in asdict(settings).items() if v is not None}
+    shown.pop("q_curve", None)  # thirteen numbers: the summary file has them
+    shown.pop("blend", None)
+    if settings.blend is None:
+        shown.pop("blend_weight", None)
+    else:
+        outer = asdict(settings)
+        own = {
+            k: v
+            for k, v in asdict(settings.blend).items()
+            if v is not None
+            and v != outer.get(k)
+            and k not in ("estimator", "q_curve", "blend_weight")
+        }
+        inner = ", ".join(f"{k}={short(v)}" for k, v in own.items())
+        shown["blend"] = f"{settings.blend.estimator}({inner})"
+    return ", ".join(f"{k}={short(v)}" for k, v in shown.items())
 
 
 def short(value: Any) -> str:

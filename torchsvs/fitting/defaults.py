@@ -281,6 +281,8 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
     """The settings with the file's SURE curve of ``q`` (``q_curve``, read off ``tracks``), so
     that each track runs with its own ``q``; unchanged where ``settings.track_q`` is off, for
     the IMM (its modes' noises are one design) and where the tracks give nothing to score."""
+    if settings.blend is not None:  # each of a blend's estimators its own curve
+        settings = replace(settings, blend=with_q_curve(settings.blend, tracks))
     if not settings.track_q or settings.estimator in ("imm", "auto"):
         return settings
     assert settings.meas_var is not None and settings.q is not None
