@@ -178,7 +178,7 @@ def test_auto_blends_where_surely_lower_and_says_so(tmp_path):
     summary = json.loads(summary_path(target).read_text())
     blend_row = [r for r in summary["candidates"] if not r.get("skipped")][-1]
     first, second = run.settings.estimator, run.settings.blend.estimator
-    assert blend_row["estimator"] == f"{first}+{second}"
+    assert blend_row["estimator"] == summary["estimator"] == f"{first}+{second}"
     assert blend_row["mse_change"] + blend_row["mse_change_se"] < 0  # surely lower
     assert f"weight {run.settings.blend_weight:.2f} on {second}" == blend_row["learned"]
     assert summary["settings"]["blend"]["estimator"] == second

@@ -211,6 +211,13 @@ class Settings:
             raise ValueError(f"switch_prob: expected a value in [0, 1), got {self.switch_prob!r}")
 
     @property
+    def name(self) -> str:
+        """The estimator's name, or a blend's ``first+second``."""
+        if self.blend is None:
+            return self.estimator
+        return f"{self.estimator}+{self.blend.estimator}"
+
+    @property
     def blended(self) -> tuple[Settings, Settings] | None:
         """The two estimators' settings of a blend (this one's without the blend first), or
         None."""

@@ -108,8 +108,8 @@ class Choice:
 
     @property
     def chosen(self) -> str:
-        """The chosen candidate's name in the table (a blend's: both, :func:`blend_name`)."""
-        return blend_name(self.settings)
+        """The chosen candidate's name in the table (a blend's: both)."""
+        return self.settings.name
 
     def table(self) -> str:
         lines = ["candidate  estimated position error (m)   fit (s)  settings"]
@@ -138,13 +138,6 @@ class Choice:
             f"auto: {chosen} chosen of {len(self.candidates)} candidates by "
             f"estimated position error ({self.seconds:.1f} s)\n" + self.table()
         )
-
-
-def blend_name(settings: Settings) -> str:
-    """An estimator's name, or a blend's ``first+second``."""
-    if settings.blend is None:
-        return settings.estimator
-    return f"{settings.estimator}+{settings.blend.estimator}"
 
 
 def choose_estimator(
@@ -324,7 +317,7 @@ def blend_candidate(
     found = accuracy_of_terms(blended, sample_terms(run, sample))
     against = compared(chosen, blended, sample, learned=1, own_q=own_q)
     row = {
-        "estimator": blend_name(blended),
+        "estimator": blended.name,
         "estimated_position_rmse": found.estimated_rmse,
         "standard_error": found.standard_error,
         "seconds": 0.0,

@@ -293,7 +293,7 @@ class TrackRun:
         found = self.accuracy
         settings = asdict(self.settings) if self.settings is not None else None
         out: dict[str, Any] = {
-            "estimator": None if self.settings is None else self.settings.estimator,
+            "estimator": None if self.settings is None else self.settings.name,
             "settings": settings,
             "rows": {"total": self.report.total, "placed": self.report.placed}
             | (
