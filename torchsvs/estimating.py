@@ -252,8 +252,10 @@ def _estimate_blend(
     mean = (1 - w) * means[0] + w * means[1]
     cov = None
     if covariance:
-        covs = [in_batch_order(part, batch, part.cov) for part in parts if part.cov is not None]
-        cov = (1 - w) * covs[0] + w * covs[1]
+        first_cov, second_cov = (part.cov for part in parts)
+        assert first_cov is not None and second_cov is not None, "asked for, so written"
+        cov = (1 - w) * in_batch_order(parts[0], batch, first_cov)
+        cov = cov + w * in_batch_order(parts[1], batch, second_cov)
     tracks = batch.tracks
     target, values, covs_flat = flat_steps(tracks, mean, cov)
     terms = None
