@@ -192,3 +192,30 @@ def test_auto_blends_where_surely_lower_and_says_so(tmp_path):
     assert_close(
         pd.read_csv(again)[["x", "y"]].to_numpy(), pd.read_csv(target)[["x", "y"]].to_numpy()
     )
+
+
+def test_a_blend_plan_travels_by_pickle_and_splits_as_its_estimators_do(tmp_path):
+    """An engine broadcasts the plan as a pickle and runs it on parts of the tracks: a blend of
+    two estimators whose estimates do not depend on a table's other tracks (the Kalman
+    smoother and the SVSS) gives, from the copy and over three parts, the estimates of one
+    table, to the last bit (tests/test_track_table.py holds the two alone so)."""
+    import pickle
+
+    data, _ = _wandering(tmp_path / "in.csv", n=9, T=60)
+    ks = plan_tracks(data, Settings("ks"))
+    svss = plan_tracks(data, Settings("svss", meas_var=ks.settings.meas_var, psi=[2.0, 2.0]))
+    second = replace(svss.settings, outlier_q=ks.settings.outlier_q)
+    settings = replace(ks.settings, blend=second, blend_weight=0.3)
+    parameters = {f"first.{k}": v for k, v in ks.parameters.items()}
+    parameters |= {f"second.{k}": v for k, v in svss.parameters.items()}
+    plan = TrackPlan(ks.columns, settings, parameters, ks.dtype, "float64")
+    whole = track_table(data, plan).table
+    copy = pickle.loads(pickle.dumps(plan))
+    pd.testing.assert_frame_equal(track_table(data, copy).table, whole, check_exact=True)
+    part_of = data["track_id"].map(lambda i: int(i[1:]) % 3)
+    parts = [track_table(data[part_of == p], copy, check=False).table for p in range(3)]
+    joined = pd.concat(parts).sort_values(["track_id", "time"], kind="stable")
+    expected = whole.sort_values(["track_id", "time"], kind="stable")
+    pd.testing.assert_frame_equal(
+        joined.reset_index(drop=True), expected.reset_index(drop=True), check_exact=True
+    )
