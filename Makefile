@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles bias-detectability per-track-choice network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles bias-detectability per-track-choice blend-weights network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -100,6 +100,11 @@ bias-detectability: $(STAMP)
 # rule's share of it, on the recorded and simulated sets (~1 min)
 per-track-choice: $(STAMP)
 	$(PY) -m experiments.per_track_choice
+
+# auto's blend of the Kalman and IMM smoothers: a weight per file or per track (~1 min):
+# experiments/results/blend_weights.md
+blend-weights: $(STAMP)
+	$(PY) -m experiments.blend_weights
 
 # ψ per step from a network trained by SURE (no truth) on recorded tracks, scored on held-out
 # halves of every kind: experiments/results/network_psi.md.
