@@ -676,7 +676,8 @@ def estimate_section(runs: Sequence[Run]) -> str:
         ],
     )
     counts["warned"] = sum(warned_of_estimate(r) for r in off)
-    from torchsvs.track_run import GROSS_ERROR_SHARE, UNCERTAIN_REACH
+    from torchsvs.fitting.outliers import GROSS_ERROR_SHARE
+    from torchsvs.track_run import UNCERTAIN_REACH
 
     counts["reach"] = f"{UNCERTAIN_REACH:g}"
     counts["gross"] = f"{GROSS_ERROR_SHARE:.1%}"

@@ -235,7 +235,8 @@ def test_local_median_and_largest_nearby_are_those_of_the_judged_neighbours():
 
 def test_gross_errors_are_warned_of_above_a_thousand_times_their_chance():
     from torchsvs.datasets import RowReport
-    from torchsvs.track_run import GROSS_ERROR_COUNT, GROSS_ERROR_SHARE, gross_errors
+    from torchsvs.fitting.outliers import GROSS_ERROR_COUNT, GROSS_ERROR_SHARE
+    from torchsvs.track_run import gross_errors
 
     def report(outliers: int, measured: int) -> RowReport:
         found = RowReport(total=measured, measurement=measured)
@@ -251,3 +252,32 @@ def test_gross_errors_are_warned_of_above_a_thousand_times_their_chance():
     assert gross_errors(report(GROSS_ERROR_COUNT - 1, 100)) is None
     assert gross_errors(report(GROSS_ERROR_COUNT, 100)) is not None
     assert gross_errors(report(7, 10_000_000)) is None  # a clean 10 M-row run's count
+
+
+def test_a_grossly_erring_sensor_runs_the_svsf_family_as_its_kalman_twin(tmp_path, capsys):
+    """Where the screen sets aside more than 0.1% of the positions (here 1%, 12σ off), the
+    SVSF family's layer is not kept and nothing is compared: ``svss`` runs as the Kalman
+    smoother and says why, and ``auto`` skips it so. Two outliers (below the count) are no
+    faulty sensor: the ordinary layer check runs."""
+    z, _, _ = _tracks(tracks=6, steps=200, seed=3)
+    for count, gross in ((12, True), (2, False)):
+        bad = z.clone()
+        for k in range(count):
+            bad[k % 6, 20 + 13 * k, 0] += 12 * SIGMA
+        src = tmp_path / f"in{count}.csv"
+        _write(src, bad)
+        for estimator in ("svss", "auto"):
+            out = tmp_path / f"{estimator}{count}.csv"
+            main(["track", str(src), "-o", str(out), "--estimator", estimator])
+            said = capsys.readouterr().err
+            summary = json.loads(out.with_suffix(".summary.json").read_text())
+            assert ("the sensor errs grossly" in said) == gross, (estimator, count)
+            if estimator == "svss" and gross:
+                assert summary["estimator"] == "ks"
+                assert summary["settings"]["chosen_from"] == ["svss", "ks"]
+                assert "(12 of 1200 positions set aside as outliers)" in said
+            if estimator == "auto" and gross:
+                rows = {r["estimator"]: r for r in summary["candidates"]}
+                assert rows["svss"]["skipped"].startswith("ks here: the sensor errs grossly")
+            if not gross:
+                assert "svss: the boundary layer's limit" in said

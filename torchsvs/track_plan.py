@@ -32,6 +32,7 @@ from torchsvs.fitting.defaults import (
     settings_note,
     with_q_curve,
 )
+from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
 from torchsvs.sample_accuracy import lowered_noise
@@ -289,8 +290,13 @@ def _settled(
     ``check_layer``, an SVSF-family estimator whose boundary layer the user left open keeps its
     limit only where the sample shows it surely helps (:func:`~torchsvs.selection.checked_layer`:
     else it runs as its Kalman twin, the layer without a limit), both compared with their own
-    ``q`` per track where ``q_curves`` (the run's ``q`` left open: each track will run so)."""
-    settings, sample, _ = screened(settings, sample)
+    ``q`` per track where ``q_curves`` (the run's ``q`` left open: each track will run so); not
+    kept where the screen finds the sensor errs grossly (:func:`~torchsvs.fitting.outliers.
+    has_gross_errors`)."""
+    settings, sample, flagged = screened(settings, sample)
+    outliers = int(flagged.sum())
+    measured = outliers + int((~torch.isnan(sample.z[..., 0])).sum())
+    gross = (outliers, measured) if has_gross_errors(outliers, measured) else None
     # the layer's limit read off the data too, where the user left it open
     open_layer = check_layer and settings.estimator in KALMAN_TWINS and settings.psi is None
     if settings.estimator != "auto":
@@ -302,7 +308,13 @@ def _settled(
         auto_options = dict(options)
         auto_options.pop("known_noise", None)
         summary = choose_estimator(
-            settings, sample, say=say, check_layer=check_layer, own_q=q_curves, **auto_options
+            settings,
+            sample,
+            say=say,
+            check_layer=check_layer,
+            own_q=q_curves,
+            gross=gross,
+            **auto_options,
         )
         settings = summary.settings
         say(summary.summary())
@@ -316,7 +328,7 @@ def _settled(
         if fit:  # the twin fitted as the layer was (a Kalman smoother's fit: a fraction of a s)
             twin_fit = self_tune(twin, sample, **options)
             twin, learned = twin_fit.settings, summary.parameters - twin_fit.parameters
-        check = checked_layer(settings, twin, sample, learned, q_curves)
+        check = checked_layer(settings, twin, sample, learned, q_curves, gross)
         say(check.line())
         settings = check.settings
     return settings, sample, summary

@@ -19,6 +19,7 @@ from torchsvs.datasets.steps import as_rows
 from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
+from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.recipes import KALMAN, Settings
 
 #: Share of a particle filter's steps with a degenerate sample above which a run warns.
@@ -27,18 +28,6 @@ DEGENERATE_WARNING = 0.3
 #: 0.27 on gliders and survey aircraft at 6-33 s reports, at most 0.12 on the benchmark's other
 #: recorded kinds (``experiments/results/recorded_tracks.md``).
 NOISE_SPREAD_WARNING = 0.2
-#: Share of the positions the outlier screen set aside above which a run warns that the sensor
-#: has gross errors (at least :data:`GROSS_ERROR_COUNT` of them): the screen flags a position
-#: by chance below once in a million (``fitting.outliers.P_FALSE``), so this is a thousand times
-#: that. Of the recorded-tracks and vehicles benchmarks' 29 clean sets (about 5,000 rows each,
-#: σ 1-250 m) none has more than one position flagged, 7 of 10 M simulated rows; of the faults
-#: benchmarks' 12 sets (1% of positions off by 10σ, and a sensor bias), where the error estimate
-#: was 0.31-0.70 of the truth, 11 have 0.46-1.0% flagged (``experiments/results/
-#: recorded_faults.md``, ``recorded_vehicles_faults.md``). Airliners on 10 s scans have 2 of
-#: their ~49 outliers flagged (0.04%: 500 m off is within what their motion over 10 s allows)
-#: and no warning.
-GROSS_ERROR_SHARE = 1e-3
-GROSS_ERROR_COUNT = 3
 #: Per-track error estimates a run keeps beyond this many tracks: the worst this many.
 TRACKS_KEPT = 10_000
 #: The error estimate is called uncertain where its interval reaches beyond this many times the
@@ -380,11 +369,13 @@ class TrackRun:
 
 
 def gross_errors(report: RowReport) -> str | None:
-    """A warning where the outlier screen set aside more than :data:`GROSS_ERROR_SHARE` of the
-    positions: the error estimate counts white, unbiased noise only, and a sensor that errs
-    grossly that often may err in ways it cannot see."""
+    """A warning where the outlier screen set aside more than
+    :data:`~torchsvs.fitting.outliers.GROSS_ERROR_SHARE` of the positions
+    (:func:`~torchsvs.fitting.outliers.has_gross_errors`): the error estimate counts white,
+    unbiased noise only, and a sensor that errs grossly that often may err in ways it cannot
+    see."""
     outliers, measured = report.notes.get("outliers", 0), report.measurement
-    if outliers < GROSS_ERROR_COUNT or outliers <= GROSS_ERROR_SHARE * measured:
+    if not has_gross_errors(outliers, measured):
         return None
     return (
         f"measurements: {outliers} positions ({outliers / measured:.2%}) lay far off the path "

@@ -52,6 +52,27 @@ from torchsvs.kernels import curves
 #: tails than the Gaussian's: the other rules below keep such rows (none of the recorded-tracks
 #: benchmark's clean sets has a row flagged).
 P_FALSE = 1e-6
+#: Share of the positions the screen sets aside above which the sensor has gross errors (at
+#: least :data:`GROSS_ERROR_COUNT` of them; :func:`has_gross_errors`): a row is flagged by chance
+#: with at most :data:`P_FALSE`, so this is a thousand times that. Of the recorded-tracks and
+#: vehicles benchmarks' 29 clean sets (about 5,000 rows each, σ 1-250 m) none has more than one
+#: position flagged, 7 of 10 M simulated rows; of the faults benchmarks' 12 sets (1% of
+#: positions off by 10σ, and a sensor bias), where the error estimate was 0.31-0.70 of the
+#: truth, 11 have 0.46-1.0% flagged (``experiments/results/recorded_faults.md``,
+#: ``recorded_vehicles_faults.md``). Airliners on 10 s scans have 2 of their ~49 outliers
+#: flagged (0.04%: 500 m off is within what their motion over 10 s allows).
+GROSS_ERROR_SHARE = 1e-3
+GROSS_ERROR_COUNT = 3
+
+
+def has_gross_errors(outliers: int, measured: int) -> bool:
+    """Whether ``outliers`` set aside of ``measured`` positions say the sensor errs grossly
+    (:data:`GROSS_ERROR_SHARE`, :data:`GROSS_ERROR_COUNT`): what a run warns of
+    (:func:`torchsvs.track_run.gross_errors`) and where the SVSF family's boundary layer is not
+    kept (:func:`torchsvs.selection.checked_layer`)."""
+    return outliers >= GROSS_ERROR_COUNT and outliers > GROSS_ERROR_SHARE * measured
+
+
 #: A flagged row's ``d²`` is the largest within this many observed rows on either side.
 NEIGHBOURS = 2
 #: The smoother that judges rows has ``q`` this many times the file's: a row is an outlier
