@@ -21,49 +21,23 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
-import pandas as pd
 import torch
 
-from experiments.recorded_sets import DEFAULT_KINDS, BenchSet, build_sets
+from experiments.recorded_sets import DEFAULT_KINDS, BenchSet, build_sets, run_as_track
 from experiments.vehicle_sets import VEHICLES
-from torchsvs.accuracy import RiskTerms
-from torchsvs.datasets.tables import block_of
 from torchsvs.recipes import Settings
-from torchsvs.track_plan import plan_tracks
-from torchsvs.track_table import estimate_block, new_run
 
 RESULTS = Path(__file__).parent / "results"
 #: The shrinkage strengths tried (∞: the file's weight).
 KAPPAS = (0.0, 0.5, 1.0, 2.0, 4.0, np.inf)
 
 
-class Run(NamedTuple):
-    """One smoother on a set: its estimates by row and its SURE terms."""
-
-    table: pd.DataFrame  #: track_id, time, x, vx, y, vy, outlier
-    terms: RiskTerms  #: the chunks' ``track`` an index into ``ids``
-    meas_var: list[float]
-    ids: list[str]
-
-
-def run(bench: BenchSet, settings: Settings) -> Run:
-    data = bench.measurements
-    plan = plan_tracks(data, settings)
-    assert plan.settings.meas_var is not None
-    block = block_of(data, plan.columns)
-    found = estimate_block(block, plan, plan.estimator(), new_run(plan))
-    terms = RiskTerms.concat(found.risk, len(plan.settings.meas_var))
-    table = found.table(block, "float64").to_pandas()
-    return Run(table, terms, list(plan.settings.meas_var), list(block.steps.ids))
-
-
 def measure(bench: BenchSet) -> dict[str, float]:
     """Every rule's RMSE over the Kalman smoother's on ``bench``."""
-    ks = run(bench, Settings(estimator="ks"))
-    imm = run(bench, Settings(estimator="imm", meas_var=ks.meas_var))
+    ks = run_as_track(bench, Settings(estimator="ks"))
+    imm = run_as_track(bench, Settings(estimator="imm", meas_var=ks.meas_var))
     if ks.ids != imm.ids:
         raise ValueError("ks, imm: not the same tracks")
     rows = bench.measurements.merge(ks.table, on=["track_id", "time"], suffixes=("", "_k"))

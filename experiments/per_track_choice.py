@@ -31,13 +31,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from experiments.recorded_sets import DEFAULT_KINDS, BenchSet, build_sets
+from experiments.recorded_sets import DEFAULT_KINDS, BenchSet, build_sets, run_as_track
 from experiments.vehicle_sets import VEHICLES
 from torchsvs.accuracy import RiskTerms
-from torchsvs.datasets.tables import block_of
 from torchsvs.recipes import Settings
-from torchsvs.track_plan import plan_tracks
-from torchsvs.track_table import estimate_block, new_run
 
 RESULTS = Path(__file__).parent / "results"
 #: A track leaves the file's choice where its SURE difference is beyond this many standard
@@ -60,18 +57,12 @@ class Passes:
 def run(bench: BenchSet, settings: Settings) -> tuple[Passes, list[float]]:
     """``settings``' estimator on the set as ``torchsvs track`` runs it: its passes and the
     noise variances it used."""
-    data = bench.measurements
-    plan = plan_tracks(data, settings)
-    assert plan.settings.meas_var is not None
-    block = block_of(data, plan.columns)
-    found = estimate_block(block, plan, plan.estimator(), new_run(plan))
-    terms = RiskTerms.concat(found.risk, len(plan.settings.meas_var))
-    out = found.table(block, "float64").to_pandas()
-    both = bench.truth.rows.merge(out, on=["track_id", "time"], suffixes=("", "_e"))
+    found = run_as_track(bench, settings)
+    both = bench.truth.rows.merge(found.table, on=["track_id", "time"], suffixes=("", "_e"))
     assert len(both) == len(bench.truth.rows), "every row estimated"
     square = (both["x_e"] - both["x"]) ** 2 + (both["y_e"] - both["y"]) ** 2
-    passes = Passes(list(block.steps.ids), terms, square.groupby(both["track_id"]).sum())
-    return passes, list(plan.settings.meas_var)
+    passes = Passes(found.ids, found.terms, square.groupby(both["track_id"]).sum())
+    return passes, found.meas_var
 
 
 def paired(

@@ -45,8 +45,13 @@ import pandas as pd
 from experiments.flight_data import _thin
 from experiments.track_truth import Piece, Truth, truth_rows
 from experiments.vehicle_sets import simulated_truth
+from torchsvs.accuracy import RiskTerms
 from torchsvs.datasets.adsb import sample_files
 from torchsvs.datasets.flights import MAX_SPEED, flight_steps
+from torchsvs.datasets.tables import block_of
+from torchsvs.recipes import Settings
+from torchsvs.track_plan import plan_tracks
+from torchsvs.track_table import estimate_block, new_run
 
 #: Half-width (s) of the local-quadratic fit that re-times dense records (:func:`dejitter`).
 DEJITTER_WINDOW = 10.0
@@ -776,3 +781,26 @@ def describe(bench: BenchSet) -> SetStats:
         spread(speed),
         float(np.sqrt(np.mean((error**2).sum(axis=1)))),
     )
+
+
+class SetRun(NamedTuple):
+    """An estimator on a set as ``torchsvs track`` runs it (:func:`run_as_track`)."""
+
+    table: pd.DataFrame  #: the output rows: track_id, time, x, vx, y, vy (, outlier)
+    terms: RiskTerms  #: SURE's sums per chunk, the chunks' ``track`` an index into ``ids``
+    meas_var: list[float]  #: the noise variances the run used
+    ids: list[str]  #: the tracks, in the run's order
+
+
+def run_as_track(bench: BenchSet, settings: Settings) -> SetRun:
+    """``settings``' estimator on ``bench``'s measurements as ``torchsvs track`` runs it: the
+    plan read off the set (:func:`~torchsvs.track_plan.plan_tracks`), every track in one block
+    (:func:`~torchsvs.track_table.estimate_block`), float64 output."""
+    data = bench.measurements
+    plan = plan_tracks(data, settings)
+    assert plan.settings.meas_var is not None
+    block = block_of(data, plan.columns)
+    found = estimate_block(block, plan, plan.estimator(), new_run(plan))
+    terms = RiskTerms.concat(found.risk, len(plan.settings.meas_var))
+    table = found.table(block, "float64").to_pandas()
+    return SetRun(table, terms, list(plan.settings.meas_var), list(block.steps.ids))
