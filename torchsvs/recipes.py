@@ -277,15 +277,17 @@ def make_model(
 
 class Blend(nn.Module):
     """Two estimators whose estimates are blended, ``(1 − w) x̂₁ + w x̂₂``: what ``track``
-    runs for settings with a ``blend`` (:func:`torchsvs.blending.estimate_blend` runs it; a
-    container, not called itself)."""
+    runs for settings with a ``blend`` (:func:`torchsvs.estimating.estimate_group` runs each
+    and blends them, :mod:`torchsvs.blending`; a container, not called itself)."""
 
     def __init__(self, first: nn.Module, second: nn.Module, weight: float) -> None:
         super().__init__()
         self.first, self.second, self.weight = first, second, weight
 
     def forward(self, *args: Any, **kwargs: Any) -> Any:
-        raise TypeError("Blend: its estimators run apart; torchsvs.blending.estimate_blend")
+        raise TypeError(
+            "Blend: its estimators run apart and are blended by torchsvs.estimating.estimate_group"
+        )
 
 
 def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator | Blend:
