@@ -219,3 +219,29 @@ def test_a_blend_plan_travels_by_pickle_and_splits_as_its_estimators_do(tmp_path
     pd.testing.assert_frame_equal(
         joined.reset_index(drop=True), expected.reset_index(drop=True), check_exact=True
     )
+
+
+def test_a_blend_run_is_named_by_both_and_its_divergence_not_called_exact():
+    """A run's warnings name a blend by both its estimators, and an uncertain estimate of a
+    blend with a probed estimator (the IMM) says its sensitivity is probed, where the Kalman
+    smoother alone (exact) does not."""
+    from torchsvs.accuracy import RiskTerms, RiskTotals
+    from torchsvs.track_run import TrackRun
+
+    gen = np.random.default_rng(0)
+    residual = gen.gamma(1.0, 14000.0, (6, 2))  # few chunks, widely spread: uncertain
+    terms = RiskTerms(residual, np.full((6, 2), 8.0), np.full((6, 2), 32.0), np.arange(6))
+    inner = Settings("imm", meas_var=[900.0, 900.0], noise="given")
+    warned = {}
+    for blend in (None, inner):
+        weight = 0.0 if blend is None else 0.4
+        settings = Settings(
+            "ks", meas_var=[900.0, 900.0], noise="given", blend=blend, blend_weight=weight
+        )
+        run = TrackRun(settings=settings, risk=RiskTotals(2))
+        run.risk.add(terms)
+        run.check()
+        warned[settings.name] = [w for w in run.warnings if "is uncertain" in w]
+    assert len(warned["ks"]) == len(warned["ks+imm"]) == 1
+    assert warned["ks"][0].startswith("ks: ") and "probed" not in warned["ks"][0]
+    assert warned["ks+imm"][0].startswith("ks+imm: ") and "probed at random" in warned["ks+imm"][0]

@@ -227,6 +227,41 @@ def _estimate_factors(
     return StepEstimates.merge(parts, len(meas_std))
 
 
+class BlendParts(NamedTuple):
+    """Two estimators' runs on one group, as a blend of them needs them (:func:`blend_parts`)."""
+
+    parts: tuple[StepEstimates, StepEstimates]
+    means: tuple[Tensor, Tensor]  #: each's mean, the batch's padded ``[B, T, n]`` (offsets in)
+    #: the first's, the second's SURE sums and their ``C`` (:func:`~torchsvs.blending.
+    #: cross_terms`), in track order; None without ``risk``
+    terms: tuple[RiskTerms, RiskTerms, RiskTerms] | None
+
+
+def blend_parts(
+    estimators: tuple[nn.Module, nn.Module],
+    pair: tuple[Settings, Settings],
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool,
+    risk: bool,
+) -> BlendParts:
+    """Each estimator's run on the group as :func:`_estimate_factors` runs it with its own
+    settings, its mean in the batch's padded order and (``risk``) the terms a blend's error and
+    weight are made of."""
+    first, second = (
+        _estimate_factors(estimator, batch, meas_std, covariance, risk, own)
+        for estimator, own in zip(estimators, pair, strict=True)
+    )
+    means = (in_batch_order(first, batch, first.mean), in_batch_order(second, batch, second.mean))
+    if not risk:
+        return BlendParts((first, second), means, None)
+    assert first.risk is not None and second.risk is not None
+    observed = ~torch.isnan(batch.tracks.z)
+    cross = cross_terms(observed, means[0][..., 0::2], means[1][..., 0::2], batch.group)
+    terms = (first.risk.in_track_order(), second.risk.in_track_order(), cross)
+    return BlendParts((first, second), means, terms)
+
+
 def _estimate_blend(
     blend: Blend,
     batch: GroupBatch,
@@ -235,41 +270,31 @@ def _estimate_blend(
     risk: bool,
     settings: Settings,
 ) -> StepEstimates:
-    """The blend ``(1 − w) x̂₁ + w x̂₂`` of its two estimators' runs on the group, each as
-    :func:`_estimate_factors` runs it with its own settings, and the blend's error terms
-    (:func:`~torchsvs.blending.blended_terms`). Its covariance is the blend of theirs, a
-    bound: the error covariance of ``(1 − w) e₁ + w e₂`` is at most that in every direction
-    (the cross term of two errors is at most the geometric mean of their variances). Notes and
-    each track's ``q`` factor are the first's."""
+    """The blend ``(1 − w) x̂₁ + w x̂₂`` of its two estimators' runs on the group
+    (:func:`blend_parts`) and the blend's error terms (:func:`~torchsvs.blending.
+    blended_terms`). Its covariance is the blend of theirs, a bound: the error covariance of
+    ``(1 − w) e₁ + w e₂`` is at most that in every direction (the cross term of two errors is at
+    most the geometric mean of their variances). Notes and each track's ``q`` factor are the
+    first's."""
     pair = settings.blended
     assert pair is not None
-    parts = [
-        _estimate_factors(estimator, batch, meas_std, covariance, risk, own)
-        for estimator, own in zip((blend.first, blend.second), pair, strict=True)
-    ]
+    found = blend_parts((blend.first, blend.second), pair, batch, meas_std, covariance, risk)
+    (first, second), means = found.parts, found.means
     w = blend.weight
-    means = [in_batch_order(part, batch, part.mean) for part in parts]
     mean = (1 - w) * means[0] + w * means[1]
     cov = None
     if covariance:
-        first_cov, second_cov = (part.cov for part in parts)
-        assert first_cov is not None and second_cov is not None, "asked for, so written"
-        cov = (1 - w) * in_batch_order(parts[0], batch, first_cov)
-        cov = cov + w * in_batch_order(parts[1], batch, second_cov)
+        assert first.cov is not None and second.cov is not None, "asked for, so written"
+        cov = (1 - w) * in_batch_order(first, batch, first.cov)
+        cov = cov + w * in_batch_order(second, batch, second.cov)
     tracks = batch.tracks
     target, values, covs_flat = flat_steps(tracks, mean, cov)
-    terms = None
-    if risk:
-        first, second = (part.risk for part in parts)
-        assert first is not None and second is not None
-        observed = ~torch.isnan(tracks.z)
-        cross = cross_terms(observed, means[0][..., 0::2], means[1][..., 0::2], batch.group)
-        terms = blended_terms(first.in_track_order(), second.in_track_order(), cross, w)
+    terms = None if found.terms is None else blended_terms(*found.terms, w)
     never = ((~torch.isnan(tracks.z)).sum(dim=1) == 0).numpy()
-    q_factor = parts[0].q_factor
+    q_factor = first.q_factor
     if q_factor is not None:
-        q_factor = in_batch_order(parts[0], batch, q_factor, per_track=True).numpy()
-    notes = {**parts[1].notes, **parts[0].notes}
+        q_factor = in_batch_order(first, batch, q_factor, per_track=True).numpy()
+    notes = {**second.notes, **first.notes}
     return StepEstimates(
         batch.position, batch.group, target, values, covs_flat, never, notes, terms, q_factor
     )

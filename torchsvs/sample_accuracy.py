@@ -9,19 +9,19 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchsvs.accuracy import Accuracy, RiskTerms
 from torchsvs.accuracy import accuracy as accuracy_of
-from torchsvs.blending import best_weight, cross_terms
+from torchsvs.blending import best_weight, blended_terms
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import (
     GUARD_ERRORS,
     GroupBatch,
     _estimate_factors,
     _estimate_part,
+    blend_parts,
     centred,
-    in_batch_order,
 )
 from torchsvs.fitting.defaults import complete_settings, meas_var_range
 from torchsvs.recipes import Settings, make_estimator, make_model
@@ -59,23 +59,24 @@ def _sample_batch(settings: Settings, tracks: RecordedTracks) -> tuple[GroupBatc
     return batch, torch.tensor(settings.meas_var, dtype=torch.float64).sqrt()
 
 
-def sample_blend_weight(first: Settings, second: Settings, tracks: RecordedTracks) -> float:
+def sample_blend(
+    first: Settings, second: Settings, tracks: RecordedTracks
+) -> tuple[float, RiskTerms]:
     """The weight of ``second``'s estimates in the blend with ``first``'s of the least
     estimated MSE on ``tracks`` (:func:`~torchsvs.blending.best_weight`), both run as
-    ``track`` runs them (the same noise)."""
+    ``track`` runs them (the same noise), and the blend's SURE sums at it (what
+    :func:`sample_terms` gives for the blend, from the same runs)."""
     assert first.meas_var is not None
     batch, meas_std = _sample_batch(first, tracks)
-    runs = []
-    for settings in (first, second):
-        estimator = make_estimator(settings, make_model(settings)).double()
-        runs.append(_estimate_factors(estimator, batch, meas_std, False, True, settings))
-    g, f = (in_batch_order(run, batch, run.mean)[..., 0::2] for run in runs)
-    cross = cross_terms(~torch.isnan(batch.tracks.z), g, f, batch.group)
-    first_terms, second_terms = (run.risk for run in runs)
-    assert first_terms is not None and second_terms is not None
-    return best_weight(
-        first_terms.in_track_order(), second_terms.in_track_order(), cross, first.meas_var
-    )
+
+    def built(settings: Settings) -> nn.Module:
+        return make_estimator(settings, make_model(settings)).double()
+
+    estimators = (built(first), built(second))
+    found = blend_parts(estimators, (first, second), batch, meas_std, False, True)
+    assert found.terms is not None
+    weight = best_weight(*found.terms, first.meas_var)
+    return weight, blended_terms(*found.terms, weight)
 
 
 def probed_terms(settings: Settings, tracks: RecordedTracks, probes: int) -> list[RiskTerms]:

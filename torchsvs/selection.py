@@ -38,7 +38,7 @@ from torchsvs.recipes import LAGGED, Settings
 from torchsvs.sample_accuracy import (
     accuracy_of_terms,
     probed_terms,
-    sample_blend_weight,
+    sample_blend,
     sample_terms,
 )
 
@@ -274,12 +274,9 @@ def _partner(
 ) -> Settings | None:
     """The scored candidate of the lowest score other than ``best``, with ``best``'s outlier
     screen (a blend's estimators see the same measurements), or None."""
+    # (a candidate is in fits once scored: none skipped)
     others = [
-        row
-        for row in rows
-        if not row.get("skipped")
-        and row["estimator"] != best.estimator
-        and row["estimator"] in fits
+        row for row in rows if row["estimator"] in fits and row["estimator"] != best.estimator
     ]
     if not others:
         return None
@@ -300,19 +297,18 @@ def blend_candidate(
     chosen: Settings, partner: Settings, sample: RecordedTracks, own_q: bool = False
 ) -> tuple[Settings, dict[str, Any], bool] | None:
     """The blend of ``chosen`` with ``partner`` at the weight of the least estimated MSE on
-    ``sample`` (:func:`~torchsvs.sample_accuracy.sample_blend_weight`; each track with its own
+    ``sample`` (:func:`~torchsvs.sample_accuracy.sample_blend`; each track with its own
     ``q`` with ``own_q``), its row of the candidates' table, and whether it is surely below
     ``chosen`` (:func:`compared`, the weight a value learned on ``sample``); None where the
     weight is within :data:`LEAST_BLEND_WEIGHT` of 0 or 1 (one of them alone)."""
     first, second = chosen, partner
     if own_q:
         first, second = with_q_curve(first, sample), with_q_curve(second, sample)
-    weight = sample_blend_weight(first, second, sample)
+    weight, terms = sample_blend(first, second, sample)
     if not LEAST_BLEND_WEIGHT <= weight <= 1.0 - LEAST_BLEND_WEIGHT:
         return None
     blended = replace(chosen, blend=partner, blend_weight=weight)
-    run = with_q_curve(blended, sample) if own_q else blended
-    found = accuracy_of_terms(blended, sample_terms(run, sample))
+    found = accuracy_of_terms(blended, terms)
     against = compared(chosen, blended, sample, learned=1, own_q=own_q)
     row = {
         "estimator": blended.name,

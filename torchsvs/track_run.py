@@ -230,7 +230,7 @@ class TrackRun:
         found = self.accuracy
         if found is None or self.settings is None:
             return
-        name = self.settings.estimator
+        name = self.settings.name  # a blend's both: its divergence is not exact
         steps = self.report.notes.get("particle_steps", 0)
         low = self.report.notes.get("particle_steps_degenerate", 0)
         if steps and low > DEGENERATE_WARNING * steps:
@@ -389,22 +389,15 @@ def gross_errors(report: RowReport) -> str | None:
 def settings_line(settings: Settings) -> str:
     """The settings as the run's summary prints them: those set, a blend's second estimator by
     what it sets otherwise (the summary file has them all)."""
-    shown = {k: v for k, v in asdict(settings).items() if v is not None}
-    shown.pop("q_curve", None)  # thirteen numbers: the summary file has them
-    shown.pop("blend", None)
-    if settings.blend is None:
-        shown.pop("blend_weight", None)
-    else:
-        outer = asdict(settings)
-        own = {
-            k: v
-            for k, v in asdict(settings.blend).items()
-            if v is not None
-            and v != outer.get(k)
-            and k not in ("estimator", "q_curve", "blend_weight")
-        }
-        inner = ", ".join(f"{k}={short(v)}" for k, v in own.items())
-        shown["blend"] = f"{settings.blend.estimator}({inner})"
+    fields = asdict(settings)
+    blend = fields.pop("blend")
+    hidden = {"q_curve"} | ({"blend_weight"} if blend is None else set())  # (q_curve: 13 numbers)
+    shown = {k: v for k, v in fields.items() if v is not None and k not in hidden}
+    if blend is not None:
+        hidden |= {"estimator", "blend", "blend_weight"}
+        own = {k: v for k, v in blend.items() if v is not None and k not in hidden}
+        inner = ", ".join(f"{k}={short(v)}" for k, v in own.items() if v != fields.get(k))
+        shown["blend"] = f"{blend['estimator']}({inner})"
     return ", ".join(f"{k}={short(v)}" for k, v in shown.items())
 
 

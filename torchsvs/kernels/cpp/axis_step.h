@@ -141,6 +141,15 @@ inline void wanted_inflation_adjoint(const State<X>& x, const X* g, X gamma, con
     dgamma += dexcess * held;
 }
 
+// The most the lanes [first, first + m) of one track want (boundary_inflation's amax), of
+// lane values indexed as wanted[i] (an array, or a vector of lanes).
+template <typename R, typename Lanes>
+inline R most_wanted(const Lanes& wanted, int64_t first, int64_t m) {
+    R most = wanted[first];
+    for (int64_t i = first + 1; i < first + m; ++i) most = std::max<R>(most, wanted[i]);
+    return most;
+}
+
 // The inflation λ of each lane's track (boundary_inflation's amax and clamp_min): the largest
 // its axes want, at least 1. The vector's lanes hold whole tracks from its first lane
 // (lanes_per_vector); lanes past `count` repeat the last real one.
@@ -148,12 +157,8 @@ template <typename R>
 inline typename Wide<R>::type track_inflation(const LaneBlock<R>& lanes,
                                               typename Wide<R>::type wanted) {
     typename Wide<R>::type out{};
-    for (int w = 0; w < lanes.count; ++w) {
-        const int64_t first = w - lanes.j[w];
-        R most = wanted[first];
-        for (int64_t i = first + 1; i < first + lanes.m; ++i) most = std::max(most, wanted[i]);
-        out[w] = std::max(most, R(1));
-    }
+    for (int w = 0; w < lanes.count; ++w)
+        out[w] = std::max(most_wanted<R>(wanted, w - lanes.j[w], lanes.m), R(1));
     for (int w = lanes.count; w < LaneBlock<R>::kWidth; ++w) out[w] = out[lanes.count - 1];
     return out;
 }
@@ -169,9 +174,9 @@ inline typename Wide<R>::type track_inflation_adjoint(const LaneBlock<R>& lanes,
     typename Wide<R>::type out{};
     for (int w = 0; w < lanes.count; ++w) {
         const int64_t first = w - lanes.j[w];
-        R most = wanted[first], total = 0;
-        for (int64_t i = first + 1; i < first + lanes.m; ++i) most = std::max(most, wanted[i]);
+        const R most = most_wanted<R>(wanted, first, lanes.m);
         if (most < R(1) || wanted[w] != most) continue;
+        R total = 0;
         int ties = 0;
         for (int64_t i = first; i < first + lanes.m; ++i) {
             ties += wanted[i] == most;
@@ -257,16 +262,16 @@ inline void step_lanes(int64_t lanes, int64_t m, R gamma, const R (*g)[kLanes],
         for (int q = 0; q < kGiven; ++q) given[q] = g[q][l];
     };
     R inflation[kLanes];
-    if (Rule == 2)  // each track's λ: the largest its axes want, at least 1 (track_inflation)
-        for (int64_t l0 = 0; l0 < lanes; l0 += m) {
-            R most = 1;
-            for (int64_t l = l0; l < l0 + m; ++l) {
-                R given[kGiven];
-                inputs(l, given);
-                most = std::max(most, wanted_inflation<R>(state(l), given, gamma));
-            }
-            std::fill_n(inflation + l0, m, most);
+    if (Rule == 2) {  // each track's λ: the largest its axes want, at least 1 (track_inflation)
+        R wanted[kLanes];
+        for (int64_t l = 0; l < lanes; ++l) {
+            R given[kGiven];
+            inputs(l, given);
+            wanted[l] = wanted_inflation<R>(state(l), given, gamma);
         }
+        for (int64_t l0 = 0; l0 < lanes; l0 += m)
+            std::fill_n(inflation + l0, m, std::max(most_wanted<R>(wanted, l0, m), R(1)));
+    }
     for (int64_t l = 0; l < lanes; ++l) {
         R given[kGiven];
         inputs(l, given);
