@@ -291,10 +291,11 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     ]
     source = tmp_path / "in.csv"
     source.write_text("track_id,time,x,y\n" + "\n".join(lines) + "\n")
-    given = Settings(estimator="ks", meas_var=[400.0, 400.0])
+    given = Settings(estimator="ks", meas_var=[400.0, 400.0], step_q=False)
     run = track_file(source, tmp_path / "out.csv", given, dtype=torch.float64, progress=False)
     settings = run.settings
     assert settings is not None and settings.q is not None and settings.q_curve is not None
+    assert settings.q_window is None
     summary = json.loads((tmp_path / "out.summary.json").read_text())
     assert "q_per_track" in summary
     factors = track_q_factors(q_curves(z, dt, 400.0, settings.q), settings.q_curve)

@@ -331,7 +331,7 @@ def test_imm_fit_searches_the_noises_and_moves_a_bad_start():
 
 
 class _Passes(NamedTuple):
-    """A smoother's result as :func:`~torchsvs.estimating.smoothed_or_filtered` reads it."""
+    """A smoother's result as :func:`~torchsvs.smoother_guard.smoothed_or_filtered` reads it."""
 
     mean: torch.Tensor
     cov: torch.Tensor | None

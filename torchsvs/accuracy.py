@@ -308,10 +308,16 @@ def chunk_terms(
     """:class:`RiskTerms` of squared residuals and divergences per component ``[B, T, m]``
     (0 where not ``observed``): their sums over each track's chunks of ``chunk`` steps, the
     chunks without an observation left out."""
-    B = observed.shape[0]
-    parts = (residual, divergence, observed.double())
-    sums = np.stack([chunk_sums(x, chunk) for x in parts], axis=-1)  # [B·C, m, 3]
-    return terms_of_sums(sums.reshape(B, -1, *sums.shape[1:]))
+    return terms_of_sums(chunk_sum_array((residual, divergence, observed.double()), chunk))
+
+
+def chunk_sum_array(parts: Sequence[Tensor], chunk: int = CHUNK) -> Tensor:
+    """``[B, C, m, len(parts)]`` float64: each of ``parts [B, T, m]`` summed over each track's
+    chunks of ``chunk`` steps (:func:`terms_of_sums` reads squared residuals, divergences and
+    counts)."""
+    B = parts[0].shape[0]
+    sums = np.stack([chunk_sums(x.double(), chunk) for x in parts], axis=-1)  # [B·C, m, k]
+    return torch.from_numpy(sums.reshape(B, -1, *sums.shape[1:]))
 
 
 def terms_of_sums(sums: np.ndarray | Tensor) -> RiskTerms:

@@ -6,7 +6,8 @@ Each call of ``torchsvs track`` is one group of a block's tracks of similar leng
 carry the file's SURE curve, :func:`settings_q_factors`) and, with ``risk``, once more on probed
 measurements for Stein's unbiased risk estimate (:mod:`torchsvs.accuracy`), and hands back the
 estimates at the block's flat steps (:class:`StepEstimates`). An IMM smoother's tracks each keep
-their smoothed or their filtered pass, whichever SURE rates lower (:func:`smoothed_or_filtered`).
+their smoothed or their filtered pass, whichever SURE rates lower
+(:func:`~torchsvs.smoother_guard.smoothed_or_filtered`).
 """
 
 from __future__ import annotations
@@ -39,20 +40,22 @@ from torchsvs.curve_estimates import (
 from torchsvs.datasets import RecordedTracks, TrackSteps, with_prior
 from torchsvs.datasets.tracks import padded_batch, short_track_notes
 from torchsvs.datasets.writing import flat_steps
-from torchsvs.error_references import LinearReference, SelfReference, reference_for
+from torchsvs.error_references import reference_for
 from torchsvs.estimator import split_batch
 from torchsvs.filters.particle import degenerate_share
-from torchsvs.fitting import noise
+from torchsvs.fitting import noise, q_windows
 from torchsvs.fitting.defaults import meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Blend, Settings
 from torchsvs.runs import run_result
+from torchsvs.smoother_guard import smoothed_or_filtered
 from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
 
-#: :func:`smoothed_or_filtered` keeps a track's smoothed pass where it is the better at every
-#: noise level within this many standard errors of the noise read off the data. Measured with
+#: :func:`~torchsvs.smoother_guard.smoothed_or_filtered` keeps a track's smoothed pass where it
+#: is the better at every noise level within this many standard errors of the noise read off
+#: the data. Measured with
 #: the IMM on the recorded-tracks benchmark's sets: at the estimate alone (0) the gliders and
 #: survey aircraft at irregular times (σ 50 read as 71.8 ± 17 m) kept smoothers that were worse
 #: than their filters, 1.07x raw; at 2 the airliners at 1 s (σ 10 read as 10.9 ± 1.7 m) lost
@@ -200,7 +203,12 @@ def _estimate_factors(
         if settings is not None and not covariance and is_curves_estimator(estimator, settings):
             return _estimate_one_q(estimator, batch, meas_std, risk, settings)
         return _estimate_part(estimator, batch, meas_std, covariance, risk, noise_range)
-    reuse = not covariance and is_curves_estimator(estimator, settings)
+    curves_estimator = is_curves_estimator(estimator, settings)
+    if settings.q_window is not None and curves_estimator and settings.estimator not in FILTERS:
+        found = _estimate_windowed(estimator, batch, meas_std, covariance, risk, settings)
+        if found is not None:
+            return found
+    reuse = not covariance and curves_estimator
     factors, runs = _q_factors(settings, batch.tracks, reuse)
     assert settings.q is not None
     if runs is not None and bool(runs.ran.all()):  # every track's pass at its own q
@@ -336,6 +344,41 @@ def _estimate_one_q(
     smoothed = settings.estimator not in FILTERS
     runs = noise.curve_runs(tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed)
     return _estimate_from_run(estimator, batch, meas_std, risk, runs, settings.q)
+
+
+def _estimate_windowed(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    covariance: bool,
+    risk: bool,
+    settings: Settings,
+) -> StepEstimates | None:
+    """:func:`_estimate_factors` for the Kalman smoother with its ``q`` chosen per step
+    (``settings.q_window``, :func:`~torchsvs.fitting.q_windows.windowed_runs`): the means
+    and error terms from the compiled passes, with ``covariance`` each step's covariance from
+    the estimator's run at its factor; None where the compiled loops are unavailable (each
+    track then runs with its own ``q``)."""
+    assert settings.q is not None and settings.meas_var is not None
+    assert settings.q_window is not None
+    tracks = batch.tracks
+    found = q_windows.windowed_runs(
+        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.q_window
+    )
+    if found is None:
+        return None
+    cov = None
+    if covariance:
+        prior = with_prior(tracks, meas_std)
+        generator = torch.Generator().manual_seed(batch.position)
+        for i, factor in enumerate(noise.Q_FACTORS):
+            with scaled_q(estimator, factor) as scaled:
+                out = run_result(scaled, prior, generator, "all")
+            at = (found.path == i)[..., None, None]
+            cov = torch.where(at, out.cov, out.cov.new_zeros(()) if cov is None else cov)
+    q = settings.q * found.factor
+    estimates = _estimate_from_run(estimator, batch, meas_std, risk, found.runs, q, cov)
+    return estimates._replace(q_factor=found.factor.numpy())
 
 
 def settings_q_factors(settings: Settings, tracks: RecordedTracks) -> Tensor:
@@ -479,13 +522,15 @@ def _estimate_from_run(
     risk: bool,
     run: noise.CurveRuns,
     q: float | Tensor,
+    cov: Tensor | None = None,
 ) -> StepEstimates:
     """:func:`_estimate_part` of a Kalman smoother or filter
     (:func:`~torchsvs.curve_estimates.is_curves_estimator`) whose run on the group is given
     (from the SURE curves' pass, float64, at ``q``: one, or one per track ``[B]``): its means,
     position variances and, where compiled, the divergence at each axis's first two
     observations; the error terms from them (:func:`~torchsvs.curve_estimates.
-    run_risk_terms`: exact, or with the probe drawn as :func:`_estimate_part` draws it)."""
+    run_risk_terms`: exact, or with the probe drawn as :func:`_estimate_part` draws it); the
+    covariances ``cov [B, T, n, n]`` where given."""
     # what the output needs of a prior: the axes never observed (their estimates are NaN)
     never = (~torch.isnan(batch.tracks.z)).sum(dim=1) == 0
     tracks = replace(batch.tracks, never_observed=never)
@@ -497,7 +542,7 @@ def _estimate_from_run(
         terms = run_risk_terms(
             batch.tracks, meas_std, mean, run.position_var, q, smoothed, step, run.sums
         )
-    return _step_estimates(batch, tracks, mean, None, short_track_notes(tracks), terms)
+    return _step_estimates(batch, tracks, mean, cov, short_track_notes(tracks), terms)
 
 
 def _paired_run(
@@ -510,64 +555,3 @@ def _paired_run(
     rows = tracks.subset(torch.arange(B).repeat(2))
     assert rows.z.shape == (2 * B, *tracks.z.shape[1:]), "every track twice over, steps kept"
     return split_batch(positions(torch.cat([tracks.z, probe.measurements]), keep, rows), B)
-
-
-def smoothed_or_filtered(
-    out: Any,
-    rerun: Callable[[Tensor], Any],
-    z: Tensor,
-    meas_std: Tensor,
-    probe: Probe,
-    noise_range: tuple[list[float], list[float]] | None = None,
-    control: LinearReference | SelfReference | None = None,
-) -> tuple[Any, RiskTerms, np.ndarray]:
-    """Each track's smoothed pass of ``out`` (a result with a ``filtered`` pass: the IMM's
-    smoother), or its filter pass where that has the lower SURE (:mod:`torchsvs.accuracy`, both
-    from one run ``rerun`` on the ``probe``'s measurements; ``control``: the estimate's control
-    variate, :func:`~torchsvs.error_references.reference_for`): a guard where the smoother's
-    backward pass fails. Kim's smoother links a mode's estimates by the mode's own dynamics,
-    and on tracks whose motion at their report times neither mode follows (gliders and survey
-    aircraft at 7-33 s, speed jumps in the record) the IMM's fixed-lag smoother was 1.25x the
-    raw measurements (the filter 1.01x) on the recorded-tracks benchmark's irregular set, while
-    it was 0.31-0.57x raw elsewhere. Where the noise was read off the data, the smoother is kept
-    only where it is the better at both ends of the interval ``noise_range`` too (SURE is
-    linear in the noise variance; :data:`GUARD_ERRORS` standard errors wide in ``track``):
-    motion the report times cannot resolve reads as noise (71.8 m for 50 on that set), and the
-    divergence term, weighted by that noise, then favours the smoother, which follows the data
-    less. Returns the result with the chosen passes' ``mean``
-    and ``cov`` per track (the other fields the smoother's), their risk terms, and ``[B]`` which
-    tracks fell back to the filter."""
-    shifted = rerun(probe.measurements)  # one probed run serves both passes
-
-    def terms_of(pick: Callable[[Any], Tensor], filtered: bool) -> RiskTerms:
-        reference = None if control is None else control.reference(out, filtered)
-        return risk_terms(
-            lambda _: pick(shifted)[..., 0::2],  # (the probe's measurements: run above)
-            z,
-            pick(out)[..., 0::2],
-            meas_std,
-            None,
-            reference=reference,
-            probe=probe,
-        )
-
-    smooth = terms_of(lambda result: result.mean, False)
-    filt = terms_of(lambda result: result.filtered.mean, True)
-    levels = [meas_std.double().square().tolist(), *(noise_range or ())]
-    B = z.shape[0]
-    fall_back = np.zeros(B, dtype=bool)
-    for r in levels:  # each track's estimated error (NaN: nothing observed, no fallback)
-        fall_back |= filt.per_track(r, B)[0] < smooth.per_track(r, B)[0]
-    back = torch.from_numpy(fall_back)
-    mean = torch.where(back[:, None, None], out.filtered.mean, out.mean)
-    cov = out.cov
-    if cov is not None and out.filtered.cov is not None:
-        cov = torch.where(back[:, None, None, None], out.filtered.cov, cov)
-    chunks = fall_back[smooth.track][:, None]  # the two passes' chunks are the same
-    terms = RiskTerms(
-        np.where(chunks, filt.residual, smooth.residual),
-        np.where(chunks, filt.divergence, smooth.divergence),
-        smooth.count,
-        smooth.track,
-    )
-    return out._replace(mean=mean, cov=cov), terms, fall_back

@@ -138,6 +138,14 @@ class Settings:
     #: or for :data:`FILTERS` the filter, at ``q`` times
     #: :data:`~torchsvs.fitting.noise.Q_FACTORS`); None: one ``q`` for every track
     q_curve: list[float] | None = None
+    #: the Kalman smoother's ``q`` chosen per step, by SURE over a window of this many steps
+    #: around each (:mod:`torchsvs.fitting.q_windows`), where the sample's SURE found it below
+    #: each track's own ``q``; None: each track's own (with ``q_curve``). Read by the Kalman
+    #: smoother (``ks``) alone: a filter's estimate may not look ahead.
+    q_window: int | None = None
+    #: let SURE choose a window of ``q`` for the Kalman smoother (``q_window``) where it finds
+    #: one better than each track's own ``q``; False: each track's own (``--no-step-q``)
+    step_q: bool = True
     #: set isolated outliers aside before estimating (treated as missing, flagged in the
     #: output's ``outlier`` column): :mod:`torchsvs.fitting.outliers`
     outliers: bool = True
@@ -187,6 +195,15 @@ class Settings:
             )
         if not 0.0 <= self.gamma < 1.0:
             raise ValueError(f"gamma: expected a value in [0, 1), got {self.gamma!r}")
+        if self.q_window is not None and (
+            isinstance(self.q_window, bool)
+            or not isinstance(self.q_window, int)
+            or self.q_window < 3
+            or self.q_window % 2 == 0
+        ):
+            raise ValueError(
+                f"q_window: expected an odd number of steps >= 3, got {self.q_window!r}"
+            )
         if self.q is not None and not self.q > 0:
             raise ValueError(f"q: expected a number > 0, got {self.q!r}")
         if self.outlier_q is not None and not self.outlier_q > 0:

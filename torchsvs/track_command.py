@@ -301,6 +301,7 @@ def _track(args: argparse.Namespace, reader: Any = None) -> None:
             turn_rate_std=args.turn_rate_std,
             switch_prob=args.switch_prob,
             track_q=not args.shared_q,
+            step_q=not args.no_step_q,
             outliers=not args.keep_outliers,
         )
         fit_options: dict[str, object] = {

@@ -169,6 +169,12 @@ def track_parser() -> argparse.ArgumentParser:
         "shrunk toward the file's; not for imm, nor where --q is given)",
     )
     parser.add_argument(
+        "--no-step-q",
+        action="store_true",
+        help="ks: each track one q (default: where SURE finds it better on the sample, each "
+        "step the q of the least SURE over a window of steps around it)",
+    )
+    parser.add_argument(
         "--keep-outliers",
         action="store_true",
         help="use every position (default: a position far off the path its neighbours agree "

@@ -325,6 +325,14 @@ class TrackRun:
     def q_factor_line(self) -> str:
         """How the tracks' own ``q`` spread around the file's."""
         factors = np.array(sorted(self.q_factors.elements()))
+        window = None if self.settings is None else self.settings.q_window
+        if window is not None:  # (a track's factor: the geometric mean of its steps')
+            return (
+                f"q per step: the least SURE over {window} steps around each, the tracks' "
+                f"{factors.min():.3g}-{factors.max():.3g}× the file's on average (median "
+                f"{float(np.median(factors)):.3g}); --no-step-q for one q per track, "
+                "--shared-q for one q"
+            )
         own = int((factors != 1.0).sum())
         return (
             f"q per track: {own} of {len(factors)} tracks with their own, "

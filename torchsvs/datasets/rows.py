@@ -62,7 +62,7 @@ NOTES = {
     "output's outlier column (torchsvs.fitting.outliers; --keep-outliers to use them)",
     "smoother_fallback": "tracks (not rows) the IMM's smoother estimated worse than its filter "
     "(Stein's unbiased risk estimate): those tracks are the filter's "
-    "(torchsvs.estimating.smoothed_or_filtered)",
+    "(torchsvs.smoother_guard.smoothed_or_filtered)",
     "particle_steps": "steps a particle filter weighed a measurement at",
     "particle_steps_degenerate": "of those, steps whose effective sample size fell below a tenth "
     "of the particles (torchsvs.filters.particle.degenerate_share)",

@@ -19,8 +19,9 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
-from torchsvs.fitting.noise import q_curves, smoother_q
+from torchsvs.fitting.noise import QCurves, q_curve_runs, q_curves, smoother_q, track_q_factors
 from torchsvs.fitting.outliers import screen_outliers
+from torchsvs.fitting.q_windows import choose_window
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
 
 #: The IMM's CV mode's ``q`` as a fraction of the data's (:func:`turn_settings`).
@@ -280,15 +281,31 @@ def settings_note(settings: Settings) -> str:
 def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
     """The settings with the file's SURE curve of ``q`` (``q_curve``, read off ``tracks``), so
     that each track runs with its own ``q``; unchanged where ``settings.track_q`` is off, for
-    the IMM (its modes' noises are one design) and where the tracks give nothing to score."""
+    the IMM (its modes' noises are one design) and where the tracks give nothing to score. For
+    the Kalman smoother also the window of its ``q`` per step (``q_window``,
+    :func:`~torchsvs.fitting.q_windows.choose_window`), where SURE finds one below each
+    track's own ``q``."""
     if settings.blend is not None:  # each of a blend's estimators its own curve
         settings = replace(settings, blend=with_q_curve(settings.blend, tracks))
     if not settings.track_q or settings.estimator in ("imm", "auto"):
         return settings
     assert settings.meas_var is not None and settings.q is not None
-    curves = q_curves(
-        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.estimator not in FILTERS
+    smoothed = settings.estimator not in FILTERS
+    if settings.estimator != "ks" or not settings.step_q:  # (a window: the smoother's alone)
+        curves = q_curves(tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed)
+        if float(curves.counts.sum()) == 0:
+            return settings
+        return replace(settings, q_curve=curves.pooled(), q_window=None)
+
+    def choose(found: QCurves) -> Tensor:
+        return track_q_factors(found, found.pooled())
+
+    curves, _, own = q_curve_runs(
+        tracks.z, tracks.dt, settings.meas_var, settings.q, choose=choose, keep=True
     )
     if float(curves.counts.sum()) == 0:
         return settings
-    return replace(settings, q_curve=curves.pooled())
+    window = None
+    if own is not None:
+        window = choose_window(tracks.z, tracks.dt, settings.meas_var, settings.q, own)
+    return replace(settings, q_curve=curves.pooled(), q_window=window)

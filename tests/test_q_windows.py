@@ -1,0 +1,211 @@
+"""The Kalman smoother's ``q`` chosen per step by SURE over a window (torchsvs.fitting.q_windows):
+its pass and error terms against the compiled pass's own, the window's choice, and ``track``
+running it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, replace
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from tests.conftest import assert_close
+from torchsvs.datasets import RecordedTracks
+from torchsvs.fitting import noise, q_windows
+from torchsvs.fitting.defaults import with_q_curve
+from torchsvs.recipes import Settings
+from torchsvs.track_plan import plan_tracks
+from torchsvs.track_table import track_table
+
+SIGMA = 30.0
+
+
+def _maneuvering(B: int = 6, T: int = 400, seed: int = 0, gaps: float = 0.05):
+    """``z, truth [B, T, 2]``, ``dt [B, T]``: level flight at 200 m/s, a 3 deg/s turn of 60
+    steps at a random time, level again; 2 s steps, noise ``SIGMA``, some reports missing."""
+    gen = np.random.default_rng(seed)
+    truth = np.zeros((B, T, 2))
+    for b in range(B):
+        heading = gen.uniform(0, 2 * math.pi)
+        turn_at = gen.integers(T // 5, T - 90)
+        p = np.zeros(2)
+        for t in range(T):
+            if turn_at <= t < turn_at + 60:
+                heading += math.radians(3.0) * 2.0
+            p = p + 400.0 * np.array([math.cos(heading), math.sin(heading)])
+            truth[b, t] = p
+    z = truth + gen.normal(0, SIGMA, truth.shape)
+    z[gen.random((B, T)) < gaps] = np.nan
+    dt = np.full((B, T), 2.0)
+    return torch.from_numpy(z), torch.from_numpy(truth), torch.from_numpy(dt)
+
+
+def _rmse(estimate: torch.Tensor, truth: torch.Tensor) -> float:
+    return float((estimate[..., 0::2] - truth).square().sum(-1).mean().sqrt())
+
+
+def test_one_factor_is_the_compiled_pass_and_its_sums():
+    """With one factor the path has nothing to choose: the composite is the compiled pass at
+    ``q`` and its SURE sums, built step by step from the pass's variances and the first two
+    observations' tangents, equal the sums the compiled pass writes itself."""
+    z, _, dt = _maneuvering(B=4, T=150)
+    r = [SIGMA**2, SIGMA**2]
+    z64, dt64, rr, prior = noise._curve_inputs(z, dt, r)
+    one = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, rr, 40.0, True, 32)
+    if one.sums is None:
+        pytest.skip("the compiled loops are unavailable")
+    found = q_windows.windowed_runs(z, dt, r, 40.0, 21, factors=(1.0,))
+    assert found is not None
+    assert torch.equal(found.runs.mean, one.mean)
+    assert torch.equal(found.runs.position_var, one.var)
+    assert_close(found.runs.sums, one.sums, rtol=1e-10, atol=1e-8)
+    assert torch.equal(found.factor, torch.ones(4, dtype=torch.float64))
+
+
+def test_box_sums_and_the_path_leave_each_step_out():
+    risk = torch.tensor([[[1.0, 1.0, -100.0, 1.0, 1.0]], [[0.0, 0.0, 0.0, 0.0, 0.0]]])
+    naive = torch.stack(
+        [risk[..., max(0, t - 1) : t + 2].sum(-1) for t in range(5)], -1
+    )  # window 3
+    assert torch.equal(q_windows.box_sums(risk, 3), naive)
+    path = q_windows.window_path(risk, 3)
+    # step 2's own term (-100) does not choose its pass; its neighbours' do (and at the ends
+    # the one neighbour's 1 against 0)
+    assert path.tolist() == [[1, 0, 1, 0, 1]]
+    assert q_windows.window_path(risk, 5).tolist() == [[0, 0, 1, 0, 0]]
+
+
+def test_the_window_follows_a_turn_that_one_q_per_track_cannot():
+    """On level flights with one hard turn, the steps of the turn take larger factors than the
+    level steps, and the composite's error by the truth is below the best single ``q`` per
+    track (chosen by the truth)."""
+    z, truth, dt = _maneuvering(B=6, T=400, seed=1)
+    r = [SIGMA**2, SIGMA**2]
+    z64, dt64, rr, prior = noise._curve_inputs(z, dt, r)
+    q = 5.0
+    found = q_windows.windowed_runs(z, dt, r, q, 41)
+    if found is None:
+        pytest.skip("the compiled loops are unavailable")
+    best = math.inf
+    per_track = torch.zeros(6)
+    for b in range(6):
+        errors = []
+        for f in noise.Q_FACTORS:
+            one = noise.kalman_positions(
+                z64[b : b + 1], dt64[b : b + 1], prior.x0[b : b + 1], prior.P0[b : b + 1],
+                rr, q * f,
+            )  # fmt: skip
+            errors.append(float((one.mean[..., 0::2] - truth[b : b + 1]).square().sum()))
+        per_track[b] = min(errors)
+    best = math.sqrt(float(per_track.sum()) / (6 * 400))
+    assert _rmse(found.runs.mean, truth) < 0.97 * best
+    grid = torch.tensor(noise.Q_FACTORS, dtype=torch.float64)
+    step_factor = grid[found.path]
+    speed_change = (truth[:, 2:] - 2 * truth[:, 1:-1] + truth[:, :-2]).norm(dim=-1)
+    turning = torch.nn.functional.pad(speed_change > 1.0, (1, 1))
+    assert float(step_factor[turning].log().mean()) > float(step_factor[~turning].log().mean()) + 1
+
+
+def test_a_track_is_windowed_alike_alone_and_in_a_batch():
+    """Each track's path and estimates depend on its own measurements alone (an engine's
+    partition of the tracks changes nothing), whatever the batch's padding."""
+    z, _, dt = _maneuvering(B=5, T=200, seed=2)
+    z[1, 150:] = math.nan  # a shorter track: padded in the batch
+    r = [SIGMA**2, SIGMA**2]
+    whole = q_windows.windowed_runs(z, dt, r, 5.0, 31)
+    if whole is None:
+        pytest.skip("the compiled loops are unavailable")
+    for b in range(5):
+        steps = 150 if b == 1 else 200
+        alone = q_windows.windowed_runs(z[b : b + 1, :steps], dt[b : b + 1, :steps], r, 5.0, 31)
+        assert alone is not None
+        assert torch.equal(alone.path[0], whole.path[b, :steps])
+        assert_close(alone.runs.mean[0], whole.runs.mean[b, :steps], rtol=1e-12, atol=1e-9)
+        assert_close(alone.factor[0], whole.factor[b], rtol=1e-12, atol=0.0)
+
+
+@pytest.mark.parametrize("window", [2, 1, 0, 3.0, True, "9"])
+def test_q_window_must_be_an_odd_count_of_steps(window):
+    with pytest.raises(ValueError, match="q_window: expected an odd number of steps >= 3"):
+        Settings("ks", q_window=window)
+
+
+def _table(z: torch.Tensor, dt: torch.Tensor) -> pd.DataFrame:
+    B, T, _ = z.shape
+    time = dt.cumsum(1)
+    rows = {
+        "track_id": np.repeat([f"t{b}" for b in range(B)], T),
+        "time": time.reshape(-1).numpy(),
+        "x": z[..., 0].reshape(-1).numpy(),
+        "y": z[..., 1].reshape(-1).numpy(),
+    }
+    frame = pd.DataFrame(rows)
+    return frame[~frame["x"].isna()].reset_index(drop=True)
+
+
+def test_track_runs_the_window_the_sample_chose():
+    """``track``'s settings for the Kalman smoother carry the window where SURE chose one (not
+    for the SVSS nor the filter); its estimates are the composite's, its summary names the
+    window, its estimated error is the composite's SURE, and with covariances the means are
+    unchanged and each step's covariance is its factor's pass's."""
+    z, truth, dt = _maneuvering(B=6, T=300, seed=3, gaps=0.0)
+    data = _table(z, dt)
+    plan = plan_tracks(data, Settings("ks"), dtype=torch.float64, precision="float64")
+    settings = plan.settings
+    assert settings.q_window is not None, "the turns: SURE prefers a window here"
+    assert settings.q is not None and settings.meas_var is not None
+    svss = replace(settings, estimator="svss", psi=[3.0, 3.0], q_window=None, q_curve=None)
+    found = track_table(data, plan)
+    table = found.table
+    composite = q_windows.windowed_runs(z, dt, settings.meas_var, settings.q, settings.q_window)
+    assert composite is not None
+    x = torch.tensor(table["x"].to_numpy()).reshape(6, 300)
+    assert_close(x, composite.runs.mean[..., 0], rtol=0, atol=1e-6)
+    summary = found.run.summary_json()
+    assert summary["settings"]["q_window"] == settings.q_window
+    sums = composite.runs.sums
+    r = torch.tensor(settings.meas_var, dtype=torch.float64)
+    mse = float((sums[..., 0] + 2 * r * sums[..., 1] - r * sums[..., 2]).sum() / sums[..., 2].sum())
+    assert summary["estimated_position_rmse"] == pytest.approx(math.sqrt(2 * mse), rel=1e-4)
+    with_cov = track_table(data, plan, covariance=True).table
+    assert_close(
+        torch.tensor(with_cov["x"].to_numpy()), torch.tensor(table["x"].to_numpy()),
+        rtol=0, atol=1e-6,
+    )  # fmt: skip
+    cov_xx = torch.tensor(with_cov["cov_x_x"].to_numpy()).reshape(6, 300)
+    assert_close(cov_xx, composite.runs.position_var[..., 0], rtol=1e-6, atol=1e-6)
+    # the window is the Kalman smoother's alone
+    tracks = RecordedTracks(z, dt, dt.cumsum(1), torch.full((6,), 300), [f"t{b}" for b in range(6)])
+    assert with_q_curve(replace(settings, q_curve=None), tracks).q_window == settings.q_window
+    assert with_q_curve(svss, tracks).q_window is None
+    kf = replace(settings, estimator="kf", q_window=None, q_curve=None)
+    assert with_q_curve(kf, tracks).q_window is None
+    assert asdict(Settings(**asdict(settings))) == asdict(settings)
+
+
+def test_the_command_line_names_the_window_and_turns_it_off(tmp_path, capsys):
+    """``torchsvs track``: the default prints the window it chose and saves it in the summary;
+    ``--no-step-q`` runs each track with its own ``q`` (as the summary's settings say)."""
+    import json
+
+    from torchsvs.cli import main
+
+    z, _, dt = _maneuvering(B=6, T=300, seed=3, gaps=0.0)
+    source = tmp_path / "in.csv"
+    _table(z, dt).to_csv(source, index=False)
+    main(["track", str(source), "-o", str(tmp_path / "w.csv"), "--estimator", "ks"])
+    printed = capsys.readouterr()
+    summary = json.loads((tmp_path / "w.summary.json").read_text())
+    window = summary["settings"]["q_window"]
+    assert window is not None
+    assert (
+        f"q per step: the least SURE over {window} steps around each" in printed.out + printed.err
+    )
+    main(["track", str(source), "-o", str(tmp_path / "t.csv"), "--estimator", "ks", "--no-step-q"])
+    printed = capsys.readouterr()
+    summary = json.loads((tmp_path / "t.summary.json").read_text())
+    assert summary["settings"]["q_window"] is None and summary["settings"]["step_q"] is False
+    assert "q per track:" in printed.out + printed.err
