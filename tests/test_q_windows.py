@@ -209,3 +209,36 @@ def test_the_command_line_names_the_window_and_turns_it_off(tmp_path, capsys):
     summary = json.loads((tmp_path / "t.summary.json").read_text())
     assert summary["settings"]["q_window"] is None and summary["settings"]["step_q"] is False
     assert "q per track:" in printed.out + printed.err
+
+
+def test_a_window_is_kept_only_where_it_wins_across_the_noise_reading():
+    """SURE weighs the divergence by the noise: a window the reading prefers is refused where a
+    noise level within the reading's interval prefers each track's own ``q``. Judged on the
+    composite's own sums, against a rival whose residuals are larger and divergence smaller
+    (it wins at high noise only)."""
+    z, _, dt = _maneuvering(B=6, T=300, seed=3, gaps=0.0)
+    r = [SIGMA**2, SIGMA**2]
+    q = 5.0
+
+    def choose(found: noise.QCurves) -> torch.Tensor:
+        return noise.track_q_factors(found, found.pooled())
+
+    _, _, own = noise.q_curve_runs(z, dt, r, q, choose=choose, keep=True)
+    assert own is not None
+    window = q_windows.choose_window(z, dt, r, q, own)
+    if window is None:
+        pytest.skip("the compiled loops are unavailable")
+    sums = q_windows.window_sums(z, dt, r, q, [window])
+    assert sums is not None
+    composite = q_windows.windowed_runs(z, dt, r, q, window)
+    assert composite is not None
+    assert_close(sums[0], composite.runs.sums.sum((0, 1)), rtol=1e-12, atol=1e-6)
+    assert q_windows.choose_window(z, dt, r, q, own, noise_range=(r, r)) == window
+    rival = sums[0].clone()
+    rival[:, 0] *= 1.05  # residuals 5% above the window's
+    rival[:, 1] *= 0.9  # a tenth less divergence
+    assert float(q_windows.sure_of(sums[0], r)) < float(q_windows.sure_of(rival, r))
+    rival_run = own._replace(sums=rival.reshape(1, 1, 2, 3))
+    assert q_windows.choose_window(z, dt, r, q, rival_run) == window
+    high = [100 * v for v in r]
+    assert q_windows.choose_window(z, dt, r, q, rival_run, noise_range=(r, high)) is None

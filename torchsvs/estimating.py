@@ -44,7 +44,7 @@ from torchsvs.error_references import reference_for
 from torchsvs.estimator import split_batch
 from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise, q_windows
-from torchsvs.fitting.defaults import meas_var_range
+from torchsvs.fitting.defaults import GUARD_ERRORS, meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Blend, Settings
@@ -52,15 +52,6 @@ from torchsvs.runs import run_result
 from torchsvs.smoother_guard import smoothed_or_filtered
 from torchsvs.smoothers import RTSSmoother
 from torchsvs.smoothers.imm import IMMSmootherResult
-
-#: :func:`~torchsvs.smoother_guard.smoothed_or_filtered` keeps a track's smoothed pass where it
-#: is the better at every noise level within this many standard errors of the noise read off
-#: the data. Measured with
-#: the IMM on the recorded-tracks benchmark's sets: at the estimate alone (0) the gliders and
-#: survey aircraft at irregular times (σ 50 read as 71.8 ± 17 m) kept smoothers that were worse
-#: than their filters, 1.07x raw; at 2 the airliners at 1 s (σ 10 read as 10.9 ± 1.7 m) lost
-#: good smoothers, 0.58 -> 0.70x raw; at 1 both held (1.00x and 0.58x raw).
-GUARD_ERRORS = 1.0
 
 
 def centred(tracks: RecordedTracks) -> tuple[RecordedTracks, Tensor]:

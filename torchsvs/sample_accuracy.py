@@ -16,14 +16,13 @@ from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.blending import best_weight, blended_terms
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import (
-    GUARD_ERRORS,
     GroupBatch,
     _estimate_factors,
     _estimate_part,
     blend_parts,
     centred,
 )
-from torchsvs.fitting.defaults import complete_settings, meas_var_range
+from torchsvs.fitting.defaults import GUARD_ERRORS, complete_settings, meas_var_range
 from torchsvs.recipes import Settings, make_estimator, make_model
 
 

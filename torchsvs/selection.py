@@ -26,8 +26,8 @@ import torch
 
 from torchsvs.accuracy import RiskTerms
 from torchsvs.datasets import RecordedTracks
-from torchsvs.estimating import GUARD_ERRORS
 from torchsvs.fitting.defaults import (
+    GUARD_ERRORS,
     complete_settings,
     meas_var_range,
     settings_note,
@@ -461,7 +461,7 @@ def checked_layer(
     Two things the sample's SURE does not know are held against the layer:
 
     * where the noise was read off the data, the difference must be sure at every noise level
-      within :data:`~torchsvs.estimating.GUARD_ERRORS` standard errors of the reading (the
+      within :data:`~torchsvs.fitting.defaults.GUARD_ERRORS` standard errors of the reading (the
       layer and the twin differ in how much they follow the measurements, so a noise read high
       flatters the one that follows them less; airliners at irregular times, σ 50 m read as
       56 ± 17: 628 ± 104 m² per point "lower" at the reading, -69 ± 85 at its low end, truly
@@ -518,7 +518,7 @@ def compared(
       fit in :data:`COMPARED_PROBE_POINTS`, at least 2), their spread in the error
       (:func:`probed_difference`; a Kalman smoother's is exact, the same at every probe);
     * where the noise was read off the data, the least sure difference over every noise level
-      within :data:`~torchsvs.estimating.GUARD_ERRORS` standard errors of the reading;
+      within :data:`~torchsvs.fitting.defaults.GUARD_ERRORS` standard errors of the reading;
     * ``learned``: how many more values the challenger's fit learned on ``sample`` than the
       incumbent's, each owing :data:`OPTIMISM_PER_PARAMETER` mean measurement variances over
       the sample's points."""

@@ -34,7 +34,7 @@ def smoothed_or_filtered(
     raw measurements (the filter 1.01x) on the recorded-tracks benchmark's irregular set, while
     it was 0.31-0.57x raw elsewhere. Where the noise was read off the data, the smoother is kept
     only where it is the better at both ends of the interval ``noise_range`` too (SURE is
-    linear in the noise variance; :data:`~torchsvs.estimating.GUARD_ERRORS` standard errors
+    linear in the noise variance; :data:`~torchsvs.fitting.defaults.GUARD_ERRORS` standard errors
     wide in ``track``):
     motion the report times cannot resolve reads as noise (71.8 m for 50 on that set), and the
     divergence term, weighted by that noise, then favours the smoother, which follows the data
