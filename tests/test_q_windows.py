@@ -48,7 +48,7 @@ def _rmse(estimate: torch.Tensor, truth: torch.Tensor) -> float:
 
 
 def test_one_factor_is_the_compiled_pass_and_its_sums():
-    """With one factor the path has nothing to choose: the composite is the compiled pass at
+    """With one factor the weights have nothing to choose: the composite is the compiled pass at
     ``q`` and its SURE sums, built step by step from the pass's variances and the first two
     observations' tangents, equal the sums the compiled pass writes itself."""
     z, _, dt = _maneuvering(B=4, T=150)
@@ -65,17 +65,23 @@ def test_one_factor_is_the_compiled_pass_and_its_sums():
     assert torch.equal(found.factor, torch.ones(4, dtype=torch.float64))
 
 
-def test_box_sums_and_the_path_leave_each_step_out():
+def test_box_sums_and_the_weights_leave_each_step_out():
     risk = torch.tensor([[[1.0, 1.0, -100.0, 1.0, 1.0]], [[0.0, 0.0, 0.0, 0.0, 0.0]]])
     naive = torch.stack(
         [risk[..., max(0, t - 1) : t + 2].sum(-1) for t in range(5)], -1
     )  # window 3
     assert torch.equal(q_windows.box_sums(risk, 3), naive)
-    path = q_windows.window_path(risk, 3)
-    # step 2's own term (-100) does not choose its pass; its neighbours' do (and at the ends
-    # the one neighbour's 1 against 0)
-    assert path.tolist() == [[1, 0, 1, 0, 1]]
-    assert q_windows.window_path(risk, 5).tolist() == [[0, 0, 1, 0, 0]]
+    assert torch.equal(q_windows.box_sums(risk, 99), risk.sum(-1, keepdim=True).expand(2, 1, 5))
+    # nearly hard weights: step 2's own term (-100) does not weigh for its pass, its
+    # neighbours' do (and at the ends the one neighbour's 1 against 0)
+    hard = q_windows.window_weights(risk, 3, 1e-3)
+    assert hard.argmax(0).tolist() == [[1, 0, 1, 0, 1]]
+    assert_close(hard.sum(0), torch.ones(1, 5))
+    assert q_windows.window_weights(risk, 5, 1e-3).argmax(0).tolist() == [[0, 0, 1, 0, 0]]
+    # soft: a pass one scale worse over the window weighs 1/e of the best
+    soft = q_windows.window_weights(torch.tensor([[[0.0, 2.0, 0.0]], [[0.0, 0.0, 0.0]]]), 3, 2.0)
+    assert_close(soft[0, 0, 1], torch.tensor(0.5))  # (step 1's own 2 left out)
+    assert_close(soft[0, 0, 0] / soft[1, 0, 0], torch.tensor(math.exp(-1.0)))
 
 
 def test_the_window_follows_a_turn_that_one_q_per_track_cannot():
@@ -103,14 +109,14 @@ def test_the_window_follows_a_turn_that_one_q_per_track_cannot():
     best = math.sqrt(float(per_track.sum()) / (6 * 400))
     assert _rmse(found.runs.mean, truth) < 0.97 * best
     grid = torch.tensor(noise.Q_FACTORS, dtype=torch.float64)
-    step_factor = grid[found.path]
+    step_factor = torch.einsum("k,kbt->bt", grid.log(), found.weights).exp()
     speed_change = (truth[:, 2:] - 2 * truth[:, 1:-1] + truth[:, :-2]).norm(dim=-1)
     turning = torch.nn.functional.pad(speed_change > 1.0, (1, 1))
     assert float(step_factor[turning].log().mean()) > float(step_factor[~turning].log().mean()) + 1
 
 
 def test_a_track_is_windowed_alike_alone_and_in_a_batch():
-    """Each track's path and estimates depend on its own measurements alone (an engine's
+    """Each track's weights and estimates depend on its own measurements alone (an engine's
     partition of the tracks changes nothing), whatever the batch's padding."""
     z, _, dt = _maneuvering(B=5, T=200, seed=2)
     z[1, 150:] = math.nan  # a shorter track: padded in the batch
@@ -122,7 +128,7 @@ def test_a_track_is_windowed_alike_alone_and_in_a_batch():
         steps = 150 if b == 1 else 200
         alone = q_windows.windowed_runs(z[b : b + 1, :steps], dt[b : b + 1, :steps], r, 5.0, 31)
         assert alone is not None
-        assert torch.equal(alone.path[0], whole.path[b, :steps])
+        assert_close(alone.weights[:, 0], whole.weights[:, b, :steps], rtol=1e-12, atol=1e-12)
         assert_close(alone.runs.mean[0], whole.runs.mean[b, :steps], rtol=1e-12, atol=1e-9)
         assert_close(alone.factor[0], whole.factor[b], rtol=1e-12, atol=0.0)
 
@@ -150,7 +156,7 @@ def test_track_runs_the_window_the_sample_chose():
     """``track``'s settings for the Kalman smoother carry the window where SURE chose one (not
     for the SVSS nor the filter); its estimates are the composite's, its summary names the
     window, its estimated error is the composite's SURE, and with covariances the means are
-    unchanged and each step's covariance is its factor's pass's."""
+    unchanged and each step's covariance is the weighted mixture of the factors' passes'."""
     z, truth, dt = _maneuvering(B=6, T=300, seed=3, gaps=0.0)
     data = _table(z, dt)
     plan = plan_tracks(data, Settings("ks"), dtype=torch.float64, precision="float64")
@@ -176,7 +182,13 @@ def test_track_runs_the_window_the_sample_chose():
         rtol=0, atol=1e-6,
     )  # fmt: skip
     cov_xx = torch.tensor(with_cov["cov_x_x"].to_numpy()).reshape(6, 300)
-    assert_close(cov_xx, composite.runs.position_var[..., 0], rtol=1e-6, atol=1e-6)
+    z64, dt64, r64, prior = noise._curve_inputs(z, dt, settings.meas_var)
+    mixture = torch.zeros(6, 300, dtype=torch.float64)
+    for k, f in enumerate(noise.Q_FACTORS):
+        one = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, r64, settings.q * f)
+        spread = (one.mean[..., 0] - composite.runs.mean[..., 0]).square()
+        mixture += composite.weights[k] * (one.var[..., 0] + spread)
+    assert_close(cov_xx, mixture, rtol=1e-6, atol=1e-6)
     # the window is the Kalman smoother's alone
     tracks = RecordedTracks(z, dt, dt.cumsum(1), torch.full((6,), 300), [f"t{b}" for b in range(6)])
     assert with_q_curve(replace(settings, q_curve=None), tracks).q_window == settings.q_window
@@ -245,7 +257,7 @@ def test_a_window_is_kept_only_where_it_wins_across_the_noise_reading():
 
 
 def test_the_per_step_risk_is_the_step_terms_sure():
-    """The fused per-step SURE the path is chosen by (the first two observations' divergence
+    """The fused per-step SURE the weights are read from (the first two observations' divergence
     put in at their steps) equals the one summed from :func:`step_terms`, with gaps, an axis
     seen once and one never seen."""
     z, _, dt = _maneuvering(B=4, T=120, seed=4, gaps=0.2)
@@ -261,3 +273,31 @@ def test_the_per_step_risk_is_the_step_terms_sure():
     expected = (residual + 2 * rr * divergence - rr * count).sum(-1)
     fused = q_windows._risk(z64, found, rr, q_windows._first_two(z64))
     assert_close(fused, expected, rtol=1e-12, atol=1e-8)
+
+
+def test_the_blends_divergence_is_its_derivative_with_the_weights_held():
+    """The composite's divergence (its ``var`` over ``r``, and at an axis's first observation
+    its blended tangent) is the blended estimate's derivative by the step's own measurement with
+    the weights held, by finite differences: at a step inside a track and at the first
+    observation, which the two-point prior reads."""
+    z, _, dt = _maneuvering(B=2, T=150, seed=5, gaps=0.05)
+    r = [SIGMA**2, SIGMA**2]
+
+    def blend(zz, weight=None):
+        z64, dt64, rr, prior = noise._curve_inputs(zz, dt, r)
+        found = q_windows._factor_passes(z64, dt64, prior, rr, 5.0, noise.Q_FACTORS, True)
+        if found is None:
+            pytest.skip("the compiled loops are unavailable")
+        if weight is None:
+            weight = q_windows.window_weights(found.risk, 21, SIGMA**2)
+        return q_windows._composite(found, weight), weight
+
+    base, weight = blend(z)
+    assert weight.std(0).max() > 0.1, "the weights blend more than one pass"
+    first = int((~torch.isnan(z[1, :, 0])).nonzero()[0])
+    for t, expected in ((70, base.var[1, 70, 0] / SIGMA**2), (first, base.first_two[1, 0, 0])):
+        moved = z.clone()
+        moved[1, t, 0] += 1e-3
+        shifted, _ = blend(moved, weight)
+        derivative = (shifted.mean[1, t, 0] - base.mean[1, t, 0]) / 1e-3
+        assert_close(derivative, expected, rtol=1e-5, atol=1e-7)

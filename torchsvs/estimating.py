@@ -347,8 +347,9 @@ def _estimate_windowed(
 ) -> StepEstimates | None:
     """:func:`_estimate_factors` for the Kalman smoother with its ``q`` chosen per step
     (``settings.q_window``, :func:`~torchsvs.fitting.q_windows.windowed_runs`): the means
-    and error terms from the compiled passes, with ``covariance`` each step's covariance from
-    the estimator's run at its factor; None where the compiled loops are unavailable (each
+    and error terms from the compiled passes, with ``covariance`` each step's the weighted
+    mixture of the estimator's runs at the factors (their covariances and their means' spread
+    about the blend); None where the compiled loops are unavailable (each
     track then runs with its own ``q``)."""
     assert settings.q is not None and settings.meas_var is not None
     assert settings.q_window is not None
@@ -359,14 +360,19 @@ def _estimate_windowed(
     if found is None:
         return None
     cov = None
-    if covariance:
+    if covariance:  # each step's passes' covariances and spread, weighted (moment matched)
         prior = with_prior(tracks, meas_std)
         generator = torch.Generator().manual_seed(batch.position)
-        for i, factor in enumerate(noise.Q_FACTORS):
+        outs = []
+        for factor in noise.Q_FACTORS:
             with scaled_q(estimator, factor) as scaled:
-                out = run_result(scaled, prior, generator, "all")
-            at = (found.path == i)[..., None, None]
-            cov = torch.where(at, out.cov, out.cov.new_zeros(()) if cov is None else cov)
+                outs.append(run_result(scaled, prior, generator, "all"))
+        weight = found.weights.to(outs[0].cov.dtype)[..., None, None]
+        mean = found.runs.mean.to(outs[0].cov.dtype)
+        for i, out in enumerate(outs):
+            spread = (out.mean - mean).unsqueeze(-1)
+            term = weight[i] * (out.cov + spread @ spread.transpose(-1, -2))
+            cov = term if cov is None else cov + term
     q = settings.q * found.factor
     estimates = _estimate_from_run(estimator, batch, meas_std, risk, found.runs, q, cov)
     return estimates._replace(q_factor=found.factor.numpy())
