@@ -20,11 +20,11 @@ The window is counted in the smoother's memory: ``span / h̄`` steps (at least
 each track's own ``q``, about the reciprocal of the number of measurements it averages.
 :func:`choose_window` keeps a window only where the sample's SURE says it beats each track's own
 ``q`` at every noise level the reading allows. Measured on the recorded-tracks benchmark (44
-aircraft runs: 11 sets × 4 modes), against each track's own ``q``: 0.966× on average, 0.90× at
+aircraft runs: 11 sets × 4 modes), against each track's own ``q``: 0.956× on average, 0.90× at
 best (airliners at their own report times, σ 100 m), never above 1.00×; on a held-out draw of
-the same kinds (seed 1, 22 runs) 0.966× and never above 1.00×; on the simulated vehicles only
-the ships at σ 10 m chose a window (0.96-0.97×), the 28 other runs unchanged
-(``experiments/results/recorded_tracks.md``, ``recorded_vehicles.md``).
+the same kinds (seed 1, 22 runs) 0.958× and never above 1.00×; on the simulated vehicles
+0.989× (0.96× on the ships at σ 10 m), never above 1.00× (``experiments/results/
+recorded_tracks.md``, ``recorded_vehicles.md``).
 """
 
 from __future__ import annotations
