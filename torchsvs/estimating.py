@@ -345,8 +345,9 @@ def _estimate_windowed(
     risk: bool,
     settings: Settings,
 ) -> StepEstimates | None:
-    """:func:`_estimate_factors` for the Kalman smoother with its ``q`` chosen per step
-    (``settings.q_window``, :func:`~torchsvs.fitting.q_windows.windowed_runs`): the means
+    """:func:`_estimate_factors` for the Kalman smoother with its ``q`` per step (the passes
+    at the factors blended by their SURE over ``settings.q_window`` steps,
+    :func:`~torchsvs.fitting.q_windows.windowed_runs`): the means
     and error terms from the compiled passes, with ``covariance`` each step's the weighted
     mixture of the estimator's runs at the factors (their covariances and their means' spread
     about the blend); None where the compiled loops are unavailable (each
@@ -363,16 +364,13 @@ def _estimate_windowed(
     if covariance:  # each step's passes' covariances and spread, weighted (moment matched)
         prior = with_prior(tracks, meas_std)
         generator = torch.Generator().manual_seed(batch.position)
-        outs = []
-        for factor in noise.Q_FACTORS:
+        for i, factor in enumerate(noise.Q_FACTORS):  # (one pass's covariances at a time)
             with scaled_q(estimator, factor) as scaled:
-                outs.append(run_result(scaled, prior, generator, "all"))
-        weight = found.weights.to(outs[0].cov.dtype)[..., None, None]
-        mean = found.runs.mean.to(outs[0].cov.dtype)
-        for i, out in enumerate(outs):
-            spread = (out.mean - mean).unsqueeze(-1)
-            term = weight[i] * (out.cov + spread @ spread.transpose(-1, -2))
-            cov = term if cov is None else cov + term
+                out = run_result(scaled, prior, generator, "all")
+            spread = (out.mean - found.runs.mean.to(out.mean.dtype)).unsqueeze(-1)
+            weight = found.weights[i].to(out.cov.dtype)[..., None, None]
+            term = weight * (out.cov + spread @ spread.transpose(-1, -2))
+            cov = term if cov is None else cov.add_(term)
     q = settings.q * found.factor
     estimates = _estimate_from_run(estimator, batch, meas_std, risk, found.runs, q, cov)
     return estimates._replace(q_factor=found.factor.numpy())

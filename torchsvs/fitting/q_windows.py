@@ -43,8 +43,9 @@ WINDOW_SPANS = (8.0, 16.0)
 #: The fewest steps of a window. Where the smoother follows each measurement closely (``h̄``
 #: near 1, sparse reports), a window of a few steps scores its choice on the neighbours'
 #: residuals, which share the step's own noise through the smoother: on airliners at irregular
-#: 1-10 s reports (``h̄`` 0.76) a window of 5 steps estimated its error 4% low and was 0.5%
-#: worse than each track's own ``q`` by the truth; 11 steps and more were 0.99×.
+#: 1-10 s reports (``h̄`` 0.76) a window of 5 steps (each step the least alone) estimated its
+#: error 4% low and was 0.5% worse than each track's own ``q`` by the truth; 11 steps and more
+#: were 0.99×.
 MIN_WINDOW = 11
 #: The softness of a step's weights on the factors (:func:`window_weights`), in measurement
 #: variances of windowed SURE: a pass a variance worse over the window weighs 1/e of the best.
@@ -180,8 +181,9 @@ def windowed_runs(
 ) -> WindowedRuns | None:
     """The Kalman smoother (:func:`~torchsvs.fitting.noise.kalman`, or the filter) on ``z [B,
     T, m]`` (NaN: missing), intervals ``dt [B, T]``, from the tracks' two-point prior, each
-    step with the factor on ``q`` of the least SURE over the ``window`` steps around it, its
-    own left out (module doc); float64, :data:`~torchsvs.fitting.noise.CHUNK_CELLS` at a time.
+    step's estimate its passes at the factors on ``q`` blended by their SURE over the
+    ``window`` steps around it, its own left out (:func:`window_weights`, module doc); float64,
+    :data:`~torchsvs.fitting.noise.CHUNK_CELLS` at a time.
     None where the compiled loops are unavailable (they give the divergence at each axis's
     first two observations)."""
     z64, dt64, r, prior = noise._curve_inputs(z, dt, meas_var)
