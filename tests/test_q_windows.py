@@ -301,3 +301,32 @@ def test_the_blends_divergence_is_its_derivative_with_the_weights_held():
         shifted, _ = blend(moved, weight)
         derivative = (shifted.mean[1, t, 0] - base.mean[1, t, 0]) / 1e-3
         assert_close(derivative, expected, rtol=1e-5, atol=1e-7)
+
+
+def test_a_windowed_plan_travels_by_pickle_and_splits_as_one_table():
+    """An engine (Spark, Dask, ``--processes``) broadcasts the plan as a pickle and runs it on
+    parts of the tracks: with a window of ``q``, the copy over three parts gives the estimates
+    and error terms of one table."""
+    import pickle
+
+    z, _, dt = _maneuvering(B=9, T=200, seed=6, gaps=0.02)
+    data = _table(z, dt)
+    plan = plan_tracks(data, Settings("ks"), dtype=torch.float64, precision="float64")
+    assert plan.settings.q_window is not None
+    whole = track_table(data, plan)
+    copy = pickle.loads(pickle.dumps(plan))
+    part_of = data["track_id"].map(lambda i: int(i[1:]) % 3)
+    parts = [track_table(data[part_of == p], copy, check=False) for p in range(3)]
+    joined = pd.concat([p.table for p in parts]).sort_values(["track_id", "time"], kind="stable")
+    expected = whole.table.sort_values(["track_id", "time"], kind="stable")
+    pd.testing.assert_frame_equal(
+        joined.reset_index(drop=True), expected.reset_index(drop=True), check_exact=True
+    )
+    squares = sum(
+        p.run.summary_json()["estimated_position_rmse"] ** 2 * p.run.summary_json()["points"]
+        for p in parts
+    )
+    one = whole.run.summary_json()
+    assert math.sqrt(squares / one["points"]) == pytest.approx(
+        one["estimated_position_rmse"], rel=1e-9
+    )

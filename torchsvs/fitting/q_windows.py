@@ -152,13 +152,17 @@ def _composite(found: _Passes, weight: Tensor) -> noise.curves.Positions:
     weighted by ``weight [K, B, T]``: the blend's mean, and (the weights held fixed, as a step's
     own measurement does not set its weights) its derivative by each measurement, the
     ``var`` whose ratio to ``r`` is the blend's divergence."""
-    mean = torch.einsum("kbt,kbtn->btn", weight, torch.stack([p.mean for p in found.passes]))
-    var = torch.einsum("kbt,kbtn->btn", weight, torch.stack([p.var for p in found.passes]))
-    tangents = torch.stack([p.first_two for p in found.passes if p.first_two is not None])
-    K, B, _ = weight.shape
     at = found.firsts.at  # [B, 2, m]
-    there = weight.gather(2, at.flatten(1).unsqueeze(0).expand(K, -1, -1)).reshape(K, *at.shape)
-    first_two = torch.einsum("kbjm,kbmj->bmj", there, tangents)
+    mean = var = first_two = None
+    for k, p in enumerate(found.passes):  # (summed in one order, elementwise: the same bits
+        assert p.first_two is not None  # whatever tracks share the batch)
+        w = weight[k].unsqueeze(-1)
+        there = weight[k].gather(1, at.flatten(1)).reshape(at.shape).transpose(1, 2)
+        mean = w * p.mean if mean is None else mean.add_(w * p.mean)
+        var = w * p.var if var is None else var.add_(w * p.var)
+        tangent = there * p.first_two
+        first_two = tangent if first_two is None else first_two.add_(tangent)
+    assert mean is not None and var is not None
     return noise.curves.Positions(mean, var, first_two)
 
 
@@ -167,7 +171,11 @@ def window_weights(risk: Tensor, window: int, scale: float) -> Tensor:
     ``risk [K, B, T]`` summed over the ``window`` steps around the step, its own left out,
     over ``scale`` (:data:`WEIGHT_SCALE` measurement variances)."""
     around = box_sums(risk, window) - risk
-    return torch.softmax((around.amin(0, keepdim=True) - around) / scale, 0)
+    odds = ((around.amin(0, keepdim=True) - around) / scale).exp_()
+    total = odds[0].clone()
+    for k in range(1, len(odds)):  # (not torch.softmax: its sum's order follows the batch)
+        total.add_(odds[k])
+    return odds.div_(total)
 
 
 def windowed_runs(
@@ -208,7 +216,7 @@ def windowed_runs(
         mean[part], var[part] = composite.mean, composite.var
         sums[part] = chunk_sum_array(step_terms(zs, composite, r), CHUNK)
         seen = (~torch.isnan(zs)).any(-1).to(torch.float64)
-        logs = torch.einsum("k,kbt->bt", grid.log(), weight)
+        logs = sum(float(g) * weight[k] for k, g in enumerate(grid.log()))
         factor[part] = ((logs * seen).sum(1) / seen.sum(1).clamp_min(1.0)).exp()
 
     noise.over_chunks(B, T, chunk)
