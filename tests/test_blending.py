@@ -245,3 +245,32 @@ def test_a_blend_run_is_named_by_both_and_its_divergence_not_called_exact():
     assert len(warned["ks"]) == len(warned["ks+imm"]) == 1
     assert warned["ks"][0].startswith("ks: ") and "probed" not in warned["ks"][0]
     assert warned["ks+imm"][0].startswith("ks+imm: ") and "probed at random" in warned["ks+imm"][0]
+
+
+def test_the_samples_smoother_terms_are_its_runs_exact_terms(tmp_path):
+    """What ``auto`` and the layer check score the Kalman smoother by on the sample
+    (``sample_terms``) is its run as ``track`` runs it, its divergence exact from its pass (no
+    probe: the same terms twice, and the compiled pass's own chunk sums), with one ``q`` for
+    all as with the curve; a blend pairs the smoother's terms with those (before, without the
+    curve, its divergence was probed and did not cancel against the blend's)."""
+    from torchsvs.accuracy import terms_of_sums
+    from torchsvs.datasets import read_tracks
+    from torchsvs.fitting import noise
+    from torchsvs.sample_accuracy import sample_terms
+
+    _wandering(tmp_path / "in.csv", n=6, T=120)
+    settings = replace(
+        plan_tracks(pd.read_csv(tmp_path / "in.csv"), Settings("ks")).settings,
+        q_curve=None,
+        q_window=None,
+        outliers=False,
+    )
+    tracks, _ = read_tracks(tmp_path / "in.csv", meas_std=[v**0.5 for v in settings.meas_var])
+    once, twice = sample_terms(settings, tracks), sample_terms(settings, tracks)
+    assert np.array_equal(once.divergence, twice.divergence)
+    runs = noise.curve_runs(tracks.z, tracks.dt, settings.meas_var, settings.q, True)
+    if runs.sums is None:
+        pytest.skip("the compiled loops are unavailable")
+    exact = terms_of_sums(runs.sums)
+    assert_close(once.divergence, exact.divergence, rtol=1e-9, atol=1e-9)
+    assert_close(once.residual, exact.residual, rtol=1e-9, atol=1e-6)

@@ -285,7 +285,7 @@ def test_the_blends_divergence_is_its_derivative_with_the_weights_held():
 
     def blend(zz, weight=None):
         z64, dt64, rr, prior = noise._curve_inputs(zz, dt, r)
-        found = q_windows._factor_passes(z64, dt64, prior, rr, 5.0, noise.Q_FACTORS, True)
+        found = q_windows._factor_passes(z64, dt64, prior, rr, 5.0, noise.Q_FACTORS)
         if found is None:
             pytest.skip("the compiled loops are unavailable")
         if weight is None:

@@ -69,11 +69,9 @@ def best_weight(
     counts = first.count.sum(axis=0)
     if not (counts > 0).all():
         return 0.0
-    var = np.asarray(meas_var, dtype=np.float64)
-    residual_g, residual_f = first.residual.sum(axis=0), second.residual.sum(axis=0)
     spread = cross.residual.sum(axis=0)
-    moved = second.divergence.sum(axis=0) - first.divergence.sum(axis=0)
-    slope = float(((residual_g - residual_f + spread - 2.0 * var * moved) / counts).sum())
+    gained = first.errors(meas_var).sum(axis=0) - second.errors(meas_var).sum(axis=0)
+    slope = float(((gained + spread) / counts).sum())
     curvature = float((2.0 * spread / counts).sum())
     if not curvature > 0:
         return 0.0

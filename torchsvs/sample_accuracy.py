@@ -18,7 +18,6 @@ from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import (
     GroupBatch,
     _estimate_factors,
-    _estimate_part,
     blend_parts,
     centred,
 )
@@ -36,18 +35,14 @@ def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     """:func:`sample_accuracy`'s SURE sums per chunk (the same chunks for every estimator on
     the same ``tracks``: :meth:`~torchsvs.accuracy.RiskTerms.difference` pairs them). Where
     the settings carry the file's curve of ``q`` (``q_curve``), each track runs with its own
-    ``q``, as ``track`` runs it (the chunks in track order either way)."""
+    ``q``: every estimator runs as ``track`` runs it (:func:`~torchsvs.estimating.
+    estimate_group` after the screen), a Kalman smoother's divergence exact from its pass."""
     assert settings.meas_var is not None
     estimator = make_estimator(settings, make_model(settings)).double()
     batch, meas_std = _sample_batch(settings, tracks)
-    if settings.q_curve is not None or settings.blend is not None:
-        part = _estimate_factors(estimator, batch, meas_std, False, True, settings)
-        assert part.risk is not None
-        return part.risk.in_track_order()
-    noise_range = meas_var_range(settings, GUARD_ERRORS)  # as estimate_group's guard reads it
-    part = _estimate_part(estimator, batch, meas_std, risk=True, noise_range=noise_range)
+    part = _estimate_factors(estimator, batch, meas_std, False, True, settings)
     assert part.risk is not None
-    return part.risk
+    return part.risk.in_track_order()
 
 
 def _sample_batch(settings: Settings, tracks: RecordedTracks) -> tuple[GroupBatch, Tensor]:

@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsvs.accuracy import CHUNK, chunk_sum_array
+from torchsvs.accuracy import CHUNK, chunk_sum_array, exact_divergence
 from torchsvs.fitting import noise
 
 #: The windows :func:`choose_window` tries, in the smoother's memories (``1 / h̄`` steps).
@@ -77,24 +77,6 @@ def box_sums(x: Tensor, window: int) -> Tensor:
     return upper[..., :T] - lower
 
 
-def step_terms(
-    z: Tensor, positions: noise.curves.Positions, r: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """``[B, T, m]`` each observed component's squared residual, divergence and count (0 where
-    unobserved) of a compiled pass with its tangents: the divergence its position variance over
-    ``r`` but at each axis's first two observations, where it is the pass's derivative through
-    the two-point prior (``first_two``)."""
-    assert positions.first_two is not None, "the pass's tangents give the first two's divergence"
-    observed = ~torch.isnan(z)
-    seen = observed.cumsum(1)
-    divergence = positions.var / r
-    for j in (0, 1):
-        at = observed & (seen == j + 1)
-        divergence = torch.where(at, positions.first_two[:, None, :, j], divergence)
-    residual = torch.where(observed, z - positions.mean[..., 0::2], 0.0).square()
-    return residual, divergence.masked_fill(~observed, 0.0), observed.to(z.dtype)
-
-
 class _FirstTwo(NamedTuple):
     """Where each axis's first two observations are: ``at [B, 2, m]`` their steps (0 where
     none), ``real [B, 2, m]`` whether there is one."""
@@ -110,6 +92,25 @@ def _first_two(z: Tensor) -> _FirstTwo:
     at = torch.stack([f.to(torch.int8).argmax(1) for f in found], 1)
     real = torch.stack([f.any(1) for f in found], 1)
     return _FirstTwo(at, real)
+
+
+def step_terms(
+    z: Tensor, positions: noise.curves.Positions, r: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``[B, T, m]`` each observed component's squared residual, divergence and count (0 where
+    unobserved) of a compiled pass with its tangents: the divergence its position variance over
+    ``r`` (:func:`~torchsvs.accuracy.exact_divergence`) but at each axis's first two
+    observations, where it is the pass's derivative through the two-point prior
+    (``first_two``)."""
+    assert positions.first_two is not None, "the pass's tangents give the first two's divergence"
+    observed = ~torch.isnan(z)
+    firsts = _first_two(z)
+    divergence = exact_divergence(z, positions.var, r)  # (NaN at the first two, unobserved)
+    tangents = positions.first_two.transpose(1, 2).to(divergence.dtype)  # [B, 2, m]
+    here = divergence.gather(1, firsts.at)
+    divergence.scatter_(1, firsts.at, torch.where(firsts.real, tangents, here))
+    residual = torch.where(observed, z - positions.mean[..., 0::2], 0.0).square()
+    return residual, divergence.nan_to_num_(0.0), observed.to(z.dtype)
 
 
 def _risk(z: Tensor, found: noise.curves.Positions, r: Tensor, firsts: _FirstTwo) -> Tensor:
@@ -134,12 +135,12 @@ class _Passes(NamedTuple):
 
 
 def _factor_passes(
-    z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, factors: Sequence[float], smoothed: bool
+    z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, factors: Sequence[float]
 ) -> _Passes | None:
     passes, risks = [], []
     firsts = _first_two(z)
     for f in factors:
-        found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, q * f, smoothed, CHUNK)
+        found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, q * f, True, CHUNK)
         if found.first_two is None:
             return None
         passes.append(found)
@@ -184,10 +185,9 @@ def windowed_runs(
     meas_var: Tensor | float | Sequence[float],
     q: float,
     window: int,
-    smoothed: bool = True,
     factors: tuple[float, ...] = noise.Q_FACTORS,
 ) -> WindowedRuns | None:
-    """The Kalman smoother (:func:`~torchsvs.fitting.noise.kalman`, or the filter) on ``z [B,
+    """The Kalman smoother (:func:`~torchsvs.fitting.noise.kalman`) on ``z [B,
     T, m]`` (NaN: missing), intervals ``dt [B, T]``, from the tracks' two-point prior, each
     step's estimate its passes at the factors on ``q`` blended by their SURE over the
     ``window`` steps around it, its own left out (:func:`window_weights`, module doc); float64,
@@ -206,7 +206,7 @@ def windowed_runs(
 
     def chunk(part: slice) -> None:
         zs = z64[part]
-        found = _factor_passes(zs, dt64[part], _part(prior, part), r, q, factors, smoothed)
+        found = _factor_passes(zs, dt64[part], _part(prior, part), r, q, factors)
         if found is None:
             usable[0] = False
             return
@@ -236,7 +236,6 @@ def window_sums(
     meas_var: Tensor | float | Sequence[float],
     q: float,
     windows: Sequence[int],
-    smoothed: bool = True,
     factors: tuple[float, ...] = noise.Q_FACTORS,
 ) -> Tensor | None:
     """``[len(windows), m, 3]`` SURE's sums (squared residual, divergence, count per axis) of
@@ -249,7 +248,7 @@ def window_sums(
     usable = [True]
 
     def chunk(part: slice) -> None:
-        found = _factor_passes(z64[part], dt64[part], _part(prior, part), r, q, factors, smoothed)
+        found = _factor_passes(z64[part], dt64[part], _part(prior, part), r, q, factors)
         if found is None:
             usable[0] = False
             return
@@ -288,7 +287,6 @@ def choose_window(
     meas_var: Sequence[float],
     q: float,
     own: noise.CurveRuns,
-    smoothed: bool = True,
     noise_range: tuple[list[float], list[float]] | None = None,
 ) -> int | None:
     """The window of :data:`WINDOW_SPANS` (in memories of ``own``, the pass at each track's own
@@ -308,7 +306,7 @@ def choose_window(
         return None
     leverage = float(torch.where(observed, own.position_var / r, 0.0).sum()) / seen
     windows = spans_to_windows(leverage)
-    found = window_sums(z, dt, meas_var, q, windows, smoothed)
+    found = window_sums(z, dt, meas_var, q, windows)
     if found is None:
         return None
     best = int(sure_of(found, meas_var).argmin())
