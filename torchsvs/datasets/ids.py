@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from torchsvs.datasets.arrow_numpy import from_numpy, to_numpy
+
 
 def track_codes(ids: Any) -> tuple[np.ndarray, list[str]]:
     """A track id column as codes (``[R]`` int64 numbering the ids in order of first
@@ -27,7 +29,7 @@ def track_codes(ids: Any) -> tuple[np.ndarray, list[str]]:
     parts = []
     for chunk in ids.chunks:
         size = len(chunk.dictionary)
-        index = pc.fill_null(chunk.indices, size).to_numpy(zero_copy_only=False)
+        index = to_numpy(chunk.indices, size)
         # The entries in use, in order of first appearance (found among the runs of equal
         # indices: a sorted file has one per track).
         first = np.flatnonzero(index[1:] != index[:-1]) + 1
@@ -35,13 +37,14 @@ def track_codes(ids: Any) -> tuple[np.ndarray, list[str]]:
         used, at = np.unique(runs, return_index=True)
         used = used[np.argsort(at, kind="stable")]
         used = used[used < size]
-        entries = chunk.dictionary.take(pa.array(used, type=pa.int64()))
+        entries = chunk.dictionary.take(from_numpy(used, pa.int64()))
         if not (pa.types.is_string(entries.type) or pa.types.is_large_string(entries.type)):
             entries = pc.cast(entries, pa.string())
-        blank = pc.fill_null(pc.equal(pc.utf8_trim_whitespace(entries), ""), True)
-        blank = blank.to_numpy(zero_copy_only=False)
+        # (empty, or of white space alone; a length, not a comparison with "": a text made
+        # from Python's would load pyarrow's pandas support, arrow_numpy)
+        blank = to_numpy(pc.utf8_length(pc.utf8_trim_whitespace(entries)), 0) == 0
         lookup = np.full(size + 1, -1, dtype=np.int64)
-        texts = entries.filter(pa.array(~blank)).to_pylist()
+        texts = entries.filter(from_numpy(~blank)).to_pylist()
         lookup[used[~blank]] = [known.setdefault(str(text), len(known)) for text in texts]
         parts.append(lookup[index])
     codes = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)

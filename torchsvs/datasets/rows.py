@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from torchsvs.datasets.arrow_numpy import from_numpy, to_numpy
 from torchsvs.datasets.ids import track_codes
 
 #: Reasons a row is set aside (not placed at any step).
@@ -371,7 +372,7 @@ def read_blocks(
         ):
             table = pa.Table.from_batches([batch])
             for key, value in constant.items():
-                zeros = pa.array(np.zeros(len(table), dtype=np.int32))
+                zeros = from_numpy(np.zeros(len(table), dtype=np.int32))
                 table = table.append_column(key, pa.array([value]).take(zeros))
             yield table
         return
@@ -433,7 +434,7 @@ def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
         pa.types.is_floating(column.type) or pa.types.is_integer(column.type)
     ):
         # Numbers without empty values: nothing to mark as missing but what is not finite.
-        values = np.asarray(column.to_numpy(), dtype=np.float64)
+        values = np.asarray(to_numpy(column), dtype=np.float64)
         finite = np.isfinite(values)
         if finite.all():
             return values, np.zeros(len(values), dtype=bool)
@@ -453,8 +454,8 @@ def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
         numbers = pa.nulls(len(column), pa.float64())
     else:
         raise TypeError(f"column of type {column.type}: expected numbers or text")
-    values = np.asarray(numbers.to_numpy(zero_copy_only=False), dtype=np.float64)
-    written = np.asarray(pc.is_valid(column).to_numpy(zero_copy_only=False), dtype=bool)
+    values = np.asarray(to_numpy(numbers, np.nan), dtype=np.float64)
+    written = to_numpy(pc.is_valid(column))
     bad = written & ~np.isfinite(values)
     values = np.where(np.isfinite(values), values, np.nan)
     return values, bad
@@ -468,7 +469,7 @@ def to_seconds(column: Any, unit: float) -> np.ndarray:
 
     if pa.types.is_timestamp(column.type) or pa.types.is_date(column.type):
         ns = pc.cast(pc.cast(column, pa.timestamp("ns")), pa.int64())
-        return np.asarray(ns.to_numpy(zero_copy_only=False), dtype=np.float64) * 1e-9
+        return np.asarray(to_numpy(ns, np.nan), dtype=np.float64) * 1e-9
     values, bad = to_float(column)
     if unit != 1.0:
         values = values * unit

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
+from torchsvs.datasets.arrow_numpy import from_numpy
 from torchsvs.datasets.paths import check_output, dataset_files
 from torchsvs.datasets.reading import TrackBlock
 from torchsvs.datasets.rows import Columns, file_format
@@ -165,7 +166,7 @@ def estimate_table(
                 out[f"cov_{cov_names[a]}_{cov_names[b]}"] = per_row(row_cov[:, a, b])
     if outlier is not None:
         flags = outlier[index] if len(outlier) else np.zeros(len(row_step), dtype=bool)
-        out["outlier"] = pa.array(placed & flags, type=pa.bool_())
+        out["outlier"] = from_numpy(placed & flags, pa.bool_())
     return pa.table(out)
 
 
@@ -184,7 +185,7 @@ def nan_as_null(values: np.ndarray) -> Any:
     kind = pa.from_numpy_dtype(values.dtype)
     missing = np.isnan(values)
     if not missing.any():
-        return pa.array(values, type=kind)
+        return from_numpy(values, kind)
     valid = np.packbits(~missing, bitorder="little")
     return pa.Array.from_buffers(
         kind,
