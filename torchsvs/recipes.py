@@ -235,6 +235,12 @@ class Settings:
         return f"{self.estimator}+{self.blend.estimator}"
 
     @property
+    def exact_divergence(self) -> bool:
+        """Whether the error estimate's divergence is exact (the linear Kalman filter or
+        smoother alone: the same at every probe, :mod:`torchsvs.accuracy`); a blend's is not."""
+        return self.blend is None and self.estimator in KALMAN
+
+    @property
     def blended(self) -> tuple[Settings, Settings] | None:
         """The two estimators' settings of a blend (this one's without the blend first), or
         None."""

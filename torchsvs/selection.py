@@ -496,7 +496,10 @@ def checked_layer(
     name = settings.estimator
     twin = replace(twin_settings, chosen_from=[name, twin_settings.estimator])
     if gross is not None:
-        return LayerCheck(math.nan, math.nan, 0.0, False, name, twin, gross)
+        return LayerCheck(
+            change=math.nan, change_se=math.nan, optimism=0.0, over_noise=False,
+            estimator=name, settings=twin, gross=gross,
+        )  # fmt: skip
     found = compared(twin_settings, settings, sample, learned, own_q)
     return LayerCheck(**asdict(found), estimator=name, settings=settings if found.sure else twin)
 
@@ -546,7 +549,7 @@ def compared(
 def _draws(settings: Settings, sample: RecordedTracks, probes: int) -> list[RiskTerms]:
     """The estimator's SURE terms on ``sample`` for each of ``probes`` probes: one run for a
     Kalman filter or smoother (its divergence exact, the same at every probe)."""
-    if settings.estimator in TWIN_NAMES and settings.blend is None:
+    if settings.exact_divergence:
         return [sample_terms(settings, sample)] * probes
     return probed_terms(settings, sample, probes)
 

@@ -20,7 +20,7 @@ from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
 from torchsvs.fitting.outliers import has_gross_errors
-from torchsvs.recipes import KALMAN, Settings
+from torchsvs.recipes import Settings
 
 #: Share of a particle filter's steps with a degenerate sample above which a run warns.
 DEGENERATE_WARNING = 0.3
@@ -261,7 +261,7 @@ class TrackRun:
         gross = gross_errors(self.report)
         if gross is not None:
             self.warnings.append(gross)
-        uncertain = uncertain_estimate(found, exact=name in KALMAN)
+        uncertain = uncertain_estimate(found, exact=self.settings.exact_divergence)
         if uncertain is not None:
             self.warnings.append(f"{name}: {uncertain}")
         if not found.clearly_better:
