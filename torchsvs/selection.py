@@ -37,6 +37,7 @@ from torchsvs.fitting.tuning import FitResult, self_tune
 from torchsvs.recipes import LAGGED, Settings
 from torchsvs.sample_accuracy import (
     accuracy_of_terms,
+    anchored_fit,
     probed_terms,
     sample_blend,
     sample_terms,
@@ -211,6 +212,7 @@ def choose_estimator(
         open_settings = replace(settings, estimator=name, chosen_from=None, **noise)
         candidate = complete_settings(open_settings, sample)
         fit = self_tune(candidate, sample, **options)
+        fit = anchored_fit(fit, candidate, sample) if own_q else fit  # (as the run runs it)
         fitted = fit.settings
         twin = fits.get(KALMAN_TWINS.get(name, ""))
         check = None
@@ -496,10 +498,8 @@ def checked_layer(
     name = settings.estimator
     twin = replace(twin_settings, chosen_from=[name, twin_settings.estimator])
     if gross is not None:
-        return LayerCheck(
-            change=math.nan, change_se=math.nan, optimism=0.0, over_noise=False,
-            estimator=name, settings=twin, gross=gross,
-        )  # fmt: skip
+        nothing = Comparison(change=math.nan, change_se=math.nan, optimism=0.0, over_noise=False)
+        return LayerCheck(**asdict(nothing), estimator=name, settings=twin, gross=gross)
     found = compared(twin_settings, settings, sample, learned, own_q)
     return LayerCheck(**asdict(found), estimator=name, settings=settings if found.sure else twin)
 

@@ -35,7 +35,7 @@ from torchsvs.fitting.defaults import (
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
-from torchsvs.sample_accuracy import lowered_noise
+from torchsvs.sample_accuracy import anchored_fit, lowered_noise
 from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator, kalman_twin
 from torchsvs.track_run import short
 
@@ -320,6 +320,8 @@ def _settled(
         say(summary.summary())
     elif fit:
         summary = self_tune(settings, sample, **options)
+        if q_curves:
+            summary = anchored_fit(summary, settings, sample)
         settings = summary.settings
         say(summary.summary())
     if open_layer and settings.velocity:
@@ -327,6 +329,7 @@ def _settled(
         learned = 0  # how many more values the layer's fit learned on the sample than the twin's
         if fit:  # the twin fitted as the layer was (a Kalman smoother's fit: a fraction of a s)
             twin_fit = self_tune(twin, sample, **options)
+            twin_fit = anchored_fit(twin_fit, twin, sample) if q_curves else twin_fit
             twin, learned = twin_fit.settings, summary.parameters - twin_fit.parameters
         check = checked_layer(settings, twin, sample, learned, q_curves, gross)
         say(check.line())
