@@ -365,3 +365,50 @@ def test_settings_q_factors_only_rise_for_the_student_t_filter():
     assert factors["kf"][:3].max() < 1
     assert (factors["rstkf"] >= 1).all()
     assert torch.equal(factors["rstkf"][3:], factors["kf"][3:].clamp_min(1.0))
+
+
+def _turning_at_irregular_times(sigma: float, B: int = 20, T: int = 250, seed: int = 0):
+    """Aircraft (200 m/s) turning at up to 3 deg/s, a new rate every minute or so, reported
+    2-35 s apart: motion between reports that the white-acceleration fit does not extrapolate."""
+    gen = torch.Generator().manual_seed(seed)
+    gaps = torch.tensor([2.0, 4.0, 10.0, 20.0, 35.0], dtype=torch.float64)
+    dt = gaps[torch.randint(0, 5, (B, T), generator=gen)]
+    dt[:, 0] = 0.0
+    t = dt.cumsum(1)
+    fine = torch.arange(0.0, float(t.max()) + 1.0, 1.0, dtype=torch.float64)
+    z = torch.empty(B, T, 2, dtype=torch.float64)
+    for b in range(B):
+        rate = torch.repeat_interleave(
+            (torch.rand(len(fine) // 60 + 1, generator=gen, dtype=torch.float64) * 2 - 1)
+            * math.radians(3.0),
+            60,
+        )[: len(fine)]
+        heading = rate.cumsum(0)
+        path = torch.stack([heading.cos(), heading.sin()], -1).cumsum(0) * 200.0
+        at = t[b].long()
+        z[b] = path[at] + sigma * torch.randn(T, 2, generator=gen, dtype=torch.float64)
+    return z, dt
+
+
+def test_a_maneuver_read_as_noise_far_apart_widens_the_readings_uncertainty(monkeypatch):
+    """Reports far apart of a maneuvering target: both fits read part of the motion as noise,
+    with a jackknife error that knows nothing of it; the shortest stencils read less, and the
+    difference joins the standard error, so the reading's interval reaches the truth (the
+    guards then act on it). On a regular grid nothing changes."""
+    z, dt = _turning_at_irregular_times(25.0)
+    found = estimate_noise(z, dt)
+    monkeypatch.setattr(noise_estimate, "_short_stencils", lambda *args: None)
+    plain = estimate_noise(z, dt)
+    assert_close(found.meas_var, plain.meas_var)  # the estimate stands
+    sigma, se = plain.meas_var.sqrt(), plain.meas_std_se
+    # read 32 m ± 1.4-2.2 for 25 m: the truth beyond two of its standard errors
+    assert bool((sigma > 1.25 * 25.0).all()) and bool((sigma - 2 * se > 1.05 * 25.0).all())
+    wide = found.meas_std_se
+    assert bool((sigma - wide < 1.15 * 25.0).all()) and bool((wide > 2.5 * se).all())  # ± 6.4-6.6
+    regular_dt = torch.full((20, 200), 5.0, dtype=torch.float64)
+    _, regular = simulate_cv(regular_dt, 1.0, 25.0**2, torch.Generator().manual_seed(1), 100.0)
+    alike = estimate_noise(regular, regular_dt)
+    monkeypatch.undo()
+    found = estimate_noise(regular, regular_dt)
+    assert torch.equal(found.meas_var, alike.meas_var)
+    assert torch.equal(found.meas_std_se, alike.meas_std_se)
