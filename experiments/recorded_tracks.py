@@ -1083,6 +1083,24 @@ def save_runs(path: Path, options: dict[str, Any], runs: Sequence[Run]) -> None:
     path.write_text(f'{{"options": {head},\n"runs": [\n{lines}\n]}}\n')
 
 
+def merged_sets(
+    to_run: list[BenchSet], kept: list[Run], rows: int, seed: int, faults: bool
+) -> list[BenchSet]:
+    """The sets of a report: those run now and, rebuilt (each seeded by its kind and σ alone),
+    those of the saved runs kept beside them (``--merge``, ``--report-only``: a kind at other
+    noise levels than this command's keeps its own), in the kinds' order, then σ's."""
+    found = {b.name: b for b in to_run}
+    levels: dict[str, set[float]] = {}
+    for r in kept:
+        kind, level = r.set.split(" σ")
+        levels.setdefault(kind, set()).add(float(level.split()[0]))
+    for kind, sigmas in levels.items():
+        for b in build_sets([kind], rows, seed, sorted(sigmas), faults=faults):
+            found.setdefault(b.name, b)
+    order = {k: i for i, k in enumerate(KINDS)}
+    return sorted(found.values(), key=lambda b: (order[b.kind.name], b.sigma))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -1167,12 +1185,10 @@ def main(argv: list[str] | None = None) -> None:
         kept = [Run(**r) for r in record["runs"]]
         options = record.get("options", options)
     run_kinds = [] if args.report_only else kinds
-    shown = {r.set.split(" σ")[0] for r in kept}
-    report_kinds = [k for k in KINDS if k in run_kinds or k in shown]
-    sets = build_sets(
-        report_kinds, args.rows, args.seed, sigmas, progress=not args.quiet, faults=args.faults
+    to_run = build_sets(
+        run_kinds, args.rows, args.seed, sigmas, progress=not args.quiet, faults=args.faults
     )
-    to_run = [b for b in sets if b.kind.name in run_kinds]
+    sets = merged_sets(to_run, kept, args.rows, args.seed, args.faults)
     with contextlib.ExitStack() as stack:
         if args.workdir:
             workdir = Path(args.workdir)
@@ -1186,14 +1202,13 @@ def main(argv: list[str] | None = None) -> None:
     set_order = {b.name: i for i, b in enumerate(sets)}
     est_order = {e: i for i, e in enumerate(choices)}
     mode_order = {m: i for i, m in enumerate(MODES)}
-    runs = sorted(
-        (
-            r
-            for r in runs
-            if r.set in set_order and r.estimator in est_order and r.mode in mode_order
-        ),
-        key=lambda r: (set_order[r.set], est_order[r.estimator], mode_order[r.mode]),
-    )
+    lost = [r for r in runs if not (r.set in set_order and r.estimator in est_order)]
+    lost += [r for r in runs if r.mode not in mode_order]
+    if lost:  # (never written without them: the saved file is the only copy of its runs)
+        raise SystemExit(
+            f"merge: {len(lost)} saved runs have no set or estimator here, e.g. {lost[0]}"
+        )
+    runs.sort(key=lambda r: (set_order[r.set], est_order[r.estimator], mode_order[r.mode]))
     if new:
         save_runs(saved, options, runs)
     seconds = time.perf_counter() - start

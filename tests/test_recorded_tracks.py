@@ -293,3 +293,26 @@ def test_the_family_section_sets_the_best_of_the_svsf_family_against_the_smoothe
     assert "| b | 0.9500 (svss) | — |" in text
     assert "Above 1 on 1 of 3; the worst 1.0200 (a, --fit); the mean 0.9900." in text
     assert rt.family_section([run("a", "ks", "default", 5.0)], ["a"], ["default"]) == ""
+
+
+def test_a_merge_keeps_the_saved_runs_of_other_noise_levels(tmp_path: Path, monkeypatch) -> None:
+    """``--merge`` of one kind at one σ into a report of several: every saved run stays, each
+    set rebuilt at its own σ (one merge at σ 50 dropped a report's σ 10 and 100 sets, 240 of
+    its 528 runs, and wrote the file without them)."""
+    kept = [rt.Run(f"walker σ{s:g}", "ks", "default", [], rmse=1.0, raw=2.0) for s in (3.0, 10.0)]
+    to_run = rs.build_sets(["walker"], rows=200, seed=0, sigmas=[25.0])
+    sets = rt.merged_sets(to_run, kept, rows=200, seed=0, faults=False)
+    assert [b.name for b in sets] == ["walker σ3", "walker σ10", "walker σ25"]
+    again = rs.build_sets(["walker"], rows=200, seed=0, sigmas=[3.0])[0]
+    pd.testing.assert_frame_equal(sets[0].measurements, again.measurements)  # as first built
+    # a saved run the report has no set for stops the command before anything is written
+    out = tmp_path / "out"
+    out.mkdir()
+    saved = out / "r.json"
+    rt.save_runs(saved, {}, [*kept, rt.Run("walker σ3", "nosuch", "default", [])])
+    before = saved.read_text()
+    monkeypatch.setattr(rt, "run_all", lambda *args, **kw: [])
+    with pytest.raises(SystemExit, match="merge: 1 saved runs"):
+        rt.main(["--merge", "--kinds", "walker", "--sigmas", "25", "--estimators", "ks",
+                 "--rows", "200", "--out", str(out), "--name", "r", "--quiet"])  # fmt: skip
+    assert saved.read_text() == before
