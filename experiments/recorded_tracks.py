@@ -672,7 +672,7 @@ def estimate_section(runs: Sequence[Run]) -> str:
                 f"{r.estimate_ratio:.2f}",
                 "yes" if warned_of_estimate(r) else "**no**",
             ]
-            for r in sorted(off, key=lambda r: -abs(math.log(r.estimate_ratio)))
+            for r in sorted(off, key=lambda r: -abs(math.log(max(r.estimate_ratio, 1e-12))))
         ],
     )
     counts["warned"] = sum(warned_of_estimate(r) for r in off)
@@ -1185,10 +1185,16 @@ def main(argv: list[str] | None = None) -> None:
         kept = [Run(**r) for r in record["runs"]]
         options = record.get("options", options)
     run_kinds = [] if args.report_only else kinds
-    to_run = build_sets(
-        run_kinds, args.rows, args.seed, sigmas, progress=not args.quiet, faults=args.faults
-    )
-    sets = merged_sets(to_run, kept, args.rows, args.seed, args.faults)
+    seed, rows = args.seed, args.rows
+    if kept:  # the saved runs' sets are rebuilt as they were drawn
+        seed = int(options.get("seed", seed))
+        rows = int(re.sub(r"\D", "", str(options.get("rows", rows))) or rows)
+        if run_kinds and (seed, rows) != (args.seed, args.rows):
+            raise SystemExit(
+                f"merge: the saved runs are of --seed {seed} --rows {rows}; run the new ones so"
+            )
+    to_run = build_sets(run_kinds, rows, seed, sigmas, progress=not args.quiet, faults=args.faults)
+    sets = merged_sets(to_run, kept, rows, seed, args.faults)
     with contextlib.ExitStack() as stack:
         if args.workdir:
             workdir = Path(args.workdir)

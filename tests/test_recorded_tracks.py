@@ -316,3 +316,9 @@ def test_a_merge_keeps_the_saved_runs_of_other_noise_levels(tmp_path: Path, monk
         rt.main(["--merge", "--kinds", "walker", "--sigmas", "25", "--estimators", "ks",
                  "--rows", "200", "--out", str(out), "--name", "r", "--quiet"])  # fmt: skip
     assert saved.read_text() == before
+    # runs of another draw are not merged into a report of saved ones (its sets are rebuilt
+    # as the saved runs drew them: --report-only of a seed-3 report shows seed 3's sets)
+    rt.save_runs(saved, {"seed": 5, "rows": "~200 per set"}, kept)
+    with pytest.raises(SystemExit, match="saved runs are of --seed 5 --rows 200"):
+        rt.main(["--merge", "--kinds", "walker", "--sigmas", "25", "--estimators", "ks",
+                 "--rows", "200", "--out", str(out), "--name", "r", "--quiet"])  # fmt: skip
