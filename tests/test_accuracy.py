@@ -280,9 +280,22 @@ def test_a_noise_reading_that_smooths_real_motion_away_is_lowered(tmp_path, monk
     summary = json.loads(summary_path(target).read_text())
     assert summary["settings"]["noise_lowered_from"] == pytest.approx(read)
     assert _true_rmse(target, truth) < 1.05 * raw
-    # the test is the data's (the Kalman smoother's): a fitted SVSS runs at the same noise
+    # the test is the data's (the Kalman smoother's): a fitted SVSS runs at the same noise,
+    # decided before anything is fitted (the fit runs once, at the lowered noise)
+    import torchsvs.track_plan
+
+    fits: list[list[float] | None] = []
+    fit_once = torchsvs.track_plan.self_tune
+
+    def counted(settings, *args, **kwargs):
+        fits.append(settings.meas_var)
+        return fit_once(settings, *args, **kwargs)
+
+    monkeypatch.setattr(torchsvs.track_plan, "self_tune", counted)
     fitted = track_file(source, tmp_path / "svss.csv", Settings("svss"), fit=True, progress=False)
     assert fitted.settings is not None and fitted.settings.noise_lowered_from == read
+    assert fits and all(v == fitted.settings.meas_var for v in fits)
+    assert len(fits) == 2  # the SVSS's fit and its Kalman twin's for the layer check
     assert fitted.settings.meas_var == run.settings.meas_var
     assert _true_rmse(tmp_path / "svss.csv", truth) < 1.1 * raw
     # the given noise is never lowered

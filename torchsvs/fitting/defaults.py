@@ -96,26 +96,38 @@ def turn_settings(
     }
 
 
+def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
+    """The settings with the measurement noise read off ``tracks`` where they leave it open
+    (:func:`~torchsvs.datasets.estimate_noise`; ``noise="data"``, its standard error and the
+    between-track spread); unchanged where it is given."""
+    if settings.meas_var is not None:
+        return settings
+    try:
+        noise = estimate_noise(tracks.z, tracks.dt)
+    except ValueError as err:
+        raise ValueError(
+            "meas_std: too few observed positions to read the measurement noise off the "
+            "data; give it (--meas-std) and the process noise (--q)"
+        ) from err
+    meas_var = noise.meas_var.double().tolist()
+    spread = noise_spread(tracks.z, tracks.dt)
+    meas_std_se = _noise_standard_error(noise, meas_var, spread)
+    return replace(
+        settings, meas_var=meas_var, noise="data", meas_std_se=meas_std_se, noise_spread=spread
+    )
+
+
 def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     """Fills what the settings leave open from the data: noise levels and the typical interval
     (and the IMM's mode noises, :func:`turn_settings`)."""
-    source = settings.noise or ("given" if settings.meas_var is not None else "data")
+    settings = with_noise_read(settings, tracks)
+    assert settings.meas_var is not None
+    source = settings.noise or "given"
     meas_std_se, spread = settings.meas_std_se, settings.noise_spread
     interval = float(tracks.dt[tracks.mask].median()) if len(tracks) else 1.0
     meas_var, q = settings.meas_var, settings.q
     imm = settings.estimator == "imm"
     turn_open = imm and None in (settings.turn_q, settings.turn_rate_q, settings.turn_rate_std)
-    if meas_var is None:
-        try:
-            noise = estimate_noise(tracks.z, tracks.dt)
-        except ValueError as err:
-            raise ValueError(
-                "meas_std: too few observed positions to read the measurement noise off the "
-                "data; give it (--meas-std) and the process noise (--q)"
-            ) from err
-        meas_var = noise.meas_var.double().tolist()
-        spread = noise_spread(tracks.z, tracks.dt)
-        meas_std_se = _noise_standard_error(noise, meas_var, spread)
     m = tracks.z.shape[-1]
     if len(meas_var) == 1 and m > 1:
         meas_var = list(meas_var) * m
