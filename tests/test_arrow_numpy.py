@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from tests.test_datasets_io import _table
-from torchsvs.datasets.arrow_numpy import from_numpy, numpy_dtype, to_numpy
+from torchsvs.datasets.arrow_numpy import from_numpy, numpy_dtype, repeated_text, to_numpy
 
 KINDS = [pa.float64(), pa.float32(), pa.int8(), pa.int32(), pa.int64(), pa.uint16(), pa.bool_()]
 
@@ -73,6 +73,12 @@ def test_from_numpy_gives_pyarrows_array(kind):
         from_numpy(values.reshape(5, 9))
 
 
+def test_repeated_text_is_pyarrows_column_of_one_value():
+    for value, count in (("t7", 5), ("", 3), ("é/ü", 2), ("x", 0)):
+        got = repeated_text(value, count)
+        assert got.equals(pa.array([value] * count, type=pa.string())), (value, count)
+
+
 def test_a_track_run_of_a_parquet_dataset_imports_no_pandas(tmp_path):
     source = tmp_path / "in"
     source.mkdir()
@@ -82,6 +88,10 @@ def test_a_track_run_of_a_parquet_dataset_imports_no_pandas(tmp_path):
     table = table.set_column(0, "track_id", pa.array(ids))
     pq.write_table(table, source / "a.parquet", row_group_size=40)
     pq.write_table(_table(4, first=5), source / "b.parquet", row_group_size=40)
+    # a track partitioned by its id, as a Spark writer leaves it: the id is the folder's
+    one = _table(1, first=9)
+    (source / "track_id=t9").mkdir()
+    pq.write_table(one.drop_columns(["track_id"]), source / "track_id=t9" / "c.parquet")
     code = (
         "import sys\n"
         "from torchsvs.cli import main\n"
@@ -94,3 +104,6 @@ def test_a_track_run_of_a_parquet_dataset_imports_no_pandas(tmp_path):
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
     out = pq.read_table(tmp_path / "out" / "a.parquet")
     assert len(out) == len(table)
+    partitioned = pq.read_table(tmp_path / "out" / "track_id=t9" / "c.parquet")
+    assert set(partitioned.column("track_id").to_pylist()) == {"t9"} and len(partitioned) == 30
+    assert np.isfinite(to_numpy(partitioned.column("x"), np.nan)).all()

@@ -87,3 +87,17 @@ def from_numpy(values: np.ndarray, kind: Any = None) -> Any:
     values = np.ascontiguousarray(values, dtype=dtype)
     data = np.packbits(values, bitorder="little") if dtype.kind == "b" else values
     return pa.Array.from_buffers(kind, len(values), [None, pa.py_buffer(data)], null_count=0)
+
+
+def repeated_text(value: str, count: int) -> Any:
+    """``count`` copies of one text as a ``pyarrow`` string array (a hive partition's value as
+    a column of every row), built from its buffers: offsets and the text repeated."""
+    import pyarrow as pa
+
+    data = value.encode()
+    total = count * len(data)
+    wide = total >= 2**31  # (a string array's offsets are 32-bit)
+    offsets = np.arange(count + 1, dtype=np.int64 if wide else np.int32) * len(data)
+    kind = pa.large_string() if wide else pa.string()
+    buffers = [None, pa.py_buffer(offsets), pa.py_buffer(data * count)]
+    return pa.Array.from_buffers(kind, count, buffers, null_count=0)

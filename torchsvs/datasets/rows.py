@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from torchsvs.datasets.arrow_numpy import from_numpy, to_numpy
+from torchsvs.datasets.arrow_numpy import repeated_text, to_numpy
 from torchsvs.datasets.ids import track_codes
 
 #: Reasons a row is set aside (not placed at any step).
@@ -372,8 +372,7 @@ def read_blocks(
         ):
             table = pa.Table.from_batches([batch])
             for key, value in constant.items():
-                zeros = from_numpy(np.zeros(len(table), dtype=np.int32))
-                table = table.append_column(key, pa.array([value]).take(zeros))
+                table = table.append_column(key, repeated_text(value, len(table)))
             yield table
         return
     # Average row of a track file is 20-60 bytes; the reader's block is in bytes.
