@@ -68,9 +68,9 @@ WHITE_MISFIT = (4.0, 2.0)
 
 
 #: :func:`estimate_noise` reads the noise off each order's stencils of the least motion term
-#: ``b`` alone, this share of them (:func:`_short_stencils`), where that reads surely less: by
-#: more than this many standard errors of the difference, with at least this many residuals
-#: an axis.
+#: ``b`` alone too, this share of them (:func:`_short_stencils`); where that reads less by more
+#: than this many standard errors of the difference (with at least this many residuals an
+#: axis), the difference joins the estimate's standard error.
 SHORT_SHARE = 0.1
 SHORT_ERRORS = 3.0
 SHORT_LEAST = 100
