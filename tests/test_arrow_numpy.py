@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
 
@@ -92,10 +93,14 @@ def test_a_track_run_of_a_parquet_dataset_imports_no_pandas(tmp_path):
     one = _table(1, first=9)
     (source / "track_id=t9").mkdir()
     pq.write_table(one.drop_columns(["track_id"]), source / "track_id=t9" / "c.parquet")
+    csv = tmp_path / "in.csv"  # (and a CSV file through Arrow's reader and writer)
+    pacsv.write_csv(_table(3, first=20), csv)
     code = (
         "import sys\n"
         "from torchsvs.cli import main\n"
         f"main(['track', {str(source)!r}, '-o', {str(tmp_path / 'out')!r}, '--estimator', 'ks',"
+        " '--meas-std', '50', '--quiet', '--time-unit', 's'])\n"
+        f"main(['track', {str(csv)!r}, '-o', {str(tmp_path / 'out.csv')!r}, '--estimator', 'ks',"
         " '--meas-std', '50', '--quiet', '--time-unit', 's'])\n"
         "assert 'pandas' not in sys.modules, 'pandas imported'\n"
         "print('ok')\n"
@@ -107,3 +112,4 @@ def test_a_track_run_of_a_parquet_dataset_imports_no_pandas(tmp_path):
     partitioned = pq.read_table(tmp_path / "out" / "track_id=t9" / "c.parquet")
     assert set(partitioned.column("track_id").to_pylist()) == {"t9"} and len(partitioned) == 30
     assert np.isfinite(to_numpy(partitioned.column("x"), np.nan)).all()
+    assert len(pacsv.read_csv(tmp_path / "out.csv")) == 90
