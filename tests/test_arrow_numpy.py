@@ -113,3 +113,13 @@ def test_a_track_run_of_a_parquet_dataset_imports_no_pandas(tmp_path):
     assert set(partitioned.column("track_id").to_pylist()) == {"t9"} and len(partitioned) == 30
     assert np.isfinite(to_numpy(partitioned.column("x"), np.nan)).all()
     assert len(pacsv.read_csv(tmp_path / "out.csv")) == 90
+
+
+@pytest.mark.parametrize("kind", KINDS, ids=str)
+def test_from_numpy_leaves_empty_where_not_valid_as_pyarrows_mask(kind):
+    values = _values(kind, 37)
+    valid = np.ones(37, dtype=bool)
+    valid[[0, 8, 9, 36]] = False
+    got = from_numpy(values, kind, valid=valid)
+    assert got.equals(pa.array(values, type=kind, mask=~valid)) and got.null_count == 4
+    assert from_numpy(values, kind, valid=np.ones(37, dtype=bool)).null_count == 0

@@ -214,7 +214,8 @@ def test_the_command_line_names_the_window_and_turns_it_off(tmp_path, capsys):
     window = summary["settings"]["q_window"]
     assert window is not None
     assert (
-        f"q per step: the least SURE over {window} steps around each" in printed.out + printed.err
+        f"q per step: the factors' passes weighted by their SURE over {window} steps"
+        in printed.out + printed.err
     )
     main(["track", str(source), "-o", str(tmp_path / "t.csv"), "--estimator", "ks", "--no-step-q"])
     printed = capsys.readouterr()

@@ -39,7 +39,7 @@ import math
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -123,8 +123,7 @@ class RiskTerms:
         r"""``[C, m]`` each chunk's SURE of the squared position error, :math:`\Sigma(z-f)^2
         + r_j\,\Sigma(2\,\partial f/\partial z - 1)` (:meth:`RiskTotals.mse`'s
         :math:`e_{c,j}`)."""
-        r = np.asarray(meas_var, dtype=np.float64)
-        return self.residual + r * (2.0 * self.divergence - self.count)
+        return sure(self.residual, self.divergence, self.count, np.asarray(meas_var, np.float64))
 
     @property
     def points(self) -> int:
@@ -309,6 +308,13 @@ def chunk_terms(
     (0 where not ``observed``): their sums over each track's chunks of ``chunk`` steps, the
     chunks without an observation left out."""
     return terms_of_sums(chunk_sum_array((residual, divergence, observed.double()), chunk))
+
+
+def sure(residual: Any, divergence: Any, count: Any, meas_var: Any) -> Any:
+    r"""SURE of the squared position error from its sums per axis (the last dimension: one
+    variance of ``meas_var`` each), :math:`\Sigma(z-f)^2 + r\,(2\,\Sigma\,\partial f/\partial z
+    - n)`, of numpy arrays or torch tensors alike: the formula's one home."""
+    return residual + meas_var * (2.0 * divergence - count)
 
 
 def chunk_sum_array(parts: Sequence[Tensor], chunk: int = CHUNK) -> Tensor:

@@ -172,7 +172,8 @@ def track_parser() -> argparse.ArgumentParser:
         "--no-step-q",
         action="store_true",
         help="ks: each track one q (default: where SURE finds it better on the sample, each "
-        "step the q of the least SURE over a window of steps around it)",
+        "step a blend of the smoother's passes at several q, weighted by their SURE over a "
+        "window of steps around it)",
     )
     parser.add_argument(
         "--keep-outliers",

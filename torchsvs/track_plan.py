@@ -31,7 +31,6 @@ from torchsvs.fitting.defaults import (
     complete_settings,
     screened,
     settings_note,
-    with_noise_read,
     with_q_curve,
 )
 from torchsvs.fitting.outliers import has_gross_errors
@@ -243,7 +242,7 @@ def prepare_estimator(
     own = checkpoint is None  # (a checkpoint's settings are its own: nothing read or checked)
     screen = None
     if own:  # the noise read and the outliers set aside once, before anything is fitted
-        screen = screened(with_noise_read(settings, sample), sample)
+        screen = screened(settings, sample)
         low = lowered_noise(screen.settings, screen.tracks)
         if low is not None:
             read = screen.settings

@@ -328,7 +328,8 @@ class TrackRun:
         window = None if self.settings is None else self.settings.q_window
         if window is not None:  # (a track's factor: the geometric mean of its steps')
             return (
-                f"q per step: the least SURE over {window} steps around each, the tracks' "
+                f"q per step: the factors' passes weighted by their SURE over {window} steps "
+                f"around each, the tracks' "
                 f"{factors.min():.3g}-{factors.max():.3g}× the file's on average (median "
                 f"{float(np.median(factors)):.3g}); --no-step-q for one q per track, "
                 "--shared-q for one q"

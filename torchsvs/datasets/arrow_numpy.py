@@ -72,10 +72,11 @@ def to_numpy(column: Any, fill: Any = None) -> np.ndarray:
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
-def from_numpy(values: np.ndarray, kind: Any = None) -> Any:
-    """A 1-D numpy array of numbers or booleans as a ``pyarrow`` array without empty values
-    (NaN stays a number, as ``pyarrow.array`` keeps it), of ``kind`` (an Arrow type; the
-    values' own by default, else they are cast to it first)."""
+def from_numpy(values: np.ndarray, kind: Any = None, valid: np.ndarray | None = None) -> Any:
+    """A 1-D numpy array of numbers or booleans as a ``pyarrow`` array of ``kind`` (an Arrow
+    type; the values' own by default, else they are cast to it first), empty where ``valid``
+    (booleans) is False, without empty values where it is not given (NaN stays a number, as
+    ``pyarrow.array`` keeps it)."""
     import pyarrow as pa
 
     values = np.asarray(values)
@@ -86,7 +87,11 @@ def from_numpy(values: np.ndarray, kind: Any = None) -> Any:
     dtype = numpy_dtype(kind)
     values = np.ascontiguousarray(values, dtype=dtype)
     data = np.packbits(values, bitorder="little") if dtype.kind == "b" else values
-    return pa.Array.from_buffers(kind, len(values), [None, pa.py_buffer(data)], null_count=0)
+    if valid is None or bool(valid.all()):
+        return pa.Array.from_buffers(kind, len(values), [None, pa.py_buffer(data)], null_count=0)
+    bitmap = pa.py_buffer(np.packbits(valid, bitorder="little"))
+    empty = len(valid) - int(np.count_nonzero(valid))
+    return pa.Array.from_buffers(kind, len(values), [bitmap, pa.py_buffer(data)], empty)
 
 
 def repeated_text(value: str, count: int) -> Any:

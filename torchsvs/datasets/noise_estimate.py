@@ -399,7 +399,7 @@ def _estimate(
     se = _jackknife_se(log_jack.exp()) if groups >= 2 else torch.full((m,), math.nan)
     short = _short_stencils(res, m, group, groups, cutoff, maneuver, log_jack.exp())
     if short is not None:  # (the estimate stands, as uncertain as the two differ)
-        se = torch.hypot(se, (sigma - short[0]).clamp_min(0.0))
+        se = torch.hypot(se, (sigma - short).clamp_min(0.0))
     h = float(dt[:, 1:][torch.isfinite(dt[:, 1:])].median()) if T > 1 else 1.0
     q = max(float(white.q[0]), 1e-3 * float(sigma.square().mean()) / h**3)
     return NoiseEstimate(sigma.square().to(z.dtype), q, int(res.u.numel()), se.to(z.dtype), weight)
@@ -413,9 +413,9 @@ def _short_stencils(
     cutoff: float,
     maneuver: float,
     jack_sigma: Tensor,
-) -> tuple[Tensor, Tensor] | None:
-    """The noise-alone fit on the shortest stencils alone (``σ [m]``, its standard error
-    ``[m]``) where it is surely below the estimate (``jack_sigma [G, m]``: its jackknife
+) -> Tensor | None:
+    """The noise-alone fit on the shortest stencils alone (``σ [m]``) where it is surely below
+    the estimate (``jack_sigma [G, m]``: its jackknife
     refits, the same groups), else None: then the estimate's standard error takes in the
     difference (:func:`estimate_noise`), so that the guards that read the noise's uncertainty
     act on it (``sample_accuracy.lowered_noise`` runs at the low end, the error estimate warns).
@@ -450,7 +450,7 @@ def _short_stencils(
     lower = float(jack_sigma.mean() - full.r.sqrt().mean())
     if not lower > SHORT_ERRORS * float(_jackknife_se(below)):
         return None
-    return full.r.sqrt()[0], _jackknife_se(jack.r.sqrt())
+    return full.r.sqrt()[0]
 
 
 def _ramp(x: float, zero: float, one: float) -> float:

@@ -179,20 +179,7 @@ def nan_as_null(values: np.ndarray) -> Any:
     """A float array as a ``pyarrow`` array with NaN as empty (null) values: the numbers'
     buffer as it is and a validity bitmap only where a value is NaN (as ``pyarrow.array(...,
     from_pandas=True)`` gives, at a fraction of its cost)."""
-    import pyarrow as pa
-
-    values = np.ascontiguousarray(values)
-    kind = pa.from_numpy_dtype(values.dtype)
-    missing = np.isnan(values)
-    if not missing.any():
-        return from_numpy(values, kind)
-    valid = np.packbits(~missing, bitorder="little")
-    return pa.Array.from_buffers(
-        kind,
-        len(values),
-        [pa.py_buffer(valid), pa.py_buffer(values)],
-        null_count=int(np.count_nonzero(missing)),
-    )
+    return from_numpy(values, valid=~np.isnan(values))
 
 
 class EstimateWriter:

@@ -205,7 +205,9 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
     then after each of two screens, unclipped, without the outliers that screen found. The
     measurement noise is the settings' where given, else read off the data
     (:func:`~torchsvs.datasets.estimate_noise`, robust to isolated outliers: 50.1 m read for
-    50 m with 1% of 10σ ones) and returned in the settings, so it is read once."""
+    50 m with 1% of 10σ ones; :func:`with_noise_read`) and returned in the settings, the
+    screen on or off, so it is read once."""
+    settings = with_noise_read(settings, tracks)
     if not settings.outliers:
         return Screened(settings, tracks, torch.zeros(tracks.z.shape[:2], dtype=torch.bool))
     first = complete_settings(Settings("ks", meas_var=settings.meas_var, q=1.0), tracks)
@@ -225,16 +227,7 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
                 q = _sure_q(clean, first.meas_var, "ks")
             except ValueError:
                 break
-    # the noise as read here (isolated outliers barely move the robust reading)
-    read: dict[str, Any] = {}
-    if settings.meas_var is None:
-        read = dict(
-            meas_var=first.meas_var,
-            noise=first.noise,
-            meas_std_se=first.meas_std_se,
-            noise_spread=first.noise_spread,
-        )
-    return Screened(replace(settings, outlier_q=q, **read), clean, flagged)
+    return Screened(replace(settings, outlier_q=q), clean, flagged)
 
 
 def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:

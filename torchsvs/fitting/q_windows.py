@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsvs.accuracy import CHUNK, chunk_sum_array, exact_divergence
+from torchsvs.accuracy import CHUNK, chunk_sum_array, exact_divergence, sure
 from torchsvs.fitting import noise
 
 #: The windows :func:`choose_window` tries, in the smoother's memories (``1 / h̄`` steps).
@@ -267,7 +267,7 @@ def sure_of(sums: Tensor, meas_var: Sequence[float]) -> Tensor:
     divergence, count per axis; any leading dimensions summed but the first) at the noise
     variances ``meas_var [m]``: ``[len(sums)]``, or a scalar for sums of one run."""
     r = torch.as_tensor(meas_var, dtype=torch.float64)
-    risk = sums[..., 0] + 2 * r * sums[..., 1] - r * sums[..., 2]
+    risk = sure(sums[..., 0], sums[..., 1], sums[..., 2], r)
     return risk.reshape(len(risk), -1).sum(1) if risk.dim() > 1 else risk.sum()
 
 
