@@ -691,3 +691,29 @@ def test_track_warns_where_its_error_estimate_rests_on_a_noise_read_off_the_data
     width = run.accuracy.interval[1] - run.accuracy.interval[0]
     assert width < 0.5 * (read.accuracy.interval[1] - read.accuracy.interval[0])
     assert not any("noise read off the data" in w for w in run.warnings)
+
+
+def test_an_estimate_surely_below_zero_names_the_noise_at_which_it_is_zero():
+    """SURE is linear in the noise: where it is surely below zero at the noise assumed, the
+    noise scaled by one factor at which it is zero (``zero_at_noise``) gives an estimate of 0
+    from the same totals; an estimate below zero within 2 standard errors (a small error, by
+    chance) is not flagged."""
+    from torchsvs.accuracy import accuracy
+
+    gen = np.random.default_rng(3)
+    chunks, m = 400, 2
+    count = np.full((chunks, m), 20.0)
+    divergence = np.full((chunks, m), 6.0)  # 2·div − n = −8 per chunk and axis
+    residual = gen.normal(100.0, 5.0, (chunks, m))  # noise about 100 / 8 = 12.5 per axis
+    terms = RiskTerms(residual, divergence, count, np.arange(chunks))
+    totals = RiskTotals(m)
+    totals.add(terms)
+    high = accuracy(totals, [25.0, 25.0])
+    assert high.below_zero and high.estimated_rmse == 0.0
+    assert high.zero_at_noise is not None
+    zero = [v * v for v in high.zero_at_noise]
+    assert abs(totals.mse(zero)[0]) < 1e-9
+    np.testing.assert_allclose(zero, [12.5, 12.5], atol=0.3)
+    near = accuracy(totals, zero)
+    assert not near.below_zero and near.zero_at_noise is None
+    assert "unknown: below zero" in high.line() and "unknown" not in near.line()

@@ -394,3 +394,34 @@ def test_the_summary_json_writes_an_unknown_number_as_null():
     back = json.loads(_json_text(summary), parse_constant=lambda c: pytest.fail(f"{c} written"))
     assert back["candidates"] == [{"estimator": "svss", "mse_change": -3.5, "mse_change_se": None}]
     assert back["fit"] == {"se": None, "q": 0.25} and back["seconds"] == 1.5
+
+
+def test_a_noise_given_too_high_gives_no_error_estimate_of_zero_but_a_warning(tmp_path):
+    """The noise given as a bound (here twice σ, a 95% one) rather than σ: SURE at it comes out
+    surely below zero, and the run printed "estimated position error 0 m (range 0-0)" without a
+    word. Now the summary has no number (null), and a warning names the noise given, the most
+    the residuals allow (between σ and the noise given) and what to give instead. At σ itself
+    the estimate is a number near the truth's, and no such warning."""
+    import json
+
+    from torchsvs.track_run import summary_path
+
+    source = tmp_path / "in.csv"
+    truth = _simulated_csv(source, tracks=16, steps=120, sigma=10.0)
+    found = {}
+    for given in ("10", "20"):
+        target = tmp_path / f"out{given}.csv"
+        _run_simulated(source, target, "--estimator", "ks", "--meas-std", given)
+        found[given] = json.loads(summary_path(target).read_text())
+        rmse, raw = _errors(source, target, truth)
+        assert rmse < 0.8 * raw  # (the estimates are written either way)
+        found[given]["true"] = rmse * math.sqrt(2.0)
+    right, high = found["10"], found["20"]
+    assert not any("below zero" in w for w in right["warnings"])
+    assert 0.7 < right["estimated_position_rmse"] / right["true"] < 1.3
+    assert high["estimated_position_rmse"] is None
+    assert high["estimated_position_rmse_interval"] == [None, None]
+    (warning,) = [w for w in high["warnings"] if "below zero" in w]
+    assert "noise given ([20, 20] m)" in warning and "1σ" in warning
+    bound = float(warning.split("(about [")[1].split(",")[0])
+    assert 10.0 < bound < 20.0

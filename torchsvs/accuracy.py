@@ -418,6 +418,17 @@ class Accuracy:
     meas_std: list[float]  #: the noise standard deviation per axis it assumes
     #: the interval of its sampling error alone (2 standard errors), without the noise level's
     sampling_interval: tuple[float, float]
+    #: the MSE per point and its standard error before the root (m²; below zero by chance
+    #: where the error is small, surely so where the noise assumed is too high)
+    mse: float = math.nan
+    mse_standard_error: float = math.nan
+    #: the whole interval is below zero (2 standard errors, over the noise level's range):
+    #: no error estimate, the noise it assumes is more than the residuals about the estimate
+    #: allow (SURE at the true noise averages the MSE, never below zero)
+    below_zero: bool = False
+    #: where :attr:`below_zero`: the noise standard deviation per axis, the assumed one scaled
+    #: by one factor, at which the estimate would be zero: about the most the residuals allow
+    zero_at_noise: list[float] | None = None
 
     @property
     def ratio(self) -> float:
@@ -432,6 +443,13 @@ class Accuracy:
     def line(self) -> str:
         low, high = self.interval
         noise = "estimated from the data" if self.noise_estimated else "as given"
+        if self.below_zero:  # (not "0 m": no error is that small; the warning says why)
+            return (
+                f"estimated position error unknown: below zero at the noise assumed (MSE "
+                f"{self.mse:.3g} ± {self.mse_standard_error:.2g} m² per point), measurements "
+                f"{self.measurement_rmse:.3g} m at that noise ({noise}); {self.points} "
+                "positions, no truth used"
+            )
         return (
             f"estimated position error {self.estimated_rmse:.3g} m (range {low:.3g}-{high:.3g}), "
             f"measurements {self.measurement_rmse:.3g} m (noise {noise}); "
@@ -453,6 +471,14 @@ def accuracy(
         value, _ = terms.mse(variance)
         ends += [value - 2 * se, value + 2 * se]
     rmse = math.sqrt(max(mse, 0.0))
+    below = max(ends) < 0
+    zero_at = None
+    if below:  # SURE is linear in the noise: the residuals' part, less c times the rest
+        residual_part, _ = terms.mse([0.0] * len(meas_var))
+        noise_part = mse - residual_part
+        if noise_part < 0:
+            factor = residual_part / -noise_part
+            zero_at = [math.sqrt(factor * v) for v in meas_var]
 
     def root(value: float) -> float:
         return math.sqrt(max(value, 0.0))
@@ -466,4 +492,8 @@ def accuracy(
         noise_estimated=noise_estimated,
         meas_std=[math.sqrt(v) for v in meas_var],
         sampling_interval=(root(mse - 2 * se), root(mse + 2 * se)),
+        mse=mse,
+        mse_standard_error=se,
+        below_zero=below,
+        zero_at_noise=zero_at,
     )

@@ -4,6 +4,7 @@ summary, printed and written as JSON next to the output (:func:`write_summary`).
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -261,6 +262,8 @@ class TrackRun:
         gross = gross_errors(self.report)
         if gross is not None:
             self.warnings.append(gross)
+        if found.below_zero:
+            self.warnings.append(f"{name}: {below_zero_estimate(found)}")
         uncertain = uncertain_estimate(found, exact=self.settings.exact_divergence)
         if uncertain is not None:
             self.warnings.append(f"{name}: {uncertain}")
@@ -295,10 +298,14 @@ class TrackRun:
             "warnings": self.warnings,
         }
         if found is not None:
+            # (unknown, not 0 m, where it is surely below zero: the warning says why)
+            unknown = found.below_zero
+            interval = [math.nan] * 2 if unknown else list(found.interval)
+            error = math.nan if unknown else found.standard_error
             out.update(
-                estimated_position_rmse=found.estimated_rmse,
-                estimated_position_rmse_interval=list(found.interval),
-                estimated_position_rmse_standard_error=found.standard_error,
+                estimated_position_rmse=math.nan if unknown else found.estimated_rmse,
+                estimated_position_rmse_interval=interval,
+                estimated_position_rmse_standard_error=error,
                 measurement_rmse=found.measurement_rmse,
                 meas_std=found.meas_std,
                 noise=None if self.settings is None else self.settings.noise,
@@ -442,6 +449,34 @@ def uncertain_estimate(found: Accuracy, exact: bool = True) -> str | None:
         "its own sampling error is large: the estimate is the residuals less the noise's "
         "share, each far larger than the error at this noise, over these positions"
         + ("" if exact else " (and this estimator's sensitivity to them is probed at random)")
+    )
+
+
+def below_zero_estimate(found: Accuracy) -> str:
+    """The warning where the error estimate is surely below zero (:attr:`~torchsvs.accuracy.
+    Accuracy.below_zero`): SURE at the true noise averages the MSE, never below zero, so the
+    noise it assumes is too high, and it is no error estimate. Where a user gives the noise as
+    a bound (a 95% one, twice σ) rather than σ, the run smooths more than the data need and
+    would otherwise print an error of 0 m."""
+    source = "read off the data" if found.noise_estimated else "given"
+    bound = (
+        ""
+        if found.zero_at_noise is None
+        else f" (about {short(found.zero_at_noise)} m at most: there the estimate is zero)"
+    )
+    advice = (
+        "give --meas-std with the sensor's noise if known"
+        if found.noise_estimated
+        else "give --meas-std as the sensor's standard deviation (1σ, not a bound such as a 95% "
+        "one), or leave it out to read the noise off the data"
+    )
+    return (
+        f"the error estimate came out below zero (MSE {found.mse:.3g} ± "
+        f"{found.mse_standard_error:.2g} m² per point), so it is no estimate: the measurement "
+        f"noise {source} ({short(found.meas_std)} m) is more than the residuals about the "
+        f"estimate allow{bound}; the estimates smooth more than the data need, and "
+        f"the measurements' own error is below the {found.measurement_rmse:.3g} m that noise "
+        f"says; {advice}"
     )
 
 
