@@ -614,14 +614,17 @@ class BenchSet:
     truth: Truth
     measurements: pd.DataFrame  #: track_id, time, x, y: the truth plus noise
     faults: bool = False  #: measured with :func:`add_faults`
+    noise: str = "white"  #: the noise's kind (:data:`NOISE_KINDS`)
 
     @property
     def name(self) -> str:
-        return f"{self.kind.name} σ{self.sigma:g}" + (" faults" if self.faults else "")
+        noise = "" if self.noise == "white" else f" {self.noise}"
+        return f"{self.kind.name} σ{self.sigma:g}" + (" faults" if self.faults else "") + noise
 
     @property
     def slug(self) -> str:
-        return f"{self.kind.name}_s{self.sigma:g}" + ("_faults" if self.faults else "")
+        noise = "" if self.noise == "white" else f"_{self.noise}"
+        return f"{self.kind.name}_s{self.sigma:g}" + ("_faults" if self.faults else "") + noise
 
     def write(self, folder: Path) -> tuple[Path, Path]:
         """The input file (measurements only) and the truth beside it, as CSV."""
@@ -632,13 +635,47 @@ class BenchSet:
         return source, truth
 
 
-def measure(truth: pd.DataFrame, sigma: float, seed: int) -> pd.DataFrame:
-    """The truth's rows with independent Gaussian noise of standard deviation ``sigma`` (m) on
-    ``x`` and ``y``, seeded."""
+#: The kinds of measurement noise (:func:`measure`), each of standard deviation σ per axis:
+#: ``white`` independent Gaussian (what the estimators and their error estimate assume);
+#: ``mixed`` the same, each track's σ drawn from σ/:data:`MIXED_RANGE` to σ·MIXED_RANGE
+#: (log-uniform: sensors of different quality in one file); ``heavy`` Student's t with
+#: :data:`HEAVY_DOF` degrees of freedom (a heavy-tailed sensor); ``correlated`` Gaussian with
+#: correlation exp(-Δt / :data:`CORRELATION_TIME`) between a track's reports (a GPS's slowly
+#: wandering error, which positions alone cannot tell from motion).
+NOISE_KINDS = ("white", "mixed", "heavy", "correlated")
+MIXED_RANGE = 3.0
+HEAVY_DOF = 3.0
+CORRELATION_TIME = 20.0
+
+
+def measure(truth: pd.DataFrame, sigma: float, seed: int, noise: str = "white") -> pd.DataFrame:
+    """The truth's rows with noise of standard deviation ``sigma`` (m) on ``x`` and ``y`` of the
+    kind ``noise`` (:data:`NOISE_KINDS`), seeded."""
     if not sigma > 0:
         raise ValueError(f"sigma: expected a standard deviation > 0 (m), got {sigma!r}")
-    noise = np.random.default_rng(seed).normal(0.0, sigma, size=(len(truth), 2))
-    return truth.assign(x=truth["x"] + noise[:, 0], y=truth["y"] + noise[:, 1])
+    if noise not in NOISE_KINDS:
+        raise ValueError(f"noise: expected one of {list(NOISE_KINDS)}, got {noise!r}")
+    rng = np.random.default_rng(seed)
+    n = len(truth)
+    if noise == "heavy":  # (t's variance is dof / (dof − 2) times its scale's square)
+        scale = sigma * math.sqrt((HEAVY_DOF - 2.0) / HEAVY_DOF)
+        error = rng.standard_t(HEAVY_DOF, size=(n, 2)) * scale
+    else:
+        error = rng.normal(0.0, sigma, size=(n, 2))
+    if noise in ("mixed", "correlated"):
+        ids = truth["track_id"].to_numpy()
+        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+        ends = np.r_[starts[1:], n]
+        time = truth["time"].to_numpy(dtype=float)
+        for a, b in zip(starts, ends, strict=True):
+            if noise == "mixed":
+                error[a:b] *= math.exp(rng.uniform(-1.0, 1.0) * math.log(MIXED_RANGE))
+                continue
+            rho = np.exp(-np.diff(time[a:b]) / CORRELATION_TIME)
+            for k in range(1, b - a):  # AR(1) at the reports' own intervals, variance kept
+                i = a + k
+                error[i] = rho[k - 1] * error[i - 1] + math.sqrt(1.0 - rho[k - 1] ** 2) * error[i]
+    return truth.assign(x=truth["x"] + error[:, 0], y=truth["y"] + error[:, 1])
 
 
 #: Faults (:func:`add_faults`): this share of positions off by :data:`OUTLIER_SIGMAS` σ ...
@@ -725,6 +762,7 @@ def build_sets(
     sigmas: Sequence[float] | None = None,
     progress: bool = False,
     faults: bool = False,
+    noise: str = "white",
 ) -> list[BenchSet]:
     """The benchmark sets: every kind of ``kinds`` (default :data:`DEFAULT_KINDS`) at its noise levels
     (or at ``sigmas``), about ``rows`` rows each; with ``faults``, measured with
@@ -740,13 +778,13 @@ def build_sets(
         kind = KINDS[name]
         truth = kind.build(rows, set_seed(seed, name))
         for sigma in sigmas or kind.sigmas:
-            noisy = measure(truth.rows, sigma, set_seed(seed, name, sigma))
+            noisy = measure(truth.rows, sigma, set_seed(seed, name, sigma), noise)
             if faults:
                 kept, noisy = add_faults(truth.rows, noisy, sigma, set_seed(seed, name, -sigma))
                 faulty = replace(truth, rows=kept)
-                sets.append(BenchSet(kind, float(sigma), faulty, noisy, faults=True))
+                sets.append(BenchSet(kind, float(sigma), faulty, noisy, True, noise))
             else:
-                sets.append(BenchSet(kind, float(sigma), truth, noisy))
+                sets.append(BenchSet(kind, float(sigma), truth, noisy, noise=noise))
     return sets
 
 

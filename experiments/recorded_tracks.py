@@ -48,9 +48,13 @@ import pandas as pd
 
 from experiments.common import render
 from experiments.recorded_sets import (
+    CORRELATION_TIME,
     DEFAULT_KINDS,
     DEJITTER_WINDOW,
+    HEAVY_DOF,
     KINDS,
+    MIXED_RANGE,
+    NOISE_KINDS,
     TURN_DT,
     BenchSet,
     build_sets,
@@ -490,7 +494,30 @@ def sets_section(sets: Sequence[BenchSet]) -> str:
                 roughness=roughness,
             )
         )
-    return _text("sets", table="\n".join(table(header, rows)), truths="\n".join(truths))
+    noise = NOISE_TEXT[sets[0].noise if sets else "white"]
+    return _text(
+        "sets", noise=noise, table="\n".join(table(header, rows)), truths="\n".join(truths)
+    )
+
+
+#: What the report says of the measurements' noise, by kind (:data:`~experiments.
+#: recorded_sets.NOISE_KINDS`).
+NOISE_TEXT = {
+    "white": "independent Gaussian noise σ",
+    "mixed": (
+        f"independent Gaussian noise, each track's own σ drawn from σ/{MIXED_RANGE:g} to "
+        f"σ×{MIXED_RANGE:g} (log-uniform: sensors of different quality in one file)"
+    ),
+    "heavy": (
+        f"independent noise of Student's t with {HEAVY_DOF:g} degrees of freedom, of standard "
+        "deviation σ (a heavy-tailed sensor)"
+    ),
+    "correlated": (
+        f"Gaussian noise σ correlated between a track's reports as exp(-Δt / "
+        f"{CORRELATION_TIME:g} s) (a GPS's slowly wandering error, which positions alone "
+        "cannot tell from motion)"
+    ),
+}
 
 
 def truth_check(along: float = 25.0, seed: int = 0) -> dict[str, float]:
@@ -686,9 +713,11 @@ def estimate_section(runs: Sequence[Run]) -> str:
 
 def warned_of_estimate(run: Run) -> bool:
     """Whether the run warned that its error estimate is uncertain
-    (:func:`torchsvs.track_run.uncertain_estimate`) or may be low, the sensor erring grossly
-    (:func:`torchsvs.track_run.gross_errors`)."""
-    return any("is uncertain" in w or "counts white noise only" in w for w in run.warnings)
+    (:func:`torchsvs.track_run.uncertain_estimate`), no estimate (below zero,
+    :func:`~torchsvs.track_run.below_zero_estimate`) or may be off: the sensor erring grossly
+    (:func:`~torchsvs.track_run.gross_errors`), one noise level not fitting every track."""
+    signs = ("is uncertain", "counts white noise only", "below zero", "does not fit every track")
+    return any(sign in w for w in run.warnings for sign in signs)
 
 
 #: The rows of issue 28's table that a set of this benchmark matches: (what was run, kind, σ,
@@ -1084,7 +1113,12 @@ def save_runs(path: Path, options: dict[str, Any], runs: Sequence[Run]) -> None:
 
 
 def merged_sets(
-    to_run: list[BenchSet], kept: list[Run], rows: int, seed: int, faults: bool
+    to_run: list[BenchSet],
+    kept: list[Run],
+    rows: int,
+    seed: int,
+    faults: bool,
+    noise: str = "white",
 ) -> list[BenchSet]:
     """The sets of a report: those run now and, rebuilt (each seeded by its kind and σ alone),
     those of the saved runs kept beside them (``--merge``, ``--report-only``: a kind at other
@@ -1095,7 +1129,7 @@ def merged_sets(
         kind, level = r.set.split(" σ")
         levels.setdefault(kind, set()).add(float(level.split()[0]))
     for kind, sigmas in levels.items():
-        for b in build_sets([kind], rows, seed, sorted(sigmas), faults=faults):
+        for b in build_sets([kind], rows, seed, sorted(sigmas), faults=faults, noise=noise):
             found.setdefault(b.name, b)
     order = {k: i for i, k in enumerate(KINDS)}
     return sorted(found.values(), key=lambda b: (order[b.kind.name], b.sigma))
@@ -1142,6 +1176,13 @@ def main(argv: list[str] | None = None) -> None:
         "a bias that comes and goes); the report is NAME (default recorded_faults)",
     )
     parser.add_argument(
+        "--noise",
+        default="white",
+        choices=NOISE_KINDS,
+        help="the measurements' noise (recorded_sets.NOISE_KINDS: white Gaussian, each track's "
+        "own σ, Student's t, correlated in time); the report is NAME (default recorded_NOISE)",
+    )
+    parser.add_argument(
         "--merge",
         action="store_true",
         help="keep the runs saved in OUT/NAME.json and replace those run now (e.g. "
@@ -1153,7 +1194,8 @@ def main(argv: list[str] | None = None) -> None:
         help="run nothing: the report of the runs saved in OUT/NAME.json",
     )
     args = parser.parse_args(argv)
-    args.name = args.name or ("recorded_faults" if args.faults else "recorded_tracks")
+    default_name = "recorded_faults" if args.faults else "recorded_tracks"
+    args.name = args.name or (default_name if args.noise == "white" else f"recorded_{args.noise}")
     import torch
 
     torch.set_num_threads(1)
@@ -1193,8 +1235,10 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(
                 f"merge: the saved runs are of --seed {seed} --rows {rows}; run the new ones so"
             )
-    to_run = build_sets(run_kinds, rows, seed, sigmas, progress=not args.quiet, faults=args.faults)
-    sets = merged_sets(to_run, kept, rows, seed, args.faults)
+    to_run = build_sets(
+        run_kinds, rows, seed, sigmas, not args.quiet, faults=args.faults, noise=args.noise
+    )
+    sets = merged_sets(to_run, kept, rows, seed, args.faults, args.noise)
     with contextlib.ExitStack() as stack:
         if args.workdir:
             workdir = Path(args.workdir)

@@ -322,3 +322,45 @@ def test_a_merge_keeps_the_saved_runs_of_other_noise_levels(tmp_path: Path, monk
     with pytest.raises(SystemExit, match="saved runs are of --seed 5 --rows 200"):
         rt.main(["--merge", "--kinds", "walker", "--sigmas", "25", "--estimators", "ks",
                  "--rows", "200", "--out", str(out), "--name", "r", "--quiet"])  # fmt: skip
+
+
+def test_each_noise_kind_has_its_standard_deviation_and_its_shape():
+    """``measure``'s kinds (the benchmark's --noise): white is the Gaussian draw as before (the
+    saved reports' sets are drawn again as they were); white, heavy and correlated have about σ
+    overall; mixed gives each track its own σ within σ/3-3σ, σ their geometric mean; heavy has the tails of t with 3 degrees of
+    freedom (far more beyond 4σ than the Gaussian); correlated has the correlation
+    exp(-Δt/τ) between a track's successive reports and none between tracks."""
+    gen = np.random.default_rng(0)
+    tracks, steps, sigma = 200, 100, 10.0
+    truth = pd.DataFrame(
+        {
+            "track_id": np.repeat([f"t{k:03d}" for k in range(tracks)], steps),
+            "time": np.tile(np.arange(steps, dtype=float) * 2.0, tracks),
+            "x": gen.normal(0.0, 1e3, tracks * steps),
+            "y": gen.normal(0.0, 1e3, tracks * steps),
+        }
+    )
+
+    def error(noise: str) -> np.ndarray:
+        measured = rs.measure(truth, sigma, 7, noise)
+        return (measured[["x", "y"]].to_numpy() - truth[["x", "y"]].to_numpy()).reshape(
+            tracks, steps, 2
+        )
+
+    before = np.random.default_rng(7).normal(0.0, sigma, size=(tracks * steps, 2))
+    white = rs.measure(truth, sigma, 7, "white")[["x", "y"]].to_numpy()
+    np.testing.assert_array_equal(white, truth[["x", "y"]].to_numpy() + before)
+    for noise in ("white", "heavy", "correlated"):
+        assert 0.85 * sigma < error(noise).std() < 1.15 * sigma, noise
+    per_track = error("mixed").std(axis=(1, 2))
+    assert 0.75 * sigma < np.exp(np.log(per_track).mean()) < 1.25 * sigma  # (σ in the middle)
+    assert per_track.min() > sigma / 3.5 and per_track.max() < 3.5 * sigma
+    assert per_track.max() / per_track.min() > 4.0  # (white: within ±15%)
+    far = [np.mean(np.abs(error(n)) > 4 * sigma) for n in ("white", "heavy")]
+    assert far[0] < 2e-4 and far[1] > 20 * max(far[0], 1e-4)
+    wander = error("correlated")
+    lag1 = np.mean(wander[:, 1:] * wander[:, :-1]) / np.mean(wander**2)
+    assert abs(lag1 - math.exp(-2.0 / rs.CORRELATION_TIME)) < 0.03
+    assert abs(np.mean(wander[1:, 0] * wander[:-1, 0]) / sigma**2) < 0.1
+    with pytest.raises(ValueError, match="noise: expected one of"):
+        rs.measure(truth, sigma, 7, "pink")
