@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles recorded-held-out bias-detectability per-track-choice blend-weights network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles recorded-held-out recorded-noise bias-detectability per-track-choice blend-weights network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -101,6 +101,15 @@ recorded-held-out: $(STAMP)
 		--modes default,--fit --jobs 2 --name recorded_held_out
 	$(PY) -m experiments.recorded_tracks --kinds $(HELD_OUT_KINDS) --sigmas 5,150 --seed 3 \
 		--modes default --jobs 2 --name recorded_held_out_wide
+
+# Every kind measured with noise other than the white Gaussian the estimators assume: each
+# track its own σ (mixed), Student's t (heavy), correlated in time (correlated), defaults only:
+# experiments/results/recorded_mixed.md, recorded_heavy.md, recorded_correlated.md (~6 min).
+recorded-noise: $(STAMP)
+	for noise in mixed heavy correlated; do \
+		$(PY) -m experiments.recorded_tracks --noise $$noise --kinds $(HELD_OUT_KINDS) \
+			--estimators ks,svss,svstps,imm,auto --modes default --jobs 2 || exit 1; \
+	done
 
 # Whether the faults benchmark's sensor bias can be found in the measurements (NumPy, ~1 min):
 bias-detectability: $(STAMP)
