@@ -650,7 +650,9 @@ CORRELATION_TIME = 20.0
 
 def measure(truth: pd.DataFrame, sigma: float, seed: int, noise: str = "white") -> pd.DataFrame:
     """The truth's rows with noise of standard deviation ``sigma`` (m) on ``x`` and ``y`` of the
-    kind ``noise`` (:data:`NOISE_KINDS`), seeded."""
+    kind ``noise`` (:data:`NOISE_KINDS`), seeded; for a kind other than white, each row's
+    standard deviation beside them in a column ``sigma`` (as a sensor states its accuracy:
+    ``track --noise-col sigma``)."""
     if not sigma > 0:
         raise ValueError(f"sigma: expected a standard deviation > 0 (m), got {sigma!r}")
     if noise not in NOISE_KINDS:
@@ -662,6 +664,7 @@ def measure(truth: pd.DataFrame, sigma: float, seed: int, noise: str = "white") 
         error = rng.standard_t(HEAVY_DOF, size=(n, 2)) * scale
     else:
         error = rng.normal(0.0, sigma, size=(n, 2))
+    stated = np.full(n, float(sigma))  # (the sensor's stated accuracy per row)
     if noise in ("mixed", "correlated"):
         ids = truth["track_id"].to_numpy()
         starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
@@ -669,13 +672,17 @@ def measure(truth: pd.DataFrame, sigma: float, seed: int, noise: str = "white") 
         time = truth["time"].to_numpy(dtype=float)
         for a, b in zip(starts, ends, strict=True):
             if noise == "mixed":
-                error[a:b] *= math.exp(rng.uniform(-1.0, 1.0) * math.log(MIXED_RANGE))
+                own = math.exp(rng.uniform(-1.0, 1.0) * math.log(MIXED_RANGE))
+                error[a:b] *= own
+                stated[a:b] *= own
                 continue
             rho = np.exp(-np.diff(time[a:b]) / CORRELATION_TIME)
             for k in range(1, b - a):  # AR(1) at the reports' own intervals, variance kept
                 i = a + k
                 error[i] = rho[k - 1] * error[i - 1] + math.sqrt(1.0 - rho[k - 1] ** 2) * error[i]
-    return truth.assign(x=truth["x"] + error[:, 0], y=truth["y"] + error[:, 1])
+    measured = truth.assign(x=truth["x"] + error[:, 0], y=truth["y"] + error[:, 1])
+    # (beside noise other than white, each row's stated standard deviation: --noise-col sigma)
+    return measured if noise == "white" else measured.assign(sigma=stated)
 
 
 #: Faults (:func:`add_faults`): this share of positions off by :data:`OUTLIER_SIGMAS` σ ...

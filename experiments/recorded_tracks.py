@@ -73,6 +73,8 @@ MODES: dict[str, Callable[[float], list[str]]] = {
     "--meas-std σ --fit": lambda sigma: ["--meas-std", f"{sigma:g}", "--fit"],
     "--no-velocity": lambda sigma: ["--no-velocity"],
     "--no-velocity --fit": lambda sigma: ["--no-velocity", "--fit"],
+    # each row's own noise, as the sensor states it (the sets of --noise other than white)
+    "--noise-col sigma": lambda sigma: ["--noise-col", "sigma"],
 }
 #: Modes run by default (``--modes``): the others are asked for by name. ``--no-velocity`` is the
 #: SVSF family's H⁺ mode (the papers' SVSS, no velocity pseudo-measurement), beside the variable

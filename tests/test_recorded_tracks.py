@@ -326,10 +326,11 @@ def test_a_merge_keeps_the_saved_runs_of_other_noise_levels(tmp_path: Path, monk
 
 def test_each_noise_kind_has_its_standard_deviation_and_its_shape():
     """``measure``'s kinds (the benchmark's --noise): white is the Gaussian draw as before (the
-    saved reports' sets are drawn again as they were); white, heavy and correlated have about σ
-    overall; mixed gives each track its own σ within σ/3-3σ, σ their geometric mean; heavy has the tails of t with 3 degrees of
-    freedom (far more beyond 4σ than the Gaussian); correlated has the correlation
-    exp(-Δt/τ) between a track's successive reports and none between tracks."""
+    saved reports' sets are drawn again as they were) and has no column beside it; white, heavy
+    and correlated have about σ overall; mixed gives each track its own σ within σ/3-3σ, σ
+    their geometric mean, and states it in the rows' ``sigma`` column; heavy has the tails of t
+    with 3 degrees of freedom (far more beyond 4σ than the Gaussian); correlated has the
+    correlation exp(-Δt/τ) between a track's successive reports and none between tracks."""
     gen = np.random.default_rng(0)
     tracks, steps, sigma = 200, 100, 10.0
     truth = pd.DataFrame(
@@ -353,6 +354,10 @@ def test_each_noise_kind_has_its_standard_deviation_and_its_shape():
     for noise in ("white", "heavy", "correlated"):
         assert 0.85 * sigma < error(noise).std() < 1.15 * sigma, noise
     per_track = error("mixed").std(axis=(1, 2))
+    stated = rs.measure(truth, sigma, 7, "mixed")["sigma"].to_numpy().reshape(tracks, steps)
+    assert (stated == stated[:, :1]).all()
+    np.testing.assert_allclose(stated[:, 0], per_track, rtol=0.25)
+    assert "sigma" not in rs.measure(truth, sigma, 7, "white").columns
     assert 0.75 * sigma < np.exp(np.log(per_track).mean()) < 1.25 * sigma  # (σ in the middle)
     assert per_track.min() > sigma / 3.5 and per_track.max() < 3.5 * sigma
     assert per_track.max() / per_track.min() > 4.0  # (white: within ±15%)

@@ -43,7 +43,7 @@ from torchsvs.datasets.writing import flat_steps
 from torchsvs.error_references import reference_for
 from torchsvs.estimator import split_batch
 from torchsvs.filters.particle import degenerate_share
-from torchsvs.fitting import noise, q_windows
+from torchsvs.fitting import noise, noise_classes, q_windows
 from torchsvs.fitting.defaults import GUARD_ERRORS, meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.models import ConstantVelocity
@@ -112,7 +112,11 @@ class StepEstimates(NamedTuple):
             np.concatenate([p.never_observed for p in parts]),
             dict(notes),
             RiskTerms.concat(risks, m) if len(risks) == len(parts) else None,
-            np.concatenate([p.q_factor for p in parts if p.q_factor is not None]),
+            None
+            if all(p.q_factor is None for p in parts)
+            else np.concatenate(
+                [np.full(len(p.group), np.nan) if p.q_factor is None else p.q_factor for p in parts]
+            ),
             None
             if all(p.outliers is None for p in parts)
             else np.concatenate([p.outliers for p in parts if p.outliers is not None]),
@@ -149,6 +153,12 @@ def estimate_group(
     Where ``settings`` screen for outliers (``outliers`` and ``outlier_q``), the group's
     isolated outliers are set aside first (:func:`screen_group`): missing to the estimator and
     to the error estimate, listed in the result's ``outliers``."""
+    if settings is not None and settings.noise_column is not None:
+
+        def each(scaled: nn.Module, part: GroupBatch, std: Tensor, own: Settings) -> StepEstimates:
+            return estimate_group(scaled, part, std, covariance, risk, own)
+
+        return by_noise_class(estimator, batch, meas_std, settings, each)
     outliers = None
     if settings is not None and settings.screens:
         batch, outliers = screen_group(batch, settings)
@@ -158,6 +168,41 @@ def estimate_group(
     notes = dict(found.notes)
     notes["outliers"] = notes.get("outliers", 0) + len(outliers)
     return found._replace(outliers=outliers, notes=notes)
+
+
+def by_noise_class(
+    estimator: nn.Module,
+    batch: GroupBatch,
+    meas_std: Tensor,
+    settings: Settings,
+    run: Callable[[nn.Module, GroupBatch, Tensor, Settings], StepEstimates],
+) -> StepEstimates:
+    """``run`` (the estimator, the tracks, their noise and settings) on each noise class of the
+    group, where each track has its own noise (``settings.noise_column``,
+    :func:`~torchsvs.fitting.noise_classes.column_factors`): the class as a file of its noise,
+    its error estimate's terms written at the file's noise
+    (:func:`~torchsvs.fitting.noise_classes.at_file_noise`)."""
+    assert settings.meas_var is not None and settings.noise_column is not None
+    tracks = batch.tracks
+    observed = ~torch.isnan(tracks.z).all(-1)
+    values = tracks.extra[settings.noise_column]
+    factors = noise_classes.column_factors(values, observed, settings.meas_var)
+    ratio_of = np.ones(int(batch.group.max()) + 1 if len(batch.group) else 0)  # (by the block's
+    ratio_of[batch.group] = noise_classes.column_ratios(values, observed, settings.meas_var)
+    parts = []  # track number: what the terms' chunks name)
+    for factor in torch.unique(factors).tolist():
+        index = torch.nonzero(factors == factor).flatten()
+        part = GroupBatch(
+            batch.position, batch.group[index.numpy()], tracks.subset(index), batch.offset[index]
+        )
+        own = noise_classes.scaled_settings(settings, factor)
+        with noise_classes.noise_scaled(estimator, factor) as scaled:
+            found = run(scaled, part, meas_std * math.sqrt(factor), own)
+        if found.risk is not None:
+            ratio = ratio_of[found.risk.track]
+            found = found._replace(risk=noise_classes.at_file_noise(found.risk, ratio))
+        parts.append(found)
+    return StepEstimates.merge(parts, len(meas_std))
 
 
 def screen_group(batch: GroupBatch, settings: Settings) -> tuple[GroupBatch, np.ndarray]:

@@ -131,6 +131,10 @@ class Settings:
     #: the noise standard deviation per axis as read off the data, where the run took the low
     #: end of its uncertainty instead (:func:`~torchsvs.sample_accuracy.lowered_noise`)
     noise_lowered_from: list[float] | None = None
+    #: each track at its own noise: the median over its rows of this column's standard
+    #: deviations squared, the file's ``meas_var`` their mean (:mod:`torchsvs.fitting.
+    #: noise_classes`); the column is read as an extra column of the rows
+    noise_column: str | None = None
     #: each track its own ``q`` (the file's times a factor its SURE picks, shrunk toward the
     #: file's: :func:`~torchsvs.fitting.noise.track_q_factors`), where ``q`` is not given
     track_q: bool = True

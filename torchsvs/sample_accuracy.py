@@ -17,8 +17,10 @@ from torchsvs.blending import best_weight, blended_terms
 from torchsvs.datasets import RecordedTracks
 from torchsvs.estimating import (
     GroupBatch,
+    StepEstimates,
     _estimate_factors,
     blend_parts,
+    by_noise_class,
     centred,
 )
 from torchsvs.fitting.defaults import (
@@ -46,7 +48,14 @@ def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     assert settings.meas_var is not None
     estimator = make_estimator(settings, make_model(settings)).double()
     batch, meas_std = _sample_batch(settings, tracks)
-    part = _estimate_factors(estimator, batch, meas_std, False, True, settings)
+
+    def run(each: nn.Module, tracks: GroupBatch, std: Tensor, own: Settings) -> StepEstimates:
+        return _estimate_factors(each, tracks, std, False, True, own)
+
+    if settings.noise_column is not None:  # each track at its own noise
+        part = by_noise_class(estimator, batch, meas_std, settings, run)
+    else:
+        part = run(estimator, batch, meas_std, settings)
     assert part.risk is not None
     return part.risk.in_track_order()
 

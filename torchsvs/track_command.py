@@ -26,6 +26,11 @@ def track(argv: list[str]) -> None:
             f"argument --lag: expected an integer >= 1 (0 only for --estimator imm: its "
             f"filter), got 0 with --estimator {args.estimator}"
         )
+    if args.noise_col is not None and args.meas_std is not None:
+        parser.error(
+            "argument --noise-col: each row's noise is given by the column, and --meas-std "
+            "gives one for all; give one of them"
+        )
     if args.processes > 1 and Path(args.input).is_dir():
         parser.error(
             f"argument --processes: rank 0 reads one file whole, and {args.input!r} is a "
@@ -110,7 +115,10 @@ def _columns(args: argparse.Namespace) -> Any:
     from torchsvs.datasets import Columns
 
     pos = tuple(args.pos_cols.split(",")) if args.pos_cols else None
-    return Columns(args.id_col, args.time_col, pos, time_unit=args.time_unit, frame=args.frame)
+    extra = () if args.noise_col is None else (args.noise_col,)
+    return Columns(
+        args.id_col, args.time_col, pos, extra, time_unit=args.time_unit, frame=args.frame
+    )
 
 
 def check_paths(args: argparse.Namespace) -> None:
@@ -303,6 +311,7 @@ def _track(args: argparse.Namespace, reader: Any = None) -> None:
             track_q=not args.shared_q,
             step_q=not args.no_step_q,
             outliers=not args.keep_outliers,
+            noise_column=args.noise_col,
         )
         fit_options: dict[str, object] = {
             "tracks": args.fit_tracks,

@@ -156,6 +156,14 @@ def track_parser() -> argparse.ArgumentParser:
         "for latitude, longitude: --frame) (default: read off the data; with --fit, learned)",
     )
     parser.add_argument(
+        "--noise-col",
+        default=None,
+        help="a column of each row's measurement noise standard deviation (in the positions' "
+        "units: metres, also for latitude, longitude), where the rows come from sensors of "
+        "different quality (ADS-B's accuracy category, a GPS's reported accuracy): each "
+        "track runs at the median of its rows' (not with --meas-std)",
+    )
+    parser.add_argument(
         "--q",
         type=_positive,
         default=None,

@@ -249,9 +249,10 @@ class TrackRun:
                 "fit every track (different sensors, or motion the model does not follow at "
                 "these report times), and the error estimate rests on it; give --meas-std with "
                 "the sensor's noise if known, and where the tracks come from sensors of "
-                "different quality, run each sensor's tracks apart with its own (one noise for "
-                "all fits none: on tracks whose noise spans a third to three times the file's, "
-                "the estimates came out at 0.6-1.0 of the measurements' error)"
+                "different quality, each row's with --noise-col (a column of its standard "
+                "deviation) or each sensor's tracks apart with its own: one noise for all fits "
+                "none (on tracks whose noise spans a third to three times the file's, the "
+                "estimates came out at 0.6-1.0 of the measurements' error)"
             )
         lowered = self.settings.noise_lowered_from
         if lowered is not None:

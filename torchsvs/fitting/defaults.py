@@ -19,7 +19,16 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
-from torchsvs.fitting.noise import QCurves, q_curve_runs, q_curves, smoother_q, track_q_factors
+from torchsvs.fitting.noise import (
+    Q_FACTORS,
+    QCurves,
+    _golden_search,
+    q_curve_runs,
+    q_curves,
+    smoother_q,
+    track_q_factors,
+)
+from torchsvs.fitting.noise_classes import column_factors, column_noise
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.fitting.q_windows import choose_window
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
@@ -102,6 +111,11 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
     between-track spread); unchanged where it is given."""
     if settings.meas_var is not None:
         return settings
+    column = settings.noise_column
+    if column is not None:  # each row's own: the file's is their median
+        observed = ~torch.isnan(tracks.z).all(-1)
+        var = column_noise(tracks.extra[column], observed, column)
+        return replace(settings, meas_var=[var] * tracks.z.shape[-1], noise="given")
     try:
         noise = estimate_noise(tracks.z, tracks.dt)
     except ValueError as err:
@@ -136,11 +150,12 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     data_q = None
     if q is None or turn_open:
         try:
-            data_q = (
-                imm_base_q(tracks, meas_var)
-                if imm
-                else _sure_q(tracks, meas_var, settings.estimator)
-            )
+            if imm:
+                data_q = imm_base_q(tracks, meas_var)
+            elif settings.noise_column is not None:
+                data_q = class_sure_q(settings.noise_column, tracks, meas_var, settings.estimator)
+            else:
+                data_q = _sure_q(tracks, meas_var, settings.estimator)
         except ValueError:  # too little data to say: the measurement noise over one step
             data_q = sum(meas_var) / len(meas_var) / interval**3
     if q is None and not imm:
@@ -216,7 +231,11 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
     if q is None:
         try:
             r = torch.tensor(first.meas_var, dtype=torch.float64)
-            q = smoother_q(tracks.z, tracks.dt, r, clip=SCREEN_CLIP).q
+            q = (
+                smoother_q(tracks.z, tracks.dt, r, clip=SCREEN_CLIP).q
+                if settings.noise_column is None
+                else class_sure_q(settings.noise_column, tracks, first.meas_var, "ks")
+            )
         except ValueError:  # too little data to say: the measurement noise over one step
             q = sum(first.meas_var) / len(first.meas_var) / first.interval**3
     for _ in range(1 if settings.outlier_q else 2):
@@ -224,10 +243,41 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
         clean = replace(tracks, z=tracks.z.masked_fill(flagged.unsqueeze(-1), math.nan))
         if settings.outlier_q is None:
             try:
-                q = _sure_q(clean, first.meas_var, "ks")
+                q = (
+                    _sure_q(clean, first.meas_var, "ks")
+                    if settings.noise_column is None
+                    else class_sure_q(settings.noise_column, clean, first.meas_var, "ks")
+                )
             except ValueError:
                 break
     return Screened(replace(settings, outlier_q=q), clean, flagged)
+
+
+def class_sure_q(
+    column: str, tracks: RecordedTracks, meas_var: Sequence[float], estimator: str
+) -> float:
+    """:func:`_sure_q` with each track at its own noise (the noise column's,
+    :func:`~torchsvs.fitting.noise_classes.column_factors`): the ``q`` of the least SURE summed
+    over the noise classes, each at its noise (at the file's, the noisier tracks' noise reads as
+    motion: 1,500 for 4 on 1 s scans whose tracks' σ spans 3-30 m), searched from the file's
+    (golden section on ``log q``, :func:`~torchsvs.fitting.noise._golden_search`)."""
+    observed = ~torch.isnan(tracks.z).all(-1)
+    factors = column_factors(tracks.extra[column], observed, meas_var)
+    classes = [torch.nonzero(factors == f).flatten() for f in torch.unique(factors).tolist()]
+    smoothed = estimator not in FILTERS
+
+    def total(log_q: float) -> float:
+        risk = 0.0
+        for index in classes:
+            scaled = [v * float(factors[index[0]]) for v in meas_var]
+            found = q_curves(
+                tracks.z[index], tracks.dt[index], scaled, 10.0**log_q, smoothed, (1.0,)
+            )
+            risk += float(found.risk.sum())
+        return risk
+
+    start = math.log10(_sure_q(tracks, meas_var, estimator))
+    return 10.0 ** _golden_search(total, [start + k / 2 for k in range(-8, 3)])
 
 
 def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:
@@ -287,12 +337,32 @@ def settings_note(settings: Settings) -> str:
     assert settings.meas_var is not None
     std = ", ".join(f"{v**0.5:.4g}" for v in settings.meas_var)
     source = {"given": "as given", "fit": "learned"}.get(settings.noise or "", "read off the data")
+    if settings.noise_column is not None:
+        source = f"the rows' root mean square of {settings.noise_column!r}; each track at its own"
     if settings.noise == "data" and settings.meas_std_se is not None:
         source += " ± " + ", ".join(f"{e:.2g}" for e in settings.meas_std_se)
     return (
         f"model: measurement noise std [{std}] ({source}), q = {settings.q:.4g}, "
         f"typical interval {settings.interval:.4g} s"
     )
+
+
+def noise_class_curves(settings: Settings, tracks: RecordedTracks, smoothed: bool) -> QCurves:
+    """The tracks' SURE curves of ``q`` (:func:`~torchsvs.fitting.noise.q_curves`), each
+    track at its own noise (``settings.noise_column``, :mod:`torchsvs.fitting.noise_classes`):
+    so the file's pooled curve is in the units each track runs in."""
+    assert settings.meas_var is not None and settings.q is not None
+    assert settings.noise_column is not None
+    observed = ~torch.isnan(tracks.z).all(-1)
+    factors = column_factors(tracks.extra[settings.noise_column], observed, settings.meas_var)
+    risk = torch.zeros(len(Q_FACTORS), tracks.z.shape[0], dtype=torch.float64)
+    counts = torch.zeros(tracks.z.shape[0], dtype=torch.float64)
+    for factor in torch.unique(factors).tolist():
+        index = torch.nonzero(factors == factor).flatten()
+        meas_var = [v * factor for v in settings.meas_var]
+        found = q_curves(tracks.z[index], tracks.dt[index], meas_var, settings.q, smoothed)
+        risk[:, index], counts[index] = found.risk, found.counts
+    return QCurves(risk, counts)
 
 
 def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
@@ -308,6 +378,11 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
         return settings
     assert settings.meas_var is not None and settings.q is not None
     smoothed = settings.estimator not in FILTERS
+    if settings.noise_column is not None:  # each noise class's curves at its own noise
+        curves = noise_class_curves(settings, tracks, smoothed)
+        if float(curves.counts.sum()) == 0:
+            return settings
+        return replace(settings, q_curve=curves.pooled(), q_window=None)
     if settings.estimator != "ks" or not settings.step_q:  # (a window: the smoother's alone)
         curves = q_curves(tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed)
         if float(curves.counts.sum()) == 0:

@@ -1,0 +1,117 @@
+"""Each track at its own measurement noise, given per row (``--noise-col``): sensors of
+different quality in one file (ADS-B's position accuracy categories, a fleet's GPS receivers
+and their reported accuracy).
+
+One noise level for a file whose tracks' noise spans a factor of 3 either way fits none of
+them: with each track's σ drawn from σ/3 to 3σ, the estimators came out at 0.59-1.00 of the
+measurements' error and their error estimate at 0.15-0.68 of the truth
+(``experiments/results/recorded_mixed.md``). Read off the data track by track, the noise takes
+a track's motion for noise where the noise is small (airliners at σ 3 m: each track's reading
+reached 10 m): the run warns there instead (``track_run``), and where the file carries each
+row's accuracy it runs each track at its own.
+
+A track's noise is the median over its rows of the column's variance (the column holds the
+standard deviation per row, in the positions' units), on a grid of factors of the file's
+(:data:`FACTOR_STEP`); each class of tracks runs as a file of its noise (its settings
+:func:`scaled_settings`, its estimator :func:`noise_scaled`), and its error estimate's terms
+are written at the file's noise from each track's own (:func:`at_file_noise`), so the run's
+totals read every track at its own.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from torchsvs.accuracy import RiskTerms
+from torchsvs.constraints import SPDMatrix
+from torchsvs.recipes import Settings
+
+#: A track's noise variance is the file's times a power of this (σ within 4.5% of its own):
+#: the tracks of one power run together.
+FACTOR_STEP = 2.0**0.25
+
+
+def column_noise(values: Tensor, observed: Tensor, column: str) -> float:
+    """The file's noise variance: the mean over the observed rows of the column's squared
+    standard deviations ``values [B, T]`` (NaN where a row has none), so that the measurements'
+    own error the run prints beside its estimate is theirs."""
+    given = values[observed & torch.isfinite(values)]
+    if given.numel() == 0:
+        raise ValueError(
+            f"noise column {column!r}: expected a standard deviation on the rows with a "
+            "position, got none"
+        )
+    if bool((given <= 0).any()):
+        raise ValueError(
+            f"noise column {column!r}: expected standard deviations > 0, got "
+            f"{float(given.min()):.4g}"
+        )
+    return float(given.to(torch.float64).square().mean())
+
+
+def column_ratios(values: Tensor, observed: Tensor, meas_var: Sequence[float]) -> Tensor:
+    """``[B]`` float64 each track's noise variance over the file's ``meas_var``: the median of
+    its observed rows' squared standard deviations ``values [B, T]`` over their mean; 1 for a
+    track without any."""
+    squares = values.to(torch.float64).square()
+    squares = squares.masked_fill(~(observed & torch.isfinite(squares)), math.nan)
+    ratio = squares.nanmedian(dim=1).values / (sum(meas_var) / len(meas_var))
+    return torch.where(torch.isfinite(ratio), ratio, torch.ones_like(ratio))
+
+
+def column_factors(values: Tensor, observed: Tensor, meas_var: Sequence[float]) -> Tensor:
+    """``[B]`` :func:`column_ratios` on the grid of :data:`FACTOR_STEP`: the noise each track's
+    class runs at (its error estimate reads its own, :func:`at_file_noise`)."""
+    steps = (column_ratios(values, observed, meas_var).log() / math.log(FACTOR_STEP)).round()
+    return FACTOR_STEP**steps
+
+
+def scaled_settings(settings: Settings, factor: float) -> Settings:
+    """The settings with the noise variance times ``factor`` (a blend's second's too): a
+    class's own, that its estimates, outlier screen and error estimate run with."""
+    assert settings.meas_var is not None
+    meas_var = [v * factor for v in settings.meas_var]
+    blend = settings.blend
+    if blend is not None:
+        blend = replace(blend, meas_var=list(meas_var), noise_column=None)
+    return replace(settings, meas_var=meas_var, blend=blend, noise_column=None)
+
+
+@contextlib.contextmanager
+def noise_scaled(estimator: nn.Module, factor: float) -> Iterator[nn.Module]:
+    """A copy of the estimator with every model's measurement noise ``R`` times ``factor``
+    (the estimator itself where the factor is 1; never changed: threads share it)."""
+    if factor == 1.0:
+        yield estimator
+        return
+    scaled = copy.deepcopy(estimator)
+    # each R once: the IMM's modes share their model's
+    found = {
+        id(R): R for m in scaled.modules() if isinstance(R := getattr(m, "R", None), SPDMatrix)
+    }
+    with torch.no_grad():
+        for R in found.values():  # R = L Lᵀ: L times √factor (its diagonal stored as its log)
+            lower = R.raw.tril(-1).mul(math.sqrt(factor))
+            diagonal = R.raw.diagonal().add(0.5 * math.log(factor))
+            R.raw.copy_(lower + torch.diag_embed(diagonal))
+    yield scaled
+
+
+def at_file_noise(terms: RiskTerms, ratio: np.ndarray) -> RiskTerms:
+    """SURE terms written so that SURE at the file's noise is theirs at each track's own,
+    ``r (2 d' − n) = g r (2 d − n)`` with ``ratio [C]`` each chunk's track's noise over the
+    file's (its own, not its class's: SURE is unbiased at the measurements' true noise whatever
+    the linear estimate, and 9% off in the variance moved it by 3 times the error on tracks of
+    σ 9 m): the run's totals, its per-track errors and its checks then read them as any other."""
+    count = terms.count
+    g = np.asarray(ratio, dtype=np.float64).reshape(-1, 1)
+    divergence = 0.5 * (g * (2.0 * terms.divergence - count) + count)
+    return RiskTerms(terms.residual, divergence, count, terms.track)
