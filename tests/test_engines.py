@@ -271,3 +271,21 @@ def test_engines_import_neither_spark_nor_dask_until_run():
     )
     found = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert found.stdout.strip() == "[]"
+
+
+def test_dask_runs_each_track_at_its_own_noise_as_one_process(dask_client, rows):
+    """A noise column (each row's σ: ``--noise-col``) is carried to the parts with the
+    positions, and each track's noise class is its own whatever part holds it: the estimates
+    of one process, exactly."""
+    import dask.dataframe as dd
+
+    from torchsvs.engines.dask import track_dask
+
+    codes = rows["id"].astype("category").cat.codes.to_numpy()
+    noisy = rows.assign(sigma=np.array([10.0, 30.0, 90.0])[codes % 3])
+    columns = Columns("id", "t", extra=("sigma",))
+    plan = plan_tracks(noisy, Settings("ks", noise_column="sigma"), columns=columns)
+    frame = dd.from_pandas(noisy, npartitions=4, sort=False)
+    whole = track_table(noisy, plan).table
+    assert "sigma" not in whole.columns
+    _same(track_dask(frame, plan).compute(), whole)
