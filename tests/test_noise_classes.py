@@ -120,3 +120,44 @@ def test_a_file_of_sensors_of_different_quality_runs_each_track_at_its_own_noise
     assert column == pytest.approx(given, rel=0.02)
     with pytest.raises(SystemExit):
         run("both", "--noise-col", "sigma", "--meas-std", "3")
+
+
+def test_autos_blend_weight_is_read_with_each_track_at_its_own_noise():
+    """``sample_blend`` with a noise column runs each class at its own noise and writes the two
+    estimators' terms at the file's: with every track at one σ it is the blend at that noise
+    given, to rounding; with σ from 1 to 9 m it differs from the weight at the file's noise."""
+    from torchsvs.datasets import RecordedTracks
+    from torchsvs.sample_accuracy import sample_blend
+
+    def sample(sigmas: list[float]) -> RecordedTracks:
+        _, measured = _walkers(sigmas, steps=120, seed=4)
+        B = len(sigmas)
+        z = torch.tensor(measured[["x", "y"]].to_numpy()).reshape(B, -1, 2)
+        sigma = torch.tensor(measured["sigma"].to_numpy()).reshape(B, -1)
+        dt = torch.ones(z.shape[:2], dtype=torch.float64)
+        time = dt.cumsum(1)
+        lengths = torch.full((B,), z.shape[1], dtype=torch.int64)
+        ids = [str(b) for b in range(B)]
+        steps = torch.arange(z.shape[0] * z.shape[1]).reshape(z.shape[:2])
+        return RecordedTracks(z, dt, time, lengths, ids, extra={"sigma": sigma}, steps=steps)
+
+    base = Settings("ks", q=0.003, track_q=False, turn_rate_q=1e-4, turn_rate_std=0.05)
+    imm = replace_settings(base, estimator="imm", turn_q=0.5)
+
+    def weight(tracks: RecordedTracks, meas_var: float, column: str | None) -> float:
+        first = replace_settings(base, meas_var=[meas_var] * 2, noise_column=column)
+        second = replace_settings(imm, meas_var=[meas_var] * 2)
+        return sample_blend(first, second, tracks)[0]
+
+    same = sample([3.0] * 8)
+    one = weight(same, 9.0, "sigma")
+    assert 0.1 < one < 0.9 and one == pytest.approx(weight(same, 9.0, None), abs=1e-9)
+    mixed = sample([1.0, 9.0, 2.0, 6.0, 1.5, 4.0, 9.0, 1.0])
+    rms = float(np.mean(np.square([1.0, 9.0, 2.0, 6.0, 1.5, 4.0, 9.0, 1.0])))
+    assert abs(weight(mixed, rms, "sigma") - weight(mixed, rms, None)) > 1e-3
+
+
+def replace_settings(settings: Settings, **changes: object) -> Settings:
+    from dataclasses import replace
+
+    return replace(settings, **changes)  # type: ignore[arg-type]

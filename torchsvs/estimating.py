@@ -170,6 +170,38 @@ def estimate_group(
     return found._replace(outliers=outliers, notes=notes)
 
 
+class NoiseClass(NamedTuple):
+    """The tracks of a group at one noise (:func:`noise_classes`)."""
+
+    factor: float  #: their noise variance over the file's (on the grid)
+    part: GroupBatch  #: those tracks
+    settings: Settings  #: the file's settings at their noise
+    #: [block's tracks] each track's own noise over the file's, by the block's track number
+    #: (what error terms' chunks name): what their terms are written at (``at_file_noise``)
+    ratio_of: np.ndarray
+
+    def at_file_noise(self, terms: RiskTerms) -> RiskTerms:
+        return noise_classes.at_file_noise(terms, self.ratio_of[terms.track])
+
+
+def noise_classes_of(batch: GroupBatch, settings: Settings) -> Iterator[NoiseClass]:
+    """The group's tracks by noise class, where each track has its own noise
+    (``settings.noise_column``, :func:`~torchsvs.fitting.noise_classes.column_factors`)."""
+    assert settings.meas_var is not None and settings.noise_column is not None
+    tracks = batch.tracks
+    observed = ~torch.isnan(tracks.z).all(-1)
+    values = tracks.extra[settings.noise_column]
+    factors = noise_classes.column_factors(values, observed, settings.meas_var)
+    ratio_of = np.ones(int(batch.group.max()) + 1 if len(batch.group) else 0)
+    ratio_of[batch.group] = noise_classes.column_ratios(values, observed, settings.meas_var)
+    for factor in torch.unique(factors).tolist():
+        index = torch.nonzero(factors == factor).flatten()
+        part = GroupBatch(
+            batch.position, batch.group[index.numpy()], tracks.subset(index), batch.offset[index]
+        )
+        yield NoiseClass(factor, part, noise_classes.scaled_settings(settings, factor), ratio_of)
+
+
 def by_noise_class(
     estimator: nn.Module,
     batch: GroupBatch,
@@ -178,29 +210,15 @@ def by_noise_class(
     run: Callable[[nn.Module, GroupBatch, Tensor, Settings], StepEstimates],
 ) -> StepEstimates:
     """``run`` (the estimator, the tracks, their noise and settings) on each noise class of the
-    group, where each track has its own noise (``settings.noise_column``,
-    :func:`~torchsvs.fitting.noise_classes.column_factors`): the class as a file of its noise,
-    its error estimate's terms written at the file's noise
+    group (:func:`noise_classes_of`): the class as a file of its noise, its error estimate's
+    terms written at the file's noise from each track's own
     (:func:`~torchsvs.fitting.noise_classes.at_file_noise`)."""
-    assert settings.meas_var is not None and settings.noise_column is not None
-    tracks = batch.tracks
-    observed = ~torch.isnan(tracks.z).all(-1)
-    values = tracks.extra[settings.noise_column]
-    factors = noise_classes.column_factors(values, observed, settings.meas_var)
-    ratio_of = np.ones(int(batch.group.max()) + 1 if len(batch.group) else 0)  # (by the block's
-    ratio_of[batch.group] = noise_classes.column_ratios(values, observed, settings.meas_var)
-    parts = []  # track number: what the terms' chunks name)
-    for factor in torch.unique(factors).tolist():
-        index = torch.nonzero(factors == factor).flatten()
-        part = GroupBatch(
-            batch.position, batch.group[index.numpy()], tracks.subset(index), batch.offset[index]
-        )
-        own = noise_classes.scaled_settings(settings, factor)
-        with noise_classes.noise_scaled(estimator, factor) as scaled:
-            found = run(scaled, part, meas_std * math.sqrt(factor), own)
+    parts = []
+    for each in noise_classes_of(batch, settings):
+        with noise_classes.noise_scaled(estimator, each.factor) as scaled:
+            found = run(scaled, each.part, meas_std * math.sqrt(each.factor), each.settings)
         if found.risk is not None:
-            ratio = ratio_of[found.risk.track]
-            found = found._replace(risk=noise_classes.at_file_noise(found.risk, ratio))
+            found = found._replace(risk=each.at_file_noise(found.risk))
         parts.append(found)
     return StepEstimates.merge(parts, len(meas_std))
 

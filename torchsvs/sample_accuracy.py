@@ -5,6 +5,8 @@ smoother on the reading is not clearly below the measurements (:func:`lowered_no
 
 from __future__ import annotations
 
+import contextlib
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -22,7 +24,9 @@ from torchsvs.estimating import (
     blend_parts,
     by_noise_class,
     centred,
+    noise_classes_of,
 )
+from torchsvs.fitting import noise_classes
 from torchsvs.fitting.defaults import (
     GUARD_ERRORS,
     complete_settings,
@@ -82,10 +86,30 @@ def sample_blend(
         return make_estimator(settings, make_model(settings)).double()
 
     estimators = (built(first), built(second))
-    found = blend_parts(estimators, (first, second), batch, meas_std, False, True)
-    assert found.terms is not None
-    weight = best_weight(*found.terms, first.meas_var)
-    return weight, blended_terms(*found.terms, weight)
+    if first.noise_column is None:
+        found = blend_parts(estimators, (first, second), batch, meas_std, False, True)
+        assert found.terms is not None
+        terms = found.terms
+    else:  # each noise class at its own, the two's terms at the file's (the cross term has none)
+        parts: list[tuple[RiskTerms, ...]] = []
+        for each in noise_classes_of(batch, first):
+            pair = (each.settings, noise_classes.scaled_settings(second, each.factor))
+            std = meas_std * math.sqrt(each.factor)
+            with contextlib.ExitStack() as stack:
+                scaled = tuple(
+                    stack.enter_context(noise_classes.noise_scaled(e, each.factor))
+                    for e in estimators
+                )
+                found = blend_parts(scaled, pair, each.part, std, False, True)  # type: ignore[arg-type]
+            assert found.terms is not None
+            one, two, cross = found.terms
+            parts.append((each.at_file_noise(one), each.at_file_noise(two), cross))
+        m = len(first.meas_var)
+        joined = [RiskTerms.concat([p[k] for p in parts], m) for k in range(3)]
+        order = np.argsort(joined[0].track, kind="stable")  # (track order, as one run gives)
+        terms = tuple(t.select(order) for t in joined)  # type: ignore[assignment]
+    weight = best_weight(*terms, first.meas_var)
+    return weight, blended_terms(*terms, weight)
 
 
 def probed_terms(settings: Settings, tracks: RecordedTracks, probes: int) -> list[RiskTerms]:
