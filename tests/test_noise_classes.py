@@ -120,6 +120,8 @@ def test_a_file_of_sensors_of_different_quality_runs_each_track_at_its_own_noise
     assert column == pytest.approx(given, rel=0.02)
     with pytest.raises(SystemExit):
         run("both", "--noise-col", "sigma", "--meas-std", "3")
+    with pytest.raises(SystemExit, match=r"\['accuracy'\] not in .* name yours with --noise-col"):
+        run("missing", "--noise-col", "accuracy")
 
 
 def test_autos_blend_weight_is_read_with_each_track_at_its_own_noise():

@@ -74,6 +74,11 @@ class GroupBatch(NamedTuple):
     tracks: RecordedTracks  #: z [B, T, m] in the computation's dtype, priors not yet set
     offset: Tensor  #: [B, m] float64 what :func:`centred` took off, to add back
 
+    def subset(self, index: Tensor) -> GroupBatch:
+        """These of the group's tracks (``[k]`` int64), as a group of the same position."""
+        rows = self.group[index.numpy()]
+        return GroupBatch(self.position, rows, self.tracks.subset(index), self.offset[index])
+
 
 class StepEstimates(NamedTuple):
     """A group's estimates at the block's flat steps, in float64: what a process hands back."""
@@ -170,38 +175,6 @@ def estimate_group(
     return found._replace(outliers=outliers, notes=notes)
 
 
-class NoiseClass(NamedTuple):
-    """The tracks of a group at one noise (:func:`noise_classes`)."""
-
-    factor: float  #: their noise variance over the file's (on the grid)
-    part: GroupBatch  #: those tracks
-    settings: Settings  #: the file's settings at their noise
-    #: [block's tracks] each track's own noise over the file's, by the block's track number
-    #: (what error terms' chunks name): what their terms are written at (``at_file_noise``)
-    ratio_of: np.ndarray
-
-    def at_file_noise(self, terms: RiskTerms) -> RiskTerms:
-        return noise_classes.at_file_noise(terms, self.ratio_of[terms.track])
-
-
-def noise_classes_of(batch: GroupBatch, settings: Settings) -> Iterator[NoiseClass]:
-    """The group's tracks by noise class, where each track has its own noise
-    (``settings.noise_column``, :func:`~torchsvs.fitting.noise_classes.column_factors`)."""
-    assert settings.meas_var is not None and settings.noise_column is not None
-    tracks = batch.tracks
-    observed = ~torch.isnan(tracks.z).all(-1)
-    values = tracks.extra[settings.noise_column]
-    factors = noise_classes.column_factors(values, observed, settings.meas_var)
-    ratio_of = np.ones(int(batch.group.max()) + 1 if len(batch.group) else 0)
-    ratio_of[batch.group] = noise_classes.column_ratios(values, observed, settings.meas_var)
-    for factor in torch.unique(factors).tolist():
-        index = torch.nonzero(factors == factor).flatten()
-        part = GroupBatch(
-            batch.position, batch.group[index.numpy()], tracks.subset(index), batch.offset[index]
-        )
-        yield NoiseClass(factor, part, noise_classes.scaled_settings(settings, factor), ratio_of)
-
-
 def by_noise_class(
     estimator: nn.Module,
     batch: GroupBatch,
@@ -210,13 +183,13 @@ def by_noise_class(
     run: Callable[[nn.Module, GroupBatch, Tensor, Settings], StepEstimates],
 ) -> StepEstimates:
     """``run`` (the estimator, the tracks, their noise and settings) on each noise class of the
-    group (:func:`noise_classes_of`): the class as a file of its noise, its error estimate's
-    terms written at the file's noise from each track's own
-    (:func:`~torchsvs.fitting.noise_classes.at_file_noise`)."""
+    group (:func:`~torchsvs.fitting.noise_classes.classes_of`): the class as a file of its
+    noise, its error estimate's terms written at the file's noise from each track's own."""
     parts = []
-    for each in noise_classes_of(batch, settings):
+    for each in noise_classes.classes_of(batch.tracks, batch.group, settings):
+        part = batch.subset(each.members)
         with noise_classes.noise_scaled(estimator, each.factor) as scaled:
-            found = run(scaled, each.part, meas_std * math.sqrt(each.factor), each.settings)
+            found = run(scaled, part, meas_std * math.sqrt(each.factor), each.settings)
         if found.risk is not None:
             found = found._replace(risk=each.at_file_noise(found.risk))
         parts.append(found)
@@ -272,12 +245,7 @@ def _estimate_factors(
     parts = []
     for factor in torch.unique(factors).tolist():
         index = torch.nonzero(factors == factor).flatten()
-        part = GroupBatch(
-            batch.position,
-            batch.group[index.numpy()],
-            batch.tracks.subset(index),
-            batch.offset[index],
-        )
+        part = batch.subset(index)
         steps = part.tracks.z.shape[1]
         run = None if runs is None else curve_run(runs, index, steps, settings.q * factor)
         if run is not None:

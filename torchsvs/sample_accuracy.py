@@ -24,7 +24,6 @@ from torchsvs.estimating import (
     blend_parts,
     by_noise_class,
     centred,
-    noise_classes_of,
 )
 from torchsvs.fitting import noise_classes
 from torchsvs.fitting.defaults import (
@@ -92,15 +91,16 @@ def sample_blend(
         terms = found.terms
     else:  # each noise class at its own, the two's terms at the file's (the cross term has none)
         parts: list[tuple[RiskTerms, ...]] = []
-        for each in noise_classes_of(batch, first):
+        for each in noise_classes.classes_of(batch.tracks, batch.group, first):
             pair = (each.settings, noise_classes.scaled_settings(second, each.factor))
             std = meas_std * math.sqrt(each.factor)
+            part = batch.subset(each.members)
             with contextlib.ExitStack() as stack:
                 scaled = tuple(
                     stack.enter_context(noise_classes.noise_scaled(e, each.factor))
                     for e in estimators
                 )
-                found = blend_parts(scaled, pair, each.part, std, False, True)  # type: ignore[arg-type]
+                found = blend_parts(scaled, pair, part, std, False, True)  # type: ignore[arg-type]
             assert found.terms is not None
             one, two, cross = found.terms
             parts.append((each.at_file_noise(one), each.at_file_noise(two), cross))

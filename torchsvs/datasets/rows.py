@@ -221,7 +221,7 @@ class Columns:
         flags = {track_id: "--id-col", time: "--time-col", **dict.fromkeys(position, "--pos-cols")}
         missing = [c for c in (track_id, time, *position, *self.extra) if c not in available]
         if missing:
-            hint = ", ".join(sorted({flags.get(c, "Columns(extra=...)") for c in missing}))
+            hint = ", ".join(sorted({flags.get(c, "--noise-col") for c in missing}))  # (extra)
             raise ValueError(
                 f"columns: {missing} not in {source} (its columns: {list(available)}); "
                 f"name yours with {hint} (torchsvs track) or Columns(...)"

@@ -25,6 +25,7 @@ import copy
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -32,6 +33,7 @@ from torch import Tensor, nn
 
 from torchsvs.accuracy import RiskTerms
 from torchsvs.constraints import SPDMatrix
+from torchsvs.datasets import RecordedTracks
 from torchsvs.recipes import Settings
 
 #: A track's noise variance is the file's times a power of this (σ within 4.5% of its own):
@@ -72,6 +74,37 @@ def column_factors(values: Tensor, observed: Tensor, meas_var: Sequence[float]) 
     class runs at (its error estimate reads its own, :func:`at_file_noise`)."""
     steps = (column_ratios(values, observed, meas_var).log() / math.log(FACTOR_STEP)).round()
     return FACTOR_STEP**steps
+
+
+class NoiseClass(NamedTuple):
+    """A group's tracks at one noise (:func:`classes_of`)."""
+
+    factor: float  #: their noise variance over the file's (on the grid)
+    members: Tensor  #: [k] int64 those of the group's tracks
+    settings: Settings  #: the file's settings at their noise (:func:`scaled_settings`)
+    #: each track's own noise over the file's, by the block's track number (what error terms'
+    #: chunks name)
+    ratio_of: np.ndarray
+
+    def at_file_noise(self, terms: RiskTerms) -> RiskTerms:
+        """Their error terms at the file's noise from each track's own (:func:`at_file_noise`)."""
+        return at_file_noise(terms, self.ratio_of[terms.track])
+
+
+def classes_of(
+    tracks: RecordedTracks, group: np.ndarray, settings: Settings
+) -> Iterator[NoiseClass]:
+    """The noise classes of a group's ``tracks`` (the block's tracks ``group [B]``) where each
+    has its own noise (``settings.noise_column``: :func:`column_factors`)."""
+    assert settings.meas_var is not None and settings.noise_column is not None
+    observed = ~torch.isnan(tracks.z).all(-1)
+    values = tracks.extra[settings.noise_column]
+    factors = column_factors(values, observed, settings.meas_var)
+    ratio_of = np.ones(int(group.max()) + 1 if len(group) else 0)
+    ratio_of[group] = column_ratios(values, observed, settings.meas_var).numpy()
+    for factor in torch.unique(factors).tolist():
+        index = torch.nonzero(factors == factor).flatten()
+        yield NoiseClass(factor, index, scaled_settings(settings, factor), ratio_of)
 
 
 def scaled_settings(settings: Settings, factor: float) -> Settings:
