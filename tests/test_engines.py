@@ -16,7 +16,7 @@ import pytest
 from tests.test_track_cli import _simulated_csv
 from torchsvs.datasets import Columns
 from torchsvs.recipes import Settings
-from torchsvs.track_plan import plan_tracks
+from torchsvs.track_plan import TrackPlan, plan_tracks
 from torchsvs.track_table import track_table
 
 COLUMNS = Columns("id", "t")
@@ -128,6 +128,25 @@ def test_spark_gives_the_estimates_of_one_process(spark, spark_rows, rows, plans
     assert run.report.measurement == whole.run.report.measurement
     assert run.report.tracks == whole.run.report.tracks
     assert run.accuracy is not None
+
+
+def _with_noise_column(rows: pd.DataFrame) -> tuple[pd.DataFrame, TrackPlan]:
+    """The rows with each track's σ in a ``sigma`` column (10, 30 or 90 m by track), and the
+    plan that runs each track at its own (``--noise-col sigma``)."""
+    codes = rows["id"].astype("category").cat.codes.to_numpy()
+    noisy = rows.assign(sigma=np.array([10.0, 30.0, 90.0])[codes % 3])
+    columns = Columns("id", "t", extra=("sigma",))
+    return noisy, plan_tracks(noisy, Settings("ks", noise_column="sigma"), columns=columns)
+
+
+def test_spark_runs_each_track_at_its_own_noise_as_one_process(spark, rows):
+    """A noise column reaches Spark's parts with the positions: the estimates of one process,
+    exactly, with every track split over partitions."""
+    from torchsvs.engines.spark import track_spark
+
+    noisy, plan = _with_noise_column(rows)
+    frame = spark.createDataFrame(noisy).repartition(4)
+    _same(track_spark(frame, plan).toPandas(), track_table(noisy, plan).table)
 
 
 def test_spark_groups_give_the_same(spark, spark_rows, rows, plans):
@@ -281,10 +300,7 @@ def test_dask_runs_each_track_at_its_own_noise_as_one_process(dask_client, rows)
 
     from torchsvs.engines.dask import track_dask
 
-    codes = rows["id"].astype("category").cat.codes.to_numpy()
-    noisy = rows.assign(sigma=np.array([10.0, 30.0, 90.0])[codes % 3])
-    columns = Columns("id", "t", extra=("sigma",))
-    plan = plan_tracks(noisy, Settings("ks", noise_column="sigma"), columns=columns)
+    noisy, plan = _with_noise_column(rows)
     frame = dd.from_pandas(noisy, npartitions=4, sort=False)
     whole = track_table(noisy, plan).table
     assert "sigma" not in whole.columns
