@@ -163,3 +163,17 @@ def replace_settings(settings: Settings, **changes: object) -> Settings:
     from dataclasses import replace
 
     return replace(settings, **changes)  # type: ignore[arg-type]
+
+
+def test_a_zero_noise_in_a_block_past_the_plans_is_refused_by_name(tmp_path):
+    """The plan reads the column off its sample; a later block's σ of 0 (a sensor's "unknown")
+    is refused there too, naming the column, and no output is left behind."""
+    _, measured = _walkers([2.0, 3.0, 4.0, 5.0, 6.0, 3.0], steps=100)
+    last = measured["track_id"] == "w05"
+    measured.loc[last & (measured["time"] > 50), "sigma"] = 0.0
+    source, target = tmp_path / "in.csv", tmp_path / "out.csv"
+    measured.to_csv(source, index=False)
+    args = ["track", str(source), "-o", str(target), "--noise-col", "sigma", "--quiet"]
+    with pytest.raises(SystemExit, match="noise column 'sigma': expected standard deviations > 0"):
+        main([*args, "--stream", "--block-rows", "250"])
+    assert not target.exists()

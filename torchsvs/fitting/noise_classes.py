@@ -51,12 +51,16 @@ def column_noise(values: Tensor, observed: Tensor, column: str) -> float:
             f"noise column {column!r}: expected a standard deviation on the rows with a "
             "position, got none"
         )
+    _check_positive(given, column)
+    return float(given.to(torch.float64).square().mean())
+
+
+def _check_positive(given: Tensor, column: str) -> None:
     if bool((given <= 0).any()):
         raise ValueError(
             f"noise column {column!r}: expected standard deviations > 0, got "
             f"{float(given.min()):.4g}"
         )
-    return float(given.to(torch.float64).square().mean())
 
 
 def column_ratios(values: Tensor, observed: Tensor, meas_var: Sequence[float]) -> Tensor:
@@ -96,9 +100,11 @@ def classes_of(
 ) -> Iterator[NoiseClass]:
     """The noise classes of a group's ``tracks`` (the block's tracks ``group [B]``) where each
     has its own noise (``settings.noise_column``: :func:`column_factors`)."""
-    assert settings.meas_var is not None and settings.noise_column is not None
+    column = settings.noise_column
+    assert settings.meas_var is not None and column is not None
     observed = ~torch.isnan(tracks.z).all(-1)
-    values = tracks.extra[settings.noise_column]
+    values = tracks.extra[column]
+    _check_positive(values[observed & torch.isfinite(values)], column)  # (a block past the plan's)
     factors = column_factors(values, observed, settings.meas_var)
     ratio_of = np.ones(int(group.max()) + 1 if len(group) else 0)
     ratio_of[group] = column_ratios(values, observed, settings.meas_var).numpy()
