@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -144,11 +145,11 @@ def test_autos_blend_weight_is_read_with_each_track_at_its_own_noise():
         return RecordedTracks(z, dt, time, lengths, ids, extra={"sigma": sigma}, steps=steps)
 
     base = Settings("ks", q=0.003, track_q=False, turn_rate_q=1e-4, turn_rate_std=0.05)
-    imm = replace_settings(base, estimator="imm", turn_q=0.5)
+    imm = replace(base, estimator="imm", turn_q=0.5)
 
     def weight(tracks: RecordedTracks, meas_var: float, column: str | None) -> float:
-        first = replace_settings(base, meas_var=[meas_var] * 2, noise_column=column)
-        second = replace_settings(imm, meas_var=[meas_var] * 2)
+        first = replace(base, meas_var=[meas_var] * 2, noise_column=column)
+        second = replace(imm, meas_var=[meas_var] * 2)
         return sample_blend(first, second, tracks)[0]
 
     same = sample([3.0] * 8)
@@ -157,12 +158,6 @@ def test_autos_blend_weight_is_read_with_each_track_at_its_own_noise():
     mixed = sample([1.0, 9.0, 2.0, 6.0, 1.5, 4.0, 9.0, 1.0])
     rms = float(np.mean(np.square([1.0, 9.0, 2.0, 6.0, 1.5, 4.0, 9.0, 1.0])))
     assert abs(weight(mixed, rms, "sigma") - weight(mixed, rms, None)) > 1e-3
-
-
-def replace_settings(settings: Settings, **changes: object) -> Settings:
-    from dataclasses import replace
-
-    return replace(settings, **changes)  # type: ignore[arg-type]
 
 
 def test_a_zero_noise_in_a_block_past_the_plans_is_refused_by_name(tmp_path):

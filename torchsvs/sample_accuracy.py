@@ -5,7 +5,6 @@ smoother on the reading is not clearly below the measurements (:func:`lowered_no
 
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import replace
 
@@ -90,24 +89,22 @@ def sample_blend(
         assert found.terms is not None
         terms = found.terms
     else:  # each noise class at its own, the two's terms at the file's (the cross term has none)
-        parts: list[tuple[RiskTerms, ...]] = []
+        parts: list[tuple[RiskTerms, RiskTerms, RiskTerms]] = []
         for each in noise_classes.classes_of(batch.tracks, batch.group, first):
             pair = (each.settings, noise_classes.scaled_settings(second, each.factor))
             std = meas_std * math.sqrt(each.factor)
-            part = batch.subset(each.members)
-            with contextlib.ExitStack() as stack:
-                scaled = tuple(
-                    stack.enter_context(noise_classes.noise_scaled(e, each.factor))
-                    for e in estimators
-                )
-                found = blend_parts(scaled, pair, part, std, False, True)  # type: ignore[arg-type]
+            with (
+                noise_classes.noise_scaled(estimators[0], each.factor) as one,
+                noise_classes.noise_scaled(estimators[1], each.factor) as two,
+            ):
+                found = blend_parts((one, two), pair, batch.subset(each.members), std, False, True)
             assert found.terms is not None
-            one, two, cross = found.terms
-            parts.append((each.at_file_noise(one), each.at_file_noise(two), cross))
+            mine, other, cross = found.terms
+            parts.append((each.at_file_noise(mine), each.at_file_noise(other), cross))
         m = len(first.meas_var)
-        joined = [RiskTerms.concat([p[k] for p in parts], m) for k in range(3)]
-        order = np.argsort(joined[0].track, kind="stable")  # (track order, as one run gives)
-        terms = tuple(t.select(order) for t in joined)  # type: ignore[assignment]
+        mine, other, cross = (RiskTerms.concat([p[k] for p in parts], m) for k in range(3))
+        order = np.argsort(mine.track, kind="stable")  # (track order, as one run gives)
+        terms = (mine.select(order), other.select(order), cross.select(order))
     weight = best_weight(*terms, first.meas_var)
     return weight, blended_terms(*terms, weight)
 

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -28,7 +29,7 @@ from torchsvs.fitting.noise import (
     smoother_q,
     track_q_factors,
 )
-from torchsvs.fitting.noise_classes import column_factors, column_noise
+from torchsvs.fitting.noise_classes import classes_of, column_noise
 from torchsvs.fitting.outliers import screen_outliers
 from torchsvs.fitting.q_windows import choose_window
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
@@ -112,7 +113,7 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
     if settings.meas_var is not None:
         return settings
     column = settings.noise_column
-    if column is not None:  # each row's own: the file's is their median
+    if column is not None:  # each row's own: the file's is their mean square
         observed = ~torch.isnan(tracks.z).all(-1)
         var = column_noise(tracks.extra[column], observed, column)
         return replace(settings, meas_var=[var] * tracks.z.shape[-1], noise="given")
@@ -153,7 +154,7 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
             if imm:
                 data_q = imm_base_q(tracks, meas_var)
             elif settings.noise_column is not None:
-                data_q = class_sure_q(settings.noise_column, tracks, meas_var, settings.estimator)
+                data_q = class_sure_q(settings, tracks, meas_var, settings.estimator)
             else:
                 data_q = _sure_q(tracks, meas_var, settings.estimator)
         except ValueError:  # too little data to say: the measurement noise over one step
@@ -234,7 +235,7 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
             q = (
                 smoother_q(tracks.z, tracks.dt, r, clip=SCREEN_CLIP).q
                 if settings.noise_column is None
-                else class_sure_q(settings.noise_column, tracks, first.meas_var, "ks")
+                else class_sure_q(settings, tracks, first.meas_var, "ks")
             )
         except ValueError:  # too little data to say: the measurement noise over one step
             q = sum(first.meas_var) / len(first.meas_var) / first.interval**3
@@ -246,7 +247,7 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
                 q = (
                     _sure_q(clean, first.meas_var, "ks")
                     if settings.noise_column is None
-                    else class_sure_q(settings.noise_column, clean, first.meas_var, "ks")
+                    else class_sure_q(settings, clean, first.meas_var, "ks")
                 )
             except ValueError:
                 break
@@ -254,30 +255,36 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
 
 
 def class_sure_q(
-    column: str, tracks: RecordedTracks, meas_var: Sequence[float], estimator: str
+    settings: Settings, tracks: RecordedTracks, meas_var: Sequence[float], estimator: str
 ) -> float:
-    """:func:`_sure_q` with each track at its own noise (the noise column's,
-    :func:`~torchsvs.fitting.noise_classes.column_factors`): the ``q`` of the least SURE summed
-    over the noise classes, each at its noise (at the file's, the noisier tracks' noise reads as
-    motion: 1,500 for 4 on 1 s scans whose tracks' σ spans 3-30 m), searched from the file's
-    (golden section on ``log q``, :func:`~torchsvs.fitting.noise._golden_search`)."""
-    observed = ~torch.isnan(tracks.z).all(-1)
-    factors = column_factors(tracks.extra[column], observed, meas_var)
-    classes = [torch.nonzero(factors == f).flatten() for f in torch.unique(factors).tolist()]
+    """:func:`_sure_q` with each track at its own noise (``settings.noise_column``,
+    :func:`~torchsvs.fitting.noise_classes.classes_of`, around the file's ``meas_var``): the
+    ``q`` of the least SURE summed over the noise classes, each at its own noise (at the file's,
+    the noisier tracks' noise reads as motion: 1,514 for 3.5 on 1 s scans whose tracks' σ spans
+    3-30 m), by golden section in ``log q`` (:func:`~torchsvs.fitting.noise._golden_search`).
+    Whole tracks, unclipped (the screen's first reading clips each term where one noise serves
+    all)."""
+    around = replace(settings, meas_var=list(meas_var))
+    parts = [  # (each class's tracks, once: the search reads them at every q)
+        (tracks.subset(each.members), each.settings.meas_var)
+        for each in classes_of(tracks, np.arange(len(tracks)), around)
+    ]
     smoothed = estimator not in FILTERS
 
     def total(log_q: float) -> float:
         risk = 0.0
-        for index in classes:
-            scaled = [v * float(factors[index[0]]) for v in meas_var]
-            found = q_curves(
-                tracks.z[index], tracks.dt[index], scaled, 10.0**log_q, smoothed, (1.0,)
-            )
+        for part, own in parts:
+            assert own is not None
+            found = q_curves(part.z, part.dt, own, math.exp(log_q), smoothed, (1.0,))
             risk += float(found.risk.sum())
         return risk
 
-    start = math.log10(_sure_q(tracks, meas_var, estimator))
-    return 10.0 ** _golden_search(total, [start + k / 2 for k in range(-8, 3)])
+    # bracketed from the file-noise reading (on windows: cheap), which the noisier tracks' noise
+    # pushes up: half decades from 4 below it to 1 above (smoother_q's whole grid took about 1.3x
+    # the plan's time on 1 s scans for the same q, to its tolerance)
+    start = math.log(_sure_q(tracks, meas_var, estimator))
+    step = 0.5 * math.log(10.0)
+    return math.exp(_golden_search(total, [start + k * step for k in range(-8, 3)]))
 
 
 def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:
@@ -349,19 +356,16 @@ def settings_note(settings: Settings) -> str:
 
 def noise_class_curves(settings: Settings, tracks: RecordedTracks, smoothed: bool) -> QCurves:
     """The tracks' SURE curves of ``q`` (:func:`~torchsvs.fitting.noise.q_curves`), each
-    track at its own noise (``settings.noise_column``, :mod:`torchsvs.fitting.noise_classes`):
-    so the file's pooled curve is in the units each track runs in."""
-    assert settings.meas_var is not None and settings.q is not None
-    assert settings.noise_column is not None
-    observed = ~torch.isnan(tracks.z).all(-1)
-    factors = column_factors(tracks.extra[settings.noise_column], observed, settings.meas_var)
-    risk = torch.zeros(len(Q_FACTORS), tracks.z.shape[0], dtype=torch.float64)
-    counts = torch.zeros(tracks.z.shape[0], dtype=torch.float64)
-    for factor in torch.unique(factors).tolist():
-        index = torch.nonzero(factors == factor).flatten()
-        meas_var = [v * factor for v in settings.meas_var]
-        found = q_curves(tracks.z[index], tracks.dt[index], meas_var, settings.q, smoothed)
-        risk[:, index], counts[index] = found.risk, found.counts
+    track at its own noise (``settings.noise_column``, :func:`~torchsvs.fitting.noise_classes.
+    classes_of`): so the file's pooled curve is in the units each track runs in."""
+    assert settings.q is not None
+    risk = torch.zeros(len(Q_FACTORS), len(tracks), dtype=torch.float64)
+    counts = torch.zeros(len(tracks), dtype=torch.float64)
+    for each in classes_of(tracks, np.arange(len(tracks)), settings):
+        part, rows = tracks.subset(each.members), each.members
+        assert each.settings.meas_var is not None
+        found = q_curves(part.z, part.dt, each.settings.meas_var, settings.q, smoothed)
+        risk[:, rows], counts[rows] = found.risk, found.counts
     return QCurves(risk, counts)
 
 
