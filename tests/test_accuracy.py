@@ -519,7 +519,7 @@ def test_auto_scores_every_candidate_on_the_same_tracks_and_the_imm_beyond_its_b
 
 def test_spread_tracks_keeps_the_most_tracks_within_the_points():
     from torchsvs.datasets import RecordedTracks
-    from torchsvs.selection import spread_tracks
+    from torchsvs.fitting.defaults import spread_tracks
 
     lengths = torch.tensor([100, 10, 50, 200, 30, 80, 120, 60])
     z = torch.full((8, 200, 2), math.nan)

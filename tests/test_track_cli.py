@@ -396,7 +396,9 @@ def test_the_summary_json_writes_an_unknown_number_as_null():
     assert back["fit"] == {"se": None, "q": 0.25} and back["seconds"] == 1.5
 
 
-def test_a_noise_given_too_high_gives_no_error_estimate_of_zero_but_a_warning(tmp_path):
+def test_a_noise_given_too_high_gives_no_error_estimate_of_zero_but_a_warning(
+    tmp_path, monkeypatch
+):
     """The noise given as a bound (here twice σ, a 95% one) rather than σ: SURE at it comes out
     surely below zero, and the run printed "estimated position error 0 m (range 0-0)" without a
     word. Now the summary has no number (null), and a warning names the noise given, the most
@@ -404,8 +406,12 @@ def test_a_noise_given_too_high_gives_no_error_estimate_of_zero_but_a_warning(tm
     the estimate is a number near the truth's, and no such warning."""
     import json
 
+    from torchsvs.fitting import defaults
     from torchsvs.track_run import summary_path
 
+    # (the check of a given noise against the data's reading off: this is what is left where
+    # that reading cannot tell, test_a_noise_given_above_what_the_data_show_is_said_so)
+    monkeypatch.setattr(defaults, "GIVEN_CHECK_ERRORS", math.inf)
     source = tmp_path / "in.csv"
     truth = _simulated_csv(source, tracks=16, steps=120, sigma=10.0)
     found = {}
@@ -425,3 +431,33 @@ def test_a_noise_given_too_high_gives_no_error_estimate_of_zero_but_a_warning(tm
     assert "noise given ([20, 20] m)" in warning and "1σ" in warning
     bound = float(warning.split("(about [")[1].split(",")[0])
     assert 10.0 < bound < 20.0
+
+
+def test_a_noise_given_above_what_the_data_show_is_said_so(tmp_path):
+    """σ 10 m given as 20 (a 95% bound): the noise read off the data says less, so the run warns
+    and makes its error estimate at that reading, its range reaching the noise given; before,
+    10 s scans printed 11.6 m for a true 15.7 m and the 1 s kinds 0 m, without a word. At σ
+    itself neither the warning nor any change (no set of 63 of every kind at σ 3-250 m has
+    its reading 3 standard errors below σ; at 2σ, 54 do)."""
+    import json
+
+    from torchsvs.track_run import summary_path
+
+    source = tmp_path / "in.csv"
+    truth = _simulated_csv(source, tracks=16, steps=120, sigma=10.0)
+    found = {}
+    for given in ("10", "20"):
+        target = tmp_path / f"out{given}.csv"
+        _run_simulated(source, target, "--estimator", "ks", "--meas-std", given)
+        found[given] = json.loads(summary_path(target).read_text())
+        found[given]["true"] = _errors(source, target, truth)[0] * math.sqrt(2.0)
+    right, high = found["10"], found["20"]
+    assert right["settings"]["noise_above_data"] is None
+    assert not any("above what the data show" in w for w in right["warnings"])
+    (warning,) = [w for w in high["warnings"] if "above what the data show" in w]
+    assert "given as [20, 20] m" in warning and "1σ" in warning
+    read = high["settings"]["noise_above_data"]
+    assert all(8.0 < s < 13.0 for s in read) and high["meas_std"] == read
+    assert 0.7 < high["estimated_position_rmse"] / high["true"] < 1.3
+    low, top = high["estimated_position_rmse_interval"]
+    assert low <= high["true"] <= top * 1.05

@@ -135,6 +135,9 @@ class Settings:
     #: deviations squared, the file's ``meas_var`` their mean (:mod:`torchsvs.fitting.
     #: noise_classes`); the column is read as an extra column of the rows
     noise_column: str | None = None
+    #: where the noise was given and is above what the data show (a bound given as σ), the
+    #: noise per axis read off them (:func:`~torchsvs.fitting.defaults.checked_given_noise`)
+    noise_above_data: list[float] | None = None
     #: each track its own ``q`` (the file's times a factor its SURE picks, shrunk toward the
     #: file's: :func:`~torchsvs.fitting.noise.track_q_factors`), where ``q`` is not given
     track_q: bool = True

@@ -22,7 +22,6 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
-import torch
 
 from torchsvs.accuracy import RiskTerms
 from torchsvs.datasets import RecordedTracks
@@ -31,6 +30,7 @@ from torchsvs.fitting.defaults import (
     complete_settings,
     meas_var_range,
     settings_note,
+    spread_tracks,
     with_q_curve,
 )
 from torchsvs.fitting.tuning import FitResult, self_tune
@@ -578,22 +578,3 @@ def probed_difference(
     each = [i.difference(c, meas_var)[0] for i, c in zip(incumbent, challenger, strict=True)]
     probes_var = float(np.var(each, ddof=1)) / len(challenger)
     return change, math.sqrt(chunks_se**2 + probes_var)
-
-
-def spread_tracks(tracks: RecordedTracks, points: int) -> RecordedTracks:
-    """The most tracks spread evenly over ``tracks`` whose observed positions number at most
-    ``points`` (at least one track)."""
-    observed = (~tracks.z[..., 0].isnan()).sum(dim=1)
-    count = len(observed)
-
-    def pick(k: int) -> torch.Tensor:
-        return torch.linspace(0, count - 1, k).round().long().unique()
-
-    low, high = 1, count  # the largest k whose pick fits
-    while low < high:
-        middle = (low + high + 1) // 2
-        if int(observed[pick(middle)].sum()) <= points:
-            low = middle
-        else:
-            high = middle - 1
-    return tracks.subset(pick(low))

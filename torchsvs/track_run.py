@@ -153,6 +153,10 @@ class TrackRun:
         if self.risk is None or self.settings is None or self.risk.points == 0:
             return None
         assert self.settings.meas_var is not None
+        above = self.settings.noise_above_data
+        if above is not None:  # a given noise above the data's: at their reading, up to it
+            read = [s * s for s in above]
+            return accuracy_of(self.risk, read, True, (read, list(self.settings.meas_var)))
         return accuracy_of(
             self.risk,
             self.settings.meas_var,
@@ -253,6 +257,18 @@ class TrackRun:
                 "deviation) or each sensor's tracks apart with its own: one noise for all fits "
                 "none (on tracks whose noise spans a third to three times the file's, the "
                 "estimates came out at 0.6-1.0 of the measurements' error)"
+            )
+        above = self.settings.noise_above_data
+        if above is not None and self.settings.meas_var is not None:
+            self.warnings.append(
+                f"measurement noise: given as {short([v**0.5 for v in self.settings.meas_var])} "
+                f"m, above what the data show (read off them: {short(above)} m; motion only "
+                "raises that reading): a bound given as the standard deviation, errors "
+                "correlated from report to report, or errors with heavy tails (the reading "
+                "counts their Gaussian core); the estimates smooth more than the data "
+                "need, and the error estimate is made at the reading, its range reaching the "
+                "noise given; give --meas-std as the sensor's 1σ, or leave it out to read it "
+                "off the data"
             )
         lowered = self.settings.noise_lowered_from
         if lowered is not None:
