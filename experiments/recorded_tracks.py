@@ -717,8 +717,15 @@ def warned_of_estimate(run: Run) -> bool:
     """Whether the run warned that its error estimate is uncertain
     (:func:`torchsvs.track_run.uncertain_estimate`), no estimate (below zero,
     :func:`~torchsvs.track_run.below_zero_estimate`) or may be off: the sensor erring grossly
-    (:func:`~torchsvs.track_run.gross_errors`), one noise level not fitting every track."""
-    signs = ("is uncertain", "counts white noise only", "below zero", "does not fit every track")
+    (:func:`~torchsvs.track_run.gross_errors`), one noise level not fitting every track, a
+    noise given above what the data show."""
+    signs = (
+        "is uncertain",
+        "counts white noise only",
+        "below zero",
+        "does not fit every track",
+        "above what the data show",
+    )
     return any(sign in w for w in run.warnings for sign in signs)
 
 
