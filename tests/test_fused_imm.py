@@ -79,7 +79,8 @@ def both(est, z, x0, P0, **kwargs):
 @pytest.mark.parametrize("lag", [0, 1, 5, None, 400])
 @pytest.mark.parametrize("keep", ["mean", "moments"])
 def test_compiled_imm_equals_the_tensor_path(D, irregular, lag, keep):
-    # 11 tracks: a block of eight lanes and a short block of three (its last lane repeated);
+    # 11 tracks: full blocks of lanes and a short last block (11 fills no vector width: 2, 4
+    # or 8 float64), its last lane repeated;
     # missing components and a step without measurement; lag 400 beyond the track's end is
     # the fixed interval
     z, dt, x0, P0 = turning_tracks(11, 40, D, irregular, missing=True)

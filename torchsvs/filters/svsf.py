@@ -438,8 +438,9 @@ class VariableBoundarySVSF(SVSF):
     @property
     def paths(self) -> FastPaths:  # type: ignore[override]
         """The per-axis kernel's rule: compiled, with its reverse mode, for the default
-        ``"innovation"`` inflation of up to :data:`~torchsvs.kernels.fused_axes.MAX_COUPLED_AXES`
-        axes (one λ per track couples its axes), else its tensor loop."""
+        ``"innovation"`` inflation of as many axes as one vector of lanes holds (one λ per track
+        couples its axes: :func:`~torchsvs.kernels.fused_axes.compiles`), else its tensor
+        loop."""
         return FastPaths(axis=f"vbl-{self.inflation}")
 
     def filter_step(

@@ -236,7 +236,8 @@ def run_axes(
     noise = Sym2(*(per_step(x) for x in y.noise))
     prior = (x0[0], x0[1], P0.a, P0.b, P0.c)
     raw = given(T_all, *Q_all, y.position, y.velocity, *y.noise, width_p, width_v)
-    if fused_axes.compiles(rule, m) and build.usable(*raw, *prior, gamma, differentiable=True):
+    usable = build.usable(*raw, *prior, gamma, differentiable=True)
+    if usable and fused_axes.compiles(rule, m, dtype):
         inputs = (*raw, *prior)
         shape = (B, steps, m)
         training = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, gamma))

@@ -170,6 +170,7 @@ def library() -> ctypes.CDLL | None:
         curves.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, *(vp,) * 4]
         # the chunk and its sums, the studentized residuals and the leverage they stop at
         curves.argtypes += [ctypes.c_int64, vp, vp, ctypes.c_double]
+        getattr(lib, f"lane_width_{suffix}").restype = ctypes.c_int
     imm = lib.turn_imm_f64
     imm.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_void_p, pointers]
     imm.argtypes += [ctypes.c_int64, ctypes.c_int64, pointers]
@@ -199,6 +200,15 @@ def usable(*tensors: Tensor, differentiable: bool = False) -> bool:
 
 
 _FLOATS = (torch.float32, torch.float64)
+
+
+def lane_width(dtype: torch.dtype) -> int:
+    """How many lanes (track axes) of ``dtype`` one vector of the loaded library steps
+    together: one register of the machine it was built for (``cpp/lanes.h``); 0 where the
+    library is unavailable."""
+    if dtype not in _FLOATS or library() is None:
+        return 0
+    return int(function("lane_width", dtype)())
 
 
 _HUGE_PAGE = 2 << 20

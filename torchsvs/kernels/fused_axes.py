@@ -54,16 +54,19 @@ MAX_AXES = 64
 #: The compiled loops' codes of the per-axis rules (``Rule`` in ``cpp/axis_step.h``); the
 #: variable boundary layer's ``"gain"`` inflation has tensor loops only.
 RULES = {"kalman": 0, "svsf": 1, "vbl-innovation": 2}
-#: Most axes of a rule that couples a track's axes (the variable boundary layer's one λ per
-#: track): a vector of lanes holds a track whole (``lanes_per_vector`` in ``cpp/lanes.h``; 8
-#: lanes of float64).
-MAX_COUPLED_AXES = 8
 
 
-def compiles(rule: str, axes: int) -> bool:
-    """Whether the compiled loops run ``rule`` on tracks of ``axes`` axes."""
-    coupled = rule.startswith("vbl-")
-    return rule in RULES and axes <= (MAX_COUPLED_AXES if coupled else MAX_AXES)
+def compiles(rule: str, axes: int, dtype: torch.dtype) -> bool:
+    """Whether the compiled loops run ``rule`` on tracks of ``axes`` axes in ``dtype``: a rule
+    that couples a track's axes (the variable boundary layer's one λ per track) needs a track
+    whole in one vector of lanes (``lanes_per_vector`` in ``cpp/lanes.h``): at most
+    :func:`~torchsvs.kernels.build.lane_width` axes (float64: 8 with AVX-512, 4 with AVX, 2
+    with SSE2 or NEON)."""
+    if rule not in RULES:
+        return False
+    if rule.startswith("vbl-"):
+        return axes <= build.lane_width(dtype)
+    return axes <= MAX_AXES
 
 
 class Last(NamedTuple):

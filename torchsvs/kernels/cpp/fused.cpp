@@ -101,7 +101,10 @@ extern "C" {
                          static_cast<R*>(mean), static_cast<R*>(var),                         \
                          static_cast<R*>(first_two), chunk, static_cast<R*>(sums),            \
                          static_cast<R*>(student), max_leverage);                             \
-    }
+    }                                                                                         \
+    /* how many lanes a vector steps together (lanes.h's kWidth): the most axes a rule that \
+       couples a track's axes runs compiled */                                                \
+    int lane_width_##suffix() { return LaneBlock<R>::kWidth; }
 
 TORCHSVS_ENTRIES(f32, float)
 TORCHSVS_ENTRIES(f64, double)

@@ -1,7 +1,7 @@
 // The IMM of torchsvs track, compiled (part of fused.cpp): a Kalman filter on a nearly-constant-
 // velocity mode and an extended Kalman filter on a coordinated turn with unknown turn rate,
 // mixed by the IMM, then Kim's fixed-lag (or fixed-interval) smoother; tracks in vectors of
-// lanes (eight float64 tracks step together), blocks of them on threads
+// lanes (a register of float64 tracks steps together: lanes.h), blocks of them on threads
 // (torchsvs/kernels/fused_imm.py calls it).
 //
 // A deliberate twin of the tensor path, formula by formula: TurnIMM and IMM
@@ -29,8 +29,8 @@
 namespace {
 namespace imm {
 
-// A vector of lanes, one track each: lanes.h's Wide<double>, 8 float64 (one AVX-512 register
-// where the machine has them, two AVX ones or four SSE2 ones elsewhere).
+// A vector of lanes, one track each: lanes.h's Wide<double>, one of the machine's registers (8
+// float64 with AVX-512, 4 with AVX, 2 with SSE2).
 typedef Wide<double>::type X;
 constexpr int kW = LaneBlock<double>::kWidth;
 typedef decltype(X{} < X{}) Mask;
@@ -50,6 +50,9 @@ inline X sqrt_of(X x) {  // (correctly rounded either way: the same numbers)
 #if defined(__AVX512F__)
     static_assert(sizeof(X) == sizeof(__m512d), "one AVX-512 register of lanes");
     return reinterpret_cast<X>(_mm512_sqrt_pd(reinterpret_cast<__m512d>(x)));
+#elif defined(__AVX__)
+    static_assert(sizeof(X) == sizeof(__m256d), "one AVX register of lanes");
+    return reinterpret_cast<X>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x)));
 #else
     return each(x, [](double v) { return std::sqrt(v); });
 #endif
