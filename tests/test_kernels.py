@@ -3,6 +3,8 @@ gradients, and steps aside where the problem does not decouple by axis."""
 
 from __future__ import annotations
 
+import subprocess
+
 import pytest
 import torch
 
@@ -1066,3 +1068,27 @@ def test_measurements_with_a_gradient_reach_the_finite_difference_velocities(gap
     with torch.no_grad():
         assert_close(svsf(z, x0, P0).mean, mean, atol=0, rtol=0)
     assert_close(mean, mean_loops, atol=1e-10, rtol=0)
+
+
+@needs_compiler
+def test_a_vector_of_lanes_is_one_register_of_the_machine():
+    """The compiled loops step a vector of lanes as wide as one register of the machine they
+    are built for (``cpp/lanes.h``): wider, GCC splits the arithmetic but turns every ``mask ?
+    a : b`` into a branch per lane through memory (on AVX2, 64 bytes against 32: twice the
+    time of the SURE curves' pass, the same numbers). The width expected is read off the
+    compiler's own macros for ``-march=native``, as the build sees them."""
+    compiler = build._compiler()
+    assert compiler is not None
+    macros = subprocess.run(
+        [compiler, *build.NATIVE, "-dM", "-E", "-x", "c++", "-"],
+        input="",
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if macros.returncode != 0:
+        pytest.skip("the compiler takes no -march=native: the plain build's width")
+    defined = macros.stdout
+    register = 64 if "__AVX512F__ " in defined else 32 if "__AVX__ " in defined else 16
+    assert build.lane_width(torch.float64) == register // 8
+    assert build.lane_width(torch.float32) == register // 4
