@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
 from numbers import Real
 from typing import Any, Generic, TypeVar
 
@@ -21,39 +20,7 @@ from torchsvs.accuracy import PROBE_STEP
 from torchsvs.kernels.compiled import outside_dynamo
 from torchsvs.linalg import holds_inf
 from torchsvs.models.base import StateSpaceModel
-
-
-@dataclass
-class Inputs:
-    """Checked, batched inputs of one call (``B`` tracks, ``T`` steps)."""
-
-    z: Tensor  #: [B, T, m], NaN where missing
-    x0: Tensor  #: [B, n]
-    P0: Tensor  #: [B, n, n], or [1, n, n] when shared by every track
-    dt: Tensor | None  #: None (model's own), 0-d, or [B, T]
-    u: Tensor | None  #: control inputs [B, T, p] for models that take them
-    psi: Tensor | None  #: per-step boundary layer override [B, T, m'] (checked by the SVSF)
-    generator: torch.Generator | None
-    single: bool  #: the caller passed one track without the batch axis
-    keep: str = "all"  #: what the result keeps of each step (:data:`KEEP`)
-
-    @property
-    def batch(self) -> int:
-        return self.z.shape[0]
-
-    @property
-    def steps(self) -> int:
-        return self.z.shape[1]
-
-    def window(self, start: int, stop: int) -> Inputs:
-        """Steps ``start`` to ``stop - 1`` as inputs of their own (views, no copies)."""
-
-        def span(x: Tensor | None) -> Tensor | None:
-            return x[:, start:stop] if x is not None and x.ndim >= 2 else x
-
-        return replace(
-            self, z=self.z[:, start:stop], dt=span(self.dt), u=span(self.u), psi=span(self.psi)
-        )
+from torchsvs.types import Inputs
 
 
 def _shape(x: Any) -> str:

@@ -1,4 +1,4 @@
-"""Shape conventions and result types shared by all estimators.
+"""Shape conventions, the checked inputs of a call and the result types shared by all estimators.
 
 Batch first, one convention everywhere (column-vector math, ``F @ x``):
 
@@ -21,8 +21,10 @@ varies per step.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
+import torch
 from torch import Tensor
 
 
@@ -121,3 +123,36 @@ class SmootherResult(NamedTuple):
     mean: Tensor
     cov: Tensor
     filtered: FilterResult
+
+
+@dataclass
+class Inputs:
+    """Checked, batched inputs of one call (``B`` tracks, ``T`` steps)."""
+
+    z: Tensor  #: [B, T, m], NaN where missing
+    x0: Tensor  #: [B, n]
+    P0: Tensor  #: [B, n, n], or [1, n, n] when shared by every track
+    dt: Tensor | None  #: None (model's own), 0-d, or [B, T]
+    u: Tensor | None  #: control inputs [B, T, p] for models that take them
+    psi: Tensor | None  #: per-step boundary layer override [B, T, m'] (checked by the SVSF)
+    generator: torch.Generator | None
+    single: bool  #: the caller passed one track without the batch axis
+    keep: str = "all"  #: what the result keeps of each step (:data:`KEEP`)
+
+    @property
+    def batch(self) -> int:
+        return self.z.shape[0]
+
+    @property
+    def steps(self) -> int:
+        return self.z.shape[1]
+
+    def window(self, start: int, stop: int) -> Inputs:
+        """Steps ``start`` to ``stop - 1`` as inputs of their own (views, no copies)."""
+
+        def span(x: Tensor | None) -> Tensor | None:
+            return x[:, start:stop] if x is not None and x.ndim >= 2 else x
+
+        return replace(
+            self, z=self.z[:, start:stop], dt=span(self.dt), u=span(self.u), psi=span(self.psi)
+        )

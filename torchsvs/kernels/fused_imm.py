@@ -28,7 +28,7 @@ from torchsvs.kernels import build
 from torchsvs.kernels.build import fresh, pointers
 
 if TYPE_CHECKING:
-    from torchsvs.estimator import Inputs
+    from torchsvs.types import Inputs
 
 
 class TurnIMMPass(NamedTuple):
