@@ -46,7 +46,7 @@ def test_a_tracks_factor_is_its_rows_median_variance_on_the_grid():
     the rows' mean square, and a σ of 0 or none at all is refused, naming the column."""
     values = torch.tensor([[3.0, 3.0, 30.0, 3.0], [10.0, 10.0, 10.0, math.nan], [math.nan] * 4])
     observed = torch.tensor([[True] * 4, [True, True, False, True], [True] * 4])
-    factors = nc.column_factors(values, observed, [100.0, 100.0])
+    factors = nc.on_grid(nc.column_ratios(values, observed, [100.0, 100.0]))
     half = 0.5 * math.log(nc.FACTOR_STEP)
     assert abs(math.log(float(factors[0]) / 0.09)) <= half + 1e-12
     assert float(factors[1]) == 1.0 and float(factors[2]) == 1.0

@@ -13,10 +13,9 @@ their smoothed or their filtered pass, whichever SURE rates lower
 from __future__ import annotations
 
 import contextlib
-import copy
 import math
 from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, NamedTuple
 
@@ -32,6 +31,7 @@ from torchsvs.accuracy import (
     risk_terms,
 )
 from torchsvs.blending import blended_terms, cross_terms
+from torchsvs.constraints import Positive, scaled_copy
 from torchsvs.curve_estimates import (
     curve_run,
     is_curves_estimator,
@@ -184,7 +184,10 @@ def by_noise_class(
 ) -> StepEstimates:
     """``run`` (the estimator, the tracks, their noise and settings) on each noise class of the
     group (:func:`~torchsvs.fitting.noise_classes.classes_of`): the class as a file of its
-    noise, its error estimate's terms written at the file's noise from each track's own."""
+    noise, its error estimate's terms written at the file's noise from each track's own; on the
+    whole group as it is where the settings have no noise column."""
+    if settings.noise_column is None:
+        return run(estimator, batch, meas_std, settings)
     parts = []
     for each in noise_classes.classes_of(batch.tracks, batch.group, settings):
         part = batch.subset(each.members)
@@ -439,21 +442,15 @@ def _q_factors(
     return factors, runs
 
 
-@contextlib.contextmanager
-def scaled_q(estimator: nn.Module, factor: float) -> Iterator[nn.Module]:
+def scaled_q(estimator: nn.Module, factor: float) -> contextlib.AbstractContextManager[nn.Module]:
     """A copy of the estimator with its motion model's ``q`` times ``factor`` (the estimator
-    itself where the factor is 1), for the block: the estimator is never changed, so callers
-    in several threads may share it (changed in place, a thread's tracks ran with another's
-    ``q``: 92% of estimates off under Dask's threads)."""
-    if factor == 1.0:
-        yield estimator
-        return
-    scaled = copy.deepcopy(estimator)
-    model = scaled.model
-    assert isinstance(model, ConstantVelocity), "scaled_q: a constant-velocity model's q"
-    with torch.no_grad():
-        model.q.raw.add_(math.log(factor))  # q is stored as its log (constraints.Positive)
-    yield scaled
+    itself where the factor is 1; :func:`~torchsvs.constraints.scaled_copy`), for the block."""
+
+    def motion_q(scaled: nn.Module) -> list[Positive]:
+        assert isinstance(scaled.model, ConstantVelocity), "scaled_q: a constant-velocity q"
+        return [scaled.model.q]
+
+    return scaled_copy(estimator, factor, motion_q)
 
 
 def _estimate_part(

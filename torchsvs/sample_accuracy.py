@@ -54,10 +54,7 @@ def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     def run(each: nn.Module, tracks: GroupBatch, std: Tensor, own: Settings) -> StepEstimates:
         return _estimate_factors(each, tracks, std, False, True, own)
 
-    if settings.noise_column is not None:  # each track at its own noise
-        part = by_noise_class(estimator, batch, meas_std, settings, run)
-    else:
-        part = run(estimator, batch, meas_std, settings)
+    part = by_noise_class(estimator, batch, meas_std, settings, run)  # (each at its own noise)
     assert part.risk is not None
     return part.risk.in_track_order()
 

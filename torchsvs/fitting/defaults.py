@@ -151,12 +151,11 @@ def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
     data_q = None
     if q is None or turn_open:
         try:
-            if imm:
-                data_q = imm_base_q(tracks, meas_var)
-            elif settings.noise_column is not None:
-                data_q = class_sure_q(settings, tracks, meas_var, settings.estimator)
-            else:
-                data_q = _sure_q(tracks, meas_var, settings.estimator)
+            data_q = (
+                imm_base_q(tracks, meas_var)
+                if imm
+                else file_sure_q(settings, tracks, meas_var, settings.estimator)
+            )
         except ValueError:  # too little data to say: the measurement noise over one step
             data_q = sum(meas_var) / len(meas_var) / interval**3
     if q is None and not imm:
@@ -244,11 +243,7 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
         clean = replace(tracks, z=tracks.z.masked_fill(flagged.unsqueeze(-1), math.nan))
         if settings.outlier_q is None:
             try:
-                q = (
-                    _sure_q(clean, first.meas_var, "ks")
-                    if settings.noise_column is None
-                    else class_sure_q(settings, clean, first.meas_var, "ks")
-                )
+                q = file_sure_q(settings, clean, first.meas_var, "ks")
             except ValueError:
                 break
     return Screened(replace(settings, outlier_q=q), clean, flagged)
@@ -345,6 +340,16 @@ def class_sure_q(
     start = math.log(_sure_q(tracks, meas_var, estimator))
     step = 0.5 * math.log(10.0)
     return math.exp(_golden_search(total, [start + k * step for k in range(-8, 3)]))
+
+
+def file_sure_q(
+    settings: Settings, tracks: RecordedTracks, meas_var: Sequence[float], estimator: str
+) -> float:
+    """The ``q`` the file's tracks are served with at the noise ``meas_var``: :func:`_sure_q`,
+    or with each track at its own noise (``settings.noise_column``) :func:`class_sure_q`."""
+    if settings.noise_column is None:
+        return _sure_q(tracks, meas_var, estimator)
+    return class_sure_q(settings, tracks, meas_var, estimator)
 
 
 def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -> float:

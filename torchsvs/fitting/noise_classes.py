@@ -21,7 +21,6 @@ totals read every track at its own.
 from __future__ import annotations
 
 import contextlib
-import copy
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
@@ -32,7 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.accuracy import RiskTerms
-from torchsvs.constraints import SPDMatrix
+from torchsvs.constraints import SPDMatrix, scaled_copy
 from torchsvs.datasets import RecordedTracks
 from torchsvs.recipes import Settings
 
@@ -73,11 +72,10 @@ def column_ratios(values: Tensor, observed: Tensor, meas_var: Sequence[float]) -
     return torch.where(torch.isfinite(ratio), ratio, torch.ones_like(ratio))
 
 
-def column_factors(values: Tensor, observed: Tensor, meas_var: Sequence[float]) -> Tensor:
-    """``[B]`` :func:`column_ratios` on the grid of :data:`FACTOR_STEP`: the noise each track's
-    class runs at (its error estimate reads its own, :func:`at_file_noise`)."""
-    steps = (column_ratios(values, observed, meas_var).log() / math.log(FACTOR_STEP)).round()
-    return FACTOR_STEP**steps
+def on_grid(ratios: Tensor) -> Tensor:
+    """``[B]`` the tracks' :func:`column_ratios` on the grid of :data:`FACTOR_STEP`: the noise
+    each track's class runs at (its error estimate reads its own, :func:`at_file_noise`)."""
+    return FACTOR_STEP ** (ratios.log() / math.log(FACTOR_STEP)).round()
 
 
 class NoiseClass(NamedTuple):
@@ -99,15 +97,16 @@ def classes_of(
     tracks: RecordedTracks, group: np.ndarray, settings: Settings
 ) -> Iterator[NoiseClass]:
     """The noise classes of a group's ``tracks`` (the block's tracks ``group [B]``) where each
-    has its own noise (``settings.noise_column``: :func:`column_factors`)."""
+    has its own noise (``settings.noise_column``: :func:`on_grid`)."""
     column = settings.noise_column
     assert settings.meas_var is not None and column is not None
     observed = ~torch.isnan(tracks.z).all(-1)
     values = tracks.extra[column]
     _check_positive(values[observed & torch.isfinite(values)], column)  # (a block past the plan's)
-    factors = column_factors(values, observed, settings.meas_var)
+    ratios = column_ratios(values, observed, settings.meas_var)
+    factors = on_grid(ratios)
     ratio_of = np.ones(int(group.max()) + 1 if len(group) else 0)
-    ratio_of[group] = column_ratios(values, observed, settings.meas_var).numpy()
+    ratio_of[group] = ratios.numpy()
     for factor in torch.unique(factors).tolist():
         index = torch.nonzero(factors == factor).flatten()
         yield NoiseClass(factor, index, scaled_settings(settings, factor), ratio_of)
@@ -124,24 +123,17 @@ def scaled_settings(settings: Settings, factor: float) -> Settings:
     return replace(settings, meas_var=meas_var, blend=blend, noise_column=None)
 
 
-@contextlib.contextmanager
-def noise_scaled(estimator: nn.Module, factor: float) -> Iterator[nn.Module]:
+def noise_scaled(
+    estimator: nn.Module, factor: float
+) -> contextlib.AbstractContextManager[nn.Module]:
     """A copy of the estimator with every model's measurement noise ``R`` times ``factor``
-    (the estimator itself where the factor is 1; never changed: threads share it)."""
-    if factor == 1.0:
-        yield estimator
-        return
-    scaled = copy.deepcopy(estimator)
-    # each R once: the IMM's modes share their model's
-    found = {
-        id(R): R for m in scaled.modules() if isinstance(R := getattr(m, "R", None), SPDMatrix)
-    }
-    with torch.no_grad():
-        for R in found.values():  # R = L Lᵀ: L times √factor (its diagonal stored as its log)
-            lower = R.raw.tril(-1).mul(math.sqrt(factor))
-            diagonal = R.raw.diagonal().add(0.5 * math.log(factor))
-            R.raw.copy_(lower + torch.diag_embed(diagonal))
-    yield scaled
+    (each once: the IMM's modes share their model's; the estimator itself where the factor is
+    1: :func:`~torchsvs.constraints.scaled_copy`)."""
+
+    def noises(scaled: nn.Module) -> list[SPDMatrix]:
+        return [R for m in scaled.modules() if isinstance(R := getattr(m, "R", None), SPDMatrix)]
+
+    return scaled_copy(estimator, factor, noises)
 
 
 def at_file_noise(terms: RiskTerms, ratio: np.ndarray) -> RiskTerms:
