@@ -158,7 +158,7 @@ def estimate_group(
     Where ``settings`` screen for outliers (``outliers`` and ``outlier_q``), the group's
     isolated outliers are set aside first (:func:`screen_group`): missing to the estimator and
     to the error estimate, listed in the result's ``outliers``."""
-    if settings is not None and settings.noise_column is not None:
+    if settings is not None and settings.own_noise:
 
         def each(scaled: nn.Module, part: GroupBatch, std: Tensor, own: Settings) -> StepEstimates:
             return estimate_group(scaled, part, std, covariance, risk, own)
@@ -186,7 +186,7 @@ def by_noise_class(
     group (:func:`~torchsvs.fitting.noise_classes.classes_of`): the class as a file of its
     noise, its error estimate's terms written at the file's noise from each track's own; on the
     whole group as it is where the settings have no noise column."""
-    if settings.noise_column is None:
+    if not settings.own_noise:
         return run(estimator, batch, meas_std, settings)
     parts = []
     for each in noise_classes.classes_of(batch.tracks, batch.group, settings):

@@ -135,6 +135,11 @@ class Settings:
     #: deviations squared, the file's ``meas_var`` their mean (:mod:`torchsvs.fitting.
     #: noise_classes`); the column is read as an extra column of the rows
     noise_column: str | None = None
+    #: each track at its own noise read off its own positions, where the file has no column of
+    #: it (:func:`~torchsvs.track_plan.with_track_noise`): ``[μ, τ]``, the mean and the
+    #: between-track spread of the tracks' ``log σ`` over the file's, that each track's
+    #: reading is shrunk with (:func:`~torchsvs.datasets.track_noise.shrunk_ratios`)
+    track_noise: list[float] | None = None
     #: where the noise was given and is above what the data show (a bound given as σ), the
     #: noise per axis read off them (:func:`~torchsvs.fitting.defaults.checked_given_noise`)
     noise_above_data: list[float] | None = None
@@ -254,6 +259,13 @@ class Settings:
         if self.blend is None:
             return None
         return replace(self, blend=None, blend_weight=0.0), self.blend
+
+    @property
+    def own_noise(self) -> bool:
+        """Whether each track runs at its own measurement noise: given per row
+        (``noise_column``) or read off each track (``track_noise``),
+        :mod:`torchsvs.fitting.noise_classes`."""
+        return self.noise_column is not None or self.track_noise is not None
 
     @property
     def screens(self) -> bool:

@@ -36,7 +36,7 @@ from torchsvs.fitting.defaults import (
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
-from torchsvs.sample_accuracy import anchored_fit, lowered_noise
+from torchsvs.sample_accuracy import anchored_fit, lowered_noise, with_track_noise
 from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator, kalman_twin
 from torchsvs.track_run import short
 
@@ -243,9 +243,22 @@ def prepare_estimator(
     screen = None
     if own:  # the noise read and the outliers set aside once, before anything is fitted
         screen = screened(settings, sample)
-        low = lowered_noise(screen.settings, screen.tracks)
-        if low is not None:
-            read = screen.settings
+        read = screen.settings
+        low = lowered_noise(read, screen.tracks)
+        own_noise = with_track_noise(read, screen.tracks)
+        if own_noise is not None:
+            chosen, line = own_noise
+            say(line)
+            settings = replace(
+                given,
+                meas_var=chosen.meas_var,
+                noise="data",
+                meas_std_se=chosen.meas_std_se,
+                noise_spread=chosen.noise_spread,
+                track_noise=chosen.track_noise,
+            )
+            screen = None  # (screened again, each track at its own noise)
+        elif low is not None:
             assert read.meas_var is not None
             std = [v**0.5 for v in read.meas_var]
             say(

@@ -246,7 +246,16 @@ class TrackRun:
                 "--particles or --estimator ks"
             )
         spread = self.settings.noise_spread
-        if self.settings.noise == "data" and spread is not None and spread > NOISE_SPREAD_WARNING:
+        own = self.settings.track_noise
+        if own is not None:
+            self.warnings.append(
+                f"measurement noise: read off each track alone it differs between tracks by "
+                f"about {own[1]:.0%}, more than their own uncertainty: each track ran at its own "
+                "reading (shrunk towards the file's), and the error estimate rests on those "
+                "readings; where the sensor states each row's accuracy, give it with --noise-col "
+                "(a column of its standard deviation)"
+            )
+        elif self.settings.noise == "data" and spread is not None and spread > NOISE_SPREAD_WARNING:
             self.warnings.append(
                 f"measurement noise: read off each track alone it differs between tracks by "
                 f"about {spread:.0%}, more than their own uncertainty: one noise level does not "

@@ -233,7 +233,7 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
             r = torch.tensor(first.meas_var, dtype=torch.float64)
             q = (
                 smoother_q(tracks.z, tracks.dt, r, clip=SCREEN_CLIP).q
-                if settings.noise_column is None
+                if not settings.own_noise
                 else class_sure_q(settings, tracks, first.meas_var, "ks")
             )
         except ValueError:  # too little data to say: the measurement noise over one step
@@ -289,7 +289,7 @@ def checked_given_noise(settings: Settings, tracks: RecordedTracks) -> Settings:
     if settings.meas_var is None or settings.noise not in (None, "given"):
         return settings
     variances, m = settings.meas_var, tracks.z.shape[-1]
-    if settings.noise_column is not None or len(variances) not in (1, m):
+    if settings.own_noise or len(variances) not in (1, m):
         return settings  # (complete_settings names a count of values that fits no axis)
     part = spread_tracks(tracks, GIVEN_CHECK_POINTS)
     try:
@@ -347,7 +347,7 @@ def file_sure_q(
 ) -> float:
     """The ``q`` the file's tracks are served with at the noise ``meas_var``: :func:`_sure_q`,
     or with each track at its own noise (``settings.noise_column``) :func:`class_sure_q`."""
-    if settings.noise_column is None:
+    if not settings.own_noise:
         return _sure_q(tracks, meas_var, estimator)
     return class_sure_q(settings, tracks, meas_var, estimator)
 
@@ -411,6 +411,11 @@ def settings_note(settings: Settings) -> str:
     source = {"given": "as given", "fit": "learned"}.get(settings.noise or "", "read off the data")
     if settings.noise_column is not None:
         source = f"the rows' root mean square of {settings.noise_column!r}; each track at its own"
+    elif settings.track_noise is not None:
+        source = (
+            f"read off the data; each track at its own, read off its positions (they differ "
+            f"by about {settings.track_noise[1]:.0%})"
+        )
     if settings.noise == "data" and settings.meas_std_se is not None:
         source += " ± " + ", ".join(f"{e:.2g}" for e in settings.meas_std_se)
     return (
@@ -447,7 +452,7 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
         return settings
     assert settings.meas_var is not None and settings.q is not None
     smoothed = settings.estimator not in FILTERS
-    if settings.noise_column is not None:  # each noise class's curves at its own noise
+    if settings.own_noise:  # each noise class's curves at its own noise
         curves = noise_class_curves(settings, tracks, smoothed)
         if float(curves.counts.sum()) == 0:
             return settings

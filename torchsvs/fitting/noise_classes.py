@@ -5,10 +5,11 @@ and their reported accuracy).
 One noise level for a file whose tracks' noise spans a factor of 3 either way fits none of
 them: with each track's σ drawn from σ/3 to 3σ, the estimators came out at 0.59-1.00 of the
 measurements' error and their error estimate at 0.15-0.68 of the truth
-(``experiments/results/recorded_mixed.md``). Read off the data track by track, the noise takes
-a track's motion for noise where the noise is small (airliners at σ 3 m: each track's reading
-reached 10 m): the run warns there instead (``track_run``), and where the file carries each
-row's accuracy it runs each track at its own.
+(``experiments/results/recorded_mixed.md``). Where the file carries each row's accuracy, each
+track runs at its own; where it does not, each track's is read off its own positions
+(:mod:`torchsvs.datasets.track_noise`) where the run finds that clearly better
+(:func:`~torchsvs.sample_accuracy.with_track_noise`: read track by track, the noise takes a
+track's motion for noise where the noise is small, airliners at σ 3 m reading up to 10 m).
 
 A track's noise is the median over its rows of the column's variance (the column holds the
 standard deviation per row, in the positions' units), on a grid of factors of the file's
@@ -33,6 +34,7 @@ from torch import Tensor, nn
 from torchsvs.accuracy import RiskTerms
 from torchsvs.constraints import SPDMatrix, scaled_copy
 from torchsvs.datasets import RecordedTracks
+from torchsvs.datasets.track_noise import read_track_noise, shrunk_ratios
 from torchsvs.recipes import Settings
 
 #: A track's noise variance is the file's times a power of this (σ within 4.5% of its own):
@@ -97,19 +99,32 @@ def classes_of(
     tracks: RecordedTracks, group: np.ndarray, settings: Settings
 ) -> Iterator[NoiseClass]:
     """The noise classes of a group's ``tracks`` (the block's tracks ``group [B]``) where each
-    has its own noise (``settings.noise_column``: :func:`on_grid`)."""
-    column = settings.noise_column
-    assert settings.meas_var is not None and column is not None
-    observed = ~torch.isnan(tracks.z).all(-1)
-    values = tracks.extra[column]
-    _check_positive(values[observed & torch.isfinite(values)], column)  # (a block past the plan's)
-    ratios = column_ratios(values, observed, settings.meas_var)
+    has its own noise (:func:`track_ratios` on :func:`on_grid`)."""
+    ratios = track_ratios(tracks, settings)
     factors = on_grid(ratios)
     ratio_of = np.ones(int(group.max()) + 1 if len(group) else 0)
     ratio_of[group] = ratios.numpy()
     for factor in torch.unique(factors).tolist():
         index = torch.nonzero(factors == factor).flatten()
         yield NoiseClass(factor, index, scaled_settings(settings, factor), ratio_of)
+
+
+def track_ratios(tracks: RecordedTracks, settings: Settings) -> Tensor:
+    """``[B]`` float64 each track's noise variance over the file's ``meas_var``: from the
+    column (``settings.noise_column``, :func:`column_ratios`) or read off each track's own
+    positions and shrunk towards the file's (``settings.track_noise``,
+    :func:`~torchsvs.datasets.track_noise.shrunk_ratios`)."""
+    assert settings.meas_var is not None and settings.own_noise
+    column = settings.noise_column
+    if column is None:
+        assert settings.track_noise is not None
+        mean, tau = settings.track_noise
+        read = read_track_noise(tracks.z, tracks.dt, settings.meas_var)
+        return shrunk_ratios(read, mean, tau)
+    observed = ~torch.isnan(tracks.z).all(-1)
+    values = tracks.extra[column]
+    _check_positive(values[observed & torch.isfinite(values)], column)  # (a block past the plan's)
+    return column_ratios(values, observed, settings.meas_var)
 
 
 def scaled_settings(settings: Settings, factor: float) -> Settings:
@@ -119,8 +134,18 @@ def scaled_settings(settings: Settings, factor: float) -> Settings:
     meas_var = [v * factor for v in settings.meas_var]
     blend = settings.blend
     if blend is not None:
-        blend = replace(blend, meas_var=list(meas_var), noise_column=None)
-    return replace(settings, meas_var=meas_var, blend=blend, noise_column=None)
+        blend = replace(blend, meas_var=list(meas_var), noise_column=None, track_noise=None)
+    std_se = settings.meas_std_se  # (read off the data: the file's level's, at the class's)
+    if std_se is not None:
+        std_se = [e * math.sqrt(factor) for e in std_se]
+    return replace(
+        settings,
+        meas_var=meas_var,
+        meas_std_se=std_se,
+        blend=blend,
+        noise_column=None,
+        track_noise=None,
+    )
 
 
 def noise_scaled(

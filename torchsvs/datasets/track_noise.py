@@ -1,0 +1,125 @@
+"""Each track's measurement noise read off its own positions, every track in one batched fit
+(:func:`read_track_noise`), and shrunk towards the file's by how much the tracks differ
+(:func:`shrunk_ratios`, empirical Bayes): for files whose tracks come from sensors of different
+quality and carry no column of their accuracy (``--noise-col``).
+
+The fit is :func:`~torchsvs.datasets.estimate_noise`'s noise-alone fit with one parameter per
+track, a scale of the file's variance per axis: the same divided differences, the same
+trimming at :data:`~torchsvs.datasets.noise_estimate.CUTOFF` and the same steps set aside
+beside a residual beyond :data:`~torchsvs.datasets.noise_estimate.MANEUVER` standard
+deviations, started from the median of each track's highest-order residuals. On the
+recorded-tracks benchmark's sets of mixed noise (each track's σ from a third to three times the
+file's) it read each track within 1-6% (standard deviation of the log) of ``estimate_noise`` on
+that track alone, at a fraction of the cost (5,000 rows: 0.03 s against 0.8 s for a loop).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsvs.datasets.differences import ORDERS, difference_residuals
+from torchsvs.datasets.noise_estimate import (
+    CHI2_MEDIAN,
+    CUTOFF,
+    MANEUVER,
+    _spans,
+    _touching,
+    truncated_second_moment,
+)
+
+#: The standard error of a track's ``log σ`` is about this over the root of its kept residuals
+#: (orders 2-4, every axis). Measured on 2,000 tracks of white noise on straight paths each, of
+#: 20-400 points at regular and irregular times: 1.89-2.13.
+SE_SCALE = 2.0
+#: Scoring iterations of the fit (each moves a track's scale to the mean of its kept
+#: residuals' ``u²/(κ r)``; the kept set settles within a few).
+ITERATIONS = 8
+
+
+class TrackNoise(NamedTuple):
+    """Each track's noise read off its own positions (:func:`read_track_noise`)."""
+
+    #: [B] float64 ``log σ_b − log σ`` of each track's noise over the file's (half the log of its
+    #: variance's ratio); NaN where the track has too few positions to read
+    log_ratio: Tensor
+    se: Tensor  #: [B] float64 its standard error (:data:`SE_SCALE`); NaN where not read
+
+
+def read_track_noise(z: Tensor, dt: Tensor, meas_var: Sequence[float]) -> TrackNoise:
+    """Each track's noise variance as a multiple of the file's ``meas_var [m]`` per axis, read
+    off its own divided differences (``z [B, T, m]`` NaN where missing, ``dt [B, T]``)."""
+    B, m = z.shape[0], z.shape[-1]
+    if len(meas_var) != m or not all(v > 0 for v in meas_var):
+        raise ValueError(f"meas_var: expected {m} variances > 0, got {list(meas_var)}")
+    res = difference_residuals(z.double(), dt.double(), ORDERS)
+    nan = torch.full((B,), math.nan, dtype=torch.float64)
+    if res.u.numel() == 0:
+        return TrackNoise(nan, nan.clone())
+    r = torch.as_tensor(list(meas_var), dtype=torch.float64)[res.axis]
+    u2 = res.u.square()
+    y = u2 / truncated_second_moment(CUTOFF)
+    spans = _spans(res)
+    top = res.order == res.order.max()
+    scale = _medians(u2[top] / r[top], res.track[top], B) / CHI2_MEDIAN
+    scale = torch.where(torch.isfinite(scale) & (scale > 0), scale, torch.ones_like(scale))
+    kept = torch.ones_like(u2, dtype=torch.bool)
+    for _ in range(ITERATIONS):
+        v = scale[res.track] * r
+        far = (u2 > MANEUVER**2 * v).unsqueeze(0)
+        kept = (u2 <= CUTOFF**2 * v) & ~_touching(spans, far)[0]
+        ratio = _sums(kept * y / r, res.track, B) / _sums(kept.double(), res.track, B)
+        scale = torch.where(torch.isfinite(ratio) & (ratio > 0), ratio, scale)
+    count = _sums(kept.double(), res.track, B)
+    read = count > 0
+    log_ratio = torch.where(read, 0.5 * scale.log(), nan)
+    se = torch.where(read, SE_SCALE / count.clamp_min(1.0).sqrt(), nan)
+    return TrackNoise(log_ratio, se)
+
+
+def spread_of(read: TrackNoise) -> tuple[float, float] | None:
+    """``(μ, τ)``: the weighted mean of the tracks' ``log σ`` ratios and their between-track
+    standard deviation beyond their own standard errors (DerSimonian & Laird's moment estimator,
+    as :func:`~torchsvs.datasets.noise_spread`); None where fewer than 4 tracks were read."""
+    ok = torch.isfinite(read.log_ratio) & torch.isfinite(read.se) & (read.se > 0)
+    if int(ok.sum()) < 4:
+        return None
+    y, w = read.log_ratio[ok], read.se[ok].square().reciprocal()
+    mean = float((w * y).sum() / w.sum())
+    Q = float((w * (y - mean).square()).sum())
+    scale = float(w.sum() - w.square().sum() / w.sum())
+    tau = math.sqrt(max(0.0, (Q - (y.numel() - 1)) / scale)) if scale > 0 else 0.0
+    return mean, tau
+
+
+def shrunk_ratios(read: TrackNoise, mean: float, tau: float) -> Tensor:
+    """``[B]`` float64 each track's noise variance over the file's: its reading pulled towards
+    ``mean`` by the share of its error in its spread, ``log σ_b = μ + τ²/(τ² + se_b²) (ℓ_b − μ)``
+    (the posterior mean of a normal prior ``N(μ, τ²)``), ``exp(2 μ)`` where not read."""
+    keep = tau**2 / (tau**2 + read.se.square())
+    log_sigma = mean + keep * (read.log_ratio - mean)
+    log_sigma = torch.where(torch.isfinite(log_sigma), log_sigma, torch.full_like(log_sigma, mean))
+    return (2.0 * log_sigma).exp()
+
+
+def _sums(x: Tensor, group: Tensor, B: int) -> Tensor:
+    return torch.zeros(B, dtype=torch.float64).index_add_(0, group, x.double())
+
+
+def _medians(x: Tensor, group: Tensor, B: int) -> Tensor:
+    """``[B]`` the (lower) median of ``x`` in each group, NaN for a group without any."""
+    out = torch.full((B,), math.nan, dtype=torch.float64)
+    if x.numel() == 0:
+        return out
+    order = torch.argsort(x, stable=True)
+    order = order[torch.argsort(group[order], stable=True)]  # by group, each in rising order
+    values = x[order].double()
+    counts = torch.bincount(group, minlength=B)
+    starts = counts.cumsum(0) - counts
+    some = counts > 0
+    out[some] = values[(starts + (counts - 1) // 2)[some]]
+    return out
