@@ -64,3 +64,17 @@ def test_the_run_takes_each_tracks_own_noise_only_where_the_tracks_differ() -> N
     assert with_track_noise(replace(read, noise_spread=0.1), mixed) is None
     given = Settings("ks", meas_var=[400.0, 400.0], noise="given")
     assert with_track_noise(given, mixed) is None
+
+
+def test_a_tracks_reading_is_its_own_whatever_tracks_are_read_beside_it(monkeypatch) -> None:
+    """Read in chunks of tracks (to bound memory) or all at once, alone or in a batch, each
+    track's reading is the same: the fit has one scale per track and nothing shared."""
+    import torchsvs.datasets.track_noise as track_noise
+
+    tracks = _tracks(torch.tensor([3.0, 30.0, 8.0, 15.0, 50.0], dtype=torch.float64), seed=3)
+    whole = read_track_noise(tracks.z, tracks.dt, [100.0, 100.0])
+    alone = read_track_noise(tracks.z[3:4].clone(), tracks.dt[3:4].clone(), [100.0, 100.0])
+    assert torch.equal(alone.log_ratio, whole.log_ratio[3:4])
+    monkeypatch.setattr(track_noise, "CHUNK_STEPS", 2 * tracks.z.shape[1])
+    chunked = read_track_noise(tracks.z.clone(), tracks.dt.clone(), [100.0, 100.0])
+    assert torch.equal(chunked.log_ratio, whole.log_ratio) and torch.equal(chunked.se, whole.se)

@@ -32,6 +32,7 @@ from torchsvs.fitting.defaults import (
     GUARD_ERRORS,
     complete_settings,
     meas_var_range,
+    spread_tracks,
     with_q_curve,
 )
 from torchsvs.fitting.tuning import FitResult
@@ -214,6 +215,8 @@ TRACK_NOISE_SPREAD = 0.2
 TRACK_NOISE_ERRORS = 2.0
 #: ... on the points whose weight in their own estimate is at most this under one of the two noises.
 MOST_WEIGHT = 0.5
+#: ... over at most this many positions of the sample's tracks (spread over it).
+GATE_POINTS = 50_000
 
 
 def with_track_noise(read: Settings, tracks: RecordedTracks) -> tuple[Settings, str] | None:
@@ -261,11 +264,12 @@ def with_track_noise(read: Settings, tracks: RecordedTracks) -> tuple[Settings, 
         track_noise=[mean - 0.5 * math.log(k), tau],
         meas_std_se=[(v * k) ** 0.5 * level for v in read.meas_var],
     )
+    part = spread_tracks(tracks, GATE_POINTS)
     kalman = [
-        complete_settings(Settings("ks", meas_var=s.meas_var, track_noise=s.track_noise), tracks)
+        complete_settings(Settings("ks", meas_var=s.meas_var, track_noise=s.track_noise), part)
         for s in (read, own)
     ]
-    (at_file, h_file), (at_own, h_own) = (_left_out_squares(s, tracks) for s in kalman)
+    (at_file, h_file), (at_own, h_own) = (_left_out_squares(s, part) for s in kalman)
     # (where a point weighs much in its own estimate, its left-out residual is the motion over
     # the gap its neighbours leave, not the error at it: on airliners at 8-20 s those points
     # judged the smoother that took motion for noise better, against the truth)
