@@ -234,13 +234,16 @@ def with_track_noise(read: Settings, tracks: RecordedTracks) -> tuple[Settings, 
     cannot judge this choice: it reads the error at the noise it is given, so a track's noise
     read too high (its motion taken for noise) judges its own over-smoothing good. Points that
     weigh more than :data:`MOST_WEIGHT` in both smoothers' own estimates are left out: their
-    left-out residual is the motion over the gap the neighbours leave. Measured on the
-    recorded-tracks benchmark's kinds (``ks``, defaults): on 13 sets where each track's σ spans
-    a third to three times the file's, 12 took each track's own noise, 0.98-0.99 of the
-    measurements' error -> 0.19-0.61 (as with the true σ given, ``--noise-col``), the error
-    estimate 0.15-0.33 of the truth -> 0.74-1.21; on 15 sets of one noise, none did (airliners
-    at σ 3 m, whose motion between reports reads as noise that differs between tracks: at
-    each track's own reading 0.73 -> 0.96 of the measurements' error)."""
+    left-out residual is the motion over the gap the neighbours leave. The gain must be clear
+    in m² or in each track's gain per point over its own noise (:data:`TRACK_NOISE_ERRORS`
+    standard errors over the tracks), and positive in m². Measured on the recorded-tracks
+    benchmark's kinds (``ks``, defaults): on 18 sets where each track's σ spans a third to three
+    times the file's, all took each track's own noise, 0.59-1.00 of the measurements' error ->
+    0.19-0.86 (as with the true σ given, ``--noise-col``, but for 0.86 against 0.79 at
+    irregular times), the error estimate 0.15-0.79 of the truth -> 0.74-1.21; on 15 sets of one
+    noise, none did (airliners at σ 3 m, whose motion between reports reads as noise that
+    differs between tracks: at each track's own reading 0.73 -> 0.96 of the measurements'
+    error)."""
     spread = read.noise_spread  # (:func:`~torchsvs.datasets.noise_spread`'s, on a few tracks)
     if read.noise != "data" or read.meas_var is None or read.own_noise:
         return None
