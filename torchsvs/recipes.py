@@ -136,7 +136,7 @@ class Settings:
     #: noise_classes`); the column is read as an extra column of the rows
     noise_column: str | None = None
     #: each track at its own noise read off its own positions, where the file has no column of
-    #: it (:func:`~torchsvs.track_plan.with_track_noise`): ``[μ, τ]``, the mean and the
+    #: it (:func:`~torchsvs.sample_accuracy.with_track_noise`): ``[μ, τ]``, the mean and the
     #: between-track spread of the tracks' ``log σ`` over the file's, that each track's
     #: reading is shrunk with (:func:`~torchsvs.datasets.track_noise.shrunk_ratios`)
     track_noise: list[float] | None = None

@@ -223,9 +223,11 @@ def prepare_estimator(
     off them (:func:`~torchsvs.fitting.defaults.complete_settings`, on up to
     ``fit_options["tracks"]`` tracks spread over the block, their isolated outliers set aside
     first: :func:`~torchsvs.fitting.defaults.screened`), then fitted, loaded from
-    ``checkpoint``, saved to ``save``, as asked. Where the noise was read off the data and the
-    Kalman smoother on the sample is not clearly below the measurements, the run takes the low
-    end of that reading (:func:`~torchsvs.sample_accuracy.lowered_noise`), decided on the
+    ``checkpoint``, saved to ``save``, as asked. Where the noise was read off the data, each
+    track runs at its own reading where the tracks differ and that is clearly better
+    (:func:`~torchsvs.sample_accuracy.with_track_noise`); else, where the Kalman smoother on the
+    sample is not clearly below the measurements, the run takes the low end of the file's
+    reading (:func:`~torchsvs.sample_accuracy.lowered_noise`); both decided on the
     screened sample before anything is fitted or chosen (once: a fit at the reading was thrown
     away, 20 s of ``rstkf --fit`` on 5,000 rows).
 
@@ -244,8 +246,8 @@ def prepare_estimator(
     if own:  # the noise read and the outliers set aside once, before anything is fitted
         screen = screened(settings, sample)
         read = screen.settings
-        low = lowered_noise(read, screen.tracks)
         own_noise = with_track_noise(read, screen.tracks)
+        low = None if own_noise is not None else lowered_noise(read, screen.tracks)
         if own_noise is not None:
             chosen, line = own_noise
             say(line)
