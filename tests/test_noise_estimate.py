@@ -412,3 +412,16 @@ def test_a_maneuver_read_as_noise_far_apart_widens_the_readings_uncertainty(monk
     found = estimate_noise(regular, regular_dt)
     assert torch.equal(found.meas_var, alike.meas_var)
     assert torch.equal(found.meas_std_se, alike.meas_std_se)
+
+
+def test_between_spread_is_dersimonian_and_lairds_moment_estimator():
+    """Worked by hand: values 0 and 2 of unit weight have mean 1, Q = 2 and one degree of
+    freedom, so τ² = (Q − 1) / (Σw − Σw²/Σw) = 1; values within their own errors give τ = 0;
+    one value leaves no degree of freedom."""
+    from torchsvs.datasets.noise_estimate import between_spread
+
+    one = torch.ones(2, dtype=torch.float64)
+    assert between_spread(torch.tensor([0.0, 2.0], dtype=torch.float64), one) == (1.0, 1.0)
+    mean, tau = between_spread(torch.tensor([1.0, 3.0], dtype=torch.float64), one * 0.25)
+    assert mean == 2.0 and tau == 0.0  # (Q = 0.5 < 1 degree of freedom)
+    assert between_spread(torch.tensor([5.0], dtype=torch.float64), one[:1])[1] is None

@@ -247,7 +247,7 @@ def with_track_noise(read: Settings, tracks: RecordedTracks) -> tuple[Settings, 
     spread = read.noise_spread  # (:func:`~torchsvs.datasets.noise_spread`'s, on a few tracks)
     if read.noise != "data" or read.meas_var is None or read.own_noise:
         return None
-    if spread is None or spread <= TRACK_NOISE_SPREAD:  # (one level fits: not read track by track)
+    if spread is None or spread <= TRACK_NOISE_SPREAD:  # (one level fits, or too few to tell)
         return None
     each = read_track_noise(tracks.z, tracks.dt, read.meas_var)
     found = spread_of(each)
@@ -316,7 +316,7 @@ def _left_out_squares(settings: Settings, tracks: RecordedTracks) -> tuple[Tenso
     mean = in_batch_order(found, batch, found.mean)[..., 0::2]
     cov = in_batch_order(found, batch, found.cov)
     m = mean.shape[-1]
-    variance = torch.stack([cov[..., 2 * a, 2 * a] for a in range(m)], -1)
+    variance = cov.diagonal(dim1=-2, dim2=-1)[..., 0::2]  # (the positions')
     factor = (
         noise_classes.on_grid(noise_classes.track_ratios(tracks, settings))
         if settings.own_noise

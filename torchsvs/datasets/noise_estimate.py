@@ -518,8 +518,16 @@ def noise_spread(
         weights.append(rel[ok].square().reciprocal())
     if len(logs) < 4:
         return None
-    y, w = torch.cat(logs), torch.cat(weights)
+    return between_spread(torch.cat(logs), torch.cat(weights))[1]
+
+
+def between_spread(y: Tensor, w: Tensor) -> tuple[float, float | None]:
+    """``(μ, τ)`` of values ``y [n]`` with weights ``w [n]`` (their inverse variances): the
+    weighted mean and the standard deviation between them beyond their own errors
+    (DerSimonian & Laird's moment estimator), ``τ`` None where the weights leave no degree of
+    freedom."""
     mean = (w * y).sum() / w.sum()
     Q = float((w * (y - mean).square()).sum())
     scale = float(w.sum() - w.square().sum() / w.sum())
-    return math.sqrt(max(0.0, (Q - (y.numel() - 1)) / scale)) if scale > 0 else None
+    tau = math.sqrt(max(0.0, (Q - (y.numel() - 1)) / scale)) if scale > 0 else None
+    return float(mean), tau

@@ -30,6 +30,7 @@ from torchsvs.datasets.noise_estimate import (
     MANEUVER,
     _spans,
     _touching,
+    between_spread,
     truncated_second_moment,
 )
 
@@ -77,7 +78,7 @@ def read_track_noise(z: Tensor, dt: Tensor, meas_var: Sequence[float]) -> TrackN
         if positions() is z and intervals() is dt and of == key and version == z._version:
             return read
     read = _read(z, dt, meas_var)
-    for gone in [k for k, v in _READ.items() if v[0]() is None][: len(_READ)]:
+    for gone in [k for k, v in _READ.items() if v[0]() is None]:
         del _READ[gone]
     while len(_READ) >= KEPT_READINGS:
         del _READ[next(iter(_READ))]
@@ -127,17 +128,14 @@ def _read_chunk(z: Tensor, dt: Tensor, meas_var: Sequence[float]) -> TrackNoise:
 
 def spread_of(read: TrackNoise) -> tuple[float, float] | None:
     """``(μ, τ)``: the weighted mean of the tracks' ``log σ`` ratios and their between-track
-    standard deviation beyond their own standard errors (DerSimonian & Laird's moment estimator,
-    as :func:`~torchsvs.datasets.noise_spread`); None where fewer than 4 tracks were read."""
+    standard deviation beyond their own standard errors
+    (:func:`~torchsvs.datasets.noise_estimate.between_spread`, as
+    :func:`~torchsvs.datasets.noise_spread`); None where fewer than 4 tracks were read."""
     ok = torch.isfinite(read.log_ratio) & torch.isfinite(read.se) & (read.se > 0)
     if int(ok.sum()) < 4:
         return None
-    y, w = read.log_ratio[ok], read.se[ok].square().reciprocal()
-    mean = float((w * y).sum() / w.sum())
-    Q = float((w * (y - mean).square()).sum())
-    scale = float(w.sum() - w.square().sum() / w.sum())
-    tau = math.sqrt(max(0.0, (Q - (y.numel() - 1)) / scale)) if scale > 0 else 0.0
-    return mean, tau
+    mean, tau = between_spread(read.log_ratio[ok], read.se[ok].square().reciprocal())
+    return mean, tau or 0.0
 
 
 def shrunk_ratios(read: TrackNoise, mean: float, tau: float) -> Tensor:
