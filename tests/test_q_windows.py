@@ -53,7 +53,7 @@ def test_one_factor_is_the_compiled_pass_and_its_sums():
     observations' tangents, equal the sums the compiled pass writes itself."""
     z, _, dt = _maneuvering(B=4, T=150)
     r = [SIGMA**2, SIGMA**2]
-    z64, dt64, rr, prior = noise._curve_inputs(z, dt, r)
+    z64, dt64, rr, prior = noise.curve_inputs(z, dt, r)
     one = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, rr, 40.0, True, 32)
     if one.sums is None:
         pytest.skip("the compiled loops are unavailable")
@@ -90,7 +90,7 @@ def test_the_window_follows_a_turn_that_one_q_per_track_cannot():
     track (chosen by the truth)."""
     z, truth, dt = _maneuvering(B=6, T=400, seed=1)
     r = [SIGMA**2, SIGMA**2]
-    z64, dt64, rr, prior = noise._curve_inputs(z, dt, r)
+    z64, dt64, rr, prior = noise.curve_inputs(z, dt, r)
     q = 5.0
     found = q_windows.windowed_runs(z, dt, r, q, 41)
     if found is None:
@@ -182,7 +182,7 @@ def test_track_runs_the_window_the_sample_chose():
         rtol=0, atol=1e-6,
     )  # fmt: skip
     cov_xx = torch.tensor(with_cov["cov_x_x"].to_numpy()).reshape(6, 300)
-    z64, dt64, r64, prior = noise._curve_inputs(z, dt, settings.meas_var)
+    z64, dt64, r64, prior = noise.curve_inputs(z, dt, settings.meas_var)
     mixture = torch.zeros(6, 300, dtype=torch.float64)
     for k, f in enumerate(noise.Q_FACTORS):
         one = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, r64, settings.q * f)
@@ -266,7 +266,7 @@ def test_the_per_step_risk_is_the_step_terms_sure():
     z[1, 40, 1] = 500.0  # one observation on that axis
     z[2, :, 0] = math.nan  # an axis never seen
     r = [SIGMA**2, SIGMA**2]
-    z64, dt64, rr, prior = noise._curve_inputs(z, dt, r)
+    z64, dt64, rr, prior = noise.curve_inputs(z, dt, r)
     found = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, rr, 20.0, True, 32)
     if found.first_two is None:
         pytest.skip("the compiled loops are unavailable")
@@ -285,7 +285,7 @@ def test_the_blends_divergence_is_its_derivative_with_the_weights_held():
     r = [SIGMA**2, SIGMA**2]
 
     def blend(zz, weight=None):
-        z64, dt64, rr, prior = noise._curve_inputs(zz, dt, r)
+        z64, dt64, rr, prior = noise.curve_inputs(zz, dt, r)
         found = q_windows._factor_passes(z64, dt64, prior, rr, 5.0, noise.Q_FACTORS)
         if found is None:
             pytest.skip("the compiled loops are unavailable")

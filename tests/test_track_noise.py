@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import torch
 
 from torchsvs.datasets import RecordedTracks
@@ -78,3 +79,98 @@ def test_a_tracks_reading_is_its_own_whatever_tracks_are_read_beside_it(monkeypa
     monkeypatch.setattr(track_noise, "CHUNK_STEPS", 2 * tracks.z.shape[1])
     chunked = read_track_noise(tracks.z.clone(), tracks.dt.clone(), [100.0, 100.0])
     assert torch.equal(chunked.log_ratio, whole.log_ratio) and torch.equal(chunked.se, whole.se)
+
+
+def _tensor_reading(z: torch.Tensor, dt: torch.Tensor, meas_var: list[float], monkeypatch):
+    """The tensors' fit alone (the compiled one turned off)."""
+    import torchsvs.datasets.track_noise as track_noise
+
+    with monkeypatch.context() as patch:
+        patch.setattr(track_noise, "_read_compiled", lambda *args: None)
+        return track_noise._read(z, dt, meas_var)
+
+
+def test_the_compiled_reading_is_the_tensor_fits(monkeypatch) -> None:
+    """The compiled reading (kernels/cpp/track_noise.h) against the tensors' fit, its formulas'
+    home: every track read or not alike, the same residuals kept, the log ratios to a few ulps
+    (torch's square root of a stencil's norm is not always the correctly rounded one). Tracks
+    of every length from one position, missing positions, irregular and repeated times,
+    maneuvers that set residuals aside, three axes; and the case where no stencil of the
+    highest order is finite, which the compiled loop leaves to the tensors."""
+    from torchsvs.kernels import build
+
+    if build.library() is None:
+        return  # (no compiler: the tensors' fit is the only one, tested above)
+    g = torch.Generator().manual_seed(5)
+    B, T = 300, 90
+    z = torch.randn(B, T, 3, generator=g, dtype=torch.float64).cumsum(1) * 0.5
+    z += (
+        torch.randn(B, T, 3, generator=g, dtype=torch.float64)
+        * torch.linspace(1, 20, B).view(B, 1, 1).double()
+    )
+    z[torch.rand(B, T, 3, generator=g) < 0.05] = math.nan
+    lengths = torch.randint(1, T + 1, (B,), generator=g)
+    z[torch.arange(T).view(1, T) >= lengths.view(B, 1)] = math.nan
+    z[::7, 30:34] += 400.0  # (a jump: residuals beyond the maneuver cutoff)
+    dt = 1.0 + 9.0 * torch.rand(B, T, generator=g, dtype=torch.float64)
+    dt[::5] = 5.0
+    dt[3, 10] = 0.0  # (a repeated time: its stencils are not finite)
+    meas_var = [4.0, 9.0, 25.0]
+    tensors = _tensor_reading(z, dt, meas_var, monkeypatch)
+    compiled = read_track_noise(z, dt, meas_var)
+    read = ~tensors.log_ratio.isnan()
+    assert torch.equal(read, ~compiled.log_ratio.isnan()) and 0 < int(read.sum()) < B
+    assert torch.equal(tensors.se.nan_to_num(-1.0), compiled.se.nan_to_num(-1.0))
+    assert torch.allclose(tensors.log_ratio[read], compiled.log_ratio[read], rtol=0, atol=1e-12)
+    # four positions a track: only orders 2 and 3, the top order the tensors' fit finds
+    short = torch.randn(40, 4, 2, generator=g, dtype=torch.float64)
+    ones = torch.ones(40, 4, dtype=torch.float64)
+    expected = _tensor_reading(short, ones, [1.0, 1.0], monkeypatch).log_ratio
+    found = read_track_noise(short, ones, [1.0, 1.0]).log_ratio
+    assert torch.allclose(expected, found, rtol=0, atol=1e-12, equal_nan=True)
+
+
+def test_the_class_search_of_q_is_the_golden_search_of_its_summed_curves() -> None:
+    """``class_sure_q`` reads each noise class's tracks and prior once and its grid in one pass
+    a class: the q it finds is, bit for bit, the golden search with one pass per value of q
+    and nothing kept (the search as first written)."""
+    from torchsvs.fitting import defaults, noise
+    from torchsvs.fitting.noise_classes import classes_of
+
+    tracks = _tracks(torch.exp(torch.linspace(math.log(5.0), math.log(45.0), 24)).double(), 80)
+    settings = Settings("ks", meas_var=[400.0, 400.0], track_noise=[0.0, 0.7])
+    parts = [
+        (tracks.subset(each.members), each.settings.meas_var)
+        for each in classes_of(tracks, np.arange(len(tracks)), settings)
+    ]
+    assert len(parts) > 3  # (several classes)
+
+    def total(log_q: float) -> float:
+        risk = 0.0
+        for part, own in parts:
+            found = noise.q_curves(part.z, part.dt, own, math.exp(log_q), True, (1.0,))
+            risk += float(found.risk.sum())
+        return risk
+
+    start = math.log(defaults._sure_q(tracks, [400.0, 400.0], "ks"))
+    grid = [start + k * 0.5 * math.log(10.0) for k in range(-8, 3)]
+    expected = math.exp(noise._golden_search(total, grid))
+    assert defaults.class_sure_q(settings, tracks, [400.0, 400.0], "ks") == expected
+
+
+def test_a_screen_that_finds_the_same_outliers_again_reads_q_once(monkeypatch) -> None:
+    """The screen runs twice (the second at the q read without the first's outliers); where
+    it sets aside the same positions, the tracks and so their q are the first's, and q is not
+    read again."""
+    from torchsvs.fitting import defaults
+
+    tracks = _tracks(torch.full((12,), 10.0, dtype=torch.float64), 120, seed=4)
+    z = tracks.z.clone()
+    z[2, 40, 0] += 200.0  # (one 20σ outlier)
+    tracks = replace(tracks, z=z)
+    reads = []
+    sure_q = defaults.file_sure_q
+    monkeypatch.setattr(defaults, "file_sure_q", lambda *a: reads.append(1) or sure_q(*a))
+    settings, clean, flagged = defaults.screened(Settings("ks", meas_var=[100.0, 100.0]), tracks)
+    assert bool(flagged[2, 40]) and int(flagged.sum()) == 1 and len(reads) == 1
+    assert settings.outlier_q == sure_q(settings, clean, [100.0, 100.0], "ks")

@@ -24,6 +24,7 @@ from torchsvs.fitting.noise import (
     Q_FACTORS,
     QCurves,
     _golden_search,
+    curve_inputs,
     q_curve_runs,
     q_curves,
     smoother_q,
@@ -238,8 +239,12 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
             )
         except ValueError:  # too little data to say: the measurement noise over one step
             q = sum(first.meas_var) / len(first.meas_var) / first.interval**3
+    before = None
     for _ in range(1 if settings.outlier_q else 2):
         flagged = screen_outliers(tracks.z, tracks.dt, first.meas_var, q)
+        if before is not None and torch.equal(flagged, before):
+            break  # (the same outliers: the same tracks, the same q)
+        before = flagged
         clean = replace(tracks, z=tracks.z.masked_fill(flagged.unsqueeze(-1), math.nan))
         if settings.outlier_q is None:
             try:
@@ -320,26 +325,34 @@ def class_sure_q(
     Whole tracks, unclipped (the screen's first reading clips each term where one noise serves
     all)."""
     around = replace(settings, meas_var=list(meas_var))
-    parts = [  # (each class's tracks, once: the search reads them at every q)
-        (tracks.subset(each.members), each.settings.meas_var)
-        for each in classes_of(tracks, np.arange(len(tracks)), around)
-    ]
+    parts = []  # (each class's tracks and their prior, once: the search reads them at every q)
+    for each in classes_of(tracks, np.arange(len(tracks)), around):
+        part, own = tracks.subset(each.members), each.settings.meas_var
+        assert own is not None
+        parts.append(curve_inputs(part.z, part.dt, own))
     smoothed = estimator not in FILTERS
+    found: dict[float, float] = {}
 
-    def total(log_q: float) -> float:
-        risk = 0.0
-        for part, own in parts:
-            assert own is not None
-            found = q_curves(part.z, part.dt, own, math.exp(log_q), smoothed, (1.0,))
-            risk += float(found.risk.sum())
-        return risk
+    def totals(log_qs: list[float]) -> list[float]:
+        """SURE summed over the classes at each ``q``: every new one in one pass a class."""
+        new = [x for x in dict.fromkeys(log_qs) if x not in found]
+        if new:
+            risk = [0.0] * len(new)
+            qs = tuple(math.exp(x) for x in new)  # (1 × each: the q itself, bit for bit)
+            for inputs in parts:
+                curves = q_curves(inputs.z, inputs.dt, inputs.r, 1.0, smoothed, qs, inputs)
+                for i in range(len(new)):
+                    risk[i] += float(curves.risk[i].clone().sum())
+            found.update(zip(new, risk, strict=True))
+        return [found[x] for x in log_qs]
 
     # bracketed from the file-noise reading (on windows: cheap), which the noisier tracks' noise
     # pushes up: half decades from 4 below it to 1 above (smoother_q's whole grid took about 1.3x
     # the plan's time on 1 s scans for the same q, to its tolerance)
     start = math.log(_sure_q(tracks, meas_var, estimator))
     step = 0.5 * math.log(10.0)
-    return math.exp(_golden_search(total, [start + k * step for k in range(-8, 3)]))
+    grid = [start + k * step for k in range(-8, 3)]
+    return math.exp(_golden_search(lambda x: totals([x])[0], grid, totals))
 
 
 def file_sure_q(

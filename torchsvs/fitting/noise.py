@@ -341,21 +341,31 @@ def q_curves(
     q: float,
     smoothed: bool = True,
     factors: tuple[float, ...] = Q_FACTORS,
+    inputs: CurveInputs | None = None,
 ) -> QCurves:
     """SURE (:func:`smoother_q`'s, exact) of the nearly-constant-velocity Kalman smoother
     (``smoothed``) or filter with ``q`` times each factor, per track: each whole track from its
-    two-point prior, scored from its third observed step on."""
-    return q_curve_runs(z, dt, meas_var, q, smoothed, factors)[0]
+    two-point prior, scored from its third observed step on (``inputs``: :func:`curve_inputs`
+    of these arguments, made once for a search that reads the tracks at many ``q``)."""
+    return q_curve_runs(z, dt, meas_var, q, smoothed, factors, inputs=inputs)[0]
 
 
-def _curve_inputs(
-    z: Tensor, dt: Tensor, meas_var: Tensor | float | Sequence[float]
-) -> tuple[Tensor, Tensor, Tensor, Any]:
+class CurveInputs(NamedTuple):
+    """What the curves' passes read off the tracks whatever ``q`` (:func:`curve_inputs`)."""
+
+    z: Tensor  #: [B, T, m] float64
+    dt: Tensor  #: [B, T] float64
+    r: Tensor  #: [m] float64 the measurement variances
+    prior: Any  #: the tracks' two-point prior (:func:`~torchsvs.datasets.priors.two_point_prior`)
+
+
+def curve_inputs(z: Tensor, dt: Tensor, meas_var: Tensor | float | Sequence[float]) -> CurveInputs:
     """``z``, ``dt`` and the variances ``[m]`` in float64, and the tracks' two-point prior."""
     m = z.shape[-1]
     r = torch.as_tensor(meas_var, dtype=torch.float64).reshape(-1).expand(m)
     z64, dt64 = z.to(torch.float64), dt.to(torch.float64)
-    return z64, dt64, r, two_point_prior(z64, dt64, r)  # (whole: an axis seen once reads it)
+    # (whole: an axis seen once reads it)
+    return CurveInputs(z64, dt64, r, two_point_prior(z64, dt64, r))
 
 
 def curve_runs(
@@ -368,7 +378,7 @@ def curve_runs(
     """What :func:`q_curve_runs` keeps, at ``q`` (one for all tracks, or each track's
     ``[B]``) without the curves: :func:`kalman`'s pass on the tracks from their two-point
     prior."""
-    z64, dt64, r, prior = _curve_inputs(z, dt, meas_var)
+    z64, dt64, r, prior = curve_inputs(z, dt, meas_var)
     found = kalman_positions(z64, dt64, prior.x0, prior.P0, r, q, smoothed, CHUNK)
     every = torch.ones(z.shape[0], dtype=torch.bool)
     return CurveRuns(found.mean, found.var, every, found.sums)
@@ -383,6 +393,7 @@ def q_curve_runs(
     factors: tuple[float, ...] = Q_FACTORS,
     choose: Callable[[QCurves], Tensor] | None = None,
     keep: bool = False,
+    inputs: CurveInputs | None = None,
 ) -> tuple[QCurves, Tensor | None, CurveRuns | None]:
     """:func:`q_curves`; with ``choose`` (a track's curve to its factor, track by track:
     :func:`track_q_factors`) each track's factor ``[B]``, and with ``keep`` the pass at it
@@ -392,8 +403,9 @@ def q_curve_runs(
     (every track's ``ran``). Compiled, every factor runs in one pass that writes each track's
     sums alone (:func:`torchsvs.kernels.curves.sure_risks`), then the kept pass; else the
     estimator runs a chunk of tracks at a time (:data:`CHUNK_CELLS`) at each factor, each
-    from the whole batch's prior, and keeps the tracks whose factor is on the grid."""
-    z64, dt64, r, prior = _curve_inputs(z, dt, meas_var)
+    from the whole batch's prior, and keeps the tracks whose factor is on the grid
+    (``inputs``: as :func:`q_curves`')."""
+    z64, dt64, r, prior = inputs or curve_inputs(z, dt, meas_var)
     counted = ~torch.isnan(z64) & _scored(z64).unsqueeze(-1)
     B, T, m = z64.shape
     grid = torch.tensor(factors, dtype=torch.float64)
@@ -486,10 +498,15 @@ def track_q_factors(
     return torch.where(n > 0, chosen, torch.ones_like(chosen))
 
 
-def _golden_search(value: Callable[[float], float], grid: list[float]) -> float:
+def _golden_search(
+    value: Callable[[float], float],
+    grid: list[float],
+    many: Callable[[list[float]], list[float]] | None = None,
+) -> float:
     """The minimum of ``value`` bracketed by the grid's best point and its neighbours, narrowed
-    by golden section to :data:`LOG_TOLERANCE`."""
-    values = [value(x) for x in grid]
+    by golden section to :data:`LOG_TOLERANCE` (``many``: the values at a list of points at
+    once, for the grid)."""
+    values = many(grid) if many is not None else [value(x) for x in grid]
     best = min(range(len(grid)), key=values.__getitem__)
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
     golden = (math.sqrt(5.0) - 1.0) / 2.0

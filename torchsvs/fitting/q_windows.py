@@ -194,7 +194,7 @@ def windowed_runs(
     :data:`~torchsvs.fitting.noise.CHUNK_CELLS` at a time.
     None where the compiled loops are unavailable (they give the divergence at each axis's
     first two observations)."""
-    z64, dt64, r, prior = noise._curve_inputs(z, dt, meas_var)
+    z64, dt64, r, prior = noise.curve_inputs(z, dt, meas_var)
     B, T, m = z64.shape
     grid = torch.tensor(factors, dtype=torch.float64)
     mean = z64.new_empty(B, T, 2 * m)
@@ -242,7 +242,7 @@ def window_sums(
     :func:`windowed_runs` at each window over every observed component (:func:`sure_of` reads
     them at any noise level); None where the compiled loops are unavailable. The tracks'
     passes run once for all the windows."""
-    z64, dt64, r, prior = noise._curve_inputs(z, dt, meas_var)
+    z64, dt64, r, prior = noise.curve_inputs(z, dt, meas_var)
     B, T, m = z64.shape
     totals = z64.new_zeros(B, len(windows), m, 3)
     usable = [True]

@@ -175,6 +175,10 @@ def library() -> ctypes.CDLL | None:
     imm.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_void_p, pointers]
     imm.argtypes += [ctypes.c_int64, ctypes.c_int64, pointers]
     imm.restype = ctypes.c_int
+    noise = lib.track_noise_f64
+    vp, i64, double = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+    noise.argtypes = [*size, ctypes.c_int, vp, vp, vp, vp, i64, i64, *(double,) * 4]
+    noise.argtypes += [ctypes.c_int, vp, vp, vp]
     _state["library"] = lib
     return lib
 

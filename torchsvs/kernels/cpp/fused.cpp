@@ -9,6 +9,7 @@
 //   adjoints.h       the hand-written reverse modes of the per-axis loops
 //   dense.h          the dense linear filters' step (online steps, dense runs)
 //   imm.h            the IMM(CV, CT) of `track --estimator imm` and Kim's smoother (float64)
+//   track_noise.h    each track's noise read off its positions (float64)
 //
 // The per-axis kernel: each (track, axis) pair is an independent lane of two-state steps;
 // blocks of lanes step together (a loop the compiler vectorises) and every step costs a few
@@ -31,6 +32,7 @@
 #include "adjoints.h"
 #include "dense.h"
 #include "imm.h"
+#include "track_noise.h"
 
 extern "C" {
 
@@ -119,4 +121,13 @@ int turn_imm_f64(int64_t B, int64_t T, int64_t ndim, int64_t lag, int cov, int t
     return 3;
 }
 
+// Each track's noise reading, float64 only (track_noise.h; torchsvs/kernels/track_noise.py).
+void track_noise_f64(int64_t B, int64_t T, int64_t m, int threads, const double* z,
+                     const double* t, const double* r, const int64_t* orders, int64_t n_orders,
+                     int64_t top, double kappa, double chi2_median, double cutoff2,
+                     double maneuver2, int iterations, double* scale, double* count,
+                     int64_t* top_count) {
+    track_noise_entry(B, T, m, threads, z, t, r, orders, n_orders, top, kappa, chi2_median,
+                      cutoff2, maneuver2, iterations, scale, count, top_count);
+}
 }  // extern "C"

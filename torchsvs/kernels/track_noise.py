@@ -1,0 +1,61 @@
+"""Each track's measurement noise read off its own positions, compiled (``cpp/track_noise.h``):
+:func:`torchsvs.datasets.track_noise.read_track_noise`'s fit, track by track in one pass,
+where the tensor code runs some hundred operations over every residual (1 M rows: about
+3 s of it). The tensor code is the home of the formulas and the path where this returns
+``None``; ``tests/test_track_noise.py`` holds the two equal to the bit.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsvs.kernels import build
+
+
+class Reading(NamedTuple):
+    """What :func:`read` gives, per track."""
+
+    scale: Tensor  #: [B] float64 the noise's variance over ``r`` after the last iteration
+    kept: Tensor  #: [B] float64 the residuals kept in the last iteration
+    top_count: Tensor  #: [B] int64 the residuals of the top order
+
+
+def read(
+    z: Tensor,
+    t: Tensor,
+    r: Sequence[float],
+    orders: Sequence[int],
+    top: int,
+    kappa: float,
+    chi2_median: float,
+    cutoff: float,
+    maneuver: float,
+    iterations: int,
+) -> Reading | None:
+    """Each track's noise scale on ``z [B, T, m]`` (NaN: missing) at the times ``t [B, T]``
+    (the intervals' running sums) with the variances ``r [m]``, from the divided differences of
+    ``orders`` and the lower median of the ``top`` order's (all float64; the fit's constants as
+    :mod:`torchsvs.datasets.track_noise` names them). ``None`` where the compiled loops are
+    unavailable."""
+    if not build.usable(z, t) or z.dtype != torch.float64:
+        return None
+    B, T, m = z.shape
+    z, t = z.contiguous(), t.contiguous()
+    r64 = torch.tensor(list(r), dtype=torch.float64)
+    order = torch.tensor(list(orders), dtype=torch.int64)
+    scale = torch.empty(B, dtype=torch.float64)
+    kept = torch.empty(B, dtype=torch.float64)
+    top_count = torch.empty(B, dtype=torch.int64)
+    lib = build.library()
+    assert lib is not None
+    lib.track_noise_f64(
+        B, T, m, build.threads(B, T), z.data_ptr(), t.data_ptr(), r64.data_ptr(),
+        order.data_ptr(), len(order), top, kappa, chi2_median, cutoff**2, maneuver**2,
+        ctypes.c_int(iterations), scale.data_ptr(), kept.data_ptr(), top_count.data_ptr(),
+    )  # fmt: skip
+    return Reading(scale, kept, top_count)
