@@ -91,12 +91,11 @@ def _tensor_reading(z: torch.Tensor, dt: torch.Tensor, meas_var: list[float], mo
 
 
 def test_the_compiled_reading_is_the_tensor_fits(monkeypatch) -> None:
-    """The compiled reading (kernels/cpp/track_noise.h) against the tensors' fit, its formulas'
-    home: every track read or not alike, the same residuals kept, the log ratios to a few ulps
-    (torch's square root of a stencil's norm is not always the correctly rounded one). Tracks
-    of every length from one position, missing positions, irregular and repeated times,
-    maneuvers that set residuals aside, three axes; and the case where no stencil of the
-    highest order is finite, which the compiled loop leaves to the tensors."""
+    """The compiled reading and divided differences (kernels/cpp/track_noise.h) against the
+    tensors' (their formulas' home), to the bit: tracks of every length from one position,
+    missing positions, irregular and repeated times, maneuvers that set residuals aside, three
+    axes; and four positions a track (no stencil of order 4)."""
+    import torchsvs.datasets.differences as differences
     from torchsvs.kernels import build
 
     if build.library() is None:
@@ -116,18 +115,20 @@ def test_the_compiled_reading_is_the_tensor_fits(monkeypatch) -> None:
     dt[::5] = 5.0
     dt[3, 10] = 0.0  # (a repeated time: its stencils are not finite)
     meas_var = [4.0, 9.0, 25.0]
-    tensors = _tensor_reading(z, dt, meas_var, monkeypatch)
-    compiled = read_track_noise(z, dt, meas_var)
-    read = ~tensors.log_ratio.isnan()
-    assert torch.equal(read, ~compiled.log_ratio.isnan()) and 0 < int(read.sum()) < B
-    assert torch.equal(tensors.se.nan_to_num(-1.0), compiled.se.nan_to_num(-1.0))
-    assert torch.allclose(tensors.log_ratio[read], compiled.log_ratio[read], rtol=0, atol=1e-12)
-    # four positions a track: only orders 2 and 3, the top order the tensors' fit finds
     short = torch.randn(40, 4, 2, generator=g, dtype=torch.float64)
     ones = torch.ones(40, 4, dtype=torch.float64)
-    expected = _tensor_reading(short, ones, [1.0, 1.0], monkeypatch).log_ratio
-    found = read_track_noise(short, ones, [1.0, 1.0]).log_ratio
-    assert torch.allclose(expected, found, rtol=0, atol=1e-12, equal_nan=True)
+    for zs, dts, variances in ((z, dt, meas_var), (short, ones, [1.0, 1.0])):
+        tensors = _tensor_reading(zs, dts, variances, monkeypatch)
+        compiled = read_track_noise(zs, dts, variances)
+        for a, b in ((tensors.log_ratio, compiled.log_ratio), (tensors.se, compiled.se)):
+            assert torch.equal(a.nan_to_num(-9.0), b.nan_to_num(-9.0))
+        with monkeypatch.context() as patch:
+            patch.setattr(differences, "_compiled", lambda *args: None)
+            expected = differences.difference_residuals(zs, dts)
+        found = differences.difference_residuals(zs, dts)
+        assert all(torch.equal(a, b) for a, b in zip(expected, found, strict=True))
+    read = ~read_track_noise(z, dt, meas_var).log_ratio.isnan()
+    assert 0 < int(read.sum()) < B  # (some tracks too short to read)
 
 
 def test_the_class_search_of_q_is_the_golden_search_of_its_summed_curves() -> None:

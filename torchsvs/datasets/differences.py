@@ -6,8 +6,11 @@ from __future__ import annotations
 import functools
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
+
+from torchsvs.kernels import track_noise as compiled_noise
 
 #: Orders of the divided differences the measurement noise is read from
 #: (:func:`~torchsvs.datasets.noise_estimate.estimate_noise`).
@@ -61,6 +64,9 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
     """
     B, T, m = z.shape
     t = torch.cumsum(dt.to(torch.float64), dim=1)
+    compiled = _compiled(z.to(torch.float64), t, orders)
+    if compiled is not None:
+        return compiled
     zc, tc, steps, count = _observed_first(z.to(torch.float64), t)
     out: dict[str, list[Tensor]] = {key: [] for key in Residuals._fields}
     for k in orders:
@@ -80,7 +86,7 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
             1.0 / functools.reduce(torch.mul, [times[j] - times[l] for l in range(k + 1) if l != j])
             for j in range(k + 1)
         ]
-        norm = functools.reduce(torch.add, [x * x for x in w]).sqrt()
+        norm = _sqrt(functools.reduce(torch.add, [x * x for x in w]))
         c = [x / norm for x in w]
         # the Peano kernel at each knot l: K_l = sum_{j > l} c_j (t_j - t_l)
         knots = [
@@ -110,7 +116,40 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
         out["track"].append(row // m)
         out["first"].append(steps[row, col])
         out["last"].append(steps[row, col + k])
+    return _joined(out)
+
+
+def _joined(out: dict[str, list[Tensor]]) -> Residuals:
     if not out["u"]:
         empty, none = torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.int64)
         return Residuals(empty, empty, none, none, none, none, none)
     return Residuals(*(torch.cat(out[key]) for key in Residuals._fields))
+
+
+def _sqrt(x: Tensor) -> Tensor:
+    """The correctly rounded square root (torch's float64 one is not, on about 1% of values:
+    the compiled residuals' then differ in the last bit)."""
+    return torch.from_numpy(np.sqrt(x.numpy()))
+
+
+def _compiled(z: Tensor, t: Tensor, orders: tuple[int, ...]) -> Residuals | None:
+    """:func:`difference_residuals` compiled (:func:`torchsvs.kernels.track_noise.residuals`,
+    the same to the bit), in its order; None where the compiled loops are unavailable."""
+    found = compiled_noise.residuals(z, t, orders)
+    if found is None:
+        return None
+    _, T, m = z.shape
+    out: dict[str, list[Tensor]] = {key: [] for key in Residuals._fields}
+    for o, k in enumerate(orders):
+        if T <= k:
+            continue
+        row, col = found.ok[o].nonzero(as_tuple=True)
+        at = (o * found.ok.shape[1] + row) * T + col
+        out["u"].append(found.u.view(-1)[at])
+        out["b"].append(found.b.view(-1)[at])
+        out["axis"].append(row % m)
+        out["order"].append(torch.full_like(row, k))
+        out["track"].append(row // m)
+        out["first"].append(found.first.view(-1)[at])
+        out["last"].append(found.last.view(-1)[at])
+    return _joined(out)

@@ -179,6 +179,7 @@ def library() -> ctypes.CDLL | None:
     vp, i64, double = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
     noise.argtypes = [*size, ctypes.c_int, vp, vp, vp, vp, i64, i64, *(double,) * 4]
     noise.argtypes += [ctypes.c_int, vp, vp, vp]
+    lib.difference_residuals_f64.argtypes = [*size, ctypes.c_int, vp, vp, vp, i64, *(vp,) * 5]
     _state["library"] = lib
     return lib
 

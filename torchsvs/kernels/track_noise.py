@@ -1,8 +1,10 @@
-"""Each track's measurement noise read off its own positions, compiled (``cpp/track_noise.h``):
-:func:`torchsvs.datasets.track_noise.read_track_noise`'s fit, track by track in one pass,
-where the tensor code runs some hundred operations over every residual (1 M rows: about
-3 s of it). The tensor code is the home of the formulas and the path where this returns
-``None``; ``tests/test_track_noise.py`` holds the two equal to the bit.
+"""The measurement noise read off the positions, compiled (``cpp/track_noise.h``): the divided
+differences it is read from (:func:`residuals`,
+:func:`torchsvs.datasets.differences.difference_residuals`'s) and each track's own reading
+(:func:`read`, :func:`torchsvs.datasets.track_noise.read_track_noise`'s fit), track by track
+in one pass, where the tensor code runs some hundred operations over every residual (10^6
+rows: about 3 s of it). The tensor code is the home of the formulas and the path where these
+return ``None``; ``tests/test_track_noise.py`` holds the two equal to the bit.
 """
 
 from __future__ import annotations
@@ -59,3 +61,35 @@ def read(
         ctypes.c_int(iterations), scale.data_ptr(), kept.data_ptr(), top_count.data_ptr(),
     )  # fmt: skip
     return Reading(scale, kept, top_count)
+
+
+class Stencils(NamedTuple):
+    """What :func:`residuals` gives: ``[K, B m, T]`` each, at ``[order, lane, stencil]``."""
+
+    u: Tensor  #: float64 the residual
+    b: Tensor  #: float64 its variance per unit q of white acceleration
+    first: Tensor  #: int64 the step of its stencil's first point
+    last: Tensor  #: int64 and of its last
+    ok: Tensor  #: bool a stencil there whose u and b are finite
+
+
+def residuals(z: Tensor, t: Tensor, orders: Sequence[int]) -> Stencils | None:
+    """The divided differences of each of ``orders`` over the observed positions of every lane
+    (track axis, ``lane = track m + axis``) of ``z [B, T, m]`` (NaN: missing) at the times ``t
+    [B, T]`` (float64). ``None`` where the compiled loops are unavailable."""
+    if not build.usable(z, t) or z.dtype != torch.float64:
+        return None
+    B, T, m = z.shape
+    z, t = z.contiguous(), t.contiguous()
+    order = torch.tensor(list(orders), dtype=torch.int64)
+    shape = (len(order), B * m, T)
+    u, b = torch.empty(shape, dtype=torch.float64), torch.empty(shape, dtype=torch.float64)
+    first, last = torch.empty(shape, dtype=torch.int64), torch.empty(shape, dtype=torch.int64)
+    ok = torch.empty(shape, dtype=torch.bool)
+    lib = build.library()
+    assert lib is not None
+    lib.difference_residuals_f64(
+        B, T, m, build.threads(B, T), z.data_ptr(), t.data_ptr(), order.data_ptr(), len(order),
+        u.data_ptr(), b.data_ptr(), first.data_ptr(), last.data_ptr(), ok.data_ptr(),
+    )  # fmt: skip
+    return Stencils(u, b, first, last, ok)

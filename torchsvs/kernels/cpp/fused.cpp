@@ -130,4 +130,11 @@ void track_noise_f64(int64_t B, int64_t T, int64_t m, int threads, const double*
     track_noise_entry(B, T, m, threads, z, t, r, orders, n_orders, top, kappa, chi2_median,
                       cutoff2, maneuver2, iterations, scale, count, top_count);
 }
+// The divided differences the noise is read from, float64 only (track_noise.h).
+void difference_residuals_f64(int64_t B, int64_t T, int64_t m, int threads, const double* z,
+                              const double* t, const int64_t* orders, int64_t n_orders,
+                              double* u, double* b, int64_t* first, int64_t* last,
+                              uint8_t* ok) {
+    residuals_entry(B, T, m, threads, z, t, orders, n_orders, u, b, first, last, ok);
+}
 }  // extern "C"
