@@ -42,6 +42,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.compiled_steps
 	$(PY) -m benchmarks.covariance_forms
 	$(PY) -m benchmarks.imm_track
+	$(PY) -m benchmarks.defaults_phases
 
 # The full matrix (every estimator × B × dtype × pass beside four peers): most of an hour.
 bench-matrix: $(STAMP)
