@@ -405,7 +405,7 @@ def q_curve_runs(
     estimator runs a chunk of tracks at a time (:data:`CHUNK_CELLS`) at each factor, each
     from the whole batch's prior, and keeps the tracks whose factor is on the grid
     (``inputs``: as :func:`q_curves`')."""
-    z64, dt64, r, prior = inputs or curve_inputs(z, dt, meas_var)
+    z64, dt64, r, prior = inputs if inputs is not None else curve_inputs(z, dt, meas_var)
     counted = ~torch.isnan(z64) & _scored(z64).unsqueeze(-1)
     B, T, m = z64.shape
     grid = torch.tensor(factors, dtype=torch.float64)
