@@ -7,6 +7,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from torchsvs.datasets import RecordedTracks
@@ -99,7 +100,7 @@ def test_the_compiled_reading_is_the_tensor_fits(monkeypatch) -> None:
     from torchsvs.kernels import build
 
     if build.library() is None:
-        return  # (no compiler: the tensors' fit is the only one, tested above)
+        pytest.skip("no compiler: the tensors' fit is the only one, tested above")
     g = torch.Generator().manual_seed(5)
     B, T = 300, 90
     z = torch.randn(B, T, 3, generator=g, dtype=torch.float64).cumsum(1) * 0.5
@@ -127,6 +128,19 @@ def test_the_compiled_reading_is_the_tensor_fits(monkeypatch) -> None:
             expected = differences.difference_residuals(zs, dts)
         found = differences.difference_residuals(zs, dts)
         assert all(torch.equal(a, b) for a, b in zip(expected, found, strict=True))
+    # other orders, up to the fixed arrays' highest; above it the tensors run
+    from torchsvs.kernels import track_noise as compiled_noise
+
+    for orders in ((1, 5, 7), (2, 8)):
+        with monkeypatch.context() as patch:
+            patch.setattr(differences, "_compiled", lambda *args: None)
+            expected = differences.difference_residuals(z, dt, orders)
+        found = differences.difference_residuals(z, dt, orders)
+        assert all(torch.equal(a, b) for a, b in zip(expected, found, strict=True))
+        assert set(found.order.unique().tolist()) == set(orders)
+    t = dt.cumsum(1)
+    assert compiled_noise.residuals(z, t, (2, 8)) is None
+    assert compiled_noise.residuals(z, t, (1, 5, 7)) is not None
     read = ~read_track_noise(z, dt, meas_var).log_ratio.isnan()
     assert 0 < int(read.sum()) < B  # (some tracks too short to read)
 

@@ -63,11 +63,11 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
         regression", Biometrika 73(3):625-633, 1986. doi:10.1093/biomet/73.3.625
     """
     B, T, m = z.shape
-    t = torch.cumsum(dt.to(torch.float64), dim=1)
-    compiled = _compiled(z.to(torch.float64), t, orders)
+    z, t = z.to(torch.float64), torch.cumsum(dt.to(torch.float64), dim=1)
+    compiled = _compiled(z, t, orders)
     if compiled is not None:
         return compiled
-    zc, tc, steps, count = _observed_first(z.to(torch.float64), t)
+    zc, tc, steps, count = _observed_first(z, t)
     out: dict[str, list[Tensor]] = {key: [] for key in Residuals._fields}
     for k in orders:
         if T <= k:

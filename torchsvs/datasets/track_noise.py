@@ -102,11 +102,12 @@ def _read(z: Tensor, dt: Tensor, meas_var: Sequence[float]) -> TrackNoise:
 def _read_chunk(z: Tensor, dt: Tensor, meas_var: Sequence[float]) -> TrackNoise:
     """:func:`_read` on one chunk of tracks: compiled (:mod:`torchsvs.kernels.track_noise`,
     the same to the bit), else the tensors' fit below."""
-    compiled = _read_compiled(z.double(), dt.double(), meas_var)
+    z, dt = z.double(), dt.double()
+    compiled = _read_compiled(z, dt, meas_var)
     if compiled is not None:
         return compiled
     B = z.shape[0]
-    res = difference_residuals(z.double(), dt.double(), ORDERS)
+    res = difference_residuals(z, dt, ORDERS)
     nan = torch.full((B,), math.nan, dtype=torch.float64)
     if res.u.numel() == 0:
         return TrackNoise(nan, nan.clone())

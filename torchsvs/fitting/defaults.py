@@ -342,7 +342,7 @@ def class_sure_q(
             for inputs in parts:
                 curves = q_curves(inputs.z, inputs.dt, inputs.r, 1.0, smoothed, qs, inputs)
                 for i in range(len(new)):
-                    risk[i] += float(curves.risk[i].clone().sum())
+                    risk[i] += float(curves.risk[i].sum())
             found.update(zip(new, risk, strict=True))
         return [found[x] for x in log_qs]
 

@@ -18,6 +18,16 @@ from torch import Tensor
 
 from torchsvs.kernels import build
 
+#: The highest order of divided differences the compiled loops hold (``cpp/track_noise.h``'s
+#: ``kMaxOrder``): higher ones run the tensor code.
+MAX_ORDER = 7
+
+
+def _compilable(z: Tensor, t: Tensor, orders: Sequence[int]) -> bool:
+    return (
+        z.dtype == torch.float64 and all(1 <= k <= MAX_ORDER for k in orders) and build.usable(z, t)
+    )
+
 
 class Reading(NamedTuple):
     """What :func:`read` gives, per track."""
@@ -43,8 +53,8 @@ def read(
     (the intervals' running sums) with the variances ``r [m]``, from the divided differences of
     ``orders`` and the lower median of the ``top`` order's (all float64; the fit's constants as
     :mod:`torchsvs.datasets.track_noise` names them). ``None`` where the compiled loops are
-    unavailable."""
-    if not build.usable(z, t) or z.dtype != torch.float64:
+    unavailable (or an order is above :data:`MAX_ORDER`)."""
+    if not _compilable(z, t, orders):
         return None
     B, T, m = z.shape
     z, t = z.contiguous(), t.contiguous()
@@ -76,8 +86,9 @@ class Stencils(NamedTuple):
 def residuals(z: Tensor, t: Tensor, orders: Sequence[int]) -> Stencils | None:
     """The divided differences of each of ``orders`` over the observed positions of every lane
     (track axis, ``lane = track m + axis``) of ``z [B, T, m]`` (NaN: missing) at the times ``t
-    [B, T]`` (float64). ``None`` where the compiled loops are unavailable."""
-    if not build.usable(z, t) or z.dtype != torch.float64:
+    [B, T]`` (float64). ``None`` where the compiled loops are unavailable (or an order is
+    above :data:`MAX_ORDER`)."""
+    if not _compilable(z, t, orders):
         return None
     B, T, m = z.shape
     z, t = z.contiguous(), t.contiguous()

@@ -37,73 +37,82 @@ inline double fold_product(const double* x, int n) {
     return out;
 }
 
-// The divided differences of each order k of `orders` over each k + 1 successive observed
-// positions of one axis (z and t of a track's T steps, `stride` apart in z): `emit(k, col, u,
-// b, first, last)` for each stencil (col: its first observed position's place among the
-// axis's), u and b as difference_residuals computes them, finite or not.
-template <typename Emit>
-inline void axis_residuals(int64_t T, int64_t stride, const double* z, const double* t,
-                           const int64_t* orders, int64_t n_orders, std::vector<double>& zc,
-                           std::vector<double>& tc, std::vector<int64_t>& steps,
-                           const Emit& emit) {
-    zc.clear(), tc.clear(), steps.clear();  // the observed positions, times, steps in order
-    for (int64_t s = 0; s < T; ++s) {
-        const double value = z[s * stride];
-        if (!std::isfinite(value)) continue;
-        zc.push_back(value), tc.push_back(t[s]), steps.push_back(s);
-    }
-    const int64_t count = static_cast<int64_t>(zc.size());
-    double times[8], w[8], c[8], knots[8], terms[8];
-    for (int64_t o = 0; o < n_orders; ++o) {
-        const int64_t k = orders[o];
-        if (T <= k) continue;
-        for (int64_t col = 0; col + k < count; ++col) {
-            const double start = tc[col];
-            for (int64_t i = 0; i <= k; ++i) times[i] = tc[col + i] - start;
-            for (int64_t i = 0; i <= k; ++i) {  // w_i = 1 / prod_{l != i} (t_i - t_l)
-                int n = 0;
-                for (int64_t l = 0; l <= k; ++l)
-                    if (l != i) terms[n++] = times[i] - times[l];
-                w[i] = 1.0 / fold_product(terms, n);
-            }
-            double norm = w[0] * w[0];
-            for (int64_t i = 1; i <= k; ++i) norm = norm + w[i] * w[i];
-            norm = std::sqrt(norm);
-            for (int64_t i = 0; i <= k; ++i) c[i] = w[i] / norm;
-            for (int64_t l = 0; l < k; ++l) {  // the Peano kernel at each knot
-                double K = c[l + 1] * (times[l + 1] - times[l]);
-                for (int64_t i = l + 2; i <= k; ++i) K = K + c[i] * (times[i] - times[l]);
-                knots[l] = K;
-            }
-            knots[k] = 0.0;
-            double b = 0.0;
-            for (int64_t l = 0; l < k; ++l) {
-                const double a = knots[l], e = knots[l + 1];
-                const double term = (times[l + 1] - times[l]) * (a * a + a * e + e * e);
-                b = l == 0 ? term : b + term;
-            }
-            b = b / 3.0;
-            double u = c[0] * zc[col];
-            for (int64_t i = 1; i <= k; ++i) u = u + c[i] * zc[col + i];
-            emit(o, col, u, b, steps[col], steps[col + k]);
+// The highest order the stencils' fixed arrays hold (kernels/track_noise.py leaves higher ones
+// to the tensors).
+constexpr int64_t kMaxOrder = 7;
+
+// One axis's observed positions, their times and steps, in time order (z and t of a track's
+// T steps, z's `stride` apart): what difference_residuals' _observed_first moves to the front.
+struct Observed {
+    std::vector<double> z, t;
+    std::vector<int64_t> steps;
+    void read(int64_t T, int64_t stride, const double* zs, const double* ts) {
+        z.clear(), t.clear(), steps.clear();
+        for (int64_t s = 0; s < T; ++s) {
+            const double value = zs[s * stride];
+            if (!std::isfinite(value)) continue;
+            z.push_back(value), t.push_back(ts[s]), steps.push_back(s);
         }
+    }
+};
+
+// The divided differences of order k (at most kMaxOrder) over each k + 1 successive observed
+// positions of one axis: `emit(col, u, b, first, last)` for each stencil (col: its first
+// position's place among the observed), u and b as difference_residuals computes them, finite
+// or not.
+template <typename Emit>
+inline void stencils(int64_t k, const Observed& x, const Emit& emit) {
+    const int64_t count = static_cast<int64_t>(x.z.size());
+    double times[kMaxOrder + 1], w[kMaxOrder + 1], c[kMaxOrder + 1], knots[kMaxOrder + 1];
+    double terms[kMaxOrder];
+    for (int64_t col = 0; col + k < count; ++col) {
+        const double start = x.t[col];
+        for (int64_t i = 0; i <= k; ++i) times[i] = x.t[col + i] - start;
+        for (int64_t i = 0; i <= k; ++i) {  // w_i = 1 / prod_{l != i} (t_i - t_l)
+            int n = 0;
+            for (int64_t l = 0; l <= k; ++l)
+                if (l != i) terms[n++] = times[i] - times[l];
+            w[i] = 1.0 / fold_product(terms, n);
+        }
+        double norm = w[0] * w[0];
+        for (int64_t i = 1; i <= k; ++i) norm = norm + w[i] * w[i];
+        norm = std::sqrt(norm);
+        for (int64_t i = 0; i <= k; ++i) c[i] = w[i] / norm;
+        for (int64_t l = 0; l < k; ++l) {  // the Peano kernel at each knot
+            double K = c[l + 1] * (times[l + 1] - times[l]);
+            for (int64_t i = l + 2; i <= k; ++i) K = K + c[i] * (times[i] - times[l]);
+            knots[l] = K;
+        }
+        knots[k] = 0.0;
+        double b = 0.0;
+        for (int64_t l = 0; l < k; ++l) {
+            const double a = knots[l], e = knots[l + 1];
+            const double term = (times[l + 1] - times[l]) * (a * a + a * e + e * e);
+            b = l == 0 ? term : b + term;
+        }
+        b = b / 3.0;
+        double u = c[0] * x.z[col];
+        for (int64_t i = 1; i <= k; ++i) u = u + c[i] * x.z[col + i];
+        emit(col, u, b, x.steps[col], x.steps[col + k]);
     }
 }
 
 // One track's finite residuals in difference_residuals' order (orders, then axes, then
-// stencils).
+// stencils), each axis's observed positions read once (`axes`: m of them).
 inline void track_residuals(int64_t T, int64_t m, const double* z, const double* t,
                             const double* r, const int64_t* orders, int64_t n_orders,
-                            std::vector<NoiseResidual>& out, std::vector<double>& zc,
-                            std::vector<double>& tc, std::vector<int64_t>& steps) {
+                            std::vector<NoiseResidual>& out, std::vector<Observed>& axes) {
     out.clear();
-    for (int64_t o = 0; o < n_orders; ++o)
+    for (int64_t j = 0; j < m; ++j) axes[j].read(T, m, z + j, t);
+    for (int64_t o = 0; o < n_orders; ++o) {
+        const int64_t k = orders[o];
+        if (T <= k) continue;
         for (int64_t j = 0; j < m; ++j)
-            axis_residuals(T, m, z + j, t, orders + o, 1, zc, tc, steps,
-                           [&](int64_t, int64_t, double u, double b, int64_t first, int64_t last) {
-                               if (!std::isfinite(u) || !std::isfinite(b)) return;
-                               out.push_back({u * u, r[j], orders[o], first, last});
-                           });
+            stencils(k, axes[j], [&](int64_t, double u, double b, int64_t first, int64_t last) {
+                if (std::isfinite(u) && std::isfinite(b))
+                    out.push_back({u * u, r[j], k, first, last});
+            });
+    }
 }
 
 // difference_residuals' residuals of every lane (track axis) of z [B, T, m] at the times t
@@ -115,21 +124,21 @@ inline void residuals_entry(int64_t B, int64_t T, int64_t m, int threads, const 
                             double* b, int64_t* first, int64_t* last, uint8_t* ok) {
     const int64_t lanes = B * m;
     over_tracks(B, threads, [&](int64_t from, int64_t to) {
-        std::vector<double> zc, tc;
-        std::vector<int64_t> steps;
-        for (int64_t o = 0; o < n_orders; ++o)
-            for (int64_t lane = from * m; lane < to * m; ++lane)
-                std::fill(ok + (o * lanes + lane) * T, ok + (o * lanes + lane + 1) * T, 0);
+        Observed axis;
         for (int64_t lane = from * m; lane < to * m; ++lane) {
             const int64_t track = lane / m, j = lane % m;
-            axis_residuals(T, m, z + track * T * m + j, t + track * T, orders, n_orders, zc, tc,
-                           steps,
-                           [&](int64_t o, int64_t col, double uu, double bb, int64_t f,
-                               int64_t l) {
-                               const int64_t at = (o * lanes + lane) * T + col;
-                               u[at] = uu, b[at] = bb, first[at] = f, last[at] = l;
-                               ok[at] = std::isfinite(uu) && std::isfinite(bb) ? 1 : 0;
-                           });
+            axis.read(T, m, z + track * T * m + j, t + track * T);
+            for (int64_t o = 0; o < n_orders; ++o) {
+                const int64_t row = (o * lanes + lane) * T;
+                std::fill(ok + row, ok + row + T, 0);
+                if (T <= orders[o]) continue;
+                stencils(orders[o], axis,
+                         [&](int64_t col, double uu, double bb, int64_t f, int64_t l) {
+                             const int64_t at = row + col;
+                             u[at] = uu, b[at] = bb, first[at] = f, last[at] = l;
+                             ok[at] = std::isfinite(uu) && std::isfinite(bb) ? 1 : 0;
+                         });
+            }
         }
     });
 }
@@ -144,12 +153,11 @@ inline void track_noise_entry(int64_t B, int64_t T, int64_t m, int threads, cons
                               double* count_out, int64_t* top_out) {
     over_tracks(B, threads, [&](int64_t first, int64_t last) {
         std::vector<NoiseResidual> res;
-        std::vector<double> zc, tc, tops;
-        std::vector<int64_t> steps, edges(T + 2), seen(T + 2);
-        std::vector<char> kept;
+        std::vector<Observed> axes(m);
+        std::vector<double> tops;
+        std::vector<int64_t> edges(T + 2), seen(T + 2);
         for (int64_t b = first; b < last; ++b) {
-            track_residuals(T, m, z + b * T * m, t + b * T, r, orders, n_orders, res, zc, tc,
-                            steps);
+            track_residuals(T, m, z + b * T * m, t + b * T, r, orders, n_orders, res, axes);
             tops.clear();
             for (const NoiseResidual& x : res)
                 if (x.order == top) tops.push_back(x.u2 / x.r);
@@ -162,7 +170,6 @@ inline void track_noise_entry(int64_t B, int64_t T, int64_t m, int threads, cons
             }
             if (!(std::isfinite(scale) && scale > 0)) scale = 1.0;
             double count = 0.0;
-            kept.assign(res.size(), 0);
             for (int it = 0; it < iterations; ++it) {
                 // the steps a stencil beyond maneuver2 covers, and how many up to each step
                 std::fill(edges.begin(), edges.end(), 0);
