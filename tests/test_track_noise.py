@@ -189,3 +189,49 @@ def test_a_screen_that_finds_the_same_outliers_again_reads_q_once(monkeypatch) -
     settings, clean, flagged = defaults.screened(Settings("ks", meas_var=[100.0, 100.0]), tracks)
     assert bool(flagged[2, 40]) and int(flagged.sum()) == 1 and len(reads) == 1
     assert settings.outlier_q == sure_q(settings, clean, [100.0, 100.0], "ks")
+
+
+def test_the_compiled_sums_of_the_noise_fit_are_the_tensor_ones(monkeypatch) -> None:
+    """The trimmed fit's sums (kernels/cpp/noise_fit.h) against the tensors' (their home) at
+    every fit of a jackknife and at one fit of all, on residuals of irregular times, gaps and
+    maneuvers (far residuals that set their neighbours aside, at some fits and not others),
+    one to three axes, with white acceleration and without: to the last bits (the two sum in
+    different orders), and :func:`estimate_noise` as close."""
+    import torchsvs.datasets.noise_estimate as ne
+    from torchsvs.kernels import build
+
+    if build.library() is None:
+        pytest.skip("no compiler: the tensors' sums are the only ones")
+    g = torch.Generator().manual_seed(11)
+    for m in (1, 2, 3):
+        B, T = 60, 80
+        z = torch.randn(B, T, m, generator=g, dtype=torch.float64).cumsum(1).cumsum(1) * 0.05
+        z += torch.randn(B, T, m, generator=g, dtype=torch.float64) * 3.0
+        z[torch.rand(B, T, m, generator=g) < 0.05] = math.nan
+        z[::4, 40:43] += 60.0  # (maneuvers: residuals beyond the cutoffs)
+        dt = 1.0 + 4.0 * torch.rand(B, T, generator=g, dtype=torch.float64)
+        res = ne.difference_residuals(z, dt)
+        spans = ne._spans(res)
+        group = torch.randint(0, 20, (res.u.numel(),), generator=g)
+        seen_far = False
+        for white in (False, True):
+            d = ne._design(res, m, white, ne.CUTOFF)
+            for G, parts in ((1, None), (20, group)):
+                r = 9.0 * (1.0 + 0.3 * torch.rand(G, m, generator=g, dtype=torch.float64))
+                q = (0.01 * torch.rand(G, generator=g, dtype=torch.float64)) * white
+                args = (res, d, spans, r, q, parts, ne.CUTOFF, ne.MANEUVER)
+                found = ne._sums(*args, per_order=True)
+                with monkeypatch.context() as patch:
+                    patch.setattr(ne.compiled_noise, "trimmed_sums", lambda *a: None)
+                    expected = ne._sums(*args, per_order=True)
+                for a, b in zip(found, expected, strict=True):
+                    torch.testing.assert_close(a, b, rtol=1e-12, atol=0.0)
+                v = r[:, res.axis] + res.b * q[:, None]
+                seen_far |= bool((res.u.square() > ne.MANEUVER**2 * v).any())
+        assert seen_far  # (the maneuvers' stencils were set aside, neighbours too)
+        with monkeypatch.context() as patch:
+            patch.setattr(ne.compiled_noise, "trimmed_sums", lambda *a: None)
+            expected = ne.estimate_noise(z, dt)
+        found = ne.estimate_noise(z, dt)
+        torch.testing.assert_close(found.meas_var, expected.meas_var, rtol=1e-9, atol=0.0)
+        torch.testing.assert_close(found.meas_std_se, expected.meas_std_se, rtol=1e-7, atol=0.0)

@@ -15,6 +15,7 @@ from torch import Tensor
 
 from torchsvs.datasets.differences import ORDERS, Residuals, difference_residuals
 from torchsvs.estimator import threads_for
+from torchsvs.kernels import track_noise as compiled_noise
 
 
 class NoiseEstimate(NamedTuple):
@@ -136,6 +137,9 @@ class _Design(NamedTuple):
     products: Tensor  #: [N, p²] the columns' outer products
     b_scale: float  #: the ``b`` column is ``b / b_scale``
     white: bool
+    u2: Tensor  #: [N] u²
+    orders: Tensor  #: [K] the orders present, ascending
+    order_index: Tensor  #: [N] int64 each residual's order's place among them
 
 
 def _design(res: Residuals, m: int, white: bool, cutoff: float) -> _Design:
@@ -144,8 +148,12 @@ def _design(res: Residuals, m: int, white: bool, cutoff: float) -> _Design:
     if white:
         cols = torch.cat([cols, (res.b / b_scale)[:, None]], 1)
     products = (cols.unsqueeze(-1) * cols.unsqueeze(-2)).flatten(1)
-    y = res.u.square() / truncated_second_moment(cutoff)
-    return _Design(y, cols, products, b_scale, white)
+    u2 = res.u.square()
+    y = u2 / truncated_second_moment(cutoff)
+    orders = res.order.unique()
+    return _Design(
+        y, cols, products, b_scale, white, u2, orders, torch.searchsorted(orders, res.order)
+    )
 
 
 def _kept(
@@ -182,33 +190,72 @@ def _per_order(res: Residuals, ratio: Tensor, kept: Tensor) -> Tensor:
     )
 
 
+class _Sums(NamedTuple):
+    """A scoring step's sums over the kept residuals of each of ``G`` fits."""
+
+    A: Tensor  #: [G, p, p] the normal equations' matrix, Σ w cols colsᵀ with w = 1/v²
+    rhs: Tensor  #: [G, p] their right-hand side, Σ w (u²/κ) cols
+    orders: Tensor | None  #: [G, K] the mean of u²/(κ v) over each order's kept residuals
+
+
+def _sums(
+    res: Residuals,
+    d: _Design,
+    spans: _Spans,
+    r: Tensor,
+    q: Tensor,
+    group: Tensor | None,
+    cutoff: float,
+    maneuver: float,
+    per_order: bool = False,
+) -> _Sums:
+    """The sums of a scoring step of the fits of ``r [G, m]``, ``q [G]`` on the residuals
+    (``group``: each fit ``g`` without the residuals of ``group == g``; None: one fit of all),
+    compiled (:func:`~torchsvs.kernels.track_noise.trimmed_sums`, one pass per fit) or by
+    these tensor operations; with ``per_order`` also each order's mean of ``u²/(κ v)``."""
+    G, p = r.shape[0], d.cols.shape[1]
+    found = compiled_noise.trimmed_sums(
+        d.u2, d.y, res.b, d.cols, res.axis, spans.first, spans.last, spans.size,
+        d.order_index, len(d.orders), group, r, q, cutoff, maneuver,
+    )  # fmt: skip
+    if found is not None:
+        orders = found.ratio / found.kept.clamp_min(1) if per_order else None
+        return _Sums(found.A, found.rhs, orders)
+    if group is None:
+        include = torch.ones(1, res.u.numel(), dtype=torch.bool)
+    else:
+        include = group != torch.arange(G)[:, None]  # [G, N]
+    v = r[:, res.axis] + res.b * q[:, None]
+    kept = _kept(spans, d.u2, v, include, cutoff, maneuver)
+    w = kept / v.square()
+    orders = _per_order(res, kept * d.y / v, kept) if per_order else None
+    return _Sums((w @ d.products).view(G, p, p), (w * d.y) @ d.cols, orders)
+
+
 def _iterate(
     res: Residuals,
     m: int,
     d: _Design,
     start: tuple[Tensor, Tensor],
-    include: Tensor,
+    group: Tensor | None,
     spans: _Spans,
     cutoff: float,
     maneuver: float,
     iterations: int,
 ) -> _Fit:
-    """Scoring iterations of the trimmed Gaussian fit from ``start`` (``r [G, m], q [G]``) on
-    the residuals of each row of ``include [G, N]``, until the variances change by less than
-    :data:`TOLERANCE` or ``iterations`` are done."""
-    u2 = res.u.square()
+    """Scoring iterations of the trimmed Gaussian fit from ``start`` (``r [G, m], q [G]``;
+    ``group``: each fit ``g`` on the residuals outside ``group == g``, None: one fit of all),
+    until the variances change by less than :data:`TOLERANCE` or ``iterations`` are done."""
     r, q = start
-    G, p = include.shape[0], d.cols.shape[1]
+    G = r.shape[0]
     boundary = torch.zeros(G, dtype=torch.bool)
     for _ in range(iterations):
-        v = r[:, res.axis] + res.b * q[:, None]
-        w = _kept(spans, u2, v, include, cutoff, maneuver) / v.square()
-        A = (w @ d.products).view(G, p, p)
-        new_r, new_q = _scoring_step(d, A, (w * d.y) @ d.cols, m)
+        sums = _sums(res, d, spans, r, q, group, cutoff, maneuver)
+        new_r, new_q = _scoring_step(d, sums.A, sums.rhs, m)
         # An axis with nothing kept stays as it was; one whose variance the fit puts at or below
         # 0 (q explains it all) stays too, and the fit is flagged: not a solution.
         inside = new_r > 0
-        boundary = (~inside & (A.diagonal(dim1=-2, dim2=-1)[:, :m] > 0)).any(-1)
+        boundary = (~inside & (sums.A.diagonal(dim1=-2, dim2=-1)[:, :m] > 0)).any(-1)
         new_r = torch.where(inside, new_r, r)
         change = max(
             float(((new_r - r).abs() / r).amax()),
@@ -217,9 +264,9 @@ def _iterate(
         r, q = new_r, new_q
         if change < TOLERANCE:
             break
-    v = r[:, res.axis] + res.b * q[:, None]
-    kept = _kept(spans, u2, v, include, cutoff, maneuver)
-    return _Fit(r, q, _per_order(res, kept * d.y / v, kept), boundary)
+    orders = _sums(res, d, spans, r, q, group, cutoff, maneuver, per_order=True).orders
+    assert orders is not None
+    return _Fit(r, q, orders, boundary)
 
 
 def _trimmed_fit(
@@ -233,8 +280,7 @@ def _trimmed_fit(
     r = torch.stack([u2[top & (res.axis == j)].median() / CHI2_MEDIAN for j in range(m)])
     r = r.clamp_min(float(u2[u2 > 0].min()))  # (half the residuals exactly 0: quantised)
     start = (r.view(1, m), torch.zeros(1, dtype=torch.float64))
-    everything = torch.ones(1, res.u.numel(), dtype=torch.bool)
-    return _iterate(res, m, d, start, everything, spans, cutoff, maneuver, ITERATIONS)
+    return _iterate(res, m, d, start, None, spans, cutoff, maneuver, ITERATIONS)
 
 
 def _jackknife(
@@ -251,9 +297,8 @@ def _jackknife(
     """The fit without each of the ``groups`` groups (``group [N]``): :data:`JACKKNIFE_STEPS`
     scoring iterations from the full fit (which converges by a factor of about 10 an
     iteration, so the refits are within a thousandth of their own fixed points)."""
-    include = group != torch.arange(groups)[:, None]  # [G, N]
     start = (fit.r.expand(groups, m), fit.q.expand(groups))
-    return _iterate(res, m, d, start, include, spans, cutoff, maneuver, JACKKNIFE_STEPS)
+    return _iterate(res, m, d, start, group, spans, cutoff, maneuver, JACKKNIFE_STEPS)
 
 
 def _solve(A: Tensor, rhs: Tensor) -> Tensor:

@@ -180,6 +180,10 @@ def library() -> ctypes.CDLL | None:
     noise.argtypes = [*size, ctypes.c_int, vp, vp, vp, vp, i64, i64, *(double,) * 4]
     noise.argtypes += [ctypes.c_int, vp, vp, vp]
     lib.difference_residuals_f64.argtypes = [*size, ctypes.c_int, vp, vp, vp, i64, *(vp,) * 5]
+    # N G m p K steps, 11 inputs, the two squared cutoffs, 4 outputs
+    sums = lib.trimmed_sums_f64
+    sums.argtypes = [*(i64,) * 6, *(vp,) * 11, double, double, *(vp,) * 4]
+    sums.restype = ctypes.c_int
     _state["library"] = lib
     return lib
 

@@ -3,8 +3,11 @@ differences it is read from (:func:`residuals`,
 :func:`torchsvs.datasets.differences.difference_residuals`'s) and each track's own reading
 (:func:`read`, :func:`torchsvs.datasets.track_noise.read_track_noise`'s fit), track by track
 in one pass, where the tensor code runs some hundred operations over every residual (10^6
-rows: about 3 s of it). The tensor code is the home of the formulas and the path where these
-return ``None``; ``tests/test_track_noise.py`` holds the two equal to the bit.
+rows: about 3 s of it); and the sums of each scoring step of
+:func:`~torchsvs.datasets.noise_estimate.estimate_noise`'s trimmed fit, every jackknife refit in
+one pass (:func:`trimmed_sums`, ``cpp/noise_fit.h``). The tensor code is the home of the
+formulas and the path where these return ``None``; ``tests/test_track_noise.py`` holds the two
+equal to the bit (the fit's sums to the last bits: they sum in another order).
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from torchsvs.kernels import build
 #: The highest order of divided differences the compiled loops hold (``cpp/track_noise.h``'s
 #: ``kMaxOrder``): higher ones run the tensor code.
 MAX_ORDER = 7
+#: The most fits :func:`trimmed_sums` takes at once (``cpp/noise_fit.h``'s ``kMaxFits``).
+MAX_FITS = 64
 
 
 def _compilable(z: Tensor, t: Tensor, orders: Sequence[int]) -> bool:
@@ -104,3 +109,58 @@ def residuals(z: Tensor, t: Tensor, orders: Sequence[int]) -> Stencils | None:
         u.data_ptr(), b.data_ptr(), first.data_ptr(), last.data_ptr(), ok.data_ptr(),
     )  # fmt: skip
     return Stencils(u, b, first, last, ok)
+
+
+class TrimmedSums(NamedTuple):
+    """What :func:`trimmed_sums` gives, per group ``g`` of ``G``."""
+
+    A: Tensor  #: [G, p, p] Σ w cols colsᵀ over the kept residuals
+    rhs: Tensor  #: [G, p] Σ w y cols
+    ratio: Tensor  #: [G, K] Σ y / v over each order's kept residuals
+    kept: Tensor  #: [G, K] how many each order keeps
+
+
+def trimmed_sums(
+    u2: Tensor,
+    y: Tensor,
+    b: Tensor,
+    cols: Tensor,
+    axis: Tensor,
+    first: Tensor,
+    last: Tensor,
+    steps: int,
+    order: Tensor,
+    orders: int,
+    group: Tensor | None,
+    r: Tensor,
+    q: Tensor,
+    cutoff: float,
+    maneuver: float,
+) -> TrimmedSums | None:
+    """One scoring step's sums of :func:`torchsvs.datasets.noise_estimate.estimate_noise`'s
+    trimmed fit for each of the ``G`` fits of ``r [G, m]``, ``q [G]`` (a jackknife's refit
+    ``g`` leaves out the residuals of ``group == g``; ``group`` None: one fit of all):
+    ``u2``, ``y``, ``b`` ``[N]`` float64, ``cols [N, p]``, and int64 ``axis``, ``first``,
+    ``last`` (the stencils' steps numbered ``0..steps-1``) and ``order`` (``0..orders-1``)
+    ``[N]``. ``None`` where the compiled loops are unavailable (or ``G`` is above
+    :data:`MAX_FITS`)."""
+    if not build.usable(u2, y, b, cols, r, q) or u2.dtype != torch.float64 or len(r) > MAX_FITS:
+        return None
+    N, p = cols.shape
+    G, m = r.shape
+    A = torch.empty(G, p, p, dtype=torch.float64)
+    rhs = torch.empty(G, p, dtype=torch.float64)
+    ratio = torch.empty(G, orders, dtype=torch.float64)
+    kept = torch.empty(G, orders, dtype=torch.float64)
+    inputs = [x.contiguous() for x in (u2, y, b, cols, axis, first, last, order)]
+    grouped = group.contiguous() if group is not None else None
+    r, q = r.contiguous(), q.contiguous()
+    lib = build.library()
+    assert lib is not None
+    failed = lib.trimmed_sums_f64(
+        N, G, m, p, orders, steps, *(x.data_ptr() for x in inputs),
+        None if grouped is None else grouped.data_ptr(), r.data_ptr(), q.data_ptr(),
+        cutoff**2, maneuver**2, A.data_ptr(), rhs.data_ptr(), ratio.data_ptr(), kept.data_ptr(),
+    )  # fmt: skip
+    assert failed == 0, "at most MAX_FITS fits"
+    return TrimmedSums(A, rhs, ratio, kept)

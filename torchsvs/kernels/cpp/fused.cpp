@@ -10,6 +10,7 @@
 //   dense.h          the dense linear filters' step (online steps, dense runs)
 //   imm.h            the IMM(CV, CT) of `track --estimator imm` and Kim's smoother (float64)
 //   track_noise.h    each track's noise read off its positions (float64)
+//   noise_fit.h      the sums of the trimmed fit of the noise read off the data (float64)
 //
 // The per-axis kernel: each (track, axis) pair is an independent lane of two-state steps;
 // blocks of lanes step together (a loop the compiler vectorises) and every step costs a few
@@ -33,6 +34,7 @@
 #include "dense.h"
 #include "imm.h"
 #include "track_noise.h"
+#include "noise_fit.h"
 
 extern "C" {
 
@@ -136,5 +138,15 @@ void difference_residuals_f64(int64_t B, int64_t T, int64_t m, int threads, cons
                               double* u, double* b, int64_t* first, int64_t* last,
                               uint8_t* ok) {
     residuals_entry(B, T, m, threads, z, t, orders, n_orders, u, b, first, last, ok);
+}
+// The trimmed fit's weighted sums, float64 only (noise_fit.h): 0, or 1 above kMaxFits fits.
+int trimmed_sums_f64(int64_t N, int64_t G, int64_t m, int64_t p, int64_t K, int64_t steps,
+                     const double* u2, const double* y, const double* b, const double* cols,
+                     const int64_t* axis, const int64_t* first, const int64_t* last,
+                     const int64_t* order, const int64_t* group, const double* r,
+                     const double* q, double cutoff2, double maneuver2, double* A, double* rhs,
+                     double* ratio, double* count) {
+    return trimmed_sums_entry(N, G, m, p, K, steps, u2, y, b, cols, axis, first, last, order,
+                              group, r, q, cutoff2, maneuver2, A, rhs, ratio, count);
 }
 }  // extern "C"
