@@ -555,8 +555,8 @@ def _estimate_from_run(
     run_risk_terms`: exact, or with the probe drawn as :func:`_estimate_part` draws it); the
     covariances ``cov [B, T, n, n]`` where given."""
     # what the output needs of a prior: the axes never observed (their estimates are NaN)
-    never = (~torch.isnan(batch.tracks.z)).sum(dim=1) == 0
-    tracks = replace(batch.tracks, never_observed=never)
+    seen = (~torch.isnan(batch.tracks.z)).sum(dim=1)  # [B, m]
+    tracks = replace(batch.tracks, never_observed=seen == 0)
     terms = None
     mean = run.mean
     if risk:
@@ -565,7 +565,7 @@ def _estimate_from_run(
         terms = run_risk_terms(
             batch.tracks, meas_std, mean, run.position_var, q, smoothed, step, run.sums
         )
-    return _step_estimates(batch, tracks, mean, cov, short_track_notes(tracks), terms)
+    return _step_estimates(batch, tracks, mean, cov, short_track_notes(tracks, seen), terms)
 
 
 def _paired_run(

@@ -239,9 +239,11 @@ def read_tracks(
     return tracks, report
 
 
-def short_track_notes(tracks: RecordedTracks) -> dict[str, int]:
-    """How many tracks observe an axis only once, or never (the prior's fix-ups)."""
-    seen = (~torch.isnan(tracks.z)).sum(dim=1)  # [B, m] observations per axis
+def short_track_notes(tracks: RecordedTracks, seen: Tensor | None = None) -> dict[str, int]:
+    """How many tracks observe an axis only once, or never (the prior's fix-ups); ``seen``:
+    the observations per axis ``[B, m]``, where counted already."""
+    if seen is None:
+        seen = (~torch.isnan(tracks.z)).sum(dim=1)  # [B, m] observations per axis
     return {
         "tracks_single_point_axis": int((seen == 1).any(dim=-1).sum()),
         "tracks_axis_never_observed": int((seen == 0).any(dim=-1).sum()),

@@ -37,6 +37,7 @@ References:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -212,6 +213,7 @@ def _tail_below(d2: Tensor, m: int, p: float) -> Tensor:
     return torch.zeros_like(d2, dtype=torch.bool).index_put_(reach, tail < p)
 
 
+@functools.lru_cache(maxsize=64)  # (every group's screen asks again: 60 bisection steps)
 def _chi2_floor(m: int, p: float) -> float:
     """A value below the χ² quantile of tail ``p`` (``m`` degrees of freedom): a ``d²`` at or
     below it has a tail above ``p`` (bisection on the tail, then a margin of 0.1%)."""
