@@ -274,3 +274,54 @@ def test_the_samples_smoother_terms_are_its_runs_exact_terms(tmp_path):
     exact = terms_of_sums(runs.sums)
     assert_close(once.divergence, exact.divergence, rtol=1e-9, atol=1e-9)
     assert_close(once.residual, exact.residual, rtol=1e-9, atol=1e-6)
+
+
+def test_a_sample_of_short_tracks_and_a_long_one_runs_in_groups_of_like_length(
+    tmp_path, monkeypatch
+):
+    """Thousands of short tracks beside one long one padded the sample's batch to the long
+    one's steps, every probe's copy too (17 GB and four minutes for 14,000 rows): the sample's
+    runs go in groups of like length (``length_groups``), and give each track the terms one
+    run gives, for one estimator (the SVSS, probed) and for a blend."""
+    import torchsvs.sample_accuracy as sample_accuracy
+    from torchsvs.accuracy import RiskTerms
+    from torchsvs.datasets import read_tracks
+
+    g = np.random.default_rng(4)
+    rows = []
+    for k in range(60):  # short tracks of 3-6 rows, and one of 300
+        n = 300 if k == 30 else int(g.integers(3, 7))
+        t = np.arange(n, dtype=float)
+        x = 10.0 * t + g.normal(0, 5, n)
+        y = 3.0 * t + 0.01 * t**2 + g.normal(0, 5, n)
+        rows.append(pd.DataFrame({"track_id": f"t{k}", "time": t, "x": x, "y": y}))
+    pd.concat(rows).to_csv(tmp_path / "in.csv", index=False)
+    tracks, _ = read_tracks(tmp_path / "in.csv", meas_std=[5.0, 5.0])
+    svss = Settings("svss", meas_var=[25.0, 25.0], q=1.0)
+    ks = Settings("ks", meas_var=[25.0, 25.0], q=1.0)
+    cells = len(tracks) * tracks.z.shape[1]
+    groups = sample_accuracy.length_groups(tracks, cells // 8)
+    assert groups is not None and len(groups) > 1
+    assert sorted(torch.cat(groups).tolist()) == list(range(len(tracks)))  # each track once
+    for rows_ in groups:  # within the budget, or one track alone
+        assert len(rows_) == 1 or len(rows_) * int(tracks.lengths[rows_].max()) <= cells // 8
+    assert sample_accuracy.length_groups(tracks, cells) is None
+
+    def fields(terms: RiskTerms) -> list[np.ndarray]:
+        return [terms.residual, terms.divergence, terms.count, terms.track]
+
+    def both(run):
+        one = run()  # (one batch: the budget is the whole)
+        with monkeypatch.context() as patch:
+            patch.setattr(sample_accuracy, "SAMPLE_CELLS", cells // 8)
+            grouped = run()
+        return one, grouped
+
+    one, grouped = both(lambda: sample_accuracy.probed_terms(svss, tracks, 3))
+    for a, b in zip(one, grouped, strict=True):
+        for x, y in zip(fields(a), fields(b), strict=True):
+            assert_close(x, y, rtol=1e-9, atol=1e-9)
+    (w1, t1), (w2, t2) = both(lambda: sample_accuracy.sample_blend(ks, svss, tracks))
+    assert w1 == pytest.approx(w2, rel=1e-9, abs=1e-12)
+    for x, y in zip(fields(t1), fields(t2), strict=True):
+        assert_close(x, y, rtol=1e-9, atol=1e-9)

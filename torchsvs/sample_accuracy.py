@@ -50,17 +50,57 @@ def sample_terms(settings: Settings, tracks: RecordedTracks) -> RiskTerms:
     the same ``tracks``: :meth:`~torchsvs.accuracy.RiskTerms.difference` pairs them). Where
     the settings carry the file's curve of ``q`` (``q_curve``), each track runs with its own
     ``q``: every estimator runs as ``track`` runs it (:func:`~torchsvs.estimating.
-    estimate_group` after the screen), a Kalman smoother's divergence exact from its pass."""
+    estimate_group` after the screen), a Kalman smoother's divergence exact from its pass;
+    tracks of like length together where the padded batch is large (:func:`length_groups`)."""
     assert settings.meas_var is not None
     estimator = make_estimator(settings, make_model(settings)).double()
-    batch, meas_std = _sample_batch(settings, tracks)
 
     def run(each: nn.Module, tracks: GroupBatch, std: Tensor, own: Settings) -> StepEstimates:
         return _estimate_factors(each, tracks, std, False, True, own)
 
-    part = by_noise_class(estimator, batch, meas_std, settings, run)  # (each at its own noise)
-    assert part.risk is not None
-    return part.risk.in_track_order()
+    def terms_of(part: RecordedTracks) -> RiskTerms:
+        batch, meas_std = _sample_batch(settings, part)
+        found = by_noise_class(estimator, batch, meas_std, settings, run)  # (each at its own)
+        assert found.risk is not None
+        return found.risk.in_track_order()
+
+    groups = length_groups(tracks)
+    if groups is None:
+        return terms_of(tracks)
+    parts = []
+    for rows in groups:
+        terms = terms_of(tracks.subset(rows))
+        parts.append(replace(terms, track=rows.numpy()[terms.track]))
+    return RiskTerms.concat(parts, len(settings.meas_var)).in_track_order()
+
+
+#: A sample's padded batch of more steps than this (tracks × the longest's steps) runs in
+#: groups of tracks of like length (:func:`length_groups`): a few long tracks among thousands of
+#: short ones padded them all (2,000 tracks of 3-6 rows and one of 500, with 16 probes each: a
+#: batch of 16 M steps, 17 GB and four minutes for 14,000 rows).
+SAMPLE_CELLS = 1 << 19
+
+
+def length_groups(tracks: RecordedTracks, cells: int | None = None) -> list[Tensor] | None:
+    """The tracks in groups of like length (indices, longest last), each group's tracks × its
+    longest's steps at most ``cells`` (default :data:`SAMPLE_CELLS`; or one track); None where
+    the padded batch is within it (one run of all, as before). A track's estimates do not depend
+    on the tracks beside it, so the groups give each track what one run gives (the particle
+    filters' draws aside)."""
+    cells = SAMPLE_CELLS if cells is None else cells
+    B = len(tracks)
+    if B * tracks.z.shape[1] <= cells:
+        return None
+    order = torch.argsort(tracks.lengths, stable=True)
+    lengths = tracks.lengths[order].clamp_min(1).tolist()
+    groups, first = [], 0
+    while first < B:
+        last = first + 1  # the most tracks from ``first`` whose padded batch fits
+        while last < B and (last + 1 - first) * lengths[last] <= cells:
+            last += 1
+        groups.append(order[first:last])
+        first = last
+    return groups
 
 
 def _sample_batch(settings: Settings, tracks: RecordedTracks) -> tuple[GroupBatch, Tensor]:
@@ -77,37 +117,66 @@ def sample_blend(
     """The weight of ``second``'s estimates in the blend with ``first``'s of the least
     estimated MSE on ``tracks`` (:func:`~torchsvs.blending.best_weight`), both run as
     ``track`` runs them (the same noise), and the blend's SURE sums at it (what
-    :func:`sample_terms` gives for the blend, from the same runs)."""
+    :func:`sample_terms` gives for the blend, from the same runs; tracks of like length
+    together where the padded batch is large, :func:`length_groups`)."""
     assert first.meas_var is not None
-    batch, meas_std = _sample_batch(first, tracks)
+    m = len(first.meas_var)
 
     def built(settings: Settings) -> nn.Module:
         return make_estimator(settings, make_model(settings)).double()
 
     estimators = (built(first), built(second))
-    if not first.own_noise:
-        found = blend_parts(estimators, (first, second), batch, meas_std, False, True)
-        assert found.terms is not None
-        terms = found.terms
-    else:  # each noise class at its own, the two's terms at the file's (the cross term has none)
-        parts: list[tuple[RiskTerms, RiskTerms, RiskTerms]] = []
-        for each in noise_classes.classes_of(batch.tracks, batch.group, first):
-            pair = (each.settings, noise_classes.scaled_settings(second, each.factor))
-            std = meas_std * math.sqrt(each.factor)
-            with (
-                noise_classes.noise_scaled(estimators[0], each.factor) as one,
-                noise_classes.noise_scaled(estimators[1], each.factor) as two,
-            ):
-                found = blend_parts((one, two), pair, batch.subset(each.members), std, False, True)
-            assert found.terms is not None
-            mine, other, cross = found.terms
-            parts.append((each.at_file_noise(mine), each.at_file_noise(other), cross))
-        m = len(first.meas_var)
+    groups = length_groups(tracks)
+    parts: list[tuple[RiskTerms, RiskTerms, RiskTerms]] = []
+    for rows in groups if groups is not None else [None]:
+        part = tracks if rows is None else tracks.subset(rows)
+        found = _blend_terms(estimators, first, second, part)
+        if rows is not None:  # (the group's tracks by their place in ``tracks``)
+            index = rows.numpy()
+            mine, other, cross = (replace(t, track=index[t.track]) for t in found)
+            found = (mine, other, cross)
+        parts.append(found)
+    if len(parts) == 1:
+        terms = parts[0]
+    else:  # (track order, as one run gives)
         mine, other, cross = (RiskTerms.concat([p[k] for p in parts], m) for k in range(3))
-        order = np.argsort(mine.track, kind="stable")  # (track order, as one run gives)
+        order = np.argsort(mine.track, kind="stable")
         terms = (mine.select(order), other.select(order), cross.select(order))
     weight = best_weight(*terms, first.meas_var)
     return weight, blended_terms(*terms, weight)
+
+
+def _blend_terms(
+    estimators: tuple[nn.Module, nn.Module],
+    first: Settings,
+    second: Settings,
+    tracks: RecordedTracks,
+) -> tuple[RiskTerms, RiskTerms, RiskTerms]:
+    """:func:`sample_blend`'s terms on ``tracks`` (one run): the two estimators' and their
+    cross term, in track order."""
+    assert first.meas_var is not None
+    batch, meas_std = _sample_batch(first, tracks)
+    if not first.own_noise:
+        found = blend_parts(estimators, (first, second), batch, meas_std, False, True)
+        assert found.terms is not None
+        return found.terms
+    # each noise class at its own, the two's terms at the file's (the cross term has none)
+    parts: list[tuple[RiskTerms, RiskTerms, RiskTerms]] = []
+    for each in noise_classes.classes_of(batch.tracks, batch.group, first):
+        pair = (each.settings, noise_classes.scaled_settings(second, each.factor))
+        std = meas_std * math.sqrt(each.factor)
+        with (
+            noise_classes.noise_scaled(estimators[0], each.factor) as one,
+            noise_classes.noise_scaled(estimators[1], each.factor) as two,
+        ):
+            found = blend_parts((one, two), pair, batch.subset(each.members), std, False, True)
+        assert found.terms is not None
+        mine, other, cross = found.terms
+        parts.append((each.at_file_noise(mine), each.at_file_noise(other), cross))
+    m = len(first.meas_var)
+    mine, other, cross = (RiskTerms.concat([p[k] for p in parts], m) for k in range(3))
+    order = np.argsort(mine.track, kind="stable")  # (track order, as one run gives)
+    return mine.select(order), other.select(order), cross.select(order)
 
 
 def probed_terms(settings: Settings, tracks: RecordedTracks, probes: int) -> list[RiskTerms]:
