@@ -295,7 +295,8 @@ def test_one_wild_row_in_a_small_file_is_set_aside_not_followed(tmp_path):
     pos[10, 0] += 5e6
     src, out = tmp_path / "in.csv", tmp_path / "out.csv"
     ids = np.repeat(np.arange(3), 100)
-    lines = [f"{i},{s},{x:.6f},{y:.6f}" for i, s, (x, y) in zip(ids, np.tile(t, 3), pos, strict=True)]
+    rows = zip(ids, np.tile(t, 3), pos, strict=True)
+    lines = [f"{i},{s},{x:.6f},{y:.6f}" for i, s, (x, y) in rows]
     src.write_text("track_id,time,x,y\n" + "\n".join(lines) + "\n")
     main(["track", str(src), "-o", str(out), "--estimator", "ks", "--quiet"])
     table = pcsv.read_csv(out)
