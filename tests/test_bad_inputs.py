@@ -377,12 +377,65 @@ def test_metres_in_a_latitude_column_name_the_frame_flag(tmp_path, capsys):
     assert "vlat" in pcsv.read_csv(tmp_path / "o.csv").column_names
 
 
+def test_wgs84_asked_of_metres_and_noise_free_positions_say_so(tmp_path, capsys):
+    """``--frame wgs84`` on a file of x, y says it reads latitude and longitude (it said the
+    file had no x, y columns, listing them); positions without noise say that, not that there
+    are too few of them."""
+    source = _metric_file(tmp_path / "a.csv")
+    _refused(
+        capsys,
+        r"position: the frame is WGS 84 .* reads latitude and longitude columns .* the file has "
+        r"none \(its columns: \['track_id', 'time', 'x', 'y'\]\).* --pos-cols LAT,LON",
+        source,
+        "-o",
+        tmp_path / "o.csv",
+        "--frame",
+        "wgs84",
+    )
+    ids, t, truth, _ = _tracks(steps=80)
+    points = zip(ids, t, truth.tolist(), strict=True)
+    rows = [(i, f"{s:.1f}", f"{x!r}", f"{y!r}") for i, s, (x, y) in points]
+    clean = _csv(tmp_path / "clean.csv", "track_id,time,x,y", rows)
+    _refused(
+        capsys,
+        r"meas_std: the positions carry no measurement noise to read: most lie exactly on smooth "
+        r"paths .*\(--meas-std\)",
+        clean,
+        "-o",
+        tmp_path / "o.csv",
+    )
+
+
+def test_a_lone_stray_report_beyond_the_frame_is_read_as_missing(tmp_path, capsys):
+    """A (0, 0) report (GPS's null island) or a longitude off by 180° among a track's near
+    reports is a glitch: read as missing and counted, the run goes on (it refused the whole
+    file, telling the user to split the track), the row estimated from its neighbours."""
+    gen = np.random.default_rng(2)
+    steps = 60
+    lat = 45.0 + 0.001 * np.arange(steps) + gen.normal(0, 2e-4, steps)
+    lon = 179.5 + 0.002 * np.arange(steps) + gen.normal(0, 2e-4, steps)
+    lat[20], lon[20] = 0.0, 0.0
+    lon[40] -= 180.0
+    points = enumerate(zip(lat, lon, strict=True))
+    rows = [("a", i * 5, f"{la:.6f}", f"{lo:.6f}") for i, (la, lo) in points]
+    source = _csv(tmp_path / "a.csv", "track_id,time,lat,lon", rows)
+    code, err = _track(capsys, source, "-o", tmp_path / "o.csv", "--meas-std", "20")
+    assert code == 0, err
+    assert "invalid_coordinate: 2 " in err
+    out = pcsv.read_csv(tmp_path / "o.csv")
+    for k in (20, 40):  # estimated on the track, within a few hundred metres of its neighbours
+        near = np.array([k - 1, k + 1])
+        assert abs(_column(tmp_path / "o.csv", "lat")[k] - lat[near].mean()) < 0.005
+        assert abs(_column(tmp_path / "o.csv", "lon")[k] - (lon[near].mean() % 360)) < 0.005
+    assert out.num_rows == steps
+
+
 def test_a_track_around_the_globe_is_refused(tmp_path, capsys):
     rows = [("a", i, 0.0, lon) for i, lon in enumerate((0.0, 40.0, 85.0, 120.0))]
     source = _csv(tmp_path / "a.csv", "track_id,time,lat,lon", rows)
     _refused(
         capsys,
-        r"track 'a': reaches more than 80° of arc",
+        r"track 'a': reaches more than 80° of arc .* from the row at time 2\.0 s on",
         source,
         "-o",
         tmp_path / "o.csv",

@@ -18,6 +18,10 @@ from torchsvs.estimator import threads_for
 from torchsvs.kernels import track_noise as compiled_noise
 
 
+class NoiseFreeError(ValueError):
+    """The positions carry no noise to read (:func:`estimate_noise`)."""
+
+
 class NoiseEstimate(NamedTuple):
     """Noise levels read off the data (:func:`estimate_noise`)."""
 
@@ -411,7 +415,7 @@ def _estimate(
         )
     scale = float(z[torch.isfinite(z)].abs().max())
     if float(res.u[res.order == max(orders)].abs().median()) <= 1e-9 * scale:
-        raise ValueError(
+        raise NoiseFreeError(
             "z: most positions lie exactly on smooth paths (noise-free or interpolated data), "
             "there is no measurement noise to read; give it (meas_std) and q explicitly"
         )

@@ -69,8 +69,9 @@ NOTES = {
     "of the particles (torchsvs.filters.particle.degenerate_share)",
     "tracks_axis_never_observed": "tracks (not rows) never observing an axis: their estimates "
     "there are NaN",
-    "invalid_coordinate": "a latitude outside ±90° or a longitude outside -180° to 360°, read as "
-    "missing",
+    "invalid_coordinate": "a latitude outside ±90° or a longitude outside -180° to 360°, or a "
+    "lone report more than 80° of arc from its track's first position among nearer ones (a "
+    "stray: the track's local frame cannot hold it), read as missing",
 }
 
 #: Seconds per unit of the names ``Columns.time_unit`` (and ``--time-unit``) takes.
@@ -269,6 +270,13 @@ def _default_position(available: Sequence[str], frame: str) -> tuple[tuple[str, 
         alt = next((lower[n] for n in ALTITUDE_NAMES if n in lower), None)
         found = (lat, lon) if alt is None else (lat, lon, alt)
         return found, "metric" if frame == "metric" else "wgs84"
+    if frame == "wgs84":  # (x, y would be metres: WGS 84 reads latitude and longitude)
+        raise ValueError(
+            f"position: the frame is WGS 84 (--frame wgs84), which reads latitude and longitude "
+            f"columns (named {'/'.join(LATITUDE_NAMES)} and {'/'.join(LONGITUDE_NAMES)}), and "
+            f"the file has none (its columns: {list(available)}); name them with --pos-cols "
+            "LAT,LON, or drop --frame wgs84 for metres"
+        )
     raise ValueError(
         f"position: the file has no x, y columns and no latitude, longitude columns (its "
         f"columns: {list(available)}); name the position columns with --pos-cols "
@@ -535,8 +543,10 @@ def project_rows(rows: ParsedRows) -> ParsedRows:
     """Rows of latitude, longitude (degrees)[, altitude (m)] in each track's local frame: east,
     north (m) in the tangent plane at the track's first position in time
     (:func:`~torchsvs.datasets.geodesy.to_local`), the altitude as it is. Coordinates out of
-    range are read as missing (``invalid``); a track reaching farther than :data:`MAX_ARC`
-    from its first position raises ``ValueError``."""
+    range are read as missing (``invalid``), and so is a lone row farther than :data:`MAX_ARC`
+    from its track's first position between nearer ones (a stray report: null island, a
+    longitude off by 180°); a track reaching that far over successive rows raises
+    ``ValueError``, naming the row it leaves the frame at."""
     from torchsvs.datasets import geodesy
 
     lat, lon = rows.position[:, 0].copy(), rows.position[:, 1].copy()
@@ -554,12 +564,20 @@ def project_rows(rows: ParsedRows) -> ParsedRows:
     with np.errstate(invalid="ignore"):
         far = geodesy.arc_degrees(lat, lon, ref[:, 0], ref[:, 1]) > MAX_ARC
     if far.any():
-        k = code[np.flatnonzero(far)[0]]
-        raise ValueError(
-            f"track {rows.track_ids[k]!r}: reaches more than {MAX_ARC:.0f}° of arc (about "
-            f"{MAX_ARC * 111:.0f} km) from its first position; the local east-north frame of a "
-            "track covers less (split the track into shorter ones)"
-        )
+        stray = _strays(far, code, rows.time)
+        if (far & ~stray).any():
+            at = np.flatnonzero(far & ~stray)[0]
+            raise ValueError(
+                f"track {rows.track_ids[code[at]]!r}: reaches more than {MAX_ARC:.0f}° of arc "
+                f"(about {MAX_ARC * 111:.0f} km) from its first position, from the row at time "
+                f"{float(rows.time[at])!r} s on (latitude {float(lat[at])!r}, longitude "
+                f"{float(lon[at])!r}); the local "
+                "east-north frame of a track covers less: split the track into shorter ones, or "
+                "drop those rows if they are bad reports (a lone one is read as missing)"
+            )
+        # a lone report that far among near ones is a stray (a glitch): read as missing
+        invalid |= stray
+        lat[stray] = lon[stray] = np.nan
     position = rows.position.copy()
     with np.errstate(invalid="ignore"):
         position[:, :2] = geodesy.to_local(
@@ -570,6 +588,19 @@ def project_rows(rows: ParsedRows) -> ParsedRows:
         )
     position[~np.isfinite(lat + lon) | (code < 0), :2] = np.nan
     return replace(rows, position=position, reference=reference, invalid=invalid)
+
+
+def _strays(far: np.ndarray, code: np.ndarray, time: np.ndarray) -> np.ndarray:
+    """``[R]`` bool: the ``far`` rows whose track's previous and next rows in time are not far
+    (rows without a track or a time are never)."""
+    usable = np.flatnonzero((code >= 0) & np.isfinite(time))
+    order = usable[np.lexsort((time[usable], code[usable]))]
+    f, c = far[order], code[order]
+    before = np.r_[False, f[:-1] & (c[:-1] == c[1:])]  # the previous row of the track is far
+    after = np.r_[f[1:] & (c[1:] == c[:-1]), False]
+    stray = np.zeros(len(far), dtype=bool)
+    stray[order] = f & ~before & ~after
+    return stray
 
 
 def slice_rows(rows: ParsedRows, start: int, stop: int) -> ParsedRows:

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
+from torchsvs.datasets.noise_estimate import NoiseFreeError
 from torchsvs.fitting.noise import (
     Q_FACTORS,
     QCurves,
@@ -121,6 +122,12 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
     try:
         noise = estimate_noise(tracks.z, tracks.dt)
     except ValueError as err:
+        if isinstance(err, NoiseFreeError):
+            raise ValueError(
+                "meas_std: the positions carry no measurement noise to read: most lie exactly "
+                "on smooth paths (noise-free, simulated or interpolated data); give the noise "
+                "(--meas-std) and the process noise (--q)"
+            ) from err
         raise ValueError(
             "meas_std: too few observed positions to read the measurement noise off the "
             "data; give it (--meas-std) and the process noise (--q)"
