@@ -426,6 +426,25 @@ def test_between_spread_is_dersimonian_and_lairds_moment_estimator():
     mean, tau = between_spread(torch.tensor([1.0, 3.0], dtype=torch.float64), one * 0.25)
     assert mean == 2.0 and tau == 0.0  # (Q = 0.5 < 1 degree of freedom)
     assert between_spread(torch.tensor([5.0], dtype=torch.float64), one[:1])[1] is None
+    # each group about its own mean: two groups (0, 2) and (10, 12) are the first pair twice,
+    # Q = 4 over 2 degrees of freedom, Σw − Σw²/Σw = 1 + 1: τ² = 1
+    y = torch.tensor([0.0, 2.0, 10.0, 12.0], dtype=torch.float64)
+    four, group = torch.ones(4, dtype=torch.float64), torch.tensor([0, 0, 1, 1])
+    assert between_spread(y, four, group)[1] == 1.0
+    assert between_spread(y, four)[1] > 5.0  # (pooled: the groups' levels read as a spread)
+
+
+def test_axes_of_different_noise_are_no_spread_between_tracks():
+    """A drone's 5, 5 and 10 m on x, y and altitude, every track alike: pooled about one level
+    the axes read as tracks that differ by a third (an outside probe: a warning, and the error
+    estimate's range 0-11 m); each axis about its own, no spread."""
+    gen = torch.Generator().manual_seed(3)
+    dt = torch.full((30, 200), 1.0, dtype=torch.float64)
+    sigma = torch.tensor([5.0, 5.0, 10.0], dtype=torch.float64)
+    speed = 3.0 + 0.3 * torch.randn(30, 200, 3, generator=gen, dtype=torch.float64).cumsum(1)
+    z = speed.cumsum(1) + sigma * torch.randn(30, 200, 3, generator=gen, dtype=torch.float64)
+    spread = noise_estimate.noise_spread(z, dt)
+    assert spread is not None and spread < 0.1  # (all axes 5 m: 0-0.06 on three seeds; pooled 0.3)
 
 
 def _turning_aircraft(seed: int, sigma: float, tracks: int = 12, steps: int = 240):
