@@ -106,7 +106,9 @@ def track_parser() -> argparse.ArgumentParser:
         "--output",
         required=True,
         help="the .csv or .parquet to write (never the input; an existing file only with "
-        "--force); written under a temporary name beside it and renamed when complete. For a "
+        "--force): one row per input row, its id and time as read, the estimated positions and "
+        "velocities (the input's other columns are not copied); written under a temporary name "
+        "beside it and renamed when complete. For a "
         "directory input, the directory to write: one .parquet file per input file under the "
         "same relative name, written in a temporary directory beside it and renamed when "
         "complete (an existing one is replaced as a whole, only with --force)",
