@@ -27,7 +27,7 @@ from experiments.noise_estimate import (
     simulate,
 )
 from tests.conftest import assert_close, simulate_cv
-from torchsvs.datasets import estimate_noise, noise_estimate, two_point_prior
+from torchsvs.datasets import estimate_noise, noise_estimate, track_noise, two_point_prior
 from torchsvs.datasets.differences import difference_residuals
 from torchsvs.fitting.noise import Q_FACTORS, q_curves, smoother_q, track_q_factors
 
@@ -238,17 +238,17 @@ def test_noise_spread_tells_one_sensor_from_two():
     gen = torch.Generator().manual_seed(4)
     dt = 1.0 + 9.0 * torch.rand(12, 120, generator=gen, dtype=torch.float64)
     _, z = simulate_cv(dt, q=0.5, r=40.0**2, generator=gen, speed=30.0)
-    one = noise_estimate.noise_spread(z, dt)
+    one = track_noise.noise_spread(z, dt)
     assert one is not None and one < 0.08
     _, z20 = simulate_cv(dt[:6], q=0.5, r=20.0**2, generator=gen, speed=30.0)
     _, z60 = simulate_cv(dt[6:], q=0.5, r=60.0**2, generator=gen, speed=30.0)
     mixed = torch.cat([z20, z60])
-    two = noise_estimate.noise_spread(mixed, dt)
+    two = track_noise.noise_spread(mixed, dt)
     assert two is not None and 0.4 < two < 0.7
-    assert noise_estimate.noise_spread(z[:3], dt[:3]) is None
+    assert track_noise.noise_spread(z[:3], dt[:3]) is None
     short = z.clone()
-    short[:, noise_estimate.SPREAD_POINTS - 1 :] = float("nan")  # no track has enough points
-    assert noise_estimate.noise_spread(short, dt) is None
+    short[:, track_noise.SPREAD_POINTS - 1 :] = float("nan")  # no track has enough points
+    assert track_noise.noise_spread(short, dt) is None
 
 
 @pytest.mark.parametrize("smoothed", [False, True])
@@ -419,7 +419,7 @@ def test_between_spread_is_dersimonian_and_lairds_moment_estimator():
     """Worked by hand: values 0 and 2 of unit weight have mean 1, Q = 2 and one degree of
     freedom, so τ² = (Q − 1) / (Σw − Σw²/Σw) = 1; values within their own errors give τ = 0;
     one value leaves no degree of freedom."""
-    from torchsvs.datasets.noise_estimate import between_spread
+    from torchsvs.datasets.track_noise import between_spread
 
     one = torch.ones(2, dtype=torch.float64)
     assert between_spread(torch.tensor([0.0, 2.0], dtype=torch.float64), one) == (1.0, 1.0)
@@ -443,7 +443,7 @@ def test_axes_of_different_noise_are_no_spread_between_tracks():
     sigma = torch.tensor([5.0, 5.0, 10.0], dtype=torch.float64)
     speed = 3.0 + 0.3 * torch.randn(30, 200, 3, generator=gen, dtype=torch.float64).cumsum(1)
     z = speed.cumsum(1) + sigma * torch.randn(30, 200, 3, generator=gen, dtype=torch.float64)
-    spread = noise_estimate.noise_spread(z, dt)
+    spread = track_noise.noise_spread(z, dt)
     assert spread is not None and spread < 0.1  # (all axes 5 m: 0-0.06 on three seeds; pooled 0.3)
 
 

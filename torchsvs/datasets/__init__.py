@@ -12,7 +12,7 @@ from torchsvs.lazy_names import lazy_names
 
 if TYPE_CHECKING:
     from torchsvs.datasets.describe import InputDescription, describe_input
-    from torchsvs.datasets.noise_estimate import NoiseEstimate, estimate_noise, noise_spread
+    from torchsvs.datasets.noise_estimate import NoiseEstimate, estimate_noise
     from torchsvs.datasets.paths import check_output
     from torchsvs.datasets.priors import Prior, two_point_prior
     from torchsvs.datasets.reading import TrackBlock, track_blocks
@@ -25,6 +25,7 @@ if TYPE_CHECKING:
         RowReport,
     )
     from torchsvs.datasets.steps import TrackSteps, group_rows
+    from torchsvs.datasets.track_noise import noise_spread
     from torchsvs.datasets.tracks import (
         RecordedTracks,
         meas_variance,
@@ -47,7 +48,7 @@ _HOMES = {
     "describe_input": "describe",
     "NoiseEstimate": "noise_estimate",
     "estimate_noise": "noise_estimate",
-    "noise_spread": "noise_estimate",
+    "noise_spread": "track_noise",
     "check_output": "paths",
     "Prior": "priors",
     "two_point_prior": "priors",

@@ -1,6 +1,6 @@
 """The measurement noise per axis read off the data before any estimator runs, robust to
-maneuvers, with its standard error (:func:`estimate_noise`), and how much it differs between
-tracks (:func:`noise_spread`). Both read the divided differences of
+maneuvers, with its standard error (:func:`estimate_noise`; how much it differs between tracks
+is :func:`torchsvs.datasets.track_noise.noise_spread`). It reads the divided differences of
 :mod:`torchsvs.datasets.differences`, on padded batches ``z [B, T, m]`` with per-step intervals
 ``dt [B, T]``.
 """
@@ -555,78 +555,3 @@ def _white_weight(alone: _Fit, alone_jack: _Fit, white: _Fit, white_jack: _Fit) 
     if not math.isfinite(misfit):
         return 0.0
     return _ramp(lower, *WHITE_LOWER) * _ramp(cost, *WHITE_COST) * _ramp(misfit, *WHITE_MISFIT)
-
-
-#: :func:`noise_spread` reads at most this many tracks, of at least this many observed points.
-SPREAD_TRACKS = 48
-SPREAD_POINTS = 40
-
-
-def noise_spread(
-    z: Tensor, dt: Tensor, max_tracks: int = SPREAD_TRACKS, min_points: int = SPREAD_POINTS
-) -> float | None:
-    r"""How much the noise read off each track alone differs between tracks, beyond what their
-    own standard errors explain: the between-track standard deviation :math:`\tau` of
-    :math:`\log\hat\sigma` (a relative spread; DerSimonian & Laird's moment estimator over every
-    track and axis, each axis about its own level, weights :math:`1/se^2` from
-    :func:`estimate_noise`'s jackknife). Pooled about one level, axes of different noise read
-    as tracks that differ: a drone's 5, 5 and 10 m read 33%.
-
-    One sensor and a model that follows the targets give :math:`\tau \approx 0`. A large
-    :math:`\tau` says that one noise level does not fit the file: the tracks' sensors differ, or
-    some tracks hold motion the model does not follow at their report rate (circling gliders at
-    30 s), which :func:`estimate_noise` cannot tell from noise, so the pooled reading can be off
-    by about that much. Reads up to ``max_tracks`` tracks of at least ``min_points`` observed
-    positions, spread over the batch; None where fewer than 4 qualify.
-
-    References:
-        DerSimonian, Laird, "Meta-analysis in clinical trials", Control. Clin. Trials 7(3):
-        177-188, 1986. doi:10.1016/0197-2456(86)90046-2
-    """
-    points = (~z.isnan().any(-1)).sum(1)
-    usable = torch.nonzero(points >= min_points).flatten()
-    if usable.numel() < 4:
-        return None
-    if usable.numel() > max_tracks:
-        usable = usable[torch.linspace(0, usable.numel() - 1, max_tracks).round().long()]
-    logs, weights, axes = [], [], []
-    for b in usable.tolist():
-        try:
-            found = estimate_noise(z[b : b + 1], dt[b : b + 1])
-        except ValueError:
-            continue
-        if found.meas_std_se is None:
-            continue
-        std = found.meas_var.double().sqrt()
-        rel = found.meas_std_se.double() / std  # the standard error of log σ
-        ok = torch.isfinite(rel) & (rel > 0) & (std > 0)
-        logs.append(std[ok].log())
-        weights.append(rel[ok].square().reciprocal())
-        axes.append(torch.nonzero(ok).flatten())
-    if len(logs) < 4:
-        return None
-    # (each axis about its own level: a sensor's altitude noise is not a spread between tracks)
-    return between_spread(torch.cat(logs), torch.cat(weights), torch.cat(axes))[1]
-
-
-def between_spread(y: Tensor, w: Tensor, group: Tensor | None = None) -> tuple[float, float | None]:
-    """``(μ, τ)`` of values ``y [n]`` with weights ``w [n]`` (their inverse variances): the
-    weighted mean and the standard deviation between them beyond their own errors
-    (DerSimonian & Laird's moment estimator), ``τ`` None where the weights leave no degree of
-    freedom. With ``group [n]`` (int64, ``0..G-1``) each group about its own mean, the
-    spread within the groups (``Q`` over ``n − G`` degrees of freedom)."""
-    mean = (w * y).sum() / w.sum()
-    if group is None:
-        Q = float((w * (y - mean).square()).sum())
-        scale = float(w.sum() - w.square().sum() / w.sum())
-        tau = math.sqrt(max(0.0, (Q - (y.numel() - 1)) / scale)) if scale > 0 else None
-        return float(mean), tau
-    G = int(group.max()) + 1
-    total = torch.zeros(G, dtype=w.dtype).index_add_(0, group, w)
-    own = torch.zeros(G, dtype=w.dtype).index_add_(0, group, w * y) / total
-    Q = float((w * (y - own[group]).square()).sum())
-    squares = torch.zeros(G, dtype=w.dtype).index_add_(0, group, w.square())
-    scale = float((total - squares / total).sum())
-    free = y.numel() - G
-    tau = math.sqrt(max(0.0, (Q - free) / scale)) if scale > 0 and free > 0 else None
-    return float(mean), tau

@@ -89,9 +89,6 @@ FRAMES = {
     "wgs84": "WGS 84 latitude, longitude (degrees) [, altitude (m)], estimated in a local "
     "east-north[-up] frame in metres at each track's first position",
 }
-#: Farthest a track may reach from its first position in the local frame (degrees of arc):
-#: the tangent plane folds over at 90°.
-MAX_ARC = 80.0
 
 
 class InputWarning(UserWarning):
@@ -525,7 +522,7 @@ def detect_time_unit(column: Any) -> tuple[float, str]:
 def parse_block(table: Any, columns: Columns) -> ParsedRows:
     """Parses a block read by :func:`read_blocks` (columns already resolved; a time unit still
     ``"auto"`` is detected on this block). WGS 84 positions are projected to each track's local
-    frame (:func:`project_rows`)."""
+    frame (:func:`~torchsvs.datasets.local_frame.project_rows`)."""
     codes, track_ids = track_codes(table.column(columns.track_id))
     column = table.column(columns.time)
     unit = detect_time_unit(column)[0] if columns.time_unit == "auto" else columns.seconds_per_unit
@@ -536,71 +533,12 @@ def parse_block(table: Any, columns: Columns) -> ParsedRows:
     non_numeric = functools.reduce(np.logical_or, [p[1] for p in parts])
     extra = {name: to_float(table.column(name))[0] for name in columns.extra}
     rows = ParsedRows(codes, track_ids, time, position, extra, non_numeric)
-    return project_rows(rows) if columns.geodetic else rows
+    if not columns.geodetic:
+        return rows
+    from torchsvs.datasets.local_frame import project_rows
 
-
-def project_rows(rows: ParsedRows) -> ParsedRows:
-    """Rows of latitude, longitude (degrees)[, altitude (m)] in each track's local frame: east,
-    north (m) in the tangent plane at the track's first position in time
-    (:func:`~torchsvs.datasets.geodesy.to_local`), the altitude as it is. Coordinates out of
-    range are read as missing (``invalid``), and so is a lone row farther than :data:`MAX_ARC`
-    from its track's first position between nearer ones (a stray report: null island, a
-    longitude off by 180°); a track reaching that far over successive rows raises
-    ``ValueError``, naming the row it leaves the frame at."""
-    from torchsvs.datasets import geodesy
-
-    lat, lon = rows.position[:, 0].copy(), rows.position[:, 1].copy()
-    with np.errstate(invalid="ignore"):
-        invalid = (np.abs(lat) > 90.0) | (lon < -180.0) | (lon > 360.0)
-    lat[invalid] = lon[invalid] = np.nan
-    code = rows.track_code
-    usable = np.flatnonzero((code >= 0) & np.isfinite(rows.time) & np.isfinite(lat + lon))
-    first = usable[np.lexsort((rows.time[usable], code[usable]))]
-    if len(first):
-        first = first[np.r_[True, code[first][1:] != code[first][:-1]]]
-    reference = np.full((len(rows.track_ids), 2), np.nan)
-    reference[code[first]] = np.stack([lat[first], lon[first]], axis=1)
-    ref = reference[np.maximum(code, 0)]
-    with np.errstate(invalid="ignore"):
-        far = geodesy.arc_degrees(lat, lon, ref[:, 0], ref[:, 1]) > MAX_ARC
-    if far.any():
-        stray = _strays(far, code, rows.time)
-        if (far & ~stray).any():
-            at = np.flatnonzero(far & ~stray)[0]
-            raise ValueError(
-                f"track {rows.track_ids[code[at]]!r}: reaches more than {MAX_ARC:.0f}° of arc "
-                f"(about {MAX_ARC * 111:.0f} km) from its first position, from the row at time "
-                f"{float(rows.time[at])!r} s on (latitude {float(lat[at])!r}, longitude "
-                f"{float(lon[at])!r}); the local "
-                "east-north frame of a track covers less: split the track into shorter ones, or "
-                "drop those rows if they are bad reports (a lone one is read as missing)"
-            )
-        # a lone report that far among near ones is a stray (a glitch): read as missing
-        invalid |= stray
-        lat[stray] = lon[stray] = np.nan
-    position = rows.position.copy()
-    with np.errstate(invalid="ignore"):
-        position[:, :2] = geodesy.to_local(
-            np.nan_to_num(lat),
-            np.nan_to_num(lon),
-            np.nan_to_num(ref[:, 0]),
-            np.nan_to_num(ref[:, 1]),
-        )
-    position[~np.isfinite(lat + lon) | (code < 0), :2] = np.nan
-    return replace(rows, position=position, reference=reference, invalid=invalid)
-
-
-def _strays(far: np.ndarray, code: np.ndarray, time: np.ndarray) -> np.ndarray:
-    """``[R]`` bool: the ``far`` rows whose track's previous and next rows in time are not far
-    (rows without a track or a time are never)."""
-    usable = np.flatnonzero((code >= 0) & np.isfinite(time))
-    order = usable[np.lexsort((time[usable], code[usable]))]
-    f, c = far[order], code[order]
-    before = np.r_[False, f[:-1] & (c[:-1] == c[1:])]  # the previous row of the track is far
-    after = np.r_[f[1:] & (c[1:] == c[:-1]), False]
-    stray = np.zeros(len(far), dtype=bool)
-    stray[order] = f & ~before & ~after
-    return stray
+    local, reference, invalid = project_rows(position, codes, time, track_ids)
+    return replace(rows, position=local, reference=reference, invalid=invalid)
 
 
 def slice_rows(rows: ParsedRows, start: int, stop: int) -> ParsedRows:

@@ -1,7 +1,8 @@
 """Each track's measurement noise read off its own positions, every track in one batched fit
 (:func:`read_track_noise`), and shrunk towards the file's by how much the tracks differ
 (:func:`shrunk_ratios`, empirical Bayes): for files whose tracks come from sensors of different
-quality and carry no column of their accuracy (``--noise-col``).
+quality and carry no column of their accuracy (``--noise-col``); and how much the file's tracks
+differ in their noise, read off a few of them each alone (:func:`noise_spread`).
 
 The fit is :func:`~torchsvs.datasets.estimate_noise`'s noise-alone fit with one parameter per
 track, a scale of the file's variance per axis: the same divided differences, the same
@@ -30,7 +31,7 @@ from torchsvs.datasets.noise_estimate import (
     MANEUVER,
     _spans,
     _touching,
-    between_spread,
+    estimate_noise,
     truncated_second_moment,
 )
 from torchsvs.kernels import track_noise as compiled_noise
@@ -157,7 +158,7 @@ def _read_compiled(z: Tensor, dt: Tensor, meas_var: Sequence[float]) -> TrackNoi
 def spread_of(read: TrackNoise) -> tuple[float, float] | None:
     """``(μ, τ)``: the weighted mean of the tracks' ``log σ`` ratios and their between-track
     standard deviation beyond their own standard errors
-    (:func:`~torchsvs.datasets.noise_estimate.between_spread`, as
+    (:func:`between_spread`, as
     :func:`~torchsvs.datasets.noise_spread`); None where fewer than 4 tracks were read."""
     ok = torch.isfinite(read.log_ratio) & torch.isfinite(read.se) & (read.se > 0)
     if int(ok.sum()) < 4:
@@ -193,3 +194,78 @@ def _medians(x: Tensor, group: Tensor, B: int) -> Tensor:
     some = counts > 0
     out[some] = values[(starts + (counts - 1) // 2)[some]]
     return out
+
+
+#: :func:`noise_spread` reads at most this many tracks, of at least this many observed points.
+SPREAD_TRACKS = 48
+SPREAD_POINTS = 40
+
+
+def noise_spread(
+    z: Tensor, dt: Tensor, max_tracks: int = SPREAD_TRACKS, min_points: int = SPREAD_POINTS
+) -> float | None:
+    r"""How much the noise read off each track alone differs between tracks, beyond what their
+    own standard errors explain: the between-track standard deviation :math:`\tau` of
+    :math:`\log\hat\sigma` (a relative spread; DerSimonian & Laird's moment estimator over every
+    track and axis, each axis about its own level, weights :math:`1/se^2` from
+    :func:`estimate_noise`'s jackknife). Pooled about one level, axes of different noise read
+    as tracks that differ: a drone's 5, 5 and 10 m read 33%.
+
+    One sensor and a model that follows the targets give :math:`\tau \approx 0`. A large
+    :math:`\tau` says that one noise level does not fit the file: the tracks' sensors differ, or
+    some tracks hold motion the model does not follow at their report rate (circling gliders at
+    30 s), which :func:`estimate_noise` cannot tell from noise, so the pooled reading can be off
+    by about that much. Reads up to ``max_tracks`` tracks of at least ``min_points`` observed
+    positions, spread over the batch; None where fewer than 4 qualify.
+
+    References:
+        DerSimonian, Laird, "Meta-analysis in clinical trials", Control. Clin. Trials 7(3):
+        177-188, 1986. doi:10.1016/0197-2456(86)90046-2
+    """
+    points = (~z.isnan().any(-1)).sum(1)
+    usable = torch.nonzero(points >= min_points).flatten()
+    if usable.numel() < 4:
+        return None
+    if usable.numel() > max_tracks:
+        usable = usable[torch.linspace(0, usable.numel() - 1, max_tracks).round().long()]
+    logs, weights, axes = [], [], []
+    for b in usable.tolist():
+        try:
+            found = estimate_noise(z[b : b + 1], dt[b : b + 1])
+        except ValueError:
+            continue
+        if found.meas_std_se is None:
+            continue
+        std = found.meas_var.double().sqrt()
+        rel = found.meas_std_se.double() / std  # the standard error of log σ
+        ok = torch.isfinite(rel) & (rel > 0) & (std > 0)
+        logs.append(std[ok].log())
+        weights.append(rel[ok].square().reciprocal())
+        axes.append(torch.nonzero(ok).flatten())
+    if len(logs) < 4:
+        return None
+    # (each axis about its own level: a sensor's altitude noise is not a spread between tracks)
+    return between_spread(torch.cat(logs), torch.cat(weights), torch.cat(axes))[1]
+
+
+def between_spread(y: Tensor, w: Tensor, group: Tensor | None = None) -> tuple[float, float | None]:
+    """``(μ, τ)`` of values ``y [n]`` with weights ``w [n]`` (their inverse variances): the
+    weighted mean and the standard deviation between them beyond their own errors
+    (DerSimonian & Laird's moment estimator), ``τ`` None where the weights leave no degree of
+    freedom. With ``group [n]`` (int64, ``0..G-1``) each group about its own mean, the
+    spread within the groups (``Q`` over ``n − G`` degrees of freedom)."""
+    mean = (w * y).sum() / w.sum()
+    if group is None:
+        Q = float((w * (y - mean).square()).sum())
+        scale = float(w.sum() - w.square().sum() / w.sum())
+        tau = math.sqrt(max(0.0, (Q - (y.numel() - 1)) / scale)) if scale > 0 else None
+        return float(mean), tau
+    G = int(group.max()) + 1
+    total = torch.zeros(G, dtype=w.dtype).index_add_(0, group, w)
+    own = torch.zeros(G, dtype=w.dtype).index_add_(0, group, w * y) / total
+    Q = float((w * (y - own[group]).square()).sum())
+    squares = torch.zeros(G, dtype=w.dtype).index_add_(0, group, w.square())
+    scale = float((total - squares / total).sum())
+    free = y.numel() - G
+    tau = math.sqrt(max(0.0, (Q - free) / scale)) if scale > 0 and free > 0 else None
+    return float(mean), tau
