@@ -154,8 +154,9 @@ def track_parser() -> argparse.ArgumentParser:
         "--meas-std",
         type=_positive_floats,
         default=None,
-        help="measurement noise standard deviation, one value or one per axis, in metres (also "
-        "for latitude, longitude: --frame) (default: read off the data; with --fit, learned)",
+        help="measurement noise standard deviation, one value or one per axis, in the positions' "
+        "units (metres for latitude, longitude: --frame; the run's messages say m for them) "
+        "(default: read off the data; with --fit, learned)",
     )
     parser.add_argument(
         "--noise-col",
