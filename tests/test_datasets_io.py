@@ -188,7 +188,12 @@ def test_directory_in_directory_out_matches_one_file(tmp_path, capsys):
     parts = _dataset(source)
     pq.write_table(pa.concat_tables(parts), tmp_path / "all.parquet")
     _track(source, "-o", tmp_path / "out")
+    # a dataset's settings come from its first file, and the run says so
+    first = len(parts[0].column("track_id").unique())
+    said = f"settings: read off the dataset's first file, a.parquet ({first} tracks)"
+    assert said in capsys.readouterr().err
     _track(tmp_path / "all.parquet", "-o", tmp_path / "all_out.parquet")
+    assert "dataset's first file" not in capsys.readouterr().err
     written = sorted(str(p.relative_to(tmp_path / "out")) for p in (tmp_path / "out").rglob("*.*"))
     assert written == ["part=0/a.parquet", "part=1/b.parquet", "part=1/c.parquet"]
     outputs = [pq.read_table(tmp_path / "out" / name) for name in written]

@@ -129,6 +129,11 @@ def track_file(
                         log=say,
                     )
                     phases["settings"] += time.perf_counter() - tick
+                    if Path(source).is_dir() and block.path is not None:  # (a dataset: say so)
+                        say(
+                            f"settings: read off the dataset's first file, {block.path.name} "
+                            f"({block.steps.num_tracks:,} tracks), and kept for the others"
+                        )
                     estimator = plan.estimator()
                     run = new_run(plan, accuracy)
                     # disable=None: no bar where stderr is not a terminal (it would stay in a log)
