@@ -16,6 +16,7 @@ from torchsvs.accuracy import Accuracy, RiskTerms, exact_divergence
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.blending import best_weight, blended_terms
 from torchsvs.datasets import RecordedTracks
+from torchsvs.datasets.steps import length_batches
 from torchsvs.datasets.track_noise import read_track_noise, shrunk_ratios, spread_of
 from torchsvs.estimating import (
     GroupBatch,
@@ -82,25 +83,16 @@ SAMPLE_CELLS = 1 << 19
 
 
 def length_groups(tracks: RecordedTracks, cells: int | None = None) -> list[Tensor] | None:
-    """The tracks in groups of like length (indices, longest last), each group's tracks × its
-    longest's steps at most ``cells`` (default :data:`SAMPLE_CELLS`; or one track); None where
-    the padded batch is within it (one run of all, as before). A track's estimates do not depend
-    on the tracks beside it, so the groups give each track what one run gives (the particle
-    filters' draws aside)."""
+    """The tracks in groups of like length (indices,
+    :func:`~torchsvs.datasets.steps.length_batches`), each group's tracks × its longest's steps
+    at most ``cells`` (default :data:`SAMPLE_CELLS`; or one track); None where the padded batch
+    is within it (one run of all, as before). A track's estimates do not depend on the tracks
+    beside it, so the groups give each track what one run gives (the particle filters' draws
+    aside)."""
     cells = SAMPLE_CELLS if cells is None else cells
-    B = len(tracks)
-    if B * tracks.z.shape[1] <= cells:
+    if len(tracks) * tracks.z.shape[1] <= cells:
         return None
-    order = torch.argsort(tracks.lengths, stable=True)
-    lengths = tracks.lengths[order].clamp_min(1).tolist()
-    groups, first = [], 0
-    while first < B:
-        last = first + 1  # the most tracks from ``first`` whose padded batch fits
-        while last < B and (last + 1 - first) * lengths[last] <= cells:
-            last += 1
-        groups.append(order[first:last])
-        first = last
-    return groups
+    return [torch.from_numpy(g) for g in length_batches(tracks.lengths.numpy(), cells)]
 
 
 def _sample_batch(settings: Settings, tracks: RecordedTracks) -> tuple[GroupBatch, Tensor]:

@@ -452,10 +452,10 @@ def _estimate(
     weight = 0.0
     if white_fit and groups >= 2 and not bool(white.boundary.any() or white_jack.boundary.any()):
         weight = _white_weight(alone, alone_jack, white, white_jack)
-    if weight == 0.0 and len(orders) >= 3 and groups >= 2:  # (a maneuver at the lowest order:
-        # the higher orders read the noise, alone: a target that maneuvers all the time)
-        if _lowest_reads_motion(alone, alone_jack):
-            return _estimate(z, dt, tuple(sorted(orders))[1:], cutoff, maneuver, white_fit=False)
+    if weight == 0.0 and groups >= 2 and _lowest_reads_motion(alone, alone_jack):
+        # a maneuver at the lowest order: the higher orders read the noise, alone (a target
+        # that maneuvers all the time; with two orders left this does not apply again)
+        return _estimate(z, dt, tuple(sorted(orders))[1:], cutoff, maneuver, white_fit=False)
     # log σ of each axis and of each jackknife refit, the two fits blended by the weight
     log_sigma = (1 - weight) * alone.r.log() / 2 + weight * white.r.clamp_min(1e-300).log() / 2
     log_jack = (1 - weight) * alone_jack.r.log() / 2 + weight * white_jack.r.clamp_min(

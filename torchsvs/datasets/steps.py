@@ -45,26 +45,32 @@ class TrackSteps:
 
     def batches(self, max_cells: int = 1 << 22) -> Iterator[np.ndarray]:
         """Track indices in groups of similar length with at most ``max_cells`` padded steps
-        (``B × T``) each (a single longer track gets a group of its own): little padding and
-        bounded memory whatever the mix of lengths."""
-        order = np.argsort(self.length, kind="stable")
-        width = self.length[order].tolist()
-        first = 0
-        while first < len(order):
-            # Sorted by length, so the group's width is its last track's length and its cells
-            # (tracks × width) grow with each track taken: the first track that would overflow
-            # ends the group (found by bisection; the group takes at least one track).
-            last = (
-                bisect.bisect_right(
-                    range(first + 1, len(order)),
-                    max_cells,
-                    key=lambda k: (k + 1 - first) * width[k],
-                )
-                + first
-                + 1
+        (``B × T``) each (:func:`length_batches`)."""
+        return length_batches(self.length, max_cells)
+
+
+def length_batches(lengths: np.ndarray, max_cells: int) -> Iterator[np.ndarray]:
+    """Indices of tracks of ``lengths [B]`` in groups of similar length (each sorted) with at
+    most ``max_cells`` padded steps (``B × T``) each (a single longer track gets a group of its
+    own): little padding and bounded memory whatever the mix of lengths."""
+    order = np.argsort(lengths, kind="stable")
+    width = lengths[order].tolist()
+    first = 0
+    while first < len(order):
+        # Sorted by length, so the group's width is its last track's length and its cells
+        # (tracks × width) grow with each track taken: the first track that would overflow
+        # ends the group (found by bisection; the group takes at least one track).
+        last = (
+            bisect.bisect_right(
+                range(first + 1, len(order)),
+                max_cells,
+                key=lambda k: (k + 1 - first) * width[k],
             )
-            yield np.sort(order[first:last])
-            first = last
+            + first
+            + 1
+        )
+        yield np.sort(order[first:last])
+        first = last
 
 
 def as_rows(a: np.ndarray) -> np.ndarray:
