@@ -15,6 +15,7 @@
 // the far stencils are few, so the steps they cover are marked with a bit per fit.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <vector>
 
