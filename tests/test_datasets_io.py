@@ -188,12 +188,11 @@ def test_directory_in_directory_out_matches_one_file(tmp_path, capsys):
     parts = _dataset(source)
     pq.write_table(pa.concat_tables(parts), tmp_path / "all.parquet")
     _track(source, "-o", tmp_path / "out")
-    # a dataset's settings come from its first file, and the run says so
-    first = len(parts[0].column("track_id").unique())
-    said = f"settings: read off the dataset's first file, a.parquet ({first} tracks)"
+    # a dataset's settings come from its first files (here all), and the run says so
+    said = "settings: read off all 2 of the dataset's files with rows (7 tracks)"
     assert said in capsys.readouterr().err
     _track(tmp_path / "all.parquet", "-o", tmp_path / "all_out.parquet")
-    assert "dataset's first file" not in capsys.readouterr().err
+    assert "dataset's" not in capsys.readouterr().err
     written = sorted(str(p.relative_to(tmp_path / "out")) for p in (tmp_path / "out").rglob("*.*"))
     assert written == ["part=0/a.parquet", "part=1/b.parquet", "part=1/c.parquet"]
     outputs = [pq.read_table(tmp_path / "out" / name) for name in written]
@@ -206,6 +205,49 @@ def test_directory_in_directory_out_matches_one_file(tmp_path, capsys):
     assert (tmp_path / "out.summary.json").exists()
     leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
     assert leftovers == []
+
+
+def test_a_dataset_of_small_files_is_planned_on_as_many_tracks_as_one_file(tmp_path, capsys):
+    """Settings read off the data (noise, q): a dataset's first files are taken until the
+    sample is full, so small files give the estimates of the same rows in one file (planned on
+    its first file alone, two tracks of twelve, the noise read differed); a larger dataset
+    stops at the file that fills the sample, and says which."""
+    source = tmp_path / "in"
+    source.mkdir()
+    parts = [_table(2, first=2 * k, seed=k) for k in range(6)]
+    for k, table in enumerate(parts):
+        pq.write_table(table, source / f"f{k}.parquet")
+    pq.write_table(pa.concat_tables(parts), tmp_path / "all.parquet")
+    main(["track", str(source), "-o", str(tmp_path / "out"), "--estimator", "ks"])
+    err = capsys.readouterr().err
+    main(
+        [
+            "track",
+            str(tmp_path / "all.parquet"),
+            "-o",
+            str(tmp_path / "all.out.parquet"),
+            "--estimator",
+            "ks",
+        ]
+    )
+    outputs = [pq.read_table(tmp_path / "out" / f"f{k}.parquet") for k in range(6)]
+    assert pa.concat_tables(outputs).equals(pq.read_table(tmp_path / "all.out.parquet"))
+    assert "settings: read off all 6 of the dataset's files with rows (12 tracks)" in err
+    capsys.readouterr()
+    main(
+        [
+            "track",
+            str(source),
+            "-o",
+            str(tmp_path / "out5"),
+            "--estimator",
+            "ks",
+            "--fit-tracks",
+            "5",
+        ]
+    )
+    said = "settings: read off the dataset's first 3 files, f0.parquet to f2.parquet (6 tracks)"
+    assert said in capsys.readouterr().err
 
 
 def test_a_partition_value_gives_the_id(tmp_path, capsys):

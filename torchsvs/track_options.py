@@ -7,6 +7,8 @@ import argparse
 import math
 from collections.abc import Callable
 
+from torchsvs.datasets.tables import SAMPLE_TRACKS
+
 
 def _floats(text: str) -> list[float]:
     try:
@@ -251,7 +253,10 @@ def track_parser() -> argparse.ArgumentParser:
         "--fit", action="store_true", help="tune the estimator on the input itself (no truth)"
     )
     parser.add_argument(
-        "--fit-tracks", type=_at_least_one, default=2000, help="tracks the fit uses (default 2000)"
+        "--fit-tracks",
+        type=_at_least_one,
+        default=SAMPLE_TRACKS,
+        help=f"tracks the fit uses (default {SAMPLE_TRACKS})",
     )
     parser.add_argument(
         "--fit-steps", type=_at_least_one, default=None, help="optimiser steps of the fit"

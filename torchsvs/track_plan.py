@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
-from torchsvs.datasets.tables import block_of
+from torchsvs.datasets.tables import SAMPLE_TRACKS, block_of
 from torchsvs.datasets.tracks import padded_batch
 from torchsvs.datasets.writing import OUTPUT_TYPES
 from torchsvs.fitting.defaults import (
@@ -112,9 +112,10 @@ def plan_tracks(
 
     Args:
         data: a sample of the dataset: a ``.csv``/``.parquet`` file or Parquet dataset (its
-            first block: :func:`~torchsvs.datasets.tables.block_of`), a ``pandas.DataFrame``
-            or a ``pyarrow.Table`` of track rows, or a block already read (``torchsvs track``
-            plans on its first).
+            first blocks, up to ``fit_options["tracks"]`` tracks:
+            :func:`~torchsvs.datasets.tables.block_of`), a ``pandas.DataFrame`` or a
+            ``pyarrow.Table`` of track rows, or a block already read (``torchsvs track``
+            plans on its first blocks, joined).
         settings: the estimator and what is known of its settings (default: ``auto``).
         columns: the data's column names (default ``track_id, time, x, y[, z]``).
         fit, fit_options, checkpoint, save: as for :func:`~torchsvs.tracking.track_file`.
@@ -126,7 +127,8 @@ def plan_tracks(
     """
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {list(PRECISIONS)}, got {precision!r}")
-    block = block_of(data, columns, block_rows)
+    tracks = int((fit_options or {}).get("tracks", SAMPLE_TRACKS))
+    block = block_of(data, columns, block_rows, tracks)
     estimator, settings, summary = prepare_estimator(
         block.steps, settings or Settings(estimator="auto"), fit, fit_options, checkpoint, save, log
     )
@@ -202,12 +204,14 @@ def _spacing(values: np.ndarray, headroom: float) -> float:
 
 def _sample_tracks(steps: Any, fit_options: dict[str, Any] | None) -> np.ndarray:
     """The tracks the settings are read off (and a fit runs on): up to ``tracks`` of the first
-    block, spread evenly over it."""
-    limit = int((fit_options or {}).get("tracks", 2000))
-    count = steps.num_tracks
-    if count <= limit:
-        return np.arange(count)
-    return np.unique(np.linspace(0, count - 1, limit).round().astype(np.int64))
+    block, spread evenly over it in the order of their ids. In that order, not the file's: the
+    fit's windows and probes are drawn by position in the sample, so a file's settings (and
+    ``auto``'s choice) would otherwise change with the order its tracks were written in."""
+    limit = int((fit_options or {}).get("tracks", SAMPLE_TRACKS))
+    order = np.argsort(np.asarray(steps.ids, dtype=str), kind="stable")
+    if len(order) <= limit:
+        return order
+    return order[np.unique(np.linspace(0, len(order) - 1, limit).round().astype(np.int64))]
 
 
 def prepare_estimator(

@@ -11,9 +11,11 @@ the run's summary).
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from itertools import chain
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +24,8 @@ from torch import nn
 
 from torchsvs.datasets import Columns, EstimateWriter
 from torchsvs.datasets.paths import check_output
-from torchsvs.datasets.reading import ReadAhead
+from torchsvs.datasets.reading import ReadAhead, TrackBlock
+from torchsvs.datasets.tables import SAMPLE_TRACKS, joined, sample_taken
 from torchsvs.recipes import Settings
 from torchsvs.track_plan import TrackPlan, plan_tracks
 from torchsvs.track_run import TrackRun, summary_path, write_summary
@@ -114,11 +117,17 @@ def track_file(
     with blocks, EstimateWriter(target, source) as writer:
         behind = WriteBehind(writer, phases)
         try:
-            for block in blocks:
+            sample: list[TrackBlock] = []  # the first blocks, held until the plan is made
+            tracks = int((fit_options or {}).get("tracks", SAMPLE_TRACKS))
+            for block in chain(blocks, [None]):
                 if plan is None:
+                    if block is not None:
+                        sample.append(block)
+                        if not sample_taken(sample, tracks):
+                            continue
                     tick = time.perf_counter()
                     plan = plan_tracks(
-                        block,
+                        joined(sample),
                         settings,
                         fit=fit,
                         fit_options=fit_options,
@@ -129,11 +138,8 @@ def track_file(
                         log=say,
                     )
                     phases["settings"] += time.perf_counter() - tick
-                    if Path(source).is_dir() and block.path is not None:  # (a dataset: say so)
-                        say(
-                            f"settings: read off the dataset's first file, {block.path.name} "
-                            f"({block.steps.num_tracks:,} tracks), and kept for the others"
-                        )
+                    if Path(source).is_dir():  # (a dataset: say on what)
+                        say(sample_line(sample, source, block is None))
                     estimator = plan.estimator()
                     run = new_run(plan, accuracy)
                     # disable=None: no bar where stderr is not a terminal (it would stay in a log)
@@ -143,18 +149,22 @@ def track_file(
                         disable=None if progress else True,
                         leave=False,
                     )
-                assert run is not None and estimator is not None
-                found = estimate_block(
-                    block,
-                    plan,
-                    estimator,
-                    run,
-                    covariance=covariance,
-                    accuracy=accuracy,
-                    max_cells=max_cells,
-                    progress=bar,
-                )
-                behind.write(found, block, plan.precision)
+                elif block is not None:
+                    sample = [block]
+                for part in sample:
+                    assert run is not None and estimator is not None
+                    found = estimate_block(
+                        part,
+                        plan,
+                        estimator,
+                        run,
+                        covariance=covariance,
+                        accuracy=accuracy,
+                        max_cells=max_cells,
+                        progress=bar,
+                    )
+                    behind.write(found, part, plan.precision)
+                sample = []
         finally:  # the last write done before the writer closes; the bar cleared before
             # anything else is printed (an error's too)
             behind.close()
@@ -170,6 +180,23 @@ def track_file(
     if summary:
         write_summary(run, summary_path(target))
     return run
+
+
+def sample_line(sample: list[TrackBlock], dataset: str | Path, everything: bool) -> str:
+    """What a ``dataset``'s settings were read off: its first files (:func:`~torchsvs.datasets.
+    tables.sample_taken`), named, with their tracks; ``everything``: all its files."""
+    files = [os.path.relpath(b.path, dataset) for b in sample if b.path is not None]
+    files = list(dict.fromkeys(files))
+    tracks = sum(b.steps.num_tracks for b in sample)
+    if everything:
+        held = f"{len(files)} of the dataset's files with rows"
+        return f"settings: read off all {held} ({tracks:,} tracks)"
+    named = files[0] if len(files) == 1 else f"{files[0]} to {files[-1]}"
+    which = "first file" if len(files) == 1 else f"first {len(files)} files"
+    return (
+        f"settings: read off the dataset's {which}, {named} ({tracks:,} tracks), and kept "
+        "for the others"
+    )
 
 
 class WriteBehind:

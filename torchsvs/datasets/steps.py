@@ -49,6 +49,31 @@ class TrackSteps:
         return length_batches(self.length, max_cells)
 
 
+def join_steps(parts: Sequence[TrackSteps]) -> TrackSteps:
+    """The tracks of ``parts`` (blocks of distinct tracks) as one :class:`TrackSteps`, in order:
+    each part's steps (and rows) after the previous part's, its counts added."""
+    if len(parts) == 1:
+        return parts[0]
+    report = RowReport()
+    for part in parts:
+        report.add(part.report)
+    shifted = list(zip(parts, np.cumsum([0] + [len(p.time) for p in parts[:-1]]), strict=True))
+    references = [p.reference for p in parts if p.reference is not None]
+    return TrackSteps(
+        ids=[i for p in parts for i in p.ids],
+        start=np.concatenate([p.start + s for p, s in shifted]),
+        length=np.concatenate([p.length for p in parts]),
+        time=np.concatenate([p.time for p in parts]),
+        position=np.concatenate([p.position for p in parts]),
+        extra={k: np.concatenate([p.extra[k] for p in parts]) for k in parts[0].extra},
+        row_step=np.concatenate(
+            [np.where(p.row_step >= 0, p.row_step + s, -1) for p, s in shifted]
+        ),
+        report=report,
+        reference=np.concatenate(references) if references else None,
+    )
+
+
 def length_batches(lengths: np.ndarray, max_cells: int) -> Iterator[np.ndarray]:
     """Indices of tracks of ``lengths [B]`` in groups of similar length (each sorted) with at
     most ``max_cells`` padded steps (``B × T``) each (a single longer track gets a group of its

@@ -10,22 +10,39 @@ from typing import Any
 from torchsvs.datasets.describe import describe_table
 from torchsvs.datasets.reading import TrackBlock, reads_whole, track_blocks
 from torchsvs.datasets.rows import Columns, parse_block
-from torchsvs.datasets.steps import group_rows
+from torchsvs.datasets.steps import group_rows, join_steps
+
+#: Tracks a sample's settings are read off (``torchsvs track --fit-tracks``' default): a
+#: file's first block holds them, or a dataset's first files (:func:`sample_taken`).
+SAMPLE_TRACKS = 2000
+#: ... or at most this many steps of them (tracks of 500 steps and more: fewer tracks).
+SAMPLE_STEPS = 1 << 20
 
 
-def block_of(data: Any, columns: Columns | None = None, block_rows: int = 1 << 18) -> TrackBlock:
+def block_of(
+    data: Any,
+    columns: Columns | None = None,
+    block_rows: int = 1 << 18,
+    tracks: int = SAMPLE_TRACKS,
+) -> TrackBlock:
     """Track rows as a block (a block as it is): a table's (``pandas.DataFrame`` or
     ``pyarrow.Table``; columns still open are settled on it,
-    :func:`~torchsvs.datasets.describe.describe_table`) or the first block of a
-    ``.csv``/``.parquet`` file or Parquet dataset (a path): all of it where ``torchsvs track``
-    reads it whole (:func:`~torchsvs.datasets.reading.reads_whole`), else its first
-    ``block_rows`` rows' complete tracks."""
+    :func:`~torchsvs.datasets.describe.describe_table`) or the sample ``torchsvs track`` plans
+    on of a ``.csv``/``.parquet`` file or Parquet dataset (a path): its first blocks as
+    :func:`sample_taken` takes them (a block is all of a file where ``torchsvs track`` reads it
+    whole, :func:`~torchsvs.datasets.reading.reads_whole`, else ``block_rows`` rows' complete
+    tracks), joined."""
     import pyarrow as pa
 
     if isinstance(data, TrackBlock):
         return data
     if isinstance(data, (str, Path)):
-        return next(track_blocks(data, columns, block_rows=block_rows, whole=reads_whole(data)))
+        taken: list[TrackBlock] = []
+        for block in track_blocks(data, columns, block_rows=block_rows, whole=reads_whole(data)):
+            taken.append(block)
+            if sample_taken(taken, tracks):
+                break
+        return joined(taken)
     if is_pandas(data):
         data = pa.Table.from_pandas(data, preserve_index=False)
     elif not isinstance(data, pa.Table):
@@ -47,3 +64,25 @@ def _settled(columns: Columns) -> bool:
 def is_pandas(data: Any) -> bool:
     """Whether ``data`` is a pandas DataFrame (without importing pandas)."""
     return type(data).__module__.startswith("pandas") and hasattr(data, "columns")
+
+
+def sample_taken(blocks: list[TrackBlock], tracks: int = SAMPLE_TRACKS) -> bool:
+    """Whether a file's or a dataset's first ``blocks`` (in reading order) hold the sample its
+    settings are read off: ``tracks`` tracks or :data:`SAMPLE_STEPS` steps. One block of a
+    file read whole holds all of it; a dataset of small files takes files until the sample is
+    full, so that its settings are read off as many tracks as the same rows in one file."""
+    held = sum(b.steps.num_tracks for b in blocks)
+    return held >= tracks or sum(len(b.steps.time) for b in blocks) >= SAMPLE_STEPS
+
+
+def joined(blocks: list[TrackBlock]) -> TrackBlock:
+    """Blocks of distinct tracks (a dataset's files) as one, to plan on: the steps joined
+    (:func:`~torchsvs.datasets.steps.join_steps`), the rows' tables concatenated (their types
+    unified where files differ), no path."""
+    import pyarrow as pa
+
+    if len(blocks) == 1:
+        return blocks[0]
+    table = pa.concat_tables([b.table for b in blocks], promote_options="permissive")
+    steps = join_steps([b.steps for b in blocks])
+    return TrackBlock(table, steps, blocks[0].columns)

@@ -23,6 +23,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from torchsvs.datasets import Columns
+from torchsvs.datasets.tables import SAMPLE_TRACKS
 from torchsvs.engines.parts import (
     check_columns,
     check_plan,
@@ -43,7 +44,7 @@ BUCKET = "__torchsvs_bucket"
 
 
 def sample_tracks(
-    df: Any, columns: Columns | None = None, *, tracks: int = 2000, seed: int = 0
+    df: Any, columns: Columns | None = None, *, tracks: int = SAMPLE_TRACKS, seed: int = 0
 ) -> Any:
     """About ``tracks`` whole tracks of ``df``, picked by id, as a pandas DataFrame on the
     driver: the sample to plan on. A plan made on the first rows (``df.limit(n)``) would see
@@ -70,7 +71,7 @@ def plan_spark(
     settings: Settings | None = None,
     *,
     columns: Columns | None = None,
-    tracks: int = 2000,
+    tracks: int = SAMPLE_TRACKS,
     seed: int = 0,
     **options: Any,
 ) -> TrackPlan:
