@@ -103,6 +103,60 @@ def test_fit_of_an_svss_lowers_its_true_error():
     assert fixed.parameters == 2 and fixed.settings.gamma == 0.0
 
 
+def test_rstkf_fit_searches_q_and_keeps_the_least_risk(monkeypatch):
+    """The RSTKF's ``q`` is searched (its step loop made L-BFGS take 71 s on 5,000 rows): from a
+    start 1000× too large the fit keeps the candidate of least SURE among those it scored, and
+    the start's risk scored again is higher."""
+    from torchsvs.fitting import tuning
+
+    tracks = _cv_tracks(q=4.0, r=400.0, B=8, T=80)
+    start = complete_settings(
+        Settings(estimator="rstkf", meas_var=[400.0, 400.0], q=4000.0), tracks
+    )
+    scored: list[tuple[float, float]] = []
+    risk = tuning._risk
+
+    def recorded(est, *args):
+        value = risk(est, *args)
+        scored.append((float(est.model.q()), value))
+        return value
+
+    monkeypatch.setattr(tuning, "_risk", recorded)
+    fit = self_tune(start, tracks)
+    assert fit.parameters == 1 and fit.curve == []
+    searched = scored[:-2]  # (the last two: the start and the choice on fresh probes)
+    assert len(searched) == len(tuning.Q_DECADES) + 4
+    least = min(searched, key=lambda pair: pair[1])
+    assert fit.settings.q == pytest.approx(least[0], rel=1e-12)
+    assert fit.settings.q < 0.1 * start.q
+    start_risk = next(value for q, value in searched if q == pytest.approx(start.q, rel=1e-12))
+    assert least[1] < start_risk
+
+
+def test_rstkf_paired_probes_give_the_risk_of_two_runs():
+    """The RSTKF runs SURE's plain and probed measurements in one batch (paired_probes): the
+    same risk as two runs."""
+    from torchsvs.fitting.batches import batch_loss, recorded_batches
+
+    tracks = _cv_tracks(q=4.0, r=400.0, B=4, T=40)
+    settings = complete_settings(
+        Settings(estimator="rstkf", meas_var=[400.0, 400.0], q=4.0), tracks
+    )
+    est = make_estimator(settings, make_model(settings)).double()
+    assert est.paired_probes
+    batch = recorded_batches(tracks, torch.tensor([400.0, 400.0]), 32, 8, None)[0]
+    meas_cov = torch.diag(torch.tensor([400.0, 400.0], dtype=torch.float64))
+    with torch.no_grad():
+        paired = batch_loss(
+            est, batch, "sure", meas_cov=meas_cov, generator=torch.Generator().manual_seed(1)
+        )[0]
+        est.paired_probes = False
+        apart = batch_loss(
+            est, batch, "sure", meas_cov=meas_cov, generator=torch.Generator().manual_seed(1)
+        )[0]
+    assert_close(paired, apart, atol=1e-10, rtol=1e-10)
+
+
 @pytest.mark.parametrize("estimator", ["pf", "spvsf"])
 def test_particle_filters_take_the_kalman_filters_q(estimator):
     tracks = _cv_tracks(q=4.0, r=400.0, B=4, T=60)

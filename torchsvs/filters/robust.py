@@ -92,6 +92,8 @@ class RobustStudentTKalmanFilter(GaussianFilter):
         Chen, Xu, Yan, Li, Sensors 20(6):1781, 2020 (Table 1 settings).
     """
 
+    paired_probes = True  # a Python loop over steps of small tensors (10 VB iterations each)
+
     def __init__(
         self,
         model: LinearModel,

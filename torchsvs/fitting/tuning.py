@@ -13,8 +13,9 @@ Two stages, each a short L-BFGS run on (at most 64) windows of 128 steps cut fro
    the loss that targets the error users care about, while the NLL only scores one-step
    predictions.
 
-The IMM's noises are not descended but searched (:func:`_imm_search`: scaled candidates scored by
-SURE on short windows): its step loop makes each gradient cost seconds. Parameters are moved in
+The IMM's noises and the RSTKF's ``q`` are not descended but searched (:func:`_imm_search`,
+:func:`_q_search`: scaled candidates scored by SURE on short windows): their step loops of small
+tensors make each gradient cost seconds. Parameters are moved in
 log space (ψ, q, R) and logit space (γ). The SURE surface of an SVSS
 has more than one valley, so stage 2 first compares a few starting points (:data:`START_Q`,
 :data:`START_PSI`) by their risk and descends from the best; ψ is shared by the axes.
@@ -261,9 +262,10 @@ def self_tune(
         )
     assert settings.meas_var is not None
     meas_cov = torch.diag(torch.tensor(settings.meas_var, dtype=torch.float64))
-    if settings.estimator == "imm":
-        batches = batches_for(settings.meas_var, *IMM_WINDOWS)
-        result.settings = _imm_search(settings, batches, meas_cov, seed, result)
+    if settings.estimator in SEARCHED:
+        batches = batches_for(settings.meas_var, *SEARCH_WINDOWS)
+        search = SEARCHED[settings.estimator]
+        result.settings = search(settings, batches, meas_cov, seed, result)
         result.seconds = time.perf_counter() - start
         return result
     batches = batches_for(settings.meas_var)
@@ -326,13 +328,14 @@ VALIDATION_SEED = 7919
 START_PSI = (0.03, 0.2, 1.0)
 
 
-#: The IMM's fit: windows of this many steps, this many burnt in, at most this many windows.
-#: Its steps are a few dozen small tensor operations each, so a pass costs its steps, not its
-#: points: short windows side by side make a pass of thousands of points a fraction of a second.
-#: Measured on the recorded-tracks benchmark: 48-step windows chose alike, for 20% more time;
+#: The searched fits' windows (:data:`SEARCHED`): this many steps, this many burnt in, at most
+#: this many windows. An IMM's or an RSTKF's steps are dozens of small tensor operations each
+#: (the RSTKF's 10 variational iterations), so a pass costs its steps, not its points: short
+#: windows side by side make a pass of thousands of points a fraction of a second. Measured on
+#: the recorded-tracks benchmark with the IMM: 48-step windows chose alike, for 20% more time;
 #: 256 windows at most (with the smoother's cost) chose within 0.5% of 512 on six sets, 3% behind
 #: on taxiing aircraft (σ 50).
-IMM_WINDOWS = (32, 8, 256)
+SEARCH_WINDOWS = (32, 8, 256)
 #: Factors on the three process noises of the IMM together (``q``, ``turn_q``, ``turn_rate_q``
 #: as :func:`~torchsvs.fitting.defaults.turn_settings` derives them), then on the turn-rate
 #: noise alone, then on the turn mode's acceleration noise alone: the candidates
@@ -409,6 +412,62 @@ def _imm_search(
         )
         return settings
     return best
+
+
+#: :func:`_q_search`'s factors on ``q``: decades from 10⁻⁵ to 10 times the start, then half and
+#: quarter decades around the best. The RSTKF's variational step inflates a small nominal ``Q``
+#: itself, so its SURE falls over decades below the noise reading's ``q`` and then stays flat
+#: (aircraft at σ 40 m: 0.91 of R at the reading, 0.80 from 0.03 down).
+Q_DECADES = tuple(10.0**k for k in range(-5, 2))
+Q_REFINE = (10.0**-0.5, 10.0**0.5), (10.0**-0.25, 10.0**0.25)
+
+
+def _q_search(
+    settings: Settings,
+    batches: list[TrackBatch],
+    meas_cov: Tensor,
+    seed: int,
+    result: FitResult,
+) -> Settings:
+    """``q`` by a search over :data:`Q_DECADES`, then :data:`Q_REFINE` around the best, each
+    candidate scored by its SURE (forward passes only, the same probes); checked against the
+    start with fresh probes (kept only if lower). For an estimator whose step is a loop of small
+    tensors (the RSTKF): L-BFGS through its steps took 71 s on 5,000 rows."""
+    assert settings.q is not None
+    start = settings.q
+    scores: dict[float, float] = {}
+
+    def risk_of(factor: float, probes: int = seed) -> float:
+        candidate = replace(settings, q=start * factor)
+        estimator = make_estimator(candidate, make_model(candidate)).double()
+        return _risk(estimator, batches, meas_cov, probes)
+
+    for factor in Q_DECADES:
+        scores[factor] = risk_of(factor)
+    for steps in Q_REFINE:
+        best = min(scores, key=scores.__getitem__)
+        for step in steps:
+            scores[best * step] = risk_of(best * step)
+    best = min(scores, key=scores.__getitem__)
+    result.parameters = 1
+    fresh = seed + VALIDATION_SEED
+    began, ended = risk_of(1.0, fresh), risk_of(best, fresh)
+    chosen = replace(settings, q=start * best)
+    result.stages.append(
+        f"{settings.estimator} by SURE: q = {_fmt(chosen.q)} (×{best:.3g}; risk {scores[1.0]:.4f}"
+        f" → {scores[best]:.4f} of R; fresh probes {began:.4f} → {ended:.4f}; {len(scores)} "
+        "candidates)"
+    )
+    if not ended <= began:
+        result.stages.append(
+            "kept the starting point: with fresh probes the fit's risk was not lower"
+        )
+        return settings
+    return chosen
+
+
+#: Estimators whose fit searches rather than descends: their searches.
+SEARCHED = {"imm": _imm_search, "rstkf": _q_search}
 
 
 def _best_start(
