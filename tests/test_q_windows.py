@@ -331,3 +331,70 @@ def test_a_windowed_plan_travels_by_pickle_and_splits_as_one_table():
     assert math.sqrt(squares / one["points"]) == pytest.approx(
         one["estimated_position_rmse"], rel=1e-9
     )
+
+
+def _parked_and_moving(parked: int = 6, moving: int = 6, T: int = 240, seed: int = 0):
+    """A table of cars at 1 s reports, σ 5 m: ``parked`` standing still, ``moving`` driving
+    (white acceleration, 1 m²/s³), ids ``P..``/``C..``; and the truth's positions."""
+    gen = np.random.default_rng(seed)
+    frames, truth = [], []
+    for k in range(parked + moving):
+        if k < parked:
+            path = np.repeat(gen.normal(0, 500, (1, 2)), T, axis=0)
+        else:
+            v = np.cumsum(gen.normal(0, 1.0, (T, 2)), axis=0) + gen.normal(0, 10, 2)
+            path = np.cumsum(v, axis=0)
+        z = path + gen.normal(0, 5.0, path.shape)
+        name = f"{'P' if k < parked else 'C'}{k:02d}"
+        frames.append(
+            pd.DataFrame({"id": name, "t": np.arange(T, dtype=float), "x": z[:, 0], "y": z[:, 1]})
+        )
+        truth.append(path)
+    return pd.concat(frames, ignore_index=True), np.concatenate(truth)
+
+
+def test_still_targets_among_moving_ones_reach_below_the_grid(monkeypatch):
+    """Parked cars among moving ones: their own SURE is least at the grid's lowest factor
+    (1/30 of the file's q, the moving cars'), so the file's grid reaches lower (q_low) and
+    they are estimated closer to the truth; the moving cars as before; a file of moving cars
+    alone keeps the grid."""
+    from torchsvs.datasets import Columns
+    from torchsvs.fitting import defaults
+
+    frame, truth = _parked_and_moving()
+    columns = Columns("id", "t")
+
+    def errors(plan):
+        out = track_table(frame, plan).table
+        err = np.hypot(out["x"].to_numpy() - truth[:, 0], out["y"].to_numpy() - truth[:, 1])
+        still = frame["id"].str.startswith("P").to_numpy()
+        return np.sqrt(np.mean(err[still] ** 2)), np.sqrt(np.mean(err[~still] ** 2))
+
+    low = plan_tracks(frame, Settings(estimator="ks"), columns=columns)
+    assert low.settings.q_low and len(low.settings.q_curve) == len(noise.q_factors(True))
+    monkeypatch.setattr(defaults, "wants_lower_q", lambda curves: False)
+    grid = plan_tracks(frame, Settings(estimator="ks"), columns=columns)
+    assert not grid.settings.q_low
+    (still_low, moving_low), (still_grid, moving_grid) = errors(low), errors(grid)
+    assert still_low < 0.8 * still_grid
+    assert moving_low == pytest.approx(moving_grid, rel=0.02)
+    monkeypatch.undo()
+    cars = frame[frame["id"].str.startswith("C")]
+    assert not plan_tracks(cars, Settings(estimator="ks"), columns=columns).settings.q_low
+
+
+def test_wants_lower_q_counts_positions_at_the_lowest_factor():
+    """Tracks whose own curve is least at the lowest factor and below the next, weighed by
+    their scored positions, against LOW_EDGE_SHARE."""
+    from torchsvs.fitting.defaults import LOW_EDGE_SHARE, wants_lower_q
+
+    F = len(noise.Q_FACTORS)
+    falling = torch.linspace(1.0, 2.0, F)  # least at the lowest factor
+    rising = falling.flip(0)
+    flat = torch.ones(F)  # least at the lowest too, but not below the next
+    risk = torch.stack([falling, rising, flat], 1)
+    share = LOW_EDGE_SHARE
+    counts = torch.tensor([share * 100, 50 - share * 100, 50.0], dtype=torch.float64)
+    assert wants_lower_q(noise.QCurves(risk.double() * counts, counts))  # exactly the share
+    counts[0] = share * 90
+    assert not wants_lower_q(noise.QCurves(risk.double() * counts, counts))

@@ -389,8 +389,9 @@ def _estimate_windowed(
     assert settings.q is not None and settings.meas_var is not None
     assert settings.q_window is not None
     tracks = batch.tracks
+    factors = noise.q_factors(settings.q_low)
     found = q_windows.windowed_runs(
-        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.q_window
+        tracks.z, tracks.dt, settings.meas_var, settings.q, settings.q_window, factors
     )
     if found is None:
         return None
@@ -398,7 +399,7 @@ def _estimate_windowed(
     if covariance:  # each step's passes' covariances and spread, weighted (moment matched)
         prior = with_prior(tracks, meas_std)
         generator = torch.Generator().manual_seed(batch.position)
-        for i, factor in enumerate(noise.Q_FACTORS):  # (one pass's covariances at a time)
+        for i, factor in enumerate(factors):  # (one pass's covariances at a time)
             with scaled_q(estimator, factor) as scaled:
                 out = run_result(scaled, prior, generator, "all")
             spread = (out.mean - found.runs.mean.to(out.mean.dtype)).unsqueeze(-1)
@@ -424,9 +425,10 @@ def _q_factors(
     assert settings.q_curve is not None and settings.meas_var is not None
     assert settings.q is not None
     pooled = settings.q_curve
+    grid = noise.q_factors(settings.q_low)
 
     def choose(curves: noise.QCurves) -> Tensor:
-        factors = noise.track_q_factors(curves, pooled)
+        factors = noise.track_q_factors(curves, pooled, grid)
         return factors.clamp_min(1.0) if settings.estimator in UPWARD_Q_ONLY else factors
 
     _, factors, runs = noise.q_curve_runs(
@@ -435,6 +437,7 @@ def _q_factors(
         settings.meas_var,
         settings.q,
         settings.estimator not in FILTERS,
+        grid,
         choose=choose,
         keep=keep,
     )

@@ -150,6 +150,11 @@ class Settings:
     #: or for :data:`FILTERS` the filter, at ``q`` times
     #: :data:`~torchsvs.fitting.noise.Q_FACTORS`); None: one ``q`` for every track
     q_curve: list[float] | None = None
+    #: ``q_curve`` and each track's (or step's) ``q`` reach below
+    #: :data:`~torchsvs.fitting.noise.Q_FACTORS` (:func:`~torchsvs.fitting.noise.q_factors`):
+    #: set where the sample's still targets want less (:func:`~torchsvs.fitting.defaults.
+    #: with_q_curve`)
+    q_low: bool = False
     #: the Kalman smoother's ``q`` chosen per step, by SURE over a window of this many steps
     #: around each (:mod:`torchsvs.fitting.q_windows`), where the sample's SURE found it below
     #: each track's own ``q``; None: each track's own (with ``q_curve``). Read by the Kalman

@@ -22,12 +22,12 @@ from torch import Tensor
 from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
 from torchsvs.datasets.noise_estimate import NoiseFreeError
 from torchsvs.fitting.noise import (
-    Q_FACTORS,
     QCurves,
     _golden_search,
     curve_inputs,
     q_curve_runs,
     q_curves,
+    q_factors,
     smoother_q,
     track_q_factors,
 )
@@ -475,19 +475,38 @@ def settings_note(settings: Settings) -> str:
     )
 
 
-def noise_class_curves(settings: Settings, tracks: RecordedTracks, smoothed: bool) -> QCurves:
-    """The tracks' SURE curves of ``q`` (:func:`~torchsvs.fitting.noise.q_curves`), each
-    track at its own noise (``settings.noise_column``, :func:`~torchsvs.fitting.noise_classes.
-    classes_of`): so the file's pooled curve is in the units each track runs in."""
+def noise_class_curves(
+    settings: Settings, tracks: RecordedTracks, smoothed: bool, factors: tuple[float, ...]
+) -> QCurves:
+    """The tracks' SURE curves of ``q`` at ``factors`` (:func:`~torchsvs.fitting.noise.
+    q_curves`), each track at its own noise (``settings.noise_column``,
+    :func:`~torchsvs.fitting.noise_classes.classes_of`): so the file's pooled curve is in the
+    units each track runs in."""
     assert settings.q is not None
-    risk = torch.zeros(len(Q_FACTORS), len(tracks), dtype=torch.float64)
+    risk = torch.zeros(len(factors), len(tracks), dtype=torch.float64)
     counts = torch.zeros(len(tracks), dtype=torch.float64)
     for each in classes_of(tracks, np.arange(len(tracks)), settings):
         part, rows = tracks.subset(each.members), each.members
         assert each.settings.meas_var is not None
-        found = q_curves(part.z, part.dt, each.settings.meas_var, settings.q, smoothed)
+        found = q_curves(part.z, part.dt, each.settings.meas_var, settings.q, smoothed, factors)
         risk[:, rows], counts[rows] = found.risk, found.counts
     return QCurves(risk, counts)
+
+
+#: The share of the sample's scored positions, in tracks whose own SURE is least at the lowest
+#: of :data:`~torchsvs.fitting.noise.Q_FACTORS`, from which the file's grid reaches lower
+#: (:data:`~torchsvs.fitting.noise.LOW_FACTORS`): still targets among moving ones.
+LOW_EDGE_SHARE = 0.05
+
+
+def wants_lower_q(curves: QCurves) -> bool:
+    """Whether tracks holding :data:`LOW_EDGE_SHARE` of the scored positions of ``curves``
+    (at :data:`~torchsvs.fitting.noise.Q_FACTORS`) have their own SURE least at the lowest
+    factor, below the next: they would take a smaller ``q`` than the grid offers."""
+    own = curves.risk / curves.counts.clamp_min(1.0)
+    edge = (own.argmin(0) == 0) & (own[0] < own[1]) & (curves.counts > 0)
+    total = float(curves.counts.sum())
+    return total > 0 and float(curves.counts[edge].sum()) >= LOW_EDGE_SHARE * total
 
 
 def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
@@ -496,36 +515,47 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
     the IMM (its modes' noises are one design) and where the tracks give nothing to score. For
     the Kalman smoother also the window of its ``q`` per step (``q_window``,
     :func:`~torchsvs.fitting.q_windows.choose_window`), where SURE finds one below each
-    track's own ``q``."""
+    track's own ``q``. Where still targets want less than the grid's lowest factor
+    (:func:`wants_lower_q`), the curve is read again on a grid reaching lower (``q_low``)."""
     if settings.blend is not None:  # each of a blend's estimators its own curve
         settings = replace(settings, blend=with_q_curve(settings.blend, tracks))
     if not settings.track_q or settings.estimator in ("imm", "auto"):
         return settings
     assert settings.meas_var is not None and settings.q is not None
     smoothed = settings.estimator not in FILTERS
+    factors = q_factors(settings.q_low)
+
+    def lower() -> Settings | None:  # read again on the lower grid, where the tracks want it
+        if not settings.q_low and wants_lower_q(curves):
+            return with_q_curve(replace(settings, q_low=True), tracks)
+        return None
+
     if settings.own_noise:  # each noise class's curves at its own noise
-        curves = noise_class_curves(settings, tracks, smoothed)
+        curves = noise_class_curves(settings, tracks, smoothed, factors)
         if float(curves.counts.sum()) == 0:
             return settings
-        return replace(settings, q_curve=curves.pooled(), q_window=None)
+        return lower() or replace(settings, q_curve=curves.pooled(), q_window=None)
     if settings.estimator != "ks" or not settings.step_q:  # (a window: the smoother's alone)
-        curves = q_curves(tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed)
+        curves = q_curves(tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed, factors)
         if float(curves.counts.sum()) == 0:
             return settings
-        return replace(settings, q_curve=curves.pooled(), q_window=None)
+        return lower() or replace(settings, q_curve=curves.pooled(), q_window=None)
 
     def choose(found: QCurves) -> Tensor:
-        return track_q_factors(found, found.pooled())
+        return track_q_factors(found, found.pooled(), factors)
 
     curves, _, own = q_curve_runs(
-        tracks.z, tracks.dt, settings.meas_var, settings.q, choose=choose, keep=True
+        tracks.z, tracks.dt, settings.meas_var, settings.q, True, factors, choose, keep=True
     )
     if float(curves.counts.sum()) == 0:
         return settings
+    again = lower()
+    if again is not None:
+        return again
     window = None
     if own is not None:
         noise_range = meas_var_range(settings, GUARD_ERRORS)
         window = choose_window(
-            tracks.z, tracks.dt, settings.meas_var, settings.q, own, noise_range=noise_range
+            tracks.z, tracks.dt, settings.meas_var, settings.q, own, noise_range, factors
         )
     return replace(settings, q_curve=curves.pooled(), q_window=window)

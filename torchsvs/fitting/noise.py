@@ -46,6 +46,20 @@ CRITERIA = ("sure", "nll")
 #: is one more estimator call; a quarter decade apart gained at most 0.3% of RMSE on the
 #: recorded-tracks benchmark (2.4% on its irregular set), for up to twice the calls.
 Q_FACTORS = tuple(10.0 ** (k / 2) for k in range(-3, 4))
+#: The factors :func:`q_factors` adds below :data:`Q_FACTORS` for a file whose still targets
+#: want less than 1/30 of its ``q`` (:func:`~torchsvs.fitting.defaults.with_q_curve`), sparser
+#: as they go down: a parked car's ``q`` is 0, and the file's ``q`` is the moving ones'. Parked
+#: cars among moving ones (σ 5 m, 1 s reports, ``q`` per step): 1.86 m with the factors down to
+#: 1/30, 1.14 m down to 10^-3.5 by half decades, 0.74 m with these (0.59 m for the parked cars
+#: alone, whose file ``q`` is their own); the moving cars alike (2.87 m).
+LOW_FACTORS = (10.0**-7, 10.0**-5, 10.0**-3.5, 10.0**-2.5)
+
+
+def q_factors(low: bool = False) -> tuple[float, ...]:
+    """:data:`Q_FACTORS`, with ``low`` also :data:`LOW_FACTORS` below them."""
+    return LOW_FACTORS + Q_FACTORS if low else Q_FACTORS
+
+
 #: A track's own SURE curve counts ``n / (n + SHRINK_COMPONENTS)`` in its choice of ``q`` (``n``
 #: its scored position components), the file's the rest: a track of 50 two-axis positions
 #: halfway. Measured on the recorded-tracks benchmark's sets (30 to 400 positions a track):

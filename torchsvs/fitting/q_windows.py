@@ -288,6 +288,7 @@ def choose_window(
     q: float,
     own: noise.CurveRuns,
     noise_range: tuple[list[float], list[float]] | None = None,
+    factors: tuple[float, ...] = noise.Q_FACTORS,
 ) -> int | None:
     """The window of :data:`WINDOW_SPANS` (in memories of ``own``, the pass at each track's own
     ``q`` with its chunk sums) whose :func:`windowed_runs` has the least SURE on the tracks,
@@ -306,7 +307,7 @@ def choose_window(
         return None
     leverage = float(torch.where(observed, own.position_var / r, 0.0).sum()) / seen
     windows = spans_to_windows(leverage)
-    found = window_sums(z, dt, meas_var, q, windows)
+    found = window_sums(z, dt, meas_var, q, windows, factors)
     if found is None:
         return None
     best = int(sure_of(found, meas_var).argmin())
