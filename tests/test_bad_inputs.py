@@ -926,6 +926,24 @@ def test_rows_without_id_or_position(tmp_path, capsys):
     assert pcsv.read_csv(tmp_path / "o.csv").num_rows == len(rows)
 
 
+def test_ids_that_read_as_missing_elsewhere_are_ids(tmp_path, capsys):
+    """A track id "NA", "null" or "N/A" is an id: its rows keep it and are estimated (Arrow's
+    default null texts made them rows without an id); the same texts in a position are missing
+    values, not text to count."""
+    ids, t, _, z = _tracks(tracks=3, steps=20)
+    names = {"t0": "NA", "t1": "null", "t2": "N/A"}
+    rows = [(names[i], ti, x, y) for i, ti, (x, y) in zip(ids, t, z, strict=True)]
+    rows[5] = (rows[5][0], rows[5][1], "NA", "nan")
+    source = _csv(tmp_path / "a.csv", "track_id,time,x,y", rows)
+    code, err = _track(capsys, source, "-o", tmp_path / "o.csv", "--meas-std", "30")
+    assert code == 0, err
+    assert "60 rows in 3 tracks" in err and "1 prediction-only" in err
+    assert "no_track_id" not in err and "non_numeric_value" not in err
+    lines = (tmp_path / "o.csv").read_text().splitlines()[1:]
+    assert [line.split(",")[0].strip('"') for line in lines] == [r[0] for r in rows]
+    assert all(line.split(",")[2] for line in lines)  # every row estimated
+
+
 def test_describe_input_settles_frame_and_time_unit(tmp_path):
     header, rows, _ = _geodetic_rows(altitude=True)
     rows = [[r[0], str(int(float(r[1]) * 1e3 + 1.7e12)), *r[2:]] for r in rows]

@@ -382,20 +382,47 @@ def read_blocks(
         return
     # Average row of a track file is 20-60 bytes; the reader's block is in bytes.
     read = pcsv.ReadOptions(block_size=max(1 << 16, min(block_rows * 48, 1 << 30)))
+    # Only an empty field is null as read: an id "NA" or "null" is an id (Arrow's default null
+    # texts made those rows lose their id); in the other columns those texts are missing values.
     convert = pcsv.ConvertOptions(
         column_types={name: pa.string() for name in names},
         include_columns=names,
         strings_can_be_null=True,
+        null_values=[""],
     )
+    values = [i for i, name in enumerate(names) if name != columns.track_id]
     try:
         with pcsv.open_csv(
             path, read_options=read, parse_options=_parse_options(path), convert_options=convert
         ) as reader:
             for batch in reader:
+                batch = _null_texts(batch, values)
                 for start in range(0, batch.num_rows, block_rows):
                     yield pa.Table.from_batches([batch.slice(start, block_rows)])
     except pa.ArrowInvalid as err:  # a row of more fields than the header, a bad quote, ...
         raise ValueError(f"path: {str(path)!r}: {err}") from err
+
+
+#: Texts a CSV value column holds for a missing value (Arrow's, but the empty field: read as
+#: null already), read as null: "NA" in a position is missing, not a text to count.
+NULL_TEXTS = (
+    "#N/A", "#N/A N/A", "#NA", "-1.#IND", "-1.#QNAN", "-NaN", "-nan", "1.#IND", "1.#QNAN",
+    "N/A", "NA", "NULL", "NaN", "n/a", "nan", "null",
+)  # fmt: skip
+
+
+def _null_texts(batch: Any, columns: list[int]) -> Any:
+    """``batch`` with :data:`NULL_TEXTS` set to null in the ``columns`` (indices)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    texts = pa.array(NULL_TEXTS, pa.string())
+    arrays = list(batch.columns)
+    for i in columns:
+        found = pc.is_in(arrays[i], value_set=texts)
+        if pc.any(found).as_py():
+            arrays[i] = pc.if_else(found, pa.scalar(None, pa.string()), arrays[i])
+    return pa.RecordBatch.from_arrays(arrays, schema=batch.schema)
 
 
 def parquet_id_type(path: str | Path, columns: Columns) -> Any:
