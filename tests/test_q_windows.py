@@ -65,6 +65,31 @@ def test_one_factor_is_the_compiled_pass_and_its_sums():
     assert torch.equal(found.factor, torch.ones(4, dtype=torch.float64))
 
 
+def test_an_axis_observed_once_keeps_its_divergence():
+    """A track observed once (at its first step, or later) or an axis observed once: the
+    composite's sums are the compiled pass's, the one point's divergence its tangent through
+    the prior (1: the estimate is the measurement), so its error is the noise's. (Its missing
+    second observation's index, 0, is the first's step: one scatter of both wrote 0 there and
+    the per-track error read 0.)"""
+    z, _, dt = _maneuvering(B=4, T=150, seed=2, gaps=0.0)
+    z[0, 1:] = math.nan  # observed at its first step alone
+    z[1, :3] = math.nan
+    z[1, 4:] = math.nan  # observed at step 3 alone
+    z[2, 1:, 1] = math.nan  # its y observed once
+    r = [SIGMA**2, SIGMA**2]
+    z64, dt64, rr, prior = noise.curve_inputs(z, dt, r)
+    one = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, rr, 40.0, True, 32)
+    if one.sums is None:
+        pytest.skip("the compiled loops are unavailable")
+    residual, divergence, count = q_windows.step_terms(z64, one, rr)
+    assert_close(divergence[0, 0], torch.ones(2, dtype=torch.float64), rtol=1e-9, atol=1e-12)
+    assert_close(divergence[1, 3], torch.ones(2, dtype=torch.float64), rtol=1e-9, atol=1e-12)
+    assert_close(divergence[2, 0, 1], torch.tensor(1.0, dtype=torch.float64), rtol=1e-9)
+    found = q_windows.windowed_runs(z, dt, r, 40.0, 21, factors=(1.0,))
+    assert found is not None
+    assert_close(found.runs.sums, one.sums, rtol=1e-10, atol=1e-8)
+
+
 def test_box_sums_and_the_weights_leave_each_step_out():
     risk = torch.tensor([[[1.0, 1.0, -100.0, 1.0, 1.0]], [[0.0, 0.0, 0.0, 0.0, 0.0]]])
     naive = torch.stack(

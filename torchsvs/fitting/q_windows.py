@@ -107,8 +107,15 @@ def step_terms(
     firsts = _first_two(z)
     divergence = exact_divergence(z, positions.var, r)  # (NaN at the first two, unobserved)
     tangents = positions.first_two.transpose(1, 2).to(divergence.dtype)  # [B, 2, m]
-    here = divergence.gather(1, firsts.at)
-    divergence.scatter_(1, firsts.at, torch.where(firsts.real, tangents, here))
+    # The second, then the first: an axis observed once has no second, whose index (0) is the
+    # first's step where that is the track's first; one scatter of both wrote either (a
+    # one-point track's error read 0).
+    for j in (1, 0):
+        at = firsts.at[:, j : j + 1]
+        here = divergence.gather(1, at)
+        divergence.scatter_(
+            1, at, torch.where(firsts.real[:, j : j + 1], tangents[:, j : j + 1], here)
+        )
     residual = torch.where(observed, z - positions.mean[..., 0::2], 0.0).square()
     return residual, divergence.nan_to_num_(0.0), observed.to(z.dtype)
 
