@@ -175,6 +175,9 @@ def test_track_writes_the_summary_and_warns_where_no_better_than_the_measurement
         low, high = summary["estimated_position_rmse_interval"]
         assert low <= true_rmse <= high, (low, true_rmse, high)
         assert len(summary["tracks"]) == 8
+        for track in summary["tracks"].values():  # each track's estimate with its range
+            low, high = track["estimated_position_rmse_interval"]
+            assert low <= track["estimated_position_rmse"] <= high
 
 
 def test_auto_chooses_by_estimated_error_and_reports_the_candidates(tmp_path):
@@ -720,3 +723,29 @@ def test_an_estimate_surely_below_zero_names_the_noise_at_which_it_is_zero():
     near = accuracy(totals, zero)
     assert not near.below_zero and near.zero_at_noise is None
     assert "unknown: below zero" in high.line() and "unknown" not in near.line()
+
+
+def test_each_tracks_range_is_the_runs_range_of_its_chunks_alone():
+    """A track's range (summary's per-track interval) is what the run's ratio estimator gives
+    on that track's chunks alone (RiskTotals.mse), at the noise and at each other level, two
+    standard errors out; unknown (NaN) for a track of one chunk."""
+    gen = np.random.default_rng(4)
+    C, m = 9, 2
+    track = np.array([0, 0, 0, 1, 2, 2, 0, 2, 2])
+    count = gen.integers(5, 33, (C, m)).astype(float)
+    terms = RiskTerms(
+        count * gen.uniform(10, 40, (C, m)), count * gen.uniform(0.1, 0.6, (C, m)), count, track
+    )
+    meas_var, levels = [25.0, 30.0], [[20.0, 24.0], [31.0, 37.0]]
+    low, high = terms.per_track_ranges(meas_var, 4, levels)
+    for k in (0, 2):
+        ends = []
+        for level in [meas_var, *levels]:
+            totals = RiskTotals(m)
+            totals.add(terms.select(track == k))
+            mse, se = totals.mse(level)
+            ends += [mse - 2 * se, mse + 2 * se]
+        assert low[k] == pytest.approx(math.sqrt(max(min(ends), 0.0)), rel=1e-12)
+        assert high[k] == pytest.approx(math.sqrt(max(ends)), rel=1e-12)
+    assert math.isnan(low[1]) and math.isnan(high[1])  # one chunk
+    assert math.isnan(low[3])  # no chunk at all

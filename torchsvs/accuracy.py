@@ -140,6 +140,38 @@ class RiskTerms:
             mse = (total / count).sum(axis=1)
         return np.sqrt(np.clip(mse, 0.0, None)), count.mean(axis=1)
 
+    def per_track_ranges(
+        self,
+        meas_var: Sequence[float],
+        tracks: int,
+        levels: Sequence[Sequence[float]] = (),
+        errors: float = 2.0,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        r"""Each track's estimated position RMSE's range ``(low, high)``, ``[tracks]`` each: its
+        MSE ``errors`` standard errors below and above, at ``meas_var`` and at the other noise
+        ``levels`` (the noise reading's interval), as the run's range is made. The standard
+        error is :meth:`RiskTotals.mse`'s ratio estimator over the track's own chunks; NaN for
+        a track of fewer than two chunks (nothing to spread: unknown, not 0)."""
+        m = self.count.shape[1]
+        count = np.stack([np.bincount(self.track, self.count[:, j], tracks) for j in range(m)], 1)
+        chunks = np.bincount(self.track, minlength=tracks)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_count = count.mean(axis=1)  # [K]
+            scale = mean_count[:, None] / count  # [K, m] each axis over its own observations
+            low = np.full(tracks, np.inf)
+            high = np.full(tracks, -np.inf)
+            for level in [meas_var, *levels]:
+                e = self.errors(level)  # [C, m]
+                total = np.stack([np.bincount(self.track, e[:, j], tracks) for j in range(m)], 1)
+                mse = (total / count).sum(axis=1)  # [K]
+                e_c = (e * scale[self.track]).sum(axis=1)  # [C]
+                d = e_c - mse[self.track] * self.count.mean(axis=1)
+                se = np.sqrt(np.bincount(self.track, d * d, tracks)) / mean_count
+                se = np.where(chunks >= 2, se, np.nan)
+                low = np.minimum(low, mse - errors * se)
+                high = np.maximum(high, mse + errors * se)
+        return np.sqrt(np.clip(low, 0.0, None)), np.sqrt(np.clip(high, 0.0, None))
+
 
 class Probe(NamedTuple):
     """SURE's probe of measurements ``z [..., m]`` (:func:`draw_probe`)."""

@@ -135,9 +135,9 @@ class TrackRun:
     #: (rank 0's in a multi-process run, ``torchsvs.training.predict``)
     phases: dict[str, float] = field(default_factory=dict)
     risk: RiskTotals | None = None  #: the truth-free error estimate's totals
-    #: estimated position RMSE per track: id → (metres, observed points); the worst
-    #: :data:`TRACKS_KEPT` when there are more tracks
-    track_errors: dict[str, tuple[float, int]] = field(default_factory=dict)
+    #: estimated position RMSE per track: id → (metres, observed points, its range's low and
+    #: high ends, NaN where unknown); the worst :data:`TRACKS_KEPT` when there are more tracks
+    track_errors: dict[str, tuple[float, int, float, float]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)  #: what the user must know
     #: tracks per factor on the settings' ``q`` where each track ran with its own
     q_factors: Counter[float] = field(default_factory=Counter)
@@ -199,12 +199,21 @@ class TrackRun:
         the kept tracks' q factors (``[K]``, NaN where none)."""
         assert self.settings is not None and self.settings.meas_var is not None
         m = len(self.settings.meas_var)
-        rmse, points = RiskTerms.concat(terms, m).per_track(self.settings.meas_var, len(ids))
+        joined = RiskTerms.concat(terms, m)
+        rmse, points = joined.per_track(self.settings.meas_var, len(ids))
         seen = np.flatnonzero(points > 0)  # (whole arrays to Python at once: 10⁵ tracks a block)
         if self.error_floor is not None:  # (the tracks that may be among the worst kept)
             seen = seen[rmse[seen] > self.error_floor]
+        levels = meas_var_range(self.settings) or ()
+        low, high = joined.per_track_ranges(self.settings.meas_var, len(ids), levels)
         names = [ids[k] for k in seen.tolist()]
-        values = zip(rmse[seen].tolist(), points[seen].astype(np.int64).tolist(), strict=True)
+        values = zip(
+            rmse[seen].tolist(),
+            points[seen].astype(np.int64).tolist(),
+            low[seen].tolist(),
+            high[seen].tolist(),
+            strict=True,
+        )
         self.track_errors.update(zip(names, values, strict=True))
         if q_factor is not None:
             own = np.isfinite(q_factor[seen])
@@ -342,7 +351,12 @@ class TrackRun:
                 method="Stein's unbiased risk estimate (no truth), torchsvs.accuracy",
             )
         out["tracks"] = {
-            k: {"estimated_position_rmse": v[0], "points": v[1]}
+            k: {
+                "estimated_position_rmse": v[0],
+                # (None: a track of one chunk of steps, nothing to spread)
+                "estimated_position_rmse_interval": None if math.isnan(v[2]) else [v[2], v[3]],
+                "points": v[1],
+            }
             | ({"q_factor": self.track_q[k]} if k in self.track_q else {})
             for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
         }
