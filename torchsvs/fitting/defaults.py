@@ -553,9 +553,13 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
     if again is not None:
         return again
     window = None
+    lowest: list[float] = []  # the share of steps weighing the lowest factor most
     if own is not None:
         noise_range = meas_var_range(settings, GUARD_ERRORS)
         window = choose_window(
-            tracks.z, tracks.dt, settings.meas_var, settings.q, own, noise_range, factors
+            tracks.z, tracks.dt, settings.meas_var, settings.q, own, noise_range, factors, lowest
         )
+    if window is not None and not settings.q_low and lowest[0] >= LOW_EDGE_SHARE:
+        # still steps of moving tracks (a car parked between drives) want less there
+        return with_q_curve(replace(settings, q_low=True), tracks)
     return replace(settings, q_curve=curves.pooled(), q_window=window)

@@ -244,14 +244,17 @@ def window_sums(
     q: float,
     windows: Sequence[int],
     factors: tuple[float, ...] = noise.Q_FACTORS,
+    lowest: Tensor | None = None,
 ) -> Tensor | None:
     """``[len(windows), m, 3]`` SURE's sums (squared residual, divergence, count per axis) of
     :func:`windowed_runs` at each window over every observed component (:func:`sure_of` reads
     them at any noise level); None where the compiled loops are unavailable. The tracks'
-    passes run once for all the windows."""
+    passes run once for all the windows. ``lowest [len(windows)]``, where given, gets the
+    observed steps that weigh the lowest factor's pass most at each window."""
     z64, dt64, r, prior = noise.curve_inputs(z, dt, meas_var)
     B, T, m = z64.shape
     totals = z64.new_zeros(B, len(windows), m, 3)
+    at_lowest = z64.new_zeros(B, len(windows))
     usable = [True]
 
     def chunk(part: slice) -> None:
@@ -264,8 +267,12 @@ def window_sums(
             composite = _composite(found, weight)
             terms = step_terms(z64[part], composite, r)
             totals[part, i] = torch.stack([x.sum(1) for x in terms], -1)
+            seen = (~torch.isnan(z64[part])).any(-1)
+            at_lowest[part, i] = ((weight.argmax(0) == 0) & seen).sum(1).to(z64.dtype)
 
     noise.over_chunks(B, T, chunk)
+    if lowest is not None:
+        lowest.copy_(at_lowest.sum(0))
     return totals.sum(0) if usable[0] else None
 
 
@@ -296,6 +303,7 @@ def choose_window(
     own: noise.CurveRuns,
     noise_range: tuple[list[float], list[float]] | None = None,
     factors: tuple[float, ...] = noise.Q_FACTORS,
+    lowest: list[float] | None = None,
 ) -> int | None:
     """The window of :data:`WINDOW_SPANS` (in memories of ``own``, the pass at each track's own
     ``q`` with its chunk sums) whose :func:`windowed_runs` has the least SURE on the tracks,
@@ -304,7 +312,8 @@ def choose_window(
     meas_var_range`: SURE weighs the divergence by the noise, and a window follows the data
     more; on airliners at 10 s scans and σ 3 m, the noise read as 5 ± 7.6 m, a window chosen
     at the reading alone was 1.027× each track's own ``q`` by the truth); else None. None
-    also where the compiled loops are unavailable."""
+    also where the compiled loops are unavailable. ``lowest``, where given, gets the share of
+    the observed steps that weigh the lowest factor most at the window chosen."""
     if own.sums is None:
         return None
     observed = ~torch.isnan(z)
@@ -314,10 +323,13 @@ def choose_window(
         return None
     leverage = float(torch.where(observed, own.position_var / r, 0.0).sum()) / seen
     windows = spans_to_windows(leverage)
-    found = window_sums(z, dt, meas_var, q, windows, factors)
+    at_lowest = torch.zeros(len(windows), dtype=torch.float64)
+    found = window_sums(z, dt, meas_var, q, windows, factors, at_lowest)
     if found is None:
         return None
     best = int(sure_of(found, meas_var).argmin())
+    if lowest is not None:
+        lowest.append(float(at_lowest[best]) / seen)
     mine = own.sums.reshape(-1, *own.sums.shape[-2:]).sum(0)  # [m, 3]
     for level in [list(meas_var), *(noise_range or ())]:
         if not float(sure_of(found[best], level)) < float(sure_of(mine, level)):
