@@ -464,3 +464,39 @@ def test_tracks_that_stop_reach_below_the_grid_at_their_still_steps(monkeypatch)
     grid = plan_tracks(frame, Settings(estimator="ks"), columns=columns)
     assert not grid.settings.q_low
     assert still_error(low) < 0.97 * still_error(grid)  # (measured: 1.61 against 1.71 m)
+
+
+def _three_axes(vertical_noise: float, seed: int = 0, tracks: int = 8, T: int = 300):
+    """Tracks at 1 s reports turning in the horizontal (σ 5 m) at a level altitude of noise
+    ``vertical_noise``."""
+    gen = np.random.default_rng(seed)
+    frames = []
+    t = np.arange(float(T))
+    for k in range(tracks):
+        heading = gen.uniform(0, 2 * math.pi) + 0.03 * np.sin(t / 30.0) * 30.0
+        path = np.cumsum(np.stack([60 * np.cos(heading), 60 * np.sin(heading)], 1), axis=0)
+        alt = np.full(T, 3000.0)
+        z = np.column_stack([path, alt]) + gen.normal(0, 1, (T, 3)) * [5, 5, vertical_noise]
+        frames.append(
+            pd.DataFrame({"id": f"A{k}", "t": t, "x": z[:, 0], "y": z[:, 1], "z": z[:, 2]})
+        )
+    return pd.concat(frames, ignore_index=True)
+
+
+def test_axes_that_want_q_a_decade_apart_are_named():
+    """3-D tracks turning in the horizontal at a level, noisy altitude: the axes alone want
+    q's a decade apart, the settings say so (axis_q) and the run warns; a file whose three
+    axes move alike gets no warning."""
+    from torchsvs.datasets import Columns
+
+    columns = Columns("id", "t", position=("x", "y", "z"))
+    plan = plan_tracks(_three_axes(50.0), Settings(estimator="ks"), columns=columns)
+    apart = plan.settings.axis_q
+    assert apart is not None and max(apart) >= 10 * min(apart)
+    assert apart[2] == min(apart)  # the level altitude wants the least
+    out = track_table(_three_axes(50.0), plan)
+    assert any("axes alone want process noises far apart" in w for w in out.run.warnings)
+    alike = _three_axes(5.0).rename(columns={"z": "w"})
+    alike["z"] = alike["x"] * 0.5 + alike["y"] * 0.5  # a third axis moving as the others
+    alike = alike.drop(columns=["w"])
+    assert plan_tracks(alike, Settings(estimator="ks"), columns=columns).settings.axis_q is None

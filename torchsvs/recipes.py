@@ -131,6 +131,10 @@ class Settings:
     #: the noise standard deviation per axis as read off the data, where the run took the low
     #: end of its uncertainty instead (:func:`~torchsvs.sample_accuracy.lowered_noise`)
     noise_lowered_from: list[float] | None = None
+    #: each position axis's own factor on ``q`` (the least of its SURE curve on the sample),
+    #: where the axes of 3-D positions want ``q``'s at least :data:`~torchsvs.fitting.defaults.
+    #: AXES_APART` apart (:func:`~torchsvs.fitting.defaults.axes_q`): one ``q`` serves them all
+    axis_q: list[float] | None = None
     #: each track at its own noise: the median over its rows of this column's standard
     #: deviations squared, the file's ``meas_var`` their mean (:mod:`torchsvs.fitting.
     #: noise_classes`); the column is read as an extra column of the rows

@@ -28,6 +28,7 @@ from torchsvs.datasets.tracks import padded_batch
 from torchsvs.datasets.writing import OUTPUT_TYPES
 from torchsvs.fitting.defaults import (
     Screened,
+    axes_q,
     complete_settings,
     screened,
     settings_note,
@@ -285,7 +286,7 @@ def prepare_estimator(
         settings, sample, fit, options, say, own, own and open_q, screen
     )
     if open_q and checkpoint is None:
-        settings = with_q_curve(settings, clean)
+        settings = axes_q(with_q_curve(settings, clean), clean)
     estimator = make_estimator(settings, make_model(settings))
     if checkpoint is not None:
         load_parameters(estimator, checkpoint)

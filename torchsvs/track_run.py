@@ -276,6 +276,18 @@ class TrackRun:
                 "none (on tracks whose noise spans a third to three times the file's, the "
                 "estimates came out at 0.6-1.0 of the measurements' error)"
             )
+        apart = self.settings.axis_q
+        if apart is not None:
+            self.warnings.append(
+                "q: the positions' axes alone want process noises far apart ("
+                + ", ".join(f"{f:.2g}" for f in apart)
+                + " times the file's q, in the order of the position columns): one q serves "
+                "every axis, so some are smoothed too much or too little and their covariances "
+                "may be too small (3-D aircraft with a noisy altitude: the horizontal error "
+                "1.4 times its own, its 95% intervals holding 75%); for the best of each, "
+                "estimate them apart (one run with --pos-cols of the horizontal axes, one of "
+                "the altitude)"
+            )
         above = self.settings.noise_above_data
         if above is not None and self.settings.meas_var is not None:
             self.warnings.append(
