@@ -14,7 +14,13 @@ import pyarrow.parquet as pq
 import pytest
 
 from tests.test_datasets_io import _table
-from torchsvs.datasets.arrow_numpy import from_numpy, numpy_dtype, repeated_text, to_numpy
+from torchsvs.datasets.arrow_numpy import (
+    from_numpy,
+    numpy_dtype,
+    repeated_text,
+    texts,
+    to_numpy,
+)
 
 KINDS = [pa.float64(), pa.float32(), pa.int8(), pa.int32(), pa.int64(), pa.uint16(), pa.bool_()]
 
@@ -72,6 +78,13 @@ def test_from_numpy_gives_pyarrows_array(kind):
     assert from_numpy(values).type == kind
     with pytest.raises(ValueError, match="1-D"):
         from_numpy(values.reshape(5, 9))
+
+
+def test_texts_are_pyarrows_string_array():
+    for values in (["NA", "", "null", "é-2"], [], [""]):
+        got = texts(values)
+        assert got.equals(pa.array(values, pa.string())), values
+        got.validate(full=True)
 
 
 def test_repeated_text_is_pyarrows_column_of_one_value():

@@ -191,7 +191,10 @@ def test_track_runs_the_window_the_sample_chose():
     svss = replace(settings, estimator="svss", psi=[3.0, 3.0], q_window=None, q_curve=None)
     found = track_table(data, plan)
     table = found.table
-    composite = q_windows.windowed_runs(z, dt, settings.meas_var, settings.q, settings.q_window)
+    grid = noise.q_factors(settings.q_low)  # (the level flight's steps may want it lower)
+    composite = q_windows.windowed_runs(
+        z, dt, settings.meas_var, settings.q, settings.q_window, grid
+    )
     assert composite is not None
     x = torch.tensor(table["x"].to_numpy()).reshape(6, 300)
     assert_close(x, composite.runs.mean[..., 0], rtol=0, atol=1e-6)
@@ -209,7 +212,7 @@ def test_track_runs_the_window_the_sample_chose():
     cov_xx = torch.tensor(with_cov["cov_x_x"].to_numpy()).reshape(6, 300)
     z64, dt64, r64, prior = noise.curve_inputs(z, dt, settings.meas_var)
     mixture = torch.zeros(6, 300, dtype=torch.float64)
-    for k, f in enumerate(noise.Q_FACTORS):
+    for k, f in enumerate(grid):
         one = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, r64, settings.q * f)
         spread = (one.mean[..., 0] - composite.runs.mean[..., 0]).square()
         mixture += composite.weights[k] * (one.var[..., 0] + spread)
@@ -397,7 +400,7 @@ def test_still_targets_among_moving_ones_reach_below_the_grid(monkeypatch):
 
     low = plan_tracks(frame, Settings(estimator="ks"), columns=columns)
     assert low.settings.q_low and len(low.settings.q_curve) == len(noise.q_factors(True))
-    monkeypatch.setattr(defaults, "wants_lower_q", lambda curves: False)
+    monkeypatch.setattr(defaults, "LOW_EDGE_SHARE", 2.0)  # (never: the grid as it was)
     grid = plan_tracks(frame, Settings(estimator="ks"), columns=columns)
     assert not grid.settings.q_low
     (still_low, moving_low), (still_grid, moving_grid) = errors(low), errors(grid)

@@ -278,7 +278,7 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     import json
 
     from tests.test_noise_estimate import _two_kinds
-    from torchsvs.fitting.noise import q_curves, track_q_factors
+    from torchsvs.fitting.noise import q_curves, q_factors, track_q_factors
     from torchsvs.recipes import Settings
     from torchsvs.tracking import track_file
 
@@ -298,7 +298,9 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     assert settings.q_window is None
     summary = json.loads((tmp_path / "out.summary.json").read_text())
     assert "q_per_track" in summary
-    factors = track_q_factors(q_curves(z, dt, 400.0, settings.q), settings.q_curve)
+    grid = q_factors(settings.q_low)  # (the quiet tracks may want the grid lower)
+    curves = q_curves(z, dt, 400.0, settings.q, True, grid)
+    factors = track_q_factors(curves, settings.q_curve, grid)
     assert factors[:3].max() < 1 and factors[:3].max() < factors[3:].min(), factors.tolist()
     written = [summary["tracks"][f"k{b}"]["q_factor"] for b in range(len(z))]
     assert written == pytest.approx(factors.tolist(), rel=1e-12)

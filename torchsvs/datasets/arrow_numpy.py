@@ -11,6 +11,7 @@ bitmap where there are empty values.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -106,3 +107,14 @@ def repeated_text(value: str, count: int) -> Any:
     kind = pa.large_string() if wide else pa.string()
     buffers = [None, pa.py_buffer(offsets), pa.py_buffer(data * count)]
     return pa.Array.from_buffers(kind, count, buffers, null_count=0)
+
+
+def texts(values: Sequence[str]) -> Any:
+    """Texts as a ``pyarrow`` string array, built from its buffers (``pa.array`` of a list
+    imports pandas)."""
+    import pyarrow as pa
+
+    data = [v.encode() for v in values]
+    offsets = np.cumsum([0] + [len(d) for d in data], dtype=np.int32)
+    buffers = [None, pa.py_buffer(offsets), pa.py_buffer(b"".join(data))]
+    return pa.Array.from_buffers(pa.string(), len(values), buffers, null_count=0)

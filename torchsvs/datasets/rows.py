@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from torchsvs.datasets.arrow_numpy import repeated_text, to_numpy
+from torchsvs.datasets.arrow_numpy import repeated_text, texts, to_numpy
 from torchsvs.datasets.ids import track_codes
 
 #: Reasons a row is set aside (not placed at any step).
@@ -416,12 +416,12 @@ def _null_texts(batch: Any, columns: list[int]) -> Any:
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    texts = pa.array(NULL_TEXTS, pa.string())
+    missing = texts(NULL_TEXTS)
     arrays = list(batch.columns)
     for i in columns:
-        found = pc.is_in(arrays[i], value_set=texts)
-        if pc.any(found).as_py():
-            arrays[i] = pc.if_else(found, pa.scalar(None, pa.string()), arrays[i])
+        found = pc.is_in(arrays[i], value_set=missing)
+        if pc.any(found).as_py():  # (nulls, not a null scalar: pa.scalar imports pandas)
+            arrays[i] = pc.if_else(found, pa.nulls(len(found), pa.string()), arrays[i])
     return pa.RecordBatch.from_arrays(arrays, schema=batch.schema)
 
 

@@ -77,12 +77,24 @@ def sample_taken(blocks: list[TrackBlock], tracks: int = SAMPLE_TRACKS) -> bool:
 
 def joined(blocks: list[TrackBlock]) -> TrackBlock:
     """Blocks of distinct tracks (a dataset's files) as one, to plan on: the steps joined
-    (:func:`~torchsvs.datasets.steps.join_steps`), the rows' tables concatenated (their types
-    unified where files differ), no path."""
+    (:func:`~torchsvs.datasets.steps.join_steps`), the rows' tables concatenated (text ids
+    decoded where a file holds them dictionary-encoded, types unified where files differ), no
+    path."""
     import pyarrow as pa
 
     if len(blocks) == 1:
         return blocks[0]
-    table = pa.concat_tables([b.table for b in blocks], promote_options="permissive")
+    tables = [_decoded(b.table) for b in blocks]
+    table = pa.concat_tables(tables, promote_options="permissive")
     steps = join_steps([b.steps for b in blocks])
     return TrackBlock(table, steps, blocks[0].columns)
+
+
+def _decoded(table: Any) -> Any:
+    """``table`` with its dictionary-encoded columns as their values."""
+    import pyarrow as pa
+
+    for i, field in enumerate(table.schema):
+        if pa.types.is_dictionary(field.type):
+            table = table.set_column(i, field.name, table.column(i).cast(field.type.value_type))
+    return table
