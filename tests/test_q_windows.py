@@ -503,3 +503,32 @@ def test_axes_that_want_q_a_decade_apart_are_named():
     alike["z"] = alike["x"] * 0.5 + alike["y"] * 0.5  # a third axis moving as the others
     alike = alike.drop(columns=["w"])
     assert plan_tracks(alike, Settings(estimator="ks"), columns=columns).settings.axis_q is None
+
+
+def test_a_lower_grid_is_kept_only_where_the_samples_sure_is_lower(monkeypatch):
+    """checked_low returns, of the widened grid and the grid as it was, the one whose SURE on
+    the sample (as the run runs) is lower: the widened for parked cars among moving ones;
+    forced on moving cars alone, whichever SURE says."""
+    from torchsvs.datasets import Columns
+    from torchsvs.datasets.tables import block_of
+    from torchsvs.datasets.tracks import padded_batch
+    from torchsvs.fitting import defaults
+    from torchsvs.fitting.defaults import complete_settings
+    from torchsvs.sample_accuracy import checked_low, sample_terms
+
+    frame, _ = _parked_and_moving()
+    for rows, force in ((frame, False), (frame[frame["id"].str.startswith("C")], True)):
+        block = block_of(rows, Columns("id", "t"))
+        tracks = padded_batch(block.steps, np.arange(block.steps.num_tracks))
+        settings = complete_settings(Settings(estimator="ks"), tracks)
+        if force:
+            monkeypatch.setattr(defaults, "wants_lower_q", lambda curves: True)
+        wide = with_q_curve(settings, tracks)
+        monkeypatch.undo()
+        assert wide.q_low
+        narrow = with_q_curve(replace(settings, q_low=False), tracks, widen=False)
+        kept = checked_low(wide, tracks)
+        mse = {s.q_low: sample_terms(s, tracks).mse(settings.meas_var)[0] for s in (wide, narrow)}
+        assert kept.q_low == (mse[True] < mse[False])
+        if not force:
+            assert kept.q_low  # parked cars: the lower grid surely helps

@@ -37,7 +37,12 @@ from torchsvs.fitting.defaults import (
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
-from torchsvs.sample_accuracy import anchored_fit, lowered_noise, with_track_noise
+from torchsvs.sample_accuracy import (
+    anchored_fit,
+    checked_low,
+    lowered_noise,
+    with_track_noise,
+)
 from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator, kalman_twin
 from torchsvs.track_run import short
 
@@ -286,7 +291,7 @@ def prepare_estimator(
         settings, sample, fit, options, say, own, own and open_q, screen
     )
     if open_q and checkpoint is None:
-        settings = axes_q(with_q_curve(settings, clean), clean)
+        settings = axes_q(checked_low(with_q_curve(settings, clean), clean), clean)
     estimator = make_estimator(settings, make_model(settings))
     if checkpoint is not None:
         load_parameters(estimator, checkpoint)

@@ -540,16 +540,18 @@ def axes_q(settings: Settings, tracks: RecordedTracks) -> Settings:
     return replace(settings, axis_q=least)
 
 
-def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
+def with_q_curve(settings: Settings, tracks: RecordedTracks, widen: bool = True) -> Settings:
     """The settings with the file's SURE curve of ``q`` (``q_curve``, read off ``tracks``), so
     that each track runs with its own ``q``; unchanged where ``settings.track_q`` is off, for
     the IMM (its modes' noises are one design) and where the tracks give nothing to score. For
     the Kalman smoother also the window of its ``q`` per step (``q_window``,
     :func:`~torchsvs.fitting.q_windows.choose_window`), where SURE finds one below each
     track's own ``q``. Where still targets want less than the grid's lowest factor
-    (:func:`wants_lower_q`), the curve is read again on a grid reaching lower (``q_low``)."""
+    (:func:`wants_lower_q`), with ``widen`` the curve is read again on a grid reaching lower
+    (``q_low``; :func:`~torchsvs.sample_accuracy.checked_low` then holds it to the sample's
+    SURE)."""
     if settings.blend is not None:  # each of a blend's estimators its own curve
-        settings = replace(settings, blend=with_q_curve(settings.blend, tracks))
+        settings = replace(settings, blend=with_q_curve(settings.blend, tracks, widen))
     if not settings.track_q or settings.estimator in ("imm", "auto"):
         return settings
     assert settings.meas_var is not None and settings.q is not None
@@ -557,7 +559,7 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
     factors = q_factors(settings.q_low)
 
     def lower() -> Settings | None:  # read again on the lower grid, where the tracks want it
-        if not settings.q_low and wants_lower_q(curves):
+        if widen and not settings.q_low and wants_lower_q(curves):
             return with_q_curve(replace(settings, q_low=True), tracks)
         return None
 
@@ -590,7 +592,7 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks) -> Settings:
         window = choose_window(
             tracks.z, tracks.dt, settings.meas_var, settings.q, own, noise_range, factors, lowest
         )
-    if window is not None and not settings.q_low and lowest[0] >= LOW_EDGE_SHARE:
+    if widen and window is not None and not settings.q_low and lowest[0] >= LOW_EDGE_SHARE:
         # still steps of moving tracks (a car parked between drives) want less there
         return with_q_curve(replace(settings, q_low=True), tracks)
     return replace(settings, q_curve=curves.pooled(), q_window=window)
