@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -397,20 +397,41 @@ def _imm_search(
         best, risk = scale(best, factor), scores[factor]
         chosen.append(factor)
     result.parameters = len(chosen)  # (three values chosen on the tracks, as a descent learns)
-    fresh = seed + VALIDATION_SEED
-    began, ended = risk_of(settings, fresh), risk_of(best, fresh)
-    result.stages.append(
-        f"imm by SURE: noises ×{chosen[0]:.3g}, then turn-rate noise ×{chosen[1]:.3g}, turn "
-        f"mode's acceleration ×{chosen[2]:.3g}: q = {_fmt(noise(best, 'q', 1.0))}, turn_q = "
-        f"{_fmt(noise(best, 'turn_q', 1.0))}, turn_rate_q = "
-        f"{_fmt(noise(best, 'turn_rate_q', 1.0))} (risk {start_risk:.4f} → {risk:.4f} of R; "
-        f"fresh probes {began:.4f} → {ended:.4f}; {scored} candidates)"
+    return _checked_search(
+        settings,
+        best,
+        risk_of,
+        seed,
+        result,
+        lambda began, ended: (
+            f"imm by SURE: noises ×{chosen[0]:.3g}, then turn-rate noise ×{chosen[1]:.3g}, turn "
+            f"mode's acceleration ×{chosen[2]:.3g}: q = {_fmt(noise(best, 'q', 1.0))}, turn_q = "
+            f"{_fmt(noise(best, 'turn_q', 1.0))}, turn_rate_q = "
+            f"{_fmt(noise(best, 'turn_rate_q', 1.0))} (risk {start_risk:.4f} → {risk:.4f} of R; "
+            f"fresh probes {began:.4f} → {ended:.4f}; {scored} candidates)"
+        ),
     )
+
+
+def _checked_search(
+    start: Settings,
+    best: Settings,
+    risk_of: Callable[[Settings, int], float],
+    seed: int,
+    result: FitResult,
+    stage: Callable[[float, float], str],
+) -> Settings:
+    """A search's choice ``best`` checked against ``start`` with fresh probes (``risk_of`` a
+    candidate's SURE with the probes of a seed), kept only where its risk is not higher; the
+    search's line (``stage`` of the two fresh risks) added to ``result``."""
+    fresh = seed + VALIDATION_SEED
+    began, ended = risk_of(start, fresh), risk_of(best, fresh)
+    result.stages.append(stage(began, ended))
     if not ended <= began:
         result.stages.append(
             "kept the starting point: with fresh probes the fit's risk was not lower"
         )
-        return settings
+        return start
     return best
 
 
@@ -437,33 +458,34 @@ def _q_search(
     start = settings.q
     scores: dict[float, float] = {}
 
-    def risk_of(factor: float, probes: int = seed) -> float:
-        candidate = replace(settings, q=start * factor)
+    def scaled(factor: float) -> Settings:
+        return replace(settings, q=start * factor)
+
+    def risk_of(candidate: Settings, probes: int = seed) -> float:
         estimator = make_estimator(candidate, make_model(candidate)).double()
         return _risk(estimator, batches, meas_cov, probes)
 
     for factor in Q_DECADES:
-        scores[factor] = risk_of(factor)
+        scores[factor] = risk_of(scaled(factor))
     for steps in Q_REFINE:
         best = min(scores, key=scores.__getitem__)
         for step in steps:
-            scores[best * step] = risk_of(best * step)
+            scores[best * step] = risk_of(scaled(best * step))
     best = min(scores, key=scores.__getitem__)
     result.parameters = 1
-    fresh = seed + VALIDATION_SEED
-    began, ended = risk_of(1.0, fresh), risk_of(best, fresh)
-    chosen = replace(settings, q=start * best)
-    result.stages.append(
-        f"{settings.estimator} by SURE: q = {_fmt(chosen.q)} (×{best:.3g}; risk {scores[1.0]:.4f}"
-        f" → {scores[best]:.4f} of R; fresh probes {began:.4f} → {ended:.4f}; {len(scores)} "
-        "candidates)"
+    chosen = scaled(best)
+    return _checked_search(
+        scaled(1.0),
+        chosen,
+        risk_of,
+        seed,
+        result,
+        lambda began, ended: (
+            f"{settings.estimator} by SURE: q = {_fmt(chosen.q)} (×{best:.3g}; risk "
+            f"{scores[1.0]:.4f} → {scores[best]:.4f} of R; fresh probes {began:.4f} → "
+            f"{ended:.4f}; {len(scores)} candidates)"
+        ),
     )
-    if not ended <= began:
-        result.stages.append(
-            "kept the starting point: with fresh probes the fit's risk was not lower"
-        )
-        return settings
-    return chosen
 
 
 #: Estimators whose fit searches rather than descends: their searches.
