@@ -286,22 +286,23 @@ def test_a_window_is_kept_only_where_it_wins_across_the_noise_reading():
 
 
 def test_the_per_step_risk_is_the_step_terms_sure():
-    """The fused per-step SURE the weights are read from (the first two observations' divergence
-    put in at their steps) equals the one summed from :func:`step_terms`, with gaps, an axis
-    seen once and one never seen."""
+    """The compiled pass's per-step SURE the weights are read from (the first two
+    observations' divergence from the tangents) equals the one summed from :func:`step_terms`,
+    with gaps, an axis seen once and one never seen."""
     z, _, dt = _maneuvering(B=4, T=120, seed=4, gaps=0.2)
     z[1, :, 1] = math.nan
     z[1, 40, 1] = 500.0  # one observation on that axis
     z[2, :, 0] = math.nan  # an axis never seen
     r = [SIGMA**2, SIGMA**2]
     z64, dt64, rr, prior = noise.curve_inputs(z, dt, r)
-    found = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, rr, 20.0, True, 32)
-    if found.first_two is None:
+    risk = torch.full(z64.shape[:2], math.nan, dtype=z64.dtype)
+    found = noise.kalman_positions(z64, dt64, prior.x0, prior.P0, rr, 20.0, True, 32, risk)
+    if found.step_risk is None:
         pytest.skip("the compiled loops are unavailable")
     residual, divergence, count = q_windows.step_terms(z64, found, rr)
     expected = (residual + 2 * rr * divergence - rr * count).sum(-1)
-    fused = q_windows._risk(z64, found, rr, q_windows._first_two(z64))
-    assert_close(fused, expected, rtol=1e-12, atol=1e-8)
+    assert_close(risk, expected, rtol=1e-12, atol=1e-8)
+    assert bool((risk[torch.isnan(z64).all(-1)] == 0).all())
 
 
 def test_the_blends_divergence_is_its_derivative_with_the_weights_held():

@@ -145,6 +145,7 @@ def kalman_positions(
     q: float | Tensor,
     smoothed: bool = True,
     chunk: int | None = None,
+    step_risk: Tensor | None = None,
 ) -> curves.Positions:
     """The means ``[B, T, 2m]`` and the positions' variances ``[B, T, m]`` of :func:`kalman`
     (the smoother, or with ``smoothed=False`` the filter) with ``q`` (a number, or one per
@@ -153,13 +154,14 @@ def kalman_positions(
     (:func:`torchsvs.kernels.curves.positions`), else the estimator's run (one per distinct
     ``q``). With ``chunk`` (``x0`` :func:`~torchsvs.datasets.two_point_prior`'s) and the
     compiled loop, also the estimate's derivative by each axis's first two measurements and
-    SURE's sums per chunk of that many steps (:class:`~torchsvs.kernels.curves.Positions`)."""
+    SURE's sums per chunk of that many steps, and each step's SURE written to ``step_risk``
+    (``[B, T]``, where given; :class:`~torchsvs.kernels.curves.Positions`)."""
     B, T, m = z.shape
     dtype = z.dtype
     qs = torch.as_tensor(q, dtype=dtype).expand(B).contiguous()
     r = r.to(dtype)
     tangents = None if chunk is None else prior_tangents(z, dt)
-    found = curves.positions(z, dt, x0, P0, r, qs, smoothed, tangents, chunk)
+    found = curves.positions(z, dt, x0, P0, r, qs, smoothed, tangents, chunk, step_risk)
     if found is not None:
         return found
     mean, var = z.new_empty(B, T, 2 * m), z.new_empty(B, T, m)

@@ -120,21 +120,6 @@ def step_terms(
     return residual, divergence.nan_to_num_(0.0), observed.to(z.dtype)
 
 
-def _risk(z: Tensor, found: noise.curves.Positions, r: Tensor, firsts: _FirstTwo) -> Tensor:
-    """``[B, T]`` a pass's SURE per step, its components summed (:func:`step_terms`'s terms as
-    ``residual + 2 r divergence − r``, without their tensors)."""
-    assert found.first_two is not None
-    observed = ~torch.isnan(z)
-    residual = z - found.mean[..., 0::2]
-    risk = torch.where(observed, residual.square_().add_(found.var, alpha=2.0).sub_(r), 0.0)
-    # at the first two observations the divergence is the tangents', not the variance's
-    var = found.var.gather(1, firsts.at)
-    change = torch.where(firsts.real, 2.0 * (r * found.first_two.transpose(1, 2) - var), 0.0)
-    B, _, m = z.shape
-    total = risk.sum(-1)
-    return total.scatter_add_(1, firsts.at.reshape(B, 2 * m), change.reshape(B, 2 * m))
-
-
 class _Passes(NamedTuple):
     passes: list[noise.curves.Positions]  #: the smoother's pass at each factor
     risk: Tensor  #: [K, B, T] each pass's SURE per step (its components summed)
@@ -144,15 +129,15 @@ class _Passes(NamedTuple):
 def _factor_passes(
     z: Tensor, dt: Tensor, prior: Any, r: Tensor, q: float, factors: Sequence[float]
 ) -> _Passes | None:
-    passes, risks = [], []
+    passes = []
     firsts = _first_two(z)
-    for f in factors:
-        found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, q * f, True, CHUNK)
-        if found.first_two is None:
+    risk = z.new_empty(len(factors), *z.shape[:2])
+    for k, f in enumerate(factors):
+        found = noise.kalman_positions(z, dt, prior.x0, prior.P0, r, q * f, True, CHUNK, risk[k])
+        if found.step_risk is None:
             return None
         passes.append(found)
-        risks.append(_risk(z, found, r, firsts))
-    return _Passes(passes, torch.stack(risks), firsts)
+    return _Passes(passes, risk, firsts)
 
 
 def _composite(found: _Passes, weight: Tensor) -> noise.curves.Positions:

@@ -168,8 +168,9 @@ def library() -> ctypes.CDLL | None:
         step.restype = ctypes.c_int
         curves = getattr(lib, f"kalman_curves_{suffix}")
         curves.argtypes = [*size, ctypes.c_int64, integer, integer, pointers, strides, *(vp,) * 4]
-        # the chunk and its sums, the studentized residuals and the leverage they stop at
-        curves.argtypes += [ctypes.c_int64, vp, vp, ctypes.c_double]
+        # the chunk and its sums, the studentized residuals and the leverage they stop at, each
+        # step's SURE terms
+        curves.argtypes += [ctypes.c_int64, vp, vp, ctypes.c_double, vp]
         getattr(lib, f"lane_width_{suffix}").restype = ctypes.c_int
     imm = lib.turn_imm_f64
     imm.argtypes = [*size, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_void_p, pointers]

@@ -50,6 +50,7 @@ def _call(
     sums: Tensor | None = None,
     student: Tensor | None = None,
     max_leverage: float = 1.0,
+    step_risk: Tensor | None = None,
 ) -> None:
     B, T, m = z.shape
     K = q.shape[1]
@@ -65,11 +66,11 @@ def _call(
     ]
     inputs = build.pointers(views)
     strides = build.strides(views)
-    outputs = (risk, mean, var, first_two, sums, student)
+    outputs = (risk, mean, var, first_two, sums, student, step_risk)
     pointer = [None if x is None else x.data_ptr() for x in outputs]
     build.function("kalman_curves", z.dtype)(
         B, T, m, K, int(smoothed), build.threads(B, T * K), inputs, strides, *pointer[:4],
-        chunk, pointer[4], pointer[5], max_leverage,
+        chunk, pointer[4], pointer[5], max_leverage, pointer[6],
     )  # fmt: skip
 
 
@@ -113,6 +114,9 @@ class Positions(NamedTuple):
     #: [B, C, m, 3] with ``chunk``: SURE's sums over each track's chunks of that many steps
     #: (squared residual, divergence, count: :func:`~torchsvs.accuracy.terms_of_sums`)
     sums: Tensor | None = None
+    #: [B, T] with ``step_risk``: each step's SURE, its observed components' ``(z − x̂)² − r +
+    #: 2 r ∂x̂/∂z`` summed (the divergence as in ``sums``), 0 where none is observed
+    step_risk: Tensor | None = None
 
 
 def positions(
@@ -125,13 +129,16 @@ def positions(
     smoothed: bool = True,
     tangents: Sequence[Tensor] | None = None,
     chunk: int | None = None,
+    step_risk: Tensor | None = None,
 ) -> Positions | None:
     """The smoother's (filter's) means and positions' variances with each track's ``q [B]``
     (other arguments as :func:`sure_risks`'); with ``tangents`` (how the prior's mean moves
     with each axis's first and second observation, :func:`~torchsvs.datasets.priors.
     prior_tangents`) also the estimate's derivative by those two measurements, and with them
-    and ``chunk`` SURE's sums over each track's chunks of ``chunk`` steps. ``None`` where the
-    compiled loops are unavailable."""
+    and ``chunk`` SURE's sums over each track's chunks of ``chunk`` steps, and with them each
+    step's SURE written to ``step_risk`` (``[B, T]`` of ``z``'s dtype, contiguous: a buffer
+    the caller keeps, as a pass's risks are stacked). ``None`` where the compiled loops are
+    unavailable."""
     B, T, m = z.shape
     if not _usable(z, dt, x0, P0, r, q, *(tangents or ())):
         return None
@@ -143,12 +150,22 @@ def positions(
     sums = None
     if chunk is not None:
         sums = torch.empty(B, -(-T // chunk), m, 3, dtype=z.dtype)
+    if step_risk is not None and (
+        tangents is None
+        or step_risk.shape != (B, T)
+        or step_risk.dtype != z.dtype
+        or not step_risk.is_contiguous()
+    ):
+        raise ValueError(
+            f"step_risk: expected a contiguous [{B}, {T}] {z.dtype} buffer and the tangents, "
+            f"got {tuple(step_risk.shape)} {step_risk.dtype}"
+        )
     weight = torch.zeros((), dtype=z.dtype).expand(B, T, m)
     _call(
         z, dt, weight, x0, P0, r, q.reshape(B, 1), smoothed, None, mean, var,
-        tangents or (), first_two, chunk or 1, sums,
+        tangents or (), first_two, chunk or 1, sums, step_risk=step_risk,
     )  # fmt: skip
-    return Positions(mean, var, first_two, sums)
+    return Positions(mean, var, first_two, sums, step_risk)
 
 
 def studentized(

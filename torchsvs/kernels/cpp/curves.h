@@ -21,7 +21,13 @@
 //   student [B, T, m]  of the one q, the studentized squared residual (z − x̂ˢ)² / (r (1 − h)),
 //                   h = Pˢ_pp / r (floored at 1e-12 below 1), NaN where z is missing or h is
 //                   above max_leverage: fitting/outliers.py's outlier_distances per axis, without
-//                   writing the means.
+//                   writing the means;
+//   step_risk [B, T]  with first_two (and K = 1), each step's SURE: its observed components'
+//                   (z − x̂)² − r + 2 r ∂x̂/∂z summed (the divergence as the sums'), 0 where none
+//                   is observed: what fitting/q_windows.py weighs each pass by, step by step,
+//                   without passes of its own over [B, T, m]. A track's axes are lanes of one
+//                   thread, its first axis's before the others', so the first writes, the others
+//                   add.
 // Nothing else is written: a curve of K values costs K passes over registers and the lane's
 // own record of T steps, not K full results in memory.
 #pragma once
@@ -38,7 +44,7 @@ template <typename R>
 void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int threads,
                    const void* const* in, const int64_t* in_strides, R* risk, R* mean_out,
                    R* var_out, R* first_two, int64_t chunk, R* sums, R* student,
-                   double max_leverage) {
+                   double max_leverage, R* step_risk) {
     using V = typename Wide<R>::type;
     constexpr int W = LaneBlock<R>::kWidth;
     View<R> given[14];
@@ -129,7 +135,7 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                             }
                             found[i] = (i == 0 ? at_first : at_second) == now ? tp[i] : found[i];
                         }
-                        if (sums) {
+                        if (sums || step_risk) {
                             const auto observed = z[t] == z[t];
                             const V own = at_first == now    ? tp[0]
                                           : at_second == now ? tp[1]
@@ -137,6 +143,13 @@ void kalman_curves(int64_t B, int64_t T, int64_t m, int64_t K, int smooth, int t
                             residual += observed ? e * e : zero;
                             divergence += observed ? own : zero;
                             count += observed ? splat<V>(1) : zero;
+                            if (step_risk) {
+                                const V term = observed ? e * e - r + two * r * own : zero;
+                                for (int w = 0; w < lanes.count; ++w) {
+                                    R& out = step_risk[lanes.b[w] * T + t];
+                                    out = lanes.j[w] == 0 ? term[w] : out + term[w];
+                                }
+                            }
                         }
                     }
                     if (sums && t % chunk == 0) {  // the chunk's first step: its sums are done

@@ -100,11 +100,12 @@ extern "C" {
                                 int threads, const void* const* in, const int64_t* s,         \
                                 void* risk, void* mean, void* var, void* first_two,           \
                                 int64_t chunk, void* sums, void* student,                     \
-                                double max_leverage) {                                        \
+                                double max_leverage, void* step_risk) {                       \
         kalman_curves<R>(B, T, m, K, smooth, threads, in, s, static_cast<R*>(risk),           \
                          static_cast<R*>(mean), static_cast<R*>(var),                         \
                          static_cast<R*>(first_two), chunk, static_cast<R*>(sums),            \
-                         static_cast<R*>(student), max_leverage);                             \
+                         static_cast<R*>(student), max_leverage,                              \
+                         static_cast<R*>(step_risk));                                         \
     }                                                                                         \
     /* how many lanes a vector steps together (lanes.h's kWidth): the most axes a rule that \
        couples a track's axes runs compiled */                                                \
