@@ -235,3 +235,86 @@ def test_the_compiled_sums_of_the_noise_fit_are_the_tensor_ones(monkeypatch) -> 
         found = ne.estimate_noise(z, dt)
         torch.testing.assert_close(found.meas_var, expected.meas_var, rtol=1e-9, atol=0.0)
         torch.testing.assert_close(found.meas_std_se, expected.meas_std_se, rtol=1e-7, atol=0.0)
+
+
+def _switching(sigmas: tuple[float, float], B: int = 24, steps: int = 240, seed: int = 3):
+    """Turning tracks at 1 s measured at ``sigmas[0]`` for their first half, ``sigmas[1]`` after
+    (a sensor that changes), and their truth ``[B, T, 2]``."""
+    g = torch.Generator().manual_seed(seed)
+    turn = (torch.rand(B, 1, generator=g, dtype=torch.float64) - 0.5) * 0.04
+    heading = turn * torch.arange(steps, dtype=torch.float64) + 6.28 * torch.rand(B, 1, generator=g)
+    velocity = 15.0 * torch.stack([heading.cos(), heading.sin()], -1)
+    truth = velocity.cumsum(1)
+    sigma = torch.full((steps,), sigmas[0], dtype=torch.float64)
+    sigma[steps // 2 :] = sigmas[1]
+    noise = torch.randn(B, steps, 2, generator=g, dtype=torch.float64) * sigma.view(1, -1, 1)
+    dt = torch.ones(B, steps, dtype=torch.float64)
+    steps_of = torch.arange(B * steps).view(B, steps)
+    lengths = torch.full((B,), steps, dtype=torch.int64)
+    ids = [f"s{b}" for b in range(B)]
+    tracks = RecordedTracks(truth + noise, dt, dt.cumsum(1), lengths, ids, steps=steps_of)
+    return tracks, truth
+
+
+def test_noise_that_changes_within_the_tracks_reads_as_a_spread_within_them() -> None:
+    """Pieces of tracks whose sensor goes from 5 to 40 m read far apart (``τ`` above
+    :data:`WITHIN_SPREAD`), their mean between the two; tracks at one noise, or each at its
+    own, read no spread within them."""
+    from torchsvs.datasets.track_noise import within_spread
+    from torchsvs.fitting.noise_read import WITHIN_SPREAD
+
+    tracks, _ = _switching((5.0, 40.0))
+    found = within_spread(tracks.z, tracks.dt, [25.0, 25.0])
+    assert found is not None and found.tau > 2 * WITHIN_SPREAD
+    assert 0.5 < found.low < 2.0 and 5.0 < found.high < 12.0  # (σ over the 5 m given)
+    assert 10.0**2 < 25.0 * found.mean_ratio < 40.0**2
+    one, _ = _switching((20.0, 20.0))
+    same = within_spread(one.z, one.dt, [400.0, 400.0])
+    assert same is not None and same.tau < WITHIN_SPREAD / 2
+    sigmas = torch.exp(torch.linspace(math.log(5.0), math.log(45.0), 24, dtype=torch.float64))
+    apart = _tracks(sigmas, steps=240)
+    between = within_spread(apart.z, apart.dt, [225.0, 225.0])
+    assert between is not None and between.tau < WITHIN_SPREAD / 2
+    short = _tracks(sigmas, steps=100)  # (no track of two pieces)
+    assert within_spread(short.z, short.dt, [225.0, 225.0]) is None
+
+
+def test_a_run_on_noise_that_changes_within_the_tracks_reads_their_mean_and_says_so(tmp_path):
+    """``torchsvs track``'s run on tracks whose sensor goes from 5 to 40 m halfway: the noise is
+    the pieces' mean, not the quiet half's (at which the Kalman smoother followed the loud half,
+    its estimates 0.99 of the measurements' error and its error estimate 0.14 of the truth),
+    the estimates well below the measurements, the error estimate's range holding the truth, and
+    the run warns."""
+    import pandas as pd
+
+    from torchsvs.datasets import Columns
+    from torchsvs.tracking import track_file
+
+    tracks, truth = _switching((5.0, 40.0))
+    B, T, _ = tracks.z.shape
+    ids = np.repeat(np.array(tracks.ids), T)
+    frame = pd.DataFrame(
+        {
+            "id": ids,
+            "t": tracks.time.reshape(-1).numpy(),
+            "x": tracks.z[..., 0].reshape(-1).numpy(),
+            "y": tracks.z[..., 1].reshape(-1).numpy(),
+        }
+    )
+    source, target = tmp_path / "switching.csv", tmp_path / "out.csv"
+    frame.to_csv(source, index=False)
+    columns = Columns(track_id="id", time="t")
+    run = track_file(source, target, Settings("ks"), columns=columns, progress=False)
+    within = run.settings.noise_within
+    assert within is not None and within[3] < 7.0  # (the core: the quiet half's 5 m)
+    assert run.settings.meas_var is not None and run.settings.meas_var[0] > 15.0**2
+    assert any("changes within the tracks" in w for w in run.warnings)
+    out = pd.read_csv(target)
+    path = truth.reshape(-1, 2).numpy()
+    error = np.sqrt(((out[["x", "y"]].to_numpy() - path) ** 2).sum(1).mean())
+    raw = np.sqrt(((frame[["x", "y"]].to_numpy() - path) ** 2).sum(1).mean())
+    assert error < 0.6 * raw
+    found = run.accuracy
+    assert found is not None
+    low, high = found.interval
+    assert low <= error <= high

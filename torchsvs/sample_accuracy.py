@@ -265,8 +265,10 @@ def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | N
     away motion the model does not follow, without bound. Measured on airliners on 10 s scans
     with σ 3 m (their motion between scans reads as 4-16 m of noise, 12.5 ± 7.6 m pooled):
     every default was 1.4-2.0× the raw measurements' error, and 0.99-1.02× at the low end
-    (5.0 m)."""
-    if settings.noise != "data" or settings.meas_var is None:
+    (5.0 m). Not where the noise changes within the tracks (``noise_within``): its level is
+    then the pieces' mean on purpose, and the low end is the quiet stretches', the reading
+    that made the smoother follow the loud ones."""
+    if settings.noise != "data" or settings.meas_var is None or settings.noise_within:
         return None
     ends = meas_var_range(settings, GUARD_ERRORS)
     if ends is None:

@@ -267,6 +267,7 @@ def prepare_estimator(
                 noise="data",
                 meas_std_se=chosen.meas_std_se,
                 noise_spread=chosen.noise_spread,
+                noise_within=chosen.noise_within,
                 track_noise=chosen.track_noise,
             )
             screen = None  # (screened again, each track at its own noise)
@@ -284,6 +285,7 @@ def prepare_estimator(
                 noise="data",
                 meas_std_se=read.meas_std_se,
                 noise_spread=read.noise_spread,
+                noise_within=read.noise_within,
                 noise_lowered_from=std,
             )
             screen = None  # (screened again at that noise)

@@ -20,6 +20,7 @@ from torchsvs.datasets.steps import as_rows
 from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
+from torchsvs.fitting.noise_read import within_warning
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.recipes import Settings
 
@@ -256,6 +257,9 @@ class TrackRun:
             )
         spread = self.settings.noise_spread
         own = self.settings.track_noise
+        changes = within_warning(self.settings)
+        if changes is not None:
+            self.warnings.append(changes)
         if own is not None:
             self.warnings.append(
                 f"measurement noise: read off each track alone it differs between tracks by "

@@ -13,14 +13,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
-from torchsvs.datasets.noise_estimate import NoiseFreeError
+from torchsvs.datasets import RecordedTracks, estimate_noise
 from torchsvs.fitting.noise import (
     QCurves,
     _golden_search,
@@ -31,7 +30,8 @@ from torchsvs.fitting.noise import (
     smoother_q,
     track_q_factors,
 )
-from torchsvs.fitting.noise_classes import classes_of, column_noise
+from torchsvs.fitting.noise_classes import classes_of
+from torchsvs.fitting.noise_read import with_noise_read
 from torchsvs.fitting.outliers import AGILITY, outlier_distances, screen_outliers
 from torchsvs.fitting.q_windows import choose_window
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
@@ -106,38 +106,6 @@ def turn_settings(
         "turn_rate_q": (scale / interval) ** 2,
         "turn_rate_std": scale,
     }
-
-
-def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
-    """The settings with the measurement noise read off ``tracks`` where they leave it open
-    (:func:`~torchsvs.datasets.estimate_noise`; ``noise="data"``, its standard error and the
-    between-track spread); unchanged where it is given."""
-    if settings.meas_var is not None:
-        return settings
-    column = settings.noise_column
-    if column is not None:  # each row's own: the file's is their mean square
-        observed = ~torch.isnan(tracks.z).all(-1)
-        var = column_noise(tracks.extra[column], observed, column)
-        return replace(settings, meas_var=[var] * tracks.z.shape[-1], noise="given")
-    try:
-        noise = estimate_noise(tracks.z, tracks.dt)
-    except ValueError as err:
-        if isinstance(err, NoiseFreeError):
-            raise ValueError(
-                "meas_std: the positions carry no measurement noise to read: most lie exactly "
-                "on smooth paths (noise-free, simulated or interpolated data); give the noise "
-                "(--meas-std) and the process noise (--q)"
-            ) from err
-        raise ValueError(
-            "meas_std: too few observed positions to read the measurement noise off the "
-            "data; give it (--meas-std) and the process noise (--q)"
-        ) from err
-    meas_var = noise.meas_var.double().tolist()
-    spread = noise_spread(tracks.z, tracks.dt)
-    meas_std_se = _noise_standard_error(noise, meas_var, spread)
-    return replace(
-        settings, meas_var=meas_var, noise="data", meas_std_se=meas_std_se, noise_spread=spread
-    )
 
 
 def complete_settings(settings: Settings, tracks: RecordedTracks) -> Settings:
@@ -410,22 +378,6 @@ def _sure_q(tracks: RecordedTracks, meas_var: Sequence[float], estimator: str) -
     at long scans or for slow targets."""
     r = torch.tensor(meas_var, dtype=torch.float64)
     return smoother_q(tracks.z, tracks.dt, r, smoothed=estimator not in FILTERS).q
-
-
-def _noise_standard_error(
-    noise: Any, meas_var: Sequence[float], spread: float | None
-) -> list[float] | None:
-    """The standard error of the noise standard deviation per axis that
-    :func:`~torchsvs.datasets.estimate_noise` reports, if it does, with the between-track
-    spread (:func:`~torchsvs.datasets.noise_spread`) added in quadrature: where one noise level
-    does not fit every track, the pooled reading is that uncertain, whatever its jackknife."""
-    se = getattr(noise, "meas_std_se", None)
-    if se is None:
-        return None
-    extra = [(spread or 0.0) * v**0.5 for v in meas_var]
-    return [
-        math.hypot(float(v), e) for v, e in zip(torch.as_tensor(se).reshape(-1), extra, strict=True)
-    ]
 
 
 #: Where the noise was read off the data, a choice that SURE makes at the reading holds only if
