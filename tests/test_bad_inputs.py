@@ -953,3 +953,17 @@ def test_describe_input_settles_frame_and_time_unit(tmp_path):
     assert found.columns.position == ("latitude", "longitude", "altitude")
     assert math.isclose(found.columns.seconds_per_unit, 1e-3)
     assert not found.warnings
+
+
+@pytest.mark.parametrize(
+    "options",
+    [("--pos-cols", "x,time"), ("--id-col", "time"), ("--time-col", "x"), ("--id-col", "y")],
+)
+def test_a_column_named_for_two_roles_is_refused_by_name(tmp_path, capsys, options):
+    """A column named as the id, the time or a position twice over is refused with the roles
+    named (it ended in pyarrow's "field exists 2 times" traceback)."""
+    path = _metric_file(tmp_path / "in.csv")
+    err = _refused(
+        capsys, r"columns: each column serves one role", path, "-o", tmp_path / "o.csv", *options
+    )
+    assert "Traceback" not in err and "--pos-cols" in err

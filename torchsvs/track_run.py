@@ -376,6 +376,8 @@ class TrackRun:
             | ({"q_factor": self.track_q[k]} if k in self.track_q else {})
             for k, v in sorted(self.track_errors.items(), key=lambda kv: -kv[1][0])[:TRACKS_KEPT]
         }
+        listed = len(out["tracks"])  # (the worst TRACKS_KEPT: a bounded summary, said so)
+        out["tracks_listed"] = f"{listed:,} of {self.report.tracks:,}, the largest error first"
         if self.q_factors:
             out["q_per_track"] = {
                 "line": self.q_factor_line(),

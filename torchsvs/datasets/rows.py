@@ -204,6 +204,13 @@ class Columns:
             raise ValueError(f"position: expected 1 to 3 columns, got {list(position)}")
         if len(set(position)) != len(position):
             raise ValueError(f"position: a column named twice, got {list(position)}")
+        roles = [track_id, time, *position]
+        if len(set(roles)) != len(roles):
+            raise ValueError(
+                f"columns: each column serves one role, got the id {track_id!r}, the time "
+                f"{time!r} and the position {list(position)}; name them apart with --id-col, "
+                "--time-col, --pos-cols (torchsvs track) or Columns(...)"
+            )
         if frame != "metric":
             geodetic = _geodetic_order(position)
             if geodetic is not None:
