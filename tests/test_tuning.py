@@ -116,9 +116,12 @@ def test_rstkf_fit_searches_q_and_keeps_the_least_risk(monkeypatch):
     scored: list[tuple[float, float]] = []
     risk = tuning._risk
 
-    def recorded(est, *args):
-        value = risk(est, *args)
+    steps: list[int] = []
+
+    def recorded(est, batches, *args):
+        value = risk(est, batches, *args)
         scored.append((float(est.model.q()), value))
+        steps.append(batches[0].z.shape[1])
         return value
 
     monkeypatch.setattr(tuning, "_risk", recorded)
@@ -126,6 +129,9 @@ def test_rstkf_fit_searches_q_and_keeps_the_least_risk(monkeypatch):
     assert fit.parameters == 1 and fit.curve == []
     searched = scored[:-2]  # (the last two: the start and the choice on fresh probes)
     assert len(searched) == len(tuning.Q_DECADES) + 4
+    # scored on windows, checked on the whole tracks (what runs: on windows a q 0.002 times the
+    # reading's looked best where whole tracks came out at 1.46 of the measurements' error)
+    assert set(steps[:-2]) == {tuning.SEARCH_WINDOWS[0]} and steps[-2:] == [80, 80]
     least = min(searched, key=lambda pair: pair[1])
     assert fit.settings.q == pytest.approx(least[0], rel=1e-12)
     assert fit.settings.q < 0.1 * start.q
@@ -257,3 +263,25 @@ print("same:", inside == outside)
         "dynamo outside: True",  # (torch's own path, as before)
         "same: True",
     ], done.stdout + done.stderr
+
+
+def test_a_searched_fit_keeps_its_start_where_the_whole_tracks_say_so(monkeypatch):
+    """The search's choice, scored on windows, stands only where its SURE on the whole tracks
+    (fresh probes) is not above the start's: else the start is kept and the fit says so."""
+    from torchsvs.fitting import tuning
+
+    tracks = _cv_tracks(q=4.0, r=400.0, B=8, T=80)
+    start = complete_settings(
+        Settings(estimator="rstkf", meas_var=[400.0, 400.0], q=4000.0), tracks
+    )
+    risk = tuning._risk
+
+    def windows_only(est, batches, *args):
+        if batches[0].z.shape[1] == tuning.SEARCH_WINDOWS[0]:
+            return risk(est, batches, *args)
+        return 1.0 / float(est.model.q())  # (whole tracks: the least q the worst)
+
+    monkeypatch.setattr(tuning, "_risk", windows_only)
+    fit = self_tune(start, tracks)
+    assert fit.settings.q == start.q
+    assert any("kept the starting point" in line for line in fit.stages)
