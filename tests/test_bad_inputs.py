@@ -625,7 +625,21 @@ def test_bad_settings_are_refused_naming_the_option(tmp_path, capsys, option, va
             r"\(e\.g\. \['abc', 'def'\]\)",
         ),
         ("c.csv", 'track_id,time,x,y\na,0,"1,5",1\na,1,"2,5",2\n', r"decimal commas are not read"),
-        ("z.csv", "track_id,time,x,y,z\na,0,1,1,\na,1,2,2,\n", r"position: column 'z' is empty"),
+        (
+            "z.csv",
+            "track_id,time,x,y,z\na,0,1,1,\na,1,2,2,\n",
+            r"position: column 'z' holds no numbers in the first 2 rows \(each empty or a text",
+        ),
+        (  # (texts read as missing: it said "empty")
+            "na.csv",
+            "track_id,time,x,y\na,0,n/a,1\na,1,NA,2\n",
+            r"position: column 'x' holds no numbers .* read as missing: NA, n/a",
+        ),
+        (  # (one of x, y: it said the file had no x, y columns)
+            "y.csv",
+            "track_id,time,x\na,0,1\na,1,2\n",
+            r"position: the file has no column 'y' beside the other and no latitude",
+        ),
         (
             "r.csv",
             "track_id,time,x,y\na,0,1,1\na,1,2,2,7\n",

@@ -135,8 +135,9 @@ def _describe(
                 "; name the position columns with --pos-cols (torchsvs track) or Columns(...)"
             )
         raise ValueError(
-            f"position: column {label!r} is empty in the first {rows} rows; name the position "
-            "columns that hold positions with --pos-cols (torchsvs track) or Columns(...)"
+            f"position: column {label!r} holds no numbers in the first {rows} rows (each empty "
+            "or a text read as missing: NA, n/a, null, NaN, ...); name the position columns that "
+            "hold positions with --pos-cols (torchsvs track) or Columns(...)"
         )
     if cols.geodetic:
         for label, limit in zip(cols.position[:2], (90.0, 360.0), strict=True):

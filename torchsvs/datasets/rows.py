@@ -281,10 +281,12 @@ def _default_position(available: Sequence[str], frame: str) -> tuple[tuple[str, 
             f"the file has none (its columns: {list(available)}); name them with --pos-cols "
             "LAT,LON, or drop --frame wgs84 for metres"
         )
+    lacking = [c for c in ("x", "y") if c not in available]
+    which = "x, y columns" if len(lacking) == 2 else f"column {lacking[0]!r} beside the other"
     raise ValueError(
-        f"position: the file has no x, y columns and no latitude, longitude columns (its "
-        f"columns: {list(available)}); name the position columns with --pos-cols "
-        "(torchsvs track) or Columns(position=...)"
+        f"position: the file has no {which} and no latitude, longitude columns (its columns: "
+        f"{list(available)}); name the position columns with --pos-cols (torchsvs track) or "
+        "Columns(position=...)"
     )
 
 
