@@ -315,6 +315,12 @@ def rule_of_thumb_psi(axes: int, velocity: bool = True, estimator: str = "svsf")
     return [PSI_SMOOTHER_LIMIT_IN_SIGMAS if smoother else PSI_LIMIT_IN_SIGMAS] * axes
 
 
+#: The settings the noise read off the data fills in (:func:`~torchsvs.fitting.noise_read.
+#: with_noise_read`, and each track's own, :func:`~torchsvs.sample_accuracy.with_track_noise`):
+#: what a run carries from the reading it settles on.
+NOISE_READ = ("meas_var", "noise", "meas_std_se", "noise_spread", "noise_within", "track_noise")
+
+
 def make_model(
     settings: Settings, learn_q: bool = False, learn_r: bool = False
 ) -> ConstantVelocity:

@@ -37,7 +37,7 @@ from torchsvs.fitting.defaults import (
     with_q_curve,
 )
 from torchsvs.fitting.tuning import FitResult
-from torchsvs.recipes import Settings, make_estimator, make_model
+from torchsvs.recipes import NOISE_READ, Settings, make_estimator, make_model
 
 
 def sample_accuracy(settings: Settings, tracks: RecordedTracks) -> Accuracy:
@@ -251,6 +251,15 @@ def anchored_fit(fit: FitResult, start: Settings, tracks: RecordedTracks) -> Fit
 LOWEST_NOISE_SHARE = 0.01
 
 
+def kalman_clearly_better(read: Settings, tracks: RecordedTracks) -> bool:
+    """Whether the Kalman smoother at the noise read off the data (``read``'s, each track at its
+    own where it carries ``track_noise``) is clearly below the measurements on ``tracks``
+    (:func:`sample_accuracy`, the file's ``q`` for that noise): the test of the data, not of an
+    estimator, that :func:`lowered_noise` and :func:`with_track_noise` make."""
+    kalman = Settings("ks", **{name: getattr(read, name) for name in NOISE_READ})
+    return sample_accuracy(complete_settings(kalman, tracks), tracks).clearly_better
+
+
 def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | None:
     """The measurement variance to run at instead of the one read off the data, or None.
 
@@ -273,14 +282,7 @@ def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | N
     ends = meas_var_range(settings, GUARD_ERRORS)
     if ends is None:
         return None
-    kalman = Settings(
-        "ks",
-        meas_var=settings.meas_var,
-        noise="data",
-        meas_std_se=settings.meas_std_se,
-        noise_spread=settings.noise_spread,
-    )
-    if sample_accuracy(complete_settings(kalman, tracks), tracks).clearly_better:
+    if kalman_clearly_better(settings, tracks):
         return None
     low, _ = ends
     return [max(v, LOWEST_NOISE_SHARE * r) for v, r in zip(low, settings.meas_var, strict=True)]
@@ -380,15 +382,7 @@ def with_track_noise(read: Settings, tracks: RecordedTracks) -> tuple[Settings, 
     # motion read as noise inflates each reading (gliders at 3-60 s reports, σ 5 m, read 40 m
     # track by track: 4.6 times the measurements' error, where the low end of the file's
     # reading, :func:`lowered_noise`, gave 1.0)
-    kalman_own = Settings(
-        "ks",
-        meas_var=own.meas_var,
-        noise="data",
-        meas_std_se=own.meas_std_se,
-        noise_spread=spread,
-        track_noise=own.track_noise,
-    )
-    if not sample_accuracy(complete_settings(kalman_own, tracks), tracks).clearly_better:
+    if not kalman_clearly_better(own, tracks):
         return None
     return own, (
         f"noise: read off each track alone it differs between tracks by about {tau:.0%}; each "

@@ -36,7 +36,7 @@ from torchsvs.fitting.defaults import (
 )
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.fitting.tuning import self_tune
-from torchsvs.recipes import Settings, compute_dtype, make_estimator, make_model
+from torchsvs.recipes import NOISE_READ, Settings, compute_dtype, make_estimator, make_model
 from torchsvs.sample_accuracy import (
     anchored_fit,
     checked_low,
@@ -261,15 +261,7 @@ def prepare_estimator(
         if own_noise is not None:
             chosen, line = own_noise
             say(line)
-            settings = replace(
-                given,
-                meas_var=chosen.meas_var,
-                noise="data",
-                meas_std_se=chosen.meas_std_se,
-                noise_spread=chosen.noise_spread,
-                noise_within=chosen.noise_within,
-                track_noise=chosen.track_noise,
-            )
+            settings = replace(given, **{name: getattr(chosen, name) for name in NOISE_READ})
             screen = None  # (screened again, each track at its own noise)
         elif low is not None:
             assert read.meas_var is not None
@@ -279,15 +271,8 @@ def prepare_estimator(
                 f"not clearly below the measurements'; running at the low end of that reading, "
                 f"{short([v**0.5 for v in low])} m"
             )
-            settings = replace(
-                given,
-                meas_var=low,
-                noise="data",
-                meas_std_se=read.meas_std_se,
-                noise_spread=read.noise_spread,
-                noise_within=read.noise_within,
-                noise_lowered_from=std,
-            )
+            noise = {name: getattr(read, name) for name in NOISE_READ}
+            settings = replace(given, **noise | {"meas_var": low, "noise_lowered_from": std})
             screen = None  # (screened again at that noise)
     settings, clean, summary = _settled(
         settings, sample, fit, options, say, own, own and open_q, screen

@@ -225,8 +225,8 @@ def _tail_below(d2: Tensor, m: int, p: float, ends: Tensor | None = None) -> Ten
     reach = (d2 > _chi2_floor(m, p)).nonzero(as_tuple=True)  # NaN: not reached
     local = _local_median(d2, LOCAL, reach)
     if ends is not None:
-        whole = d2[reach[0].unique()].nanmedian(1).values  # (the tracks reached alone)
-        track = torch.searchsorted(reach[0].unique(), reach[0])
+        tracks, track = reach[0].unique(return_inverse=True)  # (the tracks reached alone)
+        whole = d2[tracks].nanmedian(1).values
         local = torch.where(ends[reach], whole[track], local)
     scale = (local / CHI2_MEDIAN[m]).clamp_min(1.0)
     tail = torch.special.gammaincc(half, d2[reach] / scale / 2.0)

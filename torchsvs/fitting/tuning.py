@@ -265,9 +265,9 @@ def self_tune(
         )
     assert settings.meas_var is not None
     meas_cov = torch.diag(torch.tensor(settings.meas_var, dtype=torch.float64))
+    whole = batches_for(settings.meas_var, None, 0, CHECK_TRACKS)  # (the fit checked on them)
     if settings.estimator in SEARCHED:
         batches = batches_for(settings.meas_var, *SEARCH_WINDOWS)
-        whole = batches_for(settings.meas_var, None, 0, CHECK_TRACKS)
         search = SEARCHED[settings.estimator]
         result.settings = search(settings, (batches, whole), meas_cov, seed, result)
         result.seconds = time.perf_counter() - start
@@ -296,26 +296,18 @@ def self_tune(
             parametrize.remove_parametrizations(svsf.boundary_layer, "raw")
     settings = replace(settings, **learned)
     shown = ", ".join(f"{k} = {_fmt(v)}" for k, v in learned.items())
-    # The descent saw one set of probes: an estimator very sensitive to its input can flatter
-    # them (a divergence estimate far below its mean). Fresh probes decide against the start.
-    fresh = seed + VALIDATION_SEED
-    ended = _risk(make_estimator(settings, make_model(settings)).double(), batches, meas_cov, fresh)
-    began = _risk(
-        make_estimator(start_settings, make_model(start_settings)).double(),
-        batches,
+    result.settings = _checked_fit(
+        start_settings,
+        settings,
+        whole,
         meas_cov,
-        fresh,
+        seed,
+        result,
+        lambda began, ended: (
+            f"{settings.estimator} by SURE: {shown} (risk {curve[0]:.4f} → {curve[-1]:.4f} of "
+            f"R; fresh probes {began:.4f} → {ended:.4f})"
+        ),
     )
-    result.stages.append(
-        f"{settings.estimator} by SURE: {shown} (risk {curve[0]:.4f} → {curve[-1]:.4f} of R; "
-        f"fresh probes {began:.4f} → {ended:.4f})"
-    )
-    if not ended <= began:
-        settings = start_settings
-        result.stages.append(
-            "kept the starting point: with fresh probes the fit's risk was not lower"
-        )
-    result.settings = settings
     result.curve = curve
     result.seconds = time.perf_counter() - start
     return result
@@ -340,11 +332,11 @@ START_PSI = (0.03, 0.2, 1.0)
 #: 256 windows at most (with the smoother's cost) chose within 0.5% of 512 on six sets, 3% behind
 #: on taxiing aircraft (σ 50).
 SEARCH_WINDOWS = (32, 8, 256)
-#: A search's choice is checked against its start on this many whole tracks (spread over the
-#: sample), fresh probes: what runs. On 32-step windows the RSTKF's SURE fell to 0.66 of R at
-#: ``q`` 0.0018 times the reading's on airliners at σ 25 m (each window starts afresh, and its
-#: variational step follows a turn for a few steps), where on the whole tracks that ``q`` came
-#: out at 1.46 of the measurements' error (the start 0.85).
+#: A fit's choice (searched or descended) is checked against its start on this many whole
+#: tracks (spread over the sample), fresh probes: what runs. On 32-step windows the RSTKF's
+#: SURE fell to 0.66 of R at ``q`` 0.0018 times the reading's on airliners at σ 25 m (each
+#: window starts afresh, and its variational step follows a turn for a few steps), where on the
+#: whole tracks that ``q`` came out at 1.46 of the measurements' error (the start 0.85).
 CHECK_TRACKS = 256
 #: Factors on the three process noises of the IMM together (``q``, ``turn_q``, ``turn_rate_q``
 #: as :func:`~torchsvs.fitting.defaults.turn_settings` derives them), then on the turn-rate
@@ -374,8 +366,7 @@ def _imm_search(
     def risk_of(candidate: Settings) -> float:
         nonlocal scored
         scored += 1
-        estimator = make_estimator(candidate, make_model(candidate)).double()
-        return _risk(estimator, batches, meas_cov, seed)
+        return _settings_risk(candidate, batches, meas_cov, seed)
 
     def noise(base: Settings, name: str, factor: float) -> float:
         value = getattr(base, name)
@@ -409,7 +400,7 @@ def _imm_search(
         best, risk = scale(best, factor), scores[factor]
         chosen.append(factor)
     result.parameters = len(chosen)  # (three values chosen on the tracks, as a descent learns)
-    return _checked_search(
+    return _checked_fit(
         settings,
         best,
         whole,
@@ -426,7 +417,7 @@ def _imm_search(
     )
 
 
-def _checked_search(
+def _checked_fit(
     start: Settings,
     best: Settings,
     whole: list[TrackBatch],
@@ -435,16 +426,13 @@ def _checked_search(
     result: FitResult,
     stage: Callable[[float, float], str],
 ) -> Settings:
-    """A search's choice ``best`` checked against ``start`` by their SURE on the ``whole``
-    tracks (:data:`CHECK_TRACKS`) with fresh probes, kept only where its risk is not higher;
-    the search's line (``stage`` of the two fresh risks) added to ``result``."""
+    """A fit's choice ``best`` (searched or descended) checked against ``start`` by their SURE
+    on the ``whole`` tracks (:data:`CHECK_TRACKS`) with fresh probes, kept only where its risk
+    is not higher; the fit's line (``stage`` of the two fresh risks) added to ``result``. The
+    fit saw one set of probes on windows: an estimator very sensitive to its input can flatter
+    them, and a window that starts afresh can flatter a choice the whole tracks do not bear."""
     fresh = seed + VALIDATION_SEED
-
-    def risk_of(candidate: Settings) -> float:
-        estimator = make_estimator(candidate, make_model(candidate)).double()
-        return _risk(estimator, whole, meas_cov, fresh)
-
-    began, ended = risk_of(start), risk_of(best)
+    began, ended = (_settings_risk(s, whole, meas_cov, fresh) for s in (start, best))
     result.stages.append(stage(began, ended))
     if not ended <= began:
         result.stages.append(
@@ -482,20 +470,16 @@ def _q_search(
     def scaled(factor: float) -> Settings:
         return replace(settings, q=start * factor)
 
-    def risk_of(candidate: Settings) -> float:
-        estimator = make_estimator(candidate, make_model(candidate)).double()
-        return _risk(estimator, batches, meas_cov, seed)
-
     for factor in Q_DECADES:
-        scores[factor] = risk_of(scaled(factor))
+        scores[factor] = _settings_risk(scaled(factor), batches, meas_cov, seed)
     for steps in Q_REFINE:
         best = min(scores, key=scores.__getitem__)
         for step in steps:
-            scores[best * step] = risk_of(scaled(best * step))
+            scores[best * step] = _settings_risk(scaled(best * step), batches, meas_cov, seed)
     best = min(scores, key=scores.__getitem__)
     result.parameters = 1
     chosen = scaled(best)
-    return _checked_search(
+    return _checked_fit(
         scaled(1.0),
         chosen,
         whole,
@@ -528,11 +512,17 @@ def _best_start(
                 q=settings.q * q_factor,
                 psi=None if settings.psi is None else [p * psi_factor for p in settings.psi],
             )
-            estimator = make_estimator(candidate, make_model(candidate)).double()
-            risk = _risk(estimator, batches, meas_cov, seed)
+            risk = _settings_risk(candidate, batches, meas_cov, seed)
             if risk < best_risk:
                 best, best_risk = candidate, risk
     return best
+
+
+def _settings_risk(
+    candidate: Settings, batches: list[TrackBatch], meas_cov: Tensor, seed: int
+) -> float:
+    """:func:`_risk` of the float64 estimator the settings make."""
+    return _risk(make_estimator(candidate, make_model(candidate)).double(), batches, meas_cov, seed)
 
 
 def _risk(estimator: nn.Module, batches: list[TrackBatch], meas_cov: Tensor, seed: int) -> float:
