@@ -548,6 +548,28 @@ def test_unusable_and_negative_times(tmp_path, capsys):
     assert np.allclose(later, earlier, rtol=1e-6, equal_nan=True)
 
 
+def test_a_date_among_a_tracks_seconds_is_set_aside_where_it_cannot_be_placed(tmp_path, capsys):
+    """A track's times in seconds from 0 with one ISO date among them: read as seconds since
+    1970 the date went 54 years on, its row's estimate the raw measurement, noted only as out
+    of order. It is set aside, named; a date that agrees with the numbers (epoch seconds) is
+    kept, and the other rows come out as without the date."""
+    times = [f"{5.0 * i}" for i in range(40)]
+    clean, _ = _velocity_with_times(tmp_path, capsys, times)
+    times[12] = "2024-05-01T12:00:00Z"  # decades from the track's other times
+    times[20] = "1970-01-01T00:01:40Z"  # 100 s since 1970: the number it stands for
+    velocity, err = _velocity_with_times(tmp_path, capsys, times)
+    assert "set aside, time_unlike_its_track: 1" in err and "out_of_order" not in err
+    assert np.isnan(velocity[12]) and np.isfinite(np.delete(velocity, 12)).all()
+    times[12] = ""
+    without, _ = _velocity_with_times(tmp_path, capsys, times)
+    assert np.allclose(velocity, without, equal_nan=True) and np.isfinite(clean).all()
+    # most of the track's times dates: a number among them is the odd one out
+    dates = [np.datetime_as_string(np.datetime64(1_700_000_000 + 5 * i, "s")) for i in range(40)]
+    dates[5] = "25"
+    velocity, err = _velocity_with_times(tmp_path, capsys, dates)
+    assert "set aside, time_unlike_its_track: 1" in err and np.isnan(velocity[5])
+
+
 def test_a_file_without_any_usable_time_is_refused(tmp_path, capsys):
     source = _csv(tmp_path / "a.csv", "track_id,time,x,y", [("a", "soon", 1, 2), ("a", "", 3, 4)])
     _refused(

@@ -69,8 +69,8 @@ _at_least_zero = _integer_at_least(0)
 
 
 def _time_unit(text: str) -> float | str:
-    """``auto``, a unit of :data:`~torchsvs.datasets.rows.TIME_UNITS` or seconds per unit."""
-    from torchsvs.datasets.rows import TIME_UNITS
+    """``auto``, a unit of :data:`~torchsvs.datasets.times.TIME_UNITS` or seconds per unit."""
+    from torchsvs.datasets.times import TIME_UNITS
 
     if text == "auto" or text in TIME_UNITS:
         return text

@@ -19,12 +19,12 @@ if TYPE_CHECKING:
     from torchsvs.datasets.rows import (
         NOTES,
         SET_ASIDE,
-        TIME_UNITS,
         Columns,
         InputWarning,
         RowReport,
     )
     from torchsvs.datasets.steps import TrackSteps, group_rows
+    from torchsvs.datasets.times import TIME_UNITS
     from torchsvs.datasets.track_noise import noise_spread
     from torchsvs.datasets.tracks import (
         RecordedTracks,
@@ -56,7 +56,7 @@ _HOMES = {
     "track_blocks": "reading",
     "NOTES": "rows",
     "SET_ASIDE": "rows",
-    "TIME_UNITS": "rows",
+    "TIME_UNITS": "times",
     "Columns": "rows",
     "InputWarning": "rows",
     "RowReport": "rows",

@@ -118,3 +118,39 @@ def texts(values: Sequence[str]) -> Any:
     offsets = np.cumsum([0] + [len(d) for d in data], dtype=np.int32)
     buffers = [None, pa.py_buffer(offsets), pa.py_buffer(b"".join(data))]
     return pa.Array.from_buffers(pa.string(), len(values), buffers, null_count=0)
+
+
+def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
+    """A pyarrow column as float64 (NaN where empty) and where a value was not a finite number."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if column.null_count == 0 and (
+        pa.types.is_floating(column.type) or pa.types.is_integer(column.type)
+    ):
+        # Numbers without empty values: nothing to mark as missing but what is not finite.
+        values = np.asarray(to_numpy(column), dtype=np.float64)
+        finite = np.isfinite(values)
+        if finite.all():
+            return values, np.zeros(len(values), dtype=bool)
+        return np.where(finite, values, np.nan), ~finite
+    if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+        try:
+            numbers = pc.cast(column, pa.float64())
+        except pa.ArrowInvalid:
+            import pandas as pd
+
+            numbers = pa.array(
+                pd.to_numeric(column.to_pandas(), errors="coerce"), type=pa.float64()
+            )
+    elif pa.types.is_integer(column.type) or pa.types.is_floating(column.type):
+        numbers = pc.cast(column, pa.float64())
+    elif pa.types.is_null(column.type):
+        numbers = pa.nulls(len(column), pa.float64())
+    else:
+        raise TypeError(f"column of type {column.type}: expected numbers or text")
+    values = np.asarray(to_numpy(numbers, np.nan), dtype=np.float64)
+    written = to_numpy(pc.is_valid(column))
+    bad = written & ~np.isfinite(values)
+    values = np.where(np.isfinite(values), values, np.nan)
+    return values, bad

@@ -12,18 +12,18 @@ from typing import Any
 
 import numpy as np
 
+from torchsvs.datasets.arrow_numpy import to_float
 from torchsvs.datasets.paths import check_input, dataset_files
 from torchsvs.datasets.rows import (
     Columns,
     csv_delimiter,
-    detect_time_unit,
     file_columns,
     file_format,
     parse_block,
     read_blocks,
-    to_float,
 )
 from torchsvs.datasets.steps import TrackSteps, group_rows
+from torchsvs.datasets.times import detect_time_unit
 
 
 @dataclass
@@ -48,7 +48,7 @@ def describe_input(
 ) -> InputDescription:
     """Settles what ``columns`` leaves open on the file's first ``block_rows`` rows and checks
     them: the position columns (``x, y[, z]``, or latitude, longitude[, altitude]: the frame),
-    the time unit (:func:`~torchsvs.datasets.rows.detect_time_unit`), a position column without
+    the time unit (:func:`~torchsvs.datasets.times.detect_time_unit`), a position column without
     numbers, a file without rows or without a row to place. Raises ``ValueError`` naming the
     column or the file; returns the resolved columns, a description and warnings."""
     described, blocks = open_blocks(path, columns, block_rows, name, thorough=True)

@@ -18,14 +18,13 @@ Positions are metres as read, or WGS 84 latitude and longitude (degrees; columns
 ``latitude``/``lat`` and ``longitude``/``lon``/``lng``, any case, or ``Columns(frame="wgs84")``)
 with an optional altitude (metres), estimated in a local metric frame per track (see
 :class:`Columns`). Numeric times are seconds, or milliseconds, microseconds or nanoseconds since
-1970 when their size says so (:func:`detect_time_unit`); texts are date-times.
+1970 when their size says so (:mod:`torchsvs.datasets.times`); texts are date-times.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-import warnings
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -34,13 +33,17 @@ from typing import Any
 
 import numpy as np
 
-from torchsvs.datasets.arrow_numpy import repeated_text, texts, to_numpy
+from torchsvs.datasets.arrow_numpy import repeated_text, texts, to_float
 from torchsvs.datasets.ids import track_codes
+from torchsvs.datasets.times import TIME_UNITS, detect_time_unit, to_seconds, unlike_their_track
 
 #: Reasons a row is set aside (not placed at any step).
 SET_ASIDE = {
     "no_track_id": "the track id is empty",
     "no_time": "the time is empty, not a number and not a date",
+    "time_unlike_its_track": "a date-time text among its track's numbers (or a number among its "
+    "date-times) that lies a year or more from the track's other times: it cannot be placed "
+    "among them (torchsvs.datasets.times.unlike_their_track)",
     "track_without_position": "its track has no observed position at all (nothing to start from)",
     "on_ground": "ADS-B: the aircraft reports being on the ground (taxiing or parked, not flying)",
 }
@@ -74,10 +77,6 @@ NOTES = {
     "stray: the track's local frame cannot hold it), read as missing",
 }
 
-#: Seconds per unit of the names ``Columns.time_unit`` (and ``--time-unit``) takes.
-TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
-#: Smallest typical size of epoch times in each unit (1e11 s is the year 5138; 1e11 ms is 1973).
-EPOCH_SIZE = {"ns": 1e17, "us": 1e14, "ms": 1e11}
 #: Column names (compared in lower case) read as WGS 84 latitude, longitude, altitude.
 LATITUDE_NAMES = ("latitude", "lat")
 LONGITUDE_NAMES = ("longitude", "lon", "lng", "long")
@@ -154,9 +153,10 @@ class Columns:
             the file has a ``z`` column.
         extra: further numeric columns carried per step (e.g. a reported speed).
         time_unit: of a numeric time: ``"auto"`` (seconds, or milliseconds, microseconds,
-            nanoseconds since 1970 when the values are that large: :func:`detect_time_unit`),
-            a name of :data:`TIME_UNITS` (``"s"``, ``"ms"``, ``"us"``, ``"ns"``) or seconds
-            per unit (``1e-3`` for milliseconds).
+            nanoseconds since 1970 when the values are that large: :func:`~torchsvs.datasets.
+            times.detect_time_unit`),
+            a name of :data:`~torchsvs.datasets.times.TIME_UNITS` (``"s"``, ``"ms"``, ``"us"``,
+            ``"ns"``) or seconds per unit (``1e-3`` for milliseconds).
         frame: what the positions are (:data:`FRAMES`). ``"wgs84"``: latitude and longitude in
             degrees and an optional altitude in metres (the third column). Each track is
             estimated in the tangent plane of the WGS 84 ellipsoid at its first position in
@@ -181,7 +181,8 @@ class Columns:
         """These columns with ``position`` and ``frame`` filled in (a WGS 84 frame's positions
         in the order latitude, longitude[, altitude]), checked against the columns of
         ``source`` (named in an error);
-        ``time_unit`` stays ``"auto"`` (it needs the values: :func:`detect_time_unit`)."""
+        ``time_unit`` stays ``"auto"`` (it needs the values: :func:`~torchsvs.datasets.times.
+        detect_time_unit`)."""
         if self.frame not in FRAMES:
             raise ValueError(f"frame: expected one of {sorted(FRAMES)}, got {self.frame!r}")
         unit = self.time_unit
@@ -463,96 +464,9 @@ class ParsedRows:
     #: "wgs84")``; NaN for a track without a position), or None for metric positions
     reference: np.ndarray | None = None
     invalid: np.ndarray | None = None  #: [R] bool: a coordinate out of range (WGS 84)
-
-
-def to_float(column: Any) -> tuple[np.ndarray, np.ndarray]:
-    """A pyarrow column as float64 (NaN where empty) and where a value was not a finite number."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    if column.null_count == 0 and (
-        pa.types.is_floating(column.type) or pa.types.is_integer(column.type)
-    ):
-        # Numbers without empty values: nothing to mark as missing but what is not finite.
-        values = np.asarray(to_numpy(column), dtype=np.float64)
-        finite = np.isfinite(values)
-        if finite.all():
-            return values, np.zeros(len(values), dtype=bool)
-        return np.where(finite, values, np.nan), ~finite
-    if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
-        try:
-            numbers = pc.cast(column, pa.float64())
-        except pa.ArrowInvalid:
-            import pandas as pd
-
-            numbers = pa.array(
-                pd.to_numeric(column.to_pandas(), errors="coerce"), type=pa.float64()
-            )
-    elif pa.types.is_integer(column.type) or pa.types.is_floating(column.type):
-        numbers = pc.cast(column, pa.float64())
-    elif pa.types.is_null(column.type):
-        numbers = pa.nulls(len(column), pa.float64())
-    else:
-        raise TypeError(f"column of type {column.type}: expected numbers or text")
-    values = np.asarray(to_numpy(numbers, np.nan), dtype=np.float64)
-    written = to_numpy(pc.is_valid(column))
-    bad = written & ~np.isfinite(values)
-    values = np.where(np.isfinite(values), values, np.nan)
-    return values, bad
-
-
-def to_seconds(column: Any, unit: float) -> np.ndarray:
-    """A time column as float64 seconds (NaN where unusable): numbers times ``unit``, date-time
-    texts and timestamps as seconds since 1970-01-01 UTC (texts without a zone read as UTC)."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    if pa.types.is_timestamp(column.type) or pa.types.is_date(column.type):
-        ns = pc.cast(pc.cast(column, pa.timestamp("ns")), pa.int64())
-        return np.asarray(to_numpy(ns, np.nan), dtype=np.float64) * 1e-9
-    values, bad = to_float(column)
-    if unit != 1.0:
-        values = values * unit
-    if bad.any():  # texts that are not numbers may be dates
-        import pandas as pd
-
-        texts = column.filter(pa.array(bad)).to_pandas()
-        with warnings.catch_warnings():  # a best-effort parse of every date-time format is meant
-            warnings.simplefilter("ignore", UserWarning)
-            parsed = pd.to_datetime(texts, errors="coerce", utc=True, format="mixed")
-        ns = parsed.to_numpy(dtype="datetime64[ns]").astype(np.int64).astype(np.float64)
-        ns[parsed.isna().to_numpy()] = np.nan
-        values[bad] = ns * 1e-9
-    return values
-
-
-def detect_time_unit(column: Any) -> tuple[float, str]:
-    """Seconds per unit of a time column's numbers, and what was found (for a person).
-
-    Timestamps and date-time texts carry their unit. Numbers are seconds unless their median
-    size is that of times since 1970 in a finer unit (:data:`EPOCH_SIZE`: from 1e11 milli-,
-    1e14 micro-, 1e17 nanoseconds; 1e11 s would be the year 5138). Small numbers in a finer
-    unit (milliseconds from 0) cannot be told from seconds by their size: give the unit.
-    """
-    import pyarrow as pa
-
-    if pa.types.is_timestamp(column.type) or pa.types.is_date(column.type):
-        return 1.0, f"timestamps ({column.type})"
-    values, text = to_float(column)
-    numbers = values[np.isfinite(values)]
-    if len(numbers) < text.sum():
-        return 1.0, "date-time texts (ISO 8601 and the like; UTC unless a zone is given)"
-    if len(numbers) == 0:
-        return 1.0, "no usable times"
-    size = float(np.median(np.abs(numbers)))
-    for name, threshold in EPOCH_SIZE.items():
-        if size >= threshold:
-            long = {"ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}[name]
-            return TIME_UNITS[name], (
-                f"numbers around {size:.3g}: {long} since 1970 (detected; --time-unit s "
-                "reads them as seconds)"
-            )
-    return 1.0, "numbers, read as seconds (--time-unit ms, us, ns for other units)"
+    #: [R] bool: a time written unlike its track's others, set to NaN (:func:`~torchsvs.
+    #: datasets.times.unlike_their_track`), or None
+    time_unlike: np.ndarray | None = None
 
 
 def parse_block(table: Any, columns: Columns) -> ParsedRows:
@@ -562,13 +476,16 @@ def parse_block(table: Any, columns: Columns) -> ParsedRows:
     codes, track_ids = track_codes(table.column(columns.track_id))
     column = table.column(columns.time)
     unit = detect_time_unit(column)[0] if columns.time_unit == "auto" else columns.seconds_per_unit
-    time = to_seconds(column, unit)
+    time, dated = to_seconds(column, unit)
+    unlike = unlike_their_track(time, dated, codes)
+    if unlike is not None:
+        time[unlike] = np.nan
     assert columns.position is not None
     parts = [to_float(table.column(name)) for name in columns.position]
     position = np.stack([p[0] for p in parts], axis=1)
     non_numeric = functools.reduce(np.logical_or, [p[1] for p in parts])
     extra = {name: to_float(table.column(name))[0] for name in columns.extra}
-    rows = ParsedRows(codes, track_ids, time, position, extra, non_numeric)
+    rows = ParsedRows(codes, track_ids, time, position, extra, non_numeric, time_unlike=unlike)
     if not columns.geodetic:
         return rows
     from torchsvs.datasets.local_frame import project_rows
@@ -589,4 +506,5 @@ def slice_rows(rows: ParsedRows, start: int, stop: int) -> ParsedRows:
         rows.non_numeric[part],
         rows.reference,
         None if rows.invalid is None else rows.invalid[part],
+        None if rows.time_unlike is None else rows.time_unlike[part],
     )

@@ -141,7 +141,12 @@ def group_rows(rows: ParsedRows, contiguous: bool = False) -> TrackSteps:
     has_id = code >= 0
     has_time = np.isfinite(time)
     report.set_aside["no_track_id"] += R - _count(has_id)
-    report.set_aside["no_time"] += _count(has_id & ~has_time)
+    if rows.time_unlike is None:
+        report.set_aside["no_time"] += _count(has_id & ~has_time)
+    else:
+        unlike = rows.time_unlike
+        report.set_aside["time_unlike_its_track"] += _count(has_id & unlike)
+        report.set_aside["no_time"] += _count(has_id & ~has_time & ~unlike)
     report.notes["non_numeric_value"] += _count(rows.non_numeric)
     if rows.invalid is not None:
         report.notes["invalid_coordinate"] += _count(rows.invalid)
