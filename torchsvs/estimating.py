@@ -46,6 +46,7 @@ from torchsvs.filters.particle import degenerate_share
 from torchsvs.fitting import noise, noise_classes, q_windows
 from torchsvs.fitting.defaults import GUARD_ERRORS, meas_var_range
 from torchsvs.fitting.outliers import screen_outliers
+from torchsvs.fitting.q_kinds import track_kinds
 from torchsvs.models import ConstantVelocity
 from torchsvs.recipes import FILTERS, UPWARD_Q_ONLY, Blend, Settings
 from torchsvs.runs import run_result
@@ -428,7 +429,7 @@ def _q_factors(
     grid = noise.q_factors(settings.q_low)
 
     def choose(curves: noise.QCurves) -> Tensor:
-        factors = noise.track_q_factors(curves, pooled, grid)
+        factors = noise.track_q_factors(curves, pooled, grid, kinds=settings.q_kinds)
         return factors.clamp_min(1.0) if settings.estimator in UPWARD_Q_ONLY else factors
 
     _, factors, runs = noise.q_curve_runs(
@@ -440,6 +441,7 @@ def _q_factors(
         grid,
         choose=choose,
         keep=keep,
+        kinds=None if settings.q_kinds is None else track_kinds(tracks.z, tracks.dt),
     )
     assert factors is not None
     return factors, runs

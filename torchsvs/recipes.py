@@ -159,6 +159,9 @@ class Settings:
     #: or for :data:`FILTERS` the filter, at ``q`` times
     #: :data:`~torchsvs.fitting.noise.Q_FACTORS`); None: one ``q`` for every track
     q_curve: list[float] | None = None
+    #: the tracks' kinds of motion and each kind's curve, which a track's own ``q`` is shrunk
+    #: toward (:meth:`~torchsvs.fitting.noise.QCurves.by_kind`); None: toward ``q_curve``
+    q_kinds: list[list[float]] | None = None
     #: ``q_curve`` and each track's (or step's) ``q`` reach below
     #: :data:`~torchsvs.fitting.noise.Q_FACTORS` (:func:`~torchsvs.fitting.noise.q_factors`):
     #: set where the sample's still targets want less (:func:`~torchsvs.fitting.defaults.

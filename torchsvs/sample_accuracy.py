@@ -208,7 +208,7 @@ def checked_low(settings: Settings, tracks: RecordedTracks) -> Settings:
     where on the same flights at σ 50 and 100 m it gained 1-2%."""
     if not settings.q_low or settings.meas_var is None:
         return settings
-    plain = replace(settings, q_low=False, q_curve=None, q_window=None)
+    plain = replace(settings, q_low=False, q_curve=None, q_kinds=None, q_window=None)
     narrow = with_q_curve(plain, tracks, widen=False)
     gain, _ = sample_terms(narrow, tracks).difference(
         sample_terms(settings, tracks), settings.meas_var

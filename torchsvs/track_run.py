@@ -403,10 +403,13 @@ class TrackRun:
                 "--shared-q for one q"
             )
         own = int((factors != 1.0).sum())
+        kinds = None if self.settings is None else self.settings.q_kinds
         return (
             f"q per track: {own} of {len(factors)} tracks with their own, "
             f"{factors.min():.3g}-{factors.max():.3g}× the file's (median "
-            f"{float(np.median(factors)):.3g}); --shared-q for one q"
+            f"{float(np.median(factors)):.3g})"
+            + (f", shrunk toward their kind's ({len(kinds)} by interval, speed)" if kinds else "")
+            + "; --shared-q for one q"
         )
 
     def summary(self) -> str:
@@ -468,7 +471,8 @@ def settings_line(settings: Settings) -> str:
     what it sets otherwise (the summary file has them all)."""
     fields = asdict(settings)
     blend = fields.pop("blend")
-    hidden = {"q_curve"} | ({"blend_weight"} if blend is None else set())  # (q_curve: 13 numbers)
+    # (q_curve: 13 numbers, q_kinds: 15 a kind)
+    hidden = {"q_curve", "q_kinds"} | ({"blend_weight"} if blend is None else set())
     shown = {k: v for k, v in fields.items() if v is not None and k not in hidden}
     if blend is not None:
         hidden |= {"estimator", "blend", "blend_weight"}

@@ -33,6 +33,7 @@ from torchsvs.fitting.noise import (
 from torchsvs.fitting.noise_classes import classes_of
 from torchsvs.fitting.noise_read import with_noise_read
 from torchsvs.fitting.outliers import AGILITY, outlier_distances, screen_outliers
+from torchsvs.fitting.q_kinds import track_kinds
 from torchsvs.fitting.q_windows import choose_window
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
 
@@ -442,7 +443,7 @@ def noise_class_curves(
         assert each.settings.meas_var is not None
         found = q_curves(part.z, part.dt, each.settings.meas_var, settings.q, smoothed, factors)
         risk[:, rows], counts[rows] = found.risk, found.counts
-    return QCurves(risk, counts)
+    return QCurves(risk, counts, track_kinds(tracks.z, tracks.dt))
 
 
 #: The share of the sample's scored positions, in tracks whose own SURE is least at the lowest
@@ -515,22 +516,28 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks, widen: bool = True)
             return with_q_curve(replace(settings, q_low=True), tracks)
         return None
 
+    def curve_of(found: QCurves) -> Settings:  # the file's curve and its kinds'
+        return replace(settings, q_curve=found.pooled(), q_kinds=found.by_kind(), q_window=None)
+
+    kinds = track_kinds(tracks.z, tracks.dt)
     if settings.own_noise:  # each noise class's curves at its own noise
         curves = noise_class_curves(settings, tracks, smoothed, factors)
         if float(curves.counts.sum()) == 0:
             return settings
-        return lower() or replace(settings, q_curve=curves.pooled(), q_window=None)
+        return lower() or curve_of(curves)
     if settings.estimator != "ks" or not settings.step_q:  # (a window: the smoother's alone)
-        curves = q_curves(tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed, factors)
+        curves = q_curve_runs(
+            tracks.z, tracks.dt, settings.meas_var, settings.q, smoothed, factors, kinds=kinds
+        )[0]
         if float(curves.counts.sum()) == 0:
             return settings
-        return lower() or replace(settings, q_curve=curves.pooled(), q_window=None)
+        return lower() or curve_of(curves)
 
     def choose(found: QCurves) -> Tensor:
-        return track_q_factors(found, found.pooled(), factors)
+        return track_q_factors(found, found.pooled(), factors, kinds=found.by_kind())
 
     curves, _, own = q_curve_runs(
-        tracks.z, tracks.dt, settings.meas_var, settings.q, True, factors, choose, keep=True
+        tracks.z, tracks.dt, settings.meas_var, settings.q, True, factors, choose, True, None, kinds
     )
     if float(curves.counts.sum()) == 0:
         return settings
@@ -547,4 +554,4 @@ def with_q_curve(settings: Settings, tracks: RecordedTracks, widen: bool = True)
     if widen and window is not None and not settings.q_low and lowest[0] >= LOW_EDGE_SHARE:
         # still steps of moving tracks (a car parked between drives) want less there
         return with_q_curve(replace(settings, q_low=True), tracks)
-    return replace(settings, q_curve=curves.pooled(), q_window=window)
+    return replace(curve_of(curves), q_window=window)

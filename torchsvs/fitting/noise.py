@@ -25,6 +25,7 @@ from torchsvs.datasets.priors import prior_tangents
 from torchsvs.estimator import prepare_inputs, threads_for
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.losses import innovation_nll
+from torchsvs.fitting.q_kinds import kind_table, kind_targets
 from torchsvs.kernels import curves
 from torchsvs.models import ConstantVelocity
 from torchsvs.smoothers import RTSSmoother
@@ -303,10 +304,20 @@ class QCurves(NamedTuple):
 
     risk: Tensor  #: [F, B] float64 sums over each track's scored components
     counts: Tensor  #: [B] float64 scored components per track
+    #: [B] int64 each track's kind of motion (:func:`~torchsvs.fitting.q_kinds.track_kinds`),
+    #: where the tracks' own factors are shrunk toward their kinds' curves
+    kinds: Tensor | None = None
 
     def pooled(self) -> list[float]:
         """The mean SURE per scored component of all the tracks, one per factor."""
         return (self.risk.sum(1) / self.counts.sum().clamp_min(1.0)).tolist()
+
+    def by_kind(self) -> list[list[float]] | None:
+        """Each kind's pooled curve (:func:`~torchsvs.fitting.q_kinds.kind_table`), where the
+        tracks' kinds are known and more than one."""
+        if self.kinds is None:
+            return None
+        return kind_table(self.risk, self.counts, self.kinds)
 
 
 class CurveRuns(NamedTuple):
@@ -410,6 +421,7 @@ def q_curve_runs(
     choose: Callable[[QCurves], Tensor] | None = None,
     keep: bool = False,
     inputs: CurveInputs | None = None,
+    kinds: Tensor | None = None,
 ) -> tuple[QCurves, Tensor | None, CurveRuns | None]:
     """:func:`q_curves`; with ``choose`` (a track's curve to its factor, track by track:
     :func:`track_q_factors`) each track's factor ``[B]``, and with ``keep`` the pass at it
@@ -429,7 +441,7 @@ def q_curve_runs(
     every = (q * grid).unsqueeze(0).expand(B, len(factors))
     compiled = curves.sure_risks(z64, dt64, counted, prior.x0, prior.P0, r, every, smoothed)
     if compiled is not None:  # every factor in one pass that writes the sums alone
-        found = QCurves(compiled, counts)
+        found = QCurves(compiled, counts, kinds)
         if choose is None:
             return found, None, None
         factor = choose(found)
@@ -462,7 +474,10 @@ def q_curve_runs(
             del out  # (before the next pass: its buffers are the allocator's again)
         if chosen is None or choose is None:
             return
-        chosen[part] = choose(QCurves(risk[:, part], seen.sum((1, 2)).to(torch.float64)))
+        counts_part = seen.sum((1, 2)).to(torch.float64)
+        chosen[part] = choose(
+            QCurves(risk[:, part], counts_part, None if kinds is None else kinds[part])
+        )
         if runs is None:
             return
         close = torch.isclose(chosen[part].unsqueeze(0), grid.unsqueeze(1), rtol=1e-9, atol=0.0)
@@ -474,7 +489,7 @@ def q_curve_runs(
             runs.position_var[part][pick] = kept[1][pick]
 
     over_chunks(B, T, chunk)
-    return QCurves(risk, counts), chosen, runs
+    return QCurves(risk, counts, kinds), chosen, runs
 
 
 def track_q_factors(
@@ -482,10 +497,12 @@ def track_q_factors(
     pooled: list[float],
     factors: tuple[float, ...] = Q_FACTORS,
     shrink: float = SHRINK_COMPONENTS,
+    kinds: list[list[float]] | None = None,
 ) -> Tensor:
     r"""Each track's factor on the file's ``q``: the minimiser over ``factors`` of its own SURE
-    per component, shrunk toward the file's curve ``pooled`` (:meth:`QCurves.pooled` of the
-    file's tracks),
+    per component, shrunk toward the curve of its kind in ``kinds`` (:meth:`QCurves.by_kind`,
+    itself shrunk toward the file's: :func:`~torchsvs.fitting.q_kinds.kind_targets`), or with
+    no kinds toward the file's curve ``pooled`` (:meth:`QCurves.pooled` of the file's tracks),
 
     .. math::
         c_b(f) = w_b\,rac{S_b(f)}{n_b} + (1 - w_b)\,ar S(f),\qquad
@@ -508,7 +525,8 @@ def track_q_factors(
     n = curves.counts
     weight = n / (n + shrink)
     own = curves.risk / n.clamp_min(1.0)
-    criterion = weight * own + (1.0 - weight) * file_curve.unsqueeze(1)
+    target = kind_targets(curves.kinds, file_curve, kinds)
+    criterion = weight * own + (1.0 - weight) * target
     grid = torch.tensor(factors, dtype=torch.float64)
     chosen = grid[criterion.argmin(0)] / grid[file_curve.argmin()]
     return torch.where(n > 0, chosen, torch.ones_like(chosen))
