@@ -279,6 +279,7 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
 
     from tests.test_noise_estimate import _two_kinds
     from torchsvs.fitting.noise import q_curves, q_factors, track_q_factors
+    from torchsvs.fitting.q_kinds import track_kinds
     from torchsvs.recipes import Settings
     from torchsvs.tracking import track_file
 
@@ -299,8 +300,8 @@ def test_each_track_runs_with_its_own_q_as_if_alone(tmp_path):
     summary = json.loads((tmp_path / "out.summary.json").read_text())
     assert "q_per_track" in summary
     grid = q_factors(settings.q_low)  # (the quiet tracks may want the grid lower)
-    curves = q_curves(z, dt, 400.0, settings.q, True, grid)
-    factors = track_q_factors(curves, settings.q_curve, grid)
+    curves = q_curves(z, dt, 400.0, settings.q, True, grid)._replace(kinds=track_kinds(z, dt))
+    factors = track_q_factors(curves, settings.q_curve, grid, kinds=settings.q_kinds)
     assert factors[:3].max() < 1 and factors[:3].max() < factors[3:].min(), factors.tolist()
     written = [summary["tracks"][f"k{b}"]["q_factor"] for b in range(len(z))]
     assert written == pytest.approx(factors.tolist(), rel=1e-12)
