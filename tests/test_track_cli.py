@@ -399,9 +399,10 @@ def test_the_summary_json_writes_an_unknown_number_as_null():
     assert back["fit"] == {"se": None, "q": 0.25} and back["seconds"] == 1.5
 
 
-def _given_noise_runs(tmp_path) -> dict[str, dict]:
-    """``track --estimator ks --meas-std`` at σ (10 m) and twice σ on 16 simulated tracks: each
-    run's summary, with its true 2-D RMSE (``true``) and the raw measurements' (``raw``)."""
+def _given_noise_runs(tmp_path, levels: tuple[str, ...] = ("10", "20")) -> dict[str, dict]:
+    """``track --estimator ks --meas-std`` at σ (10 m) and twice σ (or ``levels``) on 16
+    simulated tracks: each run's summary, with its true 2-D RMSE (``true``) and the raw
+    measurements' (``raw``)."""
     import json
 
     from torchsvs.track_run import summary_path
@@ -409,7 +410,7 @@ def _given_noise_runs(tmp_path) -> dict[str, dict]:
     source = tmp_path / "in.csv"
     truth = _simulated_csv(source, tracks=16, steps=120, sigma=10.0)
     found = {}
-    for given in ("10", "20"):
+    for given in levels:
         target = tmp_path / f"out{given}.csv"
         _run_simulated(source, target, "--estimator", "ks", "--meas-std", given)
         found[given] = json.loads(summary_path(target).read_text())
@@ -443,6 +444,24 @@ def test_a_noise_given_too_high_gives_no_error_estimate_of_zero_but_a_warning(
     assert "noise given ([20, 20] m)" in warning and "1σ" in warning
     bound = float(warning.split("(about [")[1].split(",")[0])
     assert 10.0 < bound < 20.0
+
+
+def test_a_noise_given_well_below_what_the_data_show_is_said_so(tmp_path):
+    """σ 10 m given as 5: the smoother follows the measurements, and SURE at the noise given
+    counted too little of what is left in them (drones with gaps at σ 20 m given as 10: 13.2 m
+    [13.18, 13.23] for a true 25.2 m, without a word). Now the run warns and makes its error
+    estimate at the data's reading, its range reaching the noise given; at σ, neither."""
+    found = _given_noise_runs(tmp_path, ("10", "5"))
+    right, low = found["10"], found["5"]
+    assert right["settings"]["noise_below_data"] is None
+    assert not any("well below what the data show" in w for w in right["warnings"])
+    (warning,) = [w for w in low["warnings"] if "well below what the data show" in w]
+    assert "given as [5, 5] m" in warning and "1σ" in warning
+    read = low["settings"]["noise_below_data"]
+    assert all(8.0 < s < 13.0 for s in read) and low["meas_std"] == read
+    assert 0.8 < low["estimated_position_rmse"] / low["true"] < 1.25
+    bottom, top = low["estimated_position_rmse_interval"]
+    assert bottom <= low["true"] <= top * 1.05
 
 
 def test_a_noise_given_above_what_the_data_show_is_said_so(tmp_path):

@@ -152,6 +152,9 @@ class Settings:
     #: where the noise was given and is above what the data show (a bound given as σ), the
     #: noise per axis read off them (:func:`~torchsvs.fitting.defaults.checked_given_noise`)
     noise_above_data: list[float] | None = None
+    #: where the noise was given and is well below what the data show (half the sensor's σ,
+    #: or motion the model reads as noise), the noise per axis read off them (the same check)
+    noise_below_data: list[float] | None = None
     #: each track its own ``q`` (the file's times a factor its SURE picks, shrunk toward the
     #: file's: :func:`~torchsvs.fitting.noise.track_q_factors`), where ``q`` is not given
     track_q: bool = True
@@ -434,3 +437,12 @@ def make_estimator(settings: Settings, model: ConstantVelocity) -> Estimator | B
     if name == "svss":
         return SVSS(svsf, lag=settings.smoother_lag)
     return RTSSmoother(svsf, lag=settings.smoother_lag)
+
+
+def short(value: Any) -> str:
+    """A setting's value as the run's lines show it (floats to 4 digits)."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(short(v) for v in value) + "]"
+    return str(value)

@@ -36,7 +36,14 @@ from torchsvs.fitting.defaults import (
 )
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.fitting.tuning import self_tune
-from torchsvs.recipes import NOISE_READ, Settings, compute_dtype, make_estimator, make_model
+from torchsvs.recipes import (
+    NOISE_READ,
+    Settings,
+    compute_dtype,
+    make_estimator,
+    make_model,
+    short,
+)
 from torchsvs.sample_accuracy import (
     anchored_fit,
     checked_low,
@@ -44,7 +51,6 @@ from torchsvs.sample_accuracy import (
     with_track_noise,
 )
 from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator, kalman_twin
-from torchsvs.track_run import short
 
 #: ``precision`` of the estimates written: ``"auto"`` is float32 where it keeps positions to
 #: :data:`POSITION_RESOLUTION` of the measurement noise (:func:`output_precision`).

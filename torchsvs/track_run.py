@@ -20,16 +20,12 @@ from torchsvs.datasets.steps import as_rows
 from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
-from torchsvs.fitting.noise_read import within_warning
+from torchsvs.fitting.noise_read import noise_warnings
 from torchsvs.fitting.outliers import has_gross_errors
-from torchsvs.recipes import Settings
+from torchsvs.recipes import Settings, short
 
 #: Share of a particle filter's steps with a degenerate sample above which a run warns.
 DEGENERATE_WARNING = 0.3
-#: Between-track spread of the noise read off the data (relative) above which a run warns:
-#: 0.27 on gliders and survey aircraft at 6-33 s reports, at most 0.12 on the benchmark's other
-#: recorded kinds (``experiments/results/recorded_tracks.md``).
-NOISE_SPREAD_WARNING = 0.2
 #: Per-track error estimates a run keeps beyond this many tracks: the worst this many.
 TRACKS_KEPT = 10_000
 #: The error estimate is called uncertain where its interval reaches beyond this many times the
@@ -154,9 +150,9 @@ class TrackRun:
         if self.risk is None or self.settings is None or self.risk.points == 0:
             return None
         assert self.settings.meas_var is not None
-        above = self.settings.noise_above_data
-        if above is not None:  # a given noise above the data's: at their reading, up to it
-            read = [s * s for s in above]
+        unlike = self.settings.noise_above_data or self.settings.noise_below_data
+        if unlike is not None:  # a given noise unlike the data's: at their reading, to it
+            read = [s * s for s in unlike]
             return accuracy_of(self.risk, read, True, (read, list(self.settings.meas_var)))
         return accuracy_of(
             self.risk,
@@ -255,31 +251,7 @@ class TrackRun:
                 "estimate rests on a few particles or the regularised Gaussian; try more "
                 "--particles or --estimator ks"
             )
-        spread = self.settings.noise_spread
-        own = self.settings.track_noise
-        changes = within_warning(self.settings)
-        if changes is not None:
-            self.warnings.append(changes)
-        if own is not None:
-            self.warnings.append(
-                f"measurement noise: read off each track alone it differs between tracks by "
-                f"about {own[1]:.0%}, more than their own uncertainty: each track ran at its own "
-                "reading (shrunk towards the file's), and the error estimate rests on those "
-                "readings; where the sensor states each row's accuracy, give it with --noise-col "
-                "(a column of its standard deviation)"
-            )
-        elif self.settings.noise == "data" and spread is not None and spread > NOISE_SPREAD_WARNING:
-            self.warnings.append(
-                f"measurement noise: read off each track alone it differs between tracks by "
-                f"about {spread:.0%}, more than their own uncertainty: one noise level does not "
-                "fit every track (different sensors, or motion the model does not follow at "
-                "these report times), and the error estimate rests on it; give --meas-std with "
-                "the sensor's noise if known, and where the tracks come from sensors of "
-                "different quality, each row's with --noise-col (a column of its standard "
-                "deviation) or each sensor's tracks apart with its own: one noise for all fits "
-                "none (on tracks whose noise spans a third to three times the file's, the "
-                "estimates came out at 0.6-1.0 of the measurements' error)"
-            )
+        self.warnings += noise_warnings(self.settings, found.meas_std)
         apart = self.settings.axis_q
         if apart is not None:
             self.warnings.append(
@@ -291,27 +263,6 @@ class TrackRun:
                 "1.4 times its own, its 95% intervals holding 75%); for the best of each, "
                 "estimate them apart (one run with --pos-cols of the horizontal axes, one of "
                 "the altitude)"
-            )
-        above = self.settings.noise_above_data
-        if above is not None and self.settings.meas_var is not None:
-            self.warnings.append(
-                f"measurement noise: given as {short([v**0.5 for v in self.settings.meas_var])} "
-                f"m, above what the data show (read off them: {short(above)} m; motion only "
-                "raises that reading): a bound given as the standard deviation, errors "
-                "correlated from report to report, or errors with heavy tails (the reading "
-                "counts their Gaussian core); the estimates smooth more than the data "
-                "need, and the error estimate is made at the reading, its range reaching the "
-                "noise given; give --meas-std as the sensor's 1σ, or leave it out to read it "
-                "off the data"
-            )
-        lowered = self.settings.noise_lowered_from
-        if lowered is not None:
-            self.warnings.append(
-                f"measurement noise: read off the data as {short(lowered)} m, at which the "
-                f"Kalman smoother was not clearly below the measurements over that reading's "
-                f"uncertainty; ran at its low end, {short(found.meas_std)} m (a noise read too "
-                "high smooths away motion the model does not follow); give --meas-std with the "
-                "sensor's noise if known"
             )
         gross = gross_errors(self.report)
         if gross is not None:
@@ -480,14 +431,6 @@ def settings_line(settings: Settings) -> str:
         inner = ", ".join(f"{k}={short(v)}" for k, v in own.items() if v != fields.get(k))
         shown["blend"] = f"{blend['estimator']}({inner})"
     return ", ".join(f"{k}={short(v)}" for k, v in shown.items())
-
-
-def short(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    if isinstance(value, list):
-        return "[" + ", ".join(short(v) for v in value) + "]"
-    return str(value)
 
 
 def uncertain_estimate(found: Accuracy, exact: bool = True) -> str | None:

@@ -25,7 +25,7 @@ from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
 from torchsvs.datasets.noise_estimate import NoiseFreeError
 from torchsvs.datasets.track_noise import PIECE_POINTS, within_spread
 from torchsvs.fitting.noise_classes import column_noise
-from torchsvs.recipes import Settings
+from torchsvs.recipes import Settings, short
 
 #: The noise read on pieces of the tracks (:func:`~torchsvs.datasets.track_noise.within_spread`)
 #: changes within them beyond this spread of ``log σ``: the file's noise is then the mean of the
@@ -119,3 +119,73 @@ def within_warning(settings: Settings) -> str | None:
         "stretch's; where the sensor's noise changes (a new receiver, a mode switch), "
         "estimate each stretch apart with --meas-std of its own"
     )
+
+
+#: Between-track spread of the noise read off the data (relative) above which a run warns:
+#: 0.27 on gliders and survey aircraft at 6-33 s reports, at most 0.12 on the benchmark's other
+#: recorded kinds (``experiments/results/recorded_tracks.md``).
+NOISE_SPREAD_WARNING = 0.2
+
+
+def noise_warnings(settings: Settings, run_std: Sequence[float]) -> list[str]:
+    """The run's warnings on its measurement noise (``run_std`` the noise its error estimate
+    was made at): changing within the tracks, differing between them, given above or well
+    below what the data show, or lowered from the reading."""
+    out: list[str] = []
+    spread = settings.noise_spread
+    own = settings.track_noise
+    changes = within_warning(settings)
+    if changes is not None:
+        out.append(changes)
+    if own is not None:
+        out.append(
+            f"measurement noise: read off each track alone it differs between tracks by "
+            f"about {own[1]:.0%}, more than their own uncertainty: each track ran at its own "
+            "reading (shrunk towards the file's), and the error estimate rests on those "
+            "readings; where the sensor states each row's accuracy, give it with --noise-col "
+            "(a column of its standard deviation)"
+        )
+    elif settings.noise == "data" and spread is not None and spread > NOISE_SPREAD_WARNING:
+        out.append(
+            f"measurement noise: read off each track alone it differs between tracks by "
+            f"about {spread:.0%}, more than their own uncertainty: one noise level does not "
+            "fit every track (different sensors, or motion the model does not follow at "
+            "these report times), and the error estimate rests on it; give --meas-std with "
+            "the sensor's noise if known, and where the tracks come from sensors of "
+            "different quality, each row's with --noise-col (a column of its standard "
+            "deviation) or each sensor's tracks apart with its own: one noise for all fits "
+            "none (on tracks whose noise spans a third to three times the file's, the "
+            "estimates came out at 0.6-1.0 of the measurements' error)"
+        )
+    above = settings.noise_above_data
+    if above is not None and settings.meas_var is not None:
+        out.append(
+            f"measurement noise: given as {short([v**0.5 for v in settings.meas_var])} "
+            f"m, above what the data show (read off them: {short(above)} m; motion only "
+            "raises that reading): a bound given as the standard deviation, errors "
+            "correlated from report to report, or errors with heavy tails (the reading "
+            "counts their Gaussian core); the estimates smooth more than the data "
+            "need, and the error estimate is made at the reading, its range reaching the "
+            "noise given; give --meas-std as the sensor's 1σ, or leave it out to read it "
+            "off the data"
+        )
+    below = settings.noise_below_data
+    if below is not None and settings.meas_var is not None:
+        out.append(
+            f"measurement noise: given as {short([v**0.5 for v in settings.meas_var])} "
+            f"m, well below what the data show (read off them: {short(below)} m): the "
+            "estimates follow the measurements more than the data need, and the error "
+            "estimate is made at the reading, its range reaching the noise given (motion "
+            "between sparse reports also raises the reading); give --meas-std as the "
+            "sensor's 1σ, or leave it out to read it off the data"
+        )
+    lowered = settings.noise_lowered_from
+    if lowered is not None:
+        out.append(
+            f"measurement noise: read off the data as {short(lowered)} m, at which the "
+            f"Kalman smoother was not clearly below the measurements over that reading's "
+            f"uncertainty; ran at its low end, {short(run_std)} m (a noise read too "
+            "high smooths away motion the model does not follow); give --meas-std with the "
+            "sensor's noise if known"
+        )
+    return out
