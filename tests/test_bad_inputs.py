@@ -570,6 +570,30 @@ def test_a_date_among_a_tracks_seconds_is_set_aside_where_it_cannot_be_placed(tm
     assert "set aside, time_unlike_its_track: 1" in err and np.isnan(velocity[5])
 
 
+def test_times_too_coarse_as_short_floats_are_named(tmp_path, capsys):
+    """Epoch seconds stored as 32-bit floats are 128 s apart near 1.7e9: rows a second apart
+    shared times and were merged, and the estimates came out 200 times the measurements' error
+    without a word. The run names the column, its resolution and what to store instead; the
+    same times as 64-bit floats, or 32-bit floats from 0, read without it."""
+    ids, _, _, z = _tracks(tracks=2, steps=60)
+    seconds = np.tile(np.arange(60.0) * 10.0, 2)  # (10 s apart: 13 times of 128 s left)
+    for name, times, named in (
+        ("epoch32", pa.array(1.7e9 + seconds, pa.float32()), True),
+        ("epoch64", pa.array(1.7e9 + seconds, pa.float64()), False),
+        ("small32", pa.array(seconds, pa.float32()), False),
+    ):
+        table = pa.table({"track_id": ids, "time": times, "x": z[:, 0], "y": z[:, 1]})
+        pq.write_table(table, tmp_path / f"{name}.parquet")
+        code, err = _track(
+            capsys, tmp_path / f"{name}.parquet", "-o", tmp_path / f"{name}.csv", "--meas-std", "30"
+        )
+        assert code == 0
+        found = re.search(
+            r"time: column 'time' holds 32-bit floats: near 1\.7e\+09 they are 128 s", err
+        )
+        assert bool(found) == named, err
+
+
 def test_a_file_without_any_usable_time_is_refused(tmp_path, capsys):
     source = _csv(tmp_path / "a.csv", "track_id,time,x,y", [("a", "soon", 1, 2), ("a", "", 3, 4)])
     _refused(

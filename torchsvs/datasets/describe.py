@@ -5,6 +5,7 @@ be what was meant (degrees read as metres, milliseconds read as seconds)."""
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -196,6 +197,9 @@ def _describe(
                 f"time: the typical interval between a track's rows is {interval:.4g} s; if the "
                 "times are milliseconds, pass --time-unit ms"
             )
+    coarse = _coarse_times(table.column(cols.time), cols, interval, steps)
+    if coarse is not None:
+        notes.append(coarse)
     constant = [
         label
         for j, label in enumerate(cols.position)
@@ -214,6 +218,37 @@ def _typical_interval(steps: TrackSteps) -> float:
     """The median interval between successive steps of a track (NaN without any)."""
     dt = np.diff(steps.time)[_within_track(steps)]
     return float(np.median(dt)) if len(dt) else float("nan")
+
+
+#: A time column of short floats is named where its resolution at its largest value is this
+#: share of the typical interval or more.
+COARSE_TIME_SHARE = 0.1
+
+
+def _coarse_times(column: Any, cols: Columns, interval: float, steps: TrackSteps) -> str | None:
+    """A note where the times are 16- or 32-bit floats too coarse for the intervals between
+    rows: 1.7e9 s since 1970 as float32 are 128 s apart, so rows a second apart shared times
+    and were merged, and the estimates came out 200 times the measurements' error."""
+    import pyarrow as pa
+
+    if not (pa.types.is_float32(column.type) or pa.types.is_float16(column.type)):
+        return None
+    values = to_float(column)[0]
+    values = np.abs(values[np.isfinite(values)])
+    if not len(values):
+        return None
+    bits, dtype = (32, np.float32) if pa.types.is_float32(column.type) else (16, np.float16)
+    spacing = float(np.spacing(dtype(values.max()))) * cols.seconds_per_unit
+    step = interval if np.isfinite(interval) and interval > 0 else math.inf
+    if spacing < COARSE_TIME_SHARE * step:
+        return None
+    return (
+        f"time: column {cols.time!r} holds {bits}-bit floats: near {values.max():.4g} "
+        f"they are {spacing:.3g} s apart, against a typical interval of {interval:.3g} s "
+        f"between a track's rows ({steps.report.notes['duplicate_time']} rows shared a time "
+        "and were merged): the times cannot place the rows; store them as 64-bit floats or "
+        "integers, or as times from a nearer start"
+    )
 
 
 def _look_like_degrees(steps: TrackSteps) -> bool:
