@@ -451,8 +451,13 @@ def test_a_noise_given_well_below_what_the_data_show_is_said_so(tmp_path):
     counted too little of what is left in them (drones with gaps at σ 20 m given as 10: 13.2 m
     [13.18, 13.23] for a true 25.2 m, without a word). Now the run warns and makes its error
     estimate at the data's reading, its range reaching the noise given; at σ, neither."""
-    found = _given_noise_runs(tmp_path, ("10", "5"))
-    right, low = found["10"], found["5"]
+    found = _given_noise_runs(tmp_path, ("10", "5", "8"))
+    right, low, near = found["10"], found["5"], found["8"]
+    # 0.8 times σ: no warning, the estimate at the noise given, its range reaching the reading's
+    assert near["settings"]["noise_below_data"] is not None and near["meas_std"] == [8.0, 8.0]
+    assert not any("well below what the data show" in w for w in near["warnings"])
+    bottom, top = near["estimated_position_rmse_interval"]
+    assert bottom <= near["true"] <= top * 1.05
     assert right["settings"]["noise_below_data"] is None
     assert not any("well below what the data show" in w for w in right["warnings"])
     (warning,) = [w for w in low["warnings"] if "well below what the data show" in w]

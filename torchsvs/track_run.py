@@ -20,7 +20,7 @@ from torchsvs.datasets.steps import as_rows
 from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
-from torchsvs.fitting.noise_read import noise_warnings
+from torchsvs.fitting.noise_read import noise_warnings, well_below_data
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.recipes import Settings, short
 
@@ -150,10 +150,13 @@ class TrackRun:
         if self.risk is None or self.settings is None or self.risk.points == 0:
             return None
         assert self.settings.meas_var is not None
-        unlike = self.settings.noise_above_data or self.settings.noise_below_data
+        settings, given = self.settings, list(self.settings.meas_var)
+        unlike = settings.noise_above_data or settings.noise_below_data
         if unlike is not None:  # a given noise unlike the data's: at their reading, to it
             read = [s * s for s in unlike]
-            return accuracy_of(self.risk, read, True, (read, list(self.settings.meas_var)))
+            if settings.noise_below_data is not None and not well_below_data(settings):
+                return accuracy_of(self.risk, given, False, (given, read))  # (at it, to theirs)
+            return accuracy_of(self.risk, read, True, (read, given))
         return accuracy_of(
             self.risk,
             self.settings.meas_var,

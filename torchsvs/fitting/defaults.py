@@ -288,12 +288,6 @@ GIVEN_CHECK_POINTS = 2000
 #: standard errors. Motion only raises the reading: given at σ on 63 sets of every kind at
 #: σ 3-250 m, none is above it; given at 1.5σ, 50 are, at 2σ 54.
 GIVEN_CHECK_ERRORS = 3.0
-#: ... and is below what the data show where that reading is also this many times it (and
-#: :data:`GIVEN_CHECK_ERRORS` standard errors above it). Motion raises the reading: on the 20
-#: white-noise sets of the recorded and kinds benchmarks it is at most 1.21 times the noise
-#: (own report times, σ 10 m); given at half the noise, the Kalman smoother estimated its error
-#: 13.2 m [13.18, 13.23] for a true 25.2 m (drones with gaps, σ 20 m), without a word.
-GIVEN_BELOW_RATIO = 1.5
 
 
 def checked_given_noise(settings: Settings, tracks: RecordedTracks) -> Settings:
@@ -304,9 +298,10 @@ def checked_given_noise(settings: Settings, tracks: RecordedTracks) -> Settings:
     noise given, comes out low without being below zero (10 s scans, σ 10 m given as 20: 11.6 m
     estimated for 15.7 m): the run warns, and makes its error estimate at the reading, its
     range reaching the noise given (:attr:`~torchsvs.track_run.TrackRun.accuracy`). With
-    ``noise_below_data`` the same where the noise given is well below the reading
-    (:data:`GIVEN_BELOW_RATIO`): the estimates follow the measurements more than the data need,
-    and SURE at the noise given counts too little of the noise left in them."""
+    ``noise_below_data`` where the noise given is below the reading: the estimates follow the
+    measurements more than the data need, and SURE at the noise given counts too little of the
+    noise left in them; the error estimate's range reaches the estimate at the reading, and
+    where it is well below (:func:`well_below_data`) the same as above."""
     if settings.meas_var is None or settings.noise not in (None, "given"):
         return settings
     variances, m = settings.meas_var, tracks.z.shape[-1]
@@ -324,7 +319,7 @@ def checked_given_noise(settings: Settings, tracks: RecordedTracks) -> Settings:
     se = read.meas_std_se.double().tolist()
     levels = list(zip(given, std, se, strict=True))
     above = any(g > s + GIVEN_CHECK_ERRORS * e for g, s, e in levels)
-    below = any(s > max(GIVEN_BELOW_RATIO * g, g + GIVEN_CHECK_ERRORS * e) for g, s, e in levels)
+    below = any(s > g + GIVEN_CHECK_ERRORS * e for g, s, e in levels)
     if not (above or below):
         return settings
     # the error estimate is made at the reading: read off the whole sample, as any run's noise
