@@ -42,7 +42,6 @@ from torchsvs.accuracy import PROBE_STEP, draw_probe, risk_terms
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets.tracks import RecordedTracks, read_tracks, with_prior
 from torchsvs.error_references import reference_for
-from torchsvs.estimating import centred
 from torchsvs.evaluation import markdown_table
 from torchsvs.filters import KalmanFilter
 from torchsvs.fitting.batches import batch_loss, recorded_batches
@@ -51,6 +50,7 @@ from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, make_estimator, make_model
 from torchsvs.runs import run_result
 from torchsvs.smoothers import SVSS
+from torchsvs.step_estimates import centred
 
 #: The sets (kind, σ m) the network is trained and scored on.
 SETS = (

@@ -52,7 +52,6 @@ from experiments.flight_data import load_flights, noisy, score, split
 from torchsvs.datasets import RecordedTracks, padded_batch, with_prior
 from torchsvs.datasets.flights import FlightReport, flight_steps
 from torchsvs.datasets.rows import RowReport
-from torchsvs.estimating import centred
 from torchsvs.evaluation import markdown_table
 from torchsvs.fitting.defaults import (
     IMM_QUIET,
@@ -67,6 +66,7 @@ from torchsvs.kernels import build, eager_loops
 from torchsvs.metrics import pooled_rmse
 from torchsvs.recipes import Settings, make_estimator, make_model, rule_of_thumb_psi
 from torchsvs.runs import run_estimator
+from torchsvs.step_estimates import centred
 
 #: The IMM's rows in the held-out table start with this label.
 IMM_LABEL = "IMM(CV, CT)"

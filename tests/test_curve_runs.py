@@ -12,10 +12,11 @@ import torch
 
 from torchsvs import estimating
 from torchsvs.datasets import RecordedTracks
-from torchsvs.estimating import GroupBatch, centred, estimate_group
+from torchsvs.estimating import estimate_group
 from torchsvs.fitting import noise
 from torchsvs.fitting.noise import q_curves, smoother_q
 from torchsvs.recipes import Settings, make_estimator, make_model
+from torchsvs.step_estimates import GroupBatch, StepEstimates, centred
 
 SIGMA = 20.0
 
@@ -60,7 +61,7 @@ def _settings(tracks: RecordedTracks, name: str) -> Settings:
     return Settings(name, meas_var=r, q=q, q_curve=curve, outliers=True, outlier_q=q)
 
 
-def _flat(found: estimating.StepEstimates) -> tuple[np.ndarray, np.ndarray]:
+def _flat(found: StepEstimates) -> tuple[np.ndarray, np.ndarray]:
     order = np.argsort(found.steps)
     return found.steps[order], found.mean[order]
 

@@ -273,7 +273,7 @@ def test_shortcuts_of_a_group_equal_their_general_paths():
     from torchsvs.datasets import priors
     from torchsvs.datasets.steps import RowReport, TrackSteps, as_rows, median_interval
     from torchsvs.datasets.tracks import padded_batch
-    from torchsvs.estimating import centred
+    from torchsvs.step_estimates import centred
 
     rng = np.random.default_rng(3)
     K, T = 30, 12

@@ -9,9 +9,9 @@ import torch
 from torchsvs.datasets import padded_batch, with_prior
 from torchsvs.datasets.adsb import sample_files, samples_dir
 from torchsvs.datasets.flights import flight_steps
-from torchsvs.estimating import centred
 from torchsvs.fitting.defaults import complete_settings
 from torchsvs.recipes import Settings, make_estimator, make_model
+from torchsvs.step_estimates import centred
 
 try:
     samples_dir()

@@ -13,7 +13,6 @@ import torch
 import torchsvs as ts
 from tests.conftest import assert_close
 from torchsvs.datasets import RecordedTracks, with_prior
-from torchsvs.estimating import centred
 from torchsvs.fitting.defaults import complete_settings
 from torchsvs.kernels import eager_loops, general_path
 from torchsvs.recipes import (
@@ -26,6 +25,7 @@ from torchsvs.recipes import (
     rule_of_thumb_psi,
 )
 from torchsvs.runs import run_estimator
+from torchsvs.step_estimates import centred
 
 FIELDS = ("mean", "cov", "pred_cov", "innovation", "gain", "post_innovation", "innovation_cov")
 
@@ -692,9 +692,10 @@ def test_the_layer_check_compares_with_each_tracks_own_q_as_the_run_runs():
     import numpy as np
 
     from tests.conftest import simulate_cv
-    from torchsvs.estimating import GroupBatch, estimate_group, settings_q_factors
+    from torchsvs.estimating import estimate_group, settings_q_factors
     from torchsvs.fitting.defaults import with_q_curve
     from torchsvs.sample_accuracy import probed_terms, sample_terms
+    from torchsvs.step_estimates import GroupBatch
 
     gen = torch.Generator().manual_seed(4)
     B, T = 12, 120

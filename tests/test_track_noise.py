@@ -346,3 +346,46 @@ def test_each_tracks_own_noise_is_not_taken_where_it_leaves_the_smoother_near_th
         return float(np.sqrt(((frame[["x", "y"]] - truth[["x", "y"]]) ** 2).sum(axis=1).mean()))
 
     assert rmse(out) <= 1.02 * rmse(bench.measurements)
+
+
+def test_tracks_that_repeat_one_position_tell_no_noise_and_no_error(tmp_path):
+    """A parked beacon repeats its one position exactly: 40% of a file's tracks doing so made
+    the noise read 1e-13 m for 5 m (the differences' Gaussian core is theirs), nothing was
+    smoothed (the moving tracks at their measurements' error) and the error estimate was
+    1e-11 m. They are left out of reading the noise and of the error estimate, and counted."""
+    import pandas as pd
+
+    from torchsvs.datasets import Columns, estimate_noise
+    from torchsvs.tracking import track_file
+
+    rng = np.random.default_rng(3)
+    steps, rows, truth = 200, [], []
+    for b in range(30):
+        t = np.arange(steps, dtype=float)
+        if b < 12:  # parked: one position, reported exactly
+            path = np.repeat(rng.uniform(-1e4, 1e4, (1, 2)), steps, 0)
+            z = path.copy()
+        else:
+            heading = rng.uniform(0, 2 * np.pi) + np.cumsum(rng.normal(0, 0.02, steps))
+            path = np.cumsum(10.0 * np.stack([np.cos(heading), np.sin(heading)], 1), 0)
+            z = path + rng.normal(0, 5.0, path.shape)
+        rows.append(pd.DataFrame({"id": f"k{b}", "t": t, "x": z[:, 0], "y": z[:, 1]}))
+        truth.append(path)
+    frame = pd.concat(rows, ignore_index=True)
+    z = torch.tensor(np.stack([f[["x", "y"]].to_numpy() for f in rows]))
+    read = estimate_noise(z, torch.ones(z.shape[:2], dtype=torch.float64))
+    assert all(4.5 < v**0.5 < 5.5 for v in read.meas_var.tolist())
+    source, target = tmp_path / "parked.csv", tmp_path / "out.csv"
+    frame.to_csv(source, index=False)
+    run = track_file(
+        source, target, Settings("ks"), columns=Columns(track_id="id", time="t"), progress=False
+    )
+    assert run.report.notes["tracks_still"] == 12
+    out = pd.read_csv(target)[["x", "y"]].to_numpy().reshape(30, steps, 2)
+    moving = np.sqrt(((out[12:] - np.stack(truth[12:])) ** 2).sum(-1).mean())
+    raw = np.sqrt(((z[12:].numpy() - np.stack(truth[12:])) ** 2).sum(-1).mean())
+    assert moving < 0.6 * raw
+    found = run.accuracy
+    assert found is not None
+    low, high = found.interval
+    assert low <= moving <= high  # (the estimate is the moving tracks')

@@ -317,7 +317,7 @@ def test_steps_no_group_placed_are_written_empty(placed_by_its_thread):
     ``place`` on the group's thread, then counted by ``add(placed=True)``, as ``estimate_block``
     does); a step that no group placed comes out NaN, never what the memory held, in the
     arrays once finished and in the output table whether finished or not."""
-    from torchsvs.estimating import StepEstimates
+    from torchsvs.step_estimates import StepEstimates
     from torchsvs.track_run import BlockEstimates
 
     table = pa.table(

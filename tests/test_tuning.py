@@ -11,10 +11,10 @@ import torchsvs as ts
 from tests.conftest import assert_close, simulate_cv
 from torchsvs.datasets import RecordedTracks, with_prior
 from torchsvs.datasets.tracks import windows
-from torchsvs.estimating import centred
 from torchsvs.fitting.defaults import complete_settings
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import Settings, make_estimator, make_model
+from torchsvs.step_estimates import centred
 from torchsvs.training import EstimatorModule, RecordedTracksDataModule
 from torchsvs.training.quiet import tool_trainer
 

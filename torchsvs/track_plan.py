@@ -23,6 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
+from torchsvs.datasets.noise_estimate import changing_tracks
 from torchsvs.datasets.tables import SAMPLE_TRACKS, block_of
 from torchsvs.datasets.tracks import padded_batch
 from torchsvs.datasets.writing import OUTPUT_TYPES
@@ -46,6 +47,7 @@ from torchsvs.recipes import (
 )
 from torchsvs.sample_accuracy import (
     anchored_fit,
+    checked_below,
     checked_low,
     lowered_noise,
     with_track_noise,
@@ -254,6 +256,9 @@ def prepare_estimator(
     given = settings
     say = say or (lambda _: None)
     sample = padded_batch(steps, _sample_tracks(steps, fit_options), torch.float64)
+    moving = changing_tracks(sample.z)
+    if bool(moving.any()) and not bool(moving.all()):  # (still tracks tell no noise, no q)
+        sample = sample.subset(moving.nonzero()[:, 0])
     open_q = settings.q is None
     options = dict(fit_options or {})
     options.pop("tracks", None)
@@ -283,6 +288,8 @@ def prepare_estimator(
     settings, clean, summary = _settled(
         settings, sample, fit, options, say, own, own and open_q, screen
     )
+    if checkpoint is None:
+        settings = checked_below(settings, clean)
     if open_q and checkpoint is None:
         settings = axes_q(checked_low(with_q_curve(settings, clean), clean), clean)
     estimator = make_estimator(settings, make_model(settings))

@@ -17,12 +17,12 @@ from torchsvs.accuracy import Accuracy, RiskTerms, RiskTotals
 from torchsvs.accuracy import accuracy as accuracy_of
 from torchsvs.datasets import RowReport, TrackBlock, TrackSteps, estimate_table
 from torchsvs.datasets.steps import as_rows
-from torchsvs.estimating import StepEstimates
 from torchsvs.filters.particle import DEGENERATE_SHARE
 from torchsvs.fitting.defaults import meas_var_range
 from torchsvs.fitting.noise_read import noise_warnings, well_below_data
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.recipes import Settings, short
+from torchsvs.step_estimates import StepEstimates
 
 #: Share of a particle filter's steps with a degenerate sample above which a run warns.
 DEGENERATE_WARNING = 0.3

@@ -24,7 +24,8 @@ from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import TrackBlock
 from torchsvs.datasets.tables import block_of, is_pandas
 from torchsvs.datasets.writing import output_names
-from torchsvs.estimating import StepEstimates, estimate_group, group_batch
+from torchsvs.estimating import estimate_group
+from torchsvs.step_estimates import StepEstimates, group_batch
 from torchsvs.track_plan import TrackPlan, precision_warning
 from torchsvs.track_run import BlockEstimates, TrackRun
 

@@ -70,6 +70,9 @@ NOTES = {
     "particle_steps": "steps a particle filter weighed a measurement at",
     "particle_steps_degenerate": "of those, steps whose effective sample size fell below a tenth "
     "of the particles (torchsvs.filters.particle.degenerate_share)",
+    "tracks_still": "tracks (not rows) that repeat one position throughout (a parked beacon, a "
+    "receiver holding its fix): estimated as that position; their error cannot be read off "
+    "them, and they are left out of the error estimate and of reading the settings",
     "tracks_axis_never_observed": "tracks (not rows) never observing an axis: their estimates "
     "there are NaN",
     "invalid_coordinate": "a latitude outside ±90° or a longitude outside -180° to 360°, or a "

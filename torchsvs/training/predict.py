@@ -34,8 +34,9 @@ from torch.utils.data import DataLoader, Dataset
 
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
-from torchsvs.estimating import GroupBatch, StepEstimates, estimate_group, group_batch
+from torchsvs.estimating import estimate_group
 from torchsvs.recipes import Settings
+from torchsvs.step_estimates import GroupBatch, StepEstimates, group_batch
 from torchsvs.track_plan import TrackPlan, plan_tracks
 from torchsvs.track_run import BlockEstimates, TrackRun, summary_path, write_summary
 from torchsvs.training.quiet import quiet_lightning, tool_trainer
@@ -43,7 +44,7 @@ from torchsvs.training.quiet import quiet_lightning, tool_trainer
 
 class TrackGroups(Dataset["GroupBatch | None"]):
     """The groups of a block's tracks (:meth:`~torchsvs.datasets.TrackSteps.batches`), each
-    item one estimator call: the group padded and centred (:func:`~torchsvs.estimating.
+    item one estimator call: the group padded and centred (:func:`~torchsvs.step_estimates.
     group_batch`), ``z [B, T, m]`` in ``dtype``. Items past the last group (up to ``length``)
     are ``None``: Lightning's distributed sampler needs an item for every process."""
 
@@ -81,7 +82,7 @@ class TrackFileDataModule(L.LightningDataModule):
         max_cells: padded steps (``B × T``) per group, as in
             :func:`~torchsvs.tracking.track_file`.
 
-    Its batches are float64 (padded and centred as :func:`~torchsvs.estimating.group_batch`
+    Its batches are float64 (padded and centred as :func:`~torchsvs.step_estimates.group_batch`
     does); :class:`TrackPredictor` casts them to its estimator's dtype, as ``track_file`` casts
     once (the IMM runs in float64 whatever dtype is asked for, and a float32 batch cast up
     would have lost the digits).
@@ -171,7 +172,7 @@ def _only(items: list[GroupBatch | None]) -> GroupBatch | None:
 class TrackPredictor(L.LightningModule):
     """The estimator of ``torchsvs track`` for ``Trainer.predict`` on a
     :class:`TrackFileDataModule`; :meth:`predict_step` gives a group's
-    :class:`~torchsvs.estimating.StepEstimates`.
+    :class:`~torchsvs.step_estimates.StepEstimates`.
 
     The estimator is built in :meth:`setup`, once the file is read: rank 0 completes the
     settings from the data, fits (``fit``: :func:`~torchsvs.training.self_tune`, on rank 0
@@ -250,7 +251,7 @@ class TrackPredictor(L.LightningModule):
 
 
 class GatherEstimates(BasePredictionWriter):
-    """Collects every process's :class:`~torchsvs.estimating.StepEstimates` on rank 0 at the
+    """Collects every process's :class:`~torchsvs.step_estimates.StepEstimates` on rank 0 at the
     end of the predict epoch (``parts``; empty on the other ranks), and times the epoch."""
 
     def __init__(self) -> None:
