@@ -162,6 +162,9 @@ class Settings:
     #: or for :data:`FILTERS` the filter, at ``q`` times
     #: :data:`~torchsvs.fitting.noise.Q_FACTORS`); None: one ``q`` for every track
     q_curve: list[float] | None = None
+    #: the sample's tracks jump to another path between two reports (two tracks' ids swapped):
+    #: every block's tracks are split at such breaks (:mod:`torchsvs.datasets.breaks`)
+    track_breaks: bool = False
     #: the tracks' kinds of motion and each kind's curve, which a track's own ``q`` is shrunk
     #: toward (:meth:`~torchsvs.fitting.noise.QCurves.by_kind`); None: toward ``q_curve``
     q_kinds: list[list[float]] | None = None

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
+from torchsvs.datasets.breaks import split_at_breaks
 from torchsvs.datasets.noise_estimate import changing_tracks
 from torchsvs.datasets.tables import SAMPLE_TRACKS, block_of
 from torchsvs.datasets.tracks import padded_batch
@@ -255,6 +256,7 @@ def prepare_estimator(
     """
     given = settings
     say = say or (lambda _: None)
+    steps, breaks = split_at_breaks(steps)  # (a jump read as motion raised q 10^4 times)
     sample = padded_batch(steps, _sample_tracks(steps, fit_options), torch.float64)
     moving = changing_tracks(sample.z)
     if bool(moving.any()) and not bool(moving.all()):  # (still tracks tell no noise, no q)
@@ -292,6 +294,8 @@ def prepare_estimator(
         settings = checked_below(settings, clean)
     if open_q and checkpoint is None:
         settings = axes_q(checked_low(with_q_curve(settings, clean), clean), clean)
+    if breaks and checkpoint is None:
+        settings = replace(settings, track_breaks=True)
     estimator = make_estimator(settings, make_model(settings))
     if checkpoint is not None:
         load_parameters(estimator, checkpoint)

@@ -22,6 +22,7 @@ from torch import nn
 
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import TrackBlock
+from torchsvs.datasets.breaks import split_at_breaks
 from torchsvs.datasets.tables import block_of, is_pandas
 from torchsvs.datasets.writing import output_names
 from torchsvs.estimating import estimate_group
@@ -108,6 +109,9 @@ def estimate_block(
     """A block's estimates, group by group of tracks of similar length
     (:func:`~torchsvs.estimating.estimate_group`), counted into ``run``; ``progress`` (a tqdm
     bar) hears each group's tracks."""
+    if plan.settings.track_breaks:  # (the block itself: its writing reads the same tracks)
+        block.steps, breaks = split_at_breaks(block.steps)
+        block.steps.report.notes["track_breaks"] += breaks
     steps = block.steps
     warning = precision_warning(plan, steps)
     if warning is not None and warning not in run.warnings:

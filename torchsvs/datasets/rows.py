@@ -70,6 +70,9 @@ NOTES = {
     "particle_steps": "steps a particle filter weighed a measurement at",
     "particle_steps_degenerate": "of those, steps whose effective sample size fell below a tenth "
     "of the particles (torchsvs.filters.particle.degenerate_share)",
+    "track_breaks": "jumps of a track to another path between two reports (two tracks' ids "
+    "swapped): the track is estimated as two, the part after the break named 'ID (part 2)' in "
+    "the summary (torchsvs.datasets.breaks)",
     "tracks_still": "tracks (not rows) that repeat one position throughout (a parked beacon, a "
     "receiver holding its fix): estimated as that position; their error cannot be read off "
     "them, and they are left out of the error estimate and of reading the settings",
