@@ -594,6 +594,21 @@ def test_times_too_coarse_as_short_floats_are_named(tmp_path, capsys):
         assert bool(found) == named, err
 
 
+def test_tracks_too_short_to_read_the_noise_off_are_named(tmp_path, capsys):
+    """Thousands of tracks of 2 rows: the noise is read off differences within a track, and
+    the refusal said "too few observed positions" of a file of 40,000; it names the tracks'
+    length."""
+    rows = [(f"t{k}", t, 10.0 * k + t, 5.0 * t) for k in range(300) for t in (0.0, 1.0)]
+    source = _csv(tmp_path / "a.csv", "track_id,time,x,y", rows)
+    _refused(
+        capsys,
+        r"too few observed positions within a track .* the longest track read has 2\)",
+        source,
+        "-o",
+        tmp_path / "o.csv",
+    )
+
+
 def test_a_file_without_any_usable_time_is_refused(tmp_path, capsys):
     source = _csv(tmp_path / "a.csv", "track_id,time,x,y", [("a", "soon", 1, 2), ("a", "", 3, 4)])
     _refused(

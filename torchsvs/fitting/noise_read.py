@@ -79,9 +79,12 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
                 "on smooth paths (noise-free, simulated or interpolated data); give the noise "
                 "(--meas-std) and the process noise (--q)"
             ) from err
+        longest = int((~torch.isnan(tracks.z).any(-1)).sum(1).max()) if len(tracks) else 0
         raise ValueError(
-            "meas_std: too few observed positions to read the measurement noise off the "
-            "data; give it (--meas-std) and the process noise (--q)"
+            "meas_std: too few observed positions within a track to read the measurement noise "
+            "off the data (it takes differences over several positions of one track; the "
+            f"longest track read has {longest}); give it (--meas-std) and the process noise "
+            "(--q)"
         ) from err
     meas_var = noise.meas_var.double().tolist()
     spread = noise_spread(tracks.z, tracks.dt)
