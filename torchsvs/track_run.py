@@ -425,8 +425,9 @@ def settings_line(settings: Settings) -> str:
     what it sets otherwise (the summary file has them all)."""
     fields = asdict(settings)
     blend = fields.pop("blend")
-    # (q_curve: 13 numbers, q_kinds: 15 a kind)
+    # (q_curve: 13 numbers, q_kinds: 15 a kind; track_breaks: said where it is set)
     hidden = {"q_curve", "q_kinds"} | ({"blend_weight"} if blend is None else set())
+    hidden |= set() if fields["track_breaks"] else {"track_breaks"}
     shown = {k: v for k, v in fields.items() if v is not None and k not in hidden}
     if blend is not None:
         hidden |= {"estimator", "blend", "blend_weight"}
