@@ -111,7 +111,8 @@ def estimate_block(
     bar) hears each group's tracks."""
     if plan.settings.track_breaks:  # (the block itself: its writing reads the same tracks)
         block.steps, breaks = split_at_breaks(block.steps)
-        block.steps.report.notes["track_breaks"] += breaks
+        if breaks:
+            block.steps.report.notes["track_breaks"] += breaks
     steps = block.steps
     warning = precision_warning(plan, steps)
     if warning is not None and warning not in run.warnings:

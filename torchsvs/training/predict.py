@@ -34,6 +34,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import Columns, EstimateWriter, TrackBlock, TrackSteps, track_blocks
+from torchsvs.datasets.breaks import split_at_breaks
 from torchsvs.estimating import estimate_group
 from torchsvs.recipes import Settings
 from torchsvs.step_estimates import GroupBatch, StepEstimates, group_batch
@@ -141,6 +142,10 @@ class TrackFileDataModule(L.LightningDataModule):
             if self._read_error is not None:
                 raise self._read_error
             assert self.block is not None
+            # (split before the plan reads it: its q is read off the parts)
+            self.block.steps, breaks = split_at_breaks(self.block.steps)
+            if breaks:
+                self.block.steps.report.notes["track_breaks"] += breaks
             steps = self.block.steps
         if processes > 1:
             assert trainer is not None
