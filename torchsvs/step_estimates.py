@@ -15,7 +15,6 @@ from torch import Tensor
 
 from torchsvs.accuracy import RiskTerms
 from torchsvs.datasets import RecordedTracks, TrackSteps
-from torchsvs.datasets.noise_estimate import changing_tracks
 from torchsvs.datasets.tracks import padded_batch
 
 
@@ -104,11 +103,13 @@ def group_batch(
 
 def without_still(found: StepEstimates, batch: GroupBatch) -> StepEstimates:
     """``found`` without the error estimate's terms of the tracks that repeat one position
-    throughout (:func:`~torchsvs.datasets.noise_estimate.changing_tracks`), counted in its notes
+    throughout (:func:`~torchsvs.datasets.noise_estimate.changing_tracks`; ``batch`` centred,
+    as :func:`group_batch` makes it), counted in its notes
     (``tracks_still``): their estimate is that position, and SURE at the file's noise, with no
     residual left, counted minus the noise for each (40% of a file's tracks took its error
     estimate below zero)."""
-    still = ~changing_tracks(batch.tracks.z)
+    z = batch.tracks.z  # (centred: a still track's every position is its first, 0 exactly)
+    still = ~(z.reshape(len(z), -1).abs() > 0).any(1)  # (NaN > 0: False; one long axis)
     if not bool(still.any()):
         return found
     notes = dict(found.notes)

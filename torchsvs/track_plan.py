@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
-from torchsvs.datasets.breaks import split_at_breaks
+from torchsvs.datasets.breaks import some_tracks, split_at_breaks
 from torchsvs.datasets.noise_estimate import changing_tracks
 from torchsvs.datasets.tables import SAMPLE_TRACKS, block_of
 from torchsvs.datasets.tracks import padded_batch
@@ -256,8 +256,9 @@ def prepare_estimator(
     """
     given = settings
     say = say or (lambda _: None)
-    steps, breaks = split_at_breaks(steps)  # (a jump read as motion raised q 10^4 times)
-    sample = padded_batch(steps, _sample_tracks(steps, fit_options), torch.float64)
+    # the sample's tracks split at their breaks (a jump read as motion raised q 10^4 times)
+    picked, breaks = split_at_breaks(some_tracks(steps, _sample_tracks(steps, fit_options)))
+    sample = padded_batch(picked, np.arange(picked.num_tracks), torch.float64)
     moving = changing_tracks(sample.z)
     if bool(moving.any()) and not bool(moving.all()):  # (still tracks tell no noise, no q)
         sample = sample.subset(moving.nonzero()[:, 0])

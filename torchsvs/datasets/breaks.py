@@ -24,6 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from torchsvs.datasets.rows import RowReport
 from torchsvs.datasets.steps import TrackSteps
 
 #: A break's misses over the typical miss around it (3.1 σ under white noise alone).
@@ -88,6 +89,26 @@ def break_steps(steps: TrackSteps) -> np.ndarray:
     moved = np.sqrt((np.diff(p, axis=0) ** 2).sum(1))
     found &= jump > BREAK_LEVEL / 4 * moved[np.clip(around, 0, n - 2)].mean(1)
     return at[i[found]]
+
+
+def some_tracks(steps: TrackSteps, tracks: np.ndarray) -> TrackSteps:
+    """The steps of ``tracks`` (indices, in that order) alone, as steps of their own (no rows:
+    what a plan reads its sample off, not what is written)."""
+    length = steps.length[tracks]
+    start = np.zeros(len(tracks), dtype=np.int64)
+    start[1:] = np.cumsum(length)[:-1]
+    flat = np.repeat(steps.start[tracks] - start, length) + np.arange(int(length.sum()))
+    return TrackSteps(
+        ids=[steps.ids[k] for k in tracks.tolist()],
+        start=start,
+        length=length.astype(np.int64),
+        time=steps.time[flat],
+        position=steps.position[flat],
+        extra={name: values[flat] for name, values in steps.extra.items()},
+        row_step=np.zeros(0, dtype=np.int64),
+        report=RowReport(),
+        reference=None if steps.reference is None else steps.reference[tracks],
+    )
 
 
 def split_at_breaks(steps: TrackSteps) -> tuple[TrackSteps, int]:
