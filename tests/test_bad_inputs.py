@@ -406,6 +406,27 @@ def test_wgs84_asked_of_metres_and_noise_free_positions_say_so(tmp_path, capsys)
     )
 
 
+def test_longitudes_come_back_in_the_convention_they_were_read_in(tmp_path, capsys):
+    """A track across the antimeridian read in 0-360° (179.5-180.5°) came back in
+    -180..180° (180.5° written as -179.5°); each row's estimate is now in its own convention,
+    and a track read in ±180° stays there."""
+    gen = np.random.default_rng(4)
+    steps = 60
+    lat = 45.0 + 0.001 * np.arange(steps) + gen.normal(0, 2e-4, steps)
+    lon = 179.5 + 0.02 * np.arange(steps) + gen.normal(0, 2e-4, steps)  # to 180.68°
+    for name, values in (("east", lon), ("signed", (lon + 180.0) % 360.0 - 180.0)):
+        rows = [
+            ("a", i * 5, f"{la:.6f}", f"{lo:.6f}")
+            for i, (la, lo) in enumerate(zip(lat, values, strict=True))
+        ]
+        source = _csv(tmp_path / f"{name}.csv", "track_id,time,lat,lon", rows)
+        code, err = _track(capsys, source, "-o", tmp_path / f"{name}.out.csv", "--meas-std", "20")
+        assert code == 0, err
+        out = _column(tmp_path / f"{name}.out.csv", "lon")
+        assert np.abs((out - values + 180.0) % 360.0 - 180.0).max() < 0.005  # (the noise)
+        assert (out >= 0).all() if name == "east" else (np.abs(out) <= 180.0).all()
+
+
 def test_a_lone_stray_report_beyond_the_frame_is_read_as_missing(tmp_path, capsys):
     """A (0, 0) report (GPS's null island) or a longitude off by 180° among a track's near
     reports is a glitch: read as missing and counted, the run goes on (it refused the whole

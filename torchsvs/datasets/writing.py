@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from torchsvs.datasets.arrow_numpy import from_numpy
+from torchsvs.datasets.arrow_numpy import from_numpy, to_float
 from torchsvs.datasets.paths import check_output, dataset_files
 from torchsvs.datasets.reading import TrackBlock
 from torchsvs.datasets.rows import Columns, file_format
@@ -145,6 +145,9 @@ def estimate_table(
         rows = take(mean) if len(mean) else mean
         row_cov = cov if cov is None or not len(cov) else take(cov)
 
+    if cols.geodetic and len(rows):
+        rows = _longitudes_as_read(rows, block.table.column(cols.position[1]))
+
     def per_row(values: np.ndarray) -> Any:
         # NaN (not estimated) becomes an empty field; no step at all: every field
         if not len(values):
@@ -168,6 +171,19 @@ def estimate_table(
         flags = outlier[index] if len(outlier) else np.zeros(len(row_step), dtype=bool)
         out["outlier"] = from_numpy(placed & flags, pa.bool_())
     return pa.table(out)
+
+
+def _longitudes_as_read(rows: np.ndarray, column: Any) -> np.ndarray:
+    """``rows [R, 2m]`` (WGS 84 estimates, the longitude at index 2) with each longitude in the
+    convention its row was read in: a row read in 0-360° (above 180°) gets its estimate there,
+    where it came back in -180..180° (180.5° was written as -179.5°)."""
+    read = to_float(column)[0]
+    wrapped = (read > 180.0) & (rows[:, 2] < 0.0)  # (NaN: False)
+    if not wrapped.any():
+        return rows
+    rows = rows.copy()
+    rows[wrapped, 2] += 360.0
+    return rows
 
 
 def _counts_up(values: np.ndarray) -> bool:
