@@ -458,15 +458,7 @@ def test_a_noise_given_well_below_what_the_data_show_is_said_so(tmp_path):
     assert not any("well below what the data show" in w for w in near["warnings"])
     bottom, top = near["estimated_position_rmse_interval"]
     assert bottom <= near["true"] <= top * 1.05
-    assert right["settings"]["noise_below_data"] is None
-    assert not any("well below what the data show" in w for w in right["warnings"])
-    (warning,) = [w for w in low["warnings"] if "well below what the data show" in w]
-    assert "given as [5, 5] m" in warning and "1σ" in warning
-    read = low["settings"]["noise_below_data"]
-    assert all(8.0 < s < 13.0 for s in read) and low["meas_std"] == read
-    assert 0.8 < low["estimated_position_rmse"] / low["true"] < 1.25
-    bottom, top = low["estimated_position_rmse_interval"]
-    assert bottom <= low["true"] <= top * 1.05
+    _said_and_estimated_at_reading(right, low, "noise_below_data", "well below", "5", (0.8, 1.25))
 
 
 def test_a_noise_given_above_what_the_data_show_is_said_so(tmp_path):
@@ -477,15 +469,26 @@ def test_a_noise_given_above_what_the_data_show_is_said_so(tmp_path):
     its reading 3 standard errors below σ; at 2σ, 54 do)."""
     found = _given_noise_runs(tmp_path)
     right, high = found["10"], found["20"]
-    assert right["settings"]["noise_above_data"] is None
-    assert not any("above what the data show" in w for w in right["warnings"])
-    (warning,) = [w for w in high["warnings"] if "above what the data show" in w]
-    assert "given as [20, 20] m" in warning and "1σ" in warning
-    read = high["settings"]["noise_above_data"]
-    assert all(8.0 < s < 13.0 for s in read) and high["meas_std"] == read
-    assert 0.7 < high["estimated_position_rmse"] / high["true"] < 1.3
-    low, top = high["estimated_position_rmse_interval"]
-    assert low <= high["true"] <= top * 1.05
+    _said_and_estimated_at_reading(right, high, "noise_above_data", "above", "20", (0.7, 1.3))
+
+
+def _said_and_estimated_at_reading(
+    right: dict, off: dict, field: str, words: str, given: str, ratio: tuple[float, float]
+) -> None:
+    """The run at σ (``right``) says nothing and keeps no reading; the run at a noise unlike the
+    data's (``off``, given as ``given`` m) warns "``words`` what the data show", keeps the
+    reading in ``field`` (about σ, 10 m) and makes its error estimate there, within ``ratio``
+    of the truth, its range holding it."""
+    phrase = f"{words} what the data show"
+    assert right["settings"][field] is None
+    assert not any(phrase in w for w in right["warnings"])
+    (warning,) = [w for w in off["warnings"] if phrase in w]
+    assert f"given as [{given}, {given}] m" in warning and "1σ" in warning
+    read = off["settings"][field]
+    assert all(8.0 < s < 13.0 for s in read) and off["meas_std"] == read
+    assert ratio[0] < off["estimated_position_rmse"] / off["true"] < ratio[1]
+    bottom, top = off["estimated_position_rmse_interval"]
+    assert bottom <= off["true"] <= top * 1.05
 
 
 def test_a_noise_given_below_a_reading_of_motion_stands(tmp_path):

@@ -47,7 +47,7 @@ def break_steps(steps: TrackSteps) -> np.ndarray:
     each the first step of the track's part after the break."""
     position = steps.position
     seen = np.isfinite(position).all(1)
-    track = np.repeat(np.arange(steps.num_tracks), steps.length)
+    track = steps.track_of_step
     at = np.flatnonzero(seen)
     n = len(at)
     if n < 7:
@@ -118,7 +118,7 @@ def split_at_breaks(steps: TrackSteps) -> tuple[TrackSteps, int]:
     breaks = break_steps(steps)
     if not len(breaks):
         return steps, 0
-    track = np.repeat(np.arange(steps.num_tracks), steps.length)
+    track = steps.track_of_step
     starts = np.union1d(steps.start[steps.length > 0], breaks)
     owner = track[starts]
     ends = np.append(starts[1:], len(steps.time))

@@ -210,7 +210,7 @@ def _describe(
 
 def _within_track(steps: TrackSteps) -> np.ndarray:
     """``[S - 1]`` True where steps ``s`` and ``s + 1`` belong to one track."""
-    track = np.repeat(np.arange(steps.num_tracks), steps.length)
+    track = steps.track_of_step
     return track[1:] == track[:-1]
 
 

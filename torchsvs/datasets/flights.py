@@ -110,7 +110,7 @@ def _jumps(steps: TrackSteps) -> int:
     :data:`MAX_SPEED` allows (spoofing, time-stamp jumps): counted, left to the estimators."""
     position, time = steps.position[:, :2], steps.time
     seen = np.isfinite(position).all(axis=1)
-    track = np.repeat(np.arange(steps.num_tracks), steps.length)
+    track = steps.track_of_step
     index = np.flatnonzero(seen)
     same = track[index][1:] == track[index][:-1]
     distance = np.linalg.norm(np.diff(position[index], axis=0), axis=1)

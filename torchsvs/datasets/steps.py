@@ -43,6 +43,11 @@ class TrackSteps:
     def num_tracks(self) -> int:
         return len(self.ids)
 
+    @property
+    def track_of_step(self) -> np.ndarray:
+        """``[S]`` int64 the track each step belongs to."""
+        return np.repeat(np.arange(self.num_tracks), self.length)
+
     def batches(self, max_cells: int = 1 << 22) -> Iterator[np.ndarray]:
         """Track indices in groups of similar length with at most ``max_cells`` padded steps
         (``B × T``) each (:func:`length_batches`)."""

@@ -61,7 +61,7 @@ def to_geodetic(
     assert steps.reference is not None
     S, n = mean.shape
     m = n // 2
-    track = np.repeat(np.arange(steps.num_tracks), steps.length)
+    track = steps.track_of_step
     ref = steps.reference[track]
     east_north = mean[:, [0, 2]]
     lat, lon = geodesy.from_local(east_north, ref[:, 0], ref[:, 1])
@@ -118,7 +118,7 @@ def estimate_table(
     names, cov_names = output_names(cols)
     m = len(cols.position)
     if never_observed is not None and never_observed.any():
-        track_of_step = np.repeat(np.arange(steps.num_tracks), steps.length)
+        track_of_step = steps.track_of_step
         hidden = np.repeat(never_observed[track_of_step], 2, axis=1)  # [S, 2m]
         mean = np.where(hidden, np.nan, mean)
         if cov is not None:
