@@ -630,6 +630,50 @@ def test_tracks_too_short_to_read_the_noise_off_are_named(tmp_path, capsys):
     )
 
 
+def test_tracks_too_short_to_smooth_at_a_given_noise_get_advice_that_fits(tmp_path, capsys):
+    """The same tracks of 2 rows with ``--meas-std`` run (each passes through both positions)
+    and are not below the measurements: the warning advised ``--meas-std``, which the user had
+    given; it names the tracks' length instead."""
+    rng = np.random.default_rng(0)
+    rows = [
+        (f"t{k}", t, 10.0 * k + t + rng.normal(0, 3), 5.0 * t + rng.normal(0, 3))
+        for k in range(300)
+        for t in (0.0, 1.0)
+    ]
+    source = _csv(tmp_path / "a.csv", "track_id,time,x,y", rows)
+    code, err = _track(capsys, str(source), "-o", str(tmp_path / "o.csv"), "--meas-std", "3")
+    assert code == 0, err
+    said = re.search(r"warning: ks: .* is not clearly below the measurements'.*", err)
+    assert said is not None, err
+    assert "--meas-std" not in said.group(0)
+    assert "2 positions per track" in said.group(0)
+
+
+def test_an_svsf_run_as_its_kalman_filter_gets_the_kalman_filters_advice(tmp_path, capsys):
+    """Targets jerking far more between reports than the sensor errs: no filter gets clearly
+    below the measurements. The SVSF ran as its Kalman filter twin (its limit not earning its
+    place) advised ``--meas-std``, as if ``auto`` had chosen it, where the Kalman filter itself
+    advised a smoother; both now advise the smoother."""
+    rng = np.random.default_rng(1)
+    rows = []
+    for k in range(60):
+        v, p = np.zeros(2), np.zeros(2)
+        for t in range(60):
+            v += rng.normal(0, 30, 2)
+            p += v
+            z = p + rng.normal(0, 1, 2)
+            rows.append((f"t{k}", t, z[0], z[1]))
+    source = _csv(tmp_path / "a.csv", "track_id,time,x,y", rows)
+    for estimator in ("kf", "svsf"):
+        code, err = _track(
+            capsys, source, "-o", tmp_path / "o.csv", "--estimator", estimator, "--force"
+        )
+        assert code == 0, err
+        said = re.search(r"warning: kf: .* is not clearly below the measurements'.*", err)
+        assert said is not None, (estimator, err)
+        assert "try --estimator auto" in said.group(0), (estimator, said.group(0))
+
+
 def test_a_file_without_any_usable_time_is_refused(tmp_path, capsys):
     source = _csv(tmp_path / "a.csv", "track_id,time,x,y", [("a", "soon", 1, 2), ("a", "", 3, 4)])
     _refused(

@@ -90,6 +90,10 @@ def compute_dtype(settings: Settings, dtype: torch.dtype) -> torch.dtype:
 FILTERS = ("kf", "ekf", "ukf", "rstkf", "pf", "spvsf", "svsf")
 #: The linear Kalman filter and smoother: their error estimate's divergence is exact.
 KALMAN = ("kf", "ks")
+#: The SVSF family's Kalman twins: with no limit on its variable boundary layer an SVSF is the
+#: Kalman filter and an SVSS (or SVSTPS) the Kalman smoother
+#: (:class:`~torchsvs.filters.VariableBoundarySVSF`; ``tests/test_svsf_defaults.py``).
+KALMAN_TWINS = {"svsf": "kf", "svss": "ks", "svstps": "ks"}
 
 
 @dataclass
@@ -268,6 +272,14 @@ class Settings:
         if self.blend is None:
             return self.estimator
         return f"{self.estimator}+{self.blend.estimator}"
+
+    @property
+    def as_twin(self) -> bool:
+        """Whether an SVSF-family estimator runs as its Kalman twin (``chosen_from`` is the
+        family's name and the twin, :data:`KALMAN_TWINS`), not as ``--estimator auto``'s
+        choice."""
+        chosen = self.chosen_from
+        return chosen is not None and len(chosen) == 2 and KALMAN_TWINS.get(chosen[0]) == chosen[1]
 
     @property
     def exact_divergence(self) -> bool:

@@ -34,7 +34,7 @@ from torchsvs.fitting.defaults import (
     with_q_curve,
 )
 from torchsvs.fitting.tuning import FitResult, self_tune
-from torchsvs.recipes import LAGGED, Settings
+from torchsvs.recipes import KALMAN_TWINS, LAGGED, Settings
 from torchsvs.sample_accuracy import (
     accuracy_of_terms,
     anchored_fit,
@@ -324,10 +324,6 @@ def blend_candidate(
     return blended, row, against.sure
 
 
-#: The SVSF family's Kalman twins: with no limit on its variable boundary layer an SVSF is the
-#: Kalman filter and an SVSS (or SVSTPS) the Kalman smoother
-#: (:class:`~torchsvs.filters.VariableBoundarySVSF`; ``tests/test_svsf_defaults.py``).
-KALMAN_TWINS = {"svsf": "kf", "svss": "ks", "svstps": "ks"}
 TWIN_NAMES = {"kf": "the Kalman filter", "ks": "the Kalman smoother"}
 
 

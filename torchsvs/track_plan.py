@@ -39,6 +39,7 @@ from torchsvs.fitting.defaults import (
 from torchsvs.fitting.outliers import has_gross_errors
 from torchsvs.fitting.tuning import self_tune
 from torchsvs.recipes import (
+    KALMAN_TWINS,
     NOISE_READ,
     Settings,
     compute_dtype,
@@ -53,7 +54,7 @@ from torchsvs.sample_accuracy import (
     lowered_noise,
     with_track_noise,
 )
-from torchsvs.selection import KALMAN_TWINS, checked_layer, choose_estimator, kalman_twin
+from torchsvs.selection import checked_layer, choose_estimator, kalman_twin
 
 #: ``precision`` of the estimates written: ``"auto"`` is float32 where it keeps positions to
 #: :data:`POSITION_RESOLUTION` of the measurement noise (:func:`output_precision`).

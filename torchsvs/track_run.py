@@ -276,7 +276,15 @@ class TrackRun:
         if uncertain is not None:
             self.warnings.append(f"{name}: {uncertain}")
         if not found.clearly_better:
-            if self.settings.chosen_from is None:
+            chosen = self.settings.chosen_from is not None and not self.settings.as_twin
+            if self.settings.noise == "given" and (chosen or name == "ks"):
+                per_track = self.report.measurement / max(self.report.tracks, 1)
+                better = (  # (not --meas-std: the user gave it)
+                    "checking the noise given: with it the tracks gain little from smoothing "
+                    f"(their {per_track:.3g} positions per track on average; a track of two "
+                    "passes through both)"
+                )
+            elif not chosen:  # (an SVSF run as its twin: the user chose the family)
                 better = "--estimator auto (tries the candidates, keeps the lowest estimated error)"
                 if name != "ks":
                     better += " or --estimator ks"
