@@ -282,7 +282,7 @@ def test_a_grossly_erring_sensor_runs_the_svsf_family_as_its_kalman_twin(tmp_pat
             if estimator == "svss" and gross:
                 assert summary["estimator"] == "ks"
                 assert summary["settings"]["chosen_from"] == ["svss", "ks"]
-                assert "(12 of 1200 positions set aside as outliers)" in said
+                assert "(12 of the settings' sample's 1200 positions set aside as outliers)" in said
             if estimator == "auto" and gross:
                 rows = {r["estimator"]: r for r in summary["candidates"]}
                 assert rows["svss"]["skipped"].startswith("ks here: the sensor errs grossly")

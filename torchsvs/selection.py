@@ -398,8 +398,8 @@ class LayerCheck(Comparison):
         if self.gross is not None:
             outliers, measured = self.gross
             return (
-                f"the sensor errs grossly ({outliers} of {measured} positions set aside as "
-                "outliers): its boundary layer's limit is not kept"
+                f"the sensor errs grossly ({outliers} of the settings' sample's {measured} "
+                "positions set aside as outliers): its boundary layer's limit is not kept"
             )
         return (
             f"its boundary layer's limit does not surely help (MSE {self.change:+.3g} ± "
