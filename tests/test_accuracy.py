@@ -80,6 +80,33 @@ def test_running_totals_equal_the_chunks():
         assert totals.mse(r) == pytest.approx(terms.mse(r), rel=1e-10)
 
 
+def test_totals_of_some_axes_are_those_axes_alone_and_add_up():
+    """A 3-D run's horizontal and vertical estimates (RiskTotals.of_axes): each the totals of
+    its axes' chunks alone (its standard error too), and their MSEs sum to the whole's (each
+    axis is averaged over its own observations)."""
+    gen = np.random.default_rng(1)
+    C, m = 40, 3
+    terms = RiskTerms(
+        gen.uniform(0, 10, (C, m)),
+        gen.normal(0, 3, (C, m)),
+        gen.integers(20, 40, (C, m)).astype(float),
+        np.zeros(C, np.int64),
+    )
+    totals = RiskTotals(m)
+    totals.add(terms)
+    r = [1.0, 2.0, 5.0]
+    for axes in ((0, 1), (2,), (1,)):
+        alone = RiskTerms(
+            terms.residual[:, axes], terms.divergence[:, axes], terms.count[:, axes], terms.track
+        )
+        assert totals.of_axes(axes).mse([r[j] for j in axes]) == pytest.approx(
+            alone.mse([r[j] for j in axes]), rel=1e-10
+        )
+    whole, _ = totals.mse(r)
+    parts = totals.of_axes((0, 1)).mse(r[:2])[0] + totals.of_axes((2,)).mse(r[2:])[0]
+    assert parts == pytest.approx(whole, rel=1e-10)
+
+
 def test_estimate_of_a_kalman_smoother_agrees_with_the_truth():
     """On nearly-constant-velocity tracks with known noise the KS's estimated error is within
     three of its own standard errors of the true error (the noise is exactly as stated, so SURE

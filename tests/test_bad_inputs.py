@@ -632,8 +632,8 @@ def test_tracks_too_short_to_read_the_noise_off_are_named(tmp_path, capsys):
 
 def test_tracks_too_short_to_smooth_at_a_given_noise_get_advice_that_fits(tmp_path, capsys):
     """The same tracks of 2 rows with ``--meas-std`` run (each passes through both positions)
-    and are not below the measurements: the warning advised ``--meas-std``, which the user had
-    given; it names the tracks' length instead."""
+    and are not below the measurements: ``auto``'s warning advised ``--meas-std``, which the
+    user had given; it names the tracks' length instead."""
     rng = np.random.default_rng(0)
     rows = [
         (f"t{k}", t, 10.0 * k + t + rng.normal(0, 3), 5.0 * t + rng.normal(0, 3))
@@ -641,7 +641,9 @@ def test_tracks_too_short_to_smooth_at_a_given_noise_get_advice_that_fits(tmp_pa
         for t in (0.0, 1.0)
     ]
     source = _csv(tmp_path / "a.csv", "track_id,time,x,y", rows)
-    code, err = _track(capsys, str(source), "-o", str(tmp_path / "o.csv"), "--meas-std", "3")
+    code, err = _track(
+        capsys, source, "-o", tmp_path / "o.csv", "--meas-std", "3", "--estimator", "auto"
+    )
     assert code == 0, err
     said = re.search(r"warning: ks: .* is not clearly below the measurements'.*", err)
     assert said is not None, err

@@ -3,6 +3,7 @@ reading whole; checkpoints; clear errors."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -545,3 +546,48 @@ def test_a_noise_given_below_a_reading_of_motion_stands(tmp_path):
     true = np.sqrt(((out.x - frame.tx) ** 2 + (out.y - frame.ty) ** 2).mean())
     found = run.accuracy
     assert found is not None and found.estimated_rmse < 2.0 * true
+
+
+def test_a_3d_run_estimates_its_horizontal_and_vertical_errors_apart(tmp_path, capsys):
+    """Aircraft at σ 20 m horizontally and 60 m in altitude: a track judged by its horizontal
+    error had only the 3-D estimate, the altitude's in it. The summary and the run's line give
+    each apart; each range holds its true RMSE, and their MSEs
+    sum to the whole's (the noise given: read off the data, the ranges are wide)."""
+    gen = np.random.default_rng(5)
+    rows, truth = [], []
+    for k in range(40):
+        t = np.cumsum(gen.uniform(1.0, 5.0, 150))
+        v = np.r_[gen.normal(0, 150, 2), gen.normal(0, 5)]
+        pos = t[:, None] * v + np.cumsum(gen.normal(0, 1, (150, 3)), 0)
+        z = pos + gen.normal(0, 1, (150, 3)) * np.array([20.0, 20.0, 60.0])
+        rows += [
+            f"a{k},{ti:.3f}," + ",".join(f"{c:.3f}" for c in p) for ti, p in zip(t, z, strict=True)
+        ]
+        truth.append(pos)
+    source = tmp_path / "a.csv"
+    source.write_text("id,time,x,y,z\n" + "\n".join(rows) + "\n")
+    target = tmp_path / "o.csv"
+    main(
+        ["track", str(source), "-o", str(target), "--id-col", "id", "--meas-std", "20,20,60"]
+        + ["--estimator", "ks"]
+    )
+    said = capsys.readouterr().err
+    assert "  of it: horizontal " in said and "; vertical " in said, said
+    out = pcsv.read_csv(target)
+    est = np.stack([out.column(c).to_numpy() for c in ("x", "y", "z")], 1)
+    err = est - np.concatenate(truth)
+    summary = json.loads((tmp_path / "o.summary.json").read_text())
+    true = {
+        "horizontal": math.sqrt(float(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2))),
+        "vertical": math.sqrt(float(np.mean(err[:, 2] ** 2))),
+    }
+    for name, rmse in true.items():
+        part = summary[f"{name}_position_rmse"]
+        low, high = part["interval"]
+        assert low <= rmse <= high, (name, rmse, part)
+    # (the altitude, smoothed over many reports, has an estimate of wide sampling error)
+    horizontal = summary["horizontal_position_rmse"]["estimated"]
+    assert horizontal == pytest.approx(true["horizontal"], rel=0.15)
+    whole = summary["estimated_position_rmse"] ** 2
+    parts = sum(summary[f"{n}_position_rmse"]["estimated"] ** 2 for n in true)
+    assert parts == pytest.approx(whole, rel=1e-9)

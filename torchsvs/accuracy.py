@@ -436,6 +436,15 @@ class RiskTotals:
     def points(self) -> int:
         return int(round(self.first[2 * self.m :].mean()))
 
+    def of_axes(self, axes: Sequence[int]) -> RiskTotals:
+        """These totals over some of the axes alone (the horizontal ones of a 3-D run)."""
+        index = [block * self.m + j for block in range(3) for j in axes]
+        part = RiskTotals(len(axes))
+        part.chunks = self.chunks
+        part.first = self.first[index].copy()
+        part.gram = self.gram[np.ix_(index, index)].copy()
+        return part
+
 
 @dataclass
 class Accuracy:
@@ -471,6 +480,16 @@ class Accuracy:
     def clearly_better(self) -> bool:
         """The upper end of the interval is below the measurements' RMSE."""
         return self.interval[1] < self.measurement_rmse
+
+    def part_line(self, name: str) -> str:
+        """This estimate of some of the axes (``name``), as the run's line lists it."""
+        if self.below_zero:
+            return f"{name} unknown (below zero), measurements {self.measurement_rmse:.3g} m"
+        low, high = self.interval
+        return (
+            f"{name} {self.estimated_rmse:.3g} m (range {low:.3g}-{high:.3g}), measurements "
+            f"{self.measurement_rmse:.3g} m"
+        )
 
     def line(self) -> str:
         low, high = self.interval

@@ -147,22 +147,44 @@ class TrackRun:
     @property
     def accuracy(self) -> Accuracy | None:
         """The truth-free error estimate of the whole run (:mod:`torchsvs.accuracy`)."""
+        return self.accuracy_over()
+
+    def accuracy_over(self, axes: Sequence[int] | None = None) -> Accuracy | None:
+        """The truth-free error estimate of the whole run, over the position's ``axes`` alone
+        where given (the horizontal ones of a 3-D run: :meth:`axes_parts`)."""
         if self.risk is None or self.settings is None or self.risk.points == 0:
             return None
         assert self.settings.meas_var is not None
-        settings, given = self.settings, list(self.settings.meas_var)
+        risk = self.risk if axes is None else self.risk.of_axes(axes)
+
+        def pick(values: Sequence[float]) -> list[float]:
+            return list(values) if axes is None else [values[j] for j in axes]
+
+        settings, given = self.settings, pick(self.settings.meas_var)
         unlike = settings.noise_above_data or settings.noise_below_data
         if unlike is not None:  # a given noise unlike the data's: at their reading, to it
-            read = [s * s for s in unlike]
+            read = pick([s * s for s in unlike])
             if settings.noise_below_data is not None and not well_below_data(settings):
-                return accuracy_of(self.risk, given, False, (given, read))  # (at it, to theirs)
-            return accuracy_of(self.risk, read, True, (read, given))
+                return accuracy_of(risk, given, False, (given, read))  # (at it, to theirs)
+            return accuracy_of(risk, read, True, (read, given))
+        ends = meas_var_range(settings)
         return accuracy_of(
-            self.risk,
-            self.settings.meas_var,
-            noise_estimated=self.settings.noise != "given",
-            meas_var_range=meas_var_range(self.settings),
+            risk,
+            given,
+            noise_estimated=settings.noise != "given",
+            meas_var_range=None if ends is None else (pick(ends[0]), pick(ends[1])),
         )
+
+    def axes_parts(self) -> dict[str, Accuracy]:
+        """A 3-D run's error estimate of its horizontal axes (the first two position columns)
+        and of its vertical one apart: the whole is dominated by the larger, and a horizontal
+        error is what a 2-D track is judged by (empty for fewer axes)."""
+        if self.settings is None or self.settings.meas_var is None:
+            return {}
+        if len(self.settings.meas_var) != 3:
+            return {}
+        parts = {"horizontal": self.accuracy_over((0, 1)), "vertical": self.accuracy_over((2,))}
+        return {name: found for name, found in parts.items() if found is not None}
 
     def merge(self, other: TrackRun) -> None:
         """Adds what another run of the same settings did (another part of one dataset: the
@@ -277,7 +299,7 @@ class TrackRun:
             self.warnings.append(f"{name}: {uncertain}")
         if not found.clearly_better:
             chosen = self.settings.chosen_from is not None and not self.settings.as_twin
-            if self.settings.noise == "given" and (chosen or name == "ks"):
+            if self.settings.noise == "given" and chosen:
                 per_track = self.report.measurement / max(self.report.tracks, 1)
                 better = (  # (not --meas-std: the user gave it)
                     "checking the noise given: with it the tracks gain little from smoothing "
@@ -328,6 +350,8 @@ class TrackRun:
                 points=found.points,
                 method="Stein's unbiased risk estimate (no truth), torchsvs.accuracy",
             )
+        for name, part in self.axes_parts().items():
+            out[f"{name}_position_rmse"] = _part_json(part)
         out["tracks"] = {
             k: {
                 "estimated_position_rmse": v[0],
@@ -383,6 +407,11 @@ class TrackRun:
         found = self.accuracy
         if found is not None:
             lines.append(found.line())
+            parts = self.axes_parts()
+            if parts:
+                lines.append(
+                    "  of it: " + "; ".join(p.part_line(name) for name, p in parts.items())
+                )
         lines.extend(f"warning: {w}" for w in self.warnings)
         steps = self.report.placed
         lines.append(
@@ -408,6 +437,17 @@ class TrackRun:
             f"phases: {timed} (reading and writing beside the estimating: waited for "
             f"{waiting:.1f} s), other {rest:.1f} s"
         )
+
+
+def _part_json(found: Accuracy) -> dict[str, Any]:
+    """Some axes' error estimate (:meth:`TrackRun.axes_parts`) as the summary writes it."""
+    unknown = found.below_zero
+    return {
+        "estimated": math.nan if unknown else found.estimated_rmse,
+        "interval": [math.nan] * 2 if unknown else list(found.interval),
+        "measurement_rmse": found.measurement_rmse,
+        "meas_std": found.meas_std,
+    }
 
 
 def gross_errors(report: RowReport) -> str | None:
