@@ -361,6 +361,37 @@ def test_degrees_under_other_names_are_warned_about(tmp_path, capsys):
     assert code == 0 and "WGS 84" in err and "warning" not in err
 
 
+@pytest.mark.parametrize(
+    "altitudes, feet",
+    [
+        ((3000.0, 100.0), "25"),  # ADS-B's barometric altitude: 25 ft steps
+        ((38000.0, 1.7), "reaches"),  # cruise in feet: above any aircraft in metres
+        ((3000.0, 1.7), None),  # metres, as GNSS gives them
+    ],
+)
+def test_an_altitude_in_feet_is_warned_about(tmp_path, capsys, altitudes, feet):
+    """Latitude, longitude and an ``altitude`` in feet were read as metres without a word:
+    the altitude's noise and estimates in feet, and the 3-D error estimate a mix."""
+    gen = np.random.default_rng(2)
+    base, climb = altitudes
+    rows = []
+    for k in range(4):
+        for i in range(40):
+            alt = base + climb * i + gen.normal(0, 20)
+            alt = round(alt / 25) * 25 if feet == "25" else round(alt, 1)
+            lat, lon = 48.0 + 0.001 * i + 1e-3 * k, 2.0 + 0.002 * i
+            rows.append((f"t{k}", 5.0 * i, *(gen.normal([lat, lon], 1e-4)), alt))
+    source = _csv(tmp_path / "a.csv", "track_id,time,lat,lon,altitude", rows)
+    code, err = _track(capsys, source, "-o", tmp_path / "o.csv", "--quiet")
+    assert code == 0, err
+    said = re.search(r"warning: altitude: column 'altitude' (.*)", err)
+    if feet is None:
+        assert said is None, err
+    else:
+        assert said is not None and feet in said.group(1), err
+        assert "x 0.3048" in said.group(1)
+
+
 def test_metres_in_a_latitude_column_name_the_frame_flag(tmp_path, capsys):
     source = _metric_file(tmp_path / "a.csv")
     source.write_text(source.read_text().replace("x,y", "lat,lon", 1))

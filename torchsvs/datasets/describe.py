@@ -161,6 +161,9 @@ def _describe(
     assert cols.position is not None
     if not (thorough or asked.frame == "auto" or asked.time_unit == "auto"):
         return InputDescription(cols, lines, notes, [], rows)
+    feet = _altitude_in_feet(table, cols)
+    if feet is not None:
+        notes.append(feet)
     steps = group_rows(parse_block(table, cols))
     if steps.num_tracks == 0:
         raise ValueError(
@@ -248,6 +251,43 @@ def _coarse_times(column: Any, cols: Columns, interval: float, steps: TrackSteps
         f"between a track's rows ({steps.report.notes['duplicate_time']} rows shared a time "
         "and were merged): the times cannot place the rows; store them as 64-bit floats or "
         "integers, or as times from a nearer start"
+    )
+
+
+#: An altitude above this is above any aircraft's in metres (airliners cruise below 13,100 m,
+#: business jets below 15,600 m): a column reaching it holds feet (ADS-B's altitude does)
+FEET_ABOVE = 16_000.0
+#: ... as does one whose values nearly all are whole multiples of ADS-B's 25 ft steps
+FEET_STEP = 25.0
+FEET_STEP_SHARE = 0.95
+
+
+def _altitude_in_feet(table: Any, cols: Columns) -> str | None:
+    """A warning where the altitude of latitude, longitude, altitude looks like feet: above
+    :data:`FEET_ABOVE`, or (above 1,000) all but a few values multiples of :data:`FEET_STEP`.
+    Read as metres, its noise, estimates and ``v_up`` come out in feet and the 3-D error
+    estimate mixes the two."""
+    if not cols.geodetic or cols.position is None or len(cols.position) != 3:
+        return None
+    label = cols.position[2]
+    values, _ = to_float(table.column(label))
+    values = values[np.isfinite(values) & (values != 0)]
+    if len(values) < 20:
+        return None
+    top = float(np.abs(values).max())
+    steps = float(np.mean(np.remainder(values, FEET_STEP) == 0))
+    if top <= FEET_ABOVE and not (top > 1000 and steps >= FEET_STEP_SHARE):
+        return None
+    why = (
+        f"reaches {top:,.0f}, above any aircraft in metres"
+        if top > FEET_ABOVE
+        else f"holds {steps:.0%} whole multiples of {FEET_STEP:g} (ADS-B's steps in feet)"
+    )
+    return (
+        f"altitude: column {label!r} {why}: if it is feet, convert it to metres (x 0.3048) or "
+        "leave it out (--pos-cols of the latitude and longitude): read as metres, its noise, "
+        "estimates and v_up are in feet and the 3-D error estimate mixes the two (the "
+        "horizontal one, given apart, does not)"
     )
 
 
