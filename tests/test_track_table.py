@@ -102,6 +102,23 @@ def test_arrow_in_arrow_out_and_the_declared_schema(rows):
     assert out.schema.field("x").type == pa.float32()
 
 
+@pytest.mark.parametrize("kind", ["Int64", "string"])
+def test_pandas_own_id_types_come_back_as_given_with_an_empty_id(rows, kind):
+    """Nullable ``Int64`` ids (hashed, above 2^53) with one empty id came back as float64: all
+    20 distinct ids one number. Each id comes back as given, in its dtype, the empty one empty
+    (its row without an estimate)."""
+    frame, _ = rows
+    codes = {k: i for i, k in enumerate(sorted(frame["id"].unique()))}
+    ids = frame["id"].map(codes).astype("int64") + 2**60
+    given = frame.assign(id=ids.astype("Int64") if kind == "Int64" else ids.astype(str))
+    given["id"] = given["id"].astype(kind)
+    given.loc[5, "id"] = pd.NA
+    out = track_table(given, _plan(frame, "ks")).table
+    assert out["id"].dtype == given["id"].dtype
+    pd.testing.assert_series_equal(out["id"], given["id"])
+    assert np.isnan(out["x"].iloc[5]) and np.isfinite(out["x"].drop(index=5)).any()
+
+
 def test_a_plan_travels_by_pickle(rows):
     """An engine broadcasts the plan as a pickle: the same estimates from the copy; the fit's
     summary stays with the one who planned."""

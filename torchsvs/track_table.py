@@ -23,7 +23,7 @@ from torch import nn
 from torchsvs.accuracy import RiskTotals
 from torchsvs.datasets import TrackBlock
 from torchsvs.datasets.breaks import split_at_breaks
-from torchsvs.datasets.tables import block_of, is_pandas
+from torchsvs.datasets.tables import block_of, is_pandas, to_pandas_like
 from torchsvs.datasets.writing import output_names
 from torchsvs.estimating import estimate_group
 from torchsvs.step_estimates import StepEstimates, group_batch
@@ -85,7 +85,7 @@ def track_table(
     if check:
         run.check()
     run.seconds = time.perf_counter() - start
-    return TableResult(out.to_pandas() if is_pandas(data) else out, run)
+    return TableResult(to_pandas_like(out, data) if is_pandas(data) else out, run)
 
 
 def new_run(plan: TrackPlan, accuracy: bool = True) -> TrackRun:

@@ -66,6 +66,20 @@ def is_pandas(data: Any) -> bool:
     return type(data).__module__.startswith("pandas") and hasattr(data, "columns")
 
 
+def to_pandas_like(table: Any, like: Any) -> Any:
+    """An Arrow ``table`` as a pandas DataFrame whose columns from the DataFrame ``like`` keep
+    its dtypes where they are pandas' own (nullable ``Int64``, ``string``, ...): Arrow's default
+    turns an integer column with an empty value into float64, which alters ids above 2^53."""
+    frame = table.to_pandas()
+    for name in frame.columns:
+        if name not in like.columns:
+            continue
+        dtype = like[name].dtype
+        if frame[name].dtype != dtype and hasattr(dtype, "__from_arrow__"):
+            frame[name] = dtype.__from_arrow__(table.column(name))
+    return frame
+
+
 def sample_taken(blocks: list[TrackBlock], tracks: int = SAMPLE_TRACKS) -> bool:
     """Whether a file's or a dataset's first ``blocks`` (in reading order) hold the sample its
     settings are read off: ``tracks`` tracks or :data:`SAMPLE_STEPS` steps. One block of a
