@@ -846,6 +846,27 @@ def test_header_only_parquet_and_directory_inputs(tmp_path, capsys):
     )
 
 
+def test_a_setting_given_against_a_saved_checkpoint_is_refused(tmp_path, capsys):
+    """``--checkpoint`` of a ``--save`` file runs with the saved settings: a ``--meas-std``
+    given beside it was dropped without a word."""
+    source = _metric_file(tmp_path / "a.csv")
+    saved = tmp_path / "saved.pt"
+    code, err = _track(capsys, source, "-o", tmp_path / "s.csv", "--save", saved)
+    assert code == 0, err
+    _refused(  # (the saved settings are the run's: a different noise was dropped unsaid)
+        capsys,
+        r"settings: meas_var \(--meas-std\) = \[2500.0\] given, and the checkpoint .* holds "
+        "its own",
+        source,
+        "-o",
+        tmp_path / "o.csv",
+        "--checkpoint",
+        saved,
+        "--meas-std",
+        "50",
+    )
+
+
 def test_unwritable_outputs_get_a_clear_message(tmp_path, capsys):
     source = _metric_file(tmp_path / "a.csv")
     _refused(

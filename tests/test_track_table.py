@@ -119,6 +119,47 @@ def test_pandas_own_id_types_come_back_as_given_with_an_empty_id(rows, kind):
     assert np.isnan(out["x"].iloc[5]) and np.isfinite(out["x"].drop(index=5)).any()
 
 
+def test_a_saved_plan_reloaded_gives_the_saved_runs_estimates(rows, tmp_path):
+    """``plan_tracks(data, Settings("ks"), checkpoint=saved)`` rebuilt the settings from the
+    data without the saved per-track ``q`` (its curve, kinds, window), beside the saved
+    parameters: 12 m rms from the saved run's estimates at σ 20 (an outside probe). The saved
+    settings are the run's; a setting given against them is refused, naming it."""
+    frame, _ = rows
+    saved = tmp_path / "plan.pt"
+    plan = plan_tracks(frame, Settings(estimator="ks"), columns=COLUMNS, save=saved)
+    assert plan.settings.q_curve is not None  # (what a rebuilt plan lacked)
+    again = plan_tracks(frame, Settings(estimator="ks"), columns=COLUMNS, checkpoint=saved)
+    assert again.settings == plan.settings
+    pd.testing.assert_frame_equal(track_table(frame, again).table, track_table(frame, plan).table)
+    with pytest.raises(
+        ValueError, match=r"^settings: meas_var \(--meas-std\) = \[2500.0, 2500.0\] given, and"
+    ):
+        plan_tracks(frame, Settings("ks", meas_var=[2500.0] * 2), columns=COLUMNS, checkpoint=saved)
+
+
+def test_a_lightning_checkpoints_noise_is_the_runs(rows, tmp_path):
+    """A Lightning checkpoint holds parameters alone: its measurement noise replaced the one
+    read off the data in the estimator while the error estimate stayed at the reading. The
+    run's settings now carry the checkpoint's noise and ``q``; one given against it is
+    refused."""
+    from torchsvs.recipes import make_estimator, make_model
+
+    frame, _ = rows
+    trained = Settings(estimator="ks", meas_var=[900.0, 400.0], q=4.0)
+    state = make_estimator(trained, make_model(trained)).state_dict()
+    path = tmp_path / "module.ckpt"  # (as EstimatorModule's checkpoint holds it)
+    torch.save({"state_dict": {f"estimator.{k}": v for k, v in state.items()}}, path)
+    plan = plan_tracks(frame, Settings(estimator="ks"), columns=COLUMNS, checkpoint=path)
+    assert plan.settings.meas_var == pytest.approx([900.0, 400.0])
+    assert plan.settings.q == pytest.approx(4.0) and plan.settings.noise == "given"
+    summary = track_table(frame, plan).run.summary_json()
+    assert summary["meas_std"] == pytest.approx([30.0, 20.0])
+    with pytest.raises(
+        ValueError, match=r"^settings: meas_var \(--meas-std\) = \[100.0, 100.0\] given"
+    ):
+        plan_tracks(frame, Settings("ks", meas_var=[100.0] * 2), columns=COLUMNS, checkpoint=path)
+
+
 def test_a_plan_travels_by_pickle(rows):
     """An engine broadcasts the plan as a pickle: the same estimates from the copy; the fit's
     summary stays with the one who planned."""

@@ -277,7 +277,6 @@ def _track(args: argparse.Namespace, reader: Any = None) -> None:
     import torch
 
     from torchsvs.recipes import Settings
-    from torchsvs.track_plan import saved_settings
     from torchsvs.tracking import track_file
 
     if _COLLECT_AFTER_IMPORTS:  # (the modules' objects stay: none to collect among them)
@@ -288,14 +287,8 @@ def _track(args: argparse.Namespace, reader: Any = None) -> None:
         if reader is not None:  # (read while the lines above imported)
             args.columns = described_columns(args, reader.description())
         columns = getattr(args, "columns", None) or _columns(args)
-        if args.checkpoint is not None and Path(args.checkpoint).is_file():
-            try:
-                base = saved_settings(args.checkpoint)
-            except ValueError:
-                base = None
-        else:
-            base = None
-        settings = base or Settings(
+        # (with a --save file as --checkpoint, its own settings: track_plan.checkpoint_settings)
+        settings = Settings(
             estimator=args.estimator,
             meas_var=None if args.meas_std is None else [s * s for s in args.meas_std],
             q=args.q,

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -255,6 +255,8 @@ def prepare_estimator(
         The estimator (float64), the settings it was built from, and the fit's summary (or
         ``None``).
     """
+    saved = None if checkpoint is None else checkpoint_settings(settings, checkpoint)
+    settings = saved or settings
     given = settings
     say = say or (lambda _: None)
     # the sample's tracks split at their breaks (a jump read as motion raised q 10^4 times)
@@ -301,6 +303,8 @@ def prepare_estimator(
     estimator = make_estimator(settings, make_model(settings))
     if checkpoint is not None:
         load_parameters(estimator, checkpoint)
+        if saved is None:  # (a Lightning checkpoint: parameters without their settings)
+            settings = _loaded_noise(settings, given, estimator, checkpoint)
     if save is not None:
         torch.save({"settings": asdict(settings), "state_dict": estimator.state_dict()}, save)
     return estimator, settings, summary
@@ -386,6 +390,76 @@ def load_parameters(estimator: nn.Module, path: str | Path) -> None:
             f"checkpoint: {str(path)!r} does not fit the estimator built from these settings "
             f"({type(estimator).__name__}): {err}"
         ) from err
+
+
+#: The ``torchsvs track`` option that sets each of :class:`~torchsvs.recipes.Settings`' fields
+#: (the error messages name both)
+OPTION_OF = {
+    "meas_var": "--meas-std",
+    "noise_column": "--noise-col",
+    "track_q": "--shared-q",
+    "step_q": "--no-step-q",
+    "outliers": "--keep-outliers",
+    "velocity": "--no-velocity",
+}
+
+
+def _named(field_name: str) -> str:
+    """A settings field and its ``torchsvs track`` option (:data:`OPTION_OF`)."""
+    option = OPTION_OF.get(field_name, "--" + field_name.replace("_", "-"))
+    return f"{field_name} ({option})"
+
+
+def checkpoint_settings(settings: Settings, checkpoint: str | Path) -> Settings | None:
+    """The settings of a run from ``checkpoint``: a ``--save`` file's own, which reproduce the
+    saved run (``settings`` may leave them open, ``estimator="auto"`` and the defaults, or
+    repeat them; one that differs is refused, naming it: the command line dropped it without a
+    word, and the API took it beside the saved parameters it contradicts); None for a Lightning
+    checkpoint, which holds parameters alone (:func:`_loaded_noise`)."""
+    try:
+        saved = saved_settings(checkpoint)
+    except ValueError:
+        return None
+    open_ = Settings(estimator=saved.estimator)
+    for each in fields(Settings):
+        mine = getattr(settings, each.name)
+        if each.name == "estimator" and mine == "auto":
+            continue
+        if mine != getattr(open_, each.name) and mine != getattr(saved, each.name):
+            raise ValueError(
+                f"settings: {_named(each.name)} = {mine!r} given, and the checkpoint "
+                f"{str(checkpoint)!r} holds its own ({getattr(saved, each.name)!r}), with "
+                "which its parameters were saved; leave it out to run as saved, or leave the "
+                "checkpoint out"
+            )
+    return saved
+
+
+def _loaded_noise(
+    settings: Settings, given: Settings, estimator: nn.Module, checkpoint: str | Path
+) -> Settings:
+    """The settings with the measurement noise (and ``q``, of a model of one) that
+    ``estimator``'s parameters, loaded from ``checkpoint``, hold: the error estimate and what
+    the run prints are at those, not at a reading they replaced. A value ``given`` that the
+    parameters contradict is refused, naming it."""
+    models = [m for m in estimator.modules() if hasattr(m, "meas_cov") and hasattr(m, "q")]
+    if not models:
+        return settings
+    loaded: dict[str, Any] = {
+        "meas_var": [float(v) for v in models[0].meas_cov().detach().diagonal()]
+    }
+    if len(models) == 1:
+        loaded["q"] = float(models[0].q().detach())
+    for name, value in loaded.items():
+        mine = getattr(given, name)
+        if mine is not None and not np.allclose(mine, value, rtol=1e-6):
+            raise ValueError(
+                f"settings: {_named(name)} = {mine!r} given, and the checkpoint "
+                f"{str(checkpoint)!r} holds "
+                f"{short(value) if isinstance(value, list) else f'{value:.6g}'}; leave it out "
+                "to run at the checkpoint's, or leave the checkpoint out"
+            )
+    return replace(settings, **loaded, noise="given", meas_std_se=None, noise_spread=None)
 
 
 def saved_settings(path: str | Path) -> Settings:
