@@ -661,6 +661,23 @@ def test_auto_keeps_the_first_candidate_on_a_near_tie_and_leaves_it_for_a_sure_g
     # an SVSS whose boundary layer's limit does not surely help is the Kalman smoother, as
     # `--estimator svss` would run it: not scored again, however low its own estimate
     assert choose({"ks": shared, "svss": shared - 2000.0}, layer_kept=False) == "ks"
+    # a candidate whose fit fails numerically (the IMM's on two ships under one id: a raw
+    # traceback ended the run) is skipped, named; the first candidate's failure stands
+    tune = selection.self_tune
+
+    def failing(s, *args, **kwargs):
+        if s.estimator == "imm":
+            raise torch.linalg.LinAlgError("matrix is not positive definite, even with jitter")
+        return tune(s, *args, **kwargs)
+
+    monkeypatch.setattr(selection, "self_tune", failing)
+    z = torch.randn(4, 30, 2, dtype=torch.float64)
+    dt = torch.ones(4, 30, dtype=torch.float64)
+    sample = RecordedTracks(z, dt, dt.cumsum(1), torch.full((4,), 30), list("abcd"))
+    given = Settings("auto", meas_var=[900.0, 900.0], noise="given")
+    chosen = selection.choose_estimator(given, sample, candidates=("ks", "imm"), blend=False)
+    assert chosen.settings.estimator == "ks"
+    assert chosen.candidates[1]["skipped"].startswith("its fit failed numerically (matrix is")
 
 
 def test_an_uncertain_error_estimate_is_called_so_and_its_cause_named():

@@ -389,3 +389,66 @@ def test_tracks_that_repeat_one_position_tell_no_noise_and_no_error(tmp_path):
     assert found is not None
     low, high = found.interval
     assert low <= moving <= high  # (the estimate is the moving tracks')
+
+
+def _drones_beside_buoys(seed: int = 85):
+    """8 drones at 20 Hz and 60 buoys drifting and turning, reported every 5-30 min, all with
+    σ 3 m (an outside probe's file): ``(frame, truth [N, 2], drone [N] bool)``."""
+    import pandas as pd
+
+    gen = np.random.default_rng(seed)
+    parts, truth, drone = [], [], []
+    for k in range(8):
+        t = np.arange(3000) / 20.0
+        heading = gen.uniform(0, 2 * np.pi) + np.cumsum(gen.normal(0, 0.01, len(t)))
+        speed = gen.uniform(3, 15)
+        path = np.cumsum(speed / 20.0 * np.c_[np.cos(heading), np.sin(heading)], 0)
+        parts.append((f"drone{k}", t, path))
+        drone.append(np.ones(len(t), bool))
+    for k in range(60):
+        t = np.cumsum(gen.uniform(300, 1800, 300))
+        fine = np.arange(0.0, t[-1] + 60.0, 60.0)
+        # (straight for hours, then circling: some pieces read the noise, some the turns)
+        rates = gen.uniform(-0.002, 0.002, len(fine) // 840 + 1) * (
+            gen.random(len(fine) // 840 + 1) < 0.6
+        )
+        turn = np.repeat(rates, 840)[: len(fine)]
+        heading = gen.uniform(0, 2 * np.pi) + np.cumsum(turn * 60.0)
+        step = gen.uniform(2, 8) * 60.0 * np.c_[np.cos(heading), np.sin(heading)]
+        path = np.cumsum(step, 0)
+        path = np.c_[np.interp(t, fine, path[:, 0]), np.interp(t, fine, path[:, 1])]
+        parts.append((f"buoy{k}", t, path))
+        drone.append(np.zeros(len(t), bool))
+    frames = []
+    for name, t, path in parts:
+        z = path + gen.normal(0, 3.0, path.shape)
+        frames.append(pd.DataFrame({"id": name, "t": t, "x": z[:, 0], "y": z[:, 1]}))
+        truth.append(path)
+    return pd.concat(frames, ignore_index=True), np.concatenate(truth), np.concatenate(drone)
+
+
+def test_pieces_of_another_kind_do_not_set_every_tracks_noise(tmp_path):
+    """Drones beside buoys whose turns between reports 5-30 min apart read as 100 times the
+    noise in some pieces: the pieces' mean (338 m for 3) made the drones run 13 times the
+    measurements' error. The Kalman smoother's leave-one-out error is not lower at the mean, so
+    the run keeps the file's reading, says so, and the drones come out below their
+    measurements."""
+    import pandas as pd
+
+    from torchsvs.datasets import Columns
+    from torchsvs.tracking import track_file
+
+    frame, truth, drone = _drones_beside_buoys()
+    source, target = tmp_path / "both.csv", tmp_path / "out.csv"
+    frame.to_csv(source, index=False)
+    run = track_file(
+        source, target, Settings("ks"), columns=Columns(track_id="id", time="t"), progress=False
+    )
+    within = run.settings.noise_within
+    assert within is not None and within[4] > 10 * within[3]  # (the pieces' mean, far above)
+    assert run.settings.meas_var is not None and run.settings.meas_var[0] < 10.0**2
+    assert any("kept the file's reading" in w for w in run.warnings)
+    out = pd.read_csv(target)
+    error = ((out[["x", "y"]].to_numpy() - truth) ** 2).sum(1)
+    raw = ((frame[["x", "y"]].to_numpy() - truth) ** 2).sum(1)
+    assert error[drone].mean() < 0.7 * raw[drone].mean()

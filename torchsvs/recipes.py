@@ -129,9 +129,11 @@ class Settings:
     #: also in ``meas_std_se``)
     noise_spread: float | None = None
     #: Where the noise read off pieces of the tracks changes within them (:func:`~torchsvs.
-    #: fitting.noise_read.with_noise_read`): ``[τ, σ_low, σ_high, σ_core]``, the spread of
-    #: ``log σ`` between a track's pieces, the quietest and noisiest tenth of the pieces' ``σ``
-    #: and the reading's core that ``meas_var`` (the pieces' mean) replaced
+    #: fitting.noise_read.with_noise_read`): ``[τ, σ_low, σ_high, σ_core, σ_mean]``, the
+    #: spread of ``log σ`` between a track's pieces, the quietest and noisiest tenth of the
+    #: pieces' ``σ``, the reading's core and the pieces' mean: ``meas_var`` is the mean's, or
+    #: the core's where the Kalman smoother does not do better at the mean
+    #: (:func:`~torchsvs.sample_accuracy.checked_within`)
     noise_within: list[float] | None = None
     #: the estimators this one was chosen from: ``--estimator auto``'s candidates, or an SVSF
     #: family's and its Kalman twin where the boundary layer's limit did not earn its place

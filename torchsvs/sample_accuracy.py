@@ -33,7 +33,7 @@ from torchsvs.fitting.defaults import (
     spread_tracks,
     with_q_curve,
 )
-from torchsvs.fitting.noise_read import with_noise_read
+from torchsvs.fitting.noise_read import with_noise_read, within_mean_taken
 from torchsvs.fitting.tuning import FitResult
 from torchsvs.recipes import NOISE_READ, Settings, make_estimator, make_model
 from torchsvs.step_estimates import GroupBatch, StepEstimates, centred
@@ -295,7 +295,7 @@ def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | N
     (5.0 m). Not where the noise changes within the tracks (``noise_within``): its level is
     then the pieces' mean on purpose, and the low end is the quiet stretches', the reading
     that made the smoother follow the loud ones."""
-    if settings.noise != "data" or settings.meas_var is None or settings.noise_within:
+    if settings.noise != "data" or settings.meas_var is None or within_mean_taken(settings):
         return None
     ends = meas_var_range(settings, GUARD_ERRORS)
     if ends is None:
@@ -406,6 +406,43 @@ def with_track_noise(read: Settings, tracks: RecordedTracks) -> tuple[Settings, 
         f"noise: read off each track alone it differs between tracks by about {tau:.0%}; each "
         f"track runs at its own reading (shrunk towards the file's): the Kalman smoother's "
         f"leave-one-out error is {lower:.3g} ± {se:.2g} m² per point lower so"
+    )
+
+
+def checked_within(read: Settings, tracks: RecordedTracks) -> Settings:
+    """The settings ``read`` off the data, at the file's reading (the pieces' core) instead of
+    the pieces' mean where the noise changes within the tracks (``noise_within``) and the
+    Kalman smoother's leave-one-out error on ``tracks`` is not clearly lower at the mean
+    (:data:`TRACK_NOISE_ERRORS` standard errors over the tracks, the points of little weight
+    in one, as :func:`with_track_noise` judges).
+
+    The mean of the pieces' variances is right where a sensor's noise changes (5 to 40 m
+    halfway: the smoother at the core follows the loud stretches), but a few pieces of another
+    kind decide it: 30-min buoys whose turns read as 100 times the noise in some pieces made
+    the drones beside them run at 338 m for 3 (13 times the measurements' error), and two
+    ships under one id (3 tracks of 57) made the file's noise 45 km."""
+    within = read.noise_within
+    if read.noise != "data" or not within or read.meas_var is None:
+        return read
+    core, mean = within[3], within[4]
+    at_core = [v * (core / mean) ** 2 for v in read.meas_var]
+    part = spread_tracks(tracks, GATE_POINTS)
+    kalman = [
+        complete_settings(Settings("ks", meas_var=variance), part)
+        for variance in (at_core, read.meas_var)
+    ]
+    (squares_core, h_core), (squares_mean, h_mean) = (_left_out_squares(s, part) for s in kalman)
+    usable = torch.minimum(h_core, h_mean) <= MOST_WEIGHT
+    gain = torch.where(usable, squares_core - squares_mean, 0.0).sum((1, 2))  # [B] m²
+    points = float(usable.sum())
+    if points > 0 and len(gain) > 1:
+        lower = float(gain.sum()) / points
+        se = float(gain.std()) * math.sqrt(len(gain)) / points
+        if lower > TRACK_NOISE_ERRORS * se:
+            return read
+    se = read.meas_std_se
+    return replace(
+        read, meas_var=at_core, meas_std_se=None if se is None else [e * core / mean for e in se]
     )
 
 

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import torch
 
 from torchsvs.accuracy import RiskTerms
 from torchsvs.datasets import RecordedTracks
@@ -211,8 +212,15 @@ def choose_estimator(
         # What the user gave (q, ψ, lag) is each candidate's start; the rest is read off the data.
         open_settings = replace(settings, estimator=name, chosen_from=None, **noise)
         candidate = complete_settings(open_settings, sample)
-        fit = self_tune(candidate, sample, **options)
-        fit = anchored_fit(fit, candidate, sample) if own_q else fit  # (as the run runs it)
+        try:
+            fit = self_tune(candidate, sample, **options)
+            fit = anchored_fit(fit, candidate, sample) if own_q else fit  # (as the run runs it)
+        except torch.linalg.LinAlgError as err:  # (the others still stand: one is chosen)
+            if name == candidates[0]:
+                raise
+            say(f"auto: {name} skipped: its fit failed ({err})")
+            rows.append({"estimator": name, "skipped": f"its fit failed numerically ({err})"})
+            continue
         fitted = fit.settings
         twin = fits.get(KALMAN_TWINS.get(name, ""))
         check = None

@@ -51,6 +51,7 @@ from torchsvs.sample_accuracy import (
     anchored_fit,
     checked_below,
     checked_low,
+    checked_within,
     lowered_noise,
     with_track_noise,
 )
@@ -272,7 +273,11 @@ def prepare_estimator(
     screen = None
     if own:  # the noise read and the outliers set aside once, before anything is fitted
         screen = screened(settings, sample)
-        read = screen.settings
+        read = checked_within(screen.settings, screen.tracks)
+        if read is not screen.settings:  # (the file's reading kept: screened again at it)
+            settings = replace(given, **{name: getattr(read, name) for name in NOISE_READ})
+            screen = screened(settings, sample)
+            read = screen.settings
         own_noise = with_track_noise(read, screen.tracks)
         low = None if own_noise is not None else lowered_noise(read, screen.tracks)
         if own_noise is not None:

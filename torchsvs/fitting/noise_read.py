@@ -93,7 +93,8 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
     uncertain = spread
     if within is not None and within.tau > WITHIN_SPREAD:
         core = sum(v**0.5 for v in meas_var) / len(meas_var)
-        changes = [within.tau, within.low * core, within.high * core, core]
+        mean = core * within.mean_ratio**0.5
+        changes = [within.tau, within.low * core, within.high * core, core, mean]
         meas_var = [v * within.mean_ratio for v in meas_var]
         # (the standard error of the jackknife is the core's, scaled; the pieces' spread adds
         # the uncertainty of one level for stretches of several)
@@ -131,19 +132,39 @@ def within_warning(settings: Settings) -> str | None:
     """The run's warning where the noise changes within the tracks (``noise_within``)."""
     if not settings.noise_within or settings.meas_var is None:
         return None
-    tau, low, high, core = settings.noise_within
-    level = sum(v**0.5 for v in settings.meas_var) / len(settings.meas_var)
-    return (
+    tau, low, high, core, mean = settings.noise_within
+    read = (
         f"measurement noise: it changes within the tracks: read on pieces of "
         f"{PIECE_POINTS} positions it spans {low:.3g}-{high:.3g} m (the quietest and the "
         f"noisiest tenth; a spread of {tau:.0%} beyond the pieces' own uncertainty), where the "
-        f"file's reading ({core:.3g} m) is the quiet stretches' alone; one noise level serves "
-        f"every step, so the run took the pieces' mean, {level:.3g} m: the loud stretches are "
-        "smoothed less and the quiet ones more than each alone would be, and the error "
-        "estimate is the run's as a whole (its range takes in the spread), not each "
-        "stretch's; where the sensor's noise changes (a new receiver, a mode switch), "
+        f"file's reading ({core:.3g} m) is the quiet stretches' alone; "
+    )
+    if not within_mean_taken(settings):
+        return read + (
+            f"at the pieces' mean ({mean:.3g} m) the Kalman smoother's leave-one-out error was "
+            "not lower, so the run kept the file's reading: the loud pieces are of tracks "
+            "whose motion between reports reads as noise there, or of a few tracks of another "
+            "kind (two targets under one id), and the error estimate may miss them; where the "
+            "sensor's noise changes, estimate each stretch apart with --meas-std of its own"
+        )
+    return read + (
+        f"one noise level serves every step, so the run took the pieces' mean, {mean:.3g} m: "
+        "the loud stretches are smoothed less and the quiet ones more than each alone would "
+        "be, and the error estimate is the run's as a whole (its range takes in the spread), "
+        "not each stretch's; where the sensor's noise changes (a new receiver, a mode switch), "
         "estimate each stretch apart with --meas-std of its own"
     )
+
+
+def within_mean_taken(settings: Settings) -> bool:
+    """Whether the settings run at the pieces' mean where the noise changes within the tracks
+    (``noise_within``), not at the file's reading
+    (:func:`~torchsvs.sample_accuracy.checked_within` kept it)."""
+    if not settings.noise_within or settings.meas_var is None:
+        return False
+    level = sum(v**0.5 for v in settings.meas_var) / len(settings.meas_var)
+    core, mean = settings.noise_within[3], settings.noise_within[4]
+    return abs(level - mean) < abs(level - core)
 
 
 #: Between-track spread of the noise read off the data (relative) above which a run warns:
