@@ -313,3 +313,35 @@ def test_one_wild_row_in_a_small_file_is_set_aside_not_followed(tmp_path):
     error = np.hypot(*(est - true).T)
     assert error[10] < 100.0  # (estimated from its neighbours)
     assert float(np.sqrt(np.mean(np.delete(error, 10) ** 2))) < 10.0  # (smoothed: raw 28)
+
+
+def test_a_sensor_erring_at_two_percent_is_screened_not_followed(tmp_path):
+    """2% of the reports 500 m off (cars at 1 Hz turning, σ 8 m): the clipped SURE ``q`` read
+    8.6e4 and followed them, a screen at the differences' ``q`` set 883 aside but the SURE
+    ``q`` of what it left rose again on the few it missed, and the run set none aside: 71.6 m
+    against the measurements' 72.5 (an outside probe). Now the screen keeps to the lower ``q``
+    and sets most aside, none of the good rows."""
+    gen = np.random.default_rng(52)
+    lines, truth, bad = [], [], []
+    for k in range(30):
+        heading = gen.uniform(0, 2 * np.pi) + np.cumsum(gen.normal(0, 0.05, 400))
+        speed = gen.uniform(5, 15)
+        path = np.cumsum(speed * np.c_[np.cos(heading), np.sin(heading)], 0)
+        noise = gen.normal(0, 8.0, path.shape)
+        off = gen.random(400) < 0.02
+        angle = gen.uniform(0, 2 * np.pi, int(off.sum()))
+        noise[off] += 500.0 * np.c_[np.cos(angle), np.sin(angle)]
+        z = path + noise
+        lines += [f"{k},{i},{x:.3f},{y:.3f}" for i, (x, y) in enumerate(z)]
+        truth.append(path)
+        bad.append(off)
+    src, out = tmp_path / "in.csv", tmp_path / "out.csv"
+    src.write_text("track_id,time,x,y\n" + "\n".join(lines) + "\n")
+    main(["track", str(src), "-o", str(out), "--estimator", "ks", "--quiet"])
+    table = pcsv.read_csv(out)
+    flags = table.column("outlier").to_numpy(zero_copy_only=False).astype(bool)
+    off = np.concatenate(bad)
+    assert flags[off].mean() > 0.8 and not flags[~off].any()
+    est = np.stack([table.column("x").to_numpy(), table.column("y").to_numpy()], 1)
+    error = np.hypot(*(est - np.concatenate(truth)).T)
+    assert float(np.sqrt(np.mean(error[~off] ** 2))) < 8.0  # (the good rows smoothed)
