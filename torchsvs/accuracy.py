@@ -491,6 +491,16 @@ class Accuracy:
             f"{self.measurement_rmse:.3g} m"
         )
 
+    def part_summary(self) -> dict[str, Any]:
+        """This estimate of some of the axes as the run's summary writes it."""
+        unknown = self.below_zero
+        return {
+            "estimated": math.nan if unknown else self.estimated_rmse,
+            "interval": [math.nan] * 2 if unknown else list(self.interval),
+            "measurement_rmse": self.measurement_rmse,
+            "meas_std": self.meas_std,
+        }
+
     def line(self) -> str:
         low, high = self.interval
         noise = "estimated from the data" if self.noise_estimated else "as given"

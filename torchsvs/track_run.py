@@ -4,6 +4,7 @@ summary, printed and written as JSON next to the output (:func:`write_summary`).
 
 from __future__ import annotations
 
+import copy
 import math
 from collections import Counter
 from collections.abc import Sequence
@@ -143,6 +144,9 @@ class TrackRun:
     #: the least error of the worst :data:`TRACKS_KEPT` as last kept (:meth:`keep_worst`): a
     #: track's at or below it is not among the run's worst (None until there were more)
     error_floor: float | None = None
+    #: an engine's sketch of the track ids its parts held (:class:`~torchsvs.engines.
+    #: id_sketch.IdSketch`: its ``merge`` adds another's), or None
+    parts_ids: Any = None
 
     @property
     def accuracy(self) -> Accuracy | None:
@@ -201,6 +205,11 @@ class TrackRun:
         self.track_q.update(other.track_q)
         self._keep_worst()
         self.warnings.extend(w for w in other.warnings if w not in self.warnings)
+        if other.parts_ids is not None:
+            if self.parts_ids is None:
+                self.parts_ids = copy.deepcopy(other.parts_ids)
+            else:
+                self.parts_ids.merge(other.parts_ids)
 
     def add_block(self, found: BlockEstimates, steps: TrackSteps) -> None:
         """Counts a block's estimates: its notes, tracks' q factors, error estimate's terms."""
@@ -351,7 +360,7 @@ class TrackRun:
                 method="Stein's unbiased risk estimate (no truth), torchsvs.accuracy",
             )
         for name, part in self.axes_parts().items():
-            out[f"{name}_position_rmse"] = _part_json(part)
+            out[f"{name}_position_rmse"] = part.part_summary()
         out["tracks"] = {
             k: {
                 "estimated_position_rmse": v[0],
@@ -437,17 +446,6 @@ class TrackRun:
             f"phases: {timed} (reading and writing beside the estimating: waited for "
             f"{waiting:.1f} s), other {rest:.1f} s"
         )
-
-
-def _part_json(found: Accuracy) -> dict[str, Any]:
-    """Some axes' error estimate (:meth:`TrackRun.axes_parts`) as the summary writes it."""
-    unknown = found.below_zero
-    return {
-        "estimated": math.nan if unknown else found.estimated_rmse,
-        "interval": [math.nan] * 2 if unknown else list(found.interval),
-        "measurement_rmse": found.measurement_rmse,
-        "meas_std": found.meas_std,
-    }
 
 
 def gross_errors(report: RowReport) -> str | None:

@@ -10,6 +10,7 @@ from typing import Any
 
 from torch import nn
 
+from torchsvs.engines.id_sketch import IdSketch, split_warning
 from torchsvs.track_plan import TrackPlan
 from torchsvs.track_run import TrackRun
 from torchsvs.track_table import new_run, track_table
@@ -94,6 +95,12 @@ def estimate_part(
     )
     run = result.run
     run.keep_worst(TRACKS_PER_PART)
+    ids = (
+        frame[plan.columns.track_id]
+        if hasattr(frame, "columns")
+        else frame.column(plan.columns.track_id)
+    )
+    run.parts_ids = IdSketch.of(ids)
     return result.table, run
 
 
@@ -106,4 +113,7 @@ def merged_run(plan: TrackPlan, runs: Iterable[TrackRun], accuracy: bool = True)
         total.seconds += run.seconds
     total.keep_worst(TRACKS_PER_PART)
     total.check()
+    split = None if total.parts_ids is None else split_warning(total.parts_ids)
+    if split is not None:
+        total.warnings.insert(0, split)
     return total

@@ -32,7 +32,7 @@ from torchsvs.fitting.noise import (
 )
 from torchsvs.fitting.noise_classes import classes_of
 from torchsvs.fitting.noise_read import with_noise_read
-from torchsvs.fitting.outliers import AGILITY, outlier_distances, screen_outliers
+from torchsvs.fitting.outliers import AGILITY, gross_screen, outlier_distances, screen_outliers
 from torchsvs.fitting.q_kinds import track_kinds
 from torchsvs.fitting.q_windows import choose_window
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
@@ -216,12 +216,12 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
         except ValueError:  # too little data to say: the measurement noise over one step
             q = sum(first.meas_var) / len(first.meas_var) / first.interval**3
         q = _judging_q(tracks, first.meas_var, q)
-    gross = False  # (the sensor errs so often that SURE follows its errors: _gross)
+    gross = False  # (the sensor errs so often that SURE follows its errors: gross_screen)
     before = None
     for _ in range(1 if settings.outlier_q else 2):
         flagged = screen_outliers(tracks.z, tracks.dt, first.meas_var, q)
         if before is None and settings.outlier_q is None and not settings.own_noise:
-            flagged, q, gross = _gross(tracks, first.meas_var, q, flagged)
+            flagged, q, gross = gross_screen(tracks, first.meas_var, q, flagged)
         if before is not None and torch.equal(flagged, before):
             break  # (the same outliers: the same tracks, the same q)
         before = flagged
@@ -236,48 +236,6 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
             except ValueError:
                 break
     return Screened(replace(settings, outlier_q=q), clean, flagged)
-
-
-#: A screen at this many times the white-acceleration ``q`` the positions' differences read
-#: (robust to outliers) ... (:func:`_gross`)
-SCREEN_ROBUST_FACTOR = 30.0
-#: ... that sets aside this share of the observed rows finds a sensor that errs grossly.
-STRICT_GROSS_SHARE = 5e-3
-
-
-def _gross(
-    tracks: RecordedTracks, meas_var: Sequence[float], q: float, flagged: Tensor
-) -> tuple[Tensor, float, bool]:
-    """The first screen's outliers and ``q``, and whether the sensor errs so often that SURE
-    follows its errors: the screen at ``q`` (``flagged``), or else one at
-    :data:`SCREEN_ROBUST_FACTOR` times the ``q`` of the positions' differences
-    (:func:`~torchsvs.datasets.estimate_noise`, trimmed) where that is lower, sets aside
-    :data:`STRICT_GROSS_SHARE` of the rows or more. The screens after it then re-read ``q`` at
-    most at the clipped SURE's of what they leave (:func:`screened`).
-
-    Where 2% of the reports are 500 m off (σ 8 m, 1 Hz), clipped SURE follows them (each drags
-    its neighbours' residuals to the clip): ``q`` read 8.6e4 against the differences' 6.1; a
-    screen at 6.1 set aside 883 rows, the unclipped SURE ``q`` of what it left rose to 6.5e3
-    on the 77 it missed (the clipped: 2.4), and the next screen at it set none aside: every
-    estimator followed each jump (71.6 m against the measurements' 72.5, the error estimate
-    6.5 m; an outside probe). On the benchmark's clean sets the differences' ``q`` is
-    0.006-240 times the clipped SURE's, and a screen at 30 times it sets aside at most 0.14%
-    of the rows (irregular reports, mixed noise)."""
-    observed = int((~torch.isnan(tracks.z)).any(-1).sum())
-
-    def many(found: Tensor) -> bool:
-        return int(found.sum()) >= STRICT_GROSS_SHARE * observed
-
-    if many(flagged):
-        return flagged, q, True
-    try:
-        strict = SCREEN_ROBUST_FACTOR * estimate_noise(tracks.z, tracks.dt).q
-    except ValueError:
-        return flagged, q, False
-    if strict >= q:
-        return flagged, q, False
-    again = screen_outliers(tracks.z, tracks.dt, meas_var, strict)
-    return (again, strict, True) if many(again) else (flagged, q, False)
 
 
 #: The screen's ``q`` judges at least this share of the observed rows (:func:`_judging_q`).
