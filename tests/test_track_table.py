@@ -160,6 +160,17 @@ def test_a_lightning_checkpoints_noise_is_the_runs(rows, tmp_path):
         plan_tracks(frame, Settings("ks", meas_var=[100.0] * 2), columns=COLUMNS, checkpoint=path)
 
 
+def test_rows_in_another_time_unit_than_the_plans_are_said_so(rows):
+    """A plan settles the time unit on its sample: rows whose times are in milliseconds read
+    as the plan's seconds came out worse without a word (an outside probe). The run says their
+    typical interval is unlike the sample's; rows like the sample's get no such warning."""
+    frame, _ = rows
+    plan = _plan(frame, "ks")
+    assert not any(w.startswith("time:") for w in track_table(frame, plan).run.warnings)
+    said = track_table(frame.assign(t=frame["t"] * 1000.0), plan).run.warnings
+    assert any(w.startswith("time: these rows' typical interval is") for w in said), said
+
+
 def test_a_plan_travels_by_pickle(rows):
     """An engine broadcasts the plan as a pickle: the same estimates from the copy; the fit's
     summary stays with the one who planned."""

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from torchsvs.datasets import Columns, RecordedTracks, TrackSteps
 from torchsvs.datasets.breaks import some_tracks, split_at_breaks
+from torchsvs.datasets.describe import typical_interval
 from torchsvs.datasets.noise_estimate import changing_tracks
 from torchsvs.datasets.tables import SAMPLE_TRACKS, block_of
 from torchsvs.datasets.tracks import padded_batch
@@ -183,6 +184,32 @@ def precision_warning(plan: TrackPlan, steps: TrackSteps) -> str | None:
         "precision: positions larger than the sample the plan was made on are written as "
         f"float32, which rounds them by more than {POSITION_RESOLUTION / 2:g} of the noise; "
         "write float64 (--precision float64, or plan_tracks(..., precision='float64'))"
+    )
+
+
+#: Rows whose typical interval is this many times the plan's sample's (or as many times below)
+#: are said to be unlike it (:func:`interval_warning`): seconds read as milliseconds are 1,000.
+UNLIKE_INTERVAL = 30.0
+
+
+def interval_warning(plan: TrackPlan, steps: TrackSteps) -> str | None:
+    """Why these rows' times may not be what the plan reads them as: their typical interval
+    :data:`UNLIKE_INTERVAL` times the plan's sample's or more (or as far below), or None. A
+    plan settles the time unit on its sample, and rows in another unit were read in the plan's
+    without a word: epoch milliseconds read as seconds came out at 2.4 times the truth's error
+    (a plan on seconds), 3,560 m (the other way round; an outside probe)."""
+    interval, planned = typical_interval(steps), plan.settings.interval
+    if (
+        not (interval > 0 and planned > 0)
+        or 1 / UNLIKE_INTERVAL < interval / planned < UNLIKE_INTERVAL
+    ):
+        return None
+    return (
+        f"time: these rows' typical interval is {interval:.4g} s against {planned:.4g} s in the "
+        f"sample the plan was made on (its time column read at {plan.columns.seconds_per_unit:g} "
+        "s per unit): if their times are in another unit, plan on them or give the unit "
+        "(--time-unit, Columns(time_unit=...)); if they are of another kind of track, the "
+        "settings read off the sample may not suit them"
     )
 
 

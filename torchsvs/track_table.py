@@ -27,7 +27,7 @@ from torchsvs.datasets.tables import block_of, is_pandas, to_pandas_like
 from torchsvs.datasets.writing import output_names
 from torchsvs.estimating import estimate_group
 from torchsvs.step_estimates import StepEstimates, group_batch
-from torchsvs.track_plan import TrackPlan, precision_warning
+from torchsvs.track_plan import TrackPlan, interval_warning, precision_warning
 from torchsvs.track_run import BlockEstimates, TrackRun
 
 
@@ -114,9 +114,9 @@ def estimate_block(
         if breaks:
             block.steps.report.notes["track_breaks"] += breaks
     steps = block.steps
-    warning = precision_warning(plan, steps)
-    if warning is not None and warning not in run.warnings:
-        run.warnings.append(warning)
+    for warning in (precision_warning(plan, steps), interval_warning(plan, steps)):
+        if warning is not None and not any(w[:40] == warning[:40] for w in run.warnings):
+            run.warnings.append(warning)  # (once: a block's numbers differ from the next's)
     meas_std = plan.meas_std
     found = BlockEstimates.empty(steps, covariance, plan.settings.screens)
     tick, cpu = time.perf_counter(), time.process_time()

@@ -193,7 +193,7 @@ def _describe(
                 "name them latitude/longitude (or lat/lon) or pass --frame wgs84; they are "
                 "read as metres"
             )
-    interval = _typical_interval(steps)
+    interval = typical_interval(steps)
     if asked.time_unit == "auto" and cols.time_unit == 1.0 and interval >= LONG_INTERVAL:
         if "date-time" not in found and "timestamps" not in found:
             notes.append(
@@ -217,7 +217,7 @@ def _within_track(steps: TrackSteps) -> np.ndarray:
     return track[1:] == track[:-1]
 
 
-def _typical_interval(steps: TrackSteps) -> float:
+def typical_interval(steps: TrackSteps) -> float:
     """The median interval between successive steps of a track (NaN without any)."""
     dt = np.diff(steps.time)[_within_track(steps)]
     return float(np.median(dt)) if len(dt) else float("nan")
