@@ -5,6 +5,7 @@ and the engines call. A table's estimates must not depend on which other tracks 
 from __future__ import annotations
 
 import pickle
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -171,6 +172,19 @@ def test_rows_in_another_time_unit_than_the_plans_are_said_so(rows):
     assert any(w.startswith("time: these rows' typical interval is") for w in said), said
 
 
+def test_a_noise_column_in_the_settings_is_read_without_naming_it_twice(rows):
+    """``Settings(noise_column="sigma")`` failed with ``KeyError: 'sigma'`` unless the column
+    was named again in ``Columns(extra=...)``; it is read beside the positions as with
+    ``--noise-col``."""
+    frame, _ = rows
+    given = frame.assign(sigma=30.0)
+    plan = plan_tracks(given, Settings("ks", noise_column="sigma"), columns=COLUMNS)
+    assert "sigma" in plan.columns.extra and plan.settings.meas_var == [900.0, 900.0]
+    named = replace(COLUMNS, extra=("sigma",))
+    again = plan_tracks(given, Settings("ks", noise_column="sigma"), columns=named)
+    pd.testing.assert_frame_equal(track_table(given, plan).table, track_table(given, again).table)
+
+
 def test_a_plan_travels_by_pickle(rows):
     """An engine broadcasts the plan as a pickle: the same estimates from the copy; the fit's
     summary stays with the one who planned."""
@@ -248,6 +262,16 @@ def test_bad_input_names_the_argument(rows, tmp_path):
         plan_tracks(frame.drop(columns=["id"]), columns=COLUMNS)
     with pytest.raises(ValueError, match="^settings: expected complete settings"):
         TrackPlan(plan.columns, Settings(estimator="ks"), plan.parameters)
+    # (a pyarrow KeyError, a complex-number TypeError, "float has no len()" before; an outside
+    # probe of the API)
+    with pytest.raises(ValueError, match=r"^data: columns \['y'\] of the plan not in the data"):
+        track_table(frame.drop(columns=["y"]), plan)
+    with pytest.raises(ValueError, match="^meas_var: expected variances > 0"):
+        Settings("ks", meas_var=[-400.0, -400.0])
+    with pytest.raises(ValueError, match="^meas_var: expected a list of numbers > 0"):
+        Settings("ks", meas_var=400.0)
+    with pytest.raises(ValueError, match="^psi: expected a list of numbers > 0"):
+        Settings("svss", psi=4.0)
     path = tmp_path / "sample.parquet"
     pq.write_table(pa.Table.from_pandas(frame, preserve_index=False), path)
     from_file = plan_tracks(path, Settings(estimator="ks"), columns=COLUMNS)

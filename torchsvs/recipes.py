@@ -249,6 +249,16 @@ class Settings:
             raise ValueError(f"q: expected a number > 0, got {self.q!r}")
         if self.outlier_q is not None and not self.outlier_q > 0:
             raise ValueError(f"outlier_q: expected a number > 0, got {self.outlier_q!r}")
+        for name in ("meas_var", "psi"):  # (lists: one per axis, or a layer's widths)
+            value = getattr(self, name)
+            if value is not None and (
+                isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or not len(value)
+            ):
+                raise ValueError(
+                    f"{name}: expected a list of numbers > 0 (one per axis), got {value!r}"
+                )
+        if self.meas_var is not None and not all(v > 0 for v in self.meas_var):
+            raise ValueError(f"meas_var: expected variances > 0, got {self.meas_var!r}")
         if self.psi is not None and not all(p > 0 for p in self.psi):
             raise ValueError(f"psi: expected widths > 0, got {self.psi!r}")
         for name in ("turn_q", "turn_rate_q", "turn_rate_std"):

@@ -13,7 +13,7 @@ on a table of tracks.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -146,6 +146,10 @@ def plan_tracks(
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {list(PRECISIONS)}, got {precision!r}")
     tracks = int((fit_options or {}).get("tracks", SAMPLE_TRACKS))
+    noise = None if settings is None else settings.noise_column
+    if noise is not None and noise not in (columns or Columns()).extra:  # (read beside them)
+        columns = columns or Columns()
+        columns = replace(columns, extra=(*columns.extra, noise))
     block = block_of(data, columns, block_rows, tracks)
     estimator, settings, summary = prepare_estimator(
         block.steps, settings or Settings(estimator="auto"), fit, fit_options, checkpoint, save, log
@@ -170,6 +174,22 @@ def output_precision(steps: TrackSteps, columns: Columns, meas_var: list[float])
     (a local frame, a sensor's) are written as float32, large map coordinates (UTM
     northings) and latitude, longitude in degrees mostly as float64."""
     return "float32" if _float32_keeps(steps, columns, meas_var, MAGNITUDE_HEADROOM) else "float64"
+
+
+def plan_columns(plan: TrackPlan) -> list[str]:
+    """The columns a part must hold: the id, the time, the positions and any extra."""
+    cols = plan.columns
+    return [cols.track_id, cols.time, *(cols.position or ()), *cols.extra]
+
+
+def check_columns(available: Sequence[str], plan: TrackPlan, name: str) -> None:
+    """A ValueError naming the argument ``name`` where the data lack a column of the plan."""
+    missing = [c for c in plan_columns(plan) if c not in available]
+    if missing:
+        raise ValueError(
+            f"{name}: columns {missing} of the plan not in the data (its columns: "
+            f"{list(available)})"
+        )
 
 
 def precision_warning(plan: TrackPlan, steps: TrackSteps) -> str | None:

@@ -27,7 +27,7 @@ from torchsvs.datasets.tables import block_of, is_pandas, to_pandas_like
 from torchsvs.datasets.writing import output_names
 from torchsvs.estimating import estimate_group
 from torchsvs.step_estimates import StepEstimates, group_batch
-from torchsvs.track_plan import TrackPlan, interval_warning, precision_warning
+from torchsvs.track_plan import TrackPlan, check_columns, interval_warning, precision_warning
 from torchsvs.track_run import BlockEstimates, TrackRun
 
 
@@ -70,6 +70,8 @@ def track_table(
         DataFrame for one, an Arrow table otherwise, with no index), and the run's summary.
     """
     start = time.perf_counter()
+    if is_pandas(data) or hasattr(data, "column_names"):
+        check_columns(list(data.columns if is_pandas(data) else data.column_names), plan, "data")
     block = block_of(data, plan.columns)
     run = new_run(plan, accuracy)
     found = estimate_block(

@@ -16,13 +16,11 @@ import time
 from typing import Any
 
 from torchsvs.engines.parts import (
-    check_columns,
     check_plan,
     estimate_part,
     merged_run,
-    plan_columns,
 )
-from torchsvs.track_plan import TrackPlan
+from torchsvs.track_plan import TrackPlan, check_columns, plan_columns
 from torchsvs.track_run import TrackRun
 from torchsvs.track_table import output_schema
 

@@ -5,7 +5,7 @@ estimated (:func:`estimate_part`) and its run kept small, the parts' runs added 
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from typing import Any
 
 from torch import nn
@@ -29,22 +29,6 @@ def check_plan(plan: Any) -> TrackPlan:
             f"{type(plan).__name__}"
         )
     return plan
-
-
-def plan_columns(plan: TrackPlan) -> list[str]:
-    """The columns a part must hold: the id, the time, the positions and any extra."""
-    cols = plan.columns
-    return [cols.track_id, cols.time, *(cols.position or ()), *cols.extra]
-
-
-def check_columns(available: Sequence[str], plan: TrackPlan, name: str) -> None:
-    """A ValueError naming the argument ``name`` where the data lack a column of the plan."""
-    missing = [c for c in plan_columns(plan) if c not in available]
-    if missing:
-        raise ValueError(
-            f"{name}: columns {missing} of the plan not in the data (its columns: "
-            f"{list(available)})"
-        )
 
 
 def set_threads(threads: int | None) -> None:

@@ -25,14 +25,12 @@ from typing import Any
 from torchsvs.datasets import Columns
 from torchsvs.datasets.tables import SAMPLE_TRACKS
 from torchsvs.engines.parts import (
-    check_columns,
     check_plan,
     estimate_part,
     merged_run,
-    plan_columns,
 )
 from torchsvs.recipes import Settings
-from torchsvs.track_plan import TrackPlan, plan_tracks
+from torchsvs.track_plan import TrackPlan, check_columns, plan_columns, plan_tracks
 from torchsvs.track_run import TrackRun
 from torchsvs.track_table import output_schema
 
