@@ -130,6 +130,29 @@ def test_spark_gives_the_estimates_of_one_process(spark, spark_rows, rows, plans
     assert run.accuracy is not None
 
 
+def test_spark_takes_a_timestamp_time_column(spark, rows):
+    """Spark's own time type, TIMESTAMP (a Parquet timestamp with a zone): building the output
+    schema failed on an assert (pyspark's to_arrow_type wants a zone), where the other engines
+    read it (an outside probe). The estimates are those of one process on the same times."""
+    from pyspark.sql import functions as F
+
+    from torchsvs.engines.spark import track_spark
+
+    stamped = rows.assign(t=pd.to_datetime(1.7e9 + rows["t"], unit="s", utc=True).dt.round("ms"))
+    plan = plan_tracks(stamped, Settings(estimator="ks"), columns=COLUMNS, precision="float64")
+    frame = spark.createDataFrame(rows.assign(t=(1.7e12 + rows["t"] * 1e3).round())).withColumn(
+        "t", F.timestamp_millis(F.col("t").cast("long"))
+    )
+    assert dict(frame.dtypes)["t"] == "timestamp"
+    out = track_spark(frame, plan).toPandas()
+    whole = track_table(stamped, plan).table
+    key = ["id", "t", "x", "y"]
+    got = out.assign(t=pd.to_datetime(out["t"]).dt.tz_localize(None))[key]
+    want = whole.assign(t=whole["t"].dt.tz_convert(None))[key]
+    both = got.sort_values(key).reset_index(drop=True), want.sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(*both, check_dtype=False, check_exact=False, atol=1e-6)
+
+
 def _with_noise_column(rows: pd.DataFrame) -> tuple[pd.DataFrame, TrackPlan]:
     """The rows with each track's σ in a ``sigma`` column (10, 30 or 90 m by track), and the
     plan that runs each track at its own (``--noise-col sigma``)."""

@@ -96,9 +96,10 @@ def spark_schema(df: Any, plan: TrackPlan, covariance: bool = False) -> Any:
     cols = plan.columns
     fields = {f.name: f for f in df.schema.fields}
     ident, stamp = fields[cols.track_id], fields[cols.time]
-    arrow = output_schema(
-        plan, to_arrow_type(ident.dataType), to_arrow_type(stamp.dataType), covariance
-    )
+    # (the id and time fields are kept as they are: their Arrow types only shape the rest; a
+    # TIMESTAMP needs a zone to convert, any zone, where none failed on an assert)
+    kinds = [to_arrow_type(f.dataType, timezone="UTC") for f in (ident, stamp)]
+    arrow = output_schema(plan, *kinds, covariance)
     estimates = from_arrow_schema(arrow).fields[2:]
     return StructType([ident, stamp, *estimates])
 
