@@ -266,6 +266,9 @@ def test_bad_input_names_the_argument(rows, tmp_path):
     # probe of the API)
     with pytest.raises(ValueError, match=r"^data: columns \['y'\] of the plan not in the data"):
         track_table(frame.drop(columns=["y"]), plan)
+    codes = frame["id"].astype("category").cat.codes.astype("float64")
+    with pytest.raises(ValueError, match=r"^data: the track ids 'id' are floats reaching"):
+        track_table(frame.assign(id=codes + 2.0**60), plan)  # (Dask's int64 with a null)
     with pytest.raises(ValueError, match="^meas_var: expected variances > 0"):
         Settings("ks", meas_var=[-400.0, -400.0])
     with pytest.raises(ValueError, match="^meas_var: expected a list of numbers > 0"):

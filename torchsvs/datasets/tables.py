@@ -52,8 +52,28 @@ def block_of(
         )
     if columns is None or not _settled(columns):
         columns = describe_table(data, columns, name="data").columns
+    _check_float_ids(data, columns.track_id)
     steps = group_rows(parse_block(data, columns))
     return TrackBlock(data, steps, columns)
+
+
+def _check_float_ids(table: Any, name: str) -> None:
+    """A ValueError where the track ids are floats beyond 2^53, where distinct integers become
+    one number: Dask reads an int64 column with an empty value as float64, and 60 tracks of
+    ids near 2^60 were estimated as one (26 km off; an outside probe)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if name not in table.column_names or not pa.types.is_floating(table.schema.field(name).type):
+        return
+    largest = pc.max(pc.abs(table.column(name))).as_py()
+    if largest is not None and largest >= 2.0**53:
+        raise ValueError(
+            f"data: the track ids {name!r} are floats reaching {largest:.6g}, beyond 2^53, where "
+            "distinct integer ids become one number (an int64 column with an empty value read "
+            "as float64, as pandas and Dask do); read the ids as integers (Int64, "
+            "dtype_backend='pyarrow') or as text"
+        )
 
 
 def _settled(columns: Columns) -> bool:
