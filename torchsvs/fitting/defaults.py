@@ -228,11 +228,10 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
         clean = replace(tracks, z=tracks.z.masked_fill(flagged.unsqueeze(-1), math.nan))
         if settings.outlier_q is None:
             try:
-                judged = q
                 q = file_sure_q(settings, clean, first.meas_var, "ks")
-                if gross:  # (the few outliers it left would raise it again: never above)
+                if gross:  # (the few outliers it left would raise the unclipped one again)
                     r = torch.tensor(first.meas_var, dtype=torch.float64)
-                    q = min(q, judged, smoother_q(clean.z, clean.dt, r, clip=SCREEN_CLIP).q)
+                    q = min(q, smoother_q(clean.z, clean.dt, r, clip=SCREEN_CLIP).q)
             except ValueError:
                 break
     return Screened(replace(settings, outlier_q=q), clean, flagged)
