@@ -793,3 +793,16 @@ def test_each_tracks_range_is_the_runs_range_of_its_chunks_alone():
         assert high[k] == pytest.approx(math.sqrt(max(ends)), rel=1e-12)
     assert math.isnan(low[1]) and math.isnan(high[1])  # one chunk
     assert math.isnan(low[3])  # no chunk at all
+
+
+def test_a_tracks_range_wholly_below_zero_is_unknown_not_zero():
+    """A track whose residuals are far below the noise assumed has every chunk's MSE below
+    zero: its range read [0, 0] m, for a true 1.7 m (an outside probe); it is unknown (NaN,
+    written null), as a one-chunk track's is, and the others' ranges stand."""
+    count = np.full((6, 2), 32.0)
+    residual = np.array([[3200.0] * 2] * 3 + [[100.0] * 2] * 3)  # (per component: 100, 3)
+    residual[:3] += np.array([[40.0, 40.0], [0.0, 0.0], [-40.0, -40.0]])
+    terms = RiskTerms(residual, np.full((6, 2), 8.0), count, np.repeat([0, 1], 3))
+    low, high = terms.per_track_ranges([25.0, 25.0], 2)
+    assert 0 < low[0] < high[0]  # (a track whose error is there to see)
+    assert np.isnan(low[1]) and np.isnan(high[1])

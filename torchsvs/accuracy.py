@@ -151,7 +151,8 @@ class RiskTerms:
         MSE ``errors`` standard errors below and above, at ``meas_var`` and at the other noise
         ``levels`` (the noise reading's interval), as the run's range is made. The standard
         error is :meth:`RiskTotals.mse`'s ratio estimator over the track's own chunks; NaN for
-        a track of fewer than two chunks (nothing to spread: unknown, not 0)."""
+        a track of fewer than two chunks (nothing to spread: unknown, not 0) and for one whose
+        whole range is below zero."""
         m = self.count.shape[1]
         count = np.stack([np.bincount(self.track, self.count[:, j], tracks) for j in range(m)], 1)
         chunks = np.bincount(self.track, minlength=tracks)
@@ -170,6 +171,10 @@ class RiskTerms:
                 se = np.where(chunks >= 2, se, np.nan)
                 low = np.minimum(low, mse - errors * se)
                 high = np.maximum(high, mse + errors * se)
+        # (a range wholly below zero is unknown, not [0, 0]: the noise assumed is above what
+        # the track's residuals allow; one such track read 0 m for a true 1.7 m)
+        unknown = high <= 0.0
+        low, high = np.where(unknown, np.nan, low), np.where(unknown, np.nan, high)
         return np.sqrt(np.clip(low, 0.0, None)), np.sqrt(np.clip(high, 0.0, None))
 
 

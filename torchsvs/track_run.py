@@ -364,7 +364,7 @@ class TrackRun:
         out["tracks"] = {
             k: {
                 "estimated_position_rmse": v[0],
-                # (None: a track of one chunk of steps, nothing to spread)
+                # (None: a track of one chunk of steps, nothing to spread, or a range below zero)
                 "estimated_position_rmse_interval": None if math.isnan(v[2]) else [v[2], v[3]],
                 "points": v[1],
             }
