@@ -225,6 +225,8 @@ def test_spark_bad_input_names_the_argument(spark, spark_rows, rows, plans):
         track_spark(spark_rows, plan, method="udf")
     with pytest.raises(ValueError, match="^buckets: expected a positive int"):
         track_spark(spark_rows, plan, buckets=0)
+    with pytest.raises(ValueError, match="^rows_per_call: expected a positive int"):
+        track_spark(spark_rows, plan, rows_per_call=0)
     with pytest.raises(TypeError, match="^spark: expected a SparkSession"):
         SparkRuns(rows)
 
@@ -340,6 +342,8 @@ def test_dask_bad_input_names_the_argument(dask_rows, rows, plans):
         track_dask(dask_rows, "ks")
     with pytest.raises(TypeError, match="^ddf: expected a dask.dataframe.DataFrame"):
         track_dask(rows, plan)
+    with pytest.raises(ValueError, match="^npartitions: expected a positive int"):
+        track_dask(dask_rows, plan, npartitions=0)  # (ran, an outside probe)
 
 
 def test_engines_import_neither_spark_nor_dask_until_run():

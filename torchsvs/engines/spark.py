@@ -146,6 +146,8 @@ def track_spark(
         raise ValueError(f"method: expected one of {list(METHODS)}, got {method!r}")
     if buckets is not None and (not isinstance(buckets, int) or buckets < 1):
         raise ValueError(f"buckets: expected a positive int or None, got {buckets!r}")
+    if isinstance(rows_per_call, bool) or not isinstance(rows_per_call, int) or rows_per_call < 1:
+        raise ValueError(f"rows_per_call: expected a positive int, got {rows_per_call!r}")
     if runs is not None and not isinstance(runs, SparkRuns):
         raise TypeError(f"runs: expected SparkRuns or None, got {type(runs).__name__}")
     schema = spark_schema(df, plan, covariance)
