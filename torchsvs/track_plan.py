@@ -210,6 +210,8 @@ def precision_warning(plan: TrackPlan, steps: TrackSteps) -> str | None:
 #: Rows whose typical interval is this many times the plan's sample's (or as many times below)
 #: are said to be unlike it (:func:`interval_warning`): seconds read as milliseconds are 1,000.
 UNLIKE_INTERVAL = 30.0
+#: ... read off a block's first this many steps.
+INTERVAL_STEPS = 20_000
 
 
 def interval_warning(plan: TrackPlan, steps: TrackSteps) -> str | None:
@@ -218,7 +220,7 @@ def interval_warning(plan: TrackPlan, steps: TrackSteps) -> str | None:
     plan settles the time unit on its sample, and rows in another unit were read in the plan's
     without a word: epoch milliseconds read as seconds came out at 2.4 times the truth's error
     (a plan on seconds), 3,560 m (the other way round; an outside probe)."""
-    interval, planned = typical_interval(steps), plan.settings.interval
+    interval, planned = typical_interval(steps, INTERVAL_STEPS), plan.settings.interval
     if (
         not (interval > 0 and planned > 0)
         or 1 / UNLIKE_INTERVAL < interval / planned < UNLIKE_INTERVAL

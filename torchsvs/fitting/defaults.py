@@ -221,7 +221,7 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
     for _ in range(1 if settings.outlier_q else 2):
         flagged = screen_outliers(tracks.z, tracks.dt, first.meas_var, q)
         if before is None and settings.outlier_q is None and not settings.own_noise:
-            flagged, q, gross = gross_screen(tracks, first.meas_var, q, flagged)
+            gross = gross_screen(tracks, flagged)
         if before is not None and torch.equal(flagged, before):
             break  # (the same outliers: the same tracks, the same q)
         before = flagged

@@ -51,7 +51,6 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import RecordedTracks, two_point_prior
-from torchsvs.datasets.noise_estimate import estimate_noise
 from torchsvs.fitting.noise import kalman_positions, over_chunks
 from torchsvs.kernels import curves
 
@@ -318,43 +317,21 @@ def _largest_nearby(d2: Tensor, k: int, where: Tensor) -> Tensor:
     return torch.full_like(d2, torch.nan).index_put_(at, largest)
 
 
-#: A screen at this many times the white-acceleration ``q`` the positions' differences read
-#: (robust to outliers) ... (:func:`gross_screen`)
-SCREEN_ROBUST_FACTOR = 30.0
-#: ... that sets aside this share of the observed rows finds a sensor that errs grossly.
+#: A first screen that sets aside this share of the observed rows finds a sensor that errs so
+#: often that SURE follows its errors (:func:`gross_screen`).
 STRICT_GROSS_SHARE = 5e-3
 
 
-def gross_screen(
-    tracks: RecordedTracks, meas_var: Sequence[float], q: float, flagged: Tensor
-) -> tuple[Tensor, float, bool]:
-    """The first screen's outliers and ``q``, and whether the sensor errs so often that SURE
-    follows its errors: the screen at ``q`` (``flagged``), or else one at
-    :data:`SCREEN_ROBUST_FACTOR` times the ``q`` of the positions' differences
-    (:func:`~torchsvs.datasets.estimate_noise`, trimmed) where that is lower, sets aside
-    :data:`STRICT_GROSS_SHARE` of the rows or more. The screens after it then re-read ``q`` at
-    most at the clipped SURE's of what they leave (:func:`~torchsvs.fitting.defaults.screened`).
+def gross_screen(tracks: RecordedTracks, flagged: Tensor) -> bool:
+    """Whether the first screen's outliers (``flagged``) are :data:`STRICT_GROSS_SHARE` of the
+    observed rows or more: the screens after it then re-read ``q`` at most at the clipped
+    SURE's of what they leave (:func:`~torchsvs.fitting.defaults.screened`).
 
-    Where 2% of the reports are 500 m off (σ 8 m, 1 Hz), clipped SURE follows them (each drags
-    its neighbours' residuals to the clip): ``q`` read 8.6e4 against the differences' 6.1; a
-    screen at 6.1 set aside 883 rows, the unclipped SURE ``q`` of what it left rose to 6.5e3
-    on the 77 it missed (the clipped: 2.4), and the next screen at it set none aside: every
-    estimator followed each jump (71.6 m against the measurements' 72.5, the error estimate
-    6.5 m; an outside probe). On the benchmark's clean sets the differences' ``q`` is
-    0.006-240 times the clipped SURE's, and a screen at 30 times it sets aside at most 0.14%
-    of the rows (irregular reports, mixed noise)."""
+    Where 2% of the reports are 500 m off (σ 8 m, 1 Hz), a first screen (at the ``q`` of the
+    positions' differences, the clipped SURE's following them) set 883 rows aside; the
+    unclipped SURE ``q`` of what it left rose to 6.5e3 on the 77 it missed (the clipped: 2.4),
+    and the next screen at it set none aside: every estimator followed each jump (71.6 m
+    against the measurements' 72.5, the error estimate 6.5 m; an outside probe). On the
+    benchmark's clean sets a first screen sets aside at most one row in 5,000."""
     observed = int((~torch.isnan(tracks.z)).any(-1).sum())
-
-    def many(found: Tensor) -> bool:
-        return int(found.sum()) >= STRICT_GROSS_SHARE * observed
-
-    if many(flagged):
-        return flagged, q, True
-    try:
-        strict = SCREEN_ROBUST_FACTOR * estimate_noise(tracks.z, tracks.dt).q
-    except ValueError:
-        return flagged, q, False
-    if strict >= q:
-        return flagged, q, False
-    again = screen_outliers(tracks.z, tracks.dt, meas_var, strict)
-    return (again, strict, True) if many(again) else (flagged, q, False)
+    return int(flagged.sum()) >= STRICT_GROSS_SHARE * observed
