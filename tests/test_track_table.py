@@ -193,6 +193,7 @@ def test_a_plan_travels_by_pickle(rows):
     assert plan.fit is not None
     copy = pickle.loads(pickle.dumps(plan))
     assert copy.fit is None and copy.settings == plan.settings
+    assert plan == plan and copy != plan  # (compared as objects: == raised on the tensors)
     pd.testing.assert_frame_equal(
         track_table(frame, copy).table, track_table(frame, plan).table, check_exact=True
     )

@@ -72,7 +72,7 @@ MAGNITUDE_HEADROOM = 4.0
 METRES_PER_DEGREE = 111_320.0
 
 
-@dataclass
+@dataclass(eq=False)  # (identity: its parameters are tensors, whose == is elementwise)
 class TrackPlan:
     """What every table of a dataset is estimated with (:func:`plan_tracks`), settled once."""
 
