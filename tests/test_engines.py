@@ -284,6 +284,7 @@ def test_dask_run_comes_with_the_estimates(dask_client, dask_rows, rows, plans, 
     _same(pd.concat(parts), whole.table)
     assert total.report.total == len(rows) and total.report.tracks == whole.run.report.tracks
     assert total.accuracy is not None
+    assert "out_of_order" not in total.report.notes  # (the shuffle's order, not the input's)
     indexed = dd.from_pandas(rows.set_index("id").sort_index(), npartitions=3)
     _same(track_dask(indexed, plan).compute(), whole.table)
     source = tmp_path / "in"

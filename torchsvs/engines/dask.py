@@ -97,7 +97,9 @@ def track_dask(
     if not partitioned:
         rows = by_track(rows, ident, npartitions)
     meta = dask_meta(rows, plan, covariance)
-    options = dict(covariance=covariance, accuracy=accuracy, threads=threads)
+    options = dict(
+        covariance=covariance, accuracy=accuracy, threads=threads, shuffled=not partitioned
+    )
     if not with_run:
         return rows.map_partitions(_part_table, plan, options, meta=meta, align_dataframes=False)
     import dask

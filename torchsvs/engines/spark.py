@@ -155,7 +155,12 @@ def track_spark(
     rows = df.select(*plan_columns(plan))
     count = buckets or int(df.sparkSession.conf.get("spark.sql.shuffle.partitions"))
     accumulator = None if runs is None else runs.accumulator
-    options = dict(covariance=covariance, accuracy=accuracy, threads=threads)
+    options = dict(
+        covariance=covariance,
+        accuracy=accuracy,
+        threads=threads,
+        shuffled=True,  # (the rows sorted by id at least: their order is not the input's)
+    )
     if method == "group":
         from pyspark.sql import functions as F
 
