@@ -170,6 +170,13 @@ def test_rows_in_another_time_unit_than_the_plans_are_said_so(rows):
     assert not any(w.startswith("time:") for w in track_table(frame, plan).run.warnings)
     said = track_table(frame.assign(t=frame["t"] * 1000.0), plan).run.warnings
     assert any(w.startswith("time: these rows' typical interval is") for w in said), said
+    from torchsvs.track_table import estimate_block, new_run
+
+    run = new_run(plan)  # (a run of blocks of other intervals says it once)
+    for factor in (1000.0, 3000.0):
+        block = block_of(frame.assign(t=frame["t"] * factor), plan.columns)
+        estimate_block(block, plan, plan.estimator(), run)
+    assert sum(w.startswith("time:") for w in run.warnings) == 1, run.warnings
 
 
 def test_a_noise_column_in_the_settings_is_read_without_naming_it_twice(rows):

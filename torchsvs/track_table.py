@@ -117,8 +117,8 @@ def estimate_block(
             block.steps.report.notes["track_breaks"] += breaks
     steps = block.steps
     for warning in (precision_warning(plan, steps), interval_warning(plan, steps)):
-        if warning is not None and not any(w[:40] == warning[:40] for w in run.warnings):
-            run.warnings.append(warning)  # (once: a block's numbers differ from the next's)
+        if warning is not None and not any(w[:30] == warning[:30] for w in run.warnings):
+            run.warnings.append(warning)  # (once a run: told apart before their numbers)
     meas_std = plan.meas_std
     found = BlockEstimates.empty(steps, covariance, plan.settings.screens)
     tick, cpu = time.perf_counter(), time.process_time()
