@@ -292,9 +292,10 @@ def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | N
     away motion the model does not follow, without bound. Measured on airliners on 10 s scans
     with σ 3 m (their motion between scans reads as 4-16 m of noise, 12.5 ± 7.6 m pooled):
     every default was 1.4-2.0× the raw measurements' error, and 0.99-1.02× at the low end
-    (5.0 m). Not where the noise changes within the tracks (``noise_within``): its level is
-    then the pieces' mean on purpose, and the low end is the quiet stretches', the reading
-    that made the smoother follow the loud ones."""
+    (5.0 m). Not where the run takes the pieces' mean of a noise that changes within the
+    tracks (``noise_within``, :func:`checked_within`): its level is then above the reading on
+    purpose, and the low end is the quiet stretches', the reading that made the smoother follow
+    the loud ones."""
     if settings.noise != "data" or settings.meas_var is None or within_mean_taken(settings):
         return None
     ends = meas_var_range(settings, GUARD_ERRORS)
@@ -440,10 +441,9 @@ def checked_within(read: Settings, tracks: RecordedTracks) -> Settings:
         se = float(gain.std()) * math.sqrt(len(gain)) / points
         if lower > TRACK_NOISE_ERRORS * se:
             return read
-    se = read.meas_std_se
-    return replace(
-        read, meas_var=at_core, meas_std_se=None if se is None else [e * core / mean for e in se]
-    )
+    std_se = read.meas_std_se
+    scaled = None if std_se is None else [e * core / mean for e in std_se]
+    return replace(read, meas_var=at_core, meas_std_se=scaled)
 
 
 def _left_out_squares(settings: Settings, tracks: RecordedTracks) -> tuple[Tensor, Tensor]:

@@ -496,7 +496,9 @@ def _loaded_noise(
     ``estimator``'s parameters, loaded from ``checkpoint``, hold: the error estimate and what
     the run prints are at those, not at a reading they replaced. A value ``given`` that the
     parameters contradict is refused, naming it."""
-    models = [m for m in estimator.modules() if hasattr(m, "meas_cov") and hasattr(m, "q")]
+    models: list[Any] = [
+        m for m in estimator.modules() if hasattr(m, "meas_cov") and hasattr(m, "q")
+    ]
     if not models:
         return settings
     loaded: dict[str, Any] = {

@@ -98,8 +98,8 @@ def spark_schema(df: Any, plan: TrackPlan, covariance: bool = False) -> Any:
     ident, stamp = fields[cols.track_id], fields[cols.time]
     # (the id and time fields are kept as they are: their Arrow types only shape the rest; a
     # TIMESTAMP needs a zone to convert, any zone, where none failed on an assert)
-    kinds = [to_arrow_type(f.dataType, timezone="UTC") for f in (ident, stamp)]
-    arrow = output_schema(plan, *kinds, covariance)
+    ident_type, stamp_type = (to_arrow_type(f.dataType, timezone="UTC") for f in (ident, stamp))
+    arrow = output_schema(plan, ident_type, stamp_type, covariance)
     estimates = from_arrow_schema(arrow).fields[2:]
     return StructType([ident, stamp, *estimates])
 
