@@ -373,18 +373,11 @@ def with_track_noise(read: Settings, tracks: RecordedTracks) -> tuple[Settings, 
         complete_settings(Settings("ks", meas_var=s.meas_var, track_noise=s.track_noise), part)
         for s in (read, own)
     ]
-    (at_file, h_file), (at_own, h_own) = (_left_out_squares(s, part) for s in kalman)
-    # (where a point weighs much in its own estimate, its left-out residual is the motion over
-    # the gap its neighbours leave, not the error at it: on airliners at 8-20 s those points
-    # judged the smoother that took motion for noise better, against the truth)
-    usable = torch.minimum(h_file, h_own) <= MOST_WEIGHT  # (the points of little weight in one)
-    gain = torch.where(usable, at_file - at_own, 0.0).sum((1, 2))  # [B] m² over each track
-    count = usable.sum((1, 2))
+    gain, count = _left_out_gain(kalman[0], kalman[1], part)
     points = float(count.sum())
     if points == 0 or not float(gain.sum()) > 0.0:
         return None
-    lower = float(gain.sum()) / points
-    se = float(gain.std()) * math.sqrt(len(gain)) / points
+    lower, se = _gain_per_point(gain, points)
     # each track's gain per point in units of its own noise: the noisiest tracks' gains, the
     # largest, no longer drown the others' (own report times at σ 50 m: 1.3 standard errors in
     # m², 2.3 so; on airliners at σ 3 m, whose motion reads as noise, -1.1 and -0.8)
@@ -432,18 +425,38 @@ def checked_within(read: Settings, tracks: RecordedTracks) -> Settings:
         complete_settings(Settings("ks", meas_var=variance), part)
         for variance in (at_core, read.meas_var)
     ]
-    (squares_core, h_core), (squares_mean, h_mean) = (_left_out_squares(s, part) for s in kalman)
-    usable = torch.minimum(h_core, h_mean) <= MOST_WEIGHT
-    gain = torch.where(usable, squares_core - squares_mean, 0.0).sum((1, 2))  # [B] m²
-    points = float(usable.sum())
+    gain, count = _left_out_gain(kalman[0], kalman[1], part)
+    points = float(count.sum())
     if points > 0 and len(gain) > 1:
-        lower = float(gain.sum()) / points
-        se = float(gain.std()) * math.sqrt(len(gain)) / points
+        lower, se = _gain_per_point(gain, points)
         if lower > TRACK_NOISE_ERRORS * se:
             return read
     std_se = read.meas_std_se
     scaled = None if std_se is None else [e * core / mean for e in std_se]
     return replace(read, meas_var=at_core, meas_std_se=scaled)
+
+
+def _left_out_gain(
+    first: Settings, second: Settings, tracks: RecordedTracks
+) -> tuple[Tensor, Tensor]:
+    """``([B], [B])`` each track's squared leave-one-out residuals (:func:`_left_out_squares`)
+    of the Kalman smoother of ``first`` less those of ``second`` (m², summed), and how many
+    points they are summed over: those weighing at most :data:`MOST_WEIGHT` in their own
+    estimate under one of the two. Where a point weighs much in its own estimate, its left-out
+    residual is the motion over the gap its neighbours leave, not the error at it: on
+    airliners at 8-20 s those points judged the smoother that took motion for noise better,
+    against the truth."""
+    (at_first, h_first), (at_second, h_second) = (
+        _left_out_squares(s, tracks) for s in (first, second)
+    )
+    usable = torch.minimum(h_first, h_second) <= MOST_WEIGHT
+    return torch.where(usable, at_first - at_second, 0.0).sum((1, 2)), usable.sum((1, 2))
+
+
+def _gain_per_point(gain: Tensor, points: float) -> tuple[float, float]:
+    """The tracks' leave-one-out ``gain`` (:func:`_left_out_gain`) per point over ``points``,
+    and its standard error over the tracks."""
+    return float(gain.sum()) / points, float(gain.std()) * math.sqrt(len(gain)) / points
 
 
 def _left_out_squares(settings: Settings, tracks: RecordedTracks) -> tuple[Tensor, Tensor]:

@@ -147,9 +147,10 @@ def plan_tracks(
         raise ValueError(f"precision: expected one of {list(PRECISIONS)}, got {precision!r}")
     tracks = int((fit_options or {}).get("tracks", SAMPLE_TRACKS))
     noise = None if settings is None else settings.noise_column
-    if noise is not None and noise not in (columns or Columns()).extra:  # (read beside them)
+    if noise is not None:  # (its column read beside the positions, as --noise-col reads it)
         columns = columns or Columns()
-        columns = replace(columns, extra=(*columns.extra, noise))
+        if noise not in columns.extra:
+            columns = replace(columns, extra=(*columns.extra, noise))
     block = block_of(data, columns, block_rows, tracks)
     estimator, settings, summary = prepare_estimator(
         block.steps, settings or Settings(estimator="auto"), fit, fit_options, checkpoint, save, log

@@ -70,8 +70,9 @@ def track_table(
         DataFrame for one, an Arrow table otherwise, with no index), and the run's summary.
     """
     start = time.perf_counter()
-    if is_pandas(data) or hasattr(data, "column_names"):
-        check_columns(list(data.columns if is_pandas(data) else data.column_names), plan, "data")
+    names = list(data.columns) if is_pandas(data) else getattr(data, "column_names", None)
+    if names is not None:  # (a table's: a block read here was checked as it was read)
+        check_columns(names, plan, "data")
     block = block_of(data, plan.columns)
     run = new_run(plan, accuracy)
     found = estimate_block(
@@ -112,13 +113,14 @@ def estimate_block(
     (:func:`~torchsvs.estimating.estimate_group`), counted into ``run``; ``progress`` (a tqdm
     bar) hears each group's tracks."""
     if plan.settings.track_breaks:  # (the block itself: its writing reads the same tracks)
-        block.steps, breaks = split_at_breaks(block.steps)
-        if breaks:
-            block.steps.report.notes["track_breaks"] += breaks
+        block.steps = split_at_breaks(block.steps)[0]
     steps = block.steps
     for warning in (precision_warning(plan, steps), interval_warning(plan, steps)):
-        if warning is not None and not any(w[:30] == warning[:30] for w in run.warnings):
-            run.warnings.append(warning)  # (once a run: told apart before their numbers)
+        if warning is None:
+            continue
+        topic = warning.split(":", 1)[0]  # ("precision", "time": once a run, whatever numbers)
+        if not any(w.split(":", 1)[0] == topic for w in run.warnings):
+            run.warnings.append(warning)
     meas_std = plan.meas_std
     found = BlockEstimates.empty(steps, covariance, plan.settings.screens)
     tick, cpu = time.perf_counter(), time.process_time()

@@ -113,11 +113,13 @@ def some_tracks(steps: TrackSteps, tracks: np.ndarray) -> TrackSteps:
 
 def split_at_breaks(steps: TrackSteps) -> tuple[TrackSteps, int]:
     """The tracks split at their breaks (:func:`break_steps`), each part after a break a track
-    of its own, named ``ID (part 2)`` and on, and how many breaks. The rows keep their steps:
-    the output is written with the ids read."""
+    of its own, named ``ID (part 2)`` and on, the breaks counted in their report's notes
+    (``track_breaks``), and how many breaks. The rows keep their steps: the output is written
+    with the ids read."""
     breaks = break_steps(steps)
     if not len(breaks):
         return steps, 0
+    steps.report.notes["track_breaks"] += len(breaks)
     track = steps.track_of_step
     starts = np.union1d(steps.start[steps.length > 0], breaks)
     owner = track[starts]

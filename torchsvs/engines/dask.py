@@ -16,6 +16,7 @@ import time
 from typing import Any
 
 from torchsvs.engines.parts import (
+    check_count,
     check_plan,
     estimate_part,
     merged_run,
@@ -84,10 +85,7 @@ def track_dask(
     """
     check_dask(ddf, "ddf")
     check_plan(plan)
-    if npartitions is not None and (
-        isinstance(npartitions, bool) or not isinstance(npartitions, int) or npartitions < 1
-    ):
-        raise ValueError(f"npartitions: expected a positive int or None, got {npartitions!r}")
+    check_count(npartitions, "npartitions", optional=True)
     ident = plan.columns.track_id
     if ddf.index.name == ident and ident not in ddf.columns:
         partitioned = partitioned or bool(ddf.known_divisions)

@@ -31,6 +31,15 @@ def check_plan(plan: Any) -> TrackPlan:
     return plan
 
 
+def check_count(value: Any, name: str, optional: bool = False) -> None:
+    """A ValueError naming ``name`` unless ``value`` is a positive int (or None, ``optional``)."""
+    if optional and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        expected = "a positive int or None" if optional else "a positive int"
+        raise ValueError(f"{name}: expected {expected}, got {value!r}")
+
+
 def set_threads(threads: int | None) -> None:
     """Torch's threads in a worker: an engine runs one task per core already, and a task on
     every core would oversubscribe them."""

@@ -25,6 +25,7 @@ from typing import Any
 from torchsvs.datasets import Columns
 from torchsvs.datasets.tables import SAMPLE_TRACKS
 from torchsvs.engines.parts import (
+    check_count,
     check_plan,
     estimate_part,
     merged_run,
@@ -144,10 +145,8 @@ def track_spark(
     check_columns(df.columns, plan, "df")
     if method not in METHODS:
         raise ValueError(f"method: expected one of {list(METHODS)}, got {method!r}")
-    if buckets is not None and (not isinstance(buckets, int) or buckets < 1):
-        raise ValueError(f"buckets: expected a positive int or None, got {buckets!r}")
-    if isinstance(rows_per_call, bool) or not isinstance(rows_per_call, int) or rows_per_call < 1:
-        raise ValueError(f"rows_per_call: expected a positive int, got {rows_per_call!r}")
+    check_count(buckets, "buckets", optional=True)
+    check_count(rows_per_call, "rows_per_call")
     if runs is not None and not isinstance(runs, SparkRuns):
         raise TypeError(f"runs: expected SparkRuns or None, got {type(runs).__name__}")
     schema = spark_schema(df, plan, covariance)

@@ -32,7 +32,13 @@ from torchsvs.fitting.noise import (
 )
 from torchsvs.fitting.noise_classes import classes_of
 from torchsvs.fitting.noise_read import with_noise_read
-from torchsvs.fitting.outliers import AGILITY, gross_screen, outlier_distances, screen_outliers
+from torchsvs.fitting.outliers import (
+    AGILITY,
+    STRICT_GROSS_SHARE,
+    has_gross_errors,
+    outlier_distances,
+    screen_outliers,
+)
 from torchsvs.fitting.q_kinds import track_kinds
 from torchsvs.fitting.q_windows import choose_window
 from torchsvs.recipes import FILTERS, Settings, rule_of_thumb_psi
@@ -216,12 +222,13 @@ def screened(settings: Settings, tracks: RecordedTracks) -> Screened:
         except ValueError:  # too little data to say: the measurement noise over one step
             q = sum(first.meas_var) / len(first.meas_var) / first.interval**3
         q = _judging_q(tracks, first.meas_var, q)
-    gross = False  # (the sensor errs so often that SURE follows its errors: gross_screen)
+    gross = False  # (the sensor errs so often that SURE follows its errors)
+    observed = int((~torch.isnan(tracks.z)).any(-1).sum())
     before = None
     for _ in range(1 if settings.outlier_q else 2):
         flagged = screen_outliers(tracks.z, tracks.dt, first.meas_var, q)
         if before is None and settings.outlier_q is None and not settings.own_noise:
-            gross = gross_screen(tracks, flagged)
+            gross = has_gross_errors(int(flagged.sum()), observed, STRICT_GROSS_SHARE)
         if before is not None and torch.equal(flagged, before):
             break  # (the same outliers: the same tracks, the same q)
         before = flagged

@@ -50,7 +50,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from torchsvs.datasets import RecordedTracks, two_point_prior
+from torchsvs.datasets import two_point_prior
 from torchsvs.fitting.noise import kalman_positions, over_chunks
 from torchsvs.kernels import curves
 
@@ -72,12 +72,13 @@ GROSS_ERROR_SHARE = 1e-3
 GROSS_ERROR_COUNT = 3
 
 
-def has_gross_errors(outliers: int, measured: int) -> bool:
+def has_gross_errors(outliers: int, measured: int, share: float = GROSS_ERROR_SHARE) -> bool:
     """Whether ``outliers`` set aside of ``measured`` positions say the sensor errs grossly
-    (:data:`GROSS_ERROR_SHARE`, :data:`GROSS_ERROR_COUNT`): what a run warns of
-    (:func:`torchsvs.track_run.gross_errors`) and where the SVSF family's boundary layer is not
-    kept (:func:`torchsvs.selection.checked_layer`)."""
-    return outliers >= GROSS_ERROR_COUNT and outliers > GROSS_ERROR_SHARE * measured
+    (``share`` of them, :data:`GROSS_ERROR_COUNT` at least): what a run warns of
+    (:func:`torchsvs.track_run.gross_errors`), where the SVSF family's boundary layer is not
+    kept (:func:`torchsvs.selection.checked_layer`), and at :data:`STRICT_GROSS_SHARE` where
+    the screens keep their ``q`` clipped (:func:`~torchsvs.fitting.defaults.screened`)."""
+    return outliers >= GROSS_ERROR_COUNT and outliers > share * measured
 
 
 #: A flagged row's ``d²`` is the largest within this many observed rows on either side.
@@ -318,20 +319,12 @@ def _largest_nearby(d2: Tensor, k: int, where: Tensor) -> Tensor:
 
 
 #: A first screen that sets aside this share of the observed rows finds a sensor that errs so
-#: often that SURE follows its errors (:func:`gross_screen`).
+#: often that SURE follows its errors: the screens after it then re-read ``q`` clipped
+#: (:func:`~torchsvs.fitting.defaults.screened`). Where 2% of the reports are 500 m off (σ 8 m,
+#: 1 Hz), a first screen (at the ``q`` of the positions' differences, the clipped SURE's
+#: following them) set 883 rows aside; the unclipped SURE ``q`` of what it left rose to 6.5e3
+#: on the 77 it missed (the clipped: 2.4), and the next screen at it set none aside: every
+#: estimator followed each jump (71.6 m against the measurements' 72.5, the error estimate
+#: 6.5 m; an outside probe). On the benchmark's clean sets a first screen sets aside at most
+#: one row in 5,000.
 STRICT_GROSS_SHARE = 5e-3
-
-
-def gross_screen(tracks: RecordedTracks, flagged: Tensor) -> bool:
-    """Whether the first screen's outliers (``flagged``) are :data:`STRICT_GROSS_SHARE` of the
-    observed rows or more: the screens after it then re-read ``q`` at most at the clipped
-    SURE's of what they leave (:func:`~torchsvs.fitting.defaults.screened`).
-
-    Where 2% of the reports are 500 m off (σ 8 m, 1 Hz), a first screen (at the ``q`` of the
-    positions' differences, the clipped SURE's following them) set 883 rows aside; the
-    unclipped SURE ``q`` of what it left rose to 6.5e3 on the 77 it missed (the clipped: 2.4),
-    and the next screen at it set none aside: every estimator followed each jump (71.6 m
-    against the measurements' 72.5, the error estimate 6.5 m; an outside probe). On the
-    benchmark's clean sets a first screen sets aside at most one row in 5,000."""
-    observed = int((~torch.isnan(tracks.z)).any(-1).sum())
-    return int(flagged.sum()) >= STRICT_GROSS_SHARE * observed

@@ -143,9 +143,7 @@ class TrackFileDataModule(L.LightningDataModule):
                 raise self._read_error
             assert self.block is not None
             # (split before the plan reads it: its q is read off the parts)
-            self.block.steps, breaks = split_at_breaks(self.block.steps)
-            if breaks:
-                self.block.steps.report.notes["track_breaks"] += breaks
+            self.block.steps = split_at_breaks(self.block.steps)[0]
             steps = self.block.steps
         if processes > 1:
             assert trainer is not None
