@@ -475,6 +475,11 @@ class Accuracy:
     #: where :attr:`below_zero`: the noise standard deviation per axis, the assumed one scaled
     #: by one factor, at which the estimate would be zero: about the most the residuals allow
     zero_at_noise: list[float] | None = None
+    #: the noise read off the data cannot be told from the motion between reports (``noise_lag``,
+    #: :func:`~torchsvs.datasets.noise_lags.motion_checked`): the run took a noise far below
+    #: the reading, and an estimate at it would be that arbitrary choice's; no point estimate,
+    #: the range (over the reading's uncertainty) stands
+    noise_unknown: bool = False
 
     @property
     def ratio(self) -> float:
@@ -491,6 +496,8 @@ class Accuracy:
         if self.below_zero:
             return f"{name} unknown (below zero), measurements {self.measurement_rmse:.3g} m"
         low, high = self.interval
+        if self.noise_unknown:
+            return f"{name} unknown (within {low:.3g}-{high:.3g} m)"
         return (
             f"{name} {self.estimated_rmse:.3g} m (range {low:.3g}-{high:.3g}), measurements "
             f"{self.measurement_rmse:.3g} m"
@@ -500,7 +507,7 @@ class Accuracy:
         """This estimate of some of the axes as the run's summary writes it."""
         unknown = self.below_zero
         return {
-            "estimated": math.nan if unknown else self.estimated_rmse,
+            "estimated": math.nan if unknown or self.noise_unknown else self.estimated_rmse,
             "interval": [math.nan] * 2 if unknown else list(self.interval),
             "measurement_rmse": self.measurement_rmse,
             "meas_std": self.meas_std,
@@ -514,6 +521,13 @@ class Accuracy:
                 f"estimated position error unknown: below zero at the noise assumed (MSE "
                 f"{self.mse:.3g} ± {self.mse_standard_error:.2g} m² per point), measurements "
                 f"{self.measurement_rmse:.3g} m at that noise ({noise}); {self.points} "
+                "positions, no truth used"
+            )
+        if self.noise_unknown:
+            return (
+                f"estimated position error unknown, within {low:.3g}-{high:.3g} m: the "
+                "measurement noise cannot be told from the motion between reports (see the "
+                f"warnings), and the estimates keep close to the measurements; {self.points} "
                 "positions, no truth used"
             )
         return (

@@ -135,6 +135,11 @@ class Settings:
     #: the core's where the Kalman smoother does not do better at the mean
     #: (:func:`~torchsvs.sample_accuracy.checked_within`)
     noise_within: list[float] | None = None
+    #: where the noise read off the data is contradicted by the covariance of the positions'
+    #: second differences two reports apart (:func:`~torchsvs.datasets.noise_lags.
+    #: motion_checked`): that covariance over what noise at the reading makes (1 for noise),
+    #: and ``meas_std_se`` takes in the difference: the reading is motion between reports
+    noise_lag: float | None = None
     #: the estimators this one was chosen from: ``--estimator auto``'s candidates, or an SVSF
     #: family's and its Kalman twin where the boundary layer's limit did not earn its place
     #: (:func:`~torchsvs.selection.checked_layer`)
@@ -351,7 +356,15 @@ def rule_of_thumb_psi(axes: int, velocity: bool = True, estimator: str = "svsf")
 #: The settings the noise read off the data fills in (:func:`~torchsvs.fitting.noise_read.
 #: with_noise_read`, and each track's own, :func:`~torchsvs.sample_accuracy.with_track_noise`):
 #: what a run carries from the reading it settles on.
-NOISE_READ = ("meas_var", "noise", "meas_std_se", "noise_spread", "noise_within", "track_noise")
+NOISE_READ = (
+    "meas_var",
+    "noise",
+    "meas_std_se",
+    "noise_spread",
+    "noise_within",
+    "noise_lag",
+    "track_noise",
+)
 
 
 def make_model(

@@ -8,7 +8,7 @@ import copy
 import math
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -172,12 +172,15 @@ class TrackRun:
                 return accuracy_of(risk, given, False, (given, read))  # (at it, to theirs)
             return accuracy_of(risk, read, True, (read, given))
         ends = meas_var_range(settings)
-        return accuracy_of(
+        found = accuracy_of(
             risk,
             given,
             noise_estimated=settings.noise != "given",
             meas_var_range=None if ends is None else (pick(ends[0]), pick(ends[1])),
         )
+        if settings.noise == "data" and settings.noise_lag is not None:
+            found = replace(found, noise_unknown=True)
+        return found
 
     def axes_parts(self) -> dict[str, Accuracy]:
         """A 3-D run's error estimate of its horizontal axes (the first two position columns)
@@ -303,6 +306,8 @@ class TrackRun:
             self.warnings.append(gross)
         if found.below_zero:
             self.warnings.append(f"{name}: {below_zero_estimate(found)}")
+        if found.noise_unknown:  # (the noise warnings say why; no estimate to doubt)
+            return
         uncertain = uncertain_estimate(found, exact=self.settings.exact_divergence)
         if uncertain is not None:
             self.warnings.append(f"{name}: {uncertain}")
@@ -348,6 +353,7 @@ class TrackRun:
             # (unknown, not 0 m, where it is surely below zero: the warning says why)
             unknown = found.below_zero
             interval = [math.nan] * 2 if unknown else list(found.interval)
+            unknown |= found.noise_unknown  # (its range stands)
             error = math.nan if unknown else found.standard_error
             out.update(
                 estimated_position_rmse=math.nan if unknown else found.estimated_rmse,
@@ -361,9 +367,10 @@ class TrackRun:
             )
         for name, part in self.axes_parts().items():
             out[f"{name}_position_rmse"] = part.part_summary()
+        each = found is None or not found.noise_unknown  # (else no point estimate of any)
         out["tracks"] = {
             k: {
-                "estimated_position_rmse": v[0],
+                "estimated_position_rmse": v[0] if each else math.nan,
                 # (None: a track of one chunk of steps, nothing to spread, or a range below zero)
                 "estimated_position_rmse_interval": None if math.isnan(v[2]) else [v[2], v[3]],
                 "points": v[1],

@@ -29,7 +29,7 @@ class Residuals(NamedTuple):
     last: Tensor  #: [N] int64 the step of its stencil's last point
 
 
-def _observed_first(z: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def observed_first(z: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per ``(track, axis)`` the observed positions, their times and their steps moved to the
     front in time order (``[B·m, T]`` each), and their count ``[B·m]``."""
     B, T, m = z.shape
@@ -67,7 +67,7 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
     compiled = _compiled(z, t, orders)
     if compiled is not None:
         return compiled
-    zc, tc, steps, count = _observed_first(z, t)
+    zc, tc, steps, count = observed_first(z, t)
     out: dict[str, list[Tensor]] = {key: [] for key in Residuals._fields}
     for k in orders:
         if T <= k:

@@ -23,6 +23,7 @@ import torch
 
 from torchsvs.datasets import RecordedTracks, estimate_noise, noise_spread
 from torchsvs.datasets.noise_estimate import NoiseFreeError
+from torchsvs.datasets.noise_lags import motion_checked
 from torchsvs.datasets.track_noise import PIECE_POINTS, within_spread
 from torchsvs.fitting.noise_classes import column_noise
 from torchsvs.recipes import Settings, short
@@ -71,7 +72,7 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
         var = column_noise(tracks.extra[column], observed, column)
         return replace(settings, meas_var=[var] * tracks.z.shape[-1], noise="given")
     try:
-        noise = estimate_noise(tracks.z, tracks.dt)
+        noise = motion_checked(estimate_noise(tracks.z, tracks.dt), tracks.z, tracks.dt)
     except ValueError as err:
         if isinstance(err, NoiseFreeError):
             raise ValueError(
@@ -109,6 +110,7 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
         meas_std_se=meas_std_se,
         noise_spread=spread,
         noise_within=changes,
+        noise_lag=noise.lag_ratio,
     )
 
 
@@ -225,8 +227,18 @@ def noise_warnings(settings: Settings, run_std: Sequence[float]) -> list[str]:
             "between sparse reports also raises the reading); give --meas-std as the "
             "sensor's 1σ, or leave it out to read it off the data"
         )
+    motion = motion_warning(settings)
+    if motion is not None:
+        out.append(motion)
     lowered = settings.noise_lowered_from
-    if lowered is not None:
+    if lowered is not None and motion is not None:
+        out.append(
+            f"measurement noise: read off the data as {short(lowered)} m, contradicted as "
+            f"above; ran at the low end of its uncertainty, {short(run_std)} m (a noise read "
+            "too high smooths away motion the model does not follow; one too low leaves the "
+            "estimates near the measurements)"
+        )
+    elif lowered is not None:
         out.append(
             f"measurement noise: read off the data as {short(lowered)} m, at which the "
             f"Kalman smoother was not clearly below the measurements over that reading's "
@@ -235,3 +247,20 @@ def noise_warnings(settings: Settings, run_std: Sequence[float]) -> list[str]:
             "sensor's noise if known"
         )
     return out
+
+
+def motion_warning(settings: Settings) -> str | None:
+    """The warning where the noise reading is contradicted by the second differences two
+    reports apart (``noise_lag``, :func:`~torchsvs.datasets.noise_lags.motion_checked`)."""
+    ratio = settings.noise_lag
+    if ratio is None or settings.noise != "data":
+        return None
+    return (
+        f"measurement noise: the reading off the data is mostly motion between reports: the "
+        f"positions' second differences two reports apart covary at {ratio:.2g} times what "
+        "noise at the reading makes (noise of any level makes it 1, and steady motion or "
+        "white acceleration adds nothing), so the reports' changes of speed and direction "
+        "(corners, stops) read as noise at these report times, or the noise is correlated "
+        "from report to report; the reading's uncertainty takes in the difference, and the "
+        "error estimate's range with it; give --meas-std with the sensor's noise if known"
+    )
