@@ -115,6 +115,10 @@ def test_motion_between_sparse_reports_is_not_smoothed_away_without_a_word(tmp_p
     found = run.accuracy  # (no point estimate at a noise chosen low: the range stands)
     assert found is not None and found.noise_unknown and "unknown, within" in found.line()
     assert found.interval[0] < 7.0 < found.interval[1]
+    summary = run.summary_json()
+    assert math.isnan(summary["estimated_position_rmse"])
+    assert summary["estimated_position_rmse_interval"] == list(found.interval)
+    assert all(math.isnan(t["estimated_position_rmse"]) for t in summary["tracks"].values())
     out = pd.read_csv(target)
     error = ((out[["x", "y"]].to_numpy() - truth) ** 2).sum(1).mean() ** 0.5
     raw = ((frame[["x", "y"]].to_numpy() - truth) ** 2).sum(1).mean() ** 0.5

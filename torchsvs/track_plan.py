@@ -338,10 +338,14 @@ def prepare_estimator(
         elif low is not None:
             assert read.meas_var is not None
             std = [v**0.5 for v in read.meas_var]
+            why = (
+                "the Kalman smoother's error is not clearly below the measurements'"
+                if read.noise_lag is None
+                else "the reading is mostly motion between reports (see the warnings)"
+            )
             say(
-                f"noise: at {short(std)} m (read off the data) the Kalman smoother's error is "
-                f"not clearly below the measurements'; running at the low end of that reading, "
-                f"{short([v**0.5 for v in low])} m"
+                f"noise: at {short(std)} m (read off the data) {why}; running at the low end "
+                f"of that reading, {short([v**0.5 for v in low])} m"
             )
             noise = {name: getattr(read, name) for name in NOISE_READ}
             settings = replace(given, **noise | {"meas_var": low, "noise_lowered_from": std})
