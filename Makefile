@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles recorded-held-out recorded-noise bias-detectability per-track-choice blend-weights network-psi learn imm-svsf-kf lint clean
+.PHONY: demo test test-slow docs bench bench-matrix bench-million bench-scale reproduce road ksvd real real-imm recorded recorded-faults recorded-wide recorded-wide-family recorded-vehicles recorded-sparse recorded-held-out recorded-noise bias-detectability per-track-choice blend-weights network-psi learn imm-svsf-kf lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -92,6 +92,11 @@ recorded-vehicles: $(STAMP)
 	$(PY) -m experiments.recorded_tracks --faults --kinds walker,car,ship,drone --jobs 2 \
 		--estimators ks,svsf,svss,svstps,rstkf,auto --modes default,--fit \
 		--name recorded_vehicles_faults
+
+# Vehicles reporting far apart (vans every 60 s, ships by satellite AIS every 5-60 min), where
+# the motion between reports reads as noise: experiments/results/recorded_sparse.md.
+recorded-sparse: $(STAMP)
+	$(PY) -m experiments.recorded_tracks --kinds van,satship --jobs 2 --name recorded_sparse
 
 # Every kind, aircraft and simulated vehicles, at noise levels the benchmarks above do not use
 # and draws they never saw: σ 25 m (seed 2, defaults and --fit), experiments/results/

@@ -595,6 +595,20 @@ KINDS: dict[str, Kind] = {
             functools.partial(simulated_truth, "drone"),
             "hovering and 3-15 m/s, sharp turns",
         ),
+        Kind(
+            "van",
+            "simulated delivery vans in town (fleet trackers, 60 s)",
+            (5.0, 20.0),
+            functools.partial(simulated_truth, "van"),
+            "the cars' driving; a block or two and a turn between reports",
+        ),
+        Kind(
+            "satship",
+            "simulated ships by satellite AIS (5-60 min apart)",
+            (10.0, 50.0),
+            functools.partial(simulated_truth, "satship"),
+            "the AIS ships' sailing, course changes between reports",
+        ),
     )
 }
 #: The kinds a benchmark runs unless told (the simulated vehicles of :mod:`experiments.

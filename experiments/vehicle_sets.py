@@ -1,6 +1,6 @@
 """Simulated vehicles the ADS-B samples do not hold: people walking, cars in town, ships
 reporting by AIS and multirotor drones, as truths for :mod:`experiments.recorded_sets` (kinds
-``walker``, ``car``, ``ship``, ``drone``).
+``walker``, ``car``, ``ship``, ``drone``, and at sparse reports ``van``, ``satship``).
 
 Every recorded kind of the benchmark is an aircraft. These are other vehicles, other sampling
 (1 s, 0.1 s, and 2-180 s apart at random) and other motion (stops, slow turns, right-angle
@@ -67,6 +67,13 @@ VEHICLES = {
         # a multirotor drone: hovers, 3-15 m/s, sharp turns, GPS at 10 Hz
         Vehicle("drone", 0.01, (3.0, 15.0), 0.15, (3.0, 15.0), 3.0, 4.0, 8.0, (20.0, 150.0),
                 90.0, 6.0, 1.0, 0.1),
+        # a delivery van in town (the car's driving) whose fleet tracker reports every 60 s:
+        # a block or two and a turn between reports
+        Vehicle("van", 0.1, (8.0, 20.0), 0.2, (10.0, 40.0), 2.0, 4.0, 60.0, (80.0, 100.0),
+                30.0, 3.0, 0.3, 60.0),
+        # a ship (the AIS ship's sailing) seen by satellite AIS: reports 5-60 min apart
+        Vehicle("satship", 5.0, (3.0, 10.0), 0.0, (300.0, 1200.0), 0.05, 0.05, 900.0,
+                (10.0, 60.0), 1.0, 0.2, 0.05, 0.0, gaps=(1200.0, 300.0, 3600.0)),
     )
 }  # fmt: skip
 

@@ -53,6 +53,10 @@ LAG_ERRORS = 4.0
 #: vans in a city every 10 s 0.83 ± 0.02. Where the reading is motion, it is far lower: vans
 #: every 60 s -0.87, cars every 30 s -1.4, ships every 2-60 min -1.1.
 LAG_SHARE = 0.25
+#: ... or where it is below that share by this many of its own standard errors, whatever the
+#: reading's uncertainty: a reading that is motion is as uncertain as the motion (ships by
+#: satellite AIS, 5-60 min apart, σ 10 m, read 400 ± 170 m, the lag reading -0.5 ± 0.18 of it).
+FAR_ERRORS = 2.0
 #: ... and the difference that joins the standard error reaches the lag reading's low end, this
 #: many of its standard errors down: motion contradicts the reading, and a noise read too low
 #: costs little (the estimates follow the measurements) where one read too high smooths away
@@ -137,8 +141,8 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     # the ratio of variances against the reading's own uncertainty (twice σ's, relative)
     relative = float((se.to(torch.float64) / sigma).mean())
     below_reading = 1.0 - lag.ratio > LAG_ERRORS * math.hypot(lag.se, 2 * relative)
-    surely = below_reading or lag.ratio < -LAG_ERRORS * lag.se  # (noise of any level: > 0)
-    if not (surely and lag.ratio < LAG_SHARE):
+    far_below = lag.ratio + FAR_ERRORS * lag.se < LAG_SHARE
+    if not (far_below or (below_reading and lag.ratio < LAG_SHARE)):
         return noise
     below = sigma * (1.0 - math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0)))
     se = torch.hypot(se.to(torch.float64), below).to(se.dtype)
