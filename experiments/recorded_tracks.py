@@ -705,8 +705,8 @@ def estimate_section(runs: Sequence[Run]) -> str:
         ],
     )
     counts["warned"] = sum(warned_of_estimate(r) for r in off)
+    from torchsvs.estimate_warnings import UNCERTAIN_REACH
     from torchsvs.fitting.outliers import GROSS_ERROR_SHARE
-    from torchsvs.track_run import UNCERTAIN_REACH
 
     counts["reach"] = f"{UNCERTAIN_REACH:g}"
     counts["gross"] = f"{GROSS_ERROR_SHARE:.1%}"
@@ -715,9 +715,9 @@ def estimate_section(runs: Sequence[Run]) -> str:
 
 def warned_of_estimate(run: Run) -> bool:
     """Whether the run warned that its error estimate is uncertain
-    (:func:`torchsvs.track_run.uncertain_estimate`), no estimate (below zero,
-    :func:`~torchsvs.track_run.below_zero_estimate`) or may be off: the sensor erring grossly
-    (:func:`~torchsvs.track_run.gross_errors`), one noise level not fitting every track, a
+    (:func:`torchsvs.estimate_warnings.uncertain_estimate`), no estimate (below zero,
+    :func:`~torchsvs.estimate_warnings.below_zero_estimate`) or may be off: the sensor erring grossly
+    (:func:`~torchsvs.estimate_warnings.gross_errors`), one noise level not fitting every track, a
     noise given above what the data show."""
     signs = (
         "is uncertain",

@@ -687,7 +687,7 @@ def test_an_uncertain_error_estimate_is_called_so_and_its_cause_named():
     an estimator whose divergence is probed. SURE at a noise read 4% high on 250 m: the terms'
     r(2·div − n) moves the estimate from the truth's 70 m to 27 m (recorded_wide, taxi σ250)."""
     from torchsvs.accuracy import Accuracy
-    from torchsvs.track_run import UNCERTAIN_REACH, uncertain_estimate
+    from torchsvs.estimate_warnings import UNCERTAIN_REACH, uncertain_estimate
 
     def found(interval, sampling, estimated=30.0, noise_estimated=True):
         return Accuracy(

@@ -17,13 +17,14 @@ from torchsvs.datasets.noise_lags import LAG_ERRORS, lag_reading, motion_checked
 from torchsvs.recipes import Settings
 
 
-def _reference(z: np.ndarray, t: np.ndarray, var: np.ndarray) -> float:
-    """Σ u_i u_{i+2} c_i2 c_{i+2,0} / r over Σ (c_i2 c_{i+2,0})², written from the three-point
-    residual (Gasser, Sroka & Jennen-Steinmetz 1986) track by track, axis by axis, in float64:
-    pairs whose residuals are both within 3 standard deviations and none of u_{i-2} .. u_{i+4}
+def _reference(z: np.ndarray, t: np.ndarray, var: np.ndarray) -> tuple[float, float]:
+    """Σ u_i u_{i+2} c_i2 c_{i+2,0} / r over Σ (c_i2 c_{i+2,0})², and the same of
+    u_i (u_{i+2} − u_{i+3}), written from the three-point residual (Gasser, Sroka &
+    Jennen-Steinmetz 1986) track by track, axis by axis, in float64: pairs whose residuals are
+    within 3 standard deviations (u_{i+3} too for the second) and none of u_{i-2} .. u_{i+5}
     beyond 4.5, the products over the truncated Gaussian's second moment squared."""
     kappa = 1.0 - 2 * 3.0 * math.exp(-4.5) / math.sqrt(2 * math.pi) / math.erf(3 / math.sqrt(2))
-    top = bottom = 0.0
+    sums = np.zeros(4)
     for b in range(z.shape[0]):
         for j in range(z.shape[2]):
             seen = np.isfinite(z[b, :, j])
@@ -40,9 +41,11 @@ def _reference(z: np.ndarray, t: np.ndarray, var: np.ndarray) -> float:
                 if n[i] > 3 or n[i + 2] > 3 or (n[max(i - 2, 0) : i + 5] > 4.5).any():
                     continue
                 a = c[i][2] * c[i + 2][0]
-                top += u[i] * u[i + 2] * a / var[j] / kappa**2
-                bottom += a * a
-    return top / bottom
+                sums[:2] += (u[i] * u[i + 2] * a / var[j] / kappa**2, a * a)
+                if i + 3 < len(u) and n[i + 3] <= 3 and not (n[i + 5 : i + 6] > 4.5).any():
+                    third = u[i] * u[i + 3] * a / var[j] / kappa**2
+                    sums[2:] += (u[i] * u[i + 2] * a / var[j] / kappa**2 - third, a * a)
+    return sums[0] / sums[1], sums[2] / sums[3]
 
 
 def test_lag_reading_is_the_numpy_references_with_gaps_and_irregular_times():
@@ -56,7 +59,8 @@ def test_lag_reading_is_the_numpy_references_with_gaps_and_irregular_times():
     lag = lag_reading(z, dt, var)
     assert lag is not None
     t = torch.cumsum(dt, 1).numpy()
-    assert abs(lag.ratio - _reference(z.numpy(), t, var.numpy())) < 1e-9
+    ratio, beyond = _reference(z.numpy(), t, var.numpy())
+    assert abs(lag.ratio - ratio) < 1e-9 and abs(lag.beyond - beyond) < 1e-9
 
 
 def test_noise_and_white_acceleration_read_one_at_irregular_times():

@@ -242,8 +242,8 @@ def test_local_median_and_largest_nearby_are_those_of_the_judged_neighbours():
 
 def test_gross_errors_are_warned_of_above_a_thousand_times_their_chance():
     from torchsvs.datasets import RowReport
+    from torchsvs.estimate_warnings import gross_errors
     from torchsvs.fitting.outliers import GROSS_ERROR_COUNT, GROSS_ERROR_SHARE
-    from torchsvs.track_run import gross_errors
 
     def report(outliers: int, measured: int) -> RowReport:
         found = RowReport(total=measured, measurement=measured)

@@ -454,6 +454,10 @@ def _step_estimates(
     added back (``tracks``: the group's with their priors)."""
     if terms is not None:
         terms.track = batch.group[terms.track]
+    # (a numerical breakdown is said, never written as empty estimates without a word)
+    broken = (~torch.isnan(tracks.z) & ~torch.isfinite(mean[..., 0::2])).flatten(1).any(1)
+    if bool(broken.any()):
+        notes = {**notes, "tracks_not_finite": int(broken.sum())}
     mean = mean.double()
     mean[..., 0::2] += batch.offset.unsqueeze(1)
     target, values, covs = flat_steps(tracks, mean, cov)

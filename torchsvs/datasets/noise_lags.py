@@ -71,20 +71,26 @@ LEAST_PAIRS = 200
 
 
 class LagReading(NamedTuple):
-    """The lag reading of :func:`lag_reading`, as a share of the noise reading."""
+    """The lag reading of :func:`lag_reading`, as shares of the noise reading."""
 
     ratio: float  #: the lag-2 covariance over what noise at the reading would make it: 1 if fit
     se: float  #: its standard error (the jackknife's)
     pairs: int  #: pairs of residuals two reports apart it was read from
+    #: the lag-2 covariance less the lag-3 one, over the same: 1 if fit (noise and white
+    #: acceleration make the lag-3 one 0), and motion whose covariance changes little from one
+    #: lag to the next (a stop-and-go's, a turn's) cancels in it
+    beyond: float = math.nan
+    beyond_se: float = math.nan  #: its standard error
 
 
 def lag_reading(z: Tensor, dt: Tensor, meas_var: Tensor) -> LagReading | None:
     """The covariance of three-point residuals two reports apart over the one noise of
     variance ``meas_var [m]`` makes (module docstring), pooled over the axes of ``z [B, T, m]``
-    (NaN: missing; ``dt [B, T]`` the intervals), with the delete-a-group jackknife's standard
-    error; None with fewer than :data:`LEAST_PAIRS` pairs."""
+    (NaN: missing; ``dt [B, T]`` the intervals), and the same less the covariance three reports
+    apart, each with the delete-a-group jackknife's standard error; None with fewer than
+    :data:`LEAST_PAIRS` pairs."""
     B, T, m = z.shape
-    if T < 5:
+    if T < 6:
         return None
     t = torch.cumsum(dt.to(torch.float64), dim=1)
     zc, tc, _, count = observed_first(z.to(torch.float64), t)
@@ -97,28 +103,43 @@ def lag_reading(z: Tensor, dt: Tensor, meas_var: Tensor) -> LagReading | None:
     scale = meas_var.to(torch.float64).repeat(B).unsqueeze(1)  # rows are (track, axis)
     u = torch.where(valid, u, 0.0) / scale.sqrt()
     # the reading's own trimming (noise_estimate.CUTOFF, MANEUVER): pairs of the Gaussian core,
-    # none within a stencil of a residual that marks a manoeuvre
-    far = (u.abs() > MANEUVER).to(torch.float64)
-    near = torch.nn.functional.max_pool1d(
-        torch.nn.functional.pad(far.unsqueeze(1), (2, 4)), kernel_size=7, stride=1
-    ).squeeze(1)[:, : T - 4]
+    # none within a stencil of a residual that marks a manoeuvre (u_{i-2} .. u_{i+4}, u_{i+5}
+    # three reports apart)
+    far = (u.abs() > MANEUVER).to(torch.float64).unsqueeze(1)
+    pad = torch.nn.functional.pad
+
+    def near(after: int) -> Tensor:
+        window = torch.nn.functional.max_pool1d(pad(far, (2, after)), after + 3, stride=1)
+        return window.squeeze(1)[:, : T - after] > 0
+
     core = valid & (u.abs() <= CUTOFF)
-    product = u[:, :-2] * u[:, 2:] / CORE_PRODUCT
+    second = u[:, :-2] * u[:, 2:] / CORE_PRODUCT
+    third = u[:, :-3] * u[:, 3:] / CORE_PRODUCT
     shared = (w2 / norm)[:, :-2] * (w0 / norm)[:, 2:]  # c_{i2} c_{i+2,0}
-    ok = core[:, :-2] & core[:, 2:] & (near == 0) & torch.isfinite(product)
+    ok = core[:, :-2] & core[:, 2:] & ~near(4) & torch.isfinite(second)
+    both = ok[:, :-1] & core[:, 3:] & ~near(5) & torch.isfinite(third)
     pairs = int(ok.sum())
     if pairs < LEAST_PAIRS:
         return None
+    ratio, se = _pooled(second, shared, ok, m)
+    beyond, beyond_se = _pooled(second[:, :-1] - third, shared[:, :-1], both, m)
+    return LagReading(ratio, se, pairs, beyond, beyond_se)
+
+
+def _pooled(product: Tensor, shared: Tensor, ok: Tensor, m: int) -> tuple[float, float]:
+    """``Σ product·shared / Σ shared²`` over ``ok`` (each ``[B·m, n]``) and its delete-a-group
+    jackknife standard error over blocks of :data:`BLOCK` steps of a track."""
     rows, cols = ok.nonzero(as_tuple=True)
     group = ((rows // m) * 7 + cols // BLOCK) % GROUPS
     fit = torch.zeros(2, GROUPS, dtype=torch.float64)
     fit[0].scatter_add_(0, group, (product * shared)[ok])
     fit[1].scatter_add_(0, group, shared[ok].square())
     total = fit.sum(1)
-    ratio = float(total[0] / total[1])
+    if not float(total[1]) > 0:
+        return math.nan, math.nan
     left_out = (total[0] - fit[0]) / (total[1] - fit[1]).clamp_min(1e-300)
     se = float(((GROUPS - 1) / GROUPS * (left_out - left_out.mean()).square().sum()).sqrt())
-    return LagReading(ratio, se, pairs)
+    return float(total[0] / total[1]), se
 
 
 def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate:
@@ -143,6 +164,8 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     below_reading = 1.0 - lag.ratio > LAG_ERRORS * math.hypot(lag.se, 2 * relative)
     far_below = lag.ratio + FAR_ERRORS * lag.se < LAG_SHARE
     if not (far_below or (below_reading and lag.ratio < LAG_SHARE)):
+        return noise
+    if lag.beyond >= LAG_SHARE:  # (NaN, no pairs three apart: the lag-2 reading stands)
         return noise
     below = sigma * (1.0 - math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0)))
     se = torch.hypot(se.to(torch.float64), below).to(se.dtype)

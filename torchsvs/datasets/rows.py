@@ -67,6 +67,8 @@ NOTES = {
     "smoother_fallback": "tracks (not rows) the IMM's smoother estimated worse than its filter "
     "(Stein's unbiased risk estimate): those tracks are the filter's "
     "(torchsvs.smoother_guard.smoothed_or_filtered)",
+    "tracks_not_finite": "tracks (not rows) whose estimates came out NaN or infinite at a "
+    "measurement (a numerical breakdown of the estimator on them): written without estimates",
     "particle_steps": "steps a particle filter weighed a measurement at",
     "particle_steps_degenerate": "of those, steps whose effective sample size fell below a tenth "
     "of the particles (torchsvs.filters.particle.degenerate_share)",

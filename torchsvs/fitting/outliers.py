@@ -75,7 +75,7 @@ GROSS_ERROR_COUNT = 3
 def has_gross_errors(outliers: int, measured: int, share: float = GROSS_ERROR_SHARE) -> bool:
     """Whether ``outliers`` set aside of ``measured`` positions say the sensor errs grossly
     (``share`` of them, :data:`GROSS_ERROR_COUNT` at least): what a run warns of
-    (:func:`torchsvs.track_run.gross_errors`), where the SVSF family's boundary layer is not
+    (:func:`torchsvs.estimate_warnings.gross_errors`), where the SVSF family's boundary layer is not
     kept (:func:`torchsvs.selection.checked_layer`), and at :data:`STRICT_GROSS_SHARE` where
     the screens keep their ``q`` clipped (:func:`~torchsvs.fitting.defaults.screened`)."""
     return outliers >= GROSS_ERROR_COUNT and outliers > share * measured

@@ -157,6 +157,7 @@ class AxisBackward(NamedTuple):
 def backward_terms(res: AxisResult, projection: bool) -> AxisBackward:
     """``C, Γe, ΓHF, ΓSΓᵀ, ΓX, AF`` of :class:`~torchsvs.smoothers.RTSSmoother` per axis, with
     ``Γ = K`` (RTS) or, with ``projection``, ``Γ = P Hᵀ S⁻¹`` (SVSS, Eq. (42))."""
+    res = _inert_past_the_end(res)
     Pp = full(Sym2(*(x[:, 1:] for x in res.pred_cov)))
     P = full(Sym2(*(x[:, :-1] for x in res.cov)))
     K = Mat2(*(x[:, 1:] for x in res.gain))
@@ -256,6 +257,34 @@ def smooth_axes(res: AxisResult, projection: bool, lag: int | None) -> tuple[Ten
             return fused_axes.backward(filtered, (B, steps, m), lag, projection)
     (p, v), cov = _smooth_tensors(res, projection, lag, fixed_interval)
     return interleave(p, v), block_diagonal(full(cov))
+
+
+def _inert_past_the_end(res: AxisResult) -> AxisResult:
+    """``res`` with the steps after each track's last position (an axis's: a padded batch's
+    shorter tracks) made inert for :func:`backward_terms`: covariances the identity, gains and
+    innovations 0. Nothing is learnt there, so the recursion's terms are exactly 0 from them on
+    either way (the compiled loop sets its ``C`` to 0 there), and the smoothed estimates the
+    same; but a filter's covariance predicted over many empty steps
+    can lose its definiteness to rounding (an SVSF's, near rank 1, at ``q`` 4e-12: a bus padded
+    by 89 steps of 20 s to its group's longest track), and the recursion carried NaN back into
+    every estimate of the track."""
+    later = res.observed[0].flip(1).to(torch.int8).cummax(1).values.flip(1).bool()
+    if bool(later.all()):
+        return res
+    after = ~later  # [B, T, m]: no position from this step on
+
+    def inert(x: Tensor, value: float) -> Tensor:
+        return torch.where(after, torch.as_tensor(value, dtype=x.dtype), x)
+
+    cov, pred = (
+        Sym2(inert(c.a, 1.0), inert(c.b, 0.0), inert(c.c, 1.0)) for c in (res.cov, res.pred_cov)
+    )
+    return res._replace(
+        cov=cov,
+        pred_cov=pred,
+        gain=Mat2(*(inert(x, 0.0) for x in res.gain)),
+        innovation=(inert(res.innovation[0], 0.0), inert(res.innovation[1], 0.0)),
+    )
 
 
 def _backward_inputs(res: AxisResult) -> tuple[Tensor, ...]:

@@ -53,6 +53,35 @@ def _shared_moments(result: FilterResult) -> FilterResult:
     )
 
 
+def _inert_past_the_end(result: FilterResult) -> FilterResult:
+    """The result with the steps after each track's last measurement (a padded batch's shorter
+    tracks) made inert: covariances the identity, gains and innovations 0. The backward
+    recursion's terms are exactly 0 from there on either way, and the estimates the same; but a
+    covariance predicted over many empty steps can lose its definiteness to rounding (an SVSF's,
+    near rank 1, at a tiny ``q``), and the recursion carried NaN into every estimate of the
+    track (:func:`~torchsvs.kernels.axes_smoother.smooth_axes` does the same per axis)."""
+    seen = result.mask.any(-1)  # [B, T]
+    later = seen.flip(1).to(torch.int8).cummax(1).values.flip(1).bool()
+    if bool(later.all()):
+        return result
+    after = ~later
+    n, m = result.cov.shape[-1], result.innovation.shape[-1]
+
+    def inert(x: Tensor, eye: int) -> Tensor:
+        value = torch.eye(eye, dtype=x.dtype) if eye else torch.zeros((), dtype=x.dtype)
+        where = after.reshape(*after.shape, *([1] * (x.dim() - 2)))
+        return torch.where(where, value, x)
+
+    S = result.innovation_cov
+    return result._replace(
+        cov=inert(result.cov, n),
+        pred_cov=inert(result.pred_cov, n),
+        gain=inert(result.gain, 0),
+        innovation=inert(result.innovation, 0),
+        innovation_cov=None if S is None else inert(S, m),
+    )
+
+
 class LagState(NamedTuple):
     """An online fixed-lag smoother's carry: the filter's state and its results of the last
     ``L + 1`` steps (each ``[B, 1, ...]``), which the smoothing of the window reuses."""
@@ -228,7 +257,7 @@ class RTSSmoother(Estimator[SmootherResult]):
         if result.axes is not None:  # the filter ran per axis: so does the smoother
             mean, cov = axes_smoother.smooth_axes(result.axes, self.projection_gain, self.lag)
             return SmootherResult(mean, cov, result)
-        b = self._backward_terms(_shared_moments(result))
+        b = self._backward_terms(_shared_moments(_inert_past_the_end(result)))
         if self.lag is None or self.lag >= T - 1:
             g, G, Z = self._fixed_interval(b)
         else:

@@ -192,11 +192,21 @@ void lane_backward_adjoint(const LaneBlock<R>& lanes, const At& at, int64_t T, i
             std::swap(dres, dprev);
         }
     }
-    // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked).
+    // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked); none where
+    // no position follows step k (lane_backward's C_k = 0: the terms there are 0 whatever the
+    // inputs, whose intermediates may not be finite).
+    std::vector<V> later(n + 1);
+    later[n] = at(13, n);
+    for (int64_t k = n - 1; k >= 0; --k) later[k] = at(13, k) > later[k + 1] ? at(13, k) : later[k + 1];
     for (int64_t k = 0; k < n; ++k) {
         const int64_t t = k + 1;
         const TermArgs<V> x = term_args<V>(at, k);
-        const TermArgs<V> d = terms_adjoint(&dterms[22 * k], projection, x);
+        TermArgs<V> d = terms_adjoint(&dterms[22 * k], projection, x);
+        const V none{};
+        const auto follows = later[k + 1] > none;
+        for (V* f : {&d.a, &d.b, &d.c, &d.a1, &d.b1, &d.c1, &d.K.a, &d.K.b, &d.K.c, &d.K.d,
+                     &d.rp, &d.rpv, &d.rvv, &d.dt, &d.ep, &d.ev})
+            *f = follows ? *f : none;
         add(0, k, d.a), add(1, k, d.b), add(2, k, d.c);
         add(3, t, d.a1), add(4, t, d.b1), add(5, t, d.c1);
         add(6, t, d.K.a), add(7, t, d.K.b), add(8, t, d.K.c), add(9, t, d.K.d);

@@ -274,6 +274,16 @@ template <typename R, typename At>
 inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bool projection,
                                         std::vector<R>& terms, std::vector<Backward<R>>& states) {
     for (int64_t k = 0; k < n; ++k) terms_at(&terms[22 * k], projection, term_args<R>(at, k));
+    // C_k is 0 where no position follows step k (a padded batch's shorter tracks): the terms
+    // from there on are 0, and C_k multiplies only them; but a covariance predicted over many
+    // empty steps can lose its definiteness to rounding (an SVSF's, near rank 1, at a tiny q)
+    // and make C_k NaN, which NaN * 0 carried into every estimate of the track.
+    const R zero{};
+    R later = at(13, n);  // a position at step k + 1 or after (13: observed p)
+    for (int64_t k = n - 1; k >= 0; --k) {
+        for (int i = 0; i < 4; ++i) terms[22 * k + i] = later > zero ? terms[22 * k + i] : zero;
+        later = at(13, k) > later ? at(13, k) : later;
+    }
     return lane_recursion(terms.data(), n, lag, states);
 }
 
