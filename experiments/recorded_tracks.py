@@ -490,7 +490,7 @@ def sets_section(sets: Sequence[BenchSet]) -> str:
                 "truth",
                 kind=kind.name,
                 title=kind.title,
-                builder=" ".join((kind.build.__doc__ or "").split()),
+                builder=" ".join((getattr(kind.build, "func", kind.build).__doc__ or "").split()),
                 note=note,
                 counts=", ".join(f"{k} {v:,}" for k, v in bench.truth.counts.items()),
                 roughness=roughness,
