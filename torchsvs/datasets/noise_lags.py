@@ -18,6 +18,12 @@ and outliers) the lag reading is never surely below the noise reading: it reads 
 at irregular reports (turns between them raise the noise reading too), else 0.76 and more (turns
 held over several reports raise the lag reading). Noise correlated over seconds reads lower
 (0.14 on aircraft on 1 s scans).
+
+Motion whose covariance two reports apart is not 0 but changes little to three reports apart (a
+stop-and-go between 10 s reports) moves the lag reading where the noise reading is right; the
+covariance three reports apart, 0 for noise and white acceleration at any report times (the
+stencils share no position and their kernels do not overlap), cancels it: the check acts only
+where the lag-2 less lag-3 reading agrees (:data:`LAG_SHARE`).
 """
 
 from __future__ import annotations
@@ -51,7 +57,12 @@ LAG_ERRORS = 4.0
 #: reported every 10 s with σ 3 m read 3.2 m, and the lag reading 0.52 ± 0.05 of it (waits and
 #: corners): at its low end (2.1 m) the Kalman smoother was 15% worse than at the reading;
 #: vans in a city every 10 s 0.83 ± 0.02. Where the reading is motion, it is far lower: vans
-#: every 60 s -0.87, cars every 30 s -1.4, ships every 2-60 min -1.1.
+#: every 60 s -0.87, cars every 30 s -1.4, ships every 2-60 min -1.1. The lag-2 less lag-3
+#: reading (``LagReading.beyond``) must be below it too: a stop-and-go's covariance changes
+#: little from two reports apart to three and cancels in it. Bicycles and scooters on 10 s
+#: reports, σ 5 m read 6.1-7.0 m, read -0.10 to -0.64 two apart but 0.31-0.80 less three apart,
+#: and the Kalman smoother at the reading was 8-19% below the measurements (at the low end, 0);
+#: buses every 15-60 s, read 18-59 m for 5-10 m, -3.2 to 0.08.
 LAG_SHARE = 0.25
 #: ... or where it is below that share by this many of its own standard errors, whatever the
 #: reading's uncertainty: a reading that is motion is as uncertain as the motion (ships by
@@ -145,7 +156,8 @@ def _pooled(product: Tensor, shared: Tensor, ok: Tensor, m: int) -> tuple[float,
 def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate:
     """The noise estimate ``noise`` with ``lag_ratio`` set and the lag reading's difference in
     its standard error (``meas_std_se``, in quadrature) where the lag reading is surely below
-    it (:data:`LAG_ERRORS`), else ``noise`` itself. The reading is then motion between reports
+    it (:data:`LAG_ERRORS`) and the lag-2 less lag-3 reading (``beyond``) is below
+    :data:`LAG_SHARE` too, else ``noise`` itself. The reading is then motion between reports
     more than noise, and the run's guards act on its uncertainty: ``sample_accuracy.
     lowered_noise`` runs at its low end (the lag reading's, :data:`LOW_ERRORS` down, at least
     a hundredth of the reading), the error estimate gives its range and no point, and the run
