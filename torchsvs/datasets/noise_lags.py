@@ -156,13 +156,15 @@ def _pooled(product: Tensor, shared: Tensor, ok: Tensor, m: int) -> tuple[float,
 def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate:
     """The noise estimate ``noise`` with ``lag_ratio`` set and the lag reading's difference in
     its standard error (``meas_std_se``, in quadrature) where the lag reading is surely below
-    it (:data:`LAG_ERRORS`) and the lag-2 less lag-3 reading (``beyond``) is below
-    :data:`LAG_SHARE` too, else ``noise`` itself. The reading is then motion between reports
-    more than noise, and the run's guards act on its uncertainty: ``sample_accuracy.
-    lowered_noise`` runs at its low end (the lag reading's, :data:`LOW_ERRORS` down, at least
-    a hundredth of the reading), the error estimate gives its range and no point, and the run
-    warns. Vans in a city reporting every 60 s with σ 5 m read 62-77 m, and the Kalman smoother
-    there was 9.3 times the measurements' error without a word; now 1.00 times, warned.
+    it and below :data:`LAG_SHARE` of it (:data:`LAG_ERRORS` standard errors of the two, or
+    :data:`FAR_ERRORS` of its own below that share) and the lag-2 less lag-3 reading
+    (``beyond``) is below that share too, else ``noise`` itself. The reading is then motion
+    between reports more than noise, and the run's guards act on its uncertainty:
+    ``sample_accuracy.lowered_noise`` runs at its low end (the lag reading's,
+    :data:`LOW_ERRORS` down, at least a hundredth of the reading), the error estimate gives its
+    range and no point, and the run warns. Vans in a city reporting every 60 s with σ 5 m read
+    62-77 m, and the Kalman smoother there was 9.3 times the measurements' error without a
+    word; now 1.00 times, warned.
     """
     se = noise.meas_std_se
     if se is None:
