@@ -148,3 +148,23 @@ def test_ships_by_satellite_ais_are_not_smoothed_into_their_turns(tmp_path):
     error = ((out.x_x - out.x_y) ** 2 + (out.y_x - out.y_y) ** 2).mean() ** 0.5
     measured = ((raw.x_x - raw.x_y) ** 2 + (raw.y_x - raw.y_y) ** 2).mean() ** 0.5
     assert error < 1.05 * measured, (error, measured)
+
+
+def test_the_altitude_of_3d_positions_is_checked_apart(tmp_path):
+    """Vans at 60 s whose altitude is a flat road's with a 3 m sensor: the horizontal reading
+    is motion and is lowered; the altitude's is noise and stays (pooled, it was lowered too and
+    passed through its noise)."""
+    from torchsvs.datasets import Columns
+    from torchsvs.tracking import track_file
+
+    frame, _ = _vans()
+    frame["z"] = 30.0 + np.random.default_rng(1).normal(0.0, 3.0, len(frame))
+    source = tmp_path / "vans.csv"
+    frame.to_csv(source, index=False)
+    run = track_file(
+        source, tmp_path / "out.csv", Settings("ks"), columns=Columns(), progress=False
+    )
+    lowered, ran = run.settings.noise_lowered_from, run.settings.meas_var
+    assert lowered is not None and ran is not None
+    assert max(ran[0] / lowered[0] ** 2, ran[1] / lowered[1] ** 2) < 1e-3
+    assert abs(ran[2] ** 0.5 / 3.0 - 1.0) < 0.1

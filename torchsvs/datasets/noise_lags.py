@@ -166,21 +166,29 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     62-77 m, and the Kalman smoother there was 9.3 times the measurements' error without a
     word; now 1.00 times, warned.
     """
-    se = noise.meas_std_se
-    if se is None:
+    if noise.meas_std_se is None:
         return noise
+    se = noise.meas_std_se.to(torch.float64)
     sigma = noise.meas_var.to(torch.float64).sqrt()
-    lag = lag_reading(z, dt, noise.meas_var)
-    if lag is None:
+    below = torch.zeros_like(sigma)
+    ratios = []
+    # (the altitude of 3-D positions apart: its noise and its motion are its own)
+    for axes in ([0, 1], [2]) if sigma.numel() == 3 else (list(range(sigma.numel())),):
+        lag = lag_reading(z[..., axes], dt, noise.meas_var[axes])
+        if lag is None:
+            continue
+        # the ratio of variances against the reading's own uncertainty (twice σ's, relative)
+        relative = float((se[axes] / sigma[axes]).mean())
+        below_reading = 1.0 - lag.ratio > LAG_ERRORS * math.hypot(lag.se, 2 * relative)
+        far_below = lag.ratio + FAR_ERRORS * lag.se < LAG_SHARE
+        if not (far_below or (below_reading and lag.ratio < LAG_SHARE)):
+            continue
+        if lag.beyond >= LAG_SHARE:  # (NaN, no pairs three apart: the lag-2 reading stands)
+            continue
+        low = math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0))
+        below[axes] = sigma[axes] * (1.0 - low)
+        ratios.append(lag.ratio)
+    if not ratios:
         return noise
-    # the ratio of variances against the reading's own uncertainty (twice σ's, relative)
-    relative = float((se.to(torch.float64) / sigma).mean())
-    below_reading = 1.0 - lag.ratio > LAG_ERRORS * math.hypot(lag.se, 2 * relative)
-    far_below = lag.ratio + FAR_ERRORS * lag.se < LAG_SHARE
-    if not (far_below or (below_reading and lag.ratio < LAG_SHARE)):
-        return noise
-    if lag.beyond >= LAG_SHARE:  # (NaN, no pairs three apart: the lag-2 reading stands)
-        return noise
-    below = sigma * (1.0 - math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0)))
-    se = torch.hypot(se.to(torch.float64), below).to(se.dtype)
-    return noise._replace(meas_std_se=se, lag_ratio=lag.ratio)
+    wider = torch.hypot(se, below).to(noise.meas_std_se.dtype)
+    return noise._replace(meas_std_se=wider, lag_ratio=min(ratios))
