@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -67,15 +67,15 @@ VEHICLES = {
         # a multirotor drone: hovers, 3-15 m/s, sharp turns, GPS at 10 Hz
         Vehicle("drone", 0.01, (3.0, 15.0), 0.15, (3.0, 15.0), 3.0, 4.0, 8.0, (20.0, 150.0),
                 90.0, 6.0, 1.0, 0.1),
-        # a delivery van in town (the car's driving) whose fleet tracker reports every 60 s:
-        # a block or two and a turn between reports
-        Vehicle("van", 0.1, (8.0, 20.0), 0.2, (10.0, 40.0), 2.0, 4.0, 60.0, (80.0, 100.0),
-                30.0, 3.0, 0.3, 60.0),
-        # a ship (the AIS ship's sailing) seen by satellite AIS: reports 5-60 min apart
-        Vehicle("satship", 5.0, (3.0, 10.0), 0.0, (300.0, 1200.0), 0.05, 0.05, 900.0,
-                (10.0, 60.0), 1.0, 0.2, 0.05, 0.0, gaps=(1200.0, 300.0, 3600.0)),
     )
 }  # fmt: skip
+# Vehicles reporting far apart, driving and sailing as the ones above: a delivery van in town
+# whose fleet tracker reports every 60 s (a block or two and a turn between reports, no
+# tunnels), and a ship seen by satellite AIS, reports 5-60 min apart (on a coarser grid).
+VEHICLES["van"] = replace(VEHICLES["car"], name="van", interval=60.0, dropout_every=0.0,
+                          dropout=(0.0, 0.0))  # fmt: skip
+VEHICLES["satship"] = replace(VEHICLES["ship"], name="satship", step=5.0,
+                              gaps=(1200.0, 300.0, 3600.0))  # fmt: skip
 
 #: Reports per track are drawn from this range (the recorded kinds' pieces are at most 400
 #: rows long: ``recorded_sets.MAX_ROWS``).

@@ -29,6 +29,12 @@ def holds_nan(x: Tensor) -> bool:
     return bool(torch.isnan(x.sum())) and bool(torch.isnan(x).any())
 
 
+def seen_from_here_on(seen: Tensor) -> Tensor:
+    """``seen [B, T, ...]`` (bool: a measurement at the step) as whether one is at the step or
+    any later one: ``False`` on a padded batch's steps after a track's last measurement."""
+    return seen.flip(1).to(torch.int8).cummax(1).values.flip(1).bool()
+
+
 def symmetrize(P: Tensor) -> Tensor:
     """``(P + Pᵀ) / 2``: removes the asymmetry that rounding adds to a covariance."""
     return 0.5 * (P + P.mT)

@@ -81,13 +81,7 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
         start = tc[row, col]
         times = [tc[row, col + j] - start for j in range(k + 1)]  # from the stencil's start
         values = [zc[row, col + j] for j in range(k + 1)]
-        # w_j = 1 / prod_{l != j} (t_j - t_l)
-        w = [
-            1.0 / functools.reduce(torch.mul, [times[j] - times[l] for l in range(k + 1) if l != j])
-            for j in range(k + 1)
-        ]
-        norm = _sqrt(functools.reduce(torch.add, [x * x for x in w]))
-        c = [x / norm for x in w]
+        c = unit_weights(times)
         # the Peano kernel at each knot l: K_l = sum_{j > l} c_j (t_j - t_l)
         knots = [
             functools.reduce(torch.add, [c[j] * (times[j] - times[l]) for j in range(l + 1, k + 1)])
@@ -117,6 +111,19 @@ def difference_residuals(z: Tensor, dt: Tensor, orders: tuple[int, ...] = ORDERS
         out["first"].append(steps[row, col])
         out["last"].append(steps[row, col + k])
     return _joined(out)
+
+
+def unit_weights(times: list[Tensor]) -> list[Tensor]:
+    """The divided difference's weights over a stencil's ``k + 1`` time stamps (each a tensor
+    over the stencils), at unit noise gain: ``c_j = w_j / ‖w‖``,
+    ``w_j = 1 / ∏_{l ≠ j} (t_j − t_l)`` (:func:`difference_residuals`)."""
+    k = len(times) - 1
+    w = [
+        1.0 / functools.reduce(torch.mul, [times[j] - times[l] for l in range(k + 1) if l != j])
+        for j in range(k + 1)
+    ]
+    norm = _sqrt(functools.reduce(torch.add, [x * x for x in w]))
+    return [x / norm for x in w]
 
 
 def _joined(out: dict[str, list[Tensor]]) -> Residuals:

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsvs.datasets.differences import observed_first
+from torchsvs.datasets.differences import observed_first, unit_weights
 from torchsvs.datasets.noise_estimate import (
     CUTOFF,
     MANEUVER,
@@ -107,10 +107,9 @@ def lag_reading(z: Tensor, dt: Tensor, meas_var: Tensor) -> LagReading | None:
     zc, tc, _, count = observed_first(z.to(torch.float64), t)
     h1, h2 = tc[:, 1:-1] - tc[:, :-2], tc[:, 2:] - tc[:, 1:-1]
     valid = (torch.arange(T - 2) + 2 < count.unsqueeze(1)) & (h1 > 0) & (h2 > 0)
-    h1, h2 = torch.where(valid, h1, 1.0), torch.where(valid, h2, 1.0)
-    w0, w1, w2 = 1.0 / (h1 * (h1 + h2)), -1.0 / (h1 * h2), 1.0 / (h2 * (h1 + h2))
-    norm = (w0.square() + w1.square() + w2.square()).sqrt()
-    u = (w0 * zc[:, :-2] + w1 * zc[:, 1:-1] + w2 * zc[:, 2:]) / norm
+    # (a stencil with two times alike is not valid: its weights, not finite, are left out)
+    c0, c1, c2 = unit_weights([tc[:, :-2], tc[:, 1:-1], tc[:, 2:]])
+    u = c0 * zc[:, :-2] + c1 * zc[:, 1:-1] + c2 * zc[:, 2:]
     scale = meas_var.to(torch.float64).repeat(B).unsqueeze(1)  # rows are (track, axis)
     u = torch.where(valid, u, 0.0) / scale.sqrt()
     # the reading's own trimming (noise_estimate.CUTOFF, MANEUVER): pairs of the Gaussian core,
@@ -126,7 +125,7 @@ def lag_reading(z: Tensor, dt: Tensor, meas_var: Tensor) -> LagReading | None:
     core = valid & (u.abs() <= CUTOFF)
     second = u[:, :-2] * u[:, 2:] / CORE_PRODUCT
     third = u[:, :-3] * u[:, 3:] / CORE_PRODUCT
-    shared = (w2 / norm)[:, :-2] * (w0 / norm)[:, 2:]  # c_{i2} c_{i+2,0}
+    shared = c2[:, :-2] * c0[:, 2:]  # c_{i2} c_{i+2,0}
     ok = core[:, :-2] & core[:, 2:] & ~near(4) & torch.isfinite(second)
     both = ok[:, :-1] & core[:, 3:] & ~near(5) & torch.isfinite(third)
     pairs = int(ok.sum())

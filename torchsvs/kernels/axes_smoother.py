@@ -42,6 +42,7 @@ from torchsvs.kernels.blocks import (
     transpose,
 )
 from torchsvs.kernels.scan import prefer_scan, smoother_scan
+from torchsvs.linalg import seen_from_here_on
 
 
 class _Views(NamedTuple):
@@ -268,7 +269,7 @@ def _inert_past_the_end(res: AxisResult) -> AxisResult:
     can lose its definiteness to rounding (an SVSF's, near rank 1, at ``q`` 4e-12: a bus padded
     by 89 steps of 20 s to its group's longest track), and the recursion carried NaN back into
     every estimate of the track."""
-    later = res.observed[0].flip(1).to(torch.int8).cummax(1).values.flip(1).bool()
+    later = seen_from_here_on(res.observed[0])
     if bool(later.all()):
         return res
     after = ~later  # [B, T, m]: no position from this step on

@@ -10,7 +10,7 @@ from torch import Tensor
 from torchsvs.estimator import Estimator, Inputs, at_step, drop_batch
 from torchsvs.filters.gaussian import GaussianFilter
 from torchsvs.kernels import axes_smoother
-from torchsvs.linalg import mask_measurement, matvec, psd_solve, symmetrize
+from torchsvs.linalg import mask_measurement, matvec, psd_solve, seen_from_here_on, symmetrize
 from torchsvs.models.base import StateSpaceModel
 from torchsvs.types import FilterResult, FilterState, SmootherResult
 
@@ -60,25 +60,25 @@ def _inert_past_the_end(result: FilterResult) -> FilterResult:
     covariance predicted over many empty steps can lose its definiteness to rounding (an SVSF's,
     near rank 1, at a tiny ``q``), and the recursion carried NaN into every estimate of the
     track (:func:`~torchsvs.kernels.axes_smoother.smooth_axes` does the same per axis)."""
-    seen = result.mask.any(-1)  # [B, T]
-    later = seen.flip(1).to(torch.int8).cummax(1).values.flip(1).bool()
+    later = seen_from_here_on(result.mask.any(-1))  # [B, T]
     if bool(later.all()):
         return result
     after = ~later
-    n, m = result.cov.shape[-1], result.innovation.shape[-1]
 
-    def inert(x: Tensor, eye: int) -> Tensor:
-        value = torch.eye(eye, dtype=x.dtype) if eye else torch.zeros((), dtype=x.dtype)
-        where = after.reshape(*after.shape, *([1] * (x.dim() - 2)))
-        return torch.where(where, value, x)
+    def identity(x: Tensor) -> Tensor:  # [B, T, k, k]
+        eye = torch.eye(x.shape[-1], dtype=x.dtype)
+        return torch.where(after[..., None, None], eye, x)
+
+    def zero(x: Tensor) -> Tensor:  # [B, T, ...]
+        return torch.where(after.reshape(*after.shape, *([1] * (x.dim() - 2))), 0.0, x)
 
     S = result.innovation_cov
     return result._replace(
-        cov=inert(result.cov, n),
-        pred_cov=inert(result.pred_cov, n),
-        gain=inert(result.gain, 0),
-        innovation=inert(result.innovation, 0),
-        innovation_cov=None if S is None else inert(S, m),
+        cov=identity(result.cov),
+        pred_cov=identity(result.pred_cov),
+        gain=zero(result.gain),
+        innovation=zero(result.innovation),
+        innovation_cov=None if S is None else identity(S),
     )
 
 

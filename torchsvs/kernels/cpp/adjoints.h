@@ -195,9 +195,8 @@ void lane_backward_adjoint(const LaneBlock<R>& lanes, const At& at, int64_t T, i
     // The terms' adjoints, onto the inputs (the masked noise's onto the unmasked); none where
     // no position follows step k (lane_backward's C_k = 0: the terms there are 0 whatever the
     // inputs, whose intermediates may not be finite).
-    std::vector<V> later(n + 1);
-    later[n] = at(13, n);
-    for (int64_t k = n - 1; k >= 0; --k) later[k] = at(13, k) > later[k + 1] ? at(13, k) : later[k + 1];
+    std::vector<V> later;
+    positions_ahead(at, n, later);
     for (int64_t k = 0; k < n; ++k) {
         const int64_t t = k + 1;
         const TermArgs<V> x = term_args<V>(at, k);

@@ -268,6 +268,16 @@ inline const Backward<R>* lane_recursion(const R* terms, int64_t n, int64_t lag,
     return &states[lag * (n + 1)];
 }
 
+// Whether a position is at step t or after it (`later[t]` > 0), t = 0..n, from the observed
+// position flags `at(13, t)`: the steps after a track's last position learn nothing.
+template <typename R, typename At>
+inline void positions_ahead(const At& at, int64_t n, std::vector<R>& later) {
+    later.resize(n + 1);
+    later[n] = at(13, n);
+    for (int64_t t = n - 1; t >= 0; --t)
+        later[t] = at(13, t) > later[t + 1] ? at(13, t) : later[t + 1];
+}
+
 // A lane's terms (written to `terms`, n indices) and recursion (in `states`, see
 // lane_recursion), from its 20 inputs `at(i, step)`; returns the results' row.
 template <typename R, typename At>
@@ -278,12 +288,12 @@ inline const Backward<R>* lane_backward(const At& at, int64_t n, int64_t lag, bo
     // from there on are 0, and C_k multiplies only them; but a covariance predicted over many
     // empty steps can lose its definiteness to rounding (an SVSF's, near rank 1, at a tiny q)
     // and make C_k NaN, which NaN * 0 carried into every estimate of the track.
+    static thread_local std::vector<R> later;
+    positions_ahead(at, n, later);
     const R zero{};
-    R later = at(13, n);  // a position at step k + 1 or after (13: observed p)
-    for (int64_t k = n - 1; k >= 0; --k) {
-        for (int i = 0; i < 4; ++i) terms[22 * k + i] = later > zero ? terms[22 * k + i] : zero;
-        later = at(13, k) > later ? at(13, k) : later;
-    }
+    for (int64_t k = 0; k < n; ++k)
+        for (int i = 0; i < 4; ++i)
+            terms[22 * k + i] = later[k + 1] > zero ? terms[22 * k + i] : zero;
     return lane_recursion(terms.data(), n, lag, states);
 }
 
