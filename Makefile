@@ -93,10 +93,11 @@ recorded-vehicles: $(STAMP)
 		--estimators ks,svsf,svss,svstps,rstkf,auto --modes default,--fit \
 		--name recorded_vehicles_faults
 
-# Vehicles reporting far apart (vans every 60 s, ships by satellite AIS every 5-60 min), where
-# the motion between reports reads as noise: experiments/results/recorded_sparse.md.
+# Vehicles reporting far apart (vans every 60 s, ships by satellite AIS every 5-60 min, city
+# buses every 30 s), where the motion between reports reads as noise:
+# experiments/results/recorded_sparse.md.
 recorded-sparse: $(STAMP)
-	$(PY) -m experiments.recorded_tracks --kinds van,satship --jobs 2 --name recorded_sparse
+	$(PY) -m experiments.recorded_tracks --kinds van,satship,bus --jobs 2 --name recorded_sparse
 
 # Every kind, aircraft and simulated vehicles, at noise levels the benchmarks above do not use
 # and draws they never saw: σ 25 m (seed 2, defaults and --fit), experiments/results/

@@ -42,6 +42,7 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
+from experiments.bus_routes import bus_truth
 from experiments.flight_data import _thin
 from experiments.track_truth import Piece, Truth, truth_rows
 from experiments.vehicle_sets import simulated_truth
@@ -601,6 +602,13 @@ KINDS: dict[str, Kind] = {
             (5.0, 20.0),
             functools.partial(simulated_truth, "van"),
             "the cars' driving; a block or two and a turn between reports",
+        ),
+        Kind(
+            "bus",
+            "simulated city buses (30 s)",
+            (5.0, 10.0),
+            bus_truth,
+            "blocks at a steady 9-14 m/s, stops, red lights, right-angle corners",
         ),
         Kind(
             "satship",

@@ -1,6 +1,7 @@
 """Simulated vehicles the ADS-B samples do not hold: people walking, cars in town, ships
 reporting by AIS and multirotor drones, as truths for :mod:`experiments.recorded_sets` (kinds
-``walker``, ``car``, ``ship``, ``drone``, and at sparse reports ``van``, ``satship``).
+``walker``, ``car``, ``ship``, ``drone``, and at sparse reports ``van``, ``satship``; city
+buses driven along routes, ``bus``, are :mod:`experiments.bus_routes`'s).
 
 Every recorded kind of the benchmark is an aircraft. These are other vehicles, other sampling
 (1 s, 0.1 s, and 2-180 s apart at random) and other motion (stops, slow turns, right-angle

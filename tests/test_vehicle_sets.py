@@ -52,7 +52,27 @@ def test_a_kind_keeps_its_reports_and_its_limits(name: str) -> None:
 
 
 def test_the_default_kinds_are_the_recorded_ones_and_unknown_kinds_are_refused() -> None:
-    assert set(rs.DEFAULT_KINDS) | set(vs.VEHICLES) == set(rs.KINDS)
+    assert set(rs.DEFAULT_KINDS) | set(vs.VEHICLES) | {"bus"} == set(rs.KINDS)
     assert not set(rs.DEFAULT_KINDS) & set(vs.VEHICLES)
     with pytest.raises(ValueError, match="kinds: expected names among"):
         rs.build_sets(["boat"], rows=100)
+
+
+def test_buses_keep_to_their_limits_and_stand_at_their_stops() -> None:
+    """The route's speed is within its limits, the acceleration, the braking and the lateral
+    acceleration; the bus stands at its stops and lights, and some reports 30 s apart find it
+    standing (the still stretches the noise check reads)."""
+    from experiments import bus_routes as br
+
+    rng = np.random.default_rng(0)
+    kappa, cap, hold = br.route(rng, 8000.0)
+    v = br.speeds(cap)
+    assert (v <= cap + 1e-9).all() and v.max() > br.SPEEDS[0] - 1e-9
+    change = np.diff(v**2) / (2 * br.STEP)
+    assert change.max() <= br.ACCEL + 1e-9 and change.min() >= -br.BRAKE - 1e-9
+    assert (v**2 * np.abs(kappa) <= br.LATERAL + 1e-9).all()
+    assert (hold > 0).sum() >= 10 and (v[hold > 0] == 0).all()
+    piece = br.bus_piece(rng, "bus/0", 300)
+    assert np.allclose(np.diff(piece.time), br.INTERVAL)
+    still = np.linalg.norm(np.diff(piece.position, axis=0), axis=1) < 1e-9
+    assert 0 < still.sum() < 0.5 * len(still)

@@ -140,6 +140,11 @@ class Settings:
     #: motion_checked`): that covariance over what noise at the reading makes (1 for noise),
     #: and ``meas_std_se`` takes in the difference: the reading is motion between reports
     noise_lag: float | None = None
+    #: where more of the positions' smallest changes are small than noise at the reading allows
+    #: (:func:`~torchsvs.datasets.noise_ceiling.ceiling_reading`): per axis the most noise
+    #: (standard deviation) they allow, NaN on axes they do not contradict; the reading is
+    #: motion between reports, ``meas_std_se`` reaches 0 and the noise's range ends at it
+    noise_ceiling: list[float] | None = None
     #: the estimators this one was chosen from: ``--estimator auto``'s candidates, or an SVSF
     #: family's and its Kalman twin where the boundary layer's limit did not earn its place
     #: (:func:`~torchsvs.selection.checked_layer`)
@@ -299,6 +304,14 @@ class Settings:
         return chosen is not None and len(chosen) == 2 and KALMAN_TWINS.get(chosen[0]) == chosen[1]
 
     @property
+    def reading_is_motion(self) -> bool:
+        """Whether the noise read off the data is contradicted as motion between reports, by
+        the second differences two reports apart (``noise_lag``) or by the smallest changes
+        (``noise_ceiling``, :func:`~torchsvs.datasets.noise_lags.motion_checked`)."""
+        contradicted = self.noise_lag is not None or self.noise_ceiling is not None
+        return self.noise == "data" and contradicted
+
+    @property
     def exact_divergence(self) -> bool:
         """Whether the error estimate's divergence is exact (the linear Kalman filter or
         smoother alone: the same at every probe, :mod:`torchsvs.accuracy`); a blend's is not."""
@@ -363,6 +376,7 @@ NOISE_READ = (
     "noise_spread",
     "noise_within",
     "noise_lag",
+    "noise_ceiling",
     "track_noise",
 )
 

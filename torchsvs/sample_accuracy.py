@@ -308,10 +308,10 @@ def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | N
     ends = meas_var_range(settings, GUARD_ERRORS)
     if ends is None:
         return None
-    if settings.noise_lag is None and kalman_clearly_better(settings, tracks):
+    if not settings.reading_is_motion and kalman_clearly_better(settings, tracks):
         return None
     low, _ = ends
-    share = LOWEST_NOISE_SHARE if settings.noise_lag is None else MOTION_NOISE_SHARE
+    share = MOTION_NOISE_SHARE if settings.reading_is_motion else LOWEST_NOISE_SHARE
     return [max(v, share * r) for v, r in zip(low, settings.meas_var, strict=True)]
 
 

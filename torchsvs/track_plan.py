@@ -340,7 +340,7 @@ def prepare_estimator(
             std = [v**0.5 for v in read.meas_var]
             why = (
                 "the Kalman smoother's error is not clearly below the measurements'"
-                if read.noise_lag is None
+                if not read.reading_is_motion
                 else "the reading is mostly motion between reports (see the warnings)"
             )
             say(

@@ -171,7 +171,7 @@ class TrackRun:
             noise_estimated=settings.noise != "given",
             meas_var_range=None if ends is None else (pick(ends[0]), pick(ends[1])),
         )
-        if settings.noise == "data" and settings.noise_lag is not None:
+        if settings.reading_is_motion:
             found = replace(found, noise_unknown=True)
         return found
 

@@ -41,6 +41,11 @@ class NoiseEstimate(NamedTuple):
     #: at the reading makes (1 where the reading is noise; ``meas_std_se`` then takes in the
     #: difference)
     lag_ratio: float | None = None
+    #: [m] where more of the positions' smallest changes are small than noise at the reading
+    #: allows (:func:`~torchsvs.datasets.noise_ceiling.ceiling_reading`): the most noise
+    #: (standard deviation) they allow on the axes they contradict, NaN on the others
+    #: (``meas_std_se`` then reaches 0 on those axes)
+    noise_ceiling: Tensor | None = None
 
 
 #: Residuals beyond this many standard deviations are set aside (:func:`estimate_noise`).

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from torchsvs.datasets import RecordedTracks, estimate_noise
+from torchsvs.datasets.noise_lags import motion_checked
 from torchsvs.fitting.noise import (
     QCurves,
     _golden_search,
@@ -337,9 +338,13 @@ def checked_given_noise(settings: Settings, tracks: RecordedTracks) -> Settings:
         return settings
     # the error estimate is made at the reading: read off the whole sample, as any run's noise
     # (2,000 positions put walkers at 1.95 m for 4.17, the whole sample at 3.76)
-    whole = estimate_noise(tracks.z, tracks.dt).meas_var.double().sqrt().tolist()
+    reading = estimate_noise(tracks.z, tracks.dt)
+    whole = reading.meas_var.double().sqrt().tolist()
     if above:
         return replace(settings, noise_above_data=whole)
+    checked = motion_checked(reading, tracks.z, tracks.dt)
+    if checked.lag_ratio is not None or checked.noise_ceiling is not None:
+        return settings  # (the reading is motion between reports: no measure of the noise given)
     return replace(settings, noise_below_data=whole)
 
 
@@ -427,6 +432,9 @@ def meas_var_range(
     se = settings.meas_std_se
     low = [max(s - errors * e, 0.0) ** 2 for s, e in zip(std, se, strict=True)]
     high = [(s + errors * e) ** 2 for s, e in zip(std, se, strict=True)]
+    if settings.noise_ceiling is not None:  # (the most noise the smallest changes allow)
+        ceiling = [math.inf if c is None or c != c else c * c for c in settings.noise_ceiling]
+        high = [min(h, c) for h, c in zip(high, ceiling, strict=True)]
     return low, high
 
 

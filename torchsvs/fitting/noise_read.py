@@ -111,6 +111,7 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
         noise_spread=spread,
         noise_within=changes,
         noise_lag=noise.lag_ratio,
+        noise_ceiling=None if noise.noise_ceiling is None else noise.noise_ceiling.tolist(),
     )
 
 
@@ -249,18 +250,30 @@ def noise_warnings(settings: Settings, run_std: Sequence[float]) -> list[str]:
     return out
 
 
+#: The lag reading's other cause (:func:`motion_warning`).
+CORRELATED = ", or the noise is correlated from report to report"
+
+
 def motion_warning(settings: Settings) -> str | None:
-    """The warning where the noise reading is contradicted by the second differences two
-    reports apart (``noise_lag``, :func:`~torchsvs.datasets.noise_lags.motion_checked`)."""
-    ratio = settings.noise_lag
-    if ratio is None or settings.noise != "data":
+    """The warning where the noise reading is contradicted as motion between reports
+    (:func:`~torchsvs.datasets.noise_lags.motion_checked`): by the second differences two
+    reports apart (``noise_lag``) or by the smallest changes (``noise_ceiling``)."""
+    if not settings.reading_is_motion:
         return None
-    return (
-        f"measurement noise: the reading off the data is mostly motion between reports: the "
-        f"positions' second differences two reports apart covary at {ratio:.2g} times what "
+    ratio, ceiling = settings.noise_lag, settings.noise_ceiling or []
+    why = (
+        f"the positions' second differences two reports apart covary at {ratio:.2g} times what "
         "noise at the reading makes (noise of any level makes it 1, and steady motion or "
-        "white acceleration adds nothing), so the reports' changes of speed and direction "
-        "(corners, stops) read as noise at these report times, or the noise is correlated "
-        "from report to report; the reading's uncertainty takes in the difference, and the "
+        "white acceleration adds nothing)"
+        if ratio is not None
+        else "more of the positions' smallest changes are small than noise at the reading "
+        f"allows: they allow at most {short([c for c in ceiling if c == c])} m, whatever the "
+        "motion (motion only spreads them)"
+    )
+    return (
+        f"measurement noise: the reading off the data is mostly motion between reports: {why}, "
+        "so the reports' changes of speed and direction (corners, stops) read as noise at "
+        f"these report times{CORRELATED if ratio is not None else ''}; the reading's "
+        "uncertainty takes in the difference, and the "
         "error estimate's range with it; give --meas-std with the sensor's noise if known"
     )
