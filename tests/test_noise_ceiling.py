@@ -209,3 +209,17 @@ def test_one_axis_and_three_read_their_own_chi(m):
     dt = torch.ones(200, 60, dtype=torch.float64)
     found = ceiling_reading(z, dt, torch.full((m,), 100.0, dtype=torch.float64))
     assert found is not None and 0.85 < found.ratio < 1.15, found
+
+
+def test_a_noise_free_altitude_is_not_taken_for_motion():
+    """ADS-B's barometric altitude comes in 25 ft steps, level between them: its noise reads
+    at float rounding (1e-13 m), and the lag check took that for motion between reports, the
+    whole run's error estimate unknown for it. An axis group with no noise to read is left
+    alone; the horizontal axes' reading, noise, stands."""
+    dt, path, noise, gen = _cv(2)
+    climb = torch.cumsum(dt, 1) * (5.0 * torch.rand(dt.shape[0], 1, generator=gen) - 2.5)
+    altitude = torch.round((3000.0 + climb.clamp(-300.0, 300.0)) / 7.62) * 7.62
+    z = torch.cat([path + noise, altitude.unsqueeze(-1).double()], -1)
+    read = estimate_noise(z, dt)
+    assert float(read.meas_var[2]) < 1e-12 < float(read.meas_var[:2].min())
+    assert motion_checked(read, z, dt) is read

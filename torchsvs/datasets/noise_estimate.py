@@ -48,6 +48,9 @@ class NoiseEstimate(NamedTuple):
     noise_ceiling: Tensor | None = None
 
 
+#: Positions whose differences are at most this share of their magnitude carry no noise to read:
+#: float rounding of positions on smooth paths (noise-free, simulated or interpolated data).
+NOISE_FREE = 1e-9
 #: Residuals beyond this many standard deviations are set aside (:func:`estimate_noise`).
 CUTOFF = 3.0
 #: A residual beyond this many standard deviations marks a maneuver: every residual that shares
@@ -450,7 +453,7 @@ def _estimate(
             "give the measurement noise (meas_std) and q explicitly"
         )
     scale = float(z[torch.isfinite(z)].abs().max())
-    if float(res.u[res.order == max(orders)].abs().median()) <= 1e-9 * scale:
+    if float(res.u[res.order == max(orders)].abs().median()) <= NOISE_FREE * scale:
         raise NoiseFreeError(
             "z: most positions lie exactly on smooth paths (noise-free or interpolated data), "
             "there is no measurement noise to read; give it (meas_std) and q explicitly"

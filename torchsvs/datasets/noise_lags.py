@@ -44,6 +44,7 @@ from torchsvs.datasets.noise_ceiling import ceiling_reading
 from torchsvs.datasets.noise_estimate import (
     CUTOFF,
     MANEUVER,
+    NOISE_FREE,
     NoiseEstimate,
     truncated_second_moment,
 )
@@ -198,6 +199,8 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     lags: list[float] = []
     ceilings = torch.full_like(sigma, math.nan)
     for axes in ([0, 1], [2]) if sigma.numel() == 3 else (list(range(sigma.numel())),):
+        if _noise_free(z[..., axes], sigma[axes]):
+            continue
         lag = lag_reading(z[..., axes], dt, noise.meas_var[axes])
         if lag is not None and _lag_contradicts(lag, float((se[axes] / sigma[axes]).mean())):
             low = math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0))
@@ -217,6 +220,16 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
         lag_ratio=min(lags) if lags else None,
         noise_ceiling=ceilings.to(noise.meas_var.dtype) if found else None,
     )
+
+
+def _noise_free(z: Tensor, sigma: Tensor) -> bool:
+    """Whether the noise read on the axes of ``z`` (``sigma``) is float rounding
+    (:data:`~torchsvs.datasets.noise_estimate.NOISE_FREE`): nothing to contradict, and the
+    estimates there follow the measurements whatever the check says. The barometric altitude of
+    ADS-B flights (25 ft steps, level between them) read 1e-13 m, and the lag check took it for
+    motion, the whole run's error estimate unknown for it."""
+    scale = float(torch.where(torch.isnan(z), 0.0, z).abs().max()) if z.numel() else 0.0
+    return float(sigma.max()) <= NOISE_FREE * scale
 
 
 def _lag_contradicts(lag: LagReading, relative: float) -> bool:
