@@ -9,6 +9,7 @@ built from (noise levels, ``q``, the SVSF family's boundary layer, the IMM's mod
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -137,9 +138,10 @@ class Settings:
     noise_within: list[float] | None = None
     #: where the noise read off the data is contradicted by the covariance of the positions'
     #: second differences two reports apart (:func:`~torchsvs.datasets.noise_lags.
-    #: motion_checked`): that covariance over what noise at the reading makes (1 for noise),
-    #: and ``meas_std_se`` takes in the difference: the reading is motion between reports
-    noise_lag: float | None = None
+    #: motion_checked`): per axis that covariance over what noise at the reading makes (1 for
+    #: noise), NaN on axes it does not contradict; ``meas_std_se`` takes in the difference: the
+    #: reading is motion between reports
+    noise_lag: list[float] | None = None
     #: where more of the positions' smallest changes are small than noise at the reading allows
     #: (:func:`~torchsvs.datasets.noise_ceiling.ceiling_reading`): per axis the most noise
     #: (standard deviation) they allow, NaN on axes they do not contradict; the reading is
@@ -308,8 +310,18 @@ class Settings:
         """Whether the noise read off the data is contradicted as motion between reports, by
         the second differences two reports apart (``noise_lag``) or by the smallest changes
         (``noise_ceiling``, :func:`~torchsvs.datasets.noise_lags.motion_checked`)."""
-        contradicted = self.noise_lag is not None or self.noise_ceiling is not None
-        return self.noise == "data" and contradicted
+        return self.reading_is_motion_on(None)
+
+    def reading_is_motion_on(self, axes: Sequence[int] | None) -> bool:
+        """:attr:`reading_is_motion` on some of the position's ``axes`` (None: any)."""
+        if self.noise != "data":
+            return False
+        for per_axis in (self.noise_lag, self.noise_ceiling):
+            if per_axis is not None:
+                picked = per_axis if axes is None else [per_axis[j] for j in axes]
+                if any(v is not None and v == v for v in picked):
+                    return True
+        return False
 
     @property
     def exact_divergence(self) -> bool:

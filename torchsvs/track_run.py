@@ -171,7 +171,7 @@ class TrackRun:
             noise_estimated=settings.noise != "given",
             meas_var_range=None if ends is None else (pick(ends[0]), pick(ends[1])),
         )
-        if settings.reading_is_motion:
+        if settings.reading_is_motion_on(axes):
             found = replace(found, noise_unknown=True)
         return found
 

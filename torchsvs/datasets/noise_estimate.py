@@ -36,11 +36,11 @@ class NoiseEstimate(NamedTuple):
     #: the share (0 to 1) of the fit with white acceleration in ``meas_var`` (the rest: the fit
     #: of noise alone); 1 where the data show white acceleration and it fits every order
     white_acceleration: float = 0.0
-    #: where the covariance of second differences two reports apart contradicts the reading
-    #: (:func:`~torchsvs.datasets.noise_lags.motion_checked`): that covariance over what noise
-    #: at the reading makes (1 where the reading is noise; ``meas_std_se`` then takes in the
-    #: difference)
-    lag_ratio: float | None = None
+    #: [m] where the covariance of second differences two reports apart contradicts the
+    #: reading (:func:`~torchsvs.datasets.noise_lags.motion_checked`): that covariance over what
+    #: noise at the reading makes (1 where the reading is noise; ``meas_std_se`` then takes in
+    #: the difference) on the axes it contradicts, NaN on the others
+    lag_ratio: Tensor | None = None
     #: [m] where more of the positions' smallest changes are small than noise at the reading
     #: allows (:func:`~torchsvs.datasets.noise_ceiling.ceiling_reading`): the most noise
     #: (standard deviation) they allow on the axes they contradict, NaN on the others

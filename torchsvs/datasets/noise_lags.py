@@ -173,18 +173,19 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     reports, else ``noise`` itself, each axis group apart (the altitude of 3-D positions: its
     noise and its motion are its own). Two readings can contradict it:
 
-    - the lag reading (``lag_ratio``), where it is surely below the noise reading and below
-      :data:`LAG_SHARE` of it (:data:`LAG_ERRORS` standard errors of the two, or
+    - the lag reading (``lag_ratio``, per axis), where it is surely below the noise reading and
+      below :data:`LAG_SHARE` of it (:data:`LAG_ERRORS` standard errors of the two, or
       :data:`FAR_ERRORS` of its own below that share) and the lag-2 less lag-3 reading
       (``beyond``) is below that share too: its difference joins the reading's standard error
       (``meas_std_se``, in quadrature), whose low end is then the lag reading's,
       :data:`LOW_ERRORS` down. Vans in a city reporting every 60 s with σ 5 m read 62-77 m,
       and the Kalman smoother there was 9.3 times the measurements' error without a word;
-    - else the smallest changes (``ceiling_ratio``, :func:`~torchsvs.datasets.noise_ceiling.
+    - the smallest changes (``noise_ceiling``, :func:`~torchsvs.datasets.noise_ceiling.
       ceiling_reading`), where the reading is above :data:`CEILING_RATIO` times the most noise
-      they allow: the reading's low end is then 0. Buses every 30-45 s, σ 3-10 m, read 42-49 m
-      (their lag readings 0.5-0.7), and the Kalman smoother was 3.3-9.8 times the
-      measurements' error without a word.
+      they allow: the reading's low end is then 0, and its high end that most (vans every
+      60 s: the error range was 0.5-208 m for a true 7 m, now 0.5-16 m). Buses every 30-45 s,
+      σ 3-10 m, read 42-49 m (their lag readings 0.5-0.7), and the Kalman smoother was 3.3-9.8
+      times the measurements' error without a word.
 
     The run's guards then act on the reading's uncertainty: ``sample_accuracy.lowered_noise``
     runs at its low end (at least :data:`~torchsvs.sample_accuracy.MOTION_NOISE_SHARE` of the
@@ -196,29 +197,27 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     se = noise.meas_std_se.to(torch.float64)
     sigma = noise.meas_var.to(torch.float64).sqrt()
     below = torch.zeros_like(sigma)
-    lags: list[float] = []
-    ceilings = torch.full_like(sigma, math.nan)
+    lags, ceilings = torch.full_like(sigma, math.nan), torch.full_like(sigma, math.nan)
     for axes in ([0, 1], [2]) if sigma.numel() == 3 else (list(range(sigma.numel())),):
         if _noise_free(z[..., axes], sigma[axes]):
             continue
         lag = lag_reading(z[..., axes], dt, noise.meas_var[axes])
-        if lag is not None and _lag_contradicts(lag, float((se[axes] / sigma[axes]).mean())):
-            low = math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0))
-            below[axes] = sigma[axes] * (1.0 - low)
-            lags.append(lag.ratio)
-            continue
         ceiling = ceiling_reading(z[..., axes], dt, noise.meas_var[axes])
         if ceiling is not None and ceiling.ratio > CEILING_RATIO:
             below[axes] = sigma[axes]
             ceilings[axes] = sigma[axes] / ceiling.ratio
-    found = bool(ceilings.isfinite().any())
-    if not lags and not found:
+        if lag is not None and _lag_contradicts(lag, float((se[axes] / sigma[axes]).mean())):
+            low = math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0))
+            below[axes] = torch.maximum(below[axes], sigma[axes] * (1.0 - low))
+            lags[axes] = lag.ratio
+    lagged, capped = bool(lags.isfinite().any()), bool(ceilings.isfinite().any())
+    if not lagged and not capped:
         return noise
     wider = torch.hypot(se, below).to(noise.meas_std_se.dtype)
     return noise._replace(
         meas_std_se=wider,
-        lag_ratio=min(lags) if lags else None,
-        noise_ceiling=ceilings.to(noise.meas_var.dtype) if found else None,
+        lag_ratio=lags if lagged else None,
+        noise_ceiling=ceilings.to(noise.meas_var.dtype) if capped else None,
     )
 
 

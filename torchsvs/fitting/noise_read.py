@@ -110,7 +110,7 @@ def with_noise_read(settings: Settings, tracks: RecordedTracks) -> Settings:
         meas_std_se=meas_std_se,
         noise_spread=spread,
         noise_within=changes,
-        noise_lag=noise.lag_ratio,
+        noise_lag=None if noise.lag_ratio is None else noise.lag_ratio.tolist(),
         noise_ceiling=None if noise.noise_ceiling is None else noise.noise_ceiling.tolist(),
     )
 
@@ -260,14 +260,17 @@ def motion_warning(settings: Settings) -> str | None:
     reports apart (``noise_lag``) or by the smallest changes (``noise_ceiling``)."""
     if not settings.reading_is_motion:
         return None
-    ratio, ceiling = settings.noise_lag, settings.noise_ceiling or []
+    lags = [v for v in settings.noise_lag or [] if v is not None and v == v]
+    ratio = min(lags) if lags else None
+    ceiling = settings.noise_ceiling or []
     why = (
         f"the positions' second differences two reports apart covary at {ratio:.2g} times what "
         "noise at the reading makes (noise of any level makes it 1, and steady motion or "
         "white acceleration adds nothing)"
         if ratio is not None
         else "more of the positions' smallest changes are small than noise at the reading "
-        f"allows: they allow at most {short([c for c in ceiling if c == c])} m, whatever the "
+        f"allows: they allow at most {short([c for c in ceiling if c is not None and c == c])} "
+        "m, whatever the "
         "motion (motion only spreads them)"
     )
     return (
