@@ -95,6 +95,15 @@ LEAST_PAIRS = 200
 #: trams, vans, trucks, scooters, aircraft in turns and ships by satellite, reported 15 s to an
 #: hour apart.
 CEILING_RATIO = 1.5
+#: ... and where the lag reading is below this share of the reading by :data:`LAG_ERRORS_BELOW`
+#: of its standard errors: noise whose level changes from row to row (two sensors interleaved,
+#: 30% of rows at 40 m and 70% at 5 m; a receiver switching between 3 and 30 m every few
+#: reports; a level drawn for each row) puts more residuals near 0 than one level does, and the
+#: bound read 1.5-2.6 times below it with no motion at all; but noise of any level, row by row
+#: too, covaries two reports apart as the reading says (0.86-1.09 of it there), where motion
+#: that raises the reading makes that covariance smaller (buses every 30-45 s: 0.24-0.60).
+CEILING_LAG = 0.8
+LAG_ERRORS_BELOW = 2.0
 
 
 class LagReading(NamedTuple):
@@ -182,10 +191,11 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
       and the Kalman smoother there was 9.3 times the measurements' error without a word;
     - the smallest changes (``noise_ceiling``, :func:`~torchsvs.datasets.noise_ceiling.
       ceiling_reading`), where the reading is above :data:`CEILING_RATIO` times the most noise
-      they allow: the reading's low end is then 0, and its high end that most (vans every
-      60 s: the error range was 0.5-208 m for a true 7 m, now 0.5-16 m). Buses every 30-45 s,
-      σ 3-10 m, read 42-49 m (their lag readings 0.5-0.7), and the Kalman smoother was 3.3-9.8
-      times the measurements' error without a word.
+      they allow and the lag reading is surely below :data:`CEILING_LAG`: the reading's low
+      end is then 0, and its high end that most (vans every 60 s: the error range was
+      0.5-208 m for a true 7 m, now 0.5-16 m). Buses every 30-45 s, σ 3-10 m, read 42-49 m
+      (their lag readings 0.24-0.60), and the Kalman smoother was 3.3-9.8 times the
+      measurements' error without a word.
 
     The run's guards then act on the reading's uncertainty: ``sample_accuracy.lowered_noise``
     runs at its low end (at least :data:`~torchsvs.sample_accuracy.MOTION_NOISE_SHARE` of the
@@ -203,7 +213,8 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
             continue
         lag = lag_reading(z[..., axes], dt, noise.meas_var[axes])
         ceiling = ceiling_reading(z[..., axes], dt, noise.meas_var[axes])
-        if ceiling is not None and ceiling.ratio > CEILING_RATIO:
+        below_one = lag is not None and lag.ratio + LAG_ERRORS_BELOW * lag.se < CEILING_LAG
+        if ceiling is not None and ceiling.ratio > CEILING_RATIO and below_one:
             below[axes] = sigma[axes]
             ceilings[axes] = sigma[axes] / ceiling.ratio
         if lag is not None and _lag_contradicts(lag, float((se[axes] / sigma[axes]).mean())):
