@@ -220,15 +220,38 @@ def test_one_axis_and_three_read_their_own_chi(m):
     assert found is not None and 0.85 < found.ratio < 1.15, found
 
 
-def test_a_noise_free_altitude_is_not_taken_for_motion():
-    """ADS-B's barometric altitude comes in 25 ft steps, level between them: its noise reads
-    at float rounding (1e-13 m), and the lag check took that for motion between reports, the
-    whole run's error estimate unknown for it. An axis group with no noise to read is left
-    alone; the horizontal axes' reading, noise, stands."""
+def test_a_noise_free_altitude_costs_the_horizontal_estimate_nothing(tmp_path):
+    """ADS-B's barometric altitude comes in 25 ft steps, level between them: its noise reads at
+    float rounding (1e-13 m), which the lag check contradicts, and the whole run's error
+    estimate was unknown for it, with a warning of motion between reports. Its error cannot be
+    read off it, so its part stays unknown, but the horizontal part, whose reading stands,
+    keeps its point estimate and its noise, and the warning says what the altitude is."""
+    from torchsvs.datasets import Columns
+    from torchsvs.tracking import track_file
+
     dt, path, noise, gen = _cv(2)
     climb = torch.cumsum(dt, 1) * (5.0 * torch.rand(dt.shape[0], 1, generator=gen) - 2.5)
     altitude = torch.round((3000.0 + climb.clamp(-300.0, 300.0)) / 7.62) * 7.62
-    z = torch.cat([path + noise, altitude.unsqueeze(-1).double()], -1)
-    read = estimate_noise(z, dt)
-    assert float(read.meas_var[2]) < 1e-12 < float(read.meas_var[:2].min())
-    assert motion_checked(read, z, dt) is read
+    z = (path + noise).numpy()
+    t = torch.cumsum(dt, 1).numpy()
+    frame = pd.DataFrame(
+        {
+            "track_id": np.repeat(np.arange(z.shape[0]), z.shape[1]),
+            "time": t.reshape(-1),
+            "x": z[..., 0].reshape(-1),
+            "y": z[..., 1].reshape(-1),
+            "z": altitude.numpy().reshape(-1),
+        }
+    )
+    source = tmp_path / "flights.csv"
+    frame.to_csv(source, index=False)
+    run = track_file(
+        source, tmp_path / "out.csv", Settings("ks"), columns=Columns(), progress=False
+    )
+    lowered, ran = run.settings.noise_lowered_from, run.settings.meas_var
+    assert lowered is not None and ran is not None and lowered[2] < 1e-9
+    assert ran[:2] == pytest.approx([v * v for v in lowered[:2]])  # (the horizontal reading stands)
+    parts = run.axes_parts()
+    assert not parts["horizontal"].noise_unknown and parts["vertical"].noise_unknown
+    assert any("read no noise on axes [2]" in w for w in run.warnings)
+    assert not any("mostly motion" in w for w in run.warnings)

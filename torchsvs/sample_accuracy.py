@@ -301,8 +301,9 @@ def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | N
     tracks (``noise_within``, :func:`checked_within`): its level is then above the reading on
     purpose, and the low end is the quiet stretches', the reading that made the smoother follow
     the loud ones. Where the second differences two reports apart contradict the reading
-    (``noise_lag``, :func:`~torchsvs.datasets.noise_lags.motion_checked`), the run takes the low
-    end without the test: the measurements' error the test compares with is the reading's."""
+    (``noise_lag``, ``noise_ceiling``, :func:`~torchsvs.datasets.noise_lags.motion_checked`),
+    the run takes the low end of those axes without the test (the measurements' error the test
+    compares with is the reading's), and the others' reading."""
     if settings.noise != "data" or settings.meas_var is None or within_mean_taken(settings):
         return None
     ends = meas_var_range(settings, GUARD_ERRORS)
@@ -311,8 +312,13 @@ def lowered_noise(settings: Settings, tracks: RecordedTracks) -> list[float] | N
     if not settings.reading_is_motion and kalman_clearly_better(settings, tracks):
         return None
     low, _ = ends
-    share = MOTION_NOISE_SHARE if settings.reading_is_motion else LOWEST_NOISE_SHARE
-    return [max(v, share * r) for v, r in zip(low, settings.meas_var, strict=True)]
+    if not settings.reading_is_motion:
+        return [max(v, LOWEST_NOISE_SHARE * r) for v, r in zip(low, settings.meas_var, strict=True)]
+    # (an axis group whose reading stands keeps it: a flat road's altitude beside vans' motion)
+    return [
+        max(v, MOTION_NOISE_SHARE * r) if settings.reading_is_motion_on([j]) else r
+        for j, (v, r) in enumerate(zip(low, settings.meas_var, strict=True))
+    ]
 
 
 #: Where the tracks' noise read each alone differs by more than this (``τ`` of ``log σ``,

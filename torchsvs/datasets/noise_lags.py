@@ -44,7 +44,6 @@ from torchsvs.datasets.noise_ceiling import ceiling_reading
 from torchsvs.datasets.noise_estimate import (
     CUTOFF,
     MANEUVER,
-    NOISE_FREE,
     NoiseEstimate,
     truncated_second_moment,
 )
@@ -209,8 +208,6 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     below = torch.zeros_like(sigma)
     lags, ceilings = torch.full_like(sigma, math.nan), torch.full_like(sigma, math.nan)
     for axes in ([0, 1], [2]) if sigma.numel() == 3 else (list(range(sigma.numel())),):
-        if _noise_free(z[..., axes], sigma[axes]):
-            continue
         lag = lag_reading(z[..., axes], dt, noise.meas_var[axes])
         ceiling = ceiling_reading(z[..., axes], dt, noise.meas_var[axes])
         below_one = lag is not None and lag.ratio + LAG_ERRORS_BELOW * lag.se < CEILING_LAG
@@ -230,16 +227,6 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
         lag_ratio=lags if lagged else None,
         noise_ceiling=ceilings.to(noise.meas_var.dtype) if capped else None,
     )
-
-
-def _noise_free(z: Tensor, sigma: Tensor) -> bool:
-    """Whether the noise read on the axes of ``z`` (``sigma``) is float rounding
-    (:data:`~torchsvs.datasets.noise_estimate.NOISE_FREE`): nothing to contradict, and the
-    estimates there follow the measurements whatever the check says. The barometric altitude of
-    ADS-B flights (25 ft steps, level between them) read 1e-13 m, and the lag check took it for
-    motion, the whole run's error estimate unknown for it."""
-    scale = float(torch.where(torch.isnan(z), 0.0, z).abs().max()) if z.numel() else 0.0
-    return float(sigma.max()) <= NOISE_FREE * scale
 
 
 def _lag_contradicts(lag: LagReading, relative: float) -> bool:

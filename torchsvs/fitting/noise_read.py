@@ -250,6 +250,8 @@ def noise_warnings(settings: Settings, run_std: Sequence[float]) -> list[str]:
     return out
 
 
+#: A noise read below this (m) is float rounding, not noise (:func:`motion_warning`).
+NO_NOISE = 1e-6
 #: The lag reading's other cause (:func:`motion_warning`).
 CORRELATED = ", or the noise is correlated from report to report"
 
@@ -260,6 +262,23 @@ def motion_warning(settings: Settings) -> str | None:
     reports apart (``noise_lag``) or by the smallest changes (``noise_ceiling``)."""
     if not settings.reading_is_motion:
         return None
+    read = settings.noise_lowered_from or [v**0.5 for v in settings.meas_var or []]
+    flagged = [
+        j
+        for j in range(len(read))
+        if any(
+            per is not None and per[j] is not None and per[j] == per[j]
+            for per in (settings.noise_lag, settings.noise_ceiling)
+        )
+    ]
+    if flagged and all(read[j] < NO_NOISE for j in flagged):
+        return (
+            f"measurement noise: the positions read no noise on axes {flagged} (at float "
+            f"rounding, {short([read[j] for j in flagged])} m: noise-free, quantized or "
+            "interpolated positions, such as ADS-B's barometric altitude in 25 ft steps), so "
+            "their error cannot be read off them and the error estimate there is unknown; "
+            "give --meas-std with the sensor's noise if known"
+        )
     lags = [v for v in settings.noise_lag or [] if v is not None and v == v]
     ratio = min(lags) if lags else None
     ceiling = settings.noise_ceiling or []
