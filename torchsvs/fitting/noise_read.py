@@ -263,14 +263,7 @@ def motion_warning(settings: Settings) -> str | None:
     if not settings.reading_is_motion:
         return None
     read = settings.noise_lowered_from or [v**0.5 for v in settings.meas_var or []]
-    flagged = [
-        j
-        for j in range(len(read))
-        if any(
-            per is not None and per[j] is not None and per[j] == per[j]
-            for per in (settings.noise_lag, settings.noise_ceiling)
-        )
-    ]
+    flagged = [j for j in range(len(read)) if settings.reading_is_motion_on([j])]
     if flagged and all(read[j] < NO_NOISE for j in flagged):
         return (
             f"measurement noise: the positions read no noise on axes {flagged} (at float "
@@ -289,13 +282,12 @@ def motion_warning(settings: Settings) -> str | None:
         if ratio is not None
         else "more of the positions' smallest changes are small than noise at the reading "
         f"allows: they allow at most {short([c for c in ceiling if c is not None and c == c])} "
-        "m, whatever the "
-        "motion (motion only spreads them)"
+        "m, whatever the motion (motion only spreads them)"
     )
     return (
         f"measurement noise: the reading off the data is mostly motion between reports: {why}, "
         "so the reports' changes of speed and direction (corners, stops) read as noise at "
         f"these report times{CORRELATED if ratio is not None else ''}; the reading's "
-        "uncertainty takes in the difference, and the "
-        "error estimate's range with it; give --meas-std with the sensor's noise if known"
+        "uncertainty takes in the difference, and the error estimate's range with it; give "
+        "--meas-std with the sensor's noise if known"
     )
