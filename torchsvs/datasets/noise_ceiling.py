@@ -9,16 +9,17 @@ every convex set :math:`C` symmetric about 0. A divided-difference residual of t
 motion's share, so the share of residuals within a ball of radius :math:`\varepsilon` is at
 most noise's alone, whatever the motion: motion only spreads them. The residuals' quantiles
 thus bound the noise from above, each axis group together (a target standing or going straight
-is still on every axis at once, which noise is not), each track's residuals whitened by its
-own noise correlation between the axes (a radar's range and cross-range errors, rotated with
-its bearing, are not the file's axes). Buses reported every 30-45 s, σ 3-10 m, read 42-49 m of
-noise off their stops and corners (:func:`~torchsvs.datasets.estimate_noise`): a 5 m sensor's
-smallest 0.5% of their first differences bound it at 13.6 m.
+is still on every axis at once, which noise is not). Buses reported every 30-45 s, σ 3-10 m,
+read 42-49 m of noise off their stops and corners (:func:`~torchsvs.datasets.estimate_noise`):
+a 5 m sensor's smallest 2% of their first differences bound it at 13.7 m.
 
-Noise whose level differs from track to track (a third to three times the file's) puts more
-residuals near 0 than one level does; the bound is then read twice, with the file's reading
-and with each track's own (:func:`~torchsvs.datasets.track_noise.read_track_noise`), and the
-lower ratio stands (:func:`ceiling_reading`).
+Noise whose level or shape changes along the tracks (a third to three times the file's from
+track to track; a radar's range and cross-range errors, turning with its bearing) puts more
+residuals near 0 than one level and shape do; the bound is then read twice, against the file's
+reading and with each residual whitened by the noise covariance read about it
+(:data:`WINDOW`), and the lower ratio stands (:func:`ceiling_reading`). Noise whose level
+changes from row to row reads above it all the same: the check that acts on it asks the
+covariance two reports apart too (:func:`~torchsvs.datasets.noise_lags.motion_checked`).
 
 References:
     Anderson, "The integral of a symmetric unimodal function over a symmetric convex set and
@@ -33,7 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsvs.datasets.differences import ORDERS, difference_residuals
+from torchsvs.datasets.differences import ORDERS, Residuals, difference_residuals
 from torchsvs.datasets.noise_estimate import CUTOFF, truncated_second_moment
 from torchsvs.datasets.track_noise import read_track_noise
 
@@ -66,8 +67,9 @@ def ceiling_reading(z: Tensor, dt: Tensor, meas_var: Tensor) -> Ceiling | None:
     """The noise reading ``meas_var [m]`` (per axis of ``z [B, T, m]``, NaN where missing;
     ``dt [B, T]`` the intervals) over the largest noise that the residuals' smallest
     :data:`SHARES` allow (module docstring), the highest over :data:`TEST_ORDERS` and shares:
-    read with the file's noise and with each track's own, the lower of the two. None where no
-    share has :data:`LEAST_BELOW` residuals below it."""
+    read against the file's reading and whitened by the noise covariance about each residual
+    (:func:`_local_whitening`), the lower of the two. None where no share has
+    :data:`LEAST_BELOW` residuals below it."""
     var = meas_var.to(torch.float64)
     z = z.to(torch.float64)
     z = torch.where(torch.isnan(z).any(-1, keepdim=True), math.nan, z)  # (whole positions)
@@ -100,17 +102,17 @@ def ceiling_reading(z: Tensor, dt: Tensor, meas_var: Tensor) -> Ceiling | None:
     return best
 
 
-def _stacked(res: object, sigma: Tensor, m: int) -> tuple[Tensor, Tensor]:
+def _stacked(res: Residuals, sigma: Tensor, m: int) -> tuple[Tensor, Tensor]:
     """The residuals of every axis of one stencil side by side, over the reading's σ
     (``[N, m]``), and their stencil's track, order and first step (``[N, 3]``): the axes'
     stencils are alike where every position is observed whole."""
-    key = torch.stack([res.track, res.order, res.first], dim=1)  # type: ignore[attr-defined]
-    first = res.axis == 0  # type: ignore[attr-defined]
+    key = torch.stack([res.track, res.order, res.first], dim=1)
+    first = res.axis == 0
     keys = key[first]
     columns = []
     for a in range(m):
-        on = res.axis == a  # type: ignore[attr-defined]
-        columns.append(res.u[on] / sigma[a])  # type: ignore[attr-defined]
+        on = res.axis == a
+        columns.append(res.u[on] / sigma[a])
     return torch.stack(columns, dim=1), keys
 
 
@@ -154,24 +156,31 @@ def _local_whitening(u: Tensor, keys: Tensor, own: Tensor, rows: Tensor, T: int)
 
 def _ratio(radius: Tensor, m: int) -> tuple[float, float] | None:
     """The largest ratio over :data:`SHARES` of noise's radius quantile (unit noise per axis,
-    ``m`` axes) over the residuals', and its share; None where no share has enough below."""
+    ``m`` axes) over the residuals' (all above :data:`ON_LINE`), and its share; None where no
+    share has enough below."""
     n = radius.numel()
     shares = [q for q in SHARES if q * n >= LEAST_BELOW]
     if not shares:
         return None
     found = torch.quantile(radius, torch.tensor(shares, dtype=torch.float64))
-    best = max(
-        (_noise_radius(q, m) / float(r), q) for q, r in zip(shares, found, strict=True) if r > 0
-    )
-    return best
+    ratios = [(_noise_radius(q, m) / float(r), q) for q, r in zip(shares, found, strict=True)]
+    return max((ratio for ratio in ratios if math.isfinite(ratio[0])), default=None)
 
 
 def _noise_radius(q: float, m: int) -> float:
-    """The radius within which unit white noise on ``m`` axes falls with probability ``q``
-    (χ with ``m`` degrees of freedom; ``m`` 1 or 2, else a Wilson-Hilferty approximation)."""
-    if m == 1:
-        return math.sqrt(2.0) * float(torch.special.erfinv(torch.tensor(q, dtype=torch.float64)))
-    if m == 2:
-        return math.sqrt(-2.0 * math.log1p(-q))
-    z = math.sqrt(2.0) * float(torch.special.erfinv(torch.tensor(2 * q - 1, dtype=torch.float64)))
-    return math.sqrt(m * (1 - 2 / (9 * m) + z * math.sqrt(2 / (9 * m))) ** 3)
+    """The radius within which unit white noise on ``m`` axes falls with probability ``q``: χ's
+    quantile with ``m`` degrees of freedom, by bisection of the regularized lower incomplete
+    gamma function, :math:`P(m/2, r^2/2) = q`."""
+    low, high = 0.0, 1.0
+    while _chi_cdf(high, m) < q:
+        high *= 2.0
+    for _ in range(60):
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if _chi_cdf(mid, m) < q else (low, mid)
+    return 0.5 * (low + high)
+
+
+def _chi_cdf(radius: float, m: int) -> float:
+    """χ's distribution function with ``m`` degrees of freedom at ``radius``."""
+    half = torch.tensor([0.5 * m, 0.5 * radius * radius], dtype=torch.float64)
+    return float(torch.special.gammainc(half[0], half[1]))

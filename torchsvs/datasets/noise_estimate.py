@@ -47,6 +47,13 @@ class NoiseEstimate(NamedTuple):
     #: (``meas_std_se`` then reaches 0 on those axes)
     noise_ceiling: Tensor | None = None
 
+    @property
+    def contradicted(self) -> bool:
+        """Whether the reading is contradicted as motion between reports on some axis
+        (``lag_ratio`` or ``noise_ceiling``, :func:`~torchsvs.datasets.noise_lags.
+        motion_checked`)."""
+        return self.lag_ratio is not None or self.noise_ceiling is not None
+
 
 #: Positions whose differences are at most this share of their magnitude carry no noise to read:
 #: float rounding of positions on smooth paths (noise-free, simulated or interpolated data).

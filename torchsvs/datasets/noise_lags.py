@@ -210,23 +210,22 @@ def motion_checked(noise: NoiseEstimate, z: Tensor, dt: Tensor) -> NoiseEstimate
     for axes in ([0, 1], [2]) if sigma.numel() == 3 else (list(range(sigma.numel())),):
         lag = lag_reading(z[..., axes], dt, noise.meas_var[axes])
         ceiling = ceiling_reading(z[..., axes], dt, noise.meas_var[axes])
-        below_one = lag is not None and lag.ratio + LAG_ERRORS_BELOW * lag.se < CEILING_LAG
-        if ceiling is not None and ceiling.ratio > CEILING_RATIO and below_one:
+        lag_agrees = lag is not None and lag.ratio + LAG_ERRORS_BELOW * lag.se < CEILING_LAG
+        if ceiling is not None and ceiling.ratio > CEILING_RATIO and lag_agrees:
             below[axes] = sigma[axes]
             ceilings[axes] = sigma[axes] / ceiling.ratio
         if lag is not None and _lag_contradicts(lag, float((se[axes] / sigma[axes]).mean())):
             low = math.sqrt(max(lag.ratio - LOW_ERRORS * lag.se, 0.0))
             below[axes] = torch.maximum(below[axes], sigma[axes] * (1.0 - low))
             lags[axes] = lag.ratio
-    lagged, capped = bool(lags.isfinite().any()), bool(ceilings.isfinite().any())
-    if not lagged and not capped:
-        return noise
-    wider = torch.hypot(se, below).to(noise.meas_std_se.dtype)
-    return noise._replace(
-        meas_std_se=wider,
-        lag_ratio=lags if lagged else None,
-        noise_ceiling=ceilings.to(noise.meas_var.dtype) if capped else None,
+    checked = noise._replace(
+        meas_std_se=torch.hypot(se, below).to(noise.meas_std_se.dtype),
+        lag_ratio=lags if bool(lags.isfinite().any()) else None,
+        noise_ceiling=ceilings.to(noise.meas_var.dtype)
+        if bool(ceilings.isfinite().any())
+        else None,
     )
+    return checked if checked.contradicted else noise
 
 
 def _lag_contradicts(lag: LagReading, relative: float) -> bool:

@@ -342,8 +342,7 @@ def checked_given_noise(settings: Settings, tracks: RecordedTracks) -> Settings:
     whole = reading.meas_var.double().sqrt().tolist()
     if above:
         return replace(settings, noise_above_data=whole)
-    checked = motion_checked(reading, tracks.z, tracks.dt)
-    if checked.lag_ratio is not None or checked.noise_ceiling is not None:
+    if motion_checked(reading, tracks.z, tracks.dt).contradicted:
         return settings  # (the reading is motion between reports: no measure of the noise given)
     return replace(settings, noise_below_data=whole)
 
